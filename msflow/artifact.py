@@ -1,0 +1,155 @@
+"""One artifact = one zarr v3 group: chunked zstd arrays plus a strict-JSON manifest in its attributes.
+
+The manifest (``attributes["msflow"]``) records every output's content hash, shape and dtype, the stage's
+metadata and metrics, and the artifact's content hash. It is plain JSON in ``zarr.json``, so the no-op path reads
+it with ``json`` alone; zarr is imported only to read or write arrays.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Mapping
+
+from msflow.hashing import array_hash, json_hash
+
+FORMAT = 1
+CHUNK_BYTES = 4 << 20
+
+
+class ArtifactView:
+    """Read access to an artifact: ``view["name"]`` is numpy, ``view.lazy("name")`` the stored (zarr) array."""
+
+    def __init__(self, arrays: Mapping[str, Any], meta: dict, metrics: dict, key: str | None = None,
+                 manifest: dict | None = None):
+        self._arrays = dict(arrays)
+        self._loaded: dict[str, Any] = {}
+        self.meta = meta
+        self.metrics = metrics
+        self.key = key
+        self.manifest = manifest or {}
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self._arrays)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._arrays
+
+    def __getitem__(self, name: str):
+        if name not in self._loaded:
+            import numpy as np
+
+            if name not in self._arrays:
+                raise KeyError(f"artifact has no output '{name}'; it has {sorted(self._arrays)}")
+            self._loaded[name] = np.asarray(self._arrays[name][...])
+        return self._loaded[name]
+
+    def get(self, name: str, default=None):
+        return self[name] if name in self._arrays else default
+
+    def lazy(self, name: str):
+        return self._arrays[name]
+
+    def bytes(self, name: str) -> bytes:
+        return self[name].tobytes()
+
+    def __repr__(self) -> str:
+        return f"ArtifactView({', '.join(self.names)})"
+
+
+def chunk_shape(shape: tuple[int, ...], itemsize: int) -> tuple[int, ...]:
+    """Chunk along the first axis only, about CHUNK_BYTES each: frames are read in runs."""
+    if not shape:
+        return ()
+    row = itemsize * max(1, int(_prod(shape[1:])))
+    return (max(1, min(shape[0], CHUNK_BYTES // row)),) + tuple(max(1, s) for s in shape[1:])
+
+
+def _prod(values) -> int:
+    out = 1
+    for v in values:
+        out *= v
+    return out
+
+
+def build_manifest(arrays: Mapping[str, Any], meta: dict, metrics: dict,
+                   file_suffixes: Mapping[str, str | None] | None = None) -> dict:
+    """Content hashes of arrays and metadata; ``content_hash`` identifies the artifact's content."""
+    outputs = {}
+    for name, arr in arrays.items():
+        entry = {"hash": array_hash(arr), "shape": list(arr.shape), "dtype": str(arr.dtype)}
+        suffix = (file_suffixes or {}).get(name)
+        if suffix:
+            entry["file_suffix"] = suffix
+        outputs[name] = entry
+    meta_hash = json_hash({"meta": meta, "metrics": metrics})
+    content = json_hash({"outputs": {k: v["hash"] for k, v in sorted(outputs.items())}, "meta": meta_hash})
+    return {"format": FORMAT, "outputs": outputs, "meta": meta, "metrics": metrics, "meta_hash": meta_hash,
+            "content_hash": content}
+
+
+def write_artifact(path: Path, arrays: Mapping[str, Any], manifest_extra: dict,
+                   file_suffixes: Mapping[str, str | None] | None = None) -> dict:
+    """Write a new zarr group at ``path`` (which must not exist) and return its manifest."""
+    import numpy as np
+    import zarr
+    from zarr.codecs import ZstdCodec
+
+    meta = manifest_extra.get("meta", {})
+    metrics = manifest_extra.get("metrics", {})
+    arrays = {k: np.ascontiguousarray(v) for k, v in arrays.items()}
+    manifest = build_manifest(arrays, meta, metrics, file_suffixes)
+    manifest.update({k: v for k, v in manifest_extra.items() if k not in ("meta", "metrics")})
+    group = zarr.open_group(str(path), mode="w-")
+    for name, arr in arrays.items():
+        target = group.create_array(name, shape=arr.shape, dtype=arr.dtype,
+                                    chunks=chunk_shape(arr.shape, arr.dtype.itemsize),
+                                    compressors=ZstdCodec(level=3), fill_value=None if arr.dtype.kind == "V" else 0)
+        if arr.size:
+            target[...] = arr
+    group.attrs.update({"msflow": manifest})
+    return manifest
+
+
+def read_manifest(path: Path) -> dict:
+    """The manifest alone, without importing zarr."""
+    with open(Path(path) / "zarr.json", "rb") as fh:
+        return json.load(fh)["attributes"]["msflow"]
+
+
+def read_artifact(path: Path, key: str | None = None) -> ArtifactView:
+    import zarr
+
+    manifest = read_manifest(path)
+    group = zarr.open_group(str(path), mode="r")
+    arrays = {name: group[name] for name in manifest["outputs"]}
+    return ArtifactView(arrays, manifest.get("meta", {}), manifest.get("metrics", {}), key=key, manifest=manifest)
+
+
+def verify_artifact(path: Path) -> list[str]:
+    """Recompute every content hash of an artifact; return a list of problems (empty when intact)."""
+    problems = []
+    try:
+        manifest = read_manifest(path)
+    except Exception as exc:  # unreadable zarr.json is itself the finding
+        return [f"manifest unreadable: {exc}"]
+    try:
+        view = read_artifact(path)
+        for name, entry in manifest["outputs"].items():
+            try:
+                got = array_hash(view[name])
+            except Exception as exc:
+                problems.append(f"output '{name}': unreadable ({type(exc).__name__}: {exc})")
+                continue
+            if got != entry["hash"]:
+                problems.append(f"output '{name}': content hash {got} != recorded {entry['hash']}")
+        if json_hash({"meta": manifest.get("meta", {}), "metrics": manifest.get("metrics", {})}) != \
+                manifest.get("meta_hash"):
+            problems.append("metadata: hash differs from recorded")
+        content = json_hash({"outputs": {k: v["hash"] for k, v in sorted(manifest["outputs"].items())},
+                             "meta": manifest.get("meta_hash")})
+        if content != manifest.get("content_hash"):
+            problems.append("manifest: content hash differs from recorded")
+    except Exception as exc:
+        problems.append(f"unreadable: {type(exc).__name__}: {exc}")
+    return problems

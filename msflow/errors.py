@@ -1,0 +1,55 @@
+"""Errors msflow distinguishes: a user's mistake (exit 2) versus a failing stage (exit 1)."""
+from __future__ import annotations
+
+
+class UserError(Exception):
+    """Something the user can fix: bad config, missing file, unusable data.
+
+    The CLI prints it without a traceback and exits with code 2. ``file``, ``stage`` and ``field`` locate
+    the problem; stages raise it (``raise UserError("no face found", field="inputs.videos.sad")``) and the
+    runner fills in the stage name.
+    """
+
+    exit_code = 2
+
+    def __init__(self, message: str, *, file: str | None = None, stage: str | None = None,
+                 field: str | None = None):
+        super().__init__(message)
+        self.message = message
+        self.file = file
+        self.stage = stage
+        self.field = field
+
+    def located(self, *, file: str | None = None, stage: str | None = None,
+                field: str | None = None) -> "UserError":
+        """Fill in location parts that are still unknown; returns self."""
+        self.file = self.file or file
+        self.stage = self.stage or stage
+        self.field = self.field or field
+        return self
+
+    def __str__(self) -> str:
+        where = []
+        if self.file:
+            where.append(str(self.file))
+        if self.stage:
+            where.append(f"stage '{self.stage}'")
+        if self.field:
+            where.append(f"field '{self.field}'")
+        return (": ".join(where) + ": " if where else "") + self.message
+
+    def to_json(self) -> dict:
+        return {"type": "UserError", "message": self.message, "file": self.file, "stage": self.stage,
+                "field": self.field}
+
+
+class StageFailed(Exception):
+    """A stage raised something other than UserError (a bug or an environment problem): exit 1."""
+
+    exit_code = 1
+
+    def __init__(self, stage: str, message: str, traceback: str = ""):
+        super().__init__(f"stage '{stage}' failed: {message}")
+        self.stage = stage
+        self.message = message
+        self.traceback = traceback

@@ -1,0 +1,71 @@
+"""Content hashes (xxh3-128, hex): canonical JSON, numpy arrays, files (memoised by stat)."""
+from __future__ import annotations
+
+import json
+import mmap
+import os
+from pathlib import Path
+from typing import Any
+
+import xxhash
+
+
+def canonical_json(value: Any) -> str:
+    """Deterministic strict JSON: sorted keys, no whitespace, NaN/Inf rejected."""
+    return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
+
+
+def json_hash(value: Any) -> str:
+    return xxhash.xxh3_128_hexdigest(canonical_json(value).encode())
+
+
+def bytes_hash(data: bytes) -> str:
+    return xxhash.xxh3_128_hexdigest(data)
+
+
+def array_hash(arr: Any) -> str:
+    """Hash of dtype, shape and C-order little-endian bytes: equal arrays hash equal however stored."""
+    import numpy as np
+
+    arr = np.asarray(arr)
+    if arr.dtype.byteorder == ">":
+        arr = arr.astype(arr.dtype.newbyteorder("<"))
+    h = xxhash.xxh3_128()
+    h.update(f"{arr.dtype.str}|{arr.shape}|".encode())
+    h.update(np.ascontiguousarray(arr).reshape(-1).view(np.uint8).data)
+    return h.hexdigest()
+
+
+def file_hash(path: Path) -> str:
+    """xxh3-128 of a file's bytes, hashed straight from the page cache through mmap (no copies)."""
+    with open(path, "rb") as fh:
+        size = os.fstat(fh.fileno()).st_size
+        if size == 0:
+            return xxhash.xxh3_128_hexdigest(b"")
+        with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+            return xxhash.xxh3_128_hexdigest(mm)
+
+
+def stat_signature(path: Path) -> str:
+    """What must stay equal for a memoised file hash to stay valid: size, mtime_ns, inode."""
+    st = os.stat(path)
+    return f"{st.st_size}:{st.st_mtime_ns}:{st.st_ino}"
+
+
+class FileHashMemo:
+    """Memo of file hashes keyed by (path, size, mtime_ns, inode), persisted as JSON by the caller."""
+
+    def __init__(self, entries: dict[str, list[str]] | None = None):
+        self.entries = entries or {}
+        self.dirty = False
+
+    def hash(self, path: Path) -> str:
+        key = str(path)
+        sig = stat_signature(path)
+        hit = self.entries.get(key)
+        if hit is not None and hit[0] == sig:
+            return hit[1]
+        digest = file_hash(path)
+        self.entries[key] = [sig, digest]
+        self.dirty = True
+        return digest

@@ -1,0 +1,215 @@
+"""The Stage contract: what a pipeline step declares (params, inputs, outputs) and what it returns.
+
+A stage is a class::
+
+    class Scale(Stage):
+        '''Multiply an array by a factor.'''
+
+        class Params(Stage.Params):
+            factor: float = 2.0
+
+        inputs = {"x": Input.array(kind="f")}
+        outputs = {"y": Output.array(kind="f", shape=("n",))}
+
+        def run(self, params, inputs):
+            return Result({"y": inputs["x"] * params.factor}, meta={"factor": params.factor})
+
+Inputs arrive as:
+- ``Input.array``: one upstream output (``stage.output`` in pipeline.yaml), a numpy array (``lazy=True``: a
+  read-only zarr array that loads on slicing);
+- ``Input.artifact``: a whole upstream artifact (``stage``), an ``ArtifactView`` (``view["name"]`` loads numpy,
+  ``view.lazy("name")``, ``view.meta``, ``view.metrics``);
+- ``Input.files``: data files, an ordered ``dict`` label -> absolute ``Path``.
+
+Two implementations of one pipeline step share one ``outputs`` mapping (define it once, assign it in both),
+so ``uses:`` swaps them. This module stays import-light: it is part of every stage's code fingerprint.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Mapping
+
+from pydantic import BaseModel, ConfigDict
+
+from msflow.errors import UserError
+
+DTYPE_KINDS = {"f": "float", "i": "signed int", "u": "unsigned int", "b": "bool", "c": "complex"}
+
+
+@dataclass(frozen=True)
+class Output:
+    """Schema of one output. ``kind`` lists accepted numpy dtype kinds ("f", "iu", "b").
+
+    ``shape`` entries: an int (fixed), None (free) or a name: a named dimension must have one size across all
+    outputs of the stage (e.g. "frames"). ``file`` outputs carry bytes (a GLB, a CSV, a video) stored as a
+    uint8 array; ``msflow export`` writes them back out as files.
+    """
+
+    kind: str = "f"
+    ndim: int | None = None
+    shape: tuple[int | str | None, ...] | None = None
+    dtype: str | None = None
+    optional: bool = False
+    file_suffix: str | None = None
+    doc: str = ""
+
+    @classmethod
+    def array(cls, kind: str = "f", *, ndim: int | None = None, shape: tuple | None = None,
+              dtype: str | None = None, optional: bool = False, doc: str = "") -> "Output":
+        if shape is not None:
+            shape = tuple(shape)
+            if ndim is not None and ndim != len(shape):
+                raise ValueError("Output.array: ndim disagrees with shape")
+            ndim = len(shape)
+        return cls(kind=kind, ndim=ndim, shape=shape, dtype=dtype, optional=optional, doc=doc)
+
+    @classmethod
+    def file(cls, suffix: str, *, optional: bool = False, doc: str = "") -> "Output":
+        return cls(kind="u", ndim=1, dtype="uint8", optional=optional, file_suffix=suffix, doc=doc)
+
+    def describe(self) -> dict:
+        return {"kind": self.kind, "ndim": self.ndim, "shape": list(self.shape) if self.shape else None,
+                "dtype": self.dtype, "optional": self.optional, "file_suffix": self.file_suffix}
+
+
+@dataclass(frozen=True)
+class Input:
+    """Declaration of one input. ``kind`` is "array", "artifact" or "files"."""
+
+    kind: str
+    optional: bool = False
+    requires: tuple[str, ...] = ()
+    lazy: bool = False
+    array_kind: str | None = None
+    ndim: int | None = None
+    doc: str = ""
+
+    @classmethod
+    def array(cls, kind: str | None = None, *, ndim: int | None = None, optional: bool = False,
+              lazy: bool = False, doc: str = "") -> "Input":
+        return cls("array", optional=optional, lazy=lazy, array_kind=kind, ndim=ndim, doc=doc)
+
+    @classmethod
+    def artifact(cls, *requires: str, optional: bool = False, doc: str = "") -> "Input":
+        return cls("artifact", optional=optional, requires=tuple(requires), doc=doc)
+
+    @classmethod
+    def files(cls, *, optional: bool = False, doc: str = "") -> "Input":
+        return cls("files", optional=optional, doc=doc)
+
+    def describe(self) -> dict:
+        return {"kind": self.kind, "optional": self.optional, "requires": list(self.requires),
+                "array_kind": self.array_kind, "ndim": self.ndim}
+
+
+@dataclass
+class Result:
+    """What ``Stage.run`` returns: named arrays (or bytes for file outputs), JSON metadata, scalar metrics."""
+
+    arrays: dict[str, Any]
+    meta: dict[str, Any] = field(default_factory=dict)
+    metrics: dict[str, float] = field(default_factory=dict)
+
+
+class Params(BaseModel):
+    """Base of every stage's parameters: unknown keys are an error, values are immutable."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Stage:
+    """Base class of pipeline stages. Subclasses set ``Params``, ``inputs``, ``outputs`` and define ``run``."""
+
+    Params: ClassVar[type[Params]] = Params
+    inputs: ClassVar[Mapping[str, Input]] = {}
+    outputs: ClassVar[Mapping[str, Output]] = {}
+
+    def __init__(self, name: str = ""):
+        self.name = name or type(self).__name__
+
+    def run(self, params: Any, inputs: dict[str, Any]) -> Result:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @classmethod
+    def interface(cls) -> dict:
+        """JSON description of inputs and outputs, used to check a pipeline without importing the stage."""
+        return {"inputs": {k: v.describe() for k, v in cls.inputs.items()},
+                "outputs": {k: v.describe() for k, v in cls.outputs.items()}}
+
+
+def to_strict_json(value: Any, where: str) -> Any:
+    """Return ``value`` as plain JSON types; numpy scalars and arrays convert, NaN/Inf and objects are errors."""
+    if value is None or isinstance(value, (bool, str)):
+        return value
+    if isinstance(value, int):
+        return int(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise ValueError(f"{where}: {value!r} is not allowed in strict JSON (store NaN in an array instead)")
+        return float(value)
+    if isinstance(value, Mapping):
+        out = {}
+        for k, v in value.items():
+            if not isinstance(k, str):
+                raise ValueError(f"{where}: key {k!r} is not a string")
+            out[k] = to_strict_json(v, f"{where}.{k}")
+        return out
+    if isinstance(value, (list, tuple)):
+        return [to_strict_json(v, f"{where}[{i}]") for i, v in enumerate(value)]
+    tolist = getattr(value, "tolist", None)  # numpy scalars and small arrays
+    if tolist is not None and type(value).__module__ == "numpy":
+        return to_strict_json(tolist(), where)
+    raise ValueError(f"{where}: {type(value).__name__} is not JSON (use str, int, float, bool, list, dict)")
+
+
+def validate_result(stage: str, cls: type[Stage], result: Any) -> dict[str, Any]:
+    """Check a run() result against the class's output schema; return the arrays as numpy.
+
+    Raises StageFailed-worthy ``TypeError``/``ValueError`` naming the stage and output: a schema violation is a
+    bug in the stage, not in the user's data.
+    """
+    import numpy as np
+
+    if not isinstance(result, Result):
+        raise TypeError(f"stage '{stage}': run() returned {type(result).__name__}, expected msflow.Result")
+    arrays: dict[str, np.ndarray] = {}
+    unknown = set(result.arrays) - set(cls.outputs)
+    if unknown:
+        raise ValueError(f"stage '{stage}': run() returned undeclared outputs {sorted(unknown)}; "
+                         f"declared: {sorted(cls.outputs)}")
+    dims: dict[str, tuple[int, str]] = {}
+    for name, spec in cls.outputs.items():
+        where = f"stage '{stage}', output '{name}'"
+        if name not in result.arrays or result.arrays[name] is None:
+            if spec.optional:
+                continue
+            raise ValueError(f"{where}: missing (declared and not optional)")
+        value = result.arrays[name]
+        if spec.file_suffix is not None:
+            if not isinstance(value, (bytes, bytearray, memoryview)):
+                raise TypeError(f"{where}: a file output must be bytes, got {type(value).__name__}")
+            arrays[name] = np.frombuffer(bytes(value), dtype=np.uint8)
+            continue
+        arr = np.asarray(value)
+        if arr.dtype.kind not in spec.kind:
+            raise TypeError(f"{where}: dtype {arr.dtype} is not of kind "
+                            f"{'/'.join(DTYPE_KINDS.get(k, k) for k in spec.kind)}")
+        if spec.dtype is not None and arr.dtype != np.dtype(spec.dtype):
+            raise TypeError(f"{where}: dtype {arr.dtype}, expected {spec.dtype}")
+        if spec.ndim is not None and arr.ndim != spec.ndim:
+            raise ValueError(f"{where}: {arr.ndim} dimensions {arr.shape}, expected {spec.ndim}")
+        for axis, want in enumerate(spec.shape or ()):
+            got = arr.shape[axis]
+            if isinstance(want, int) and got != want:
+                raise ValueError(f"{where}: axis {axis} has size {got}, expected {want} (shape {arr.shape})")
+            if isinstance(want, str):
+                if want in dims and dims[want][0] != got:
+                    raise ValueError(f"{where}: dimension '{want}' is {got} here but {dims[want][0]} in output "
+                                     f"'{dims[want][1]}'")
+                dims.setdefault(want, (got, name))
+        arrays[name] = np.ascontiguousarray(arr)
+    return arrays
+
+
+__all__ = ["Stage", "Params", "Input", "Output", "Result", "UserError", "to_strict_json", "validate_result"]

@@ -1,0 +1,1 @@
+"""Mood Swings pipeline stages: one module per pipeline step (paper Fig. 1)."""
