@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Mapping
+from typing import Any, Callable, ClassVar, Mapping
 
 from pydantic import BaseModel, ConfigDict
 
@@ -124,6 +124,9 @@ class Stage:
     Params: ClassVar[type[Params]] = Params
     inputs: ClassVar[Mapping[str, Input]] = {}
     outputs: ClassVar[Mapping[str, Output]] = {}
+    #: figures for the run report: name -> function(view: ArtifactView, inputs: dict) returning a matplotlib
+    #: Figure, PNG bytes or MP4 bytes; rendered from artifacts at report time (import matplotlib inside).
+    figures: ClassVar[Mapping[str, Callable[..., Any]]] = {}
 
     def __init__(self, name: str = ""):
         self.name = name or type(self).__name__
