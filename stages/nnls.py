@@ -1,0 +1,237 @@
+"""Batched non-negative least squares for the keyshape decomposition (paper Eq 8) and box-bounded QPs.
+
+Every frame of an edited sequence is decomposed into the same dictionary of keyshapes, so the problems share
+their matrix: ``min_w ||A w - x_t||^2, w >= 0`` for all frames t at once. Both solvers work in Gram form
+(Q = A'A, c_t = A'x_t), which is k x k whatever the landmark count, and advance all frames together:
+
+- ``nnls_active_set``: Lawson-Hanson active set, vectorised over frames (each frame keeps its own passive set;
+  the restricted normal equations of all frames are solved as one batched masked ``np.linalg.solve``). Exact in
+  a finite number of steps; the default.
+- ``solve_box_qp``: accelerated projected gradient (FISTA with adaptive restart) for
+  ``min 1/2 w'Hw - f'w`` with ``lower <= w <= upper``, optional temporal smoothing across frames; stops when
+  the KKT conditions hold to a relative tolerance. Used for the smoothed decomposition and for the [0, 1]-bounded
+  keymorph fit.
+
+``batched_nnls`` is the entry point: optional (off by default) soft sum-to-one constraint and temporal smoothing.
+``kkt_violation`` measures how far a solution is from optimal (0 at the optimum).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+EPS = np.finfo(np.float64).eps
+
+
+@dataclass
+class NnlsResult:
+    weights: np.ndarray       # (frames, k) >= 0
+    residual_norm: np.ndarray  # (frames,) ||A w - x||
+    iterations: np.ndarray     # (frames,) solver iterations spent on each frame
+    kkt: np.ndarray           # (frames,) relative KKT violation (see kkt_violation)
+    converged: np.ndarray     # (frames,) bool
+
+
+def projected_gradient(gradient: np.ndarray, weights: np.ndarray, lower=0.0, upper=np.inf) -> np.ndarray:
+    """The part of the gradient that the bounds do not block: zero everywhere exactly at a KKT point."""
+    at_lower = weights <= lower
+    at_upper = weights >= upper
+    return np.where(at_lower, np.minimum(gradient, 0.0), np.where(at_upper, np.maximum(gradient, 0.0), gradient))
+
+
+def kkt_violation(A: np.ndarray, X: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """Per frame, the KKT violation of ``min ||A w - x||^2, w >= 0``, relative to ``max_j ||a_j|| * ||x||``.
+
+    KKT: w >= 0, gradient g = A'(A w - x) >= 0, and g_j = 0 wherever w_j > 0; the projected gradient is zero
+    exactly when the last two hold, and a negative weight counts as infinite violation. 0 means optimal.
+    """
+    A = np.asarray(A, np.float64)
+    X = np.atleast_2d(np.asarray(X, np.float64))
+    W = np.atleast_2d(np.asarray(W, np.float64))
+    gradient = (W @ A.T - X) @ A
+    column_norm = np.sqrt(max(float((A * A).sum(axis=0).max(initial=0.0)), EPS))
+    scale = column_norm * np.maximum(np.linalg.norm(X, axis=1), EPS)
+    violation = np.abs(projected_gradient(gradient, W)).max(axis=1, initial=0.0) / scale
+    return np.where((W < 0).any(axis=1), np.inf, violation)
+
+
+def nnls_active_set(Q: np.ndarray, C: np.ndarray, x_norms: np.ndarray, *, rtol: float = 1e-10,
+                    max_iter: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Lawson-Hanson NNLS in Gram form for many right-hand sides at once.
+
+    Q (k, k) = A'A, C (n, k) rows A'x_t, x_norms (n,) = ||x_t|| (sets the per-frame gradient tolerance
+    ``rtol * max_j ||a_j|| * ||x_t||``). Returns weights (n, k), iterations (n,), converged (n,).
+    Each frame runs the textbook algorithm; the frames only share the loop, so a frame that finished is frozen.
+    """
+    Q = np.asarray(Q, np.float64)
+    C = np.asarray(C, np.float64)
+    n, k = C.shape
+    max_iter = max_iter or 5 * k + 10
+    col_scale = np.sqrt(max(np.diag(Q).max(initial=0.0), EPS))
+    tol = rtol * col_scale * np.maximum(np.asarray(x_norms, np.float64), EPS)
+    # a tiny ridge keeps the masked solves non-singular when two keyshapes are (nearly) collinear
+    ridge = 1e-13 * max(np.trace(Q) / max(k, 1), EPS)
+    diag = np.arange(k)
+
+    W = np.zeros((n, k))
+    passive = np.zeros((n, k), dtype=bool)
+    iterations = np.zeros(n, dtype=np.int64)
+    OUTER, INNER, DONE = 1, 2, 0
+    state = np.full(n, OUTER, dtype=np.int8)
+    added = np.full(n, -1, dtype=np.int64)      # variable added by the last outer step
+    first_inner = np.zeros(n, dtype=bool)
+    for _ in range(max_iter * 3):
+        outer = np.flatnonzero(state == OUTER)
+        if outer.size:
+            neg_grad = C[outer] - W[outer] @ Q
+            candidates = np.where(passive[outer], -np.inf, neg_grad)
+            j = np.argmax(candidates, axis=1)
+            best = candidates[np.arange(outer.size), j]
+            finished = ~(best > tol[outer]) | (iterations[outer] >= max_iter)
+            state[outer[finished]] = DONE
+            go = outer[~finished]
+            passive[go, j[~finished]] = True
+            added[go] = j[~finished]
+            first_inner[go] = True
+            state[go] = INNER
+        inner = np.flatnonzero(state == INNER)
+        if not inner.size:
+            if not (state == OUTER).any():
+                break
+            continue
+        iterations[inner] += 1
+        P = passive[inner]
+        mask = P.astype(np.float64)
+        # restricted normal equations, padded to k x k: Q on the passive block, identity elsewhere
+        M = mask[:, :, None] * Q * mask[:, None, :]
+        M[:, diag, diag] += (1.0 - mask) + ridge
+        S = np.linalg.solve(M, (C[inner] * mask)[:, :, None])[:, :, 0]
+        S[~P] = 0.0
+        feasible = np.all((S > 0) | ~P, axis=1)
+        # the variable just added got a non-positive value: its positive gradient was round-off, so stop there
+        # rather than cycle (Lawson & Hanson's own safeguard)
+        stalled = ~feasible & first_inner[inner] & (S[np.arange(inner.size), np.maximum(added[inner], 0)] <= 0)
+        first_inner[inner] = False
+
+        ok = inner[feasible]
+        W[ok] = S[feasible]
+        state[ok] = OUTER
+
+        st = inner[stalled]
+        passive[st, added[st]] = False
+        state[st] = DONE
+
+        step = ~feasible & ~stalled
+        idx = inner[step]
+        if idx.size:
+            Wi, Si, Pi = W[idx], S[step], P[step]
+            blocking = Pi & (Si <= 0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.where(blocking, Wi / (Wi - Si), np.inf)
+            alpha = np.clip(ratio.min(axis=1), 0.0, 1.0)
+            Wi = Wi + alpha[:, None] * (Si - Wi)
+            drop = Pi & (Wi <= 0)
+            # the blocking variable leaves exactly, even when round-off leaves it a hair above zero
+            drop[np.arange(idx.size), np.argmin(ratio, axis=1)] = True
+            passive[idx] = Pi & ~drop
+            Wi[~passive[idx]] = 0.0
+            W[idx] = Wi
+    converged = state == DONE
+    converged &= iterations < max_iter
+    W[~passive] = 0.0
+    return W, iterations, converged
+
+
+def solve_box_qp(H: np.ndarray, F: np.ndarray, *, lower: float = 0.0, upper: float = np.inf,
+                 smoothing: float = 0.0, W0: np.ndarray | None = None, rtol: float = 1e-7,
+                 max_iter: int = 20000) -> tuple[np.ndarray, int, np.ndarray]:
+    """Minimise ``sum_t 1/2 w_t'H w_t - f_t'w_t + smoothing/2 sum_t ||w_t - w_(t-1)||^2`` over a box.
+
+    FISTA (Beck & Teboulle 2009) with gradient-based adaptive restart (O'Donoghue & Candes 2015); rows (frames)
+    are coupled only through ``smoothing``. Stops when the projected gradient, the KKT residual of the box
+    constraints, is below ``rtol * (||f_t|| + ||H|| * ||w_t||)`` for every frame. Returns (W, iterations,
+    per-frame KKT residual relative to that scale).
+    """
+    H = np.asarray(H, np.float64)
+    F = np.atleast_2d(np.asarray(F, np.float64))
+    n, k = F.shape
+    lipschitz = float(np.linalg.eigvalsh(H)[-1]) + 4.0 * smoothing
+    lipschitz = max(lipschitz, EPS)
+    h_norm = lipschitz
+
+    def gradient(W):
+        g = W @ H - F
+        if smoothing > 0 and n > 1:
+            d = np.diff(W, axis=0)
+            g[:-1] -= smoothing * d
+            g[1:] += smoothing * d
+        return g
+
+    W = np.clip(np.zeros((n, k)) if W0 is None else np.asarray(W0, np.float64), lower, upper)
+    Y = W.copy()
+    t = np.ones(n if smoothing == 0 else 1)
+    residual = np.full(n, np.inf)
+    it = 0
+    for it in range(1, max_iter + 1):
+        G = gradient(Y)
+        W_new = np.clip(Y - G / lipschitz, lower, upper)
+        # restart momentum where it points uphill
+        uphill = np.einsum("ij,ij->i", G, W_new - W) > 0
+        if smoothing > 0:
+            uphill = np.array([uphill.any()])
+        t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
+        beta = np.where(uphill, 0.0, (t - 1.0) / t_new)
+        t = np.where(uphill, 1.0, t_new)
+        Y = W_new + (beta[:, None] if beta.size == n else beta[0]) * (W_new - W)
+        W = W_new
+        if it % 10 == 0 or it == max_iter:
+            pg = projected_gradient(gradient(W), W, lower, upper)
+            scale = np.linalg.norm(F, axis=1) + h_norm * np.linalg.norm(W, axis=1) + EPS
+            residual = np.abs(pg).max(axis=1) / scale
+            if residual.max() <= rtol:
+                break
+    return W, it, residual
+
+
+def batched_nnls(A: np.ndarray, X: np.ndarray, *, method: str = "active_set", sum_to_one: float = 0.0,
+                 smoothing: float = 0.0, rtol: float | None = None, max_iter: int | None = None) -> NnlsResult:
+    """Non-negative weights w_t minimising ``||A w_t - x_t||^2`` for every row x_t of X (paper Eq 8).
+
+    A (d, k): one dictionary column per keyshape; X (n, d): one frame per row.
+    Options (off by default):
+    - ``sum_to_one`` = mu > 0 adds ``mu * mean_j ||a_j||^2 * (sum_j w_j - 1)^2``, a soft convexity prior;
+    - ``smoothing`` = lam > 0 adds ``lam * mean_j ||a_j||^2 * sum_t ||w_t - w_(t-1)||^2`` (frames in time order);
+      it couples frames, so it is solved by FISTA warm-started from the per-frame solution.
+    ``method``: "active_set" (exact, default) or "fista" (projected gradient, KKT stopping rule).
+    """
+    A = np.asarray(A, np.float64)
+    X = np.atleast_2d(np.asarray(X, np.float64))
+    if A.ndim != 2 or X.shape[1] != A.shape[0]:
+        raise ValueError(f"batched_nnls: A {A.shape} and X {X.shape} do not match (X rows must have A.shape[0])")
+    if method not in ("active_set", "fista"):
+        raise ValueError(f"batched_nnls: unknown method {method!r} (active_set, fista)")
+    n, k = X.shape[0], A.shape[1]
+    energy = float((A * A).sum()) / max(k, 1)
+    A_fit, X_fit = A, X
+    if sum_to_one > 0:
+        # the soft constraint is one more least-squares row: sqrt(mu) * (1'w - 1)
+        root_mu = np.sqrt(sum_to_one * energy)
+        A_fit = np.vstack([A, np.full((1, k), root_mu)])
+        X_fit = np.hstack([X, np.full((n, 1), root_mu)])
+    Q = A_fit.T @ A_fit
+    C = X_fit @ A_fit
+    x_norms = np.linalg.norm(X_fit, axis=1)
+    if method == "active_set" and smoothing <= 0:
+        W, iterations, converged = nnls_active_set(Q, C, x_norms, rtol=rtol or 1e-10, max_iter=max_iter)
+    else:
+        W0 = None
+        if smoothing > 0 or method == "active_set":
+            W0, _, _ = nnls_active_set(Q, C, x_norms, rtol=1e-10)
+        W, it, res = solve_box_qp(Q, C, lower=0.0, upper=np.inf, smoothing=smoothing * energy, W0=W0,
+                                  rtol=rtol or 1e-8, max_iter=max_iter or 50000)
+        iterations = np.full(n, it, dtype=np.int64)
+        converged = res <= (rtol or 1e-8)
+    residual = np.linalg.norm(W @ A.T - X, axis=1)
+    return NnlsResult(weights=W, residual_norm=residual, iterations=iterations,
+                      kkt=kkt_violation(A_fit, X_fit, W), converged=converged)
