@@ -1,0 +1,285 @@
+"""Keyshape selection (Sec 4.1) and the NNLS decomposition of edited sequences (Eq 8), stage stages.keyshapes."""
+import numpy as np
+import pytest
+
+from msflow import UserError
+from msflow.testing import artifact, run_stage
+from stages.keyshapes import (Keyshapes, decompose_into_keyshapes, inter_ocular_distance, mouth_opening,
+                              rest_shape, select_keyshapes)
+
+
+def face_template():
+    """A frontal iBUG-68 face in image convention (y down), outer-eye-corner distance 1.1."""
+    pts = np.zeros((68, 2))
+    pts[0:17, 0] = -0.9 * np.cos(np.linspace(0, np.pi, 17))
+    pts[0:17, 1] = -0.2 + 1.1 * np.abs(np.sin(np.linspace(0, np.pi, 17))) ** 0.8
+    arch = 0.05 * np.sin(np.linspace(0, np.pi, 5))
+    pts[17:22] = np.c_[np.linspace(-0.75, -0.15, 5), -0.45 - arch]
+    pts[22:27] = np.c_[np.linspace(0.15, 0.75, 5), -0.45 - arch]
+    pts[27:31] = np.c_[np.zeros(4), np.linspace(-0.3, 0.15, 4)]
+    pts[31:36] = np.c_[np.linspace(-0.2, 0.2, 5), 0.25 + 0.03 * np.cos(np.linspace(-1.5, 1.5, 5))]
+    eye = np.pi - np.arange(6) * np.pi / 3
+    for start, cx in ((36, -0.4), (42, 0.4)):
+        pts[start:start + 6] = np.c_[cx + 0.15 * np.cos(eye), -0.25 - 0.06 * np.sin(eye)]
+    lip = np.pi - np.arange(12) * np.pi / 6
+    pts[48:60] = np.c_[0.25 * np.cos(lip), 0.55 - 0.1 * np.sin(lip)]
+    inner = np.pi - np.arange(8) * np.pi / 4
+    pts[60:68] = np.c_[0.18 * np.cos(inner), 0.55 - 0.03 * np.sin(inner)]
+    return pts
+
+
+def face_modes():
+    """Three orthogonalised deformation modes: jaw open, smile, brow raise (each ~0.1 inter-ocular)."""
+    jaw = np.zeros((68, 2))
+    jaw[3:14, 1] = np.sin(np.linspace(0, np.pi, 11)) * 0.3
+    jaw[[56, 57, 58, 65, 66, 67], 1] = 0.25
+    smile = np.zeros((68, 2))
+    smile[[48, 60], :] = [-0.08, -0.06]
+    smile[[54, 64], :] = [0.08, -0.06]
+    brow = np.zeros((68, 2))
+    brow[17:27, 1] = -0.12
+    modes = np.stack([jaw, smile, brow]).reshape(3, -1)
+    q, r = np.linalg.qr(modes.T)
+    return (q * np.sign(np.diag(r))).T.reshape(3, 68, 2) * 0.5
+
+
+def training_takes(seed=0, frames=(60, 50, 55), labels=("neutral", "happy", "angry"), noise=1e-3):
+    """Aam-like artifact: per take, shapes = template + coefficients x modes (+ an expression offset)."""
+    rng = np.random.default_rng(seed)
+    template, modes = face_template(), face_modes()
+    offsets = {"neutral": [0, 0, 0], "happy": [0, 0.8, 0.2], "angry": [0, -0.3, -0.6]}
+    shapes, sequence = [], []
+    for s, (label, n) in enumerate(zip(labels, frames)):
+        coeff = rng.normal(size=(n, 3)) * [1.0, 0.4, 0.2] + np.asarray(offsets.get(label, [0, 0, 0]))
+        shapes.append(template + np.einsum("nm,mpc->npc", coeff, modes) + noise * rng.normal(size=(n, 68, 2)))
+        sequence += [s] * n
+    return np.concatenate(shapes), np.asarray(sequence, np.int32), list(labels)
+
+
+def aam_view(shapes, sequence, labels):
+    return artifact({"aligned_shapes": shapes.astype(np.float32), "sequence": sequence},
+                    meta={"labels": labels, "fps": 30.0})
+
+
+def edit_view(shapes, targets, fps=30.0):
+    return artifact({"shapes": np.asarray(shapes, np.float32)}, meta={"targets": targets, "labels": targets,
+                                                                       "fps": fps})
+
+
+# ------------------------------------------------------------------------------------------------ selection
+
+def test_template_measures():
+    t = face_template()
+    assert inter_ocular_distance(t) == pytest.approx(1.1)
+    opened = t + face_modes()[0] * 2
+    assert mouth_opening(opened) > mouth_opening(t) + 0.05
+
+
+def test_keyshapes_are_the_pca_extremes_in_axis_order():
+    rng = np.random.default_rng(1)
+    modes = face_modes()
+    coeff = rng.normal(size=(80, 3)) * [3.0, 2.0, 1.0]  # known variance order: jaw, smile, brow
+    shapes = face_template() + np.einsum("nm,mpc->npc", coeff, modes)
+    selection = select_keyshapes(shapes, 6, dedupe_threshold=0.0)
+    expected = []
+    for axis in range(3):
+        expected += [int(np.argmax(coeff[:, axis])), int(np.argmin(coeff[:, axis]))]
+    # the PCA axis sign is arbitrary: compare each axis's pair as a set
+    for axis in range(3):
+        assert set(selection.frames[2 * axis:2 * axis + 2]) == set(expected[2 * axis:2 * axis + 2])
+    np.testing.assert_array_equal(selection.axes, [0, 0, 1, 1, 2, 2])
+    assert set(selection.extremes) == {1, -1}
+    assert np.all(np.diff(selection.explained_variance) <= 1e-12)
+
+
+def test_odd_k_takes_the_maximum_of_the_last_axis_only_and_k_caps_the_count():
+    rng = np.random.default_rng(2)
+    shapes = face_template() + np.einsum("nm,mpc->npc", rng.normal(size=(40, 3)) * [3, 2, 1], face_modes())
+    assert len(select_keyshapes(shapes, 3, dedupe_threshold=0.0).frames) == 3
+    assert list(select_keyshapes(shapes, 3, dedupe_threshold=0.0).axes) == [0, 0, 1]
+    assert len(select_keyshapes(shapes, 1, dedupe_threshold=0.0).frames) == 1
+    # only 3 axes carry variance: asking for 20 gives at most 6 (noise-free data has rank 3)
+    assert len(select_keyshapes(shapes, 20, dedupe_threshold=0.0).frames) == 6
+
+
+def test_duplicate_extreme_is_dropped_from_the_lower_variance_axis():
+    rng = np.random.default_rng(3)
+    coeff = rng.normal(size=(50, 3)) * [3.0, 2.0, 1.0]
+    coeff[7] = [20.0, 15.0, 0.0]  # frame 7 is the extreme of axis 0 and of axis 1
+    shapes = face_template() + np.einsum("nm,mpc->npc", coeff, face_modes())
+    selection = select_keyshapes(shapes, 4, dedupe_threshold=1e-6, scale=1.1)
+    assert list(selection.frames).count(7) == 1
+    assert len(selection.frames) == 3
+    assert len(selection.dropped) == 1 and selection.dropped[0]["duplicate_of"] == 7
+    assert selection.dropped[0]["axis"] == 1  # the later, lower-variance axis loses
+    # refill goes on to axis 2 and reaches k
+    refilled = select_keyshapes(shapes, 4, dedupe_threshold=1e-6, scale=1.1, refill=True)
+    assert len(refilled.frames) == 4 and refilled.axes[-1] == 2
+
+
+def test_dedupe_threshold_is_a_mean_squared_distance_relative_to_scale():
+    base = face_template()
+    near = base + 0.01 * face_modes()[0] / np.abs(face_modes()[0]).max()
+    shapes = np.stack([base, near, base + face_modes()[1], base - face_modes()[1]])
+    d = ((near - base) ** 2).sum(-1).mean()
+    for scale in (1.0, 3.0):
+        kept = select_keyshapes(shapes * scale, 4, dedupe_threshold=0.99 * d, scale=scale)
+        dropped = select_keyshapes(shapes * scale, 4, dedupe_threshold=1.01 * d, scale=scale)
+        assert len(kept.frames) == 4 and not kept.dropped
+        assert len(dropped.frames) == 3
+        assert dropped.dropped[0]["distance"] == pytest.approx(d)
+
+
+def test_constant_shapes_give_one_keyshape():
+    shapes = np.repeat(face_template()[None], 5, axis=0)
+    assert list(select_keyshapes(shapes, 20, dedupe_threshold=1e-3).frames) == [0]
+
+
+def test_decomposition_recovers_nonnegative_mixtures_exactly():
+    rng = np.random.default_rng(4)
+    keyshapes = face_template() + np.einsum("km,mpc->kpc", rng.normal(size=(6, 3)) * 2, face_modes())
+    keyshapes += 0.02 * rng.normal(size=keyshapes.shape)  # full rank
+    true = rng.dirichlet(np.ones(6), size=30) * (rng.random((30, 6)) < 0.6)
+    true[true.sum(1) == 0, 0] = 1.0
+    shapes = np.einsum("nk,kpc->npc", true, keyshapes)
+    weights, reconstruction, result = decompose_into_keyshapes(shapes, keyshapes)
+    np.testing.assert_allclose(weights, true, atol=1e-7)
+    np.testing.assert_allclose(reconstruction, shapes, atol=1e-9)
+    assert result.kkt.max() < 1e-8
+
+
+def test_rest_shape_has_the_mouth_closed():
+    shapes, sequence, _ = training_takes()
+    neutral = shapes[sequence == 0]
+    rest = rest_shape(neutral)
+    assert mouth_opening(rest) <= np.quantile(mouth_opening(neutral), 0.15)
+    assert mouth_opening(rest) < mouth_opening(neutral.mean(axis=0))
+
+
+# ----------------------------------------------------------------------------------------------------- stage
+
+def edited_from_training(shapes, sequence, labels, frames=40, seed=9):
+    """Edited sequences that the keyshapes can represent: convex mixes of each expression's own frames."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for s, _ in enumerate(labels):
+        own = shapes[sequence == s]
+        mix = rng.dirichlet(np.ones(len(own)) * 0.3, size=frames)
+        out.append(np.einsum("fn,npc->fpc", mix, own))
+    return np.stack(out)
+
+
+@pytest.fixture(scope="module")
+def synthetic_run(tmp_path_factory):
+    shapes, sequence, labels = training_takes()
+    edited = edited_from_training(shapes, sequence, labels)
+    out = run_stage(Keyshapes, {"k": {"neutral": 6, "happy": 8, "angry": 8}},
+                    {"aam": aam_view(shapes, sequence, labels), "edit": edit_view(edited, labels)},
+                    store=tmp_path_factory.mktemp("keyshapes"))
+    return shapes, sequence, labels, edited, out
+
+
+def test_stage_outputs_follow_the_schema(synthetic_run):
+    shapes, sequence, labels, edited, out = synthetic_run
+    a = out.arrays
+    total = len(a["keyshapes"])
+    assert a["weights"].shape == (3, edited.shape[1], total)
+    assert out.meta["labels"] == labels and out.meta["targets"] == labels
+    counts = out.meta["keyshape_counts"]
+    assert sum(counts) == total and all(1 <= c for c in counts)
+    assert counts[0] <= 6 and counts[1] <= 8 and counts[2] <= 8
+    # keyshapes are the training frames they claim to be, of their own expression
+    np.testing.assert_allclose(a["keyshapes"], shapes[a["keyshape_frame"]].astype(np.float32))
+    np.testing.assert_array_equal(sequence[a["keyshape_frame"]], a["keyshape_expression"])
+    for s in range(3):
+        np.testing.assert_array_equal(a["keyshape_index"][a["keyshape_expression"] == s], np.arange(counts[s]))
+    assert out.meta["keyshape_ids"][0] == "neutral/0"
+    assert a["weights"].min() >= 0
+
+
+def test_weights_are_zero_outside_the_targets_own_keyshapes(synthetic_run):
+    _, _, _, _, out = synthetic_run
+    a = out.arrays
+    for t, e in enumerate(out.meta["target_expression"]):
+        assert not np.any(a["weights"][t][:, a["keyshape_expression"] != e])
+        assert np.any(a["weights"][t][:, a["keyshape_expression"] == e])
+
+
+def test_weights_reconstruct_the_edited_shapes(synthetic_run):
+    _, _, _, edited, out = synthetic_run
+    a = out.arrays
+    recon = np.einsum("tfk,kpc->tfpc", a["weights"].astype(np.float64), a["keyshapes"].astype(np.float64))
+    np.testing.assert_allclose(recon, a["reconstruction"], atol=1e-4)
+    iod = out.meta["inter_ocular_distance"]
+    rms = np.sqrt(((recon - edited) ** 2).sum(-1).mean(-1)) / iod
+    np.testing.assert_allclose(rms, a["residual"], atol=1e-4)
+    # edited shapes are mixtures of training frames; the keyshapes (PCA extremes) span them to well under 3%
+    assert out.metrics["residual_rms_iod"] < 0.03
+    assert out.metrics["residual_rms_iod"] == pytest.approx(np.sqrt(np.mean(a["residual"] ** 2)), rel=1e-4)
+
+
+def test_more_keyshapes_never_fit_worse():
+    shapes, sequence, labels = training_takes(noise=5e-3)
+    edited = edited_from_training(shapes, sequence, labels)
+    inputs = {"aam": aam_view(shapes, sequence, labels), "edit": edit_view(edited, labels)}
+    residuals = [run_stage(Keyshapes, {"k": k, "refill": True}, inputs).metrics["train_residual_rms_iod"]
+                 for k in (2, 6, 20)]
+    assert residuals[0] >= residuals[1] >= residuals[2]
+    assert residuals[2] < residuals[0]
+
+
+def test_options_sum_to_one_and_smoothing_run_through_the_stage(synthetic_run):
+    shapes, sequence, labels, edited, plain = synthetic_run
+    inputs = {"aam": aam_view(shapes, sequence, labels), "edit": edit_view(edited, labels)}
+    params = {"k": {"neutral": 6, "happy": 8, "angry": 8}}
+    soft = run_stage(Keyshapes, dict(params, sum_to_one=10.0), inputs)
+    gap_plain = np.abs(plain.arrays["weights"].sum(-1) - 1).mean()
+    gap_soft = np.abs(soft.arrays["weights"].sum(-1) - 1).mean()
+    assert gap_soft <= gap_plain + 1e-6
+    smooth = run_stage(Keyshapes, dict(params, smoothing=2.0), inputs)
+    jitter = lambda w: np.abs(np.diff(w, axis=1)).mean()
+    assert jitter(smooth.arrays["weights"]) < jitter(plain.arrays["weights"])
+
+
+def test_unknown_expressions_are_user_errors():
+    shapes, sequence, labels = training_takes(frames=(20, 20, 20))
+    edited = edited_from_training(shapes, sequence, labels, frames=5)
+    inputs = {"aam": aam_view(shapes, sequence, labels), "edit": edit_view(edited, labels)}
+    with pytest.raises(UserError, match="unknown expressions.*surprised") as err:
+        run_stage(Keyshapes, {"k": {"neutral": 4, "happy": 4, "angry": 4, "surprised": 4}}, inputs)
+    assert err.value.field == "params.k"
+    with pytest.raises(UserError, match="no count for"):
+        run_stage(Keyshapes, {"k": {"neutral": 4}}, inputs)
+    with pytest.raises(UserError, match="at least 1"):
+        run_stage(Keyshapes, {"k": 0}, inputs)
+    bad_edit = edit_view(edited, ["neutral", "happy", "sad"])
+    with pytest.raises(UserError, match="sad") as err:
+        run_stage(Keyshapes, {}, {"aam": inputs["aam"], "edit": bad_edit})
+    assert err.value.field == "inputs.edit"
+    with pytest.raises(UserError, match="names 2 expressions"):
+        run_stage(Keyshapes, {}, {"aam": inputs["aam"], "edit": edit_view(edited, ["neutral", "happy"])})
+    nan_edit = edited.copy()
+    nan_edit[0, 0, 0, 0] = np.nan
+    with pytest.raises(UserError, match="NaN"):
+        run_stage(Keyshapes, {}, {"aam": inputs["aam"], "edit": edit_view(nan_edit, labels)})
+
+
+def test_invalid_training_frames_are_never_keyshapes():
+    shapes, sequence, labels = training_takes(frames=(30, 30, 30))
+    shapes = shapes.copy()
+    shapes[5] = face_template() + 50 * face_modes()[0]  # a wild (interpolated) frame: the obvious axis-0 extreme
+    valid = np.ones(len(shapes), bool)
+    valid[5] = False
+    edited = edited_from_training(shapes[valid], sequence[valid], labels, frames=5)
+    aam = artifact({"aligned_shapes": shapes.astype(np.float32), "sequence": sequence, "valid": valid},
+                   meta={"labels": labels})
+    out = run_stage(Keyshapes, {"k": 4}, {"aam": aam, "edit": edit_view(edited, labels)})
+    assert 5 not in out.arrays["keyshape_frame"]
+
+
+def test_figures_render(synthetic_run):
+    from matplotlib.figure import Figure
+
+    _, _, _, _, out = synthetic_run
+    for name, figure in Keyshapes.figures.items():
+        assert isinstance(figure(out.view(), {}), Figure), name
