@@ -1,0 +1,585 @@
+"""The 3D character the animation is retargeted onto (paper Sec 4.3: "commercial models that have built-in morph
+targets"): a neutral mesh, its morph targets (blendshapes) and the 68 landmark vertices that correspond to the
+tracked iBUG points.
+
+Implementations:
+- ``GltfCharacter``: a .glb/.gltf whose mesh has morph targets, names in ``mesh.extras.targetNames``;
+- ``ObjBlendshapes``: a neutral OBJ plus one OBJ per blendshape (``.obj`` or ``.obj.gz``), names from the file
+  names, quads and n-gons fan-triangulated (the layout of ICT FaceKit).
+Both can mix an identity: neutral + sum_i c_i (identity_i - neutral), the expression deltas transfer unchanged.
+
+The embedded default character, data/characters/ict-facekit.glb, is built from the ICT FaceKit OBJs by this module:
+``python -m stages.character build /path/to/ict-facekit data/characters/ict-facekit.glb``.
+"""
+from __future__ import annotations
+
+import gzip
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from msflow import Input, Output, Result, Stage, UserError
+from stages.gltf import MaterialGroup, MorphMesh, read_morph_mesh, write_morph_glb
+
+N_LANDMARKS = 68
+LANDMARK_SCHEME = "ibug68"
+#: mesh.extras keys of the glTF characters this project writes (and reads from any glTF that has them)
+EXTRAS_LANDMARKS = "landmarkVertexIds"
+EXTRAS_IDENTITY = "identityTargetNames"
+EXTRAS_PIVOT = "headPivot"
+
+CHARACTER_OUTPUTS = {
+    "neutral": Output.array("f", shape=("vertices", 3), dtype="float32",
+                            doc="neutral vertex positions (identity mix applied), metres for glTF characters"),
+    "triangles": Output.array("i", shape=("triangles", 3), dtype="int32", doc="vertex ids, counter-clockwise"),
+    "deltas": Output.array("f", shape=("targets", "vertices", 3), dtype="float32",
+                           doc="morph target offsets from the neutral, in meta['target_names'] order"),
+    "landmark_ids": Output.array("i", shape=(N_LANDMARKS,), dtype="int32",
+                                 doc="vertex id of each of the 68 iBUG landmarks"),
+    "triangle_groups": Output.array("i", shape=("triangles",), dtype="int32",
+                                    doc="material group of each triangle, index into meta['groups']"),
+}
+
+
+# ------------------------------------------------------------------------------------------------ OBJ reading
+
+def read_obj_text(path: Path) -> str:
+    try:
+        if path.name.endswith(".gz"):
+            with gzip.open(path, "rt", encoding="utf-8", errors="replace") as fh:
+                return fh.read()
+        return path.read_text(encoding="utf-8", errors="replace")
+    except (OSError, EOFError, gzip.BadGzipFile) as exc:
+        raise UserError(f"cannot read OBJ file ({exc})", file=str(path)) from None
+
+
+def parse_obj_vertices(text: str, path: Path) -> np.ndarray:
+    """The ``v`` lines of an OBJ as (V, 3) float64 (a 4th homogeneous or colour component is ignored)."""
+    rows = [line.split()[1:4] for line in text.splitlines() if line.startswith("v ")]
+    if not rows:
+        raise UserError("OBJ file has no vertices ('v' lines)", file=str(path))
+    try:
+        return np.array(rows, dtype=np.float64)
+    except ValueError:
+        raise UserError("OBJ file has a malformed 'v' line (expected three numbers)", file=str(path)) from None
+
+
+def parse_obj_faces(text: str, n_vertices: int, path: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Faces fan-triangulated: (T, 3) int32 vertex ids, (T,) material group per triangle, group names.
+
+    Polygons keep their winding; negative (relative) indices resolve against the vertices read so far.
+    """
+    triangles: list[list[int]] = []
+    groups: list[int] = []
+    names: list[str] = []
+    current = -1
+    seen_vertices = 0
+    for line in text.splitlines():
+        if line.startswith("v "):
+            seen_vertices += 1
+        elif line.startswith("usemtl"):
+            parts = line.split(maxsplit=1)
+            name = parts[1].strip() if len(parts) > 1 else "default"
+            if name not in names:
+                names.append(name)
+            current = names.index(name)
+        elif line.startswith("f "):
+            try:
+                ids = [int(tok.split("/", 1)[0]) for tok in line.split()[1:]]
+            except ValueError:
+                raise UserError(f"malformed face line '{line.strip()}'", file=str(path)) from None
+            ids = [i - 1 if i > 0 else seen_vertices + i for i in ids]
+            for k in range(1, len(ids) - 1):
+                triangles.append([ids[0], ids[k], ids[k + 1]])
+                groups.append(current)
+    if not triangles:
+        raise UserError("OBJ file has no faces ('f' lines) with three or more vertices", file=str(path))
+    tris = np.array(triangles, dtype=np.int64)
+    if tris.min() < 0 or tris.max() >= n_vertices:
+        raise UserError(f"a face refers to vertex {int(tris.max()) + 1} but the file has {n_vertices} vertices",
+                        file=str(path))
+    group_ids = np.array(groups, dtype=np.int32)
+    if (group_ids < 0).any():  # faces before any usemtl
+        names = ["default"] + names
+        group_ids = group_ids + 1
+    return tris.astype(np.int32), group_ids, names
+
+
+def read_mtl_colors(path: Path) -> dict[str, tuple[float, float, float, float]]:
+    """Diffuse colours (Kd) of an MTL file; ``d``/``Tr`` give alpha when below 1."""
+    colors: dict[str, list[float]] = {}
+    current = None
+    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+        parts = line.split()
+        if not parts:
+            continue
+        if parts[0] == "newmtl" and len(parts) > 1:
+            current = parts[1]
+            colors[current] = [0.8, 0.8, 0.8, 1.0]
+        elif current is not None and parts[0] == "Kd" and len(parts) >= 4:
+            colors[current][:3] = [float(v) for v in parts[1:4]]
+        elif current is not None and parts[0] == "d" and len(parts) >= 2:
+            colors[current][3] = float(parts[1])
+        elif current is not None and parts[0] == "Tr" and len(parts) >= 2:
+            colors[current][3] = 1.0 - float(parts[1])
+    return {k: tuple(float(np.clip(c, 0, 1)) for c in v) for k, v in colors.items()}
+
+
+def shape_name(path: Path) -> str:
+    """Blendshape name from a file name: ``mouthSmile_L.obj.gz`` -> ``mouthSmile_L``."""
+    return re.sub(r"\.obj(\.gz)?$", "", path.name, flags=re.IGNORECASE)
+
+
+# ------------------------------------------------------------------------------------------------ the maths
+
+def mix_identity(neutral: np.ndarray, identity_deltas: np.ndarray, coefficients: np.ndarray) -> np.ndarray:
+    """neutral + sum_i c_i (identity_i - neutral); identity_deltas are (I, V, 3) = identity_i - neutral.
+
+    Expression deltas are left as they are: the blendshapes of an identity-parametric model (ICT FaceKit) are
+    defined as offsets that transfer onto any identity.
+    """
+    c = np.asarray(coefficients, dtype=np.float64)
+    if c.size == 0:
+        return np.asarray(neutral, dtype=np.float32)
+    return (neutral + np.tensordot(c, identity_deltas, axes=1)).astype(np.float32)
+
+
+def check_landmark_ids(ids: Any, n_vertices: int, *, file: str | None = None, field: str | None = None) -> np.ndarray:
+    """68 vertex ids as int32; a wrong count or an id outside [0, n_vertices) is the user's error."""
+    try:
+        arr = np.asarray(ids, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise UserError("landmark ids must be a list of 68 integers", file=file, field=field) from None
+    if arr.size != N_LANDMARKS:
+        raise UserError(f"expected {N_LANDMARKS} landmark vertex ids (iBUG 68-point order), got {arr.size}",
+                        file=file, field=field)
+    if not np.all(arr == np.round(arr)):
+        raise UserError("landmark ids must be integers", file=file, field=field)
+    bad = np.flatnonzero((arr < 0) | (arr >= n_vertices))
+    if bad.size:
+        raise UserError(f"landmark ids out of range for a mesh of {n_vertices} vertices: "
+                        + ", ".join(f"#{i}={int(arr[i])}" for i in bad[:8]), file=file, field=field)
+    return arr.astype(np.int32)
+
+
+def read_landmark_json(path: Path, n_vertices: int, field: str) -> np.ndarray:
+    """Landmark ids from JSON: a list of 68 ints, or an object with ``idx_to_landmark_verts`` (ICT FaceKit's
+    vertex_indices.json) or ``landmark_ids``."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise UserError(f"cannot read landmark JSON ({exc})", file=str(path), field=field) from None
+    if isinstance(data, dict):
+        for key in ("idx_to_landmark_verts", "landmark_ids", EXTRAS_LANDMARKS):
+            if key in data:
+                data = data[key]
+                break
+        else:
+            raise UserError("landmark JSON object needs a key 'idx_to_landmark_verts' or 'landmark_ids'",
+                            file=str(path), field=field)
+    return check_landmark_ids(data, n_vertices, file=str(path), field=field)
+
+
+def head_pivot(neutral: np.ndarray, landmark_ids: np.ndarray) -> np.ndarray:
+    """An approximate head-neck joint to turn the head about: on the mid-plane, below and behind the ears.
+
+    The atlanto-occipital joint sits about a third of the ear-to-chin height below the ear landmarks (iBUG 0/16)
+    and slightly behind them; a heuristic, overridable by ``headPivot`` in a glTF's mesh extras.
+    """
+    p = np.asarray(neutral, dtype=np.float64)[landmark_ids]
+    ears = 0.5 * (p[0] + p[16])
+    down = ears[1] - p[8][1]
+    back = p[30][2] - ears[2]  # nose tip ahead of the ears
+    return np.array([0.5 * (p[0][0] + p[16][0]), ears[1] - 0.3 * down, ears[2] - 0.1 * back])
+
+
+def drop_triangles(mesh: MorphMesh, keep: np.ndarray, landmark_ids: np.ndarray,
+                   identity_deltas: np.ndarray | None = None):
+    """Keep the triangles where ``keep`` is True and the vertices they use; renumber vertices, landmark ids and
+    drop material groups left empty. A landmark on a removed vertex is an error."""
+    used = np.zeros(len(mesh.positions), dtype=bool)
+    used[mesh.triangles[keep].reshape(-1)] = True
+    if not used[landmark_ids].all():
+        raise UserError("removing those triangles would remove landmark vertices", field="params.drop_groups")
+    new_index = np.cumsum(used) - 1
+    groups_kept = np.unique(mesh.triangle_groups[keep])
+    group_map = np.full(len(mesh.groups), -1)
+    group_map[groups_kept] = np.arange(len(groups_kept))
+    reduced = MorphMesh(positions=mesh.positions[used], triangles=new_index[mesh.triangles[keep]].astype(np.int32),
+                        target_names=list(mesh.target_names), deltas=mesh.deltas[:, used],
+                        triangle_groups=group_map[mesh.triangle_groups[keep]].astype(np.int32),
+                        groups=[mesh.groups[i] for i in groups_kept], extras=dict(mesh.extras), name=mesh.name)
+    ids = new_index[landmark_ids].astype(np.int32)
+    return reduced, ids, (identity_deltas[:, used] if identity_deltas is not None else None)
+
+
+def drop_triangle_groups(mesh: MorphMesh, landmark_ids: np.ndarray, drop: list[str],
+                         identity_deltas: np.ndarray | None = None):
+    """Remove the triangles of the named material groups and every vertex no remaining triangle uses."""
+    names = [g.name for g in mesh.groups]
+    unknown = [d for d in drop if d not in names]
+    if unknown:
+        raise UserError(f"unknown material groups {unknown}; the mesh has {names}", field="params.drop_groups")
+    keep = ~np.isin(mesh.triangle_groups, [names.index(d) for d in drop])
+    return drop_triangles(mesh, keep, landmark_ids, identity_deltas)
+
+
+def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares sphere through points: centre and radius."""
+    p = np.asarray(points, dtype=np.float64)
+    sol = np.linalg.lstsq(np.c_[2 * p, np.ones(len(p))], (p ** 2).sum(axis=1), rcond=None)[0]
+    return sol[:3], float(np.sqrt(sol[3] + sol[:3] @ sol[:3]))
+
+
+def paint_eyeball(mesh: MorphMesh, shell: str, ball: str, *, iris_degrees: float = 22.0,
+                  pupil_degrees: float = 8.0, colors: dict[str, tuple] | None = None) -> np.ndarray:
+    """Give an untextured eyeball its iris and pupil: split the triangles of the inner ``ball`` by their angle
+    from the eye axis into sclera / iris / pupil groups; return the mask of ``shell`` triangles (the outer
+    cornea-and-sclera shell, transparent in front, which hides the ball when drawn opaque).
+
+    The axis runs from the ball's centre through the mean of its vertices (the ball is meshed densest around
+    the iris, which pulls the mean forward).
+    """
+    colors = colors or {"sclera": (0.72, 0.70, 0.66, 1.0), "iris": (0.10, 0.055, 0.03, 1.0),
+                        "pupil": (0.01, 0.01, 0.01, 1.0)}
+    names = [g.name for g in mesh.groups]
+    ball_id = names.index(ball)
+    ball_tri = np.flatnonzero(mesh.triangle_groups == ball_id)
+    p = mesh.positions.astype(np.float64)
+    vid = np.unique(mesh.triangles[ball_tri])
+    centre, _ = fit_sphere(p[vid])
+    axis = p[vid].mean(axis=0) - centre
+    axis /= np.linalg.norm(axis)
+    d = p[mesh.triangles[ball_tri]].mean(axis=1) - centre
+    angle = np.degrees(np.arccos(np.clip(d @ axis / np.linalg.norm(d, axis=1), -1, 1)))
+    side = ball.replace("M_Iris", "")
+    new_ids = {}
+    for part in ("iris", "pupil"):
+        new_ids[part] = len(mesh.groups)
+        mesh.groups.append(MaterialGroup(f"M_Eye{part.capitalize()}{side}", colors[part]))
+    mesh.groups[ball_id] = MaterialGroup(f"M_EyeSclera{side}", colors["sclera"])
+    mesh.triangle_groups = mesh.triangle_groups.copy()
+    mesh.triangle_groups[ball_tri[angle < iris_degrees]] = new_ids["iris"]
+    mesh.triangle_groups[ball_tri[angle < pupil_degrees]] = new_ids["pupil"]
+    return mesh.triangle_groups == names.index(shell)
+
+
+# ------------------------------------------------------------------------------------------------ loading
+
+def load_obj_blendshapes(files: dict[str, Path], neutral: str | None, identity_prefix: str = "identity",
+                         mtl: Path | None = None, field: str = "inputs.shapes") -> tuple[MorphMesh, dict]:
+    """Read a neutral OBJ and its blendshape OBJs: returns the mesh (deltas = shape - neutral) and the
+    identity deltas by name (files whose name starts with ``identity_prefix``)."""
+    paths = [Path(p) for p in files.values() if re.search(r"\.obj(\.gz)?$", Path(p).name, re.IGNORECASE)]
+    if not paths:
+        raise UserError("no .obj or .obj.gz files among the inputs", field=field)
+    by_name: dict[str, Path] = {}
+    for p in paths:
+        name = shape_name(p)
+        if name in by_name:
+            raise UserError(f"two files give the blendshape name '{name}': {by_name[name]} and {p}", field=field)
+        by_name[name] = p
+    if neutral is None:
+        candidates = [n for n in by_name if "neutral" in n.lower()]
+        if len(candidates) != 1:
+            raise UserError(f"cannot tell which file is the neutral mesh (candidates {candidates}); set the "
+                            f"'neutral' param to its name", field="params.neutral")
+        neutral = candidates[0]
+    if neutral not in by_name:
+        raise UserError(f"no file named '{neutral}' (.obj/.obj.gz) for the neutral mesh; files: "
+                        f"{sorted(by_name)}", field="params.neutral")
+    neutral_path = by_name.pop(neutral)
+    text = read_obj_text(neutral_path)
+    base = parse_obj_vertices(text, neutral_path)
+    triangles, tri_groups, group_names = parse_obj_faces(text, len(base), neutral_path)
+    colors = read_mtl_colors(mtl) if mtl is not None else {}
+    groups = [MaterialGroup(n, colors.get(n, (0.75, 0.75, 0.75, 1.0))) for n in group_names]
+
+    expression_names = [n for n in by_name if not (identity_prefix and n.startswith(identity_prefix))]
+    identity_names = sorted(n for n in by_name if identity_prefix and n.startswith(identity_prefix))
+    if not expression_names:
+        raise UserError("the character has no morph targets: only the neutral mesh (and identities) were given",
+                        field=field)
+
+    def delta(name: str) -> np.ndarray:
+        path = by_name[name]
+        verts = parse_obj_vertices(read_obj_text(path), path)
+        if len(verts) != len(base):
+            raise UserError(f"blendshape '{name}' has {len(verts)} vertices but the neutral mesh has {len(base)}; "
+                            f"every blendshape must share the neutral's topology", file=str(path), field=field)
+        return (verts - base).astype(np.float32)
+
+    deltas = np.stack([delta(n) for n in expression_names])
+    identities = {n: delta(n) for n in identity_names}
+    mesh = MorphMesh(positions=base.astype(np.float32), triangles=triangles, target_names=expression_names,
+                     deltas=deltas, triangle_groups=tri_groups, groups=groups, name=neutral)
+    return mesh, identities
+
+
+def split_identity_targets(mesh: MorphMesh, identity_names: list[str]) -> tuple[MorphMesh, dict[str, np.ndarray]]:
+    """Separate identity morph targets (shape parameters, not animated) from the expression targets."""
+    keep = [i for i, n in enumerate(mesh.target_names) if n not in identity_names]
+    identities = {n: mesh.deltas[mesh.target_names.index(n)] for n in identity_names if n in mesh.target_names}
+    expr = MorphMesh(positions=mesh.positions, triangles=mesh.triangles,
+                     target_names=[mesh.target_names[i] for i in keep], deltas=mesh.deltas[keep],
+                     triangle_groups=mesh.triangle_groups, groups=mesh.groups, extras=mesh.extras, name=mesh.name)
+    return expr, identities
+
+
+def apply_identity(mesh: MorphMesh, identities: dict[str, np.ndarray], weights: dict[str, float]) -> MorphMesh:
+    unknown = sorted(set(weights) - set(identities))
+    if unknown:
+        raise UserError(f"unknown identity targets {unknown}; available: {sorted(identities) or 'none'}",
+                        field="params.identity")
+    if weights:
+        names = sorted(weights)
+        mesh.positions = mix_identity(mesh.positions, np.stack([identities[n] for n in names]),
+                                      np.array([weights[n] for n in names]))
+    return mesh
+
+
+def character_result(mesh: MorphMesh, landmark_ids: np.ndarray, source: dict, identity: dict[str, float],
+                     pivot: np.ndarray | None = None, units: str = "m") -> Result:
+    if not len(mesh.target_names):
+        raise UserError("the character has no morph targets", field="inputs")
+    if len(set(mesh.target_names)) != len(mesh.target_names):
+        dupes = sorted({n for n in mesh.target_names if mesh.target_names.count(n) > 1})
+        raise UserError(f"duplicate morph target names {dupes}", field="inputs")
+    if pivot is None:
+        pivot = head_pivot(mesh.positions, landmark_ids)
+    lo, hi = mesh.positions.min(axis=0), mesh.positions.max(axis=0)
+    meta = {
+        "target_names": list(mesh.target_names),
+        "groups": [{"name": g.name, "color": [float(c) for c in g.color]} for g in mesh.groups],
+        "landmark_scheme": LANDMARK_SCHEME,
+        "pivot": [float(v) for v in pivot],
+        "units": units,
+        "bounds": [[float(v) for v in lo], [float(v) for v in hi]],
+        "identity": {k: float(v) for k, v in identity.items()},
+        "source": source,
+        "axes": "glTF: +y up, the face looks along +z",
+    }
+    metrics = {"vertices": int(len(mesh.positions)), "triangles": int(len(mesh.triangles)),
+               "targets": int(len(mesh.target_names)),
+               "max_delta": float(np.abs(mesh.deltas).max()) if mesh.deltas.size else 0.0}
+    return Result({"neutral": mesh.positions.astype(np.float32), "triangles": mesh.triangles.astype(np.int32),
+                   "deltas": mesh.deltas.astype(np.float32), "landmark_ids": landmark_ids.astype(np.int32),
+                   "triangle_groups": mesh.triangle_groups.astype(np.int32)}, meta=meta, metrics=metrics)
+
+
+def _single_file(files: dict[str, Path] | None, field: str, suffixes: tuple[str, ...]) -> Path | None:
+    if not files:
+        return None
+    paths = [Path(p) for p in files.values()]
+    matching = [p for p in paths if p.name.lower().endswith(suffixes)]
+    if len(matching) != 1:
+        raise UserError(f"expected one {'/'.join(suffixes)} file, got {[p.name for p in paths]}", field=field)
+    return matching[0]
+
+
+class GltfCharacter(Stage):
+    """A glTF 2.0 character (.glb or .gltf) with morph targets; landmark ids from the mesh extras
+    (``landmarkVertexIds``) or a JSON input."""
+
+    class Params(Stage.Params):
+        mesh_name: str | None = None
+        #: identity target name -> coefficient, e.g. {identity000: 1.5}; identity targets are listed in the mesh
+        #: extras (identityTargetNames) or by ``identity_targets``, and are left out of the animated targets
+        identity: dict[str, float] = {}
+        identity_targets: list[str] | None = None
+
+    inputs = {"mesh": Input.files(doc="one .glb/.gltf file"),
+              "landmarks": Input.files(optional=True, doc="JSON with the 68 landmark vertex ids (overrides the "
+                                                         "ids stored in the glTF)")}
+    outputs = CHARACTER_OUTPUTS
+
+    def run(self, params, inputs):
+        path = _single_file(inputs["mesh"], "inputs.mesh", (".glb", ".gltf"))
+        mesh = read_morph_mesh(path, params.mesh_name)
+        identity_names = params.identity_targets
+        if identity_names is None:
+            identity_names = list(mesh.extras.get(EXTRAS_IDENTITY, []))
+        missing = sorted(set(identity_names) - set(mesh.target_names))
+        if missing:
+            raise UserError(f"identity targets {missing} are not morph targets of the mesh", file=str(path),
+                            field="params.identity_targets")
+        mesh, identities = split_identity_targets(mesh, identity_names)
+        if not mesh.target_names:
+            raise UserError("the character has no expression morph targets (all are identity targets)",
+                            file=str(path))
+        mesh = apply_identity(mesh, identities, dict(params.identity))
+        landmark_file = _single_file(inputs.get("landmarks"), "inputs.landmarks", (".json",))
+        if landmark_file is not None:
+            ids = read_landmark_json(landmark_file, len(mesh.positions), "inputs.landmarks")
+        elif EXTRAS_LANDMARKS in mesh.extras:
+            ids = check_landmark_ids(mesh.extras[EXTRAS_LANDMARKS], len(mesh.positions), file=str(path),
+                                     field=f"mesh.extras.{EXTRAS_LANDMARKS}")
+        else:
+            raise UserError(f"the glTF has no '{EXTRAS_LANDMARKS}' in its mesh extras; give the 68 landmark vertex "
+                            f"ids as a JSON file input 'landmarks'", file=str(path), field="inputs.landmarks")
+        pivot = mesh.extras.get(EXTRAS_PIVOT)
+        pivot = np.asarray(pivot, dtype=np.float64) if pivot is not None and not params.identity else None
+        source = {"file": path.name, "mesh": mesh.name, "target_names_from": mesh.extras.get("_target_names_from"),
+                  "identity_targets": sorted(identities)}
+        return character_result(mesh, ids, source, dict(params.identity), pivot)
+
+
+class ObjBlendshapes(Stage):
+    """A neutral OBJ plus one OBJ per blendshape (.obj or .obj.gz, same vertex order); optional identity OBJs
+    (names starting with ``identity_prefix``) for the identity mix."""
+
+    class Params(Stage.Params):
+        #: name (file name without .obj/.obj.gz) of the neutral mesh; default: the one file with 'neutral' in it
+        neutral: str | None = None
+        identity_prefix: str = "identity"
+        identity: dict[str, float] = {}
+        #: multiply coordinates into metres (ICT FaceKit is in centimetres: 0.01)
+        scale: float = 1.0
+        #: material groups (OBJ usemtl names) to leave out, e.g. transparent overlay shells
+        drop_groups: list[str] = []
+
+    inputs = {"shapes": Input.files(doc="neutral and blendshape OBJs (a glob or a mapping), plus an optional .mtl"),
+              "landmarks": Input.files(doc="JSON with the 68 landmark vertex ids (list, or ICT vertex_indices.json)")}
+    outputs = CHARACTER_OUTPUTS
+
+    def run(self, params, inputs):
+        if params.scale <= 0:
+            raise UserError("scale must be positive", field="params.scale")
+        files = inputs["shapes"]
+        mtl = next((Path(p) for p in files.values() if Path(p).name.lower().endswith(".mtl")), None)
+        mesh, identities = load_obj_blendshapes(files, params.neutral, params.identity_prefix, mtl)
+        landmark_file = _single_file(inputs["landmarks"], "inputs.landmarks", (".json",))
+        ids = read_landmark_json(landmark_file, len(mesh.positions), "inputs.landmarks")
+        identity_deltas = np.stack(list(identities.values())) if identities else None
+        if params.drop_groups:
+            mesh, ids, identity_deltas = drop_triangle_groups(mesh, ids, list(params.drop_groups), identity_deltas)
+            identities = dict(zip(identities, identity_deltas)) if identities else {}
+        mesh.positions = (mesh.positions * params.scale).astype(np.float32)
+        mesh.deltas = (mesh.deltas * params.scale).astype(np.float32)
+        identities = {k: v * params.scale for k, v in identities.items()}
+        mesh = apply_identity(mesh, identities, dict(params.identity))
+        source = {"neutral": mesh.name, "files": len(files), "identity_targets": sorted(identities)}
+        return character_result(mesh, ids, source, dict(params.identity))
+
+
+# ------------------------------------------------------------------------------------------------ the builder
+
+#: ICT FaceKit's overlay geometry made for alpha textures (eye occlusion shadow, tear film, eye blend, eyelash
+#: cards): without their textures they render as opaque bands around the eyes
+ICT_OVERLAY_GROUPS = ["M_EyeOcclusion", "M_LacrimalFluid", "M_EyeBlend", "M_EyeLashes"]
+ICT_EYES = [("M_ScleraLeft", "M_IrisLeft"), ("M_ScleraRight", "M_IrisRight")]
+ICT_COPYRIGHT = "ICT FaceKit, Copyright (c) 2020 USC Institute for Creative Technologies, MIT License"
+
+
+def build_ict_character(source: Path, destination: Path, *, sparse_tolerance: float = 1e-5) -> dict:
+    """Build the embedded default character from an ICT FaceKit folder (the project's own code: OBJ reader,
+    identity split, sparse GLB writer). Writes the GLB plus LICENSE, CREDITS.md and README.md beside it."""
+    source, destination = Path(source), Path(destination)
+    indices = json.loads((source / "vertex_indices.json").read_text())
+    files = {p.name: p for p in sorted(source.iterdir()) if re.search(r"\.obj(\.gz)?$", p.name)}
+    mtl = next(iter(sorted(source.glob("*.mtl"))), None)
+    mesh, identities = load_obj_blendshapes(files, "generic_neutral_mesh", "identity", mtl)
+    # ICT's canonical expression order first (vertex_indices.json), the extra shapes after
+    order = [n for n in indices["expressions"] if n in mesh.target_names]
+    order += sorted(n for n in mesh.target_names if n not in order)
+    perm = [mesh.target_names.index(n) for n in order]
+    mesh.target_names, mesh.deltas = order, mesh.deltas[perm]
+    ids = check_landmark_ids(indices["idx_to_landmark_verts"], len(mesh.positions),
+                             file=str(source / "vertex_indices.json"))
+    identity_names = sorted(identities)
+    identity_deltas = np.stack([identities[n] for n in identity_names])
+    drop = [g for g in ICT_OVERLAY_GROUPS if g in [x.name for x in mesh.groups]]
+    mesh, ids, identity_deltas = drop_triangle_groups(mesh, ids, drop, identity_deltas)
+    group_names = [x.name for x in mesh.groups]
+    shells = np.zeros(len(mesh.triangles), dtype=bool)
+    for shell, ball in ICT_EYES:
+        if shell in group_names and ball in group_names:
+            shells |= paint_eyeball(mesh, shell, ball)
+    mesh, ids, identity_deltas = drop_triangles(mesh, ~shells, ids, identity_deltas)
+    scale = 0.01  # centimetres -> metres (glTF)
+    mesh.positions = (mesh.positions * scale).astype(np.float32)
+    all_deltas = np.concatenate([mesh.deltas, identity_deltas]) * scale
+    n_expr = len(mesh.target_names)
+    pivot = head_pivot(mesh.positions, ids)
+    out = MorphMesh(positions=mesh.positions, triangles=mesh.triangles,
+                    target_names=list(mesh.target_names) + identity_names, deltas=all_deltas.astype(np.float32),
+                    triangle_groups=mesh.triangle_groups, groups=mesh.groups, name="ICTFaceKit",
+                    extras={EXTRAS_LANDMARKS: [int(i) for i in ids], "landmarkScheme": LANDMARK_SCHEME,
+                            EXTRAS_IDENTITY: identity_names, EXTRAS_PIVOT: [float(v) for v in pivot],
+                            "source": "ICT FaceKit light face model (generic neutral, 57 expressions, 10 identity "
+                                      "components), built by msflow stages.character"})
+    glb = write_morph_glb(out, sparse_tolerance=sparse_tolerance, generator="msflow stages.character build",
+                          copyright=ICT_COPYRIGHT)
+    destination.parent.mkdir(parents=True, exist_ok=True)
+    destination.write_bytes(glb)
+    for name in ("LICENSE", "CREDITS.md"):
+        if (source / name).is_file():
+            (destination.parent / name).write_bytes((source / name).read_bytes())
+    summary = {"file": destination.name, "bytes": len(glb), "vertices": int(len(out.positions)),
+               "triangles": int(len(out.triangles)), "expression_targets": n_expr,
+               "identity_targets": len(identity_names), "dropped_groups": drop,
+               "eye_shell_triangles_removed": int(shells.sum()),
+               "sparse_tolerance_m": sparse_tolerance}
+    (destination.parent / "README.md").write_text(_readme(summary, order, identity_names))
+    return summary
+
+
+def _readme(summary: dict, expressions: list[str], identities: list[str]) -> str:
+    return f"""# Embedded default character: ICT FaceKit
+
+`{summary['file']}` is the default character of the retargeting stages (`stages.character:GltfCharacter`).
+
+## Provenance
+Built from the ICT FaceKit light face model (USC Institute for Creative Technologies, MIT licence: see
+`LICENSE` and `CREDITS.md` in this folder; https://github.com/ICT-VGL/ICT-FaceKit) with this project's own code:
+
+    python -m stages.character build /path/to/ict-facekit {Path('data/characters') / summary['file']}
+
+The source folder holds `generic_neutral_mesh.obj.gz`, one `.obj.gz` per blendshape, `identity000..009.obj.gz`,
+`ICTFaceModelMaterial.mtl` and `vertex_indices.json`. The build is deterministic.
+
+## Contents
+- One mesh `ICTFaceKit`, {summary['vertices']} vertices, {summary['triangles']} triangles (quads split in two),
+  one primitive per ICT material; coordinates in metres (ICT's centimetres x 0.01), +y up, facing +z.
+  The overlay geometry made for alpha textures ({', '.join(summary['dropped_groups'])}) is left out, and so is
+  the outer eye shell (M_ScleraLeft/Right: {summary['eye_shell_triangles_removed']} triangles, a transparent cornea
+  in front that would hide the eyeball without textures); the inner eyeball (M_IrisLeft/Right) is split by the
+  angle from the eye axis into sclera, iris (< 22 degrees) and pupil (< 8 degrees) materials. Vertex ids are
+  renumbered and the landmark ids remapped with them.
+- {summary['expression_targets']} expression morph targets (ARKit-style names with `_L`/`_R`), as sparse
+  accessors: deltas below {summary['sparse_tolerance_m'] * 1e6:.0f} micrometres are not stored.
+  {', '.join(expressions)}.
+- {summary['identity_targets']} identity morph targets ({', '.join(identities)}): shape parameters, listed in
+  `mesh.extras.identityTargetNames`; the character stage mixes them into the neutral (`params.identity`) and does
+  not animate them.
+- `mesh.extras.landmarkVertexIds`: the 68 iBUG landmark vertex ids (ICT's `idx_to_landmark_verts`, remapped);
+  `mesh.extras.headPivot`: the point the head turns about (metres).
+- Size: {summary['bytes']} bytes.
+"""
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m stages.character",
+                                     description="Build the embedded ICT FaceKit character GLB.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    build = sub.add_parser("build", help="ICT FaceKit folder -> GLB (+ LICENSE, CREDITS.md, README.md)")
+    build.add_argument("source", type=Path)
+    build.add_argument("destination", type=Path)
+    build.add_argument("--sparse-tolerance", type=float, default=1e-5, help="metres; smaller deltas are dropped")
+    args = parser.parse_args(argv)
+    try:
+        summary = build_ict_character(args.source, args.destination, sparse_tolerance=args.sparse_tolerance)
+    except UserError as exc:
+        print(f"error: {exc}")
+        return 2
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
