@@ -1,0 +1,630 @@
+"""Keymorphs (paper Sec 4.3): one morph-target weight vector G_i^(s) of the character per keyshape B_i^(s).
+
+The paper has an artist model a keymorph that "resembles the look" of each keyshape. Two implementations share
+one output schema (``keymorph_weights`` (total_k, M) in [0, 1], meta ``target_names``, the YAML as a file):
+
+- ``KeymorphFile``: the artist's YAML, ``expression -> keyshape id -> {morph target name: weight}``, validated
+  against the keyshapes and the character;
+- ``KeymorphFit``: an automatic first draft (beyond the paper): per keyshape, bounded [0, 1] morph weights that
+  make the character's 68 landmark vertices, seen from the front and mapped by one similarity transform into the
+  keyshapes' frame, deform from their rest pose the way the keyshape deforms from the actor's rest pose
+  (``rest_shape`` of the keyshapes artifact). Deformations rather than positions are matched, so the actor's
+  and the character's face proportions need not agree. Regularised (L2 and L1 on the weights, left/right pairs
+  coupled) so that weakly observed targets stay at 0. It writes the YAML an artist then edits.
+
+Both write a contact sheet (the paper's Figs 3-4): per expression, each keyshape's face crop from tracking with
+its landmarks beside the character rendered with its keymorph.
+"""
+from __future__ import annotations
+
+import difflib
+import fnmatch
+import re
+import textwrap
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from msflow import Input, Output, Result, Stage, UserError
+from stages.keyshapes import IBUG68_CONTOURS, inter_ocular_distance
+from stages.nnls import solve_box_qp
+
+#: landmarks that fix the similarity between actor and character: eyes (36-47) and nose (27-35) barely move
+#: with expression, unlike the jaw line, brows and lips
+STABLE_LANDMARKS = tuple(range(27, 48))
+JAW_CONTOUR = tuple(range(0, 17))
+
+
+# ------------------------------------------------------------------------------------------------- geometry
+
+def project_front(points: np.ndarray) -> np.ndarray:
+    """Orthographic front view of glTF points (+y up, looking along -z at a face that looks along +z) in image
+    convention (x right, y down): (x, -y)."""
+    points = np.asarray(points, np.float64)
+    return np.stack([points[..., 0], -points[..., 1]], axis=-1)
+
+
+@dataclass
+class Similarity2D:
+    """p -> scale * rotation @ p + translation."""
+
+    scale: float
+    rotation: np.ndarray  # (2, 2)
+    translation: np.ndarray  # (2,)
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        return self.scale * np.asarray(points) @ self.rotation.T + self.translation
+
+    def apply_linear(self, vectors: np.ndarray) -> np.ndarray:
+        return self.scale * np.asarray(vectors) @ self.rotation.T
+
+    def inverse_linear(self, vectors: np.ndarray) -> np.ndarray:
+        return np.asarray(vectors) @ self.rotation / self.scale
+
+
+def fit_similarity(source: np.ndarray, target: np.ndarray) -> Similarity2D:
+    """Least-squares 2D similarity (Umeyama 1991) mapping source points (n, 2) onto target points (n, 2)."""
+    source = np.asarray(source, np.float64)
+    target = np.asarray(target, np.float64)
+    mu_s, mu_t = source.mean(0), target.mean(0)
+    s, t = source - mu_s, target - mu_t
+    u, sigma, vt = np.linalg.svd(t.T @ s)
+    d = np.ones(2)
+    d[-1] = np.sign(np.linalg.det(u @ vt)) or 1.0
+    rotation = u @ np.diag(d) @ vt
+    var = (s ** 2).sum()
+    scale = float((sigma * d).sum() / var) if var > 0 else 1.0
+    return Similarity2D(scale, rotation, mu_t - scale * rotation @ mu_s)
+
+
+def symmetric_pairs(names: list[str]) -> list[tuple[int, int]]:
+    """Index pairs of left/right morph targets: ``x_L``/``x_R`` (ICT), ``xLeft``/``xRight`` (ARKit)."""
+    index = {name: i for i, name in enumerate(names)}
+    pairs = []
+    for name, i in index.items():
+        for left, right in (("_L", "_R"), ("_l", "_r"), ("Left", "Right"), ("_left", "_right")):
+            if name.endswith(left):
+                other = name[: -len(left)] + right
+                if other in index:
+                    pairs.append((i, index[other]))
+    return pairs
+
+
+def matching_targets(names: list[str], patterns: list[str]) -> np.ndarray:
+    """Boolean mask of the names matching any fnmatch pattern (case-sensitive)."""
+    return np.array([any(fnmatch.fnmatchcase(n, p) for p in patterns) for n in names], dtype=bool)
+
+
+@dataclass
+class LandmarkRig:
+    """The character's landmark vertices as seen by the fit: projected rest pose, projected morph deltas, and
+    the similarity that maps the actor's rest shape onto the character."""
+
+    rest: np.ndarray           # (68, 2) character landmarks, projected, in character units
+    deltas: np.ndarray         # (M, 68, 2) projected morph deltas of the landmark vertices
+    to_character: Similarity2D  # actor (keyshape frame) -> character projection
+    actor_rest: np.ndarray     # (68, 2) actor rest shape (keyshape frame)
+
+    @classmethod
+    def build(cls, neutral, deltas, landmark_ids, actor_rest) -> "LandmarkRig":
+        ids = np.asarray(landmark_ids, dtype=np.int64)
+        rest = project_front(np.asarray(neutral, np.float64)[ids])
+        projected = project_front(np.asarray(deltas, np.float64)[:, ids])
+        stable = list(STABLE_LANDMARKS)
+        to_character = fit_similarity(np.asarray(actor_rest, np.float64)[stable], rest[stable])
+        return cls(rest, projected, to_character, np.asarray(actor_rest, np.float64))
+
+    def target_deformation(self, keyshapes: np.ndarray) -> np.ndarray:
+        """Keyshape deformations from the actor's rest pose, expressed in character units (K, 68, 2)."""
+        return self.to_character.apply_linear(np.asarray(keyshapes, np.float64) - self.actor_rest)
+
+    def keymorph_landmarks(self, weights: np.ndarray) -> np.ndarray:
+        """Where the keymorphs put the landmarks, mapped back into the keyshapes' frame (K, 68, 2)."""
+        deformation = np.einsum("km,mpc->kpc", np.asarray(weights, np.float64), self.deltas)
+        return self.actor_rest + self.to_character.inverse_linear(deformation)
+
+
+def fit_keymorph_weights(rig: LandmarkRig, keyshapes: np.ndarray, names: list[str], *, l2: float, l1: float,
+                         symmetry: float, exclude: list[str], contour_weight: float,
+                         rtol: float = 1e-7) -> tuple[np.ndarray, dict]:
+    """Morph weights u in [0, 1]^M per keyshape minimising (Sec 4.3 keymorphs, automated)
+
+        1/2 sum_p c_p ||sum_m u_m d_mp - delta_p||^2 + e (l2/2 ||u||^2 + l1 sum_m u_m)
+            + symmetry/2 sum_(L,R pairs) e_LR (u_L - u_R)^2
+
+    with d_mp the projected landmark deltas of target m, delta_p the keyshape's deformation from rest in character
+    units, c_p = ``contour_weight`` on the jaw line (2D trackers place it least reliably) and 1 elsewhere,
+    e = the mean landmark energy sum_p c_p ||d_mp||^2 of the usable targets and e_LR that of the pair (so the
+    regularisers are unit-free). Targets matching
+    ``exclude`` stay 0. All keyshapes share the Hessian, so they are solved as one batched box QP.
+    """
+    M = len(names)
+    landmark_weight = np.ones(68)
+    landmark_weight[list(JAW_CONTOUR)] = contour_weight
+    root = np.sqrt(landmark_weight)[None, :, None]
+    J = (rig.deltas * root).reshape(M, -1).T                      # (136, M)
+    targets = (rig.target_deformation(keyshapes) * root).reshape(len(keyshapes), -1)
+    usable = ~matching_targets(names, exclude) & (np.abs(J).max(axis=0) > 0)
+    energy = float((J[:, usable] ** 2).sum(axis=0).mean()) if usable.any() else 1.0
+    H = J.T @ J + l2 * energy * np.eye(M)
+    column_energy = (J ** 2).sum(axis=0)
+    for i, j in symmetric_pairs(names):
+        coupling = np.zeros(M)
+        coupling[i], coupling[j] = 1.0, -1.0
+        # relative to the pair's own energy, so a faint pair (eyelids) is coupled as firmly as a strong one
+        H += symmetry * 0.5 * (column_energy[i] + column_energy[j]) * np.outer(coupling, coupling)
+    F = targets @ J - l1 * energy
+    idx = np.flatnonzero(usable)
+    weights = np.zeros((len(keyshapes), M))
+    if idx.size:
+        sub, iterations, kkt = solve_box_qp(H[np.ix_(idx, idx)], F[:, idx], lower=0.0, upper=1.0, rtol=rtol)
+        weights[:, idx] = sub
+    else:
+        iterations, kkt = 0, np.zeros(len(keyshapes))
+    return weights, {"iterations": int(iterations), "kkt_max": float(np.max(kkt, initial=0.0)),
+                     "usable_targets": [names[i] for i in idx], "energy": energy}
+
+
+def landmark_errors(rig: LandmarkRig, keyshapes: np.ndarray, weights: np.ndarray, scale: float) -> np.ndarray:
+    """Per keyshape RMS landmark distance between keyshape and keymorph (keyshape frame) / ``scale``."""
+    diff = rig.keymorph_landmarks(weights) - np.asarray(keyshapes, np.float64)
+    return np.sqrt((diff ** 2).sum(-1).mean(-1)) / scale
+
+
+# ------------------------------------------------------------------------------------------------------ YAML
+
+_PLAIN = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
+_YAML_WORDS = {"true", "false", "yes", "no", "on", "off", "null", "y", "n", "~"}
+
+
+def _yaml_key(name: str) -> str:
+    if _PLAIN.match(name) and name.lower() not in _YAML_WORDS:
+        return name
+    return "'" + name.replace("'", "''") + "'"
+
+
+def format_keymorph_yaml(labels: list[str], keyshape_expression: np.ndarray, keyshape_index: np.ndarray,
+                         weights: np.ndarray, names: list[str], *, comments: list[str] | None = None,
+                         header: str = "", decimals: int | None = 3) -> str:
+    """The keymorph YAML: ``expression -> keyshape id -> {morph target: weight}``, one keyshape per line.
+
+    Weights are rounded to ``decimals`` (None: written exactly) and zeros left out, so the file stays short
+    enough to edit by hand. ``comments`` (one per keyshape) go at the end of each line.
+    """
+    lines = [f"# {line}" if line else "#" for line in header.splitlines()]
+    for s, label in enumerate(labels):
+        mine = np.flatnonzero(np.asarray(keyshape_expression) == s)
+        lines.append(f"{_yaml_key(label)}:" + ("  {}" if not mine.size else ""))
+        for k in mine:
+            w = np.asarray(weights[k], np.float64)
+            if decimals is not None:
+                w = np.round(w, decimals)
+            items = ", ".join(f"{_yaml_key(names[m])}: {_number(w[m], decimals)}" for m in np.flatnonzero(w > 0))
+            note = f"  # {comments[k]}" if comments else ""
+            lines.append(f"  {int(keyshape_index[k])}: {{{items}}}{note}")
+    return "\n".join(lines) + "\n"
+
+
+def _number(value: float, decimals: int | None) -> str:
+    if decimals is None:
+        return repr(float(value))
+    return f"{value:.{decimals}f}".rstrip("0").rstrip(".")
+
+
+def rounded_weights(weights: np.ndarray, decimals: int = 3) -> np.ndarray:
+    """The weights exactly as ``format_keymorph_yaml`` writes them."""
+    return np.clip(np.round(np.asarray(weights, np.float64), decimals), 0.0, 1.0)
+
+
+def _suggest(name: str, valid: list[str]) -> str:
+    close = difflib.get_close_matches(name, valid, n=1)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+def parse_keymorph_yaml(text: str, labels: list[str], counts: list[int], names: list[str], *, file: str,
+                        allow_missing: bool = False) -> np.ndarray:
+    """Keymorph weights (total_k, M) from the YAML text; every mistake is a UserError naming the valid choices.
+
+    Keyshape ids are each expression's own ids 0..k_s-1 (``keyshape_index`` of the keyshapes artifact), the
+    rows come out in the keyshapes artifact's order (grouped by expression).
+    """
+    import yaml
+
+    field = "inputs.keymorphs"
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise UserError(f"keymorph file is not valid YAML: {exc}", file=file, field=field) from None
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise UserError("keymorph file must map expression names to keyshape ids to {morph target: weight}, "
+                        f"found a {type(data).__name__} at the top level", file=file, field=field)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(int)
+    weights = np.zeros((int(offsets[-1]), len(names)))
+    seen = np.zeros(int(offsets[-1]), dtype=bool)
+    index = {name: m for m, name in enumerate(names)}
+    for expression, keymorphs in data.items():
+        expression = str(expression)
+        if expression not in labels:
+            raise UserError(f"unknown expression '{expression}'{_suggest(expression, labels)}; the keyshapes have "
+                            f"expressions: {', '.join(labels)}", file=file, field=field)
+        s = labels.index(expression)
+        if keymorphs is None:
+            keymorphs = {}
+        if not isinstance(keymorphs, dict):
+            raise UserError(f"'{expression}' must map keyshape ids (0..{counts[s] - 1}) to {{morph target: weight}}",
+                            file=file, field=field)
+        for key, morphs in keymorphs.items():
+            local = int(key) if isinstance(key, int) and not isinstance(key, bool) else \
+                int(key) if isinstance(key, str) and key.strip().isdigit() else -1
+            if not 0 <= local < counts[s]:
+                raise UserError(f"{expression}: unknown keyshape id '{key}'; valid ids for '{expression}' are "
+                                f"0..{counts[s] - 1}", file=file, field=field)
+            row = offsets[s] + local
+            if seen[row]:
+                raise UserError(f"{expression}: keyshape id {local} is given twice", file=file, field=field)
+            seen[row] = True
+            if morphs is None:
+                morphs = {}
+            if not isinstance(morphs, dict):
+                raise UserError(f"{expression}/{local}: expected {{morph target: weight}}, found "
+                                f"{type(morphs).__name__}", file=file, field=field)
+            for name, value in morphs.items():
+                name = str(name)
+                if name not in index:
+                    raise UserError(f"{expression}/{local}: unknown morph target '{name}'{_suggest(name, names)}; "
+                                    f"the character's targets are: {', '.join(names)}", file=file, field=field)
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+                    raise UserError(f"{expression}/{local}: weight of '{name}' must be a number, got {value!r}",
+                                    file=file, field=field)
+                if not 0.0 <= value <= 1.0:
+                    raise UserError(f"{expression}/{local}: weight of '{name}' is {value}, outside [0, 1]",
+                                    file=file, field=field)
+                weights[row, index[name]] = float(value)
+    if not allow_missing and not seen.all():
+        missing = {}
+        for s, label in enumerate(labels):
+            ids = [i for i in range(counts[s]) if not seen[offsets[s] + i]]
+            if ids:
+                missing[label] = ids
+        raise UserError(f"keymorph file has no entry for keyshapes {missing} (an empty {{}} means the neutral "
+                        "face; or set allow_missing to treat missing ones as neutral)", file=file, field=field)
+    return weights
+
+
+# ---------------------------------------------------------------------------------------------- contact sheet
+
+def draw_landmarks(image: np.ndarray, points: np.ndarray, color=(40, 200, 40)) -> np.ndarray:
+    """RGB copy of a grayscale or RGB image with the iBUG-68 contours and points drawn."""
+    import cv2
+
+    out = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB) if image.ndim == 2 else image.copy()
+    shift = 4  # sub-pixel drawing
+    pts = np.round(np.asarray(points, np.float64) * (1 << shift)).astype(np.int32)
+    for contour in IBUG68_CONTOURS:
+        cv2.polylines(out, [pts[list(contour)].reshape(-1, 1, 2)], False, color, 1, cv2.LINE_AA, shift)
+    for p in pts:
+        cv2.circle(out, (int(p[0]), int(p[1])), 1 << shift, color, -1, cv2.LINE_AA, shift)
+    return out
+
+
+def landmark_tile(points: np.ndarray, size: int) -> np.ndarray:
+    """A white tile with a landmark drawing, for when no tracking crops are available."""
+    pts = np.asarray(points, np.float64)
+    lo, hi = pts.min(0), pts.max(0)
+    scale = 0.8 * size / max(float((hi - lo).max()), 1e-9)
+    pts = (pts - (lo + hi) / 2) * scale + size / 2
+    return draw_landmarks(np.full((size, size), 255, np.uint8), pts, color=(30, 30, 30))
+
+
+def face_crop_tile(crop: np.ndarray, landmarks: np.ndarray, size: int) -> np.ndarray:
+    """The tracking crop with its landmarks, square-cropped around the face and resized to ``size``."""
+    import cv2
+
+    crop = np.asarray(crop)
+    h, w = crop.shape[:2]
+    pts = np.asarray(landmarks, np.float64)
+    centre = (pts.min(0) + pts.max(0)) / 2
+    half = 0.62 * float((pts.max(0) - pts.min(0)).max())
+    x0, y0 = int(round(centre[0] - half)), int(round(centre[1] - half))
+    side = max(int(round(2 * half)), 1)
+    padded = cv2.copyMakeBorder(crop, side, side, side, side, cv2.BORDER_CONSTANT, value=0)
+    window = padded[y0 + side:y0 + 2 * side, x0 + side:x0 + 2 * side]
+    tile = cv2.resize(window, (size, size), interpolation=cv2.INTER_AREA)
+    return draw_landmarks(tile, (pts - [x0, y0]) * (size / side))
+
+
+def render_keymorph_tiles(character, weights: np.ndarray, size: int, supersample: int = 2) -> list[np.ndarray]:
+    """The character's face from the front (stages.render, "face" framing) posed by each row of ``weights``."""
+    from stages.render import CharacterRenderer, View
+
+    # frame the landmarks tightly (brows to chin), like the tracking crops beside them
+    points = np.asarray(character["neutral"], np.float64)[np.asarray(character["landmark_ids"])]
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    pad = 0.12 * (hi - lo)
+    view = View.fit(np.array([lo - pad, hi + pad * [1, 2, 0]]), margin=1.0)
+    renderer = CharacterRenderer.from_artifact(character, size=size, view=view, supersample=supersample)
+    return [np.ascontiguousarray(renderer(w)[..., :3]) for w in np.asarray(weights, np.float32)]
+
+
+def compose_contact_sheet(labels: list[str], keyshape_expression: np.ndarray, keyshape_index: np.ndarray,
+                          keyshape_frame: np.ndarray, keyshape_tiles: list[np.ndarray],
+                          keymorph_tiles: list[np.ndarray], size: int, notes: list[str] | None = None) -> np.ndarray:
+    """Paper Figs 3-4 as one RGB image: per expression a header, a row of keyshapes, a row of keymorphs."""
+    import cv2
+
+    expression = np.asarray(keyshape_expression)
+    cols = max(int(np.bincount(expression, minlength=len(labels)).max(initial=1)), 1)
+    header, caption = 22, 14
+    block = header + 2 * (size + caption)
+    sheet = np.full((block * len(labels), cols * size, 3), 255, np.uint8)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    for s, label in enumerate(labels):
+        top = s * block
+        sheet[top:top + header] = (225, 225, 235)
+        cv2.putText(sheet, f"{label}: keyshapes (top) and keymorphs (bottom)", (4, top + 16), font, 0.5,
+                    (20, 20, 20), 1, cv2.LINE_AA)
+        for c, k in enumerate(np.flatnonzero(expression == s)):
+            x = c * size
+            y = top + header
+            sheet[y:y + size, x:x + size] = keyshape_tiles[k]
+            cv2.putText(sheet, f"#{int(keyshape_index[k])} f{int(keyshape_frame[k])}", (x + 3, y + size + 11), font,
+                        0.35, (20, 20, 20), 1, cv2.LINE_AA)
+            y += size + caption
+            sheet[y:y + size, x:x + size] = keymorph_tiles[k]
+            if notes:
+                cv2.putText(sheet, notes[k], (x + 3, y + size + 11), font, 0.35, (20, 20, 20), 1, cv2.LINE_AA)
+    return sheet
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    import cv2
+
+    ok, data = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR))
+    if not ok:  # pragma: no cover - OpenCV failure
+        raise RuntimeError("PNG encoding failed")
+    return data.tobytes()
+
+
+def build_contact_sheet(keyshapes, character, tracks, weights: np.ndarray, size: int,
+                        notes: list[str] | None = None) -> np.ndarray:
+    labels = list(keyshapes.meta["labels"])
+    frames = np.asarray(keyshapes["keyshape_frame"])
+    if tracks is not None:
+        crops, crop_landmarks = tracks["crops"], tracks["crop_landmarks"]
+        if frames.max(initial=0) >= len(crops):
+            raise UserError(f"keyshape source frame {int(frames.max())} is beyond the {len(crops)} frames of the "
+                            "tracking input: wire the training tracking (the one the aam was built from)",
+                            field="inputs.tracks")
+        left = [face_crop_tile(crops[f], crop_landmarks[f], size) for f in frames]
+    else:
+        left = [landmark_tile(shape, size) for shape in keyshapes["keyshapes"]]
+    right = render_keymorph_tiles(character, weights, size)
+    return compose_contact_sheet(labels, keyshapes["keyshape_expression"], keyshapes["keyshape_index"], frames,
+                                 left, right, size, notes)
+
+
+# ---------------------------------------------------------------------------------------------------- figures
+
+def figure_contact_sheet(view, inputs):
+    """The contact sheet the stage wrote (keyshape crops above keymorph renders, per expression)."""
+    if "contact_sheet" in view:
+        return view.bytes("contact_sheet")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(4, 1))
+    ax.axis("off")
+    ax.text(0.5, 0.5, "contact sheet turned off (params.contact_sheet)", ha="center", va="center")
+    return fig
+
+
+def figure_landmark_fit(view, inputs):
+    """Keyshape landmarks (black) against the landmarks the keymorph gives the character (red), per keyshape."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from stages.keyshapes import plot_shape
+
+    keyshapes = inputs["keyshapes"]
+    shapes = keyshapes["keyshapes"]
+    fitted = view["keymorph_landmarks"]
+    expression = np.asarray(keyshapes["keyshape_expression"])
+    labels = list(keyshapes.meta["labels"])
+    errors = view["landmark_error"]
+    cols = max(int(np.bincount(expression, minlength=len(labels)).max(initial=1)), 1)
+    fig, axes = plt.subplots(len(labels), cols, figsize=(1.2 * cols, 1.4 * len(labels)), squeeze=False)
+    lo, hi = shapes.reshape(-1, 2).min(0), shapes.reshape(-1, 2).max(0)
+    for s, label in enumerate(labels):
+        mine = np.flatnonzero(expression == s)
+        for c in range(cols):
+            ax = axes[s, c]
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if c >= len(mine):
+                ax.axis("off")
+                continue
+            plot_shape(ax, shapes[mine[c]], color="k", lw=0.7)
+            plot_shape(ax, fitted[mine[c]], color="r", lw=0.7)
+            ax.set_xlim(lo[0], hi[0])
+            ax.set_ylim(hi[1], lo[1])
+            ax.set_aspect("equal")
+            ax.set_title(f"{c}: {100 * errors[mine[c]]:.1f}%", fontsize=6)
+        axes[s, 0].set_ylabel(label)
+    fig.suptitle("Keyshape (black) vs keymorph landmarks (red), RMS error % inter-ocular")
+    fig.tight_layout()
+    return fig
+
+
+# ----------------------------------------------------------------------------------------------------- stages
+
+KEYMORPHS_OUTPUTS = {
+    "keymorph_weights": Output.array("f", shape=("total_k", "targets"), dtype="float32",
+                                     doc="morph target weights in [0, 1] per keyshape (meta['target_names'])"),
+    "keymorph_landmarks": Output.array("f", shape=("total_k", 68, 2), dtype="float32",
+                                       doc="the character's landmarks under each keymorph, in the keyshape frame"),
+    "landmark_error": Output.array("f", shape=("total_k",), dtype="float32",
+                                   doc="RMS landmark distance keyshape vs keymorph / inter-ocular distance"),
+    "keymorphs": Output.file(".yaml", doc="the keymorphs as an editable YAML (KeymorphFile reads it)"),
+    "contact_sheet": Output.file(".png", optional=True, doc="keyshape crops beside keymorph renders (Figs 3-4)"),
+}
+
+_INPUTS = {
+    "keyshapes": Input.artifact("keyshapes", "keyshape_expression", "keyshape_index", "keyshape_frame",
+                                "rest_shape", doc="keyshapes artifact"),
+    "character": Input.artifact("neutral", "triangles", "deltas", "landmark_ids", doc="character artifact"),
+    "tracks": Input.artifact("crops", "crop_landmarks", optional=True,
+                             doc="training tracking artifact: face crops of the keyshapes' source frames for the "
+                                 "contact sheet (landmark drawings instead when absent)"),
+}
+
+
+class _KeymorphStage(Stage):
+    outputs = KEYMORPHS_OUTPUTS
+    figures = {"contact_sheet": figure_contact_sheet, "landmark_fit": figure_landmark_fit}
+
+    def _common(self, params, inputs, weights: np.ndarray, yaml_text: str, metrics: dict, meta: dict) -> Result:
+        keyshapes, character = inputs["keyshapes"], inputs["character"]
+        names = list(character.meta["target_names"])
+        rig = self._rig(keyshapes, character)
+        scale = float(inter_ocular_distance(keyshapes["rest_shape"]))
+        shapes = np.asarray(keyshapes["keyshapes"], np.float64)
+        errors = landmark_errors(rig, shapes, weights, scale)
+        baseline = landmark_errors(rig, shapes, np.zeros_like(weights), scale)
+        arrays = {
+            "keymorph_weights": weights.astype(np.float32),
+            "keymorph_landmarks": rig.keymorph_landmarks(weights).astype(np.float32),
+            "landmark_error": errors.astype(np.float32),
+            "keymorphs": yaml_text.encode("utf-8"),
+        }
+        if params.contact_sheet:
+            notes = [f"err {100 * e:.1f}%" for e in errors]
+            sheet = build_contact_sheet(keyshapes, character, inputs.get("tracks"), weights, params.tile_size, notes)
+            arrays["contact_sheet"] = encode_png(sheet)
+        labels = list(keyshapes.meta["labels"])
+        expression = np.asarray(keyshapes["keyshape_expression"])
+        metrics = dict(metrics)
+        metrics["landmark_error_rms_iod"] = float(np.sqrt(np.mean(errors ** 2)))
+        metrics["landmark_error_neutral_rms_iod"] = float(np.sqrt(np.mean(baseline ** 2)))
+        metrics["mean_active_targets"] = float((weights > 0).sum(axis=1).mean())
+        meta = dict(meta, target_names=names, labels=labels,
+                    keyshape_ids=[f"{labels[e]}/{int(i)}" for e, i in zip(expression, keyshapes["keyshape_index"])],
+                    similarity_scale=rig.to_character.scale)
+        return Result(arrays, meta=meta, metrics=metrics)
+
+    @staticmethod
+    def _rig(keyshapes, character) -> LandmarkRig:
+        ids = np.asarray(character["landmark_ids"])
+        if ids.shape != (68,):
+            raise UserError(f"character landmark_ids has shape {ids.shape}, expected (68,)", field="inputs.character")
+        n_vertices = len(character["neutral"])
+        if ids.min() < 0 or ids.max() >= n_vertices:
+            raise UserError(f"character landmark ids must lie in 0..{n_vertices - 1}", field="inputs.character")
+        if len(character["deltas"]) == 0:
+            raise UserError("the character has no morph targets", field="inputs.character")
+        return LandmarkRig.build(character["neutral"], character["deltas"], ids, keyshapes["rest_shape"])
+
+    @staticmethod
+    def _yaml_comments(keyshapes, errors=None) -> list[str]:
+        frames = np.asarray(keyshapes["keyshape_frame"])
+        axes = np.asarray(keyshapes["keyshape_axis"]) if "keyshape_axis" in keyshapes else None
+        ext = np.asarray(keyshapes["keyshape_extreme"]) if "keyshape_extreme" in keyshapes else None
+        comments = []
+        for k, f in enumerate(frames):
+            text = f"frame {int(f)}"
+            if axes is not None and ext is not None:
+                text += f", PCA axis {int(axes[k])} {'max' if ext[k] > 0 else 'min'}"
+            if errors is not None:
+                text += f", landmark fit {100 * errors[k]:.1f}% IOD"
+            comments.append(text)
+        return comments
+
+
+class KeymorphFit(_KeymorphStage):
+    """Automatic first-draft keymorphs: bounded [0, 1] morph weights whose landmark deformation matches each
+    keyshape's (see ``fit_keymorph_weights``); writes the YAML an artist can edit and load with KeymorphFile."""
+
+    class Params(Stage.Params):
+        #: L2 penalty on the weights, relative to the mean landmark energy of a morph target
+        l2: float = 0.005
+        #: L1 penalty (sparsity: only the needed targets move), same units
+        l1: float = 0.02
+        #: coupling of left/right pairs (x_L, x_R): penalty on their difference
+        symmetry: float = 0.2
+        #: weight of the jaw-line landmarks (0-16) relative to the others
+        contour_weight: float = 0.5
+        #: targets the fit leaves at 0 (fnmatch patterns): gaze and pupils are not in 2D landmarks, and ARKit's
+        #: mouthClose is a corrective meant only on top of jawOpen
+        exclude: list[str] = ["eyeLook*", "PupilDilate*", "mouthClose"]
+        #: decimals of the weights in the YAML (the output weights are exactly the YAML's)
+        decimals: int = 3
+        contact_sheet: bool = True
+        tile_size: int = 128
+
+    inputs = _INPUTS
+
+    def run(self, params, inputs):
+        keyshapes, character = inputs["keyshapes"], inputs["character"]
+        names = list(character.meta["target_names"])
+        for field in ("l2", "l1", "symmetry", "contour_weight"):
+            if getattr(params, field) < 0:
+                raise UserError(f"{field} must be >= 0", field=f"params.{field}")
+        unknown = [p for p in params.exclude if not matching_targets(names, [p]).any()]
+        rig = self._rig(keyshapes, character)
+        shapes = np.asarray(keyshapes["keyshapes"], np.float64)
+        weights, info = fit_keymorph_weights(rig, shapes, names, l2=params.l2, l1=params.l1,
+                                             symmetry=params.symmetry, exclude=list(params.exclude),
+                                             contour_weight=params.contour_weight)
+        weights = rounded_weights(weights, params.decimals)
+        scale = float(inter_ocular_distance(keyshapes["rest_shape"]))
+        errors = landmark_errors(rig, shapes, weights, scale)
+        header = ("Keymorphs: expression -> keyshape id -> {morph target: weight in [0, 1]} (paper Sec 4.3).\n"
+                  "First draft fitted by KeymorphFit to the keyshapes' landmarks: edit freely and load it with\n"
+                  "stages.keymorphs:KeymorphFile. Targets left out are 0; {} is the neutral face.\n"
+                  + textwrap.fill("Character targets: " + ", ".join(names), 110, subsequent_indent="  "))
+        yaml_text = format_keymorph_yaml(list(keyshapes.meta["labels"]), keyshapes["keyshape_expression"],
+                                         keyshapes["keyshape_index"], weights, names,
+                                         comments=self._yaml_comments(keyshapes, errors), header=header,
+                                         decimals=params.decimals)
+        meta = {"fit": {"usable_targets": info["usable_targets"], "iterations": info["iterations"],
+                        "unmatched_exclude_patterns": unknown}}
+        return self._common(params, inputs, weights, yaml_text, {"fit_kkt_max": info["kkt_max"]}, meta)
+
+
+class KeymorphFile(_KeymorphStage):
+    """Artist-authored keymorphs from a YAML file (``expression -> keyshape id -> {morph target: weight}``)."""
+
+    class Params(Stage.Params):
+        #: keyshapes the file does not mention get the neutral face instead of an error
+        allow_missing: bool = False
+        contact_sheet: bool = True
+        tile_size: int = 128
+
+    inputs = dict(_INPUTS, keymorphs=Input.files(doc="the keymorph YAML"))
+
+    def run(self, params, inputs):
+        files = inputs["keymorphs"] or {}
+        if len(files) != 1:
+            raise UserError(f"give exactly one keymorph YAML file, got {len(files)}", field="inputs.keymorphs")
+        path = Path(next(iter(files.values())))
+        try:
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise UserError(f"cannot read keymorph file ({exc})", file=str(path), field="inputs.keymorphs") from None
+        keyshapes, character = inputs["keyshapes"], inputs["character"]
+        names = list(character.meta["target_names"])
+        labels = list(keyshapes.meta["labels"])
+        expression = np.asarray(keyshapes["keyshape_expression"])
+        counts = [int((expression == s).sum()) for s in range(len(labels))]
+        weights = parse_keymorph_yaml(text, labels, counts, names, file=str(path),
+                                      allow_missing=params.allow_missing)
+        yaml_text = format_keymorph_yaml(labels, expression, keyshapes["keyshape_index"], weights, names,
+                                         comments=self._yaml_comments(keyshapes),
+                                         header=f"Keymorphs read from {path.name}", decimals=None)
+        return self._common(params, inputs, weights, yaml_text, {}, {"source": path.name})

@@ -1,0 +1,315 @@
+"""Keymorphs (Sec 4.3): the automatic KeymorphFit draft, the artist's KeymorphFile YAML, the contact sheet."""
+import cv2
+import numpy as np
+import pytest
+
+from msflow import UserError
+from msflow.testing import artifact, run_stage
+from stages.character import GltfCharacter
+from stages.keymorphs import (KeymorphFile, KeymorphFit, LandmarkRig, fit_similarity, format_keymorph_yaml,
+                              parse_keymorph_yaml, project_front, symmetric_pairs)
+from stages.keyshapes import inter_ocular_distance
+
+ICT = "data/characters/ict-facekit.glb"
+
+#: keyshapes made from known ICT weights: (expression, {target: weight})
+POSES = [
+    ("neutral", {}), ("neutral", {"jawOpen": 0.5}), ("neutral", {"eyeBlink_L": 0.9, "eyeBlink_R": 0.9}),
+    ("happy", {"mouthSmile_L": 0.8, "mouthSmile_R": 0.8}),
+    ("happy", {"mouthSmile_L": 0.5, "mouthSmile_R": 0.5, "jawOpen": 0.3}),
+    ("happy", {"mouthUpperUp_L": 0.5, "mouthUpperUp_R": 0.5, "mouthSmile_L": 0.6, "mouthSmile_R": 0.6}),
+    ("angry", {"browDown_L": 0.8, "browDown_R": 0.8}),
+    ("angry", {"browDown_L": 0.6, "browDown_R": 0.6, "jawOpen": 0.25}),
+    ("angry", {"noseSneer_L": 0.5, "noseSneer_R": 0.5, "browDown_L": 0.5, "browDown_R": 0.5}),
+]
+LABELS = ["neutral", "happy", "angry"]
+
+
+@pytest.fixture(scope="module")
+def character():
+    return run_stage(GltfCharacter, {}, {"mesh": {"path": ICT}}).view()
+
+
+def actor_frame(points):
+    """An arbitrary similarity (as the aam mean-shape frame would be): scale 11, rotation 4 degrees, shift."""
+    th = np.deg2rad(4.0)
+    rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    return points @ rot.T * 11.0 + [0.4, -0.2]
+
+
+def keyshapes_from_weights(character, poses, noise=0.0, seed=0):
+    """A keyshapes artifact whose keyshapes are the character's own landmarks under known weights."""
+    names = character.meta["target_names"]
+    truth = np.zeros((len(poses), len(names)))
+    for k, (_, pose) in enumerate(poses):
+        for name, w in pose.items():
+            truth[k, names.index(name)] = w
+    ids = character["landmark_ids"]
+    rest = project_front(character["neutral"][ids])
+    deltas = project_front(character["deltas"][:, ids])
+    shapes = actor_frame(rest + np.einsum("km,mpc->kpc", truth, deltas))
+    shapes += noise * np.random.default_rng(seed).normal(size=shapes.shape) * inter_ocular_distance(shapes[0])
+    expression = np.array([LABELS.index(e) for e, _ in poses], np.int32)
+    index = np.concatenate([np.arange((expression == s).sum()) for s in range(len(LABELS))]).astype(np.int32)
+    view = artifact({
+        "keyshapes": shapes.astype(np.float32), "keyshape_expression": expression, "keyshape_index": index,
+        "keyshape_frame": np.arange(len(poses), dtype=np.int32) * 3,
+        "keyshape_axis": (index // 2).astype(np.int32), "keyshape_extreme": np.where(index % 2, -1, 1).astype(np.int8),
+        "rest_shape": actor_frame(rest).astype(np.float32),
+    }, meta={"labels": LABELS})
+    return view, truth
+
+
+def tracks_for(keyshapes, frames=30, size=96):
+    """A tracking-like artifact: grey crops with a bright disk where each landmark is."""
+    shapes = keyshapes["keyshapes"]
+    crops = np.full((frames, size, size), 90, np.uint8)
+    crop_landmarks = np.zeros((frames, 68, 2), np.float32)
+    for k, f in enumerate(keyshapes["keyshape_frame"]):
+        p = shapes[k] - shapes[k].mean(0)
+        p = p / np.abs(p).max() * size * 0.4 + size / 2
+        crop_landmarks[f] = p
+        for q in p:
+            cv2.circle(crops[f], (int(q[0]), int(q[1])), 2, 255, -1)
+    return artifact({"crops": crops, "crop_landmarks": crop_landmarks})
+
+
+# ------------------------------------------------------------------------------------------------- geometry
+
+def test_similarity_recovers_a_known_transform():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(20, 2))
+    dst = actor_frame(src)
+    sim = fit_similarity(src, dst)
+    assert sim.scale == pytest.approx(11.0)
+    np.testing.assert_allclose(sim.apply(src), dst, atol=1e-9)
+    np.testing.assert_allclose(sim.inverse_linear(sim.apply_linear(src)), src, atol=1e-12)
+
+
+def test_symmetric_pairs_in_ict_and_arkit_naming():
+    names = ["mouthSmile_L", "jawOpen", "mouthSmile_R", "eyeBlinkLeft", "eyeBlinkRight", "browDown_L"]
+    assert sorted(symmetric_pairs(names)) == [(0, 2), (3, 4)]
+
+
+# ---------------------------------------------------------------------------------------------- KeymorphFit
+
+@pytest.fixture(scope="module")
+def fitted(character):
+    keyshapes, truth = keyshapes_from_weights(character, POSES)
+    out = run_stage(KeymorphFit, {"contact_sheet": False}, {"keyshapes": keyshapes, "character": character})
+    return keyshapes, truth, out
+
+
+def test_fit_recovers_the_weights_that_made_the_keyshapes(fitted, character):
+    _, truth, out = fitted
+    w = out.arrays["keymorph_weights"]
+    names = character.meta["target_names"]
+    assert w.shape == truth.shape and out.meta["target_names"] == names
+    assert w.min() >= 0 and w.max() <= 1
+    for k, (_, pose) in enumerate(POSES):
+        for name, value in pose.items():
+            # regularisation shrinks a little; the right targets carry the weight
+            assert value * 0.6 <= w[k, names.index(name)] <= value + 0.05, (k, name)
+        others = [m for m in range(len(names)) if names[m] not in pose]
+        assert w[k, others].sum() < 0.35 * max(sum(pose.values()), 0.3), (k, {names[m]: w[k, m] for m in others
+                                                                             if w[k, m] > 0})
+    assert not w[0].any()  # the rest pose is the neutral face
+    # landmarks follow: keymorphs reproduce the keyshapes to a small fraction of the inter-ocular distance
+    assert out.arrays["landmark_error"].max() < 0.01
+    assert out.metrics["landmark_error_rms_iod"] < 0.25 * out.metrics["landmark_error_neutral_rms_iod"]
+
+
+def test_fit_is_unbiased_without_regularisation(character):
+    keyshapes, truth = keyshapes_from_weights(character, POSES)
+    out = run_stage(KeymorphFit, {"contact_sheet": False, "l2": 0, "l1": 0, "symmetry": 0, "decimals": 6},
+                    {"keyshapes": keyshapes, "character": character})
+    assert out.arrays["landmark_error"].max() < 1e-3
+
+
+def test_weights_stay_in_bounds_for_exaggerated_keyshapes(character):
+    poses = [("neutral", {}), ("neutral", {"jawOpen": 1.0}), ("happy", {"mouthSmile_L": 1, "mouthSmile_R": 1}),
+             ("angry", {"browDown_L": 1, "browDown_R": 1})]
+    keyshapes, _ = keyshapes_from_weights(character, poses)
+    rest = keyshapes["rest_shape"]
+    exaggerated = artifact(dict({n: keyshapes[n] for n in keyshapes.names},
+                                keyshapes=(rest + 2.5 * (keyshapes["keyshapes"] - rest)).astype(np.float32)),
+                           meta=keyshapes.meta)
+    out = run_stage(KeymorphFit, {"contact_sheet": False}, {"keyshapes": exaggerated, "character": character})
+    w = out.arrays["keymorph_weights"]
+    names = character.meta["target_names"]
+    assert w.max() <= 1.0 and w.min() >= 0.0
+    assert w[1, names.index("jawOpen")] == 1.0
+
+
+def test_symmetry_coupling_and_exclusions(character):
+    names = character.meta["target_names"]
+    poses = [("neutral", {}), ("happy", {"mouthSmile_L": 0.8}), ("angry", {"eyeLookDown_L": 1.0, "jawOpen": 0.3})]
+    keyshapes, _ = keyshapes_from_weights(character, poses)
+    loose = run_stage(KeymorphFit, {"contact_sheet": False, "symmetry": 0.0},
+                      {"keyshapes": keyshapes, "character": character}).arrays["keymorph_weights"]
+    tight = run_stage(KeymorphFit, {"contact_sheet": False, "symmetry": 50.0},
+                      {"keyshapes": keyshapes, "character": character}).arrays["keymorph_weights"]
+    L, R = names.index("mouthSmile_L"), names.index("mouthSmile_R")
+    assert abs(tight[1, L] - tight[1, R]) < 0.3 * abs(loose[1, L] - loose[1, R])
+    # gaze is excluded by default: eyeLook* stay 0 even when the keyshape was made with one
+    gaze = [m for m, n in enumerate(names) if n.startswith("eyeLook") or n.startswith("PupilDilate")]
+    assert not tight[:, gaze].any()
+    allowed = run_stage(KeymorphFit, {"contact_sheet": False, "exclude": []},
+                        {"keyshapes": keyshapes, "character": character}).arrays["keymorph_weights"]
+    assert allowed[2, names.index("eyeLookDown_L")] > 0.3
+
+
+def test_fit_is_robust_to_landmark_noise(character):
+    keyshapes, truth = keyshapes_from_weights(character, POSES, noise=0.01)
+    w = run_stage(KeymorphFit, {"contact_sheet": False}, {"keyshapes": keyshapes,
+                                                          "character": character}).arrays["keymorph_weights"]
+    names = character.meta["target_names"]
+    for k, target in ((1, "jawOpen"), (3, "mouthSmile_L"), (6, "browDown_R")):
+        assert w[k, names.index(target)] > 0.5 * truth[k, names.index(target)]
+    assert (w > 0.05).sum(axis=1).max() <= 12  # sparse: a handful of targets per keymorph
+
+
+# ------------------------------------------------------------------------------------------ YAML, KeymorphFile
+
+def test_fit_yaml_round_trips_through_keymorph_file(fitted, character, tmp_path):
+    keyshapes, _, out = fitted
+    yaml_path = tmp_path / "keymorphs.yaml"
+    yaml_path.write_bytes(out.arrays["keymorphs"].tobytes())
+    text = yaml_path.read_text()
+    assert text.startswith("# Keymorphs") and "neutral:" in text and "frame 3" in text
+    reread = run_stage(KeymorphFile, {"contact_sheet": False},
+                       {"keyshapes": keyshapes, "character": character, "keymorphs": {"yaml": yaml_path}})
+    np.testing.assert_array_equal(reread.arrays["keymorph_weights"], out.arrays["keymorph_weights"])
+    np.testing.assert_allclose(reread.arrays["landmark_error"], out.arrays["landmark_error"])
+
+
+def test_artist_edits_take_effect(fitted, character, tmp_path):
+    keyshapes, _, out = fitted
+    text = out.arrays["keymorphs"].tobytes().decode()
+    edited = text.replace("  0: {}", "  0: {mouthSmile_L: 0.25, mouthSmile_R: 0.25}", 1)
+    assert edited != text
+    path = tmp_path / "edited.yaml"
+    path.write_text(edited)
+    w = run_stage(KeymorphFile, {"contact_sheet": False}, {"keyshapes": keyshapes, "character": character,
+                                                           "keymorphs": {"yaml": path}}).arrays["keymorph_weights"]
+    names = character.meta["target_names"]
+    assert w[0, names.index("mouthSmile_L")] == pytest.approx(0.25)
+    np.testing.assert_array_equal(w[1:], out.arrays["keymorph_weights"][1:])
+
+
+NAMES = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "browDown_L"]
+
+
+def parse(text, allow_missing=False):
+    return parse_keymorph_yaml(text, ["neutral", "happy"], [2, 1], NAMES, file="k.yaml",
+                               allow_missing=allow_missing)
+
+
+def test_parse_maps_ids_and_names():
+    w = parse("neutral:\n  0: {}\n  1: {jawOpen: 0.5}\nhappy:\n  '0': {mouthSmile_L: 1, mouthSmile_R: 0.75}\n")
+    np.testing.assert_array_equal(w, [[0, 0, 0, 0], [0.5, 0, 0, 0], [0, 1, 0.75, 0]])
+    text = format_keymorph_yaml(["neutral", "happy"], np.array([0, 0, 1]), np.array([0, 1, 0]), w, NAMES)
+    np.testing.assert_array_equal(parse(text), w)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("sad:\n  0: {}\n", r"unknown expression 'sad'.*neutral, happy"),
+    ("happi:\n  0: {}\n", r"did you mean 'happy'"),
+    ("neutral:\n  0: {}\n  2: {}\nhappy:\n  0: {}\n", r"unknown keyshape id '2'.*0\.\.1"),
+    ("neutral:\n  x: {}\n", r"unknown keyshape id 'x'"),
+    ("neutral:\n  0: {mouthSmileLeft: 0.2}\n  1: {}\nhappy:\n  0: {}\n",
+     r"unknown morph target 'mouthSmileLeft'.*did you mean 'mouthSmile_L'.*jawOpen, mouthSmile_L, mouthSmile_R"),
+    ("neutral:\n  0: {jawOpen: 1.5}\n", r"outside \[0, 1\]"),
+    ("neutral:\n  0: {jawOpen: -0.1}\n", r"outside \[0, 1\]"),
+    ("neutral:\n  0: {jawOpen: lots}\n", r"must be a number"),
+    ("neutral:\n  0: {jawOpen: .nan}\n", r"must be a number"),
+    ("neutral:\n  0: [jawOpen]\n", r"expected \{morph target: weight\}"),
+    ("- neutral\n", r"top level"),
+    ("neutral: {0: {}, '0': {}}\n", r"given twice"),
+    ("neutral:\n  0: {jawOpen: 0.1\n", r"not valid YAML"),
+    ("neutral:\n  0: {}\nhappy:\n  0: {}\n", r"no entry for keyshapes \{'neutral': \[1\]\}"),
+])
+def test_parse_errors_name_the_valid_choices(text, message):
+    with pytest.raises(UserError, match=message) as err:
+        parse(text)
+    assert err.value.file == "k.yaml" and err.value.field == "inputs.keymorphs"
+
+
+def test_missing_keyshapes_can_be_allowed():
+    w = parse("happy:\n  0: {mouthSmile_L: 0.4}\n", allow_missing=True)
+    assert w.shape == (3, 4) and w[2, 1] == 0.4 and not w[:2].any()
+
+
+def test_keymorph_file_stage_errors(fitted, character, tmp_path):
+    keyshapes, _, _ = fitted
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("angry:\n  7: {}\n")
+    with pytest.raises(UserError, match=r"unknown keyshape id '7'.*0\.\.2") as err:
+        run_stage(KeymorphFile, {"contact_sheet": False, "allow_missing": True},
+                  {"keyshapes": keyshapes, "character": character, "keymorphs": {"yaml": bad}})
+    assert err.value.file.endswith("bad.yaml")
+    with pytest.raises(UserError, match="exactly one"):
+        run_stage(KeymorphFile, {}, {"keyshapes": keyshapes, "character": character,
+                                     "keymorphs": {"a": bad, "b": bad}})
+
+
+def test_character_problems_are_user_errors(fitted, character):
+    keyshapes, _, _ = fitted
+    arrays = {n: character[n] for n in character.names}
+    broken = dict(arrays, landmark_ids=np.full(68, len(arrays["neutral"]) + 5, np.int32))
+    with pytest.raises(UserError, match="landmark ids"):
+        run_stage(KeymorphFit, {"contact_sheet": False},
+                  {"keyshapes": keyshapes, "character": artifact(broken, meta=character.meta)})
+    no_targets = dict(arrays, deltas=np.zeros((0,) + arrays["neutral"].shape, np.float32))
+    with pytest.raises(UserError, match="no morph targets"):
+        run_stage(KeymorphFit, {"contact_sheet": False},
+                  {"keyshapes": keyshapes, "character": artifact(no_targets, meta=dict(character.meta,
+                                                                                       target_names=[]))})
+
+
+# ------------------------------------------------------------------------------------------- contact sheet
+
+def test_contact_sheet_shows_crops_beside_renders(character, tmp_path):
+    keyshapes, _ = keyshapes_from_weights(character, POSES)
+    tracks = tracks_for(keyshapes)
+    out = run_stage(KeymorphFit, {"tile_size": 64}, {"keyshapes": keyshapes, "character": character,
+                                                     "tracks": tracks}, store=tmp_path)
+    sheet = cv2.imdecode(out.arrays["contact_sheet"], cv2.IMREAD_COLOR)
+    assert sheet is not None
+    cols, rows = 3, len(LABELS)  # three keyshapes per expression
+    assert sheet.shape[1] == cols * 64 and sheet.shape[0] > rows * 2 * 64
+    # keymorph tiles differ where the weights differ: jawOpen (neutral/1) vs rest (neutral/0)
+    header, caption = 22, 14
+    render_top = header + 64 + caption
+    rest_tile = sheet[render_top:render_top + 64, 0:64].astype(int)
+    jaw_tile = sheet[render_top:render_top + 64, 64:128].astype(int)
+    assert np.abs(rest_tile - jaw_tile).mean() > 1.0
+    # the crop row shows the tracking crop: bright landmark dots and green drawn landmarks
+    crop_tile = sheet[header:header + 64, 0:64]
+    assert (crop_tile[..., 1] > crop_tile[..., 0] + 60).any()
+    fig = KeymorphFit.figures["landmark_fit"](out.view(), {"keyshapes": keyshapes})
+    assert fig is not None
+    assert KeymorphFit.figures["contact_sheet"](out.view(), {})[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_contact_sheet_without_tracking_draws_the_keyshapes(character):
+    keyshapes, _ = keyshapes_from_weights(character, POSES[:4])
+    out = run_stage(KeymorphFit, {"tile_size": 48}, {"keyshapes": keyshapes, "character": character})
+    sheet = cv2.imdecode(out.arrays["contact_sheet"], cv2.IMREAD_GRAYSCALE)
+    assert sheet.shape[1] == 3 * 48
+
+
+def test_tracking_that_does_not_match_the_keyshapes_is_a_user_error(character):
+    keyshapes, _ = keyshapes_from_weights(character, POSES)
+    short = artifact({"crops": np.zeros((4, 32, 32), np.uint8), "crop_landmarks": np.zeros((4, 68, 2), np.float32)})
+    with pytest.raises(UserError, match="beyond the 4 frames"):
+        run_stage(KeymorphFit, {"tile_size": 32}, {"keyshapes": keyshapes, "character": character,
+                                                   "tracks": short})
+
+
+def test_rig_maps_keyshapes_into_character_units(character):
+    keyshapes, truth = keyshapes_from_weights(character, POSES)
+    rig = LandmarkRig.build(character["neutral"], character["deltas"], character["landmark_ids"],
+                            keyshapes["rest_shape"])
+    assert rig.to_character.scale == pytest.approx(1 / 11.0, rel=1e-5)
+    np.testing.assert_allclose(rig.keymorph_landmarks(truth), keyshapes["keyshapes"], atol=1e-4)
