@@ -1,11 +1,22 @@
 """msflow: a small cached dataflow framework (pipeline spec, DAG, content-hashed zarr artifacts, executors, CLI).
 
-Stage authors import ``Stage, Input, Output, Result, UserError`` from here; users call ``msflow.run``.
+Stage authors import ``Stage, Input, Output, Result, UserError`` from here; users call ``msflow.run``. Exports
+load on first use so that ``msflow status`` and a no-op ``msflow run`` import as little as possible.
 """
 from msflow.errors import StageFailed, UserError
-from msflow.stage import Input, Output, Params, Result, Stage
 
 __version__ = "0.1.0"
+
+_LAZY = {"Stage": "msflow.stage", "Params": "msflow.stage", "Input": "msflow.stage", "Output": "msflow.stage",
+         "Result": "msflow.stage"}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'msflow' has no attribute '{name}'")
 
 
 def run(path, overrides=(), **options):

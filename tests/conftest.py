@@ -9,3 +9,33 @@ for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+
+
+import shutil
+import subprocess
+
+import pytest
+
+NUMPROJECT = Path(__file__).resolve().parent / "numproject"
+
+
+@pytest.fixture
+def numproject(tmp_path):
+    """A fresh copy of the small numeric test project; returns its directory."""
+    dest = tmp_path / "proj"
+    shutil.copytree(NUMPROJECT, dest, ignore=shutil.ignore_patterns("__pycache__", ".msflow", "*.lock"))
+    return dest
+
+
+def run_cli(cwd, *args, env=None, timeout=120):
+    """Run ``python -m msflow.cli`` in a subprocess; returns CompletedProcess with text output."""
+    full_env = dict(os.environ)
+    full_env.update(env or {})
+    return subprocess.run([sys.executable, "-m", "msflow.cli", *map(str, args)], cwd=cwd, env=full_env,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def executions(log_path):
+    """Stage names executed, in order, from a NUMSTAGES_LOG side channel."""
+    path = Path(log_path)
+    return [line.split()[0] for line in path.read_text().splitlines()] if path.exists() else []

@@ -1,0 +1,158 @@
+"""Python API: ``msflow.run(path, overrides=...)`` and the helpers the CLI shares with it."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from msflow.errors import StageFailed, UserError
+from msflow.hashing import json_hash
+from msflow.plan import StagePlan, resolve
+from msflow.runner import Runner, StageState, new_run_id
+from msflow.spec import Pipeline, load_pipeline
+from msflow.store import open_store
+
+
+@dataclass
+class Session:
+    """A loaded, resolved pipeline with its store and memo: what every command starts from."""
+
+    pipeline: Pipeline
+    store: Any
+    memo: dict
+    plans: dict[str, StagePlan]
+    memo_digest: str
+
+    def save_memo(self) -> None:
+        if json_hash(self.memo) != self.memo_digest:
+            try:
+                self.store.save_memo(self.memo)
+            except OSError:
+                pass  # a read-only store still runs; it only loses the memo
+            self.memo_digest = json_hash(self.memo)
+
+
+def open_session(path: str | Path, overrides=()) -> Session:
+    pipeline = load_pipeline(path, tuple(overrides))
+    store = open_store(pipeline.store)
+    memo = store.load_memo()
+    digest = json_hash(memo)
+    plans = resolve(pipeline, memo)
+    return Session(pipeline, store, memo, plans, digest)
+
+
+@dataclass
+class RunResult:
+    """What a run did: per-stage states, the run record, and access to every artifact as numpy."""
+
+    session: Session
+    states: dict[str, StageState]
+    record: dict
+
+    @property
+    def ok(self) -> bool:
+        return self.record["ok"]
+
+    @property
+    def run_id(self) -> str:
+        return self.record["id"]
+
+    @property
+    def executed(self) -> list[str]:
+        return [n for n, s in self.states.items() if s.state == "ran"]
+
+    @property
+    def metrics(self) -> dict[str, dict]:
+        return {n: (s.manifest or {}).get("metrics", {}) for n, s in self.states.items()}
+
+    def key(self, stage: str) -> str:
+        state = self.states.get(stage)
+        if state is None or state.key is None:
+            raise KeyError(f"stage '{stage}' was not part of this run")
+        return state.key
+
+    def artifact(self, stage: str):
+        return self.session.store.open(self.key(stage))
+
+    def load(self, ref: str):
+        """``"stage.output"`` -> numpy array."""
+        stage, _, output = ref.partition(".")
+        return self.artifact(stage)[output]
+
+
+def run(path: str | Path, overrides=(), *, jobs: int = 1, until: str | None = None, force=(),
+        executor: str = "local", scheduler: str | None = None, reporter=None, argv: list[str] | None = None,
+        raise_on_failure: bool = True, label: dict | None = None, session: Session | None = None) -> RunResult:
+    """Run a pipeline. Raises UserError for mistakes in the pipeline (nothing is written), and after the run
+    StageFailed (a stage crashed) or UserError (a stage rejected its data) unless ``raise_on_failure`` is False."""
+    from msflow.executors import make_executor
+    from msflow.records import build_record, update_lock
+    from msflow.worker import pin_blas_threads
+
+    started = time.time()
+    session = session or open_session(path, overrides)
+    pin_blas_threads()
+    runner = Runner(session.pipeline, session.plans, session.store, session.memo, executor=None, until=until,
+                    force=tuple(force), reporter=reporter)
+    needs_work = bool(runner.force) or _might_run(runner)
+    pool = make_executor(executor, jobs, scheduler) if needs_work else None
+    if needs_work:
+        session.store.clean_tmp()  # leftovers of runs killed mid-write
+    runner.executor = pool
+    try:
+        states = runner.run() if pool is not None else _settle_all_cached(runner)
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    session.save_memo()
+    record = build_record(new_run_id(), session.pipeline, session.plans, states, started=started,
+                          finished=time.time(), executor=getattr(pool, "name", "none"), jobs=jobs, argv=argv,
+                          label=label)
+    session.store.write_run(record)
+    update_lock(session.pipeline, session.plans, states)
+    if session.pipeline.publish:
+        from msflow.exporting import publish_outputs
+
+        publish_outputs(session, states)
+        session.save_memo()
+    result = RunResult(session, states, record)
+    if raise_on_failure:
+        raise_for_failures(states)
+    return result
+
+
+def _might_run(runner: Runner) -> bool:
+    """Cheap pre-pass: if every selected stage is cached, no executor (and no process pool) is needed."""
+    reporter, runner.reporter = runner.reporter, None
+    try:
+        for name in runner.selected:
+            try:
+                job = runner.prepare(name)
+            except UserError:
+                job = True
+            if job is not None:
+                for state in runner.states.values():  # reset: the real pass recomputes and reports
+                    state.state, state.key, state.manifest = "pending", None, None
+                return True
+    finally:
+        runner.reporter = reporter
+    if reporter is not None:
+        for state in runner.states.values():
+            reporter.update(state)
+    return False
+
+
+def _settle_all_cached(runner: Runner) -> dict[str, StageState]:
+    return runner.states
+
+
+def raise_for_failures(states: dict[str, StageState]) -> None:
+    failed = [s for s in states.values() if s.state == "failed"]
+    crashes = [s for s in failed if not s.user_error]
+    if crashes:
+        first = crashes[0]
+        raise StageFailed(first.name, first.error or "failed", first.traceback or "")
+    if failed:
+        ue = failed[0].user_error
+        raise UserError(ue["message"], file=ue.get("file"), stage=ue.get("stage"), field=ue.get("field"))

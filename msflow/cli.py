@@ -1,0 +1,264 @@
+"""The ``msflow`` command line. Exit codes: 0 ok, 1 a stage failed, 2 user error (no traceback)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+from msflow.errors import StageFailed, UserError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  help="msflow: cached dataflow pipelines (Mood Swings expressive speech animation).")
+
+FILE_ARG = typer.Argument(Path("pipeline.yaml"), help="pipeline file", show_default=True)
+
+
+def _echo(text: str = "", err: bool = False) -> None:
+    print(text, file=sys.stderr if err else sys.stdout, flush=True)
+
+
+def _split(values: list[str] | None) -> tuple[str, ...]:
+    return tuple(v for item in values or () for v in item.split(",") if v)
+
+
+# ---------------------------------------------------------------------------------------------------------- run
+@app.command()
+def run(file: Path = FILE_ARG,
+        until: Optional[str] = typer.Option(None, "--until", help="run only this stage and what it needs"),
+        force: Optional[List[str]] = typer.Option(None, "--force", help="rerun these stages even if cached"),
+        overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
+        jobs: int = typer.Option(1, "-j", "--jobs", help="stages to run at once (processes)"),
+        executor: str = typer.Option("local", "--executor", help="local or dask"),
+        scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address tcp://host:port"),
+        quiet: bool = typer.Option(False, "-q", "--quiet", help="no progress display")):
+    """Run the pipeline: compute what is missing, reuse everything else."""
+    from msflow.api import open_session, run as run_pipeline
+    from msflow.progress import make_reporter
+
+    session = open_session(file, tuple(overrides or ()))
+    reporter = make_reporter(list(session.plans), quiet)
+    if reporter:
+        reporter.start()
+    try:
+        result = run_pipeline(file, session=session, jobs=jobs, until=until, force=_split(force),
+                              executor=executor, scheduler=scheduler, reporter=reporter, argv=sys.argv[1:],
+                              raise_on_failure=False)
+    finally:
+        if reporter:
+            reporter.stop()
+    counts = result.record["counts"]
+    summary = ", ".join(f"{v} {k}" for k, v in counts.items() if v)
+    if not quiet:
+        _echo(f"{summary or 'nothing selected'} in {result.record['seconds']:.2f}s (run {result.run_id})", err=True)
+    for name, state in result.states.items():
+        if state.state == "failed" and not state.user_error and state.traceback:
+            _echo(f"\n--- stage '{name}' failed; traceback (also in the run record):", err=True)
+            _echo(state.traceback.rstrip(), err=True)
+    from msflow.api import raise_for_failures
+
+    raise_for_failures(result.states)
+
+
+# ---------------------------------------------------------------------------------------------------------- status / why
+@app.command()
+def status(file: Path = FILE_ARG,
+           overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override")):
+    """What a run would do now, and why."""
+    from msflow.api import open_session
+    from msflow.inspect import dry_run
+
+    session = open_session(file, tuple(overrides or ()))
+    dry = dry_run(session)
+    session.save_memo()
+    width = max(len(n) for n in dry)
+    for name, d in dry.items():
+        label = {"cached": "cached", "run": "will run", "blocked": "waits"}[d.state]
+        _echo(f"{name:<{width}}  {label}")
+        for reason in d.reasons:
+            _echo(f"{'':<{width}}    - {reason}")
+    todo = sum(1 for d in dry.values() if d.state != "cached")
+    _echo(f"{len(dry) - todo} cached, {todo} to run")
+
+
+@app.command()
+def why(stage: str = typer.Argument(..., help="stage name"), file: Path = FILE_ARG,
+        overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override")):
+    """Which part of STAGE's cache key changed since its last run (code file, param, input)."""
+    from msflow.api import open_session
+    from msflow.inspect import dry_run, last_stage_record
+    from msflow.spec import _suggest
+
+    session = open_session(file, tuple(overrides or ()))
+    if stage not in session.pipeline.stages:
+        raise UserError(f"unknown stage '{stage}'{_suggest(stage, session.pipeline.stages)}", file=str(file),
+                        field="STAGE")
+    d = dry_run(session)[stage]
+    previous = last_stage_record(session, stage)
+    session.save_memo()
+    if d.state == "cached":
+        _echo(f"{stage}: up to date (key {d.key[:12]})")
+        return
+    since = f" since run {previous['run']}" if previous else ""
+    _echo(f"{stage}: {'would run' if d.state == 'run' else 'waits for upstream'}{since}")
+    for reason in d.reasons:
+        _echo(f"  - {reason}")
+
+
+# ---------------------------------------------------------------------------------------------------------- dag
+@app.command()
+def dag(file: Path = FILE_ARG, mermaid: bool = typer.Option(False, "--mermaid"),
+        dot: bool = typer.Option(False, "--dot")):
+    """Print the stage graph (text, Mermaid or Graphviz dot)."""
+    from msflow.dag import render_dot, render_mermaid, render_text
+    from msflow.spec import load_pipeline
+
+    pipeline = load_pipeline(file)
+    _echo(render_mermaid(pipeline) if mermaid else render_dot(pipeline) if dot else render_text(pipeline))
+
+
+# ---------------------------------------------------------------------------------------------------------- show / export
+@app.command()
+def show(target: str = typer.Argument(..., help="STAGE or STAGE.output"), file: Path = FILE_ARG):
+    """Shapes, dtypes, statistics, metadata and metrics of a stage's artifact."""
+    import json
+
+    from msflow.api import open_session
+    from msflow.inspect import resolve_artifact_key
+
+    stage, _, output = target.partition(".")
+    session = open_session(file)
+    key, origin = resolve_artifact_key(session, stage)
+    view = session.store.open(key)
+    session.save_memo()
+    _echo(f"{stage}  {session.plans[stage].uses}\nkey {key}  ({origin})")
+    names = [output] if output else list(view.names)
+    if output and output not in view:
+        raise UserError(f"stage '{stage}' has no output '{output}'; outputs: {', '.join(view.names)}",
+                        field="STAGE.output")
+    for name in names:
+        _echo("  " + describe_array(name, view))
+    if output:
+        import numpy as np
+
+        with np.printoptions(threshold=200, edgeitems=3, precision=5, suppress=True):
+            _echo(str(view[output]))
+        return
+    if view.metrics:
+        _echo("metrics:")
+        for k, v in view.metrics.items():
+            _echo(f"  {k} = {v:.6g}" if isinstance(v, float) else f"  {k} = {v}")
+    if view.meta:
+        text = json.dumps(view.meta, indent=1)
+        _echo("meta:\n" + (text if len(text) < 4000 else text[:4000] + "\n  ... (truncated)"))
+
+
+def describe_array(name: str, view) -> str:
+    import numpy as np
+
+    entry = view.manifest["outputs"][name]
+    if entry.get("file_suffix"):
+        return f"{name:<18} file {entry['file_suffix']}  {entry['shape'][0]:,} bytes"
+    arr = view[name]
+    text = f"{name:<18} {entry['dtype']:<8} {tuple(entry['shape'])}"
+    if arr.size and arr.dtype.kind in "fiub":
+        vals = arr.astype(np.float64)
+        finite = np.isfinite(vals)
+        if finite.any():
+            v = vals[finite]
+            text += f"  min {v.min():.4g} max {v.max():.4g} mean {v.mean():.4g} std {v.std():.4g}"
+        if (~finite).any():
+            text += f"  non-finite {int((~finite).sum())}"
+    return text
+
+
+@app.command()
+def export(target: str = typer.Argument(..., help="STAGE.output"), dest: Path = typer.Argument(...),
+           file: Path = typer.Option(Path("pipeline.yaml"), "--file", "-f", help="pipeline file")):
+    """Write one output to a file: .npy, .npz, .csv, .json, or a file output's own bytes (GLB, MP4, ...)."""
+    from msflow.api import open_session
+    from msflow.exporting import export_output
+    from msflow.inspect import resolve_artifact_key
+
+    stage, _, output = target.partition(".")
+    if not output:
+        raise UserError(f"'{target}' names no output: write STAGE.output", field="STAGE.output")
+    session = open_session(file)
+    key, origin = resolve_artifact_key(session, stage)
+    export_output(session.store.open(key), output, dest)
+    session.save_memo()
+    _echo(f"wrote {dest} ({stage}.{output}, {origin})", err=True)
+
+
+# ---------------------------------------------------------------------------------------------------------- gc / verify
+@app.command()
+def gc(file: Path = FILE_ARG, keep_runs: int = typer.Option(10, "--keep-runs", help="runs whose artifacts stay"),
+       dry_run: bool = typer.Option(False, "--dry-run", help="only list what would go")):
+    """Drop artifacts that none of the most recent runs references; clear leftovers of killed runs."""
+    from msflow.gc import collect_garbage
+    from msflow.spec import load_pipeline
+    from msflow.store import open_store
+
+    pipeline = load_pipeline(file)
+    report = collect_garbage(open_store(pipeline.store), keep_runs=keep_runs, dry_run=dry_run)
+    verb = "would remove" if dry_run else "removed"
+    _echo(f"{verb} {len(report['artifacts'])} artifacts ({report['bytes'] / 1e6:.1f} MB), kept {report['kept']}, "
+          f"cleared {len(report['tmp'])} temporary directories")
+
+
+@app.command()
+def verify(file: Path = FILE_ARG, delete: bool = typer.Option(False, "--delete", help="remove corrupt artifacts")):
+    """Recompute every artifact's content hashes; list corrupt ones (exit 1 if any)."""
+    from msflow.artifact import verify_artifact
+    from msflow.spec import load_pipeline
+    from msflow.store import open_store
+
+    store = open_store(load_pipeline(file).store)
+    bad = 0
+    total = 0
+    for key in store.keys():
+        total += 1
+        problems = verify_artifact(store.artifact_path(key))
+        if problems:
+            bad += 1
+            _echo(f"corrupt {key}: " + "; ".join(problems))
+            if delete:
+                store.remove(key)
+    _echo(f"verified {total} artifacts: {bad} corrupt" + (" (removed)" if delete and bad else ""))
+    if bad:
+        raise typer.Exit(1)
+
+
+# ---------------------------------------------------------------------------------------------------------- entry point
+def main(argv: list[str] | None = None) -> int:
+    import click
+
+    command = typer.main.get_command(app)
+    try:
+        code = command.main(args=argv if argv is not None else sys.argv[1:], prog_name="msflow",
+                            standalone_mode=False)
+        if isinstance(code, int):  # click returns typer.Exit's code instead of raising it here
+            return code
+    except UserError as exc:
+        _echo(f"error: {exc}", err=True)
+        return 2
+    except StageFailed as exc:
+        _echo(f"error: {exc}", err=True)
+        return 1
+    except click.exceptions.Exit as exc:
+        return exc.exit_code
+    except click.exceptions.Abort:
+        _echo("aborted", err=True)
+        return 130
+    except click.ClickException as exc:
+        _echo(f"error: {exc.format_message()}", err=True)
+        return 2
+    except KeyboardInterrupt:
+        _echo("interrupted", err=True)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,60 @@
+"""Executors run jobs (JSON strings, see msflow.worker) and hand back futures of JSON outcomes.
+
+``inline`` runs in the calling process (``-j 1``); ``local`` is a process pool (``-j N``) whose workers pin BLAS to
+one thread; ``dask`` lives in msflow.dask_executor. All produce the same artifacts and keys.
+"""
+from __future__ import annotations
+
+from concurrent.futures import Future
+
+
+class InlineExecutor:
+    name = "inline"
+
+    def submit(self, job_json: str) -> Future:
+        from msflow.worker import run_job
+
+        future: Future = Future()
+        future.set_result(run_job(job_json))
+        return future
+
+    def shutdown(self) -> None:
+        pass
+
+
+class ProcessExecutor:
+    """A pool of ``jobs`` worker processes started with forkserver (no inherited threads or locks)."""
+
+    name = "local"
+
+    def __init__(self, jobs: int):
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        from msflow.worker import pin_blas_threads
+
+        pin_blas_threads()  # inherited by the fork server, so set before any worker imports numpy
+        self.pool = ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("forkserver"),
+                                        initializer=pin_blas_threads)
+
+    def submit(self, job_json: str) -> Future:
+        from msflow.worker import run_job
+
+        return self.pool.submit(run_job, job_json)
+
+    def shutdown(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+def make_executor(kind: str = "local", jobs: int = 1, scheduler: str | None = None):
+    from msflow.errors import UserError
+
+    if jobs < 1:
+        raise UserError(f"-j must be at least 1, got {jobs}", field="-j")
+    if kind == "dask" or scheduler:
+        from msflow.dask_executor import DaskExecutor
+
+        return DaskExecutor(jobs=jobs, scheduler=scheduler)
+    if kind not in ("local", "inline"):
+        raise UserError(f"unknown executor '{kind}'; choose local or dask", field="--executor")
+    return InlineExecutor() if jobs == 1 or kind == "inline" else ProcessExecutor(jobs)

@@ -1,0 +1,217 @@
+"""Code fingerprints: a stage class's module and every project module it imports, transitively, hashed by AST.
+
+Comments, docstrings and formatting do not change a fingerprint; any other edit does. Imports of third-party
+packages contribute their distributions' versions, standard-library imports nothing (the Python minor version is
+part of the key instead). Nothing is imported to compute this: modules are parsed, and parse results are memoised
+by (size, mtime_ns, inode) so a no-op run only stats files.
+"""
+from __future__ import annotations
+
+import ast
+import os
+import sys
+from pathlib import Path
+
+from msflow.errors import UserError
+from msflow.hashing import bytes_hash, json_hash, stat_signature
+
+IGNORED_PARTS = {"site-packages", "dist-packages", ".msflow", "node_modules", ".git", "__pycache__"}
+STDLIB = frozenset(sys.stdlib_module_names) | frozenset(sys.builtin_module_names)
+
+
+def strip_docstrings(tree: ast.AST) -> ast.AST:
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+            body = node.body
+            if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant) \
+                    and isinstance(body[0].value.value, str):
+                node.body = body[1:] or [ast.Pass()]
+    return tree
+
+
+def parse_module(source: str | bytes, filename: str) -> tuple[str, list[list]]:
+    """(AST digest without docstrings and positions, imports as [module, level, [names]])."""
+    tree = ast.parse(source, filename=filename)
+    imports: list[list] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                imports.append([alias.name, 0, []])
+        elif isinstance(node, ast.ImportFrom):
+            imports.append([node.module or "", node.level, [a.name for a in node.names]])
+    digest = bytes_hash(ast.dump(strip_docstrings(tree), annotate_fields=True, include_attributes=False).encode())
+    return digest, imports
+
+
+def defined_names(path: Path) -> set[str]:
+    """Top-level names a module defines or imports: lets the loader say 'no class X' without importing."""
+    tree = ast.parse(path.read_bytes(), filename=str(path))
+    names: set[str] = set()
+    for node in tree.body:
+        if isinstance(node, (ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+            names.add(node.name)
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            names.update((a.asname or a.name).split(".")[0] for a in node.names)
+        elif isinstance(node, ast.Assign):
+            names.update(t.id for t in node.targets if isinstance(t, ast.Name))
+        elif isinstance(node, (ast.AnnAssign,)) and isinstance(node.target, ast.Name):
+            names.add(node.target.id)
+        elif isinstance(node, (ast.If, ast.Try)):
+            return {"*"}  # conditional definitions: cannot tell statically
+    return names
+
+
+class CodeIndex:
+    """Finds project modules under ``root`` and fingerprints import closures, with a JSON-able memo."""
+
+    def __init__(self, root: Path, memo: dict | None = None):
+        self.root = Path(root).resolve()
+        self.memo = memo if memo is not None else {}
+        self.memo.setdefault("files", {})
+        self.dirty = False
+        self._closures: dict[str, dict] = {}
+
+    # ------------------------------------------------------------------ locating modules
+    def project_file(self, dotted: str) -> Path | None:
+        """File of a project module (``pkg/__init__.py`` for packages), or None if not in the project."""
+        parts = dotted.split(".")
+        base = self.root
+        for i, part in enumerate(parts):
+            last = i == len(parts) - 1
+            pkg = base / part
+            if last:
+                if (pkg / "__init__.py").is_file():
+                    return pkg / "__init__.py"
+                if (base / f"{part}.py").is_file():
+                    return base / f"{part}.py"
+                return None
+            if not pkg.is_dir() or part in IGNORED_PARTS:
+                return None
+            base = pkg
+        return None
+
+    def is_project_module(self, dotted: str) -> bool:
+        return self.project_file(dotted) is not None or self._is_namespace(dotted)
+
+    def _is_namespace(self, dotted: str) -> bool:
+        path = self.root.joinpath(*dotted.split("."))
+        return path.is_dir() and dotted.split(".")[0] not in IGNORED_PARTS and \
+            (path / "__init__.py").exists() is False and any(path.glob("*.py"))
+
+    def rel(self, path: Path) -> str:
+        return path.resolve().relative_to(self.root).as_posix()
+
+    # ------------------------------------------------------------------ parsing with memo
+    def module_info(self, path: Path) -> tuple[str, list[list]]:
+        key = self.rel(path)
+        sig = stat_signature(path)
+        hit = self.memo["files"].get(key)
+        if hit and hit[0] == sig:
+            return hit[1], hit[2]
+        try:
+            digest, imports = parse_module(path.read_bytes(), str(path))
+        except SyntaxError as exc:
+            raise UserError(f"syntax error at line {exc.lineno}: {exc.msg}", file=str(path)) from None
+        self.memo["files"][key] = [sig, digest, imports]
+        self.dirty = True
+        return digest, imports
+
+    # ------------------------------------------------------------------ closure
+    def closure(self, module: str) -> dict:
+        """{"modules": {relpath: digest}, "external": sorted top-level third-party names} for a module."""
+        if module in self._closures:
+            return self._closures[module]
+        modules: dict[str, str] = {}
+        external: set[str] = set()
+        seen: set[str] = set()
+        queue = [module]
+        while queue:
+            name = queue.pop()
+            if name in seen:
+                continue
+            seen.add(name)
+            # importing a.b.c executes a/__init__ and a/b/__init__ first
+            parts = name.split(".")
+            for i in range(1, len(parts)):
+                parent = ".".join(parts[:i])
+                if parent not in seen:
+                    queue.append(parent)
+            path = self.project_file(name)
+            if path is None:
+                continue
+            digest, imports = self.module_info(path)
+            modules[self.rel(path)] = digest
+            is_package = path.name == "__init__.py"
+            for target, level, names in imports:
+                for absolute in self._resolve(name, is_package, target, level, names):
+                    top = absolute.split(".")[0]
+                    if self.is_project_module(top):
+                        queue.append(absolute)
+                    elif top and top not in STDLIB and not top.startswith("_"):
+                        external.add(top)
+        result = {"modules": dict(sorted(modules.items())), "external": sorted(external)}
+        self._closures[module] = result
+        return result
+
+    def _resolve(self, current: str, is_package: bool, target: str, level: int, names: list[str]) -> list[str]:
+        if level:
+            package = current if is_package else current.rpartition(".")[0]
+            for _ in range(level - 1):
+                package = package.rpartition(".")[0]
+            base = f"{package}.{target}" if target else package
+        else:
+            base = target
+        if not base:
+            return []
+        out = [base]
+        out.extend(f"{base}.{n}" for n in names if n != "*" and self.project_file(f"{base}.{n}") is not None)
+        return out
+
+
+def distribution_versions(names: list[str], memo: dict) -> dict[str, str]:
+    """Map top-level import names to "dist==version"; memoised on the state of sys.path's directories.
+
+    A name with no distribution and no importable module is recorded as absent (an optional dependency that is not
+    installed is a fact about the environment, hashed like a version).
+    """
+    signature = json_hash([[p, _mtime(p)] for p in sys.path])
+    cache = memo.get("dists")
+    if not cache or cache.get("sig") != signature:
+        cache = {"sig": signature, "map": {}}
+        memo["dists"] = cache
+    missing = [n for n in names if n not in cache["map"]]
+    if missing:
+        import importlib.metadata as md
+        import importlib.util
+
+        owners = md.packages_distributions()
+        for name in missing:
+            dists = sorted(set(owners.get(name, [])))
+            if dists:
+                cache["map"][name] = [f"{d}=={md.version(d)}" for d in dists]
+            elif importlib.util.find_spec(name) is None:
+                cache["map"][name] = ["absent"]
+            else:
+                cache["map"][name] = [f"unpackaged:{_unpackaged_digest(name)}"]
+        memo["dirty"] = True
+    return {n: ",".join(cache["map"][n]) for n in names}
+
+
+def _unpackaged_digest(name: str) -> str:
+    """A module importable but not from any distribution (e.g. a file on PYTHONPATH): hash its source."""
+    import importlib.util
+
+    spec = importlib.util.find_spec(name)
+    origin = getattr(spec, "origin", None)
+    if origin and origin not in ("built-in", "frozen") and os.path.isfile(origin):
+        with open(origin, "rb") as fh:
+            return bytes_hash(fh.read())
+    raise UserError(f"cannot fingerprint module '{name}': it is not in the project, not from an installed "
+                    "distribution and has no source file")
+
+
+def _mtime(path: str) -> int:
+    try:
+        return os.stat(path or ".").st_mtime_ns
+    except OSError:
+        return 0

@@ -1,0 +1,146 @@
+"""What would run and why: dry key computation against the store and comparison with the last run's key parts."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from msflow.api import Session
+from msflow.errors import UserError
+from msflow.hashing import FileHashMemo, json_hash
+from msflow.runner import StageState, input_parts, key_parts
+from msflow.spec import topological_order
+
+
+@dataclass
+class DryState:
+    name: str
+    state: str                    # cached | run | blocked (an upstream stage must run first)
+    key: str | None = None
+    parts: dict | None = None
+    reasons: list[str] = field(default_factory=list)
+    manifest: dict | None = None
+
+
+def last_stage_record(session: Session, stage: str, *, settled_only: bool = True) -> dict | None:
+    """The newest run record entry of ``stage`` for this pipeline (cached or ran)."""
+    rel = session.pipeline.rel_path
+    for run_id in reversed(session.store.run_ids()):
+        try:
+            record = session.store.read_run(run_id)
+        except (UserError, OSError, ValueError):
+            continue
+        if record.get("pipeline") != rel:
+            continue
+        entry = record.get("stages", {}).get(stage)
+        if entry and entry.get("key_parts") and (not settled_only or entry["state"] in ("cached", "ran")):
+            return {**entry, "run": run_id}
+    return None
+
+
+def dry_run(session: Session) -> dict[str, DryState]:
+    """Keys of every stage whose upstream artifacts exist; reasons for each stage that would run."""
+    pipeline, store = session.pipeline, session.store
+    states: dict[str, StageState] = {}
+    dry: dict[str, DryState] = {}
+    memo = FileHashMemo(session.memo.setdefault("data", {}))
+    for name in topological_order(pipeline.stages):
+        deps = pipeline.stages[name].deps
+        blocked = [d for d in deps if dry[d].state != "cached"]
+        previous = last_stage_record(session, name)
+        plan = session.plans[name]
+        if blocked:
+            reasons = [f"upstream {', '.join(blocked)} must run first; this stage reruns if their outputs change"]
+            if previous:
+                reasons += [r for r in explain(previous["key_parts"], {**key_parts(plan, {}), "inputs": None})
+                            if not r.startswith("input")]
+            dry[name] = DryState(name, "blocked", reasons=reasons)
+            states[name] = StageState(name, state="pending")
+            continue
+        parts, _, provenance = input_parts(pipeline, name, states, memo, plan.interface)
+        full = key_parts(plan, parts)
+        key = json_hash(full)
+        state = StageState(name, key=key, parts=full, inputs=provenance)
+        if store.has(key):
+            state.state, state.manifest = "cached", store.manifest(key)
+            dry[name] = DryState(name, "cached", key, full, manifest=state.manifest)
+        else:
+            state.state = "pending"
+            if previous is None:
+                reasons = ["never run (no earlier run record of this stage)"]
+            else:
+                reasons = explain(previous["key_parts"], full, provenance) or [
+                    "key unchanged since the last run but its artifact is missing from the store "
+                    "(garbage-collected, or a different store)"]
+            dry[name] = DryState(name, "run", key, full, reasons)
+        states[name] = state
+    return dry
+
+
+def explain(old: dict, new: dict, provenance: dict | None = None) -> list[str]:
+    """Human-readable differences between two key-part dicts (code files, versions, params, inputs)."""
+    reasons: list[str] = []
+    if old.get("scheme") != new.get("scheme"):
+        reasons.append("msflow's key scheme changed")
+    if old.get("class") != new.get("class"):
+        reasons.append(f"class changed: {old.get('class')} -> {new.get('class')}")
+    old_code, new_code = old.get("code") or {}, new.get("code") or {}
+    old_mods, new_mods = old_code.get("modules", {}), new_code.get("modules", {})
+    for path in sorted(set(old_mods) | set(new_mods)):
+        if path not in old_mods:
+            reasons.append(f"code: {path} is newly imported")
+        elif path not in new_mods:
+            reasons.append(f"code: {path} is no longer imported")
+        elif old_mods[path] != new_mods[path]:
+            reasons.append(f"code: {path} changed")
+    old_d, new_d = old_code.get("dists", {}), new_code.get("dists", {})
+    for dist in sorted(set(old_d) | set(new_d)):
+        if old_d.get(dist) != new_d.get(dist):
+            reasons.append(f"package {dist}: {old_d.get(dist, 'not used')} -> {new_d.get(dist, 'not used')}")
+    if old_code.get("python") != new_code.get("python"):
+        reasons.append(f"python {old_code.get('python')} -> {new_code.get('python')}")
+    reasons += [f"param {p}" for p in _diff_values(old.get("params") or {}, new.get("params") or {})]
+    if new.get("inputs") is not None:
+        old_in, new_in = old.get("inputs") or {}, new.get("inputs") or {}
+        for name in sorted(set(old_in) | set(new_in)):
+            a, b = old_in.get(name), new_in.get(name)
+            if a == b:
+                continue
+            source = (provenance or {}).get(name, {})
+            if isinstance(b, dict) and "files" in b and isinstance(a, dict) and "files" in a:
+                changed = sorted(k for k in set(a["files"]) | set(b["files"])
+                                 if a["files"].get(k) != b["files"].get(k))
+                paths = source.get("files", {})
+                reasons.append(f"input {name}: data file content changed: "
+                               f"{', '.join(paths.get(k, k) for k in changed)}")
+            else:
+                origin = f" (from {source['from']})" if source.get("from") else ""
+                reasons.append(f"input {name}: content changed{origin}")
+    return reasons
+
+
+def _diff_values(old, new, prefix: str = "") -> list[str]:
+    out = []
+    for k in sorted(set(old) | set(new)):
+        a, b = old.get(k, "<unset>"), new.get(k, "<unset>")
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _diff_values(a, b, f"{prefix}{k}.")
+        elif a != b:
+            out.append(f"{prefix}{k}: {a!r} -> {b!r}")
+    return out
+
+
+def resolve_artifact_key(session: Session, stage: str) -> tuple[str, str]:
+    """Key of the artifact ``show``/``export`` should use: the current one if present, else the last run's."""
+    if stage not in session.pipeline.stages:
+        from msflow.spec import _suggest
+
+        raise UserError(f"unknown stage '{stage}'{_suggest(stage, session.pipeline.stages)}",
+                        file=str(session.pipeline.path), field="STAGE")
+    dry = dry_run(session)
+    if dry[stage].state == "cached":
+        return dry[stage].key, "current"
+    previous = last_stage_record(session, stage)
+    if previous and session.store.has(previous["key"]):
+        return previous["key"], f"from run {previous['run']} (stale: the pipeline changed since)"
+    raise UserError(f"stage '{stage}' has no artifact in the store yet: run the pipeline first "
+                    f"(msflow run {session.pipeline.path.name} --until {stage})", file=str(session.pipeline.path),
+                    stage=stage)

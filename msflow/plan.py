@@ -1,0 +1,231 @@
+"""Resolving a pipeline against its stage classes: code fingerprints, interfaces, canonical params, input checks.
+
+A stage class is imported only when its code fingerprint has no memoised interface or when a params set has not
+been validated before under that fingerprint; a no-op run therefore imports no stage module (and no numpy).
+"""
+from __future__ import annotations
+
+import importlib
+import sys
+from dataclasses import dataclass
+from typing import Any
+
+from msflow.errors import UserError
+from msflow.fingerprint import CodeIndex, defined_names, distribution_versions
+from msflow.hashing import json_hash
+from msflow.spec import FilesRef, Pipeline, StageRef, _suggest
+
+PYTHON = f"{sys.version_info.major}.{sys.version_info.minor}"
+
+
+@dataclass
+class StagePlan:
+    name: str
+    uses: str
+    code: dict            # {"modules": {relpath: digest}, "dists": {name: version}, "python": "3.11"}
+    code_digest: str
+    interface: dict       # {"inputs": {...}, "outputs": {...}}
+    params: dict          # canonical: validated, defaults filled in
+
+
+_PROJECT_ROOTS: set[str] = set()
+
+
+def ensure_importable(root) -> None:
+    """Put the project root first on sys.path so its stage modules import (also in worker processes)."""
+    root = str(root)
+    _PROJECT_ROOTS.add(root.rstrip("/") + "/")
+    if sys.path[:1] != [root]:
+        if root in sys.path:
+            sys.path.remove(root)
+        sys.path.insert(0, root)
+
+
+_IMPORTED: dict[str, str] = {}  # module name -> stat signature of its file when this process imported it
+
+
+def forget_stale_modules(root: str | None = None) -> None:
+    """Drop project modules from sys.modules when any project file changed since it was imported.
+
+    A long-lived process (a notebook, a Dask worker) would otherwise run yesterday's code under today's key.
+    Everything imported from the project goes at once: a changed helper module invalidates its importers too.
+    """
+    from msflow.hashing import stat_signature
+
+    stale = False
+    for name, sig in list(_IMPORTED.items()):
+        module = sys.modules.get(name)
+        path = getattr(module, "__file__", None)
+        try:
+            current = stat_signature(path) if path else None
+        except OSError:
+            current = None
+        outside = root is not None and path is not None and not path.startswith(str(root).rstrip("/") + "/")
+        if module is None or current != sig or outside:
+            stale = True
+            break
+    if stale:
+        for name in list(_IMPORTED):
+            sys.modules.pop(name, None)
+        _IMPORTED.clear()
+        importlib.invalidate_caches()
+
+
+def _remember_project_modules() -> None:
+    from msflow.hashing import stat_signature
+
+    for name, module in list(sys.modules.items()):
+        path = getattr(module, "__file__", None)
+        if path and name not in _IMPORTED and name.split(".")[0] != "msflow" and \
+                any(path.startswith(root) for root in _PROJECT_ROOTS) and "site-packages" not in path:
+            try:
+                _IMPORTED[name] = stat_signature(path)
+            except OSError:
+                pass
+
+
+def import_stage_class(uses: str, *, file: str | None = None, stage: str | None = None, root=None):
+    """Import ``package.module:Class`` (re-importing edited project modules) and check it is a Stage subclass."""
+    from msflow.stage import Stage
+
+    module_name, _, cls_name = uses.partition(":")
+    forget_stale_modules(root)
+    try:
+        module = importlib.import_module(module_name)
+        _remember_project_modules()
+    except ModuleNotFoundError as exc:
+        missing = exc.name or module_name
+        what = "unknown stage module" if missing == module_name or module_name.startswith(missing + ".") \
+            else f"module '{module_name}' needs '{missing}', which is not installed;"
+        raise UserError(f"{what} '{module_name}'" if what.startswith("unknown") else f"{what} {exc}", file=file,
+                        stage=stage, field="uses") from None
+    except SyntaxError as exc:
+        raise UserError(f"syntax error in {exc.filename} line {exc.lineno}: {exc.msg}", file=file, stage=stage,
+                        field="uses") from None
+    except Exception as exc:  # the module raised while importing
+        raise UserError(f"importing '{module_name}' failed: {type(exc).__name__}: {exc}", file=file, stage=stage,
+                        field="uses") from None
+    cls = getattr(module, cls_name, None)
+    if cls is None:
+        classes = sorted(n for n, v in vars(module).items() if isinstance(v, type) and issubclass(v, Stage)
+                         and v is not Stage)
+        raise UserError(f"module '{module_name}' has no class '{cls_name}'{_suggest(cls_name, classes)}; stages "
+                        f"there: {classes or 'none'}", file=file, stage=stage, field="uses")
+    if not (isinstance(cls, type) and issubclass(cls, Stage)):
+        raise UserError(f"'{uses}' is not a msflow Stage subclass", file=file, stage=stage, field="uses")
+    return cls
+
+
+def canonical_params(cls, raw: dict, *, file: str, stage: str) -> dict:
+    from pydantic import ValidationError
+
+    from msflow.stage import to_strict_json
+
+    try:
+        validated = cls.Params(**raw)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(p) for p in err.get("loc", ()))
+        if err.get("type") == "extra_forbidden":
+            allowed = sorted(cls.Params.model_fields)
+            msg = f"unknown parameter '{loc}'{_suggest(loc, allowed)}; parameters: {', '.join(allowed) or 'none'}"
+        elif err.get("type") == "missing":
+            msg = "required parameter is missing"
+        else:
+            msg = f"{err.get('msg', 'invalid')} (got {err.get('input')!r})"
+        raise UserError(msg, file=file, stage=stage, field=f"params.{loc}" if loc else "params") from None
+    except TypeError as exc:
+        raise UserError(f"invalid params: {exc}", file=file, stage=stage, field="params") from None
+    try:
+        return to_strict_json(validated.model_dump(mode="json"), "params")
+    except ValueError as exc:
+        raise UserError(str(exc), file=file, stage=stage, field="params") from None
+
+
+def resolve(pipeline: Pipeline, memo: dict) -> dict[str, StagePlan]:
+    """Fingerprint, interface and canonical params for every stage; checks every input against its declaration."""
+    file = str(pipeline.path)
+    index = CodeIndex(pipeline.root, memo.setdefault("code", {}))
+    interfaces = memo.setdefault("interfaces", {})
+    params_memo = memo.setdefault("params", {})
+    plans: dict[str, StagePlan] = {}
+    ensure_importable(pipeline.root)
+    for name, node in pipeline.stages.items():
+        module_name, _, cls_name = node.uses.partition(":")
+        in_project = index.project_file(module_name)
+        if in_project is not None:
+            names = defined_names(in_project)
+            if "*" not in names and cls_name not in names:
+                _ = import_stage_class(node.uses, file=file, stage=name, root=pipeline.root)  # produces the precise error
+            closure = index.closure(module_name)
+        else:
+            import importlib.util
+
+            top = module_name.split(".")[0]
+            if importlib.util.find_spec(top) is None:
+                raise UserError(f"unknown stage module '{module_name}' (not in the project at {pipeline.root} and "
+                                "not installed)", file=file, stage=name, field="uses")
+            closure = {"modules": {}, "external": [top]}
+        code = {"modules": closure["modules"], "dists": distribution_versions(closure["external"], index.memo),
+                "python": PYTHON}
+        code_digest = json_hash(code)
+        iface_key = json_hash([node.uses, code_digest])
+        interface = interfaces.get(iface_key)
+        cls = None
+        if interface is None:
+            cls = import_stage_class(node.uses, file=file, stage=name, root=pipeline.root)
+            interface = cls.interface()
+            interfaces[iface_key] = interface
+        params_key = json_hash([iface_key, node.params])
+        params = params_memo.get(params_key)
+        if params is None:
+            cls = cls or import_stage_class(node.uses, file=file, stage=name, root=pipeline.root)
+            params = canonical_params(cls, node.params, file=file, stage=name)
+            params_memo[params_key] = params
+        plans[name] = StagePlan(name, node.uses, code, code_digest, interface, params)
+    for name, node in pipeline.stages.items():
+        check_inputs(pipeline, plans, name)
+    return plans
+
+
+def check_inputs(pipeline: Pipeline, plans: dict[str, StagePlan], name: str) -> None:
+    file = str(pipeline.path)
+    node = pipeline.stages[name]
+    declared: dict[str, Any] = plans[name].interface["inputs"]
+    for input_name in node.inputs:
+        if input_name not in declared:
+            raise UserError(f"unknown input '{input_name}'{_suggest(input_name, declared)}; "
+                            f"{node.uses} takes: {', '.join(declared) or 'no inputs'}", file=file, stage=name,
+                            field=f"inputs.{input_name}")
+    for input_name, decl in declared.items():
+        where = f"inputs.{input_name}"
+        ref = node.inputs.get(input_name)
+        if ref is None:
+            if not decl["optional"]:
+                raise UserError(f"missing required input '{input_name}' ({decl['kind']})", file=file, stage=name,
+                                field=where)
+            continue
+        kind = decl["kind"]
+        if kind == "files":
+            if not isinstance(ref, FilesRef):
+                raise UserError(f"expects data files ({{path: ...}} or {{label: path}}), got stage reference "
+                                f"'{ref.describe()}'", file=file, stage=name, field=where)
+            continue
+        if not isinstance(ref, StageRef):
+            raise UserError(f"expects a stage reference ('stage' or 'stage.output'), got data files", file=file,
+                            stage=name, field=where)
+        upstream = plans[ref.stage].interface["outputs"]
+        if ref.output is not None and ref.output not in upstream:
+            raise UserError(f"stage '{ref.stage}' has no output '{ref.output}'{_suggest(ref.output, upstream)}; "
+                            f"outputs: {', '.join(upstream)}", file=file, stage=name, field=where)
+        if kind == "array" and ref.output is None:
+            raise UserError(f"expects one array: write '{ref.stage}.<output>' (outputs: {', '.join(upstream)})",
+                            file=file, stage=name, field=where)
+        if kind == "artifact":
+            if ref.output is not None:
+                raise UserError(f"expects a whole artifact: write '{ref.stage}' instead of '{ref.describe()}'",
+                                file=file, stage=name, field=where)
+            missing = [r for r in decl["requires"] if r not in upstream]
+            if missing:
+                raise UserError(f"stage '{ref.stage}' ({plans[ref.stage].uses}) lacks outputs {missing} this input "
+                                "requires", file=file, stage=name, field=where)

@@ -1,0 +1,78 @@
+"""Progress display: per-stage state (cached / running / done / failed / skipped) and time.
+
+On a terminal a live rich table; otherwise one line per state change (logs, CI). Both write to stderr.
+"""
+from __future__ import annotations
+
+import sys
+import time
+
+STYLE = {"pending": ("·", "dim"), "cached": ("=", "cyan"), "running": ("…", "yellow"), "ran": ("✓", "green"),
+         "failed": ("✗", "bold red"), "skipped": ("-", "dim"), "waiting": ("⏳", "magenta")}
+LABEL = {"ran": "done"}
+
+
+class PlainReporter:
+    def __init__(self, names: list[str], stream=None):
+        self.stream = stream or sys.stderr
+        self.width = max((len(n) for n in names), default=8)
+
+    def start(self) -> None:
+        pass
+
+    def update(self, state) -> None:
+        if state.state == "pending":
+            return
+        mark, _ = STYLE.get(state.state, ("?", ""))
+        timing = f"{state.seconds:7.2f}s" if state.state in ("ran", "failed") and state.seconds else ""
+        detail = f"  ({state.detail})" if state.detail else ""
+        print(f"{mark} {state.name:<{self.width}}  {LABEL.get(state.state, state.state):<8}{timing}{detail}",
+              file=self.stream, flush=True)
+
+    def stop(self) -> None:
+        pass
+
+
+class RichReporter:
+    """A live table; its rows are rebuilt from the latest state of each stage at every refresh."""
+
+    def __init__(self, names: list[str]):
+        from rich.console import Console
+        from rich.live import Live
+
+        self.rows = {n: ["pending", 0.0, "", None] for n in names}
+        self.console = Console(stderr=True)
+        self.live = Live(self, console=self.console, refresh_per_second=8, transient=False)
+
+    def __rich__(self):
+        from rich.table import Table
+
+        table = Table.grid(padding=(0, 2))
+        for name, (state, seconds, detail, since) in self.rows.items():
+            mark, style = STYLE.get(state, ("?", ""))
+            if state == "running" and since is not None:
+                seconds = time.perf_counter() - since
+            timing = f"{seconds:.2f}s" if state in ("running", "ran", "failed") else ""
+            table.add_row(f"[{style}]{mark}[/]", name, f"[{style}]{LABEL.get(state, state)}[/]", timing,
+                          f"[dim]{detail}[/]")
+        return table
+
+    def start(self) -> None:
+        self.live.start()
+
+    def update(self, state) -> None:
+        row = self.rows.setdefault(state.name, ["pending", 0.0, "", None])
+        row[0], row[1], row[2] = state.state, state.seconds, state.detail
+        if state.state == "running":
+            row[3] = time.perf_counter()
+
+    def stop(self) -> None:
+        self.live.stop()
+
+
+def make_reporter(names: list[str], quiet: bool = False):
+    if quiet:
+        return None
+    if sys.stderr.isatty():
+        return RichReporter(names)
+    return PlainReporter(names)

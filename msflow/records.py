@@ -1,0 +1,119 @@
+"""Run records (one JSON per run in the store) and ``pipeline.lock`` (diffable YAML beside the pipeline file)."""
+from __future__ import annotations
+
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+from msflow.hashing import json_hash
+from msflow.plan import StagePlan
+from msflow.runner import StageState
+from msflow.spec import Pipeline
+
+LOCK_HEADER = ("# pipeline.lock: written by msflow after each run of {name}; the state of every stage's last\n"
+               "# successful execution (cache key, params, input and output content hashes). Commit it; do not edit.\n")
+
+
+def stage_record(plan: StagePlan, state: StageState) -> dict:
+    manifest = state.manifest or {}
+    return {
+        "uses": plan.uses,
+        "state": state.state,
+        "detail": state.detail or None,
+        "key": state.key,
+        "key_parts": state.parts,
+        "inputs": state.inputs,
+        "outputs": {k: v["hash"] for k, v in manifest.get("outputs", {}).items()},
+        "shapes": {k: v["shape"] for k, v in manifest.get("outputs", {}).items()},
+        "content_hash": manifest.get("content_hash"),
+        "metrics": manifest.get("metrics", {}),
+        "seconds": round(state.seconds, 6),
+        "error": state.error,
+        "user_error": state.user_error,
+        "traceback": state.traceback,
+    }
+
+
+def build_record(run_id: str, pipeline: Pipeline, plans: dict[str, StagePlan], states: dict[str, StageState], *,
+                 started: float, finished: float, executor: str, jobs: int, argv: list[str] | None = None,
+                 label: dict | None = None) -> dict:
+    dists: dict[str, str] = {}
+    for plan in plans.values():
+        dists.update(plan.code["dists"])
+    from msflow import __version__
+
+    return {
+        "id": run_id,
+        "pipeline": pipeline.rel_path,
+        "project": pipeline.root.name,
+        "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(started)),
+        "seconds": round(finished - started, 6),
+        "ok": all(s.state in ("cached", "ran") for s in states.values()),
+        "executor": executor,
+        "jobs": jobs,
+        "argv": argv or [],
+        "overrides": list(pipeline.overrides),
+        "variant": label or {},
+        "config": {name: {"uses": node.uses, "params": plans[name].params,
+                          "inputs": {k: v.describe() for k, v in node.inputs.items()}}
+                   for name, node in pipeline.stages.items()},
+        "stages": {name: stage_record(plans[name], state) for name, state in states.items()},
+        "counts": {s: sum(1 for st in states.values() if st.state == s)
+                   for s in ("cached", "ran", "failed", "skipped")},
+        "versions": {"msflow": __version__, "python": platform.python_version(), **dists},
+        "platform": {"system": platform.system(), "release": platform.release(), "machine": platform.machine(),
+                     "python": sys.implementation.name, "cpus": os.cpu_count()},
+    }
+
+
+def lock_entries(pipeline: Pipeline, plans: dict[str, StagePlan], states: dict[str, StageState]) -> dict:
+    entries = {}
+    for name, state in states.items():
+        if state.state not in ("cached", "ran"):
+            continue
+        manifest = state.manifest or {}
+        entries[name] = {
+            "uses": plans[name].uses,
+            "key": state.key,
+            "code": plans[name].code_digest,
+            "params": plans[name].params,
+            "inputs": {k: (v.get("hash") if "hash" in v and "files" not in v else v.get("hashes"))
+                       for k, v in state.inputs.items()},
+            "outputs": {k: v["hash"] for k, v in sorted(manifest.get("outputs", {}).items())},
+        }
+    return entries
+
+
+def lock_path(pipeline: Pipeline) -> Path:
+    return pipeline.path.with_suffix(".lock") if pipeline.path.suffix in (".yaml", ".yml") \
+        else pipeline.path.with_name(pipeline.path.name + ".lock")
+
+
+def read_lock(pipeline: Pipeline) -> dict:
+    import yaml
+
+    try:
+        data = yaml.safe_load(lock_path(pipeline).read_text(encoding="utf-8"))
+        return data if isinstance(data, dict) else {}
+    except (OSError, ValueError, yaml.YAMLError):
+        return {}
+
+
+def update_lock(pipeline: Pipeline, plans: dict[str, StagePlan], states: dict[str, StageState]) -> bool:
+    """Merge this run's settled stages into pipeline.lock; drop stages no longer in the pipeline. True if written."""
+    import yaml
+
+    previous = read_lock(pipeline)
+    stages = {k: v for k, v in (previous.get("stages") or {}).items() if k in pipeline.stages}
+    stages.update(lock_entries(pipeline, plans, states))
+    data = {"version": 1, "pipeline": pipeline.path.name, "stages": dict(sorted(stages.items()))}
+    if json_hash(data) == json_hash({k: previous.get(k) for k in data}):
+        return False
+    text = LOCK_HEADER.format(name=pipeline.path.name) + yaml.safe_dump(data, sort_keys=True, width=120)
+    path = lock_path(pipeline)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+    return True

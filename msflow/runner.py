@@ -1,0 +1,216 @@
+"""Scheduling a resolved pipeline: cache keys from content, cache hits, execution, early cutoff, run records.
+
+A stage's key is computed when its upstream stages are settled, from the content hashes of the outputs it reads.
+So a stage that reruns but produces identical content leaves its dependents' keys unchanged: early cutoff needs no
+special case. Keys never contain paths or times.
+"""
+from __future__ import annotations
+
+import json
+import time
+import uuid
+from concurrent.futures import Future, wait, FIRST_COMPLETED
+from dataclasses import dataclass, field
+from typing import Any
+
+from msflow.errors import UserError
+from msflow.hashing import FileHashMemo, json_hash
+from msflow.plan import StagePlan
+from msflow.spec import FilesRef, Pipeline, StageRef, rel_to, topological_order
+
+KEY_SCHEME = 1
+DONE = ("cached", "ran")
+
+
+@dataclass
+class StageState:
+    name: str
+    state: str = "pending"     # pending, cached, running, ran, failed, skipped
+    key: str | None = None
+    parts: dict | None = None
+    manifest: dict | None = None
+    seconds: float = 0.0
+    error: str | None = None
+    user_error: dict | None = None
+    traceback: str | None = None
+    inputs: dict = field(default_factory=dict)
+    detail: str = ""
+
+    @property
+    def done(self) -> bool:
+        return self.state in DONE
+
+
+def select_stages(pipeline: Pipeline, until: str | None) -> list[str]:
+    order = topological_order(pipeline.stages)
+    if until is None:
+        return order
+    if until not in pipeline.stages:
+        from msflow.spec import _suggest
+
+        raise UserError(f"--until: unknown stage '{until}'{_suggest(until, pipeline.stages)}",
+                        file=str(pipeline.path), field="--until")
+    needed: set[str] = set()
+    stack = [until]
+    while stack:
+        name = stack.pop()
+        if name not in needed:
+            needed.add(name)
+            stack.extend(pipeline.stages[name].deps)
+    return [n for n in order if n in needed]
+
+
+def input_parts(pipeline: Pipeline, name: str, states: dict[str, StageState], file_memo: FileHashMemo,
+                interface: dict) -> tuple[dict, dict, dict]:
+    """(key part, job spec, provenance) of a stage's inputs; upstream stages must be settled."""
+    parts: dict[str, Any] = {}
+    job: dict[str, Any] = {}
+    provenance: dict[str, Any] = {}
+    node = pipeline.stages[name]
+    for input_name, decl in interface["inputs"].items():
+        ref = node.inputs.get(input_name)
+        if ref is None:
+            parts[input_name] = job[input_name] = None
+            continue
+        if isinstance(ref, FilesRef):
+            hashes = {}
+            for label, path in ref.files:
+                try:
+                    hashes[label] = file_memo.hash(path)
+                except OSError as exc:
+                    raise UserError(f"cannot read data file: {exc}", file=str(pipeline.path), stage=name,
+                                    field=f"inputs.{input_name}.{label}") from None
+            parts[input_name] = {"files": hashes}
+            job[input_name] = {"kind": "files", "files": [list(f) for f in ref.files]}
+            provenance[input_name] = {"files": {label: rel_to(path, pipeline.root) for label, path in ref.files},
+                                      "hashes": hashes}
+            continue
+        upstream = states[ref.stage]
+        manifest = upstream.manifest or {}
+        if ref.output is None:
+            digest = manifest["content_hash"]
+            job[input_name] = {"kind": "artifact", "key": upstream.key}
+        else:
+            entry = manifest["outputs"].get(ref.output)
+            if entry is None:  # an optional output the upstream run did not produce
+                raise UserError(f"stage '{ref.stage}' produced no output '{ref.output}' (it is optional)",
+                                file=str(pipeline.path), stage=name, field=f"inputs.{input_name}")
+            digest = entry["hash"]
+            job[input_name] = {"kind": "array", "key": upstream.key, "output": ref.output,
+                               "lazy": bool(decl.get("lazy"))}
+        parts[input_name] = {"hash": digest}
+        provenance[input_name] = {"from": ref.describe(), "hash": digest}
+    return parts, job, provenance
+
+
+def key_parts(plan: StagePlan, inputs: dict) -> dict:
+    return {"scheme": KEY_SCHEME, "class": plan.uses, "code": plan.code, "params": plan.params, "inputs": inputs}
+
+
+class Runner:
+    """Runs the selected stages of a resolved pipeline on an executor, reporting state changes."""
+
+    def __init__(self, pipeline: Pipeline, plans: dict[str, StagePlan], store, memo: dict, *, executor,
+                 until: str | None = None, force: tuple[str, ...] = (), reporter=None):
+        self.pipeline = pipeline
+        self.plans = plans
+        self.store = store
+        self.memo = memo
+        self.executor = executor
+        self.selected = select_stages(pipeline, until)
+        unknown = [f for f in force if f not in pipeline.stages]
+        if unknown:
+            raise UserError(f"--force: unknown stage(s) {unknown}", file=str(pipeline.path), field="--force")
+        self.force = set(force)
+        self.reporter = reporter
+        self.states = {name: StageState(name) for name in self.selected}
+        self.file_memo = FileHashMemo(memo.setdefault("data", {}))
+
+    def _report(self, state: StageState) -> None:
+        if self.reporter is not None:
+            self.reporter.update(state)
+
+    def prepare(self, name: str) -> dict | None:
+        """Compute the key; return a job when the stage must run, None when it is cached."""
+        state = self.states[name]
+        plan = self.plans[name]
+        parts, job_inputs, provenance = input_parts(self.pipeline, name, self.states, self.file_memo,
+                                                    plan.interface)
+        state.parts = key_parts(plan, parts)
+        state.key = json_hash(state.parts)
+        state.inputs = provenance
+        if name not in self.force and self.store.has(state.key):
+            state.manifest = self.store.manifest(state.key)
+            state.state = "cached"
+            self._report(state)
+            return None
+        state.state = "running"
+        self._report(state)
+        return {"store": self.store.url, "project_root": str(self.pipeline.root), "key": state.key,
+                "stage": name, "uses": plan.uses, "params": plan.params, "inputs": job_inputs,
+                "force": name in self.force, "key_parts": state.parts}
+
+    def settle(self, name: str, outcome: dict) -> None:
+        state = self.states[name]
+        state.seconds = outcome.get("seconds", 0.0)
+        if outcome["state"] in DONE:
+            state.manifest = outcome["manifest"]
+            state.state = outcome["state"]
+            if outcome.get("concurrent"):
+                state.detail = "computed by a concurrent run"
+        else:
+            state.state = "failed"
+            state.error = outcome.get("error")
+            state.user_error = outcome.get("user_error")
+            state.traceback = outcome.get("traceback")
+        self._report(state)
+
+    def run(self) -> dict[str, StageState]:
+        waiting = list(self.selected)
+        running: dict[Future, str] = {}
+        while waiting or running:
+            progressed = True
+            while progressed:
+                progressed = False
+                for name in list(waiting):
+                    deps = self.pipeline.stages[name].deps
+                    dep_states = [self.states[d].state for d in deps]
+                    if any(s in ("failed", "skipped") for s in dep_states):
+                        waiting.remove(name)
+                        self.states[name].state = "skipped"
+                        self.states[name].detail = "an upstream stage failed"
+                        self._report(self.states[name])
+                        progressed = True
+                    elif all(s in DONE for s in dep_states):
+                        waiting.remove(name)
+                        progressed = True
+                        try:
+                            job = self.prepare(name)
+                        except UserError as exc:
+                            self.settle(name, {"state": "failed", "user_error": exc.located(stage=name).to_json(),
+                                               "error": str(exc)})
+                            continue
+                        if job is None:
+                            continue
+                        future = self.executor.submit(json.dumps(job, allow_nan=False))
+                        if future.done():
+                            self.settle(name, _outcome(future, name))
+                        else:
+                            running[future] = name
+            if running:
+                finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
+                for future in finished:
+                    name = running.pop(future)
+                    self.settle(name, _outcome(future, name))
+        return self.states
+
+
+def _outcome(future: Future, name: str) -> dict:
+    try:
+        return json.loads(future.result())
+    except Exception as exc:  # a worker process died (SIGKILL, OOM) or the executor broke
+        return {"state": "failed", "error": f"worker lost: {type(exc).__name__}: {exc}"}
+
+
+def new_run_id() -> str:
+    return time.strftime("%Y%m%dT%H%M%S", time.gmtime()) + "-" + uuid.uuid4().hex[:6]

@@ -1,0 +1,412 @@
+"""pipeline.yaml: parsing, ``${var}`` substitution, ``-S`` overrides and validation into a resolved pipeline.
+
+Everything the user can get wrong here raises UserError naming the file, the stage and the field. Nothing in this
+module imports numpy, zarr or stage code: a no-op run goes through it on every invocation.
+"""
+from __future__ import annotations
+
+import difflib
+import glob as globlib
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
+
+from msflow.errors import UserError
+
+FORMAT_VERSION = 1
+NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
+REF_RE = re.compile(r"^(?P<stage>[A-Za-z_][A-Za-z0-9_\-]*)(?:\.(?P<output>[A-Za-z_][A-Za-z0-9_]*))?$")
+USES_RE = re.compile(r"^(?P<module>[A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*):(?P<cls>[A-Za-z_][A-Za-z0-9_]*)$")
+VAR_RE = re.compile(r"\$\{([^}]*)\}")
+GLOB_CHARS = set("*?[")
+
+
+# ---------------------------------------------------------------------------------------------------------- models
+class StageSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    uses: str
+    inputs: dict[str, Any] = {}
+    params: dict[str, Any] = {}
+    description: str | None = None
+
+    @field_validator("uses")
+    @classmethod
+    def _uses_form(cls, value: str) -> str:
+        if not USES_RE.match(value):
+            raise ValueError(f"'{value}' is not of the form package.module:Class")
+        return value
+
+
+class PipelineSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    version: Literal[1] = FORMAT_VERSION
+    store: str | None = None
+    vars: dict[str, Any] = {}
+    stages: dict[str, StageSpec]
+    publish: dict[str, str] = {}
+
+
+# ---------------------------------------------------------------------------------------------------------- refs
+@dataclass(frozen=True)
+class StageRef:
+    """An input taken from another stage: its whole artifact (output None) or one output."""
+
+    stage: str
+    output: str | None = None
+
+    def describe(self) -> str:
+        return self.stage + (f".{self.output}" if self.output else "")
+
+
+@dataclass(frozen=True)
+class FilesRef:
+    """Data files: label -> path relative to the pipeline file (``form`` says how they were written)."""
+
+    files: tuple[tuple[str, str], ...]
+    form: str  # "path" | "glob" | "mapping"
+
+    def describe(self) -> str:
+        return ", ".join(p for _, p in self.files)
+
+
+@dataclass
+class StageNode:
+    name: str
+    uses: str
+    params: dict[str, Any]
+    inputs: dict[str, StageRef | FilesRef]
+    description: str | None = None
+
+    @property
+    def deps(self) -> list[str]:
+        return sorted({r.stage for r in self.inputs.values() if isinstance(r, StageRef)})
+
+
+@dataclass
+class Pipeline:
+    path: Path                 # the pipeline file (absolute)
+    root: Path                 # the project root: paths in keys are relative to it
+    store: str                 # store location (absolute path or URL)
+    stages: dict[str, StageNode]
+    publish: dict[str, str] = field(default_factory=dict)
+    overrides: tuple[str, ...] = ()
+
+    @property
+    def rel_path(self) -> str:
+        return rel_to(self.path, self.root)
+
+
+def rel_to(path: Path, root: Path) -> str:
+    try:
+        return Path(path).resolve().relative_to(root).as_posix()
+    except ValueError:
+        return Path(path).resolve().as_posix()
+
+
+# ---------------------------------------------------------------------------------------------------------- yaml
+class _UniqueKeyLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: ignore[misc]
+    """Safe loader that refuses duplicate mapping keys (PyYAML would silently keep the last)."""
+
+
+def _construct_mapping(loader, node, deep=False):
+    seen: dict[Any, Any] = {}
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        if isinstance(key, (list, dict)):
+            raise yaml.constructor.ConstructorError(None, None, "a mapping key must be a scalar",
+                                                    key_node.start_mark)
+        if key in seen:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"duplicate key '{key}' (first at line {seen[key].line + 1})", key_node.start_mark)
+        seen[key] = key_node.start_mark
+    return loader.construct_mapping_plain(node, deep=deep)
+
+
+_UniqueKeyLoader.construct_mapping_plain = yaml.SafeLoader.construct_mapping  # type: ignore[attr-defined]
+_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+
+
+def parse_yaml(text: str, file: str) -> Any:
+    try:
+        return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - safe loader subclass
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        context = getattr(exc, "context", None)
+        detail = f"{context}: {problem}" if context and "duplicate" not in str(problem) else problem
+        raise UserError(f"invalid YAML{where}: {detail}", file=file) from None
+    except (ValueError, TypeError, OverflowError, RecursionError) as exc:  # e.g. bad timestamps, deep nesting
+        raise UserError(f"invalid YAML: {exc}", file=file) from None
+
+
+# ---------------------------------------------------------------------------------------------------------- vars
+def substitute_vars(value: Any, variables: dict[str, Any], file: str, where: str) -> Any:
+    """Replace ``${name}`` everywhere; a string that is exactly ``${name}`` takes the variable's value and type."""
+    if isinstance(value, str):
+        whole = VAR_RE.fullmatch(value)
+        if whole:
+            return _lookup_var(whole.group(1), variables, file, where)
+
+        def repl(m: re.Match) -> str:
+            got = _lookup_var(m.group(1), variables, file, where)
+            if isinstance(got, (dict, list)):
+                raise UserError(f"variable '${{{m.group(1)}}}' holds a {type(got).__name__} and cannot be "
+                                "spliced into a string", file=file, field=where)
+            return str(got)
+        return VAR_RE.sub(repl, value)
+    if isinstance(value, dict):
+        return {k: substitute_vars(v, variables, file, f"{where}.{k}") for k, v in value.items()}
+    if isinstance(value, list):
+        return [substitute_vars(v, variables, file, f"{where}[{i}]") for i, v in enumerate(value)]
+    return value
+
+
+def _lookup_var(name: str, variables: dict[str, Any], file: str, where: str) -> Any:
+    if name not in variables:
+        hint = _suggest(name, variables)
+        raise UserError(f"unknown variable '${{{name}}}'{hint}; defined: {sorted(variables) or 'none'}",
+                        file=file, field=where)
+    return variables[name]
+
+
+def _suggest(name: str, options) -> str:
+    close = difflib.get_close_matches(str(name), [str(o) for o in options], n=1)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+# ---------------------------------------------------------------------------------------------------------- overrides
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``stage.param=value`` (nested: ``stage.a.b=value``; ``vars.name=value``) -> (path, YAML-parsed value)."""
+    if "=" not in text:
+        raise UserError(f"bad override '{text}': expected stage.param=value", field="-S")
+    target, _, raw = text.partition("=")
+    parts = target.strip().split(".")
+    if len(parts) < 2 or not all(parts):
+        raise UserError(f"bad override '{text}': the target must be stage.param (got '{target}')", field="-S")
+    try:
+        value = yaml.load(raw, Loader=_UniqueKeyLoader) if raw.strip() else ""
+    except yaml.YAMLError:
+        value = raw
+    return parts, value
+
+
+def apply_overrides(raw: dict, overrides: tuple[str, ...], file: str) -> None:
+    stages = raw.get("stages") if isinstance(raw.get("stages"), dict) else {}
+    for text in overrides:
+        try:
+            parts, value = parse_override(text)
+        except UserError as exc:
+            raise exc.located(file=file) from None
+        head, rest = parts[0], parts[1:]
+        if head == "vars":
+            raw.setdefault("vars", {})
+            if not isinstance(raw["vars"], dict):
+                raise UserError("'vars' must be a mapping", file=file, field="vars")
+            raw["vars"][rest[0]] = value if len(rest) == 1 else _nested_set(raw["vars"].get(rest[0]), rest[1:], value)
+            continue
+        if head not in stages:
+            raise UserError(f"override '{text}': unknown stage '{head}'{_suggest(head, stages)}; "
+                            f"stages: {sorted(stages)}", file=file, field="-S")
+        stage = stages[head]
+        if not isinstance(stage, dict):
+            continue  # reported by validation
+        params = stage.setdefault("params", {})
+        if not isinstance(params, dict):
+            raise UserError("'params' must be a mapping", file=file, stage=head, field="params")
+        cursor = params
+        for key in rest[:-1]:
+            nxt = cursor.get(key)
+            if not isinstance(nxt, dict):
+                nxt = {}
+                cursor[key] = nxt
+            cursor = nxt
+        cursor[rest[-1]] = value
+
+
+def _nested_set(container: Any, path: list[str], value: Any) -> Any:
+    container = dict(container) if isinstance(container, dict) else {}
+    cursor = container
+    for key in path[:-1]:
+        cursor = cursor.setdefault(key, {})
+    cursor[path[-1]] = value
+    return container
+
+
+# ---------------------------------------------------------------------------------------------------------- loading
+def find_root(pipeline_dir: Path) -> Path:
+    """The project root: the nearest ancestor holding pyproject.toml or .git, else the pipeline's folder."""
+    for candidate in (pipeline_dir, *pipeline_dir.parents):
+        if (candidate / "pyproject.toml").exists() or (candidate / ".git").exists():
+            return candidate
+    return pipeline_dir
+
+
+def load_pipeline(path: str | Path, overrides: tuple[str, ...] | list[str] = ()) -> Pipeline:
+    """Read, substitute, override and validate a pipeline file; resolve data-file refs (not stage classes)."""
+    path = Path(path)
+    file = str(path)
+    if not path.exists():
+        raise UserError("pipeline file not found", file=file)
+    if path.is_dir():
+        raise UserError("is a directory, expected a pipeline YAML file", file=file)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserError(f"cannot read: {exc}", file=file) from None
+    raw = parse_yaml(text, file)
+    if raw is None:
+        raise UserError("the file is empty; it needs at least 'stages:'", file=file)
+    if not isinstance(raw, dict):
+        raise UserError(f"the top level must be a mapping with 'stages:', got {type(raw).__name__}", file=file)
+    for key in raw:
+        if not isinstance(key, str):
+            raise UserError(f"top-level key {key!r} is not a string", file=file)
+    overrides = tuple(overrides)
+    apply_overrides(raw, overrides, file)
+    variables = raw.get("vars", {})
+    if not isinstance(variables, dict):
+        raise UserError("'vars' must be a mapping of name: value", file=file, field="vars")
+    variables = {str(k): v for k, v in variables.items()}
+    substituted = {k: (v if k == "vars" else substitute_vars(v, variables, file, k)) for k, v in raw.items()}
+    try:
+        spec = PipelineSpec.model_validate(substituted)
+    except ValidationError as exc:
+        raise _user_error_from_validation(exc, file) from None
+    if not spec.stages:
+        raise UserError("'stages' is empty: a pipeline needs at least one stage", file=file, field="stages")
+
+    pipeline_dir = path.resolve().parent
+    root = find_root(pipeline_dir)
+    store = spec.store or ".msflow"
+    if "://" not in store:
+        store = str((pipeline_dir / store).resolve())
+    nodes: dict[str, StageNode] = {}
+    for name, stage in spec.stages.items():
+        if not NAME_RE.match(name):
+            raise UserError(f"stage name '{name}' must start with a letter and hold only letters, digits, _ and -",
+                            file=file, stage=name)
+        inputs = {}
+        for input_name, ref in stage.inputs.items():
+            inputs[input_name] = parse_ref(ref, pipeline_dir, root, file, name, f"inputs.{input_name}")
+        nodes[name] = StageNode(name, stage.uses, stage.params, inputs, stage.description)
+    for name, node in nodes.items():
+        for input_name, ref in node.inputs.items():
+            if isinstance(ref, StageRef) and ref.stage not in nodes:
+                raise UserError(f"refers to unknown stage '{ref.stage}'{_suggest(ref.stage, nodes)}; stages: "
+                                f"{sorted(nodes)}", file=file, stage=name, field=f"inputs.{input_name}")
+    for target in spec.publish:
+        m = REF_RE.match(target)
+        if not m or not m.group("output") or m.group("stage") not in nodes:
+            raise UserError(f"'{target}' is not stage.output of a known stage", file=file, field=f"publish.{target}")
+    check_cycles(nodes, file)
+    publish = {k: str((pipeline_dir / v).resolve()) for k, v in spec.publish.items()}
+    return Pipeline(path.resolve(), root, store, nodes, publish, overrides)
+
+
+def parse_ref(ref: Any, base: Path, root: Path, file: str, stage: str, where: str) -> StageRef | FilesRef:
+    """Turn one ``inputs:`` value into a StageRef or a FilesRef (files must exist)."""
+    if isinstance(ref, str):
+        m = REF_RE.match(ref)
+        if m:
+            return StageRef(m.group("stage"), m.group("output"))
+        looks_like_path = "/" in ref or GLOB_CHARS & set(ref) or Path(ref).suffix
+        hint = f"; data files are written {{path: {ref}}}" if looks_like_path else ""
+        raise UserError(f"'{ref}' is not a stage reference (stage or stage.output){hint}", file=file,
+                        stage=stage, field=where)
+    if isinstance(ref, dict):
+        if not ref:
+            raise UserError("empty mapping: expected {path: file}, {glob: pattern} or {label: file, ...}",
+                            file=file, stage=stage, field=where)
+        if set(ref) == {"path"} or set(ref) == {"glob"}:
+            pattern = ref.get("path", ref.get("glob"))
+            if not isinstance(pattern, str) or not pattern:
+                raise UserError("the path must be a non-empty string", file=file, stage=stage, field=where)
+            if "glob" in ref or GLOB_CHARS & set(pattern):
+                matches = sorted(globlib.glob(str(base / pattern), recursive=True))
+                matches = [m for m in matches if Path(m).is_file()]
+                if not matches:
+                    raise UserError(f"the glob '{pattern}' matches no files", file=file, stage=stage, field=where)
+                return FilesRef(tuple((rel_to(Path(m), root), m) for m in matches), "glob")
+            return FilesRef(((pattern, _existing_file(base, pattern, file, stage, where)),), "path")
+        files = []
+        for label, value in ref.items():
+            if not isinstance(label, str) or not isinstance(value, str):
+                raise UserError("a labelled file mapping needs label: path strings", file=file, stage=stage,
+                                field=f"{where}.{label}")
+            files.append((label, _existing_file(base, value, file, stage, f"{where}.{label}")))
+        return FilesRef(tuple(files), "mapping")
+    raise UserError(f"expected a stage reference or a file mapping, got {type(ref).__name__}", file=file,
+                    stage=stage, field=where)
+
+
+def _existing_file(base: Path, value: str, file: str, stage: str, where: str) -> str:
+    target = (base / value).resolve()
+    if not target.exists():
+        raise UserError(f"data file not found: {value}", file=file, stage=stage, field=where)
+    if not target.is_file():
+        raise UserError(f"not a file: {value}", file=file, stage=stage, field=where)
+    return str(target)
+
+
+def check_cycles(nodes: dict[str, StageNode], file: str) -> None:
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(name: str) -> None:
+        state[name] = 1
+        stack.append(name)
+        for dep in nodes[name].deps:
+            if state.get(dep) == 1:
+                cycle = stack[stack.index(dep):] + [dep]
+                raise UserError(f"dependency cycle: {' -> '.join(cycle)}", file=file, stage=dep, field="inputs")
+            if dep not in state:
+                visit(dep)
+        stack.pop()
+        state[name] = 2
+
+    for name in nodes:
+        if name not in state:
+            visit(name)
+
+
+def topological_order(nodes: dict[str, StageNode]) -> list[str]:
+    order: list[str] = []
+    done: set[str] = set()
+
+    def visit(name: str) -> None:
+        if name in done:
+            return
+        done.add(name)
+        for dep in nodes[name].deps:
+            visit(dep)
+        order.append(name)
+
+    for name in nodes:
+        visit(name)
+    return order
+
+
+def _user_error_from_validation(exc: ValidationError, file: str) -> UserError:
+    err = exc.errors()[0]
+    loc = [str(p) for p in err.get("loc", ())]
+    stage = None
+    if len(loc) >= 2 and loc[0] == "stages":
+        stage = loc[1]
+        loc = loc[2:]
+    field_path = ".".join(loc) or None
+    msg = err.get("msg", "invalid")
+    if err.get("type") == "extra_forbidden":
+        allowed = sorted(StageSpec.model_fields if stage else PipelineSpec.model_fields)
+        msg = f"unknown key '{loc[-1] if loc else ''}'; allowed: {', '.join(allowed)}"
+    elif err.get("type") == "missing":
+        msg = "required key is missing"
+    elif err.get("type") == "literal_error" and loc == ["version"]:
+        msg = f"unsupported format version {err.get('input')!r}; this msflow reads version {FORMAT_VERSION}"
+    return UserError(msg, file=file, stage=stage, field=field_path)

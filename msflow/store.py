@@ -1,0 +1,225 @@
+"""The artifact store on a local (or shared POSIX) file system.
+
+Layout under the store root::
+
+    artifacts/<k[:2]>/<key>/   one published zarr group per cache key (never modified once published)
+    tmp/                       artifacts being written: <key>.<host>.<pid>.<nonce>; invisible to readers
+    locks/<key>.lock           per-key flock; the kernel releases it when its holder dies, however it dies
+    runs/<id>.json             one record per run
+    cache/memo.json            memoised file hashes, code fingerprints and stage interfaces
+
+Publishing is one ``rename`` of a complete temporary directory onto a fresh path, so a reader sees an artifact
+whole or not at all, and a run killed at any moment leaves at most a directory under tmp/ that the next run
+removes. Nothing is created until something is written: validation errors leave the store untouched.
+"""
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import os
+import shutil
+import socket
+import time
+import uuid
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+from msflow.errors import UserError
+
+HOST = socket.gethostname()
+
+
+def open_store(location: str) -> "LocalStore":
+    """A store for a path or URL (``file://`` here; object stores come from msflow.remote)."""
+    if location.startswith("file://"):
+        return LocalStore(location[len("file://"):])
+    if "://" in location:
+        from msflow.remote import open_remote_store
+
+        return open_remote_store(location)
+    return LocalStore(location)
+
+
+class LocalStore:
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+        self.url = str(self.root)
+
+    # ------------------------------------------------------------------ paths
+    @property
+    def artifacts_dir(self) -> Path:
+        return self.root / "artifacts"
+
+    def artifact_path(self, key: str) -> Path:
+        return self.artifacts_dir / key[:2] / key
+
+    def _dir(self, name: str) -> Path:
+        path = self.root / name
+        path.mkdir(parents=True, exist_ok=True)
+        return path
+
+    # ------------------------------------------------------------------ artifacts
+    def has(self, key: str) -> bool:
+        return (self.artifact_path(key) / "zarr.json").is_file()
+
+    def manifest(self, key: str) -> dict:
+        from msflow.artifact import read_manifest
+
+        return read_manifest(self.artifact_path(key))
+
+    def open(self, key: str):
+        from msflow.artifact import read_artifact
+
+        return read_artifact(self.artifact_path(key), key=key)
+
+    def keys(self) -> Iterator[str]:
+        if not self.artifacts_dir.is_dir():
+            return
+        for prefix in sorted(self.artifacts_dir.iterdir()):
+            if prefix.is_dir():
+                for entry in sorted(prefix.iterdir()):
+                    yield entry.name
+
+    def write(self, key: str, arrays: dict, extra: dict, file_suffixes: dict | None = None,
+              replace: bool = False) -> dict:
+        """Write arrays and manifest under tmp/, then publish atomically; returns the manifest."""
+        from msflow.artifact import write_artifact
+
+        tmp = self._dir("tmp") / f"{key}.{HOST}.{os.getpid()}.{uuid.uuid4().hex[:8]}"
+        try:
+            manifest = write_artifact(tmp, arrays, extra, file_suffixes)
+            self._publish(tmp, key, replace)
+        finally:
+            if tmp.exists():
+                shutil.rmtree(tmp, ignore_errors=True)
+        return manifest
+
+    def _publish(self, tmp: Path, key: str, replace: bool) -> None:
+        target = self.artifact_path(key)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        if replace and target.exists():
+            trash = self._dir("tmp") / f"trash.{key}.{uuid.uuid4().hex[:8]}"
+            os.rename(target, trash)
+            shutil.rmtree(trash, ignore_errors=True)
+        try:
+            os.rename(tmp, target)
+        except OSError as exc:
+            if exc.errno in (errno.ENOTEMPTY, errno.EEXIST) and self.has(key):
+                return  # published meanwhile by another writer of the same key: same content by construction
+            raise
+
+    def remove(self, key: str) -> None:
+        target = self.artifact_path(key)
+        if target.exists():
+            trash = self._dir("tmp") / f"trash.{key}.{uuid.uuid4().hex[:8]}"
+            os.rename(target, trash)
+            shutil.rmtree(trash, ignore_errors=True)
+
+    def clean_tmp(self, *, max_age: float | None = None) -> list[str]:
+        """Remove temporary directories whose writer is gone (or older than max_age seconds)."""
+        tmp = self.root / "tmp"
+        removed = []
+        if not tmp.is_dir():
+            return removed
+        for entry in tmp.iterdir():
+            parts = entry.name.split(".")
+            dead = True
+            if len(parts) >= 4 and parts[0] != "trash" and parts[-3] == HOST:
+                dead = not _pid_alive(int(parts[-2])) if parts[-2].isdigit() else True
+            elif len(parts) >= 4 and parts[0] != "trash":
+                dead = max_age is not None and time.time() - entry.stat().st_mtime > max_age
+            if dead:
+                shutil.rmtree(entry, ignore_errors=True)
+                removed.append(entry.name)
+        return removed
+
+    # ------------------------------------------------------------------ locks
+    @contextlib.contextmanager
+    def lock(self, key: str, on_wait: Callable[[dict], None] | None = None, poll: float = 0.05):
+        """Exclusive per-key lock across processes and concurrent runs.
+
+        flock locks belong to the open file description: when the holder dies (even by SIGKILL) the kernel drops
+        the lock, so a lock left behind by a dead run is broken by construction; the holder's host and pid are
+        written into the file for ``msflow status`` and error messages.
+        """
+        import fcntl
+
+        path = self._dir("locks") / f"{key}.lock"
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            waited = False
+            while True:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    if not waited and on_wait is not None:
+                        on_wait(_read_holder(path))
+                    waited = True
+                    time.sleep(poll)
+            os.ftruncate(fd, 0)
+            os.write(fd, json.dumps({"host": HOST, "pid": os.getpid(), "since": time.time()}).encode())
+            yield
+        finally:
+            with contextlib.suppress(OSError):
+                fcntl.flock(fd, fcntl.LOCK_UN)
+            os.close(fd)
+
+    # ------------------------------------------------------------------ memo, runs
+    def load_memo(self) -> dict:
+        try:
+            with open(self.root / "cache" / "memo.json", "rb") as fh:
+                return json.load(fh)
+        except (OSError, ValueError):
+            return {}
+
+    def save_memo(self, memo: dict) -> None:
+        write_json_atomic(self._dir("cache") / "memo.json", memo)
+
+    def write_run(self, record: dict) -> Path:
+        path = self._dir("runs") / f"{record['id']}.json"
+        write_json_atomic(path, record, indent=1)
+        return path
+
+    def run_ids(self) -> list[str]:
+        runs = self.root / "runs"
+        return sorted(p.stem for p in runs.glob("*.json")) if runs.is_dir() else []
+
+    def read_run(self, run_id: str) -> dict:
+        path = self.root / "runs" / f"{run_id}.json"
+        if not path.is_file():
+            matches = [r for r in self.run_ids() if r.startswith(run_id) or r.endswith(run_id)]
+            if len(matches) != 1:
+                raise UserError(f"no single run matches '{run_id}' ({len(matches)} do)", file=str(self.root))
+            path = self.root / "runs" / f"{matches[0]}.json"
+        with open(path, "rb") as fh:
+            return json.load(fh)
+
+    def remove_run(self, run_id: str) -> None:
+        with contextlib.suppress(FileNotFoundError):
+            (self.root / "runs" / f"{run_id}.json").unlink()
+
+
+def write_json_atomic(path: Path, value: Any, indent: int | None = None) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:6]}")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        json.dump(value, fh, indent=indent, sort_keys=indent is not None, allow_nan=False)
+    os.replace(tmp, path)
+
+
+def _read_holder(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text() or "{}")
+    except (OSError, ValueError):
+        return {}
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True

@@ -1,0 +1,107 @@
+"""Execute one stage: the unit of work every executor runs (in-process, a process pool, a Dask worker).
+
+A job and its outcome are JSON strings, so nothing but JSON crosses process or machine boundaries. The worker
+takes the key's lock, re-checks the store (a concurrent run may have produced the artifact meanwhile), runs the
+stage, validates its result, and publishes the artifact atomically before releasing the lock.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+import traceback
+from pathlib import Path
+
+BLAS_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS",
+             "NUMEXPR_NUM_THREADS")
+
+
+def pin_blas_threads() -> None:
+    """One BLAS thread per worker process: parallelism comes from running stages side by side."""
+    for var in BLAS_VARS:
+        os.environ.setdefault(var, "1")
+
+
+def run_job(job_json: str) -> str:
+    """Run one job (JSON) and return its outcome (JSON). Never raises."""
+    job = json.loads(job_json)
+    started = time.perf_counter()
+    try:
+        outcome = _run(job)
+    except Exception as exc:  # noqa: BLE001 - every failure becomes an outcome
+        from msflow.errors import UserError
+
+        if isinstance(exc, UserError):
+            exc.located(stage=job["stage"])
+            outcome = {"state": "failed", "user_error": exc.to_json(), "error": str(exc)}
+        else:
+            outcome = {"state": "failed", "error": f"{type(exc).__name__}: {exc}",
+                       "traceback": traceback.format_exc()}
+    outcome["seconds"] = time.perf_counter() - started
+    outcome["pid"] = os.getpid()
+    return json.dumps(outcome, allow_nan=False)
+
+
+def _run(job: dict) -> dict:
+    from msflow.plan import ensure_importable
+    from msflow.store import open_store
+
+    ensure_importable(job["project_root"])
+    store = open_store(job["store"])
+    key = job["key"]
+    with store.lock(key):
+        if store.has(key) and not job.get("force"):
+            return {"state": "cached", "manifest": store.manifest(key), "concurrent": True}
+        return _execute(job, store)
+
+
+def _execute(job: dict, store) -> dict:
+    from msflow.errors import StageFailed, UserError
+    from msflow.plan import import_stage_class
+    from msflow.stage import to_strict_json, validate_result
+
+    name = job["stage"]
+    cls = import_stage_class(job["uses"], stage=name, root=job["project_root"])
+    params = cls.Params(**job["params"])
+    inputs = open_inputs(job["inputs"], store)
+    from threadpoolctl import threadpool_limits
+
+    compute_start = time.perf_counter()
+    try:
+        with threadpool_limits(limits=1):  # same numbers whichever executor runs the stage
+            result = cls(name).run(params, inputs)
+    except UserError:
+        raise
+    except Exception as exc:
+        raise StageFailed(name, f"{type(exc).__name__}: {exc}", traceback.format_exc()) from exc
+    compute_seconds = time.perf_counter() - compute_start
+    try:
+        arrays = validate_result(name, cls, result)
+        meta = to_strict_json(result.meta, f"stage '{name}' meta")
+        metrics = to_strict_json(result.metrics, f"stage '{name}' metrics")
+    except (TypeError, ValueError) as exc:
+        raise StageFailed(name, str(exc)) from exc
+    bad = [k for k, v in metrics.items() if not isinstance(v, (int, float)) or isinstance(v, bool)]
+    if bad:
+        raise StageFailed(name, f"metrics must be scalar numbers; not: {bad}")
+    suffixes = {k: spec.file_suffix for k, spec in cls.outputs.items() if spec.file_suffix}
+    extra = {"meta": meta, "metrics": metrics, "key": job["key"], "stage": name, "uses": job["uses"],
+             "key_parts": job.get("key_parts"), "created": time.time()}
+    manifest = store.write(job["key"], arrays, extra, suffixes, replace=bool(job.get("force")))
+    return {"state": "ran", "manifest": manifest, "compute_seconds": compute_seconds}
+
+
+def open_inputs(spec: dict, store) -> dict:
+    """Materialise a job's inputs: artifacts as views, single outputs as numpy (or lazy), files as Paths."""
+    inputs: dict = {}
+    for name, entry in spec.items():
+        if entry is None:
+            inputs[name] = None
+        elif entry["kind"] == "files":
+            inputs[name] = {label: Path(path) for label, path in entry["files"]}
+        elif entry["kind"] == "artifact":
+            inputs[name] = store.open(entry["key"])
+        else:
+            view = store.open(entry["key"])
+            inputs[name] = view.lazy(entry["output"]) if entry.get("lazy") else view[entry["output"]]
+    return inputs

@@ -1,0 +1,1 @@
+"""Small numeric stages exercising msflow without any face code."""

@@ -1,0 +1,104 @@
+"""Numeric test stages. NUMSTAGES_LOG (env) names a file that gets one line per execution: a side channel for
+counting executions that is not part of any cache key. NUMSTAGES_SLEEP delays Slow."""
+import os
+import time
+
+import numpy as np
+
+from msflow import Input, Output, Result, Stage, UserError
+
+
+def log_execution(name):
+    path = os.environ.get("NUMSTAGES_LOG")
+    if path:
+        with open(path, "a") as fh:
+            fh.write(f"{name} {os.getpid()}\n")
+
+
+class Source(Stage):
+    class Params(Stage.Params):
+        n: int = 5
+        offset: float = 0.0
+
+    outputs = {"x": Output.array("f", shape=("n",))}
+
+    def run(self, params, inputs):
+        log_execution(self.name)
+        return Result({"x": np.arange(params.n, dtype=float) + params.offset}, meta={"n": params.n},
+                      metrics={"n": params.n})
+
+
+class Sign(Stage):
+    """Output depends only on the sign of the input: reruns often produce identical content (early cutoff)."""
+
+    inputs = {"x": Input.array("f")}
+    outputs = {"s": Output.array("f", ndim=1)}
+
+    def run(self, params, inputs):
+        log_execution(self.name)
+        return Result({"s": np.sign(inputs["x"])})
+
+
+class Sum(Stage):
+    inputs = {"a": Input.artifact(), "b": Input.array("f", optional=True)}
+    outputs = {"total": Output.array("f", shape=())}
+
+    def run(self, params, inputs):
+        log_execution(self.name)
+        view = inputs["a"]
+        total = sum(float(view[n].sum()) for n in view.names)
+        if inputs["b"] is not None:
+            total += float(inputs["b"].sum())
+        return Result({"total": np.array(total)}, metrics={"total": total})
+
+
+class LoadCsv(Stage):
+    inputs = {"table": Input.files()}
+    outputs = {"x": Output.array("f", ndim=1)}
+
+    def run(self, params, inputs):
+        log_execution(self.name)
+        (path,) = inputs["table"].values()
+        try:
+            return Result({"x": np.loadtxt(path, delimiter=",", ndmin=2).reshape(-1)})
+        except ValueError as exc:
+            raise UserError(f"not a numeric CSV: {exc}", file=str(path), field="inputs.table") from None
+
+
+class Slow(Stage):
+    """Sleeps, then returns a large array: a window for SIGKILL before and during the artifact write."""
+
+    class Params(Stage.Params):
+        size: int = 2_000_000
+        seed: int = 0
+
+    inputs = {"x": Input.array("f", optional=True)}
+    outputs = {"big": Output.array("f", ndim=1), "small": Output.array("i", ndim=1)}
+
+    def run(self, params, inputs):
+        log_execution(self.name)
+        time.sleep(float(os.environ.get("NUMSTAGES_SLEEP", "0")))
+        rng = np.random.default_rng(params.seed)
+        return Result({"big": rng.standard_normal(params.size), "small": np.arange(10)})
+
+
+class Broken(Stage):
+    """Returns the wrong thing, or raises: for failure handling tests."""
+
+    class Params(Stage.Params):
+        mode: str = "schema"
+
+    outputs = {"y": Output.array("f", shape=(3,))}
+
+    def run(self, params, inputs):
+        if params.mode == "schema":
+            return Result({"y": np.zeros(4)})
+        if params.mode == "nan_meta":
+            return Result({"y": np.zeros(3)}, meta={"bad": float("nan")})
+        if params.mode == "user":
+            raise UserError("the data is unusable", field="inputs.x")
+        raise RuntimeError("boom")
+
+
+class NotAStage:
+    pass

@@ -1,0 +1,163 @@
+"""Incremental runs on the numeric test project: what reruns after which change (msflow core, issue 2)."""
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+import msflow
+from conftest import executions
+
+ALL = ["src", "scaled", "sign", "csv", "total"]
+
+
+@pytest.fixture
+def log(tmp_path, monkeypatch):
+    path = tmp_path / "executions.log"
+    monkeypatch.setenv("NUMSTAGES_LOG", str(path))
+    return path
+
+
+def run(proj, *overrides, **options):
+    return msflow.run(proj / "pipeline.yaml", overrides=overrides, **options)
+
+
+def expected_total(n=6, factor=3.0, offset=0.0):
+    x = np.arange(n, dtype=float) + offset
+    return float(np.sign(x * factor).sum() + 21.0)
+
+
+def test_first_run_computes_everything_and_noop_rerun_runs_nothing(numproject, log):
+    first = run(numproject)
+    assert sorted(first.executed) == sorted(ALL)
+    assert first.load("total.total") == pytest.approx(expected_total())
+    second = run(numproject)
+    assert second.executed == []
+    assert all(s.state == "cached" for s in second.states.values())
+    assert sorted(executions(log)) == sorted(ALL)  # each stage executed exactly once over both runs
+    assert second.key("total") == first.key("total")
+
+
+def test_param_change_reruns_that_stage_and_its_dependents_only(numproject, log):
+    run(numproject)
+    log.unlink()
+    changed = run(numproject, "src.offset=1")
+    assert sorted(changed.executed) == ["scaled", "sign", "src", "total"]  # csv does not depend on src
+    assert changed.load("total.total") == pytest.approx(expected_total(offset=1.0))
+    assert run(numproject, "src.offset=1").executed == []
+
+
+def test_early_cutoff_stops_invalidation(numproject, log):
+    run(numproject)
+    # factor 3 -> 5 changes scaled.y, but sign(y) is unchanged, so total is not rerun
+    result = run(numproject, "scaled.factor=5")
+    assert sorted(result.executed) == ["scaled", "sign"]
+    assert result.states["total"].state == "cached"
+
+
+def test_comment_docstring_and_formatting_edit_reruns_nothing(numproject, log):
+    run(numproject)
+    module = numproject / "numstages" / "scaling.py"
+    source = module.read_text()
+    edited = source.replace('"""Scaling: the only stage module importing numstages.helpers."""',
+                            '"""A different docstring."""\n# a comment\n')
+    edited = edited.replace("return Result({\"y\": double(inputs[\"x\"]) * params.factor / 2})",
+                            "return Result( { \"y\" : double( inputs[ \"x\" ] )*params.factor/2 } )  # spaced")
+    assert edited != source
+    module.write_text(edited)
+    assert run(numproject).executed == []
+
+
+def test_edit_to_imported_helper_module_reruns_its_importer(numproject, log):
+    run(numproject)
+    helper = numproject / "numstages" / "helpers.py"
+    helper.write_text(helper.read_text().replace("return 2 * np.asarray(x)", "return np.asarray(x) * 2.0"))
+    result = run(numproject)
+    # scaling imports helpers; the result is numerically identical, so sign and total stay cached
+    assert result.executed == ["scaled"]
+    why = result.states["scaled"]
+    assert why.state == "ran"
+
+
+def test_semantic_edit_to_helper_changes_results(numproject, log):
+    run(numproject)
+    helper = numproject / "numstages" / "helpers.py"
+    helper.write_text(helper.read_text().replace("return 2 * np.asarray(x)", "return -2 * np.asarray(x)"))
+    result = run(numproject)
+    assert sorted(result.executed) == ["scaled", "sign", "total"]
+    assert result.load("total.total") == pytest.approx(21.0 - 5.0)
+
+
+def test_touched_data_file_reruns_nothing_changed_content_reruns(numproject, log):
+    run(numproject)
+    table = numproject / "data" / "table.csv"
+    st = table.stat()
+    os.utime(table, ns=(st.st_atime_ns + 10**9, st.st_mtime_ns + 10**9))
+    assert run(numproject).executed == []
+    table.write_text("1,2,3\n4,5,7\n")
+    result = run(numproject)
+    assert sorted(result.executed) == ["csv", "total"]
+    assert result.load("total.total") == pytest.approx(expected_total() + 1)
+
+
+def test_cloned_project_directory_reruns_nothing(numproject, tmp_path, log):
+    first = run(numproject)
+    clone = tmp_path / "elsewhere" / "clone"
+    shutil.copytree(numproject, clone)
+    second = run(clone)
+    assert second.executed == []
+    assert {n: second.key(n) for n in ALL} == {n: first.key(n) for n in ALL}
+
+
+def test_keys_do_not_depend_on_location_or_mtimes(numproject, tmp_path, log):
+    """A fresh store in a copy computes everything again, to the same keys and content."""
+    first = run(numproject)
+    clone = tmp_path / "fresh"
+    shutil.copytree(numproject, clone, ignore=shutil.ignore_patterns(".msflow"))
+    for path in clone.rglob("*"):
+        os.utime(path, ns=(10**18, 10**18))
+    second = run(clone)
+    assert sorted(second.executed) == sorted(ALL)
+    for name in ALL:
+        assert second.key(name) == first.key(name)
+        assert second.states[name].manifest["content_hash"] == first.states[name].manifest["content_hash"]
+
+
+def test_force_reruns_stage_even_when_cached(numproject, log):
+    run(numproject)
+    result = run(numproject, force=["src"])
+    assert result.executed[0] == "src"
+    assert "total" not in result.executed  # identical content: early cutoff
+
+
+def test_until_runs_only_the_stage_and_its_ancestors(numproject, log):
+    result = run(numproject, until="scaled")
+    assert sorted(result.executed) == ["scaled", "src"]
+    assert set(result.states) == {"src", "scaled"}
+
+
+def test_parallel_run_gives_same_keys_and_content(numproject, tmp_path, log):
+    serial = run(numproject)
+    clone = tmp_path / "parallel"
+    shutil.copytree(numproject, clone, ignore=shutil.ignore_patterns(".msflow"))
+    parallel = run(clone, jobs=2)
+    assert sorted(parallel.executed) == sorted(ALL)
+    for name in ALL:
+        assert parallel.key(name) == serial.key(name)
+    worker_pids = {line.split()[1] for line in log.read_text().splitlines()[len(ALL):]}
+    assert worker_pids and str(os.getpid()) not in worker_pids  # executed in pool processes
+
+
+def test_run_record_and_lock_file(numproject, log):
+    result = run(numproject, "scaled.factor=4")
+    record = result.record
+    assert record["ok"] and record["counts"]["ran"] == len(ALL)
+    assert record["overrides"] == ["scaled.factor=4"]
+    assert record["stages"]["scaled"]["key_parts"]["params"] == {"factor": 4.0}
+    assert record["stages"]["total"]["metrics"]["total"] == pytest.approx(expected_total(factor=4))
+    assert "numpy" in record["versions"] and record["platform"]["cpus"]
+    lock = (numproject / "pipeline.lock").read_text()
+    assert "numstages.scaling:Scale" in lock and result.key("total") in lock
+    before = (numproject / "pipeline.lock").stat().st_mtime_ns
+    run(numproject, "scaled.factor=4")
+    assert (numproject / "pipeline.lock").stat().st_mtime_ns == before  # unchanged state: not rewritten
