@@ -122,3 +122,78 @@ def mirror_quat(q: np.ndarray) -> np.ndarray:
     """Mirror image of a head rotation about the x = 0 plane: negates yaw and roll, keeps pitch."""
     q = np.asarray(q, dtype=np.float64)
     return q * np.array([1.0, 1.0, -1.0, -1.0])
+
+
+# --- Added by the head-motion area: arbitrary Euler orders (BVH), resampling and angular rates. ---
+
+_AXIS_INDEX = {"X": 0, "Y": 1, "Z": 2}
+
+
+def _check_order(order: str) -> tuple[int, int, int]:
+    order = order.upper()
+    if len(order) != 3 or set(order) != {"X", "Y", "Z"}:
+        raise ValueError(f"Euler order must be a permutation of 'XYZ', got {order!r}")
+    return tuple(_AXIS_INDEX[a] for a in order)  # type: ignore[return-value]
+
+
+def axis_angle_quat(axis: int, angle: np.ndarray) -> np.ndarray:
+    """Quaternions of rotations by ``angle`` (radians, any shape) about coordinate axis 0 (x), 1 (y) or 2 (z)."""
+    angle = np.asarray(angle, dtype=np.float64)
+    q = np.zeros(angle.shape + (4,))
+    q[..., 0] = np.cos(angle / 2)
+    q[..., 1 + axis] = np.sin(angle / 2)
+    return q
+
+
+def euler_order_to_quat(angles: np.ndarray, order: str) -> np.ndarray:
+    """Angles (..., 3) in radians about the axes named by ``order`` (e.g. "ZXY"): R = R_Z(a0) R_X(a1) R_Y(a2).
+
+    This is the BVH channel convention (rotations listed outermost first). ``euler_order_to_quat(a, "YXZ")`` with
+    a = (yaw, pitch, roll) equals ``euler_to_quat(yaw, pitch, roll)``.
+    """
+    axes = _check_order(order)
+    angles = np.asarray(angles, dtype=np.float64)
+    q = axis_angle_quat(axes[0], angles[..., 0])
+    for k in (1, 2):
+        q = quat_multiply(q, axis_angle_quat(axes[k], angles[..., k]))
+    return q
+
+
+def quat_to_euler_order(q: np.ndarray, order: str) -> np.ndarray:
+    """Inverse of ``euler_order_to_quat``: (..., 3) angles with the middle angle in [-pi/2, pi/2]."""
+    i, j, k = _check_order(order)
+    sign = 1.0 if (i, j, k) in ((0, 1, 2), (1, 2, 0), (2, 0, 1)) else -1.0
+    r = quat_to_matrix(q)
+    middle = np.arcsin(np.clip(sign * r[..., i, k], -1.0, 1.0))
+    first = np.arctan2(-sign * r[..., j, k], r[..., k, k])
+    last = np.arctan2(-sign * r[..., i, j], r[..., i, i])
+    return np.stack([first, middle, last], axis=-1)
+
+
+def quat_resample(times: np.ndarray, q: np.ndarray, new_times: np.ndarray) -> np.ndarray:
+    """Rotations sampled at ``times`` (increasing), slerped at ``new_times`` (clamped to the sampled range)."""
+    times = np.asarray(times, dtype=np.float64)
+    q = quat_continuous(quat_normalize(q))
+    new_times = np.clip(np.asarray(new_times, dtype=np.float64), times[0], times[-1])
+    if len(times) == 1:
+        return np.repeat(q, len(new_times), axis=0)
+    idx = np.clip(np.searchsorted(times, new_times, side="right") - 1, 0, len(times) - 2)
+    span = times[idx + 1] - times[idx]
+    frac = np.where(span > 0, (new_times - times[idx]) / np.where(span > 0, span, 1.0), 0.0)
+    return quat_continuous(quat_slerp(q[idx], q[idx + 1], frac))
+
+
+def quat_mean(q: np.ndarray) -> np.ndarray:
+    """Chordal L2 mean of unit quaternions (n, 4): the dominant eigenvector of sum q q^T (sign-invariant)."""
+    q = quat_normalize(q)
+    _, vectors = np.linalg.eigh(q.T @ q)
+    mean = vectors[:, -1]
+    return mean if mean[0] >= 0 else -mean
+
+
+def angular_velocity(q: np.ndarray, fps: float) -> np.ndarray:
+    """Body-independent angular velocity (frames - 1, 3), radians per second, from consecutive rotations:
+    the rotation vector of q[t+1] q[t]^* times the frame rate."""
+    q = quat_normalize(q)
+    delta = quat_multiply(q[1:], quat_conjugate(q[:-1]))
+    return quat_to_rotvec(delta) * fps

@@ -1,0 +1,479 @@
+"""Pitch extraction, cleaning and segmentation of speech (paper Sec. 5.1), with Praat exports for checking.
+
+One code path serves the test take and the motion database: the input is either an artifact carrying audio per
+sequence (a tracking artifact or a headdb artifact: ``audio``, ``audio_bounds``, meta ``labels``, ``audio_rate``,
+``audio_offset``) or labelled audio files. Every time this stage outputs is on the sequence clock: 0 is the first
+motion (video) frame, so segments slice the head motion directly.
+
+Segments run from one voiced onset to the next (the last one to the end of the utterance); a segment whose onset
+follows a pause of at least ``breath_pause`` starts a sub-sentence (paper Sec. 5.4: breaths bound the path search).
+"""
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from msflow import Input, Output, Result, Stage, UserError
+
+PHRASE_FEATURES = ("speaking_rate", "voiced_mean", "voiced_std", "unvoiced_mean", "unvoiced_std",
+                   "voiced_fraction", "f0_min", "f0_max", "f0_mean", "f0_std")
+#: phrase features that move with the speaker's pitch level (semitones relative to a reference median)
+LEVEL_FEATURES = ("f0_min", "f0_max", "f0_mean")
+
+
+# ----------------------------------------------------------------------------------------------------- maths
+
+def semitones(f0_hz: np.ndarray, reference_hz: float | np.ndarray) -> np.ndarray:
+    """12 log2(f0 / reference): pitch in semitones relative to a reference (a speaker's median)."""
+    return 12.0 * np.log2(np.asarray(f0_hz, dtype=np.float64) / reference_hz)
+
+
+def praat_pitch(samples: np.ndarray, rate: int, *, method: str = "ac", time_step: float = 0.01,
+                floor: float = 60.0, ceiling: float = 500.0, voicing_threshold: float = 0.45,
+                silence_threshold: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+    """Praat's pitch tracker (autocorrelation ``ac`` or cross-correlation ``cc``) on a mono signal.
+
+    Returns frame centre times (seconds from the first sample) and f0 in Hz with NaN where unvoiced.
+    """
+    import parselmouth
+
+    sound = parselmouth.Sound(np.asarray(samples, dtype=np.float64), sampling_frequency=float(rate))
+    kwargs = dict(time_step=time_step, pitch_floor=floor, pitch_ceiling=ceiling,
+                  voicing_threshold=voicing_threshold, silence_threshold=silence_threshold)
+    pitch = sound.to_pitch_ac(**kwargs) if method == "ac" else sound.to_pitch_cc(**kwargs)
+    f0 = pitch.selected_array["frequency"].astype(np.float64)
+    times = pitch.x1 + pitch.dx * np.arange(pitch.n_frames)
+    return times, np.where(f0 > 0, f0, np.nan)
+
+
+def voiced_runs(voiced: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Start and stop (exclusive) indices of the runs of True in a boolean array."""
+    edges = np.diff(np.concatenate([[0], np.asarray(voiced, dtype=np.int8), [0]]))
+    return np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+
+
+def clean_pitch(f0: np.ndarray, time_step: float, *, human_range: tuple[float, float] = (50.0, 800.0),
+                max_deviation: float | None = 10.0, max_gap: float = 0.03, min_voiced: float = 0.05) -> np.ndarray:
+    """Sec. 5.1 cleaning of a raw contour (Hz, NaN unvoiced), in this order:
+
+    1. drop values outside the human range, and (``max_deviation``) values farther than that many semitones from
+       the utterance's median: octave errors, which Praat makes at voicing edges;
+    2. fill unvoiced gaps shorter than ``max_gap`` seconds by linear interpolation in log frequency;
+    3. drop voiced islands shorter than ``min_voiced`` seconds.
+    """
+    f0 = np.array(f0, dtype=np.float64, copy=True)
+    f0[~((f0 >= human_range[0]) & (f0 <= human_range[1]))] = np.nan
+    if max_deviation is not None and np.isfinite(f0).any():
+        deviation = np.abs(semitones(f0, np.nanmedian(f0)))
+        f0[~(deviation <= max_deviation)] = np.nan
+    voiced = np.isfinite(f0)
+    starts, stops = voiced_runs(~voiced)
+    interior = (starts > 0) & (stops < len(f0)) & ((stops - starts) * time_step < max_gap - 1e-9)
+    if interior.any():
+        idx = np.flatnonzero(voiced)
+        gaps = np.concatenate([np.arange(a, b) for a, b in zip(starts[interior], stops[interior])])
+        f0[gaps] = np.exp(np.interp(gaps, idx, np.log(f0[idx])))
+    starts, stops = voiced_runs(np.isfinite(f0))
+    short = (stops - starts) * time_step < min_voiced - 1e-9
+    for a, b in zip(starts[short], stops[short]):
+        f0[a:b] = np.nan
+    return f0
+
+
+@dataclass
+class Segmentation:
+    segments: np.ndarray           # (n, 3) start (voiced onset), voiced end, end (next onset or utterance end)
+    subsentence_start: np.ndarray  # (n,) bool: first segment, or onset after a pause >= breath_pause
+
+
+def segment_pitch(times: np.ndarray, f0: np.ndarray, duration: float, *, time_step: float,
+                  breath_pause: float = 0.3) -> Segmentation:
+    """Segments from one voiced onset to the next (Sec. 5.1); a frame covers time_step centred on its time."""
+    starts, stops = voiced_runs(np.isfinite(f0))
+    if len(starts) == 0:
+        return Segmentation(np.zeros((0, 3)), np.zeros(0, dtype=bool))
+    onset = np.clip(times[starts] - time_step / 2, 0.0, duration)
+    voiced_end = np.clip(times[stops - 1] + time_step / 2, 0.0, duration)
+    end = np.concatenate([onset[1:], [duration]])
+    keep = end > onset
+    onset, voiced_end, end = onset[keep], voiced_end[keep], end[keep]
+    pause = onset[1:] - voiced_end[:-1]
+    subsentence = np.concatenate([[True], pause >= breath_pause - 1e-9])
+    return Segmentation(np.stack([onset, np.minimum(voiced_end, end), end], axis=1), subsentence)
+
+
+def phrase_features(times: np.ndarray, f0: np.ndarray, segments: np.ndarray, reference_hz: float) -> np.ndarray:
+    """Phrase-level prosody features (Dellaert et al. 1996; paper Sec. 5.2), order ``PHRASE_FEATURES``.
+
+    Rhythm: speaking rate (voiced runs per second of speech, from the first onset to the last voiced end), mean
+    and standard deviation of voiced and of unvoiced (between runs) lengths in seconds, voiced fraction. Pitch in
+    semitones relative to ``reference_hz`` (the speaker's median): min and max (5th and 95th percentiles, robust to
+    the odd tracking error), mean, standard deviation. All NaN when nothing is voiced.
+    """
+    voiced = np.isfinite(f0)
+    if not voiced.any() or len(segments) == 0:
+        return np.full(len(PHRASE_FEATURES), np.nan)
+    voiced_lengths = segments[:, 1] - segments[:, 0]
+    unvoiced_lengths = segments[1:, 0] - segments[:-1, 1]
+    span = max(segments[-1, 1] - segments[0, 0], 1e-6)
+    st = semitones(f0[voiced], reference_hz)
+    return np.array([
+        len(segments) / span,
+        voiced_lengths.mean(), voiced_lengths.std(),
+        unvoiced_lengths.mean() if len(unvoiced_lengths) else 0.0,
+        unvoiced_lengths.std() if len(unvoiced_lengths) else 0.0,
+        voiced_lengths.sum() / span,
+        np.percentile(st, 5), np.percentile(st, 95), st.mean(), st.std(),
+    ])
+
+
+# ------------------------------------------------------------------------------------------- Praat exports
+
+def _num(value) -> str:
+    return repr(float(value))
+
+
+def _interval_tier(name: str, xmax: float, intervals: list[tuple[float, float, str]]) -> list[str]:
+    """Lines of a long-format IntervalTier; gaps between the (sorted, disjoint) intervals become empty ones."""
+    filled: list[tuple[float, float, str]] = []
+    cursor = 0.0
+    for a, b, label in sorted(intervals):
+        a, b = max(a, cursor), min(b, xmax)
+        if b - a <= 1e-9:
+            continue
+        if a - cursor > 1e-9:
+            filled.append((cursor, a, ""))
+        filled.append((a, b, label))
+        cursor = b
+    if xmax - cursor > 1e-9 or not filled:
+        filled.append((cursor, xmax, ""))
+    lines = ['        class = "IntervalTier"', f'        name = "{name}"', "        xmin = 0",
+             f"        xmax = {_num(xmax)}", f"        intervals: size = {len(filled)}"]
+    for k, (a, b, label) in enumerate(filled, 1):
+        lines += [f"        intervals [{k}]:", f"            xmin = {_num(a)}", f"            xmax = {_num(b)}",
+                  f'            text = "{label}"']
+    return lines
+
+
+def textgrid_text(xmax: float, tiers: list[tuple[str, list[tuple[float, float, str]]]]) -> str:
+    """A Praat TextGrid (long text format) with one IntervalTier per (name, intervals)."""
+    lines = ['File type = "ooTextFile"', 'Object class = "TextGrid"', "", "xmin = 0", f"xmax = {_num(xmax)}",
+             "tiers? <exists>", f"size = {len(tiers)}", "item []:"]
+    for k, (name, intervals) in enumerate(tiers, 1):
+        lines.append(f"    item [{k}]:")
+        lines += _interval_tier(name, xmax, intervals)
+    return "\n".join(lines) + "\n"
+
+
+def pitchtier_text(xmax: float, times: np.ndarray, values: np.ndarray) -> str:
+    """A Praat PitchTier (long text format) with one point per (time, Hz)."""
+    lines = ['File type = "ooTextFile"', 'Object class = "PitchTier"', "", "xmin = 0", f"xmax = {_num(xmax)}",
+             f"points: size = {len(times)}"]
+    for k, (t, v) in enumerate(zip(times, values), 1):
+        lines += [f"points [{k}]:", f"    number = {_num(t)}", f"    value = {_num(v)}"]
+    return "\n".join(lines) + "\n"
+
+
+def wav_bytes(samples: np.ndarray, rate: int) -> bytes:
+    """16-bit PCM mono WAV of float samples in [-1, 1]."""
+    import wave
+
+    pcm = (np.clip(np.asarray(samples, dtype=np.float64), -1, 1) * 32767).astype("<i2")
+    buffer = io.BytesIO()
+    with wave.open(buffer, "wb") as out:
+        out.setnchannels(1)
+        out.setsampwidth(2)
+        out.setframerate(int(rate))
+        out.writeframes(pcm.tobytes())
+    return buffer.getvalue()
+
+
+# ------------------------------------------------------------------------------------------------- the stage
+
+@dataclass
+class Utterance:
+    """One sequence's audio and where it sits on the sequence clock."""
+
+    label: str
+    source: str
+    samples: np.ndarray
+    rate: int
+    offset: float          # time of the first audio sample on the sequence clock (first video frame = 0)
+    duration: float        # length of the sequence clock to cover (motion length if known, else audio end)
+    fps: float | None
+    frames: int | None
+    speaker: str
+    audio_key: tuple       # utterances sharing audio (mirrored database copies) share this key
+    field: str
+
+
+def _per_sequence(value, n: int, default):
+    if value is None:
+        return [default] * n
+    if isinstance(value, (list, tuple)):
+        if len(value) != n:
+            raise UserError(f"metadata list has {len(value)} entries for {n} sequences")
+        return list(value)
+    return [value] * n
+
+
+def utterances_from_artifact(view, field: str = "inputs.source") -> list[Utterance]:
+    """Audio per sequence of a tracking or headdb artifact (same conventions: audio, audio_bounds, meta)."""
+    meta = view.meta
+    if "audio" not in view or "audio_bounds" not in view:
+        raise UserError("the input artifact carries no audio (track the videos with audio, or give audio files)",
+                        field=field)
+    audio = view["audio"]
+    bounds = np.asarray(view["audio_bounds"], dtype=np.int64).reshape(-1, 2)
+    labels = list(meta.get("labels") or [f"sequence{k}" for k in range(len(bounds))])
+    if len(labels) != len(bounds):
+        raise UserError(f"{len(labels)} labels but {len(bounds)} audio ranges", field=field)
+    n = len(labels)
+    rate = int(meta.get("audio_rate") or 16000)
+    sources = _per_sequence(meta.get("sources"), n, None)
+    offsets = _per_sequence(meta.get("audio_offset"), n, 0.0)
+    fps = _per_sequence(meta.get("fps"), n, None)
+    speakers = _per_sequence(meta.get("speakers"), n, "speaker")
+    frames = [None] * n
+    if "sequence" in view:
+        counts = np.bincount(np.asarray(view["sequence"], dtype=np.int64), minlength=n)
+        frames = [int(c) for c in counts[:n]]
+    out = []
+    for k, label in enumerate(labels):
+        a, b = bounds[k]
+        samples = np.asarray(audio[a:b], dtype=np.float32)
+        offset = float(offsets[k] or 0.0)
+        audio_end = offset + len(samples) / rate
+        rate_k = float(fps[k]) if fps[k] else None
+        n_frames = frames[k] if frames[k] else None
+        duration = n_frames / rate_k if (rate_k and n_frames) else audio_end
+        out.append(Utterance(str(label), str(sources[k] or label), samples, rate, offset, duration, rate_k,
+                             n_frames, str(speakers[k]), (int(a), int(b), offset), f"{field}[{label}]"))
+    return out
+
+
+def utterances_from_files(files: dict, rate: int, field: str = "inputs.audio") -> list[Utterance]:
+    from stages.audio import decode_audio
+
+    out = []
+    for label, path in files.items():
+        decoded = decode_audio(path, rate, field=f"{field}.{label}")
+        out.append(Utterance(label, path.name, decoded.samples, rate, 0.0, decoded.duration, None, None,
+                             "speaker", (str(path),), f"{field}.{label}"))
+    return out
+
+
+PITCH_OUTPUTS = {
+    "f0": Output.array("f", shape=("pitch_frames",), dtype="float32", doc="cleaned f0 in Hz, NaN where unvoiced"),
+    "f0_raw": Output.array("f", shape=("pitch_frames",), dtype="float32", doc="Praat's f0 in Hz, NaN unvoiced"),
+    "pitch_time": Output.array("f", shape=("pitch_frames",), dtype="float64", doc="seconds on the sequence clock"),
+    "pitch_utterance": Output.array("i", shape=("pitch_frames",), dtype="int32", doc="index into meta labels"),
+    "segments": Output.array("f", shape=("segments", 3), dtype="float64",
+                             doc="start (voiced onset), voiced end, end (next onset), sequence clock seconds"),
+    "segment_utterance": Output.array("i", shape=("segments",), dtype="int32"),
+    "subsentence_start": Output.array("b", shape=("segments",), doc="segment begins a sub-sentence"),
+    "phrase_features": Output.array("f", shape=("utterances", len(PHRASE_FEATURES)), dtype="float64",
+                                    doc="meta feature_names; NaN rows for utterances without voice"),
+    "speaker_median": Output.array("f", shape=("utterances",), dtype="float64", doc="Hz, reference of semitones"),
+    "utterance_duration": Output.array("f", shape=("utterances",), dtype="float64"),
+    "textgrid": Output.file(".TextGrid", doc="Praat TextGrid over the 'sound' file: utterance, segment, voiced, "
+                                              "subsentence tiers"),
+    "pitchtier": Output.file(".PitchTier", doc="cleaned f0 over the 'sound' file"),
+    "sound": Output.file(".wav", doc="the distinct utterances' audio back to back, for opening with the TextGrid"),
+}
+
+
+def _plot_pitch_segments(view, inputs=None, utterance: int = 0):
+    """Paper Fig. 6: raw pitch (top) and the cleaned, segmented contour (bottom) of one utterance."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = view.meta["labels"]
+    mask = view["pitch_utterance"] == utterance
+    t, raw, clean = view["pitch_time"][mask], view["f0_raw"][mask], view["f0"][mask]
+    seg_mask = view["segment_utterance"] == utterance
+    segments, breaks = view["segments"][seg_mask], view["subsentence_start"][seg_mask]
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(9, 5), sharex=True, constrained_layout=True)
+    top.plot(t, raw, ".", ms=3, color="0.3")
+    top.set_title(f"raw pitch: {labels[utterance]}")
+    colours = plt.cm.tab10(np.arange(len(segments)) % 10)
+    for k, (a, v, b) in enumerate(segments):
+        bottom.axvspan(a, b, color=colours[k], alpha=0.12)
+        inside = (t >= a) & (t < b)
+        bottom.plot(t[inside], clean[inside], "-", lw=2, color=colours[k])
+        if breaks[k]:
+            bottom.axvline(a, color="k", ls="--", lw=1)
+    bottom.set_title("cleaned and segmented (dashed: sub-sentence starts)")
+    for ax in (top, bottom):
+        ax.set_ylabel("f0 (Hz)")
+    bottom.set_xlabel("time (s)")
+    return fig
+
+
+class Pitch(Stage):
+    """Praat pitch, Sec. 5.1 cleaning, onset-to-onset segments, sub-sentence breaks, phrase features."""
+
+    class Params(Stage.Params):
+        method: Literal["ac", "cc"] = "ac"
+        time_step: float = 0.01
+        floor: float = 60.0
+        ceiling: float = 500.0
+        voicing_threshold: float = 0.45
+        silence_threshold: float = 0.03
+        human_range: tuple[float, float] = (50.0, 800.0)
+        max_deviation: float | None = 10.0
+        max_gap: float = 0.03
+        min_voiced: float = 0.05
+        breath_pause: float = 0.3
+        median_over: Literal["speaker", "utterance"] = "speaker"
+        on_silence: Literal["error", "still"] = "error"
+        audio_rate: int = 16000
+
+    inputs = {
+        "source": Input.artifact(optional=True, doc="tracking or headdb artifact with audio per sequence"),
+        "audio": Input.files(optional=True, doc="labelled audio files (any container PyAV decodes)"),
+    }
+    outputs = PITCH_OUTPUTS
+    figures = {"pitch_segments": _plot_pitch_segments}
+
+    def run(self, params, inputs):
+        if (inputs.get("source") is None) == (inputs.get("audio") is None):
+            raise UserError("give exactly one of 'source' (an artifact with audio) or 'audio' (files)",
+                            field="inputs")
+        if inputs.get("source") is not None:
+            utterances = utterances_from_artifact(inputs["source"])
+        else:
+            utterances = utterances_from_files(inputs["audio"], params.audio_rate)
+        if not utterances:
+            raise UserError("no utterances to analyse", field="inputs")
+        return pitch_result(utterances, params)
+
+
+def analyse_utterances(utterances: list[Utterance], params) -> list[dict]:
+    """Pitch, cleaning and segmentation per utterance; utterances sharing audio are analysed once."""
+    cache: dict[tuple, tuple] = {}
+    analyses = []
+    for utt in utterances:
+        if utt.audio_key not in cache:
+            if len(utt.samples) < int(0.1 * utt.rate):
+                raise UserError(f"audio of '{utt.label}' is too short to analyse ({len(utt.samples)} samples)",
+                                file=utt.source, field=utt.field)
+            tau, raw = praat_pitch(utt.samples, utt.rate, method=params.method, time_step=params.time_step,
+                                   floor=params.floor, ceiling=params.ceiling,
+                                   voicing_threshold=params.voicing_threshold,
+                                   silence_threshold=params.silence_threshold)
+            times = tau + utt.offset
+            outside = (times < 0) | (times > utt.duration)
+            raw = np.where(outside, np.nan, raw)
+            clean = clean_pitch(raw, params.time_step, human_range=params.human_range,
+                                max_deviation=params.max_deviation, max_gap=params.max_gap,
+                                min_voiced=params.min_voiced)
+            cache[utt.audio_key] = (times, raw, clean)
+        times, raw, clean = cache[utt.audio_key]
+        if not np.isfinite(clean).any() and params.on_silence == "error":
+            raise UserError(f"no voiced speech found in '{utt.label}' (pitch floor {params.floor} Hz, ceiling "
+                            f"{params.ceiling} Hz); set on_silence: still for a still head", file=utt.source,
+                            field=utt.field)
+        seg = segment_pitch(times, clean, utt.duration, time_step=params.time_step,
+                            breath_pause=params.breath_pause)
+        analyses.append({"times": times, "raw": raw, "clean": clean, "segmentation": seg})
+    return analyses
+
+
+def speaker_medians(utterances: list[Utterance], analyses: list[dict], median_over: str) -> np.ndarray:
+    """Median f0 (Hz) per utterance's speaker (all its utterances pooled) or per utterance."""
+    keys = [u.speaker if median_over == "speaker" else str(k) for k, u in enumerate(utterances)]
+    medians = {}
+    for key in set(keys):
+        pooled = np.concatenate([a["clean"] for k, a in zip(keys, analyses) if k == key])
+        pooled = pooled[np.isfinite(pooled)]
+        medians[key] = float(np.median(pooled)) if len(pooled) else np.nan
+    return np.array([medians[k] for k in keys])
+
+
+def pitch_result(utterances: list[Utterance], params) -> Result:
+    analyses = analyse_utterances(utterances, params)
+    medians = speaker_medians(utterances, analyses, params.median_over)
+    features = np.stack([phrase_features(a["times"], a["clean"], a["segmentation"].segments, m)
+                         for a, m in zip(analyses, medians)])
+    seg_counts = [len(a["segmentation"].segments) for a in analyses]
+    arrays = {
+        "f0": np.concatenate([a["clean"] for a in analyses]).astype(np.float32),
+        "f0_raw": np.concatenate([a["raw"] for a in analyses]).astype(np.float32),
+        "pitch_time": np.concatenate([a["times"] for a in analyses]),
+        "pitch_utterance": np.concatenate([np.full(len(a["times"]), k, np.int32) for k, a in enumerate(analyses)]),
+        "segments": np.concatenate([a["segmentation"].segments for a in analyses]).reshape(-1, 3),
+        "segment_utterance": np.repeat(np.arange(len(analyses), dtype=np.int32), seg_counts),
+        "subsentence_start": np.concatenate([a["segmentation"].subsentence_start for a in analyses]).astype(bool),
+        "phrase_features": features,
+        "speaker_median": medians,
+        "utterance_duration": np.array([u.duration for u in utterances]),
+    }
+    arrays.update(praat_exports(utterances, analyses))
+    voiced = np.concatenate([np.isfinite(a["clean"]) for a in analyses])
+    meta = {
+        "labels": [u.label for u in utterances], "sources": [u.source for u in utterances],
+        "speakers": [u.speaker for u in utterances], "fps": [u.fps for u in utterances],
+        "frames": [u.frames for u in utterances], "audio_offset": [u.offset for u in utterances],
+        "feature_names": list(PHRASE_FEATURES), "level_features": list(LEVEL_FEATURES),
+        "feature_unit": "semitones relative to speaker_median; seconds; voiced runs per second",
+        "time_step": params.time_step, "method": params.method, "breath_pause": params.breath_pause,
+        "silent": [label for label, n in zip([u.label for u in utterances], seg_counts) if n == 0],
+    }
+    metrics = {"segments": int(sum(seg_counts)), "utterances": len(utterances),
+               "voiced_fraction": float(voiced.mean()) if len(voiced) else 0.0,
+               "mean_segment_length": float(np.mean(np.diff(arrays["segments"][:, [0, 2]], axis=1)))
+               if sum(seg_counts) else 0.0,
+               "subsentences": int(arrays["subsentence_start"].sum())}
+    return Result(arrays, meta, metrics)
+
+
+def praat_exports(utterances: list[Utterance], analyses: list[dict]) -> dict[str, bytes]:
+    """TextGrid, PitchTier and WAV over the distinct utterances' audio laid back to back."""
+    rate = utterances[0].rate
+    chunks, utt_tier, seg_tier, voiced_tier, sub_tier, tier_times, tier_values = [], [], [], [], [], [], []
+    placed: dict[tuple, float] = {}
+    base = 0.0
+    for utt, analysis in zip(utterances, analyses):
+        if utt.audio_key in placed:
+            continue
+        samples = utt.samples
+        if utt.rate != rate:
+            new_n = int(round(len(samples) * rate / utt.rate))
+            samples = np.interp(np.arange(new_n) * utt.rate / rate, np.arange(len(samples)), samples)
+        placed[utt.audio_key] = base
+        length = len(samples) / rate
+        shift = base - utt.offset           # sequence clock -> wav time
+        names = "|".join(u.label for u in utterances if u.audio_key == utt.audio_key)
+        utt_tier.append((base, base + length, names))
+        seg = analysis["segmentation"]
+        for k, (a, v, b) in enumerate(seg.segments):
+            seg_tier.append((a + shift, b + shift, str(k + 1)))
+            voiced_tier.append((a + shift, v + shift, "V"))
+        starts = seg.segments[seg.subsentence_start, 0] if len(seg.segments) else np.zeros(0)
+        bounds = np.concatenate([starts, [seg.segments[-1, 2]]]) if len(starts) else np.zeros(0)
+        for k in range(len(starts)):
+            sub_tier.append((bounds[k] + shift, bounds[k + 1] + shift, f"s{k + 1}"))
+        ok = np.isfinite(analysis["clean"])
+        tier_times.append(analysis["times"][ok] + shift)
+        tier_values.append(analysis["clean"][ok])
+        chunks.append(samples)
+        base += length
+    xmax = max(base, 1e-3)
+
+    def clip(intervals):
+        return [(max(a, 0.0), min(b, xmax), label) for a, b, label in intervals if min(b, xmax) > max(a, 0.0)]
+
+    times = np.concatenate(tier_times) if tier_times else np.zeros(0)
+    values = np.concatenate(tier_values) if tier_values else np.zeros(0)
+    inside = (times >= 0) & (times <= xmax)
+    textgrid = textgrid_text(xmax, [("utterance", utt_tier), ("segment", clip(seg_tier)),
+                                    ("voiced", clip(voiced_tier)), ("subsentence", clip(sub_tier))])
+    return {"textgrid": textgrid.encode("utf-8"),
+            "pitchtier": pitchtier_text(xmax, times[inside], values[inside]).encode("utf-8"),
+            "sound": wav_bytes(np.concatenate(chunks), rate)}
