@@ -1,0 +1,350 @@
+"""Expression blending of the retargeted animations (paper Eq 9).
+
+    H(t) = sum_j alpha_j(t) sum_i w_i^(j)(t) G_i^(j)
+
+w^(j)(t): the keyshape weights of the sequence edited towards expression j (keyshapes artifact, Eq 8);
+G_i^(j): the keymorph (morph-target weights) of keyshape i of expression j (keymorphs artifact, Sec 4.3);
+alpha(t): barycentric coordinates over the expressions, from the params:
+
+- constant: ``alpha: {happy: 0.5, neutral: 0.5}``;
+- keyframes over time: ``alpha: {keyframes: {0.0: {neutral: 1}, 1.2: {happy: 1}}, interpolation: linear}``
+  (seconds; held constant before the first and after the last keyframe);
+- ``alpha: from_analysis``: alpha(t) = barycentric coordinates of the analysed expression vector e(t) (edit
+  artifact ``style``) with respect to the training style vectors (bilinear artifact ``style``), projected onto
+  the simplex (paper Sec 4.3: "the user-chosen barycentric coordinates of the desired output expression in
+  terms of the basic expression vectors found during training").
+
+The result is clipped to [0, 1] (the range of a morph-target slider); how much was clipped is a metric.
+"""
+from __future__ import annotations
+
+from typing import Literal, Union
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+from msflow import Input, Output, Result, Stage, UserError
+
+
+class AlphaKeyframes(BaseModel):
+    """Expression weights at times (seconds), interpolated between them."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    keyframes: dict[float, dict[str, float]]
+    interpolation: Literal["linear", "step", "smooth"] = "linear"
+
+
+# ------------------------------------------------------------------------------------------------------ maths
+
+def project_to_simplex(points: np.ndarray) -> np.ndarray:
+    """Euclidean projection of each row onto the probability simplex (Duchi et al. 2008), vectorised."""
+    v = np.atleast_2d(np.asarray(points, np.float64))
+    n = v.shape[1]
+    u = -np.sort(-v, axis=1)
+    cumulative = np.cumsum(u, axis=1) - 1.0
+    ks = np.arange(1, n + 1)
+    support = u - cumulative / ks > 0
+    rho = n - 1 - np.argmax(support[:, ::-1], axis=1)  # last index where the condition holds
+    theta = cumulative[np.arange(len(v)), rho] / (rho + 1)
+    return np.maximum(v - theta[:, None], 0.0)
+
+
+def barycentric_coordinates(points: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """Affine coordinates a (sum 1) with a @ vertices closest to each point (least squares; minimum-norm when
+    the vertices are affinely dependent). points (n, d), vertices (S, d) -> (n, S)."""
+    points = np.atleast_2d(np.asarray(points, np.float64))
+    vertices = np.asarray(vertices, np.float64)
+    S = len(vertices)
+    if S == 1:
+        return np.ones((len(points), 1))
+    # a = v_0 + (differences) beta: minimise ||(V_rest - v_0)' beta - (p - v_0)||
+    base = vertices[0]
+    edges = vertices[1:] - base                      # (S-1, d)
+    beta = (points - base) @ np.linalg.pinv(edges)   # (n, S-1)
+    return np.hstack([1.0 - beta.sum(axis=1, keepdims=True), beta])
+
+
+def alpha_from_analysis(style: np.ndarray, training_styles: np.ndarray) -> np.ndarray:
+    """alpha(t): barycentric coordinates of e(t) w.r.t. the training style vectors, projected on the simplex."""
+    return project_to_simplex(barycentric_coordinates(style, training_styles))
+
+
+def interpolate_keyframes(times: np.ndarray, key_times: np.ndarray, key_values: np.ndarray,
+                          interpolation: str = "linear") -> np.ndarray:
+    """Values (n, S) at ``times`` from keyframes (K,) -> (K, S); held constant outside the keyed range.
+
+    Linear and smoothstep interpolation of simplex points stay on the simplex (convex combinations).
+    """
+    order = np.argsort(key_times, kind="stable")
+    key_times = np.asarray(key_times, np.float64)[order]
+    key_values = np.asarray(key_values, np.float64)[order]
+    times = np.asarray(times, np.float64)
+    if len(key_times) == 1:
+        return np.repeat(key_values[:1], len(times), axis=0)
+    seg = np.clip(np.searchsorted(key_times, times, side="right") - 1, 0, len(key_times) - 2)
+    t0, t1 = key_times[seg], key_times[seg + 1]
+    u = np.clip((times - t0) / np.maximum(t1 - t0, 1e-12), 0.0, 1.0)
+    if interpolation == "step":
+        u = (times >= t1).astype(np.float64)
+    elif interpolation == "smooth":
+        u = u * u * (3.0 - 2.0 * u)
+    return key_values[seg] * (1.0 - u)[:, None] + key_values[seg + 1] * u[:, None]
+
+
+def smooth_in_time(values: np.ndarray, sigma_frames: float) -> np.ndarray:
+    """Gaussian smoothing along frames (edges held); rows of a simplex stay on it."""
+    if sigma_frames <= 0:
+        return values
+    from scipy.ndimage import gaussian_filter1d
+
+    return gaussian_filter1d(values, sigma_frames, axis=0, mode="nearest")
+
+
+def retarget_expressions(keyshape_weights: np.ndarray, keymorph_weights: np.ndarray) -> np.ndarray:
+    """sum_i w_i^(j)(t) G_i^(j) for every target expression j: (targets, frames, total_k) x (total_k, M)."""
+    return np.einsum("tfk,km->tfm", np.asarray(keyshape_weights, np.float64),
+                     np.asarray(keymorph_weights, np.float64))
+
+
+def blend_expressions(per_expression: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """H(t) = sum_j alpha_j(t) per_expression_j(t) (paper Eq 9): (targets, frames, M), (frames, targets)."""
+    return np.einsum("ft,tfm->fm", np.asarray(alpha, np.float64), per_expression)
+
+
+# ---------------------------------------------------------------------------------------------------- figures
+
+def figure_weights(view, inputs):
+    """Morph-target weights over time (the targets that move)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    weights = view["weights"]
+    names = view.meta["target_names"]
+    time = view["time"]
+    active = np.flatnonzero(weights.max(axis=0) > 0.02)
+    order = active[np.argsort(-weights[:, active].max(axis=0))]
+    fig, ax = plt.subplots(figsize=(9, 0.18 * max(len(order), 8) + 1.2))
+    extent = (time[0], time[-1] if len(time) > 1 else 1.0, len(order) - 0.5, -0.5)
+    ax.imshow(weights[:, order].T, aspect="auto", interpolation="nearest", cmap="viridis", vmin=0, vmax=1,
+              extent=extent)
+    ax.set_yticks(range(len(order)))
+    ax.set_yticklabels([names[i] for i in order], fontsize=6)
+    ax.set_xlabel("time (s)")
+    ax.set_title(f"Blended morph weights (Eq 9), clipped fraction {view.metrics.get('clipped_fraction', 0):.3f}")
+    fig.tight_layout()
+    return fig
+
+
+def figure_alpha(view, inputs):
+    """Expression weights alpha_j(t)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    alpha = view["alpha"]
+    fig, ax = plt.subplots(figsize=(7, 2.5))
+    ax.stackplot(view["time"], alpha.T, labels=view.meta["expressions"])
+    ax.set_ylim(0, 1)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("alpha")
+    ax.set_title(f"Expression weights ({view.meta.get('alpha_mode')})")
+    ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    return fig
+
+
+# ------------------------------------------------------------------------------------------------------ stage
+
+BLEND_OUTPUTS = {
+    "weights": Output.array("f", shape=("frames", "morphs"), dtype="float32",
+                            doc="morph-target weights per frame in [0, 1] (meta['target_names'])"),
+    "alpha": Output.array("f", shape=("frames", "expressions"), dtype="float32",
+                          doc="expression weights alpha_j(t) (meta['expressions']), on the simplex"),
+    "expression_weights": Output.array("f", shape=("expressions", "frames", "morphs"), dtype="float32",
+                                       doc="the retargeted animation of each expression before blending "
+                                           "(unclipped)"),
+    "time": Output.array("f", shape=("frames",), dtype="float64", doc="seconds from the first frame"),
+    "vertices": Output.array("f", shape=("frames", None, 3), dtype="float32", optional=True,
+                             doc="posed character vertices per frame (params.vertices)"),
+}
+
+
+class Blend(Stage):
+    """Blend the per-expression retargeted animations with barycentric expression weights (paper Eq 9)."""
+
+    class Params(Stage.Params):
+        #: "from_analysis", constant weights {expression: weight}, or {keyframes: {seconds: {expression: w}},
+        #: interpolation: linear|step|smooth}; weights must be >= 0 and sum to 1
+        alpha: Union[Literal["from_analysis"], dict[str, float], AlphaKeyframes] = "from_analysis"
+        #: Gaussian smoothing of alpha over time, sigma in seconds (the analysed e(t) jitters, paper Sec 7)
+        alpha_smoothing: float = 0.0
+        #: allowed deviation of the alpha sum from 1
+        tolerance: float = 1e-3
+        #: also output posed vertices per frame (needs the character input)
+        vertices: bool = False
+
+    inputs = {
+        "keyshapes": Input.artifact("weights", "keyshape_expression", doc="keyshapes artifact (Eq 8 weights)"),
+        "keymorphs": Input.artifact("keymorph_weights", doc="keymorphs artifact (G per keyshape)"),
+        "edit": Input.artifact("style", optional=True,
+                               doc="edit artifact: analysed style e(t) for alpha from_analysis, and fps"),
+        "bilinear": Input.artifact("style", optional=True,
+                                   doc="bilinear artifact: training style vectors for alpha from_analysis"),
+        "character": Input.artifact("neutral", "deltas", optional=True, doc="character, for params.vertices"),
+    }
+    outputs = BLEND_OUTPUTS
+    figures = {"weights": figure_weights, "alpha": figure_alpha}
+
+    def run(self, params, inputs):
+        keyshapes, keymorphs, edit = inputs["keyshapes"], inputs["keymorphs"], inputs.get("edit")
+        labels = list(keyshapes.meta.get("labels", []))
+        targets = list(keyshapes.meta.get("targets", labels))
+        w = np.asarray(keyshapes["weights"], np.float64)
+        G = np.asarray(keymorphs["keymorph_weights"], np.float64)
+        names = list(keymorphs.meta.get("target_names", []))
+        self._check_consistency(keyshapes, keymorphs, w, G, names, targets)
+        n_frames = w.shape[1]
+        fps = self._fps(keyshapes, edit, n_frames)
+        time = np.arange(n_frames) / fps
+
+        alpha, alpha_meta = self._alpha(params, inputs, targets, time, fps)
+        per_expression = retarget_expressions(w, G)
+        raw = blend_expressions(per_expression, alpha)
+        weights = np.clip(raw, 0.0, 1.0)
+        excess = np.abs(raw - weights)
+        arrays = {
+            "weights": weights.astype(np.float32),
+            "alpha": alpha.astype(np.float32),
+            "expression_weights": per_expression.astype(np.float32),
+            "time": time,
+        }
+        if params.vertices:
+            character = inputs.get("character")
+            if character is None:
+                raise UserError("params.vertices needs the character input", field="inputs.character")
+            deltas = np.asarray(character["deltas"], np.float32)
+            if len(deltas) != len(names):
+                raise UserError(f"the character has {len(deltas)} morph targets but the keymorphs were made for "
+                                f"{len(names)}", field="inputs.character")
+            neutral = np.asarray(character["neutral"], np.float32)
+            arrays["vertices"] = (neutral[None] + np.tensordot(weights.astype(np.float32), deltas, axes=1))
+        metrics = {
+            "clipped_fraction": float((excess > 1e-6).mean()) if excess.size else 0.0,
+            "clipped_amount": float(excess.mean()) if excess.size else 0.0,
+            "max_weight_unclipped": float(raw.max(initial=0.0)),
+            "min_weight_unclipped": float(raw.min(initial=0.0)),
+        }
+        for j, name in enumerate(targets):
+            metrics[f"mean_alpha_{name}"] = float(alpha[:, j].mean()) if n_frames else 0.0
+        meta = {"target_names": names, "fps": fps, "expressions": targets, **alpha_meta}
+        return Result(arrays, meta=meta, metrics=metrics)
+
+    # ---------------------------------------------------------------------------------------------- checks
+    @staticmethod
+    def _check_consistency(keyshapes, keymorphs, w, G, names, targets):
+        if w.ndim != 3:
+            raise UserError(f"keyshapes weights have shape {w.shape}, expected (targets, frames, total_k)",
+                            field="inputs.keyshapes")
+        if G.ndim != 2 or G.shape[0] != w.shape[2]:
+            raise UserError(f"the keymorphs have {G.shape[0] if G.ndim else 0} rows but the keyshapes artifact has "
+                            f"{w.shape[2]} keyshapes: the keymorphs were made for other keyshapes (re-run or "
+                            "re-author them)", field="inputs.keymorphs")
+        if len(names) != G.shape[1]:
+            raise UserError(f"keymorphs meta['target_names'] has {len(names)} names for {G.shape[1]} columns",
+                            field="inputs.keymorphs")
+        ids, morph_ids = keyshapes.meta.get("keyshape_ids"), keymorphs.meta.get("keyshape_ids")
+        if ids is not None and morph_ids is not None and list(ids) != list(morph_ids):
+            raise UserError("the keymorphs were made for different keyshapes (keyshape ids differ): re-run the "
+                            "keymorph stage on these keyshapes", field="inputs.keymorphs")
+        if len(targets) != w.shape[0]:
+            raise UserError(f"keyshapes meta['targets'] names {len(targets)} expressions for {w.shape[0]} weight "
+                            "sets", field="inputs.keyshapes")
+        if not np.isfinite(w).all() or not np.isfinite(G).all():
+            raise UserError("keyshape or keymorph weights contain NaN/Inf", field="inputs.keyshapes")
+
+    @staticmethod
+    def _fps(keyshapes, edit, n_frames) -> float:
+        fps = keyshapes.meta.get("fps")
+        if edit is not None:
+            edit_fps = edit.meta.get("fps")
+            if fps is not None and edit_fps is not None and abs(float(fps) - float(edit_fps)) > 1e-6 * float(fps):
+                raise UserError(f"frame-rate mismatch: keyshapes at {fps} fps, edit at {edit_fps} fps (they must "
+                                "come from the same edited take)", field="inputs.edit")
+            fps = fps if fps is not None else edit_fps
+            style = edit["style"]
+            if len(style) != n_frames:
+                raise UserError(f"frame-count mismatch: the edit has {len(style)} frames, the keyshape weights "
+                                f"{n_frames} (they must come from the same edited take)", field="inputs.edit")
+        if fps is None or not float(fps) > 0:
+            raise UserError("no frame rate: neither the keyshapes nor the edit artifact has meta['fps']",
+                            field="inputs.keyshapes")
+        return float(fps)
+
+    # ----------------------------------------------------------------------------------------------- alpha
+    def _alpha(self, params, inputs, targets, time, fps):
+        spec = params.alpha
+        if spec == "from_analysis":
+            alpha, meta = self._alpha_from_analysis(inputs, targets)
+        elif isinstance(spec, AlphaKeyframes):
+            if not spec.keyframes:
+                raise UserError("alpha keyframes are empty", field="params.alpha.keyframes")
+            key_times = np.array(sorted(spec.keyframes), dtype=np.float64)
+            key_values = np.stack([self._weights_vector(spec.keyframes[t], targets, params.tolerance,
+                                                        f"params.alpha.keyframes.{t:g}") for t in key_times])
+            alpha = interpolate_keyframes(time, key_times, key_values, spec.interpolation)
+            meta = {"alpha_mode": "keyframes", "alpha_interpolation": spec.interpolation}
+        else:
+            vector = self._weights_vector(spec, targets, params.tolerance, "params.alpha")
+            alpha = np.repeat(vector[None], len(time), axis=0)
+            meta = {"alpha_mode": "constant", "alpha_constant": dict(zip(targets, vector.tolist()))}
+        if params.alpha_smoothing < 0:
+            raise UserError("alpha_smoothing must be >= 0 (seconds)", field="params.alpha_smoothing")
+        alpha = smooth_in_time(alpha, params.alpha_smoothing * fps)
+        return alpha, meta
+
+    @staticmethod
+    def _weights_vector(weights: dict[str, float], targets: list[str], tolerance: float, field: str) -> np.ndarray:
+        unknown = [name for name in weights if name not in targets]
+        if unknown:
+            raise UserError(f"unknown expressions {unknown}; the edited expressions are {targets}", field=field)
+        vector = np.array([float(weights.get(name, 0.0)) for name in targets])
+        if not np.isfinite(vector).all():
+            raise UserError("alpha weights must be finite numbers", field=field)
+        negative = {name: weights[name] for name in weights if weights[name] < 0}
+        if negative:
+            raise UserError(f"alpha weights must be >= 0, got {negative}", field=field)
+        total = float(vector.sum())
+        if abs(total - 1.0) > tolerance:
+            raise UserError(f"alpha weights must sum to 1 (barycentric), they sum to {total:g}: {weights}",
+                            field=field)
+        return vector / total
+
+    @staticmethod
+    def _alpha_from_analysis(inputs, targets):
+        edit, bilinear = inputs.get("edit"), inputs.get("bilinear")
+        if edit is None or bilinear is None:
+            missing = [n for n, v in (("edit", edit), ("bilinear", bilinear)) if v is None]
+            raise UserError(f"alpha 'from_analysis' needs the {' and '.join(missing)} input(s) (analysed style e(t) "
+                            "and the training style vectors); wire them, or give constant weights such as "
+                            f"alpha: {{{targets[0]}: 1.0}}", field="params.alpha")
+        style = np.asarray(edit["style"], np.float64)
+        training = np.asarray(bilinear["style"], np.float64)
+        training_labels = list(bilinear.meta.get("labels", edit.meta.get("labels", [])))
+        if training.ndim != 2 or style.ndim != 2 or training.shape[1] != style.shape[1]:
+            raise UserError(f"style vectors do not match: edit style {style.shape}, bilinear style {training.shape}",
+                            field="inputs.bilinear")
+        if len(training_labels) != len(training):
+            raise UserError(f"bilinear meta['labels'] names {len(training_labels)} expressions for "
+                            f"{len(training)} style vectors", field="inputs.bilinear")
+        usable = [name for name in targets if name in training_labels]
+        if not usable:
+            raise UserError(f"none of the edited expressions {targets} is a training expression of the bilinear "
+                            f"model ({training_labels})", field="inputs.bilinear")
+        vertices = training[[training_labels.index(name) for name in usable]]
+        coords = alpha_from_analysis(style, vertices)
+        alpha = np.zeros((len(style), len(targets)))
+        alpha[:, [targets.index(name) for name in usable]] = coords
+        return alpha, {"alpha_mode": "from_analysis", "alpha_basis": usable}
