@@ -25,6 +25,8 @@ TRACKING_OUTPUTS = {
     "crop_landmarks": Output.array("f", shape=("frames", 68, 2), dtype="float32", doc="landmarks in crop pixels"),
     "crop_transforms": Output.array("f", shape=("frames", 2, 3), dtype="float64",
                                     doc="2x3 similarity mapping image pixels to crop pixels"),
+    "pose_rms": Output.array("f", shape=("frames",), dtype="float32", optional=True,
+                             doc="head-pose fit: RMS reprojection error of the 3D face's landmarks (pixels)"),
     "audio": Output.array("f", shape=("samples",), dtype="float32", optional=True,
                           doc="mono audio of all sequences concatenated, meta['audio_rate'] Hz"),
     "audio_bounds": Output.array("i", shape=(None, 2), dtype="int64", optional=True,

@@ -1,0 +1,280 @@
+"""What every tracking implementation shares once it has 68 points per frame: gap filling, head pose, face
+crops, audio, and the concatenated TRACKING_OUTPUTS result with its metadata and quality metrics."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from msflow import Result, UserError
+from msflow.stage import Params
+from stages.rotations import quat_multiply, quat_conjugate, quat_to_euler, quat_to_rotvec
+from stages.tracking.crops import apply_transforms, similarity_transform, similarity_transforms, warp_crop
+from stages.tracking.face3d import DEFAULT_FACE3D, Face3D, load_face3d
+from stages.tracking.landmarks68 import NOSE_BRIDGE_TOP
+from stages.tracking.pose import camera_matrix, solve_head_pose
+
+
+class TrackingParams(Params):
+    """Parameters every tracking implementation shares."""
+
+    max_gap_frames: int = Field(15, ge=0, description="longest run of frames without a face that is "
+                                "interpolated; longer runs are an error naming the frames")
+    focal_length: float | None = Field(None, gt=0, description="camera focal length in pixels for head pose; "
+                                       "None assumes the frame width (about 53 degrees horizontal field of view)")
+    pose_landmarks: Literal["rigid", "all"] = Field(
+        "rigid", description="landmarks solvePnP fits: 'rigid' = the ICT FaceKit rigid subset (jaw ends, eye "
+        "corners, nose; mouth and brows excluded so expressions do not tilt the head), 'all' = the 68 points")
+    crop_size: int = Field(128, ge=16, le=1024, description="side of the square grayscale face crops (pixels)")
+    crop_eye_distance: float = Field(0.30, gt=0.05, lt=0.9, description="distance between the eye centres in "
+                                     "the crop, as a fraction of crop_size")
+    crop_eye_height: float = Field(0.33, gt=0.0, lt=1.0, description="height of the eye line in the crop, as a "
+                                   "fraction of crop_size from the top")
+    audio: Literal["required", "optional", "none"] = Field(
+        "required", description="each video's audio track: 'required' fails on a video without one, "
+        "'optional' goes without, 'none' skips audio")
+    audio_rate: int = Field(16000, ge=4000, le=192000, description="audio sample rate of the 'audio' output (Hz)")
+
+
+@dataclass
+class SequenceTrack:
+    """One labelled sequence after tracking and gap filling."""
+
+    label: str
+    source: str
+    landmarks: np.ndarray            # (n, 68, 2) float64, gaps filled
+    valid: np.ndarray                # (n,) bool: a face was found (False = interpolated)
+    confidence: np.ndarray           # (n,)
+    time: np.ndarray                 # (n,) seconds since the first frame
+    fps: float
+    frame_size: tuple[int, int]
+    field: str
+    mesh: np.ndarray | None = None   # (n, 468, 3)
+    crops: np.ndarray | None = None  # (n, c, c) uint8
+    crop_transforms: np.ndarray | None = None
+    video: Path | None = None        # where the audio comes from
+    rotation: np.ndarray | None = None     # pose from the track file, when used
+    translation: np.ndarray | None = None
+    meta: dict = field(default_factory=dict)
+
+
+class CropCollector:
+    """Face crops made while the video streams past: a frame with landmarks is cropped at once; a frame without
+    waits (kept in memory) until the gap is filled. Runs longer than ``max_pending`` are not kept: they fail
+    gap filling anyway."""
+
+    def __init__(self, params: TrackingParams, max_pending: int):
+        self.size = params.crop_size
+        self.eye_distance = params.crop_eye_distance
+        self.eye_height = params.crop_eye_height
+        self.max_pending = max_pending
+        self.crops: list[np.ndarray | None] = []
+        self.transforms: list[np.ndarray | None] = []
+        self.pending: dict[int, np.ndarray] = {}
+        self.run = 0
+
+    def transform(self, landmarks: np.ndarray) -> np.ndarray:
+        return similarity_transform(landmarks, self.size, self.eye_distance, self.eye_height)
+
+    def add(self, gray: np.ndarray, landmarks: np.ndarray | None) -> None:
+        if landmarks is not None:
+            m = self.transform(landmarks)
+            self.crops.append(warp_crop(gray, m, self.size))
+            self.transforms.append(m)
+            self.run = 0
+            return
+        self.crops.append(None)
+        self.transforms.append(None)
+        self.run += 1
+        if self.run <= self.max_pending:
+            self.pending[len(self.crops) - 1] = gray
+
+    def finish(self, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(crops (n, c, c) uint8, transforms (n, 2, 3)) once every frame has (filled) landmarks."""
+        if len(landmarks) != len(self.crops):
+            raise ValueError(f"{len(landmarks)} landmark frames for {len(self.crops)} video frames")
+        for i, crop in enumerate(self.crops):
+            if crop is None:
+                m = self.transform(landmarks[i])
+                self.crops[i] = warp_crop(self.pending.pop(i), m, self.size)
+                self.transforms[i] = m
+        n = len(self.crops)
+        return (np.array(self.crops, dtype=np.uint8).reshape(n, self.size, self.size),
+                np.array(self.transforms, dtype=np.float64).reshape(n, 2, 3))
+
+
+def resolve_face3d(files: dict | None) -> tuple[Face3D, str]:
+    """The 3D face for pose: the optional ``face3d`` input (one JSON file) or the project's ICT landmarks."""
+    if files:
+        if len(files) != 1:
+            raise UserError(f"give one 3D face file, got {len(files)}", field="inputs.face3d")
+        label, path = next(iter(files.items()))
+        return load_face3d(path, field=f"inputs.face3d.{label}"), Path(path).name
+    return load_face3d(DEFAULT_FACE3D), DEFAULT_FACE3D.name
+
+
+def pose_point_indices(params: TrackingParams, face3d: Face3D) -> np.ndarray | None:
+    if params.pose_landmarks == "all" or not face3d.rigid:
+        return None
+    return np.asarray(face3d.rigid, dtype=np.int64)
+
+
+def load_audio(seq: SequenceTrack, params: TrackingParams):
+    """DecodedAudio of the sequence's video, or None (audio 'none', or 'optional' and there is none)."""
+    from stages.audio import decode_audio
+
+    if params.audio == "none":
+        return None
+    if seq.video is None:
+        if params.audio == "required":
+            raise UserError("audio is required but no video was given for this sequence (set params.audio to "
+                            "'optional' or 'none')", field=seq.field)
+        return None
+    if params.audio == "optional":
+        import av
+
+        try:
+            with av.open(str(seq.video)) as container:
+                if not container.streams.audio:
+                    return None
+        except (av.error.FFmpegError, OSError):
+            return None
+    return decode_audio(seq.video, params.audio_rate, field=seq.field)
+
+
+def rotation_steps_deg(q: np.ndarray) -> np.ndarray:
+    """Angle (degrees) between consecutive rotations."""
+    if len(q) < 2:
+        return np.zeros(0)
+    rel = quat_multiply(quat_conjugate(q[:-1]), q[1:])
+    return np.degrees(np.linalg.norm(quat_to_rotvec(rel), axis=-1))
+
+
+def inter_ocular(landmarks: np.ndarray) -> np.ndarray:
+    """Outer-eye-corner distance (iBUG 36-45) per frame: the 300-W normalisation."""
+    return np.linalg.norm(landmarks[..., 36, :] - landmarks[..., 45, :], axis=-1)
+
+
+def sequence_stats(seq: SequenceTrack, rotation: np.ndarray, rms: np.ndarray) -> dict:
+    nose = seq.landmarks[:, NOSE_BRIDGE_TOP]
+    both = seq.valid[1:] & seq.valid[:-1]
+    steps = np.linalg.norm(np.diff(nose, axis=0), axis=1)[both]
+    second = np.linalg.norm(nose[2:] - 2 * nose[1:-1] + nose[:-2], axis=1) / 2
+    second = second[seq.valid[2:] & seq.valid[1:-1] & seq.valid[:-2]]
+    iod = float(np.mean(inter_ocular(seq.landmarks)))
+    euler = np.degrees(quat_to_euler(rotation))
+    pose_steps = rotation_steps_deg(rotation)
+    return {
+        "frames": int(len(seq.valid)),
+        "valid_frames": int(seq.valid.sum()),
+        "interpolated_frames": int((~seq.valid).sum()),
+        "inter_ocular_px": iod,
+        "nose_step_px": float(steps.mean()) if steps.size else 0.0,
+        "nose_jitter_px": float(second.mean()) if second.size else 0.0,
+        "max_abs_yaw_deg": float(np.abs(euler[:, 0]).max()),
+        "max_abs_pitch_deg": float(np.abs(euler[:, 1]).max()),
+        "max_abs_roll_deg": float(np.abs(euler[:, 2]).max()),
+        "max_pose_step_deg": float(pose_steps.max()) if pose_steps.size else 0.0,
+        "pose_rms_px": float(rms.mean()),
+    }
+
+
+def assemble(sequences: list[SequenceTrack], params: TrackingParams, face3d: Face3D, face3d_name: str,
+             implementation: str, extra_meta: dict | None = None, extra_metrics: dict | None = None) -> Result:
+    """Head pose and audio for every sequence, then the concatenated TRACKING_OUTPUTS result."""
+    rotations, translations, rms_all, audio_chunks, bounds = [], [], [], [], []
+    audio_offsets, has_audio, focal, stats = [], [], [], {}
+    pose_points = pose_point_indices(params, face3d)
+    total_samples = 0
+    for seq in sequences:
+        w, h = seq.frame_size
+        camera = camera_matrix(w, h, params.focal_length)
+        focal.append(float(camera[0, 0]))
+        rot, trans, rms = solve_head_pose(seq.landmarks, face3d.neutral, camera, pose_points)
+        if seq.rotation is not None:
+            rot, trans = seq.rotation, seq.translation
+        rotations.append(rot)
+        translations.append(trans)
+        rms_all.append(rms)
+        audio = load_audio(seq, params)
+        if audio is None:
+            audio_offsets.append(None)
+            has_audio.append(False)
+            bounds.append((total_samples, total_samples))
+        else:
+            audio_chunks.append(audio.samples)
+            audio_offsets.append(float(audio.offset_to_video))
+            has_audio.append(True)
+            bounds.append((total_samples, total_samples + len(audio.samples)))
+            total_samples += len(audio.samples)
+        stats[seq.label] = sequence_stats(seq, rot, rms)
+
+    n_total = sum(len(s.valid) for s in sequences)
+    size = params.crop_size
+    crops_present = all(s.crops is not None for s in sequences)
+    arrays = {
+        "landmarks": np.concatenate([s.landmarks for s in sequences]).astype(np.float32),
+        "confidence": np.concatenate([s.confidence for s in sequences]).astype(np.float32),
+        "valid": np.concatenate([s.valid for s in sequences]).astype(bool),
+        "time": np.concatenate([s.time for s in sequences]).astype(np.float64),
+        "sequence": np.concatenate([np.full(len(s.valid), i, dtype=np.int32) for i, s in enumerate(sequences)]),
+        "rotation": np.concatenate(rotations).astype(np.float64),
+        "translation": np.concatenate(translations).astype(np.float64),
+        "pose_rms": np.concatenate(rms_all).astype(np.float32),
+    }
+    transforms = [s.crop_transforms if s.crop_transforms is not None else
+                  similarity_transforms(s.landmarks, size, params.crop_eye_distance, params.crop_eye_height)
+                  for s in sequences]
+    arrays["crop_transforms"] = np.concatenate(transforms).astype(np.float64)
+    arrays["crop_landmarks"] = apply_transforms(arrays["landmarks"].astype(np.float64),
+                                                arrays["crop_transforms"]).astype(np.float32)
+    arrays["crops"] = (np.concatenate([s.crops for s in sequences]) if crops_present
+                       else np.zeros((n_total, 0, 0), dtype=np.uint8))
+    if all(s.mesh is not None for s in sequences):
+        arrays["mesh"] = np.concatenate([s.mesh for s in sequences]).astype(np.float32)
+    if any(has_audio):
+        arrays["audio"] = (np.concatenate(audio_chunks) if audio_chunks else np.zeros(0)).astype(np.float32)
+        arrays["audio_bounds"] = np.array(bounds, dtype=np.int64).reshape(-1, 2)
+
+    meta = {
+        "implementation": implementation,
+        "labels": [s.label for s in sequences],
+        "sources": [s.source for s in sequences],
+        "frames": [int(len(s.valid)) for s in sequences],
+        "fps": [float(s.fps) for s in sequences],
+        "frame_size": [[int(s.frame_size[0]), int(s.frame_size[1])] for s in sequences],
+        "audio_rate": int(params.audio_rate) if any(has_audio) else None,
+        "audio_offset": audio_offsets,
+        "has_audio": has_audio,
+        "landmark_scheme": "ibug68",
+        "focal_length": focal,
+        "pose_landmarks": params.pose_landmarks,
+        "pose_model": face3d_name,
+        "translation_units": "cm",
+        "has_crops": crops_present,
+        "crop_size": size if crops_present else 0,
+        "crop_eye_distance": params.crop_eye_distance,
+        "crop_eye_height": params.crop_eye_height,
+        "max_gap_frames": params.max_gap_frames,
+        "sequence_stats": stats,
+        **{k: [s.meta.get(k) for s in sequences] for k in sorted({k for s in sequences for k in s.meta})},
+        **(extra_meta or {}),
+    }
+    all_stats = list(stats.values())
+    frames = np.array([st["frames"] for st in all_stats], dtype=np.float64)
+    metrics = {
+        "frames": float(n_total),
+        "valid_fraction": float(arrays["valid"].mean()) if n_total else 0.0,
+        "interpolated_frames": float(sum(st["interpolated_frames"] for st in all_stats)),
+        "nose_step_px": float(np.average([st["nose_step_px"] for st in all_stats], weights=frames)),
+        "nose_jitter_px": float(np.average([st["nose_jitter_px"] for st in all_stats], weights=frames)),
+        "max_abs_yaw_deg": max(st["max_abs_yaw_deg"] for st in all_stats),
+        "max_abs_pitch_deg": max(st["max_abs_pitch_deg"] for st in all_stats),
+        "max_pose_step_deg": max(st["max_pose_step_deg"] for st in all_stats),
+        "pose_rms_px": float(np.average([st["pose_rms_px"] for st in all_stats], weights=frames)),
+        **(extra_metrics or {}),
+    }
+    return Result(arrays, meta=meta, metrics=metrics)
