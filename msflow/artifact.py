@@ -88,26 +88,84 @@ def build_manifest(arrays: Mapping[str, Any], meta: dict, metrics: dict,
             "content_hash": content}
 
 
+ZSTD_LEVEL = 3
+
+
+def array_metadata(arr) -> dict:
+    """zarr v3 array metadata: regular chunks along the first axis, bytes (little endian) + zstd codecs."""
+    bytes_codec = {"name": "bytes"}
+    if arr.dtype.itemsize > 1:
+        bytes_codec["configuration"] = {"endian": "little"}
+    fill = False if arr.dtype.kind == "b" else 0.0 if arr.dtype.kind in "fc" else 0
+    if arr.dtype.kind == "c":
+        fill = [0.0, 0.0]
+    return {"shape": list(arr.shape), "data_type": arr.dtype.name,
+            "chunk_grid": {"name": "regular",
+                           "configuration": {"chunk_shape": list(chunk_shape(arr.shape, arr.dtype.itemsize))}},
+            "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
+            "fill_value": fill,
+            "codecs": [bytes_codec, {"name": "zstd", "configuration": {"level": ZSTD_LEVEL, "checksum": False}}],
+            "attributes": {}, "zarr_format": 3, "node_type": "array", "storage_transformers": []}
+
+
+def encode_artifact(arrays: Mapping[str, Any], manifest: dict):
+    """Yield (relative path, bytes) of a complete zarr v3 group holding ``arrays``, manifest in its attributes.
+
+    Written directly rather than through zarr's async machinery, which costs ~20 ms per small artifact; the
+    result is plain zarr v3 that zarr (and any v3 reader) opens. The group's zarr.json comes last, so a reader
+    that finds it may assume everything else is there.
+    """
+    import numpy as np
+    from numcodecs import Zstd
+
+    codec = Zstd(level=ZSTD_LEVEL)
+    for name, arr in arrays.items():
+        meta = array_metadata(arr)
+        yield f"{name}/zarr.json", json.dumps(meta, allow_nan=False).encode()
+        if arr.size == 0:
+            continue
+        little = arr.astype(arr.dtype.newbyteorder("<"), copy=False) if arr.dtype.byteorder == ">" else arr
+        if arr.ndim == 0:
+            yield f"{name}/c", codec.encode(np.ascontiguousarray(little).tobytes())
+            continue
+        step = meta["chunk_grid"]["configuration"]["chunk_shape"][0]
+        rest = "/0" * (arr.ndim - 1)
+        for index, start in enumerate(range(0, arr.shape[0], step)):
+            block = little[start:start + step]
+            if block.shape[0] < step:  # zarr stores edge chunks at full chunk size, padded with the fill value
+                padded = np.zeros((step,) + block.shape[1:], dtype=block.dtype)
+                padded[:block.shape[0]] = block
+                block = padded
+            yield f"{name}/c/{index}{rest}", codec.encode(np.ascontiguousarray(block).tobytes())
+    group = {"attributes": {"msflow": manifest}, "zarr_format": 3, "node_type": "group"}
+    yield "zarr.json", json.dumps(group, allow_nan=False).encode()
+
+
+def prepare_manifest(arrays: Mapping[str, Any], manifest_extra: dict,
+                     file_suffixes: Mapping[str, str | None] | None = None) -> tuple[dict, dict]:
+    import numpy as np
+
+    arrays = {k: np.asarray(v, order="C") for k, v in arrays.items()}
+    manifest = build_manifest(arrays, manifest_extra.get("meta", {}), manifest_extra.get("metrics", {}),
+                              file_suffixes)
+    manifest.update({k: v for k, v in manifest_extra.items() if k not in ("meta", "metrics")})
+    return arrays, manifest
+
+
 def write_artifact(path: Path, arrays: Mapping[str, Any], manifest_extra: dict,
                    file_suffixes: Mapping[str, str | None] | None = None) -> dict:
     """Write a new zarr group at ``path`` (which must not exist) and return its manifest."""
-    import numpy as np
-    import zarr
-    from zarr.codecs import ZstdCodec
-
-    meta = manifest_extra.get("meta", {})
-    metrics = manifest_extra.get("metrics", {})
-    arrays = {k: np.ascontiguousarray(v) for k, v in arrays.items()}
-    manifest = build_manifest(arrays, meta, metrics, file_suffixes)
-    manifest.update({k: v for k, v in manifest_extra.items() if k not in ("meta", "metrics")})
-    group = zarr.open_group(str(path), mode="w-")
-    for name, arr in arrays.items():
-        target = group.create_array(name, shape=arr.shape, dtype=arr.dtype,
-                                    chunks=chunk_shape(arr.shape, arr.dtype.itemsize),
-                                    compressors=ZstdCodec(level=3), fill_value=None if arr.dtype.kind == "V" else 0)
-        if arr.size:
-            target[...] = arr
-    group.attrs.update({"msflow": manifest})
+    arrays, manifest = prepare_manifest(arrays, manifest_extra, file_suffixes)
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=False)
+    made = {path}
+    for rel, data in encode_artifact(arrays, manifest):
+        target = path / rel
+        if target.parent not in made:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            made.add(target.parent)
+        with open(target, "wb") as fh:
+            fh.write(data)
     return manifest
 
 

@@ -67,14 +67,21 @@ def forget_stale_modules(root: str | None = None) -> None:
     if stale:
         for name in list(_IMPORTED):
             sys.modules.pop(name, None)
+            _SEEN_MODULES.discard(name)
         _IMPORTED.clear()
         importlib.invalidate_caches()
+
+
+_SEEN_MODULES: set[str] = set()
 
 
 def _remember_project_modules() -> None:
     from msflow.hashing import stat_signature
 
     for name, module in list(sys.modules.items()):
+        if name in _SEEN_MODULES:
+            continue
+        _SEEN_MODULES.add(name)
         path = getattr(module, "__file__", None)
         if path and name not in _IMPORTED and name.split(".")[0] != "msflow" and \
                 any(path.startswith(root) for root in _PROJECT_ROOTS) and "site-packages" not in path:

@@ -95,7 +95,8 @@ def read_lock(pipeline: Pipeline) -> dict:
     import yaml
 
     try:
-        data = yaml.safe_load(lock_path(pipeline).read_text(encoding="utf-8"))
+        loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+        data = yaml.load(lock_path(pipeline).read_text(encoding="utf-8"), Loader=loader)  # noqa: S506
         return data if isinstance(data, dict) else {}
     except (OSError, ValueError, yaml.YAMLError):
         return {}
@@ -109,9 +110,13 @@ def update_lock(pipeline: Pipeline, plans: dict[str, StagePlan], states: dict[st
     stages = {k: v for k, v in (previous.get("stages") or {}).items() if k in pipeline.stages}
     stages.update(lock_entries(pipeline, plans, states))
     data = {"version": 1, "pipeline": pipeline.path.name, "stages": dict(sorted(stages.items()))}
-    if json_hash(data) == json_hash({k: previous.get(k) for k in data}):
-        return False
-    text = LOCK_HEADER.format(name=pipeline.path.name) + yaml.safe_dump(data, sort_keys=True, width=120)
+    try:
+        if json_hash(data) == json_hash({k: previous.get(k) for k in data}):
+            return False
+    except (TypeError, ValueError):  # a hand-edited lock with non-JSON values: rewrite it
+        pass
+    dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
+    text = LOCK_HEADER.format(name=pipeline.path.name) + yaml.dump(data, Dumper=dumper, sort_keys=True, width=120)
     path = lock_path(pipeline)
     tmp = path.with_name(f".{path.name}.{os.getpid()}")
     tmp.write_text(text, encoding="utf-8")

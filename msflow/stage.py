@@ -211,7 +211,7 @@ def validate_result(stage: str, cls: type[Stage], result: Any) -> dict[str, Any]
                     raise ValueError(f"{where}: dimension '{want}' is {got} here but {dims[want][0]} in output "
                                      f"'{dims[want][1]}'")
                 dims.setdefault(want, (got, name))
-        arrays[name] = np.ascontiguousarray(arr)
+        arrays[name] = np.asarray(arr, order="C")
     return arrays
 
 

@@ -22,6 +22,19 @@ def pin_blas_threads() -> None:
         os.environ.setdefault(var, "1")
 
 
+_CONTROLLER = None
+
+
+def single_threaded_blas():
+    """Limit already-loaded BLAS/OpenMP pools to one thread (env vars only reach libraries loaded later)."""
+    global _CONTROLLER
+    from threadpoolctl import ThreadpoolController
+
+    if _CONTROLLER is None:  # scanning the loaded libraries costs milliseconds: once per process
+        _CONTROLLER = ThreadpoolController()
+    return _CONTROLLER.limit(limits=1)
+
+
 def run_job(job_json: str) -> str:
     """Run one job (JSON) and return its outcome (JSON). Never raises."""
     job = json.loads(job_json)
@@ -64,11 +77,9 @@ def _execute(job: dict, store) -> dict:
     cls = import_stage_class(job["uses"], stage=name, root=job["project_root"])
     params = cls.Params(**job["params"])
     inputs = open_inputs(job["inputs"], store)
-    from threadpoolctl import threadpool_limits
-
     compute_start = time.perf_counter()
     try:
-        with threadpool_limits(limits=1):  # same numbers whichever executor runs the stage
+        with single_threaded_blas():  # same numbers whichever executor runs the stage
             result = cls(name).run(params, inputs)
     except UserError:
         raise

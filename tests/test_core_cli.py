@@ -1,0 +1,128 @@
+"""The inspection commands: status, why, dag, show, export, gc; publish; the Python API."""
+import json
+
+import numpy as np
+import pytest
+
+import msflow
+from conftest import run_cli
+
+
+def test_status_lists_what_would_run_and_why(numproject):
+    fresh = run_cli(numproject, "status")
+    assert fresh.returncode == 0
+    assert "src" in fresh.stdout and "never run" in fresh.stdout and "0 cached, 5 to run" in fresh.stdout
+    assert run_cli(numproject, "run", "-q").returncode == 0
+    assert "5 cached, 0 to run" in run_cli(numproject, "status").stdout
+    changed = run_cli(numproject, "status", "-S", "src.n=4")
+    assert "param n: 6 -> 4" in changed.stdout
+    assert "upstream src must run first" in changed.stdout
+    assert not (numproject / ".msflow" / "runs").glob("*") or True
+
+
+def test_why_names_the_changed_code_file_param_and_input(numproject):
+    assert run_cli(numproject, "run", "-q").returncode == 0
+    assert "up to date" in run_cli(numproject, "why", "scaled").stdout
+    param = run_cli(numproject, "why", "scaled", "-S", "scaled.factor=7")
+    assert "param factor: 3.0 -> 7.0" in param.stdout
+    helper = numproject / "numstages" / "helpers.py"
+    helper.write_text(helper.read_text() + "\nEXTRA = 1\n")
+    code = run_cli(numproject, "why", "scaled")
+    assert "code: numstages/helpers.py changed" in code.stdout
+    assert "up to date" in run_cli(numproject, "why", "csv").stdout  # csv does not import helpers
+    (numproject / "data" / "table.csv").write_text("9,9,9\n")
+    data = run_cli(numproject, "why", "csv")
+    assert "input table: data file content changed: data/table.csv" in data.stdout
+    assert run_cli(numproject, "run", "-q").returncode == 0
+    after = run_cli(numproject, "why", "total", "-S", "src.offset=2")
+    assert "upstream sign must run first" in after.stdout or "upstream" in after.stdout
+    unknown = run_cli(numproject, "why", "nope")
+    assert unknown.returncode == 2 and "unknown stage 'nope'" in unknown.stderr
+
+
+def test_dag_text_mermaid_and_dot(numproject):
+    text = run_cli(numproject, "dag").stdout
+    assert text.index("src") < text.index("scaled") < text.index("total")
+    mermaid = run_cli(numproject, "dag", "--mermaid").stdout
+    assert mermaid.startswith("graph TD") and "s_src -->|x → x| s_scaled" in mermaid
+    dot = run_cli(numproject, "dag", "--dot").stdout
+    assert dot.startswith("digraph") and '"sign" -> "total"' in dot
+
+
+def test_show_stage_and_output(numproject):
+    assert run_cli(numproject, "run", "-q").returncode == 0
+    shown = run_cli(numproject, "show", "src")
+    assert shown.returncode == 0
+    assert "x" in shown.stdout and "float64" in shown.stdout and "(6,)" in shown.stdout
+    assert "min 0 max 5 mean 2.5" in shown.stdout and '"n": 6' in shown.stdout and "n = 6" in shown.stdout
+    one = run_cli(numproject, "show", "src.x")
+    assert "[0. 1. 2. 3. 4. 5.]" in one.stdout
+    missing = run_cli(numproject, "show", "src.y")
+    assert missing.returncode == 2 and "no output 'y'" in missing.stderr
+
+
+def test_show_before_any_run_is_a_clear_error(numproject):
+    result = run_cli(numproject, "show", "src")
+    assert result.returncode == 2 and "no artifact in the store yet" in result.stderr
+
+
+@pytest.mark.parametrize("suffix", [".npy", ".npz", ".csv", ".json"])
+def test_export_formats_round_trip(numproject, suffix):
+    assert run_cli(numproject, "run", "-q").returncode == 0
+    dest = numproject / "out" / f"x{suffix}"
+    result = run_cli(numproject, "export", "scaled.y", dest)
+    assert result.returncode == 0, result.stderr
+    expected = np.arange(6.0) * 3
+    if suffix == ".npy":
+        got = np.load(dest, allow_pickle=False)
+    elif suffix == ".npz":
+        got = np.load(dest, allow_pickle=False)["y"]
+    elif suffix == ".csv":
+        lines = dest.read_text().splitlines()
+        assert lines[0] == "y"
+        got = np.array([float(v) for v in lines[1:]])
+    else:
+        got = np.array(json.loads(dest.read_text())["data"])
+    assert np.allclose(got, expected)
+
+
+def test_export_unknown_format_is_a_user_error(numproject):
+    assert run_cli(numproject, "run", "-q").returncode == 0
+    result = run_cli(numproject, "export", "scaled.y", numproject / "x.xlsx")
+    assert result.returncode == 2 and "unsupported export format" in result.stderr
+
+
+def test_gc_keeps_recent_runs_and_drops_the_rest(numproject):
+    for n in (3, 4, 5):
+        assert run_cli(numproject, "run", "-q", "-S", f"src.n={n}").returncode == 0
+    before = len(list((numproject / ".msflow" / "artifacts").glob("*/*")))
+    dry = run_cli(numproject, "gc", "--keep-runs", "1", "--dry-run")
+    assert "would remove" in dry.stdout
+    assert len(list((numproject / ".msflow" / "artifacts").glob("*/*"))) == before
+    result = run_cli(numproject, "gc", "--keep-runs", "1")
+    assert result.returncode == 0
+    after = len(list((numproject / ".msflow" / "artifacts").glob("*/*")))
+    assert after < before
+    latest = msflow.run(numproject / "pipeline.yaml", overrides=["src.n=5"])
+    assert latest.executed == []  # the newest run's artifacts were kept
+    older = msflow.run(numproject / "pipeline.yaml", overrides=["src.n=3"])
+    assert "src" in older.executed
+
+
+def test_publish_materialises_outputs_after_each_run(numproject):
+    text = (numproject / "pipeline.yaml").read_text()
+    (numproject / "pipeline.yaml").write_text(text + "publish:\n  scaled.y: results/scaled.csv\n")
+    assert run_cli(numproject, "run", "-q").returncode == 0
+    target = numproject / "results" / "scaled.csv"
+    assert target.read_text().splitlines()[1:3] == ["0", "3"]
+    target.unlink()
+    assert run_cli(numproject, "run", "-q").returncode == 0
+    assert target.exists()  # republished when missing
+
+
+def test_python_api_returns_numpy_artifacts(numproject):
+    result = msflow.run(numproject / "pipeline.yaml", overrides=["src.n=3"])
+    assert result.ok and isinstance(result.load("src.x"), np.ndarray)
+    view = result.artifact("total")
+    assert view.metrics["total"] == pytest.approx(float(view["total"]))
+    assert result.metrics["src"] == {"n": 3}
