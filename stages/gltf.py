@@ -547,3 +547,42 @@ def _animation(bin_: _BinaryBuilder, anim: Animation, n_targets: int, pivot: lis
             raise ValueError(f"animation translation {t.shape}, expected {(len(times), 3)}")
         channel((t + np.asarray(pivot)).astype(np.float32), "VEC3", 0, "translation", "head translation")
     return out
+
+
+# ----------------------------------------------------------------------------------------------------- validation
+
+VALIDATOR_INSTALL = "npm install --no-save --no-package-lock gltf-validator@2.0.0-dev.3.10"
+_VALIDATOR_JS = r"""
+const fs = require('fs');
+const validator = require('gltf-validator');
+const data = fs.readFileSync(0);
+validator.validateBytes(new Uint8Array(data), {maxIssues: 100}).then((r) => {
+  process.stdout.write(JSON.stringify({numErrors: r.issues.numErrors, numWarnings: r.issues.numWarnings,
+    numInfos: r.issues.numInfos, numHints: r.issues.numHints, messages: r.issues.messages,
+    validatorVersion: r.validatorVersion}));
+}, (e) => { process.stderr.write(String(e)); process.exit(3); });
+"""
+
+
+def validate_glb(data: bytes, *, project_root: Path | None = None, timeout: float = 120.0) -> dict:
+    """Run the Khronos glTF Validator (npm ``gltf-validator``, via node) on GLB bytes; returns its issue summary
+    (numErrors, numWarnings, numInfos, numHints, messages). The package is looked up in ``node_modules`` of the
+    project root (install it there with VALIDATOR_INSTALL)."""
+    import json
+    import os
+    import shutil
+    import subprocess
+
+    root = Path(project_root) if project_root else Path(__file__).resolve().parents[1]
+    node = shutil.which("node")
+    if node is None:
+        raise RuntimeError("node (Node.js) is not installed; the glTF validator needs it")
+    if not (root / "node_modules" / "gltf-validator").is_dir():
+        raise RuntimeError(f"gltf-validator is not installed in {root / 'node_modules'}; run in {root}: "
+                           f"{VALIDATOR_INSTALL}")
+    env = dict(os.environ, NODE_PATH=str(root / "node_modules"))
+    proc = subprocess.run([node, "-e", _VALIDATOR_JS], input=bytes(data), capture_output=True, cwd=root, env=env,
+                          timeout=timeout)
+    if proc.returncode != 0:
+        raise RuntimeError(f"glTF validator failed: {proc.stderr.decode(errors='replace')[:2000]}")
+    return json.loads(proc.stdout)

@@ -58,6 +58,22 @@ class View:
         return replace(self, **changes)
 
 
+#: named camera positions for ``render(..., view="front")``: yaw of the eye about +y, radians
+NAMED_VIEWS = {"front": 0.0, "three-quarter": 0.6, "left": np.pi / 2, "right": -np.pi / 2}
+
+
+def resolve_view(view, vertices: np.ndarray) -> View:
+    """A View, a name from NAMED_VIEWS (framing ``vertices``), or None (front)."""
+    if view is None:
+        return View.fit(vertices)
+    if isinstance(view, str):
+        key = view.lower().replace("_", "-")
+        if key not in NAMED_VIEWS:
+            raise ValueError(f"unknown view {view!r}; named views: {sorted(NAMED_VIEWS)}")
+        return View.fit(vertices, yaw=NAMED_VIEWS[key])
+    return view
+
+
 def _size(size) -> tuple[int, int]:
     if np.isscalar(size):
         return int(size), int(size)
@@ -113,7 +129,7 @@ def rasterize(xy: np.ndarray, depth: np.ndarray, triangles: np.ndarray, size, *,
     bucket = cw * 65536 + ch
     order = np.argsort(bucket, kind="stable")
     ids, bucket = ids[order], bucket[order]
-    starts = np.flatnonzero(np.r_[True, bucket[1:] != bucket[:-1]])
+    starts = np.flatnonzero(np.r_[True, bucket[1:] != bucket[:-1]]) if len(ids) else np.zeros(0, np.int64)
     ends = np.r_[starts[1:], len(ids)]
     frag_pix, frag_z, frag_tri, frag_b0, frag_b1 = [], [], [], [], []
     inv_area = np.zeros_like(area)
@@ -182,17 +198,18 @@ def shade_vertices(normals_cam: np.ndarray, view: View) -> tuple[np.ndarray, np.
     return diffuse.astype(np.float32), spec.astype(np.float32)
 
 
-def render(vertices: np.ndarray, triangles: np.ndarray, size=256, view: View | None = None, *,
+def render(vertices: np.ndarray, triangles: np.ndarray, size=256, view: View | str | None = None, *,
            colors: np.ndarray | None = None, cull: bool = True, supersample: int = 1) -> np.ndarray:
     """Render a triangle mesh: (H, W, 3) uint8 RGB.
 
-    ``size``: an int (square) or (width, height). ``view``: default ``View.fit(vertices)`` (front view).
+    ``size``: an int (square) or (width, height). ``view``: a View, or a name from NAMED_VIEWS ("front",
+    "three-quarter", "left", "right") framing the given vertices; default front.
     ``colors``: albedo in [0, 1], one RGB for all, (T, 3) per triangle, or None for light grey. ``supersample``
     renders k times larger and averages k x k blocks (anti-aliasing at k^2 the cost).
     """
     vertices = np.asarray(vertices, dtype=np.float32)
     triangles = np.asarray(triangles, dtype=np.int64)
-    view = view or View.fit(vertices)
+    view = resolve_view(view, vertices)
     width, height = _size(size)
     k = max(1, int(supersample))
     big = (width * k, height * k)

@@ -1,0 +1,318 @@
+"""Export: GLB animation (validated by the Khronos glTF Validator), Live Link Face CSV, preview MP4 with audio, BVH;
+stream alignment (frame rates, lengths, audio offset) and the user errors around them."""
+import csv
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from msflow import UserError
+from msflow.testing import artifact, run_stage
+from stages.audio import decode_audio
+from stages.character import GltfCharacter
+from stages.export import (ANGLE_COLUMNS, ARKIT_NAMES, Export, align_head_motion, arkit_key, arkit_weights,
+                           format_timecode, live_link_csv)
+from stages.gltf import read_morph_mesh, validate_glb
+from stages.rotations import euler_to_quat, quat_to_euler
+
+ROOT = Path(__file__).resolve().parents[1]
+ICT_GLB = ROOT / "data" / "characters" / "ict-facekit.glb"
+CLIP = ROOT / "data" / "crema-d" / "1001_DFA_HAP_XX.flv"
+FPS = 30.0
+FRAMES = 45
+DRIVEN = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L", "browInnerUp_R", "eyeBlink_L"]
+
+
+# ------------------------------------------------------------------------------------------------ Live Link Face
+
+def test_arkit_names_and_keys():
+    assert len(ARKIT_NAMES) == 52 and len(set(ARKIT_NAMES)) == 52
+    assert ARKIT_NAMES[0] == "EyeBlinkLeft" and ARKIT_NAMES[-1] == "TongueOut"
+    assert len(ANGLE_COLUMNS) == 9 and ANGLE_COLUMNS[:3] == ["HeadYaw", "HeadPitch", "HeadRoll"]
+    assert arkit_key("eyeBlink_L") == "EyeBlinkLeft"
+    assert arkit_key("mouthSmile_R") == "MouthSmileRight"
+    assert arkit_key("jawOpen") == "JawOpen"
+    assert arkit_key("eyeBlinkLeft") == "EyeBlinkLeft"  # ARKit camelCase passes through
+
+
+def test_arkit_weights_map_split_and_missing_targets():
+    names = ["eyeBlink_L", "jawOpen", "browInnerUp_L", "browInnerUp_R", "cheekPuff_L", "cheekPuff_R",
+             "cheekRaiser_L", "tongueOut"]
+    w = np.array([[0.2, 0.5, 0.8, 0.4, 1.0, 0.0, 0.9, 0.3]])
+    out, sources = arkit_weights(w, names)
+    col = {n: out[0, i] for i, n in enumerate(ARKIT_NAMES)}
+    assert col["EyeBlinkLeft"] == pytest.approx(0.2)
+    assert col["JawOpen"] == pytest.approx(0.5)
+    assert col["BrowInnerUp"] == pytest.approx(0.6)   # mean of the halves
+    assert col["CheekPuff"] == pytest.approx(0.5)
+    assert col["TongueOut"] == pytest.approx(0.3)
+    assert col["EyeBlinkRight"] == 0.0 and col["MouthSmileLeft"] == 0.0
+    assert sources["BrowInnerUp"] == ["browInnerUp_L", "browInnerUp_R"]
+    assert "cheekRaiser_L" not in sum(sources.values(), [])  # no ARKit counterpart
+
+
+def test_timecodes():
+    assert format_timecode(np.array([0, 1, 29, 30, 61, 30 * 3600 + 45]), 30.0) == [
+        "00:00:00:00.000", "00:00:00:01.000", "00:00:00:29.000", "00:00:01:00.000", "00:00:02:01.000",
+        "01:00:01:15.000"]
+    # 29.97 fps: counted in nominal 30 fps frames with the sub-frame fraction
+    codes = format_timecode(np.array([0, 1, 1000]), 29.97)
+    assert codes[0] == "00:00:00:00.000" and codes[1] == "00:00:00:01.001"
+    assert codes[2] == "00:00:33:11.001"  # 1000 / 29.97 s = 1001.001 nominal frames = 33 s + 11.001
+
+
+def test_live_link_csv_layout():
+    rng = np.random.default_rng(0)
+    arkit = rng.uniform(0, 1, (5, 52))
+    head = rng.uniform(-0.3, 0.3, (5, 3))
+    text = live_link_csv(arkit, 60.0, head).decode()
+    rows = list(csv.reader(io.StringIO(text)))
+    assert rows[0] == ["Timecode", "BlendShapeCount"] + ARKIT_NAMES + ANGLE_COLUMNS
+    assert len(rows) == 6
+    for i, row in enumerate(rows[1:]):
+        assert len(row) == 63 and row[1] == "61"
+        assert row[0] == f"00:00:00:{i:02d}.000"
+        assert np.allclose([float(x) for x in row[2:54]], arkit[i], atol=1e-6)
+        assert np.allclose([float(x) for x in row[54:57]], head[i], atol=1e-6)
+        assert [float(x) for x in row[57:]] == [0.0] * 6
+
+
+# ------------------------------------------------------------------------------------------------ alignment
+
+def test_head_motion_alignment_resamples_holds_and_refuses():
+    yaw = np.linspace(0, 0.5, 26)  # 25 fps, constant angular velocity
+    rot = euler_to_quat(yaw, 0 * yaw, 0 * yaw)
+    trans = np.c_[np.linspace(0, 1, 26), 0 * yaw, 0 * yaw]
+    with pytest.raises(UserError, match="frame-rate mismatch"):
+        align_head_motion(rot, trans, 25.0, 30.0, 31, resample=False, max_mismatch=0.25)
+    r, t, info = align_head_motion(rot, trans, 25.0, 30.0, 31, resample=True, max_mismatch=0.25)
+    times = np.arange(31) / 30.0
+    assert np.allclose(quat_to_euler(r)[:, 0], np.minimum(times, 1.0) * 0.5, atol=1e-9)
+    assert np.allclose(t[:, 0], np.minimum(times, 1.0), atol=1e-9)
+    assert info["resampled"]
+    # same rate, slightly short: the last pose holds
+    r, t, info = align_head_motion(rot, trans, 25.0, 25.0, 30, resample=False, max_mismatch=0.25)
+    assert info["held_frames"] == 4 and np.allclose(r[-4:], rot[-1])
+    with pytest.raises(UserError, match="lasts"):
+        align_head_motion(rot, trans, 25.0, 25.0, 60, resample=False, max_mismatch=0.25)
+    with pytest.raises(UserError, match="lasts"):
+        align_head_motion(rot, trans, 25.0, 25.0, 10, resample=False, max_mismatch=0.25)
+
+
+# ------------------------------------------------------------------------------------------------ the stage
+
+@pytest.fixture(scope="module")
+def character():
+    return run_stage(GltfCharacter, {}, {"mesh": ICT_GLB})
+
+
+def make_blend(frames=FRAMES, fps=FPS):
+    t = np.arange(frames) / fps
+    w = np.zeros((frames, len(DRIVEN)), np.float32)
+    w[:, 0] = np.where((t > 0.5) & (t < 1.0), 1.0, 0.0)           # jaw open between 0.5 s and 1 s
+    w[:, 1] = w[:, 2] = np.linspace(0, 1, frames)
+    w[:, 3], w[:, 4] = 0.8, 0.4
+    w[:, 5] = 0.3
+    return artifact({"weights": w}, {"target_names": DRIVEN, "fps": fps})
+
+
+def make_head(frames=FRAMES, fps=FPS, units="cm"):
+    t = np.arange(frames) / fps
+    rot = euler_to_quat(0.3 * np.sin(2 * np.pi * t), 0.1 * np.cos(2 * np.pi * t), 0.05 * t)
+    trans = np.c_[2.0 * np.sin(2 * np.pi * t), np.zeros(frames), 50.0 + np.zeros(frames)]
+    return artifact({"rotation": rot, "translation": trans}, {"fps": fps, "translation_units": units})
+
+
+def make_audio(offset: float, rate=16000, beep_at=0.6, beep_len=0.2):
+    """A tracking-like audio artifact: two takes; the second is silence with a 1 kHz beep ``beep_at`` seconds
+    into its audio track, whose first sample is ``offset`` seconds after the first video frame."""
+    real = decode_audio(CLIP, rate)
+    beep = np.zeros(int(2.0 * rate), np.float32)
+    k = np.arange(int(beep_len * rate))
+    beep[int(beep_at * rate):int(beep_at * rate) + len(k)] = 0.5 * np.sin(2 * np.pi * 1000 * k / rate)
+    audio = np.concatenate([real.samples, beep])
+    bounds = np.array([[0, len(real.samples)], [len(real.samples), len(audio)]])
+    return artifact({"audio": audio, "audio_bounds": bounds},
+                    {"labels": ["happy", "beep"], "audio_rate": rate, "fps": [FPS, FPS],
+                     "audio_offset": [real.offset_to_video, offset]})
+
+
+@pytest.fixture(scope="module")
+def exported(character):
+    out = run_stage(Export, {"sequence": "beep", "video_size": 256},
+                    {"character": character.view(), "blend": make_blend(), "head": make_head(),
+                     "audio": make_audio(offset=0.1)})
+    return out
+
+
+def test_glb_passes_the_khronos_validator(exported):
+    report = validate_glb(exported.arrays["animation"].tobytes())
+    assert report["numErrors"] == 0, report["messages"]
+    assert report["numWarnings"] == 0, report["messages"]
+
+
+def test_glb_animation_holds_the_weights_and_head_motion(exported, character, tmp_path):
+    import pygltflib
+
+    path = tmp_path / "anim.glb"
+    path.write_bytes(exported.arrays["animation"].tobytes())
+    gltf = pygltflib.GLTF2().load(str(path))
+    blob = gltf.binary_blob()
+
+    def accessor(i):
+        acc = gltf.accessors[i]
+        view = gltf.bufferViews[acc.bufferView]
+        n = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}[acc.type]
+        return np.frombuffer(blob, np.float32, acc.count * n, view.byteOffset + acc.byteOffset).reshape(acc.count, n)
+
+    anim = gltf.animations[0]
+    paths = {ch.target.path: ch for ch in anim.channels}
+    assert set(paths) == {"weights", "rotation", "translation"}
+    names = character.meta["target_names"]
+    sampler = anim.samplers[paths["weights"].sampler]
+    times = accessor(sampler.input)[:, 0]
+    assert np.allclose(times, np.arange(FRAMES) / FPS)
+    weights = accessor(sampler.output).reshape(FRAMES, len(names))
+    blend = make_blend()
+    for k, name in enumerate(DRIVEN):
+        assert np.allclose(weights[:, names.index(name)], blend["weights"][:, k])
+    others = [i for i, n in enumerate(names) if n not in DRIVEN]
+    assert np.all(weights[:, others] == 0)
+    xyzw = accessor(anim.samplers[paths["rotation"].sampler].output)
+    q = xyzw[:, [3, 0, 1, 2]]
+    expected = make_head()["rotation"]
+    assert np.allclose(np.abs((q * expected).sum(axis=1)), 1.0, atol=1e-6)
+    head_node = gltf.nodes[paths["rotation"].target.node]
+    pivot = np.array(head_node.translation)
+    trans = accessor(anim.samplers[paths["translation"].sampler].output) - pivot
+    cm = make_head()["translation"] * 0.01
+    assert np.allclose(trans, cm - cm.mean(axis=0), atol=1e-6)   # relative, in metres
+    assert gltf.nodes[paths["weights"].target.node].mesh == 0
+    # the GLB is itself a character again: same neutral and (up to the sparse tolerance) the same deltas
+    mesh = read_morph_mesh(path)
+    assert np.allclose(mesh.positions, character.arrays["neutral"], atol=1e-6)
+    assert np.abs(mesh.deltas - character.arrays["deltas"]).max() <= 1e-5
+
+
+def test_live_link_csv_from_the_stage(exported):
+    rows = list(csv.reader(io.StringIO(exported.arrays["live_link"].tobytes().decode())))
+    assert len(rows) == FRAMES + 1 and all(len(r) == 63 for r in rows)
+    col = {n: i for i, n in enumerate(rows[0])}
+    jaw = np.array([float(r[col["JawOpen"]]) for r in rows[1:]])
+    assert np.allclose(jaw, make_blend()["weights"][:, 0], atol=1e-6)
+    brow = np.array([float(r[col["BrowInnerUp"]]) for r in rows[1:]])
+    assert np.allclose(brow, 0.6, atol=1e-6)
+    assert all(float(r[col["EyeBlinkRight"]]) == 0.0 for r in rows[1:])
+    yaw = np.array([float(r[col["HeadYaw"]]) for r in rows[1:]])
+    t = np.arange(FRAMES) / FPS
+    assert np.allclose(yaw, 0.3 * np.sin(2 * np.pi * t), atol=1e-5)
+    assert exported.metrics["live_link_columns_filled"] == 51  # ICT has all ARKit shapes but TongueOut
+
+
+def decode_mp4(data: bytes):
+    import av
+
+    with av.open(io.BytesIO(data)) as container:
+        vs = container.streams.video[0]
+        rate = float(vs.average_rate)
+        frames = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+    with av.open(io.BytesIO(data)) as container:
+        a = container.streams.audio[0]
+        audio_rate = a.rate
+        duration = float(a.duration * a.time_base)
+        chunks = [f.to_ndarray().reshape(-1) for f in container.decode(audio=0)]
+    return rate, frames, np.concatenate(chunks), audio_rate, duration
+
+
+def test_preview_video_frames_rate_and_audio_offset(exported):
+    rate, frames, audio, audio_rate, duration = decode_mp4(exported.arrays["preview"].tobytes())
+    assert rate == pytest.approx(FPS)
+    assert len(frames) == FRAMES and frames[0].shape == (256, 256, 3)
+    assert exported.meta["video"]["codec"] in ("libx264", "mpeg4")
+    # the beep sits 0.6 s into its audio track, which starts 0.1 s after the first video frame
+    envelope = np.convolve(np.abs(audio), np.ones(160) / 160, mode="same")
+    loud = np.flatnonzero(envelope > 0.1) / audio_rate
+    # (AAC's priming samples are skipped by the MP4 edit list: no extra delay)
+    assert loud.min() == pytest.approx(0.7, abs=0.005)
+    assert loud.max() == pytest.approx(0.9, abs=0.005)
+    assert duration == pytest.approx(FRAMES / FPS, abs=1e-3)
+    # the jaw opens between 0.5 s and 1 s: the red mouth interior shows in those frames only
+    red = np.array([((f[..., 0].astype(int) - f[..., 1]) > 60).sum() for f in frames])
+    t = np.arange(FRAMES) / FPS
+    opened, closed = (t > 0.55) & (t < 0.95), (t < 0.45) | (t > 1.05)
+    assert red[opened].min() > 5 * max(red[closed].max(), 10)
+
+
+def test_bvh_carries_the_head_rotation(exported):
+    from stages.bvh import joint_rotation, parse_bvh
+
+    bvh = parse_bvh(exported.arrays["head_bvh"].tobytes().decode())
+    assert bvh.frames == FRAMES and bvh.fps == pytest.approx(FPS)
+    q = joint_rotation(bvh, "Head")
+    assert np.allclose(np.abs((q * make_head()["rotation"]).sum(axis=1)), 1.0, atol=1e-6)
+
+
+def test_export_without_head_or_audio(character):
+    out = run_stage(Export, {"preview": False}, {"character": character.view(), "blend": make_blend(12)})
+    assert "head_bvh" not in out.arrays and "preview" not in out.arrays
+    report = validate_glb(out.arrays["animation"].tobytes())
+    assert report["numErrors"] == 0 and report["numWarnings"] == 0, report["messages"]
+    rows = list(csv.reader(io.StringIO(out.arrays["live_link"].tobytes().decode())))
+    assert all(float(x) == 0.0 for r in rows[1:] for x in r[54:])
+
+
+def test_export_errors(character):
+    view = character.view()
+    with pytest.raises(UserError, match="frame-rate mismatch"):
+        run_stage(Export, {"preview": False}, {"character": view, "blend": make_blend(), "head": make_head(fps=25.0)})
+    out = run_stage(Export, {"preview": False, "resample_head": True},
+                    {"character": view, "blend": make_blend(), "head": make_head(frames=38, fps=25.0)})
+    assert out.meta["head"]["resampled"]
+    with pytest.raises(UserError, match="lasts"):
+        run_stage(Export, {"preview": False}, {"character": view, "blend": make_blend(), "head": make_head(frames=20)})
+    bad = artifact({"weights": np.zeros((5, 1), np.float32)}, {"target_names": ["tailWag"], "fps": FPS})
+    with pytest.raises(UserError, match="tailWag"):
+        run_stage(Export, {"preview": False}, {"character": view, "blend": bad})
+    no_fps = artifact({"weights": np.zeros((5, 1), np.float32)}, {"target_names": ["jawOpen"]})
+    with pytest.raises(UserError, match="fps"):
+        run_stage(Export, {"preview": False}, {"character": view, "blend": no_fps})
+    with pytest.raises(UserError, match="no take labelled 'sad'"):
+        run_stage(Export, {"sequence": "sad", "video_size": 64},
+                  {"character": view, "blend": make_blend(6), "audio": make_audio(0.0)})
+    with pytest.raises(UserError, match="translation_scale"):
+        run_stage(Export, {"preview": False}, {"character": view, "blend": make_blend(), "head": make_head(units="px")})
+    out = run_stage(Export, {"preview": False, "head_translation": "none"},
+                    {"character": view, "blend": make_blend(), "head": make_head(units="px")})
+    assert np.all(out.arrays["head_translation"] == 0)
+    mismatched = make_audio(0.0)
+    mismatched.meta["fps"] = [25.0, 25.0]
+    with pytest.raises(UserError, match="frame-rate mismatch"):
+        run_stage(Export, {"video_size": 64}, {"character": view, "blend": make_blend(6), "audio": mismatched})
+
+
+def test_weights_outside_unit_range_are_clipped_and_counted(character):
+    w = np.array([[1.5], [0.5], [-0.2], [0.2]], np.float32)
+    blend = artifact({"weights": w}, {"target_names": ["jawOpen"], "fps": FPS})
+    out = run_stage(Export, {"preview": False}, {"character": character.view(), "blend": blend})
+    jaw = out.arrays["weights"][:, character.meta["target_names"].index("jawOpen")]
+    assert np.allclose(jaw, [1.0, 0.5, 0.0, 0.2])
+    assert out.metrics["clipped_fraction"] == pytest.approx(0.5)
+
+
+def test_real_take_audio_is_muxed(character):
+    """The CREMA-D take's own audio (decoded from the FLV) rides along in the preview."""
+    real = decode_audio(CLIP)
+    frames = int(real.duration * FPS)
+    out = run_stage(Export, {"sequence": "happy", "video_size": 256},
+                    {"character": character.view(), "blend": make_blend(frames), "audio": make_audio(0.0)})
+    _, video, audio, audio_rate, _ = decode_mp4(out.arrays["preview"].tobytes())
+    assert len(video) == frames
+    n = min(len(audio), len(real.samples)) - 4096
+    shift = int(round(real.offset_to_video * audio_rate))
+    ref = real.samples[max(0, -shift):][:n] if shift <= 0 else np.r_[np.zeros(shift), real.samples][:n]
+    lags = list(range(-64, 65, 4))
+    scores = [np.dot(audio[64 + d:64 + d + n - 2048], ref[64:64 + n - 2048]) for d in lags]
+    assert abs(lags[int(np.argmax(scores))]) <= 4  # in sync
+    corr = np.corrcoef(audio[64:64 + n - 2048], ref[64:64 + n - 2048])[0, 1]
+    assert corr > 0.9
