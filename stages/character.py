@@ -237,8 +237,9 @@ def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
 def paint_eyeball(mesh: MorphMesh, shell: str, ball: str, *, iris_degrees: float = 22.0,
                   pupil_degrees: float = 8.0, colors: dict[str, tuple] | None = None) -> np.ndarray:
     """Give an untextured eyeball its iris and pupil: split the triangles of the inner ``ball`` by their angle
-    from the eye axis into sclera / iris / pupil groups; return the mask of ``shell`` triangles (the outer
-    cornea-and-sclera shell, transparent in front, which hides the ball when drawn opaque).
+    from the eye axis into sclera / iris / pupil groups (triangles facing the ball's centre, the walls of the
+    pupil's tunnel, are pupil too); return the mask of ``shell`` triangles (the outer cornea-and-sclera shell,
+    transparent in front, which hides the ball when drawn opaque).
 
     The axis runs from the ball's centre through the mean of its vertices (the ball is meshed densest around
     the iris, which pulls the mean forward).
@@ -253,8 +254,12 @@ def paint_eyeball(mesh: MorphMesh, shell: str, ball: str, *, iris_degrees: float
     centre, _ = fit_sphere(p[vid])
     axis = p[vid].mean(axis=0) - centre
     axis /= np.linalg.norm(axis)
-    d = p[mesh.triangles[ball_tri]].mean(axis=1) - centre
+    corners = p[mesh.triangles[ball_tri]]
+    d = corners.mean(axis=1) - centre
     angle = np.degrees(np.arccos(np.clip(d @ axis / np.linalg.norm(d, axis=1), -1, 1)))
+    # the pupil is a tunnel into the ball, whose inner walls face the centre: the inside of an eye is dark
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    inward = (normal * d).sum(axis=1) < 0
     side = ball.replace("M_Iris", "")
     new_ids = {}
     for part in ("iris", "pupil"):
@@ -263,7 +268,7 @@ def paint_eyeball(mesh: MorphMesh, shell: str, ball: str, *, iris_degrees: float
     mesh.groups[ball_id] = MaterialGroup(f"M_EyeSclera{side}", colors["sclera"])
     mesh.triangle_groups = mesh.triangle_groups.copy()
     mesh.triangle_groups[ball_tri[angle < iris_degrees]] = new_ids["iris"]
-    mesh.triangle_groups[ball_tri[angle < pupil_degrees]] = new_ids["pupil"]
+    mesh.triangle_groups[ball_tri[(angle < pupil_degrees) | inward]] = new_ids["pupil"]
     return mesh.triangle_groups == names.index(shell)
 
 
@@ -547,7 +552,8 @@ The source folder holds `generic_neutral_mesh.obj.gz`, one `.obj.gz` per blendsh
   The overlay geometry made for alpha textures ({', '.join(summary['dropped_groups'])}) is left out, and so is
   the outer eye shell (M_ScleraLeft/Right: {summary['eye_shell_triangles_removed']} triangles, a transparent cornea
   in front that would hide the eyeball without textures); the inner eyeball (M_IrisLeft/Right) is split by the
-  angle from the eye axis into sclera, iris (< 22 degrees) and pupil (< 8 degrees) materials. Vertex ids are
+  angle from the eye axis into sclera, iris (< 22 degrees) and pupil (< 8 degrees, and the inward-facing walls of the
+  pupil's tunnel, which PupilDilate opens) materials. Vertex ids are
   renumbered and the landmark ids remapped with them.
 - {summary['expression_targets']} expression morph targets (ARKit-style names with `_L`/`_R`), as sparse
   accessors: deltas below {summary['sparse_tolerance_m'] * 1e6:.0f} micrometres are not stored.
@@ -583,3 +589,47 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+# ------------------------------------------------------------------------------------------------ figures
+
+def figure_landmarks(view, inputs=None, size: int = 512) -> bytes:
+    """PNG: the neutral character from the front with its 68 landmark vertices numbered (checks the map)."""
+    import cv2
+
+    from stages.render import CharacterRenderer, project
+
+    renderer = CharacterRenderer.from_artifact(view, size=size, supersample=2)
+    image = np.ascontiguousarray(renderer()[..., ::-1])
+    points = view["neutral"][view["landmark_ids"]]
+    cam, xy = project(points, renderer.view, size)
+    for i, (x, y) in enumerate(xy):
+        cv2.circle(image, (int(round(x)), int(round(y))), 3, (0, 200, 255), -1, cv2.LINE_AA)
+        cv2.putText(image, str(i), (int(round(x)) + 3, int(round(y)) - 3), cv2.FONT_HERSHEY_SIMPLEX, 0.3,
+                    (255, 255, 255), 1, cv2.LINE_AA)
+    return cv2.imencode(".png", image)[1].tobytes()
+
+
+def figure_targets(view, inputs=None, tile: int = 160, columns: int = 10) -> bytes:
+    """PNG: every morph target at weight 1, named, as a contact sheet."""
+    import cv2
+
+    from stages.render import CharacterRenderer
+
+    renderer = CharacterRenderer.from_artifact(view, size=tile)
+    names = view.meta["target_names"]
+    tiles = []
+    for i, name in enumerate(names):
+        w = np.zeros(len(names))
+        w[i] = 1.0
+        image = np.ascontiguousarray(renderer(w)[..., ::-1])
+        cv2.putText(image, name, (4, tile - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (255, 255, 255), 1, cv2.LINE_AA)
+        tiles.append(image)
+    rows = -(-len(tiles) // columns)
+    tiles += [np.zeros_like(tiles[0])] * (rows * columns - len(tiles))
+    sheet = np.vstack([np.hstack(tiles[r * columns:(r + 1) * columns]) for r in range(rows)])
+    return cv2.imencode(".png", sheet)[1].tobytes()
+
+
+GltfCharacter.figures = {"landmarks": figure_landmarks, "targets": figure_targets}
+ObjBlendshapes.figures = {"landmarks": figure_landmarks, "targets": figure_targets}

@@ -132,31 +132,37 @@ def rasterize(xy: np.ndarray, depth: np.ndarray, triangles: np.ndarray, size, *,
     starts = np.flatnonzero(np.r_[True, bucket[1:] != bucket[:-1]]) if len(ids) else np.zeros(0, np.int64)
     ends = np.r_[starts[1:], len(ids)]
     frag_pix, frag_z, frag_tri, frag_b0, frag_b1 = [], [], [], [], []
-    inv_area = np.zeros_like(area)
-    inv_area[ids] = 1.0 / area[ids]
+    # barycentrics are affine in the pixel position: b = b(corner) + A * dx + B * dy, evaluated by broadcasting
+    # each triangle's coefficients over its bucket's offsets (no per-fragment gathers)
+    inv = np.zeros_like(area)
+    inv[ids] = 1.0 / area[ids]
+    a0, c0 = (y1 - y2) * inv, (x2 - x1) * inv
+    a1, c1 = (y2 - y0) * inv, (x0 - x2) * inv
+    zd0 = z[tri[:, 0]] - z[tri[:, 2]]
+    zd1 = z[tri[:, 1]] - z[tri[:, 2]]
+    z2 = z[tri[:, 2]]
+    cx, cy = xmin.astype(np.float32) + 0.5, ymin.astype(np.float32) + 0.5
+    base0 = ((x1 - cx) * (y2 - cy) - (x2 - cx) * (y1 - cy)) * inv
+    base1 = ((x2 - cx) * (y0 - cy) - (x0 - cx) * (y2 - cy)) * inv
     for s, e in zip(starts, ends):
         t = ids[s:e]
         gw, gh = int(bucket[s] // 65536), int(bucket[s] % 65536)
-        oy, ox = np.divmod(np.arange(gw * gh), gw)
-        px = xmin[t][:, None] + ox[None, :]
-        py = ymin[t][:, None] + oy[None, :]
-        valid = (px <= xmax[t][:, None]) & (py <= ymax[t][:, None])
-        px, py = px[valid], py[valid]
-        tt = np.broadcast_to(t[:, None], valid.shape)[valid]
-        cx, cy = px.astype(np.float32) + 0.5, py.astype(np.float32) + 0.5
-        ax, ay, bx, by, qx, qy = x0[tt], y0[tt], x1[tt], y1[tt], x2[tt], y2[tt]
-        b0 = ((bx - cx) * (qy - cy) - (qx - cx) * (by - cy)) * inv_area[tt]
-        b1 = ((qx - cx) * (ay - cy) - (ax - cx) * (qy - cy)) * inv_area[tt]
-        b2 = 1.0 - b0 - b1
-        inside = (b0 >= -1e-5) & (b1 >= -1e-5) & (b2 >= -1e-5)
-        if not inside.any():
+        oy, ox = np.divmod(np.arange(gw * gh, dtype=np.int64), gw)
+        oxf, oyf = ox.astype(np.float32)[None, :], oy.astype(np.float32)[None, :]
+        b0 = base0[t][:, None] + a0[t][:, None] * oxf + c0[t][:, None] * oyf
+        b1 = base1[t][:, None] + a1[t][:, None] * oxf + c1[t][:, None] * oyf
+        inside = (b0 >= -1e-5) & (b1 >= -1e-5) & (b0 + b1 <= 1 + 1e-5)
+        inside &= (xmin[t][:, None] + ox[None, :] < width) & (ymin[t][:, None] + oy[None, :] < height)
+        row, col = np.nonzero(inside)
+        if not len(row):
             continue
-        tt, b0, b1 = tt[inside], b0[inside], b1[inside]
-        frag_pix.append(py[inside] * width + px[inside])
+        tt = t[row]
+        b0, b1 = b0[row, col], b1[row, col]
+        frag_pix.append((ymin[tt] + oy[col]) * width + xmin[tt] + ox[col])
         frag_tri.append(tt)
         frag_b0.append(b0)
         frag_b1.append(b1)
-        frag_z.append(b0 * z[tri[tt, 0]] + b1 * z[tri[tt, 1]] + (1.0 - b0 - b1) * z[tri[tt, 2]])
+        frag_z.append(z2[tt] + b0 * zd0[tt] + b1 * zd1[tt])
     tri_map = np.full(width * height, -1, dtype=np.int32)
     bary = np.zeros((width * height, 3), dtype=np.float32)
     if frag_pix:
