@@ -92,7 +92,12 @@ def build_shape_model(face3d: Face3D, *, variance: float = 0.98, samples: int = 
     for _ in range(3):                                          # generalised Procrustes
         aligned = align_to(image, reference)
         reference = normalise_shape(aligned.mean(axis=0))
-    flat = (aligned - reference).reshape(samples, -1)
+    # tangent-space projection (Cootes & Taylor): rescale each aligned shape so its offset from the mean is
+    # orthogonal to the mean; otherwise one mode would just be overall size, which the similarity already fits
+    ref_flat = reference.reshape(-1)
+    aligned_flat = aligned.reshape(samples, -1)
+    aligned_flat = aligned_flat * (ref_flat @ ref_flat / (aligned_flat @ ref_flat))[:, None]
+    flat = aligned_flat - ref_flat
     var, vectors = np.linalg.eigh(flat.T @ flat / samples)     # 136 x 136: cheaper than an SVD of the samples
     var, vectors = np.clip(var[::-1], 0, None), vectors[:, ::-1]
     k = int(np.searchsorted(np.cumsum(var) / var.sum(), variance) + 1)

@@ -78,26 +78,30 @@ def iter_frames(path: str | Path, *, gray: bool = False, field: str | None = Non
         first_pts = None
         count = 0
         stream_end = 0.0
-        try:
-            for packet in container.demux():
+        packets = container.demux()
+        while True:
+            try:
+                packet = next(packets)
                 if packet.pts is not None and packet.time_base is not None:
-                    end = float((packet.pts + (packet.duration or 0)) * packet.time_base)
-                    stream_end = max(stream_end, end)
-                if packet.is_corrupt:
-                    raise UserError(f"video is truncated or corrupt: a damaged packet after {count} frames",
-                                    file=str(path), field=field)
-                if packet.stream is not video:
-                    continue
-                for frame in packet.decode():
-                    t = _frame_time(frame, count, fps)
-                    if first_pts is None:
-                        first_pts = t
-                    count += 1
-                    image = frame.to_ndarray(format="bgr24")
-                    yield t - first_pts, (_bgr_to_gray(image) if gray else image)
-        except av.error.FFmpegError as exc:
-            raise UserError(f"video is unreadable or truncated after {count} frames ({exc})", file=str(path),
-                            field=field) from None
+                    stream_end = max(stream_end, float((packet.pts + (packet.duration or 0)) * packet.time_base))
+                corrupt = packet.is_corrupt
+                decoded = packet.decode() if packet.stream_index == video.index and not corrupt else []
+            except StopIteration:
+                break
+            except (av.error.FFmpegError, IndexError) as exc:
+                # IndexError: PyAV met a packet of a stream the header did not announce (a cut-off tag)
+                raise UserError(f"video is unreadable or truncated after {count} frames "
+                                f"({type(exc).__name__}: {exc})", file=str(path), field=field) from None
+            if corrupt:
+                raise UserError(f"video is truncated or corrupt: a damaged packet after {count} frames",
+                                file=str(path), field=field)
+            for frame in decoded:
+                t = _frame_time(frame, count, fps)
+                if first_pts is None:
+                    first_pts = t
+                count += 1
+                image = frame.to_ndarray(format="bgr24")
+                yield t - first_pts, (_bgr_to_gray(image) if gray else image)
         if count == 0:
             raise UserError("video holds no decodable frames", file=str(path), field=field)
         start = float(container.start_time) / 1e6 if container.start_time else 0.0
