@@ -281,17 +281,37 @@ def character_weights(blend_weights: np.ndarray, blend_names: list[str], charact
     return out
 
 
-def translation_scale(meta: dict, override: float | None) -> tuple[float, str]:
+def translation_scale(meta: dict, override: float | None) -> tuple[float | None, str]:
+    """Metres per unit of the head translation: the param, else from meta translation_units. Undeclared units
+    ("unknown", e.g. a BVH database without a stated unit) give None: the translation is left out, rotation
+    stays. Declared units that are not lengths (pixels) are the user's to convert."""
     if override is not None:
         return float(override), "params.translation_scale"
     units = meta.get("translation_units", meta.get("units"))
-    if units is None:
-        return 1.0, "assumed metres (no translation_units in the head meta)"
+    if units is None or str(units).lower() in ("", "unknown"):
+        return None, "unknown: head translation left out (set params.translation_scale, metres per unit)"
     if str(units).lower() not in UNITS_TO_METRES:
         raise UserError(f"head translation is in '{units}', which has no known size in metres; set "
                         f"params.translation_scale (metres per unit) or params.head_translation: none",
                         field="params.translation_scale")
     return UNITS_TO_METRES[str(units).lower()], str(units)
+
+
+def select_take(view, names: tuple[str, ...], label: str | None, field: str) -> tuple[list[np.ndarray], str | None]:
+    """Rows of ``names`` for one take of an artifact holding several back to back (``sequence`` output + meta
+    labels, e.g. motion_blend over several test utterances); an artifact with one take is used whole."""
+    arrays = [np.asarray(view[n]) for n in names]
+    labels = list(view.meta.get("labels") or [])
+    if "sequence" not in view or len(labels) <= 1:
+        return arrays, (labels[0] if labels else label)
+    sequence = np.asarray(view["sequence"])
+    if label is None:
+        label = labels[0]
+    if label not in labels:
+        raise UserError(f"no take labelled '{label}' in {field}; labels: {labels} (set params.sequence)",
+                        field=field)
+    rows = sequence == labels.index(label)
+    return [a[rows] for a in arrays], label
 
 
 class Export(Stage):
@@ -304,7 +324,8 @@ class Export(Stage):
         resample_head: bool = False
         #: longest tolerated difference in duration between head motion and face animation, seconds
         max_length_mismatch: float = 0.25
-        #: "relative": head position minus its mean; "absolute": as given; "none": rotation only
+        #: "relative": head position minus its mean; "absolute": as given; "none": rotation only (also what
+        #: happens when the head's translation_units are unknown and translation_scale is not set)
         head_translation: str = "relative"
         #: metres per unit of the head translation (default: from the head meta translation_units)
         translation_scale: float | None = None
@@ -379,20 +400,25 @@ class Export(Stage):
             head_fps = head.meta.get("fps")
             if not head_fps:
                 raise UserError("the head motion has no meta fps", field="inputs.head")
+            (head_rot, head_trans), head_label = select_take(head, ("rotation", "translation"),
+                                                             params.sequence or label, "inputs.head")
             rotation, translation, info = align_head_motion(
-                np.asarray(head["rotation"], np.float64), np.asarray(head["translation"], np.float64),
-                float(head_fps), fps, frames, resample=params.resample_head, max_mismatch=params.max_length_mismatch)
+                head_rot.astype(np.float64), head_trans.astype(np.float64), float(head_fps), fps, frames,
+                resample=params.resample_head, max_mismatch=params.max_length_mismatch)
             rotation = quat_continuous(quat_normalize(rotation))
-            if params.head_translation == "none":
+            info["take"] = head_label
+            scale = None
+            if params.head_translation != "none":
+                scale, info["translation_units"] = translation_scale(head.meta, params.translation_scale)
+            if scale is None:
                 translation = np.zeros_like(translation)
             else:
-                scale, units = translation_scale(head.meta, params.translation_scale)
                 translation = translation * scale
                 if params.head_translation == "relative":
                     translation = translation - translation.mean(axis=0)
-                info["translation_units"] = units
             meta["head"] = info
             metrics["head_held_frames"] = info["held_frames"]
+            metrics["head_translation_exported"] = int(scale is not None)
 
         groups_meta = character.meta.get("groups") or []
         groups = [MaterialGroup(g.get("name", f"group{i}"), tuple(g.get("color", (0.8, 0.8, 0.8, 1.0))))

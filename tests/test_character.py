@@ -467,3 +467,19 @@ def sphere_quads(n_lat, n_lon, centre, radius):
     flip = (nrm * c).sum(axis=1) < 0
     q[flip] = q[flip][:, ::-1]
     return v, q
+
+
+def test_figures_render_pngs(obj_folder):
+    import cv2
+
+    from stages.character import figure_landmarks, figure_targets
+
+    f = obj_folder
+    out = run_stage(ObjBlendshapes, {"neutral": "neutral"},
+                    {"shapes": shape_files(f["dir"]), "landmarks": f["dir"] / "landmarks.json"})
+    assert set(ObjBlendshapes.figures) == {"landmarks", "targets"}
+    image = cv2.imdecode(np.frombuffer(figure_landmarks(out.view()), np.uint8), cv2.IMREAD_COLOR)
+    assert image.shape == (512, 512, 3)
+    assert (np.abs(image.astype(int) - [0, 200, 255]).sum(axis=2) < 60).sum() > 68  # the landmark dots
+    sheet = cv2.imdecode(np.frombuffer(figure_targets(out.view(), tile=64, columns=2), np.uint8), cv2.IMREAD_COLOR)
+    assert sheet.shape == (128, 128, 3)  # 3 targets in 2 columns: 2 rows

@@ -285,10 +285,34 @@ def test_export_errors(character):
     out = run_stage(Export, {"preview": False, "head_translation": "none"},
                     {"character": view, "blend": make_blend(), "head": make_head(units="px")})
     assert np.all(out.arrays["head_translation"] == 0)
+    out = run_stage(Export, {"preview": False}, {"character": view, "blend": make_blend(),
+                                                 "head": make_head(units="unknown")})
+    assert np.all(out.arrays["head_translation"] == 0) and out.metrics["head_translation_exported"] == 0
+    assert "unknown" in out.meta["head"]["translation_units"]
+    out = run_stage(Export, {"preview": False, "translation_scale": 0.5},
+                    {"character": view, "blend": make_blend(), "head": make_head(units="unknown")})
+    tr = make_head()["translation"] * 0.5
+    assert np.allclose(out.arrays["head_translation"], tr - tr.mean(axis=0))
     mismatched = make_audio(0.0)
     mismatched.meta["fps"] = [25.0, 25.0]
     with pytest.raises(UserError, match="frame-rate mismatch"):
         run_stage(Export, {"video_size": 64}, {"character": view, "blend": make_blend(6), "audio": mismatched})
+
+
+def test_head_motion_of_several_takes_is_cut_to_the_chosen_one(character):
+    """motion_blend holds every test utterance back to back (sequence + meta labels)."""
+    a, b = make_head(FRAMES), make_head(FRAMES + 10)
+    other = euler_to_quat(np.full(FRAMES + 10, -0.4), np.zeros(FRAMES + 10), np.zeros(FRAMES + 10))
+    both = artifact({"rotation": np.r_[other, a["rotation"]], "translation": np.r_[b["translation"], a["translation"]],
+                     "sequence": np.r_[np.zeros(FRAMES + 10, np.int32), np.ones(FRAMES, np.int32)]},
+                    {"fps": FPS, "labels": ["first", "second"], "translation_units": "cm"})
+    out = run_stage(Export, {"preview": False, "sequence": "second"},
+                    {"character": character.view(), "blend": make_blend(), "head": both})
+    assert out.meta["head"]["take"] == "second"
+    assert np.allclose(np.abs((out.arrays["head_rotation"] * a["rotation"]).sum(axis=1)), 1.0)
+    with pytest.raises(UserError, match="no take labelled 'third'"):
+        run_stage(Export, {"preview": False, "sequence": "third"},
+                  {"character": character.view(), "blend": make_blend(), "head": both})
 
 
 def test_weights_outside_unit_range_are_clipped_and_counted(character):
@@ -316,3 +340,12 @@ def test_real_take_audio_is_muxed(character):
     assert abs(lags[int(np.argmax(scores))]) <= 4  # in sync
     corr = np.corrcoef(audio[64:64 + n - 2048], ref[64:64 + n - 2048])[0, 1]
     assert corr > 0.9
+
+
+def test_figures(exported):
+    from stages.export import plot_curves, preview_video
+
+    view = artifact(exported.arrays, exported.meta, exported.metrics)
+    fig = plot_curves(view)
+    assert len(fig.axes) == 2 and len(fig.axes[0].lines) == 10
+    assert preview_video(view)[4:8] == b"ftyp"
