@@ -51,7 +51,7 @@ class Stitched:
 
 def stitch_segments(db: DatabaseMotion, test_segments: np.ndarray, subsentence_start: np.ndarray,
                     db_sequence: np.ndarray, db_segments: np.ndarray, times: np.ndarray, *,
-                    blend_window: float = 0.12, break_blend_window: float = 0.25,
+                    blend_window: float = 0.15, break_blend_window: float = 0.25,
                     drift_correction: bool = True) -> Stitched:
     """Sec. 5.4 for one utterance. ``test_segments`` (N, 3) and the chosen database segments' sequence (N,) and
     times (N, 3); ``times`` the output frame times. Returns the blended channels on ``times``.
@@ -89,31 +89,35 @@ def stitch_segments(db: DatabaseMotion, test_segments: np.ndarray, subsentence_s
             ramp_total[g] = start_value[nxt] - (end_value[last] + offset[last])
     ramp_t0, ramp_t1 = a[first_of], e[last_of]
 
-    # crossfade span per join k (between segments k - 1 and k): [a_k - left_k, a_k + right_k], each side at most
-    # half of its segment so that no more than two segments ever overlap
-    lengths = e - a
+    # crossfade weights: segment k's indicator [a_k, e_k) with its edges smoothed over +-window of each join,
+    # written as ramp_k - ramp_k+1 so that the weights sum to one however close the joins are
     window = np.where(starts, break_blend_window, blend_window)
-    left, right = np.zeros(n + 1), np.zeros(n + 1)
-    left[1:n] = np.minimum(window[1:], 0.5 * lengths[:-1])
-    right[1:n] = np.minimum(window[1:], 0.5 * lengths[1:])
+    window[0] = 0.0
+
+    def ramp(j: int, t: np.ndarray) -> np.ndarray:
+        if j == 0:
+            return np.ones(len(t))
+        if j >= n:
+            return np.zeros(len(t))
+        if window[j] <= 0:
+            return (t >= a[j]).astype(float)
+        return smootherstep((t - a[j] + window[j]) / (2 * window[j]))
+
+    total = np.zeros(len(times))
     for k in range(n):
-        lo_t = -np.inf if k == 0 else a[k] - left[k]
-        hi_t = np.inf if k == n - 1 else e[k] + right[k + 1]
+        lo_t = -np.inf if k == 0 else a[k] - window[k]
+        hi_t = np.inf if k == n - 1 else e[k] + window[k + 1]
         idx = np.flatnonzero((times >= lo_t) & (times <= hi_t))
         if len(idx) == 0:
             continue
         t = times[idx]
+        weight = np.maximum(ramp(k, t) - ramp(k + 1, t), 0.0)
         g = group[k]
         span = max(ramp_t1[g] - ramp_t0[g], 1e-9)
         curve = raw(k, t) + offset[k] + ramp_total[g] * np.clip((t - ramp_t0[g]) / span, 0.0, 1.0)[:, None]
-        weight = np.ones(len(t))
-        if k > 0:
-            width = left[k] + right[k]
-            weight *= smootherstep((t - (a[k] - left[k])) / width) if width > 0 else (t >= a[k])
-        if k < n - 1:
-            width = left[k + 1] + right[k + 1]
-            weight *= 1 - smootherstep((t - (e[k] - left[k + 1])) / width) if width > 0 else (t < e[k])
         out[idx] += weight[:, None] * curve
+        total[idx] += weight
+    out /= np.maximum(total, 1e-12)[:, None]
     return Stitched(out, a[1:].copy())
 
 
@@ -247,7 +251,7 @@ class MotionBlend(Stage):
 
     class Params(Stage.Params):
         fps: float | None = None          # output rate; None: the test take's video rate, else the database's
-        blend_window: float = 0.12        # seconds either side of a join to crossfade over
+        blend_window: float = 0.15        # seconds either side of a join to crossfade over
         break_blend_window: float = 0.25  # the same at joins between sub-sentences (breath pauses)
         drift_correction: bool = True     # warp each sub-sentence to meet the next
         translation: bool = True          # False: rotation only (translation zero)
@@ -312,7 +316,7 @@ def database_motion(view, *, use_translation: bool = True) -> DatabaseMotion:
     return DatabaseMotion(channels, np.concatenate([[0], np.cumsum(frames)[:-1]]), frames, float(view.meta["fps"]))
 
 
-def synthesise(trellis, db: DatabaseMotion, fps: float, *, blend_window: float = 0.12,
+def synthesise(trellis, db: DatabaseMotion, fps: float, *, blend_window: float = 0.15,
                break_blend_window: float = 0.25,
                drift_correction: bool = True) -> list[tuple[np.ndarray, np.ndarray]]:
     """Blended channels and join times per test utterance of a trellis artifact (a still head where silent)."""
