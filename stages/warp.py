@@ -1,0 +1,232 @@
+"""Piecewise-affine warping between landmark shapes (the shape-free texture of paper Sec 3.1, Eq 2).
+
+Forward: every face image is warped onto one reference shape (the AAM mean shape drawn in a small texture image).
+The reference is triangulated once (Delaunay), and for every texture pixel inside the face hull the containing
+triangle and its barycentric coordinates are precomputed. The source position of all pixels for many frames is
+then a single matrix product (barycentric weights x source landmarks), and each frame is resampled by one
+``cv2.remap``.
+
+Inverse: a texture in the reference frame is drawn back onto an arbitrary (e.g. edited) shape. The target
+triangles change every frame, so their pixel coverage is rasterised per frame (``cv2.fillConvexPoly``, cheap)
+and each covered pixel is mapped into the texture through its triangle's affine map.
+
+Pixel convention: integer coordinates are pixel centres (OpenCV's ``remap`` convention); x right, y down.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: sub-pixel bits used when rasterising triangles (cv2 ``shift``)
+_RASTER_SHIFT = 4
+
+
+def delaunay_triangles(points: np.ndarray) -> np.ndarray:
+    """Delaunay triangulation (T, 3) int32 of 2-D points, triangles oriented consistently (positive area)."""
+    from scipy.spatial import Delaunay
+
+    tri = Delaunay(np.asarray(points, dtype=np.float64)).simplices.astype(np.int32)
+    return orient_triangles(points, tri)
+
+
+def orient_triangles(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Reorder vertices so every triangle has positive signed area in ``points`` (x right, y down)."""
+    p = np.asarray(points, dtype=np.float64)[np.asarray(triangles)]
+    area = triangle_signed_areas(p)
+    out = np.array(triangles, dtype=np.int32, copy=True)
+    flip = area < 0
+    out[flip, 1], out[flip, 2] = triangles[flip, 2], triangles[flip, 1]
+    return out
+
+
+def triangle_signed_areas(corners: np.ndarray) -> np.ndarray:
+    """Signed areas of triangles given as corner coordinates (..., 3, 2)."""
+    a, b, c = corners[..., 0, :], corners[..., 1, :], corners[..., 2, :]
+    return 0.5 * ((b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0]))
+
+
+def barycentric(points: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (P, 3) of points (P, 2) in their triangles, corners (P, 3, 2)."""
+    a = corners[:, 0]
+    m = np.stack([corners[:, 1] - a, corners[:, 2] - a], axis=-1)  # (P, 2, 2), columns b-a, c-a
+    det = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
+    det = np.where(np.abs(det) < 1e-12, np.inf, det)  # degenerate triangle: weight everything on corner a
+    d = points - a
+    l1 = (m[:, 1, 1] * d[:, 0] - m[:, 0, 1] * d[:, 1]) / det
+    l2 = (-m[:, 1, 0] * d[:, 0] + m[:, 0, 0] * d[:, 1]) / det
+    return np.stack([1.0 - l1 - l2, l1, l2], axis=-1)
+
+
+def rasterise_triangles(points: np.ndarray, triangles: np.ndarray, size: tuple[int, int],
+                        min_area: float = 1e-3) -> np.ndarray:
+    """Triangle index map (h, w) int32 of a triangulated shape, -1 outside; later triangles win overlaps.
+
+    Triangles of (near) zero area are skipped: they cover no pixels and their affine map is singular.
+    """
+    w, h = size
+    index_map = np.full((h, w), -1, dtype=np.int32)
+    corners = np.asarray(points, dtype=np.float64)[triangles]
+    areas = np.abs(triangle_signed_areas(corners))
+    fixed = np.round(corners * (1 << _RASTER_SHIFT)).astype(np.int32)
+    import cv2
+
+    for t in np.flatnonzero(areas >= min_area):
+        cv2.fillConvexPoly(index_map, fixed[t], int(t), lineType=cv2.LINE_8, shift=_RASTER_SHIFT)
+    return index_map
+
+
+@dataclass(frozen=True)
+class PixelTriangles:
+    """Pixels of an image covered by a triangulated shape: where they are and how they weigh the shape's points.
+
+    ``weights`` (P, n_points) holds the three barycentric coordinates of each pixel in its triangle (zero
+    elsewhere), so ``weights @ other_shape`` gives every pixel's corresponding position in another shape with
+    the same triangulation: the piecewise-affine correspondence as one matrix product.
+    """
+
+    size: tuple[int, int]          # (w, h) of the image
+    pixel_index: np.ndarray        # (P,) flat indices (row-major) of covered pixels
+    triangle: np.ndarray           # (P,) triangle of each covered pixel
+    weights: np.ndarray            # (P, n_points) float32 barycentric weights
+
+    @property
+    def mask(self) -> np.ndarray:
+        w, h = self.size
+        m = np.zeros(h * w, dtype=bool)
+        m[self.pixel_index] = True
+        return m.reshape(h, w)
+
+    @classmethod
+    def from_index_map(cls, points: np.ndarray, triangles: np.ndarray, index_map: np.ndarray) -> "PixelTriangles":
+        h, w = index_map.shape
+        flat = index_map.reshape(-1)
+        pixel_index = np.flatnonzero(flat >= 0)
+        tri = flat[pixel_index]
+        xy = np.stack([pixel_index % w, pixel_index // w], axis=-1).astype(np.float64)
+        corners = np.asarray(points, dtype=np.float64)[triangles[tri]]
+        bary = barycentric(xy, corners)
+        weights = np.zeros((len(pixel_index), len(points)), dtype=np.float32)
+        rows = np.repeat(np.arange(len(pixel_index)), 3)
+        np.add.at(weights, (rows, triangles[tri].reshape(-1)), bary.reshape(-1))
+        return cls((w, h), pixel_index, tri.astype(np.int32), weights)
+
+
+def pixels_of_reference(points: np.ndarray, triangles: np.ndarray, size: tuple[int, int]) -> PixelTriangles:
+    """Exact pixel coverage of a reference shape: a pixel centre belongs to the first triangle containing it.
+
+    Tests every pixel against every triangle at once (done once per reference, a few million numbers).
+    """
+    w, h = size
+    pts = np.asarray(points, dtype=np.float64)
+    corners = pts[triangles]                                        # (T, 3, 2)
+    a = corners[:, 0]
+    m = np.stack([corners[:, 1] - a, corners[:, 2] - a], axis=-1)   # (T, 2, 2)
+    det = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
+    usable = np.abs(det) > 1e-12
+    inv = np.zeros_like(m)
+    inv[usable] = np.linalg.inv(m[usable])
+    ys, xs = np.mgrid[0:h, 0:w]
+    xy = np.stack([xs.reshape(-1), ys.reshape(-1)], axis=-1).astype(np.float64)
+    index_map = np.full(h * w, -1, dtype=np.int32)
+    eps = 1e-9
+    for start in range(0, len(xy), 4096):
+        d = xy[start:start + 4096, None, :] - a[None]               # (p, T, 2)
+        l12 = np.einsum("tij,ptj->pti", inv, d)
+        inside = (l12 >= -eps).all(-1) & (l12.sum(-1) <= 1 + eps) & usable[None]
+        hit = inside.any(-1)
+        index_map[start:start + 4096][hit] = np.argmax(inside[hit], axis=-1)
+    return PixelTriangles.from_index_map(pts, triangles, index_map.reshape(h, w))
+
+
+class PiecewiseAffineWarp:
+    """Warp images from their own landmark shapes onto one fixed reference shape (the AAM texture frame).
+
+    Built once per reference; ``warp(images, shapes)`` returns (frames, P) samples at the reference's covered
+    pixels (``pixels.pixel_index``), ``to_image`` scatters such samples back into (h, w) images.
+    """
+
+    def __init__(self, reference: np.ndarray, triangles: np.ndarray, size: tuple[int, int]):
+        self.reference = np.asarray(reference, dtype=np.float64)
+        self.triangles = np.asarray(triangles, dtype=np.int32)
+        self.size = (int(size[0]), int(size[1]))
+        self.pixels = pixels_of_reference(self.reference, self.triangles, self.size)
+
+    @property
+    def n_pixels(self) -> int:
+        return len(self.pixels.pixel_index)
+
+    def source_positions(self, shapes: np.ndarray) -> np.ndarray:
+        """(frames, P, 2) float32 position in each source image of every covered reference pixel."""
+        shapes = np.asarray(shapes, dtype=np.float32)
+        n, k, _ = shapes.shape
+        flat = shapes.transpose(1, 0, 2).reshape(k, n * 2)          # (points, frames*2)
+        pos = self.pixels.weights @ flat                             # (P, frames*2)
+        return pos.reshape(-1, n, 2).transpose(1, 0, 2)
+
+    def warp(self, images: np.ndarray, shapes: np.ndarray, chunk: int = 256) -> np.ndarray:
+        """Sample every image (frames, H, W) at its shape's correspondence of the reference pixels.
+
+        Returns (frames, P) float32 grey levels; source positions outside an image replicate its border.
+        """
+        import cv2
+
+        images = np.asarray(images)
+        shapes = np.asarray(shapes)
+        n = len(images)
+        w, h = self.size
+        out = np.empty((n, self.n_pixels), dtype=np.float32)
+        map_x = np.full(h * w, -1.0, dtype=np.float32)
+        map_y = np.full(h * w, -1.0, dtype=np.float32)
+        idx = self.pixels.pixel_index
+        for start in range(0, n, chunk):
+            pos = self.source_positions(shapes[start:start + chunk])
+            for i in range(len(pos)):
+                map_x[idx] = pos[i, :, 0]
+                map_y[idx] = pos[i, :, 1]
+                warped = cv2.remap(images[start + i], map_x.reshape(h, w), map_y.reshape(h, w),
+                                   interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                out[start + i] = warped.reshape(-1)[idx]
+        return out
+
+    def to_image(self, samples: np.ndarray, fill: float = 0.0) -> np.ndarray:
+        """Scatter (..., P) samples into (..., h, w) images of the reference frame; ``fill`` outside the hull."""
+        samples = np.asarray(samples)
+        w, h = self.size
+        lead = samples.shape[:-1]
+        out = np.full(lead + (h * w,), fill, dtype=samples.dtype if samples.dtype.kind == "f" else np.float32)
+        out[..., self.pixels.pixel_index] = samples
+        return out.reshape(lead + (h, w))
+
+    def draw_on_shape(self, texture_image: np.ndarray, shape: np.ndarray, size: tuple[int, int]
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """Inverse warp: draw a reference-frame texture image onto ``shape`` in an image of ``size`` (w, h).
+
+        Returns (image float32 (h, w), mask bool (h, w) of the pixels drawn). Folded target triangles are
+        allowed (the later triangle wins); degenerate ones draw nothing.
+        """
+        import cv2
+
+        w, h = int(size[0]), int(size[1])
+        shape = np.asarray(shape, dtype=np.float64)
+        index_map = rasterise_triangles(shape, self.triangles, (w, h))
+        target = PixelTriangles.from_index_map(shape, self.triangles, index_map)
+        pos = target.weights @ self.reference.astype(np.float32)     # (P, 2) positions in the texture image
+        map_x = np.full(h * w, -1.0, dtype=np.float32)
+        map_y = np.full(h * w, -1.0, dtype=np.float32)
+        map_x[target.pixel_index] = pos[:, 0]
+        map_y[target.pixel_index] = pos[:, 1]
+        image = cv2.remap(np.asarray(texture_image, dtype=np.float32), map_x.reshape(h, w), map_y.reshape(h, w),
+                          interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return image, target.mask
+
+
+def fill_outside(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Extend a texture image beyond its mask by nearest-inside values, so bilinear sampling at the hull edge
+    does not blend in the fill value."""
+    from scipy.ndimage import distance_transform_edt
+
+    if mask.all():
+        return image
+    _, (iy, ix) = distance_transform_edt(~mask, return_indices=True)
+    return image[iy, ix]
