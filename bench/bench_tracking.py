@@ -91,6 +91,24 @@ def main() -> None:
               f"{e[:, 2].max():6.1f}      {st['max_pose_step_deg']:6.2f}           "
               f"{100 * dist.mean():5.2f}% ({100 * dist.max():5.2f}%)")
 
+    # head pose: the default rigid landmark subset against all 68 points
+    from stages.tracking.assemble import rotation_steps_deg
+    from stages.tracking.face3d import load_face3d
+    from stages.tracking.pose import camera_matrix, solve_head_pose
+
+    face3d = load_face3d()
+    cam = camera_matrix(480, 360)
+    for name, points in (("rigid (default)", np.array(face3d.rigid)), ("all 68", None)):
+        worst = []
+        for s in range(len(fm.meta["labels"])):
+            q, _, rms = solve_head_pose(lm[seq == s].astype(np.float64), face3d.neutral, cam, points)
+            e = np.degrees(quat_to_euler(q))
+            worst.append((np.abs(e[:, 0]).max(), np.abs(e[:, 1]).max(), rotation_steps_deg(q).max(),
+                          rms.mean()))
+        w = np.array(worst)
+        print(f"pose landmarks {name:16s}: max |yaw| {w[:, 0].max():4.1f} deg, max |pitch| {w[:, 1].max():4.1f} deg,"
+              f" max step {w[:, 2].max():4.2f} deg/frame, mean reprojection RMS {w[:, 3].mean():4.2f} px")
+
     # TrackFile round trip of a synthetic OpenFace CSV with success = 0 rows
     import tempfile
 

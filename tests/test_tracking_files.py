@@ -207,3 +207,29 @@ def test_frames_must_increase_and_gaps_over_the_limit_fail(tmp_path):
     assert err.value.field == "inputs.tracks.g"
     out = run_stage(TrackFile, {"frame_size": (480, 360), "max_gap_frames": 20}, {"tracks": {"g": path}})
     assert not out.arrays["valid"][10:30].any()
+
+
+def test_a_custom_3d_face_scales_the_head_distance(tmp_path):
+    import json
+
+    from stages.tracking.face3d import DEFAULT_FACE3D
+
+    shapes = synthetic_shapes(8)
+    path = tmp_path / "t.csv"
+    path.write_text(write_plain_csv(shapes))
+    params = {"fps": 30, "frame_size": (480, 360)}
+    base = run_stage(TrackFile, params, {"tracks": {"t": path}})
+    data = json.loads(DEFAULT_FACE3D.read_text())
+    data["neutral"] = (np.array(data["neutral"]) * 2).tolist()
+    big = tmp_path / "big_face.json"
+    big.write_text(json.dumps(data))
+    scaled = run_stage(TrackFile, params, {"tracks": {"t": path}, "face3d": {"face": big}})
+    np.testing.assert_allclose(scaled.arrays["translation"], 2 * base.arrays["translation"], rtol=1e-5)
+    np.testing.assert_allclose(np.abs(np.sum(scaled.arrays["rotation"] * base.arrays["rotation"], axis=1)), 1,
+                               atol=1e-8)
+    assert scaled.meta["pose_model"] == "big_face.json"
+    bad = tmp_path / "bad_face.json"
+    bad.write_text(json.dumps({"neutral": [[0, 0, 0]] * 5}))
+    with pytest.raises(UserError, match="68 points") as err:
+        run_stage(TrackFile, params, {"tracks": {"t": path}, "face3d": {"face": bad}})
+    assert err.value.field == "inputs.face3d.face"

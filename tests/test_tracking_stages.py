@@ -307,3 +307,13 @@ def test_truncated_and_unreadable_videos_name_the_file(tmp_path):
     assert err.value.file == str(junk)
     with pytest.raises(UserError, match="not found"):
         run_stage(FaceMesh, {}, {"videos": {"x": tmp_path / "missing.mp4"}})
+
+
+def test_model_inputs_are_checked(tmp_path):
+    with pytest.raises(UserError, match="unknown model labels"):
+        run_stage(FaceMesh, {}, {"videos": {"a": CLIPS["NEU"]}, "models": {"detektor": CLIPS["NEU"]}})
+    fake = tmp_path / "fake.tflite"
+    fake.write_bytes(b"not a model")
+    with pytest.raises(UserError, match="cannot load TFLite model") as err:
+        run_stage(FaceMesh, {}, {"videos": {"a": CLIPS["NEU"]}, "models": {"landmarks": fake}})
+    assert err.value.file == str(fake)

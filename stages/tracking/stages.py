@@ -126,7 +126,7 @@ def cached_shape_model(face3d_key: str, variance: float):
     from stages.tracking.face3d import DEFAULT_FACE3D, load_face3d
     from stages.tracking.shape_model import build_shape_model
 
-    path = Path(face3d_key) if face3d_key else DEFAULT_FACE3D
+    path = Path(face3d_key.rsplit("|", 2)[0]) if face3d_key else DEFAULT_FACE3D
     return build_shape_model(load_face3d(path), variance=variance, expressions_per_sample=8)
 
 
@@ -219,7 +219,11 @@ class OpticalFlow(Stage):
         face3d, face3d_name = resolve_face3d(face3d_files)
         model = None
         if params.shape_model:
-            key = str(next(iter(face3d_files.values()))) if face3d_files else ""
+            key = ""
+            if face3d_files:   # the path plus its size and mtime: an edited file rebuilds the model
+                path = Path(next(iter(face3d_files.values())))
+                stat = path.stat()
+                key = f"{path}|{stat.st_size}|{stat.st_mtime_ns}"
             model = cached_shape_model(key, params.shape_variance)
         shared_tracker = []
 
