@@ -82,17 +82,15 @@ def arkit_weights(weights: np.ndarray, target_names: list[str]) -> tuple[np.ndar
 
 
 def format_timecode(frame: np.ndarray, fps: float) -> list[str]:
-    """Live Link Face timecodes ``HH:MM:SS:FF.fff``: FF counts frames at the nominal (rounded) rate, .fff is the
-    sub-frame fraction (non-zero only when the true rate is not an integer)."""
+    """Live Link Face timecodes ``HH:MM:SS:FF.fff`` counting frames at the nominal (rounded) rate, as video
+    timecode does: at 29.97 fps the labels run non-drop-frame at 30 per second, slightly slower than the clock,
+    so every frame gets its own label and the sub-frame field stays .000."""
     nominal = max(int(round(fps)), 1)
-    position = np.asarray(frame, dtype=np.float64) / fps * nominal  # in nominal frames
-    position = np.round(position * 1000.0) / 1000.0
-    whole = np.floor(position).astype(np.int64)
-    sub = np.round((position - whole) * 1000.0).astype(np.int64)
+    whole = np.asarray(frame, dtype=np.int64)
     seconds, ff = np.divmod(whole, nominal)
     minutes, ss = np.divmod(seconds, 60)
     hh, mm = np.divmod(minutes, 60)
-    return [f"{h:02d}:{m:02d}:{s:02d}:{f:02d}.{u:03d}" for h, m, s, f, u in zip(hh, mm, ss, ff, sub)]
+    return [f"{h:02d}:{m:02d}:{s:02d}:{f:02d}.000" for h, m, s, f in zip(hh, mm, ss, ff)]
 
 
 def live_link_csv(arkit: np.ndarray, fps: float, head_angles: np.ndarray | None = None,

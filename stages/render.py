@@ -48,8 +48,13 @@ class View:
         lo, hi = p.min(axis=0), p.max(axis=0)
         center = 0.5 * (lo + hi)
         q = (p - center) @ rot.T
-        extent = float(max(np.ptp(q[:, 1]), np.ptp(q[:, 0]), 1e-9)) * margin
-        return cls(center=tuple(float(v) for v in center), extent=extent,
+        extent = float(max(2 * np.abs(q[:, :2]).max(), 1e-9))
+        perspective = kwargs.get("perspective", cls.perspective)
+        for _ in range(3 if perspective is not None else 0):  # nearer points project larger: grow to fit them
+            distance = perspective * extent
+            factor = distance / np.maximum(distance - q[:, 2], 1e-9 * distance)
+            extent = float(max(2 * np.abs(q[:, :2] * factor[:, None]).max(), 1e-9))
+        return cls(center=tuple(float(v) for v in center), extent=extent * margin,
                    rotation=tuple(tuple(float(v) for v in row) for row in rot), **kwargs)
 
     def with_(self, **changes) -> "View":
@@ -273,8 +278,8 @@ class CharacterRenderer:
             if framing == "face" and landmark_ids is not None:
                 pts = self.neutral[np.asarray(landmark_ids)]
                 lo, hi = pts.min(axis=0), pts.max(axis=0)
-                pad = 0.45 * (hi - lo)
-                box = np.array([lo - pad * np.array([1, 0.5, 0]), hi + pad * np.array([1, 1.2, 0])])
+                span = hi - lo  # landmarks run from the jaw line to the brows: add the forehead, a little chin
+                box = np.array([lo - span * np.array([0.15, 0.2, 0]), hi + span * np.array([0.15, 0.45, 0])])
                 view = View.fit(box, yaw=yaw, pitch=pitch, margin=1.0)
             else:
                 view = View.fit(self.neutral, yaw=yaw, pitch=pitch, margin=1.05)

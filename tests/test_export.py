@@ -56,10 +56,10 @@ def test_timecodes():
     assert format_timecode(np.array([0, 1, 29, 30, 61, 30 * 3600 + 45]), 30.0) == [
         "00:00:00:00.000", "00:00:00:01.000", "00:00:00:29.000", "00:00:01:00.000", "00:00:02:01.000",
         "01:00:01:15.000"]
-    # 29.97 fps: counted in nominal 30 fps frames with the sub-frame fraction
-    codes = format_timecode(np.array([0, 1, 1000]), 29.97)
-    assert codes[0] == "00:00:00:00.000" and codes[1] == "00:00:00:01.001"
-    assert codes[2] == "00:00:33:11.001"  # 1000 / 29.97 s = 1001.001 nominal frames = 33 s + 11.001
+    # 29.97 fps: frames are counted at the nominal 30 per second (non-drop-frame), one label per frame
+    codes = format_timecode(np.arange(1000), 29.97)
+    assert codes[1] == "00:00:00:01.000" and codes[30] == "00:00:01:00.000" and codes[999] == "00:00:33:09.000"
+    assert len(set(codes)) == 1000
 
 
 def test_live_link_csv_layout():
