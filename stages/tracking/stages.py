@@ -10,8 +10,7 @@ import numpy as np
 from pydantic import Field
 
 from msflow import Input, Result, Stage, UserError
-from stages.tracking.assemble import (CropCollector, SequenceTrack, TrackingParams, assemble, inter_ocular,
-                                      resolve_face3d)
+from stages.tracking.assemble import CropCollector, SequenceTrack, TrackingParams, assemble, resolve_face3d
 from stages.tracking.crops import to_gray
 from stages.tracking.figures import FIGURES
 from stages.tracking.gaps import fill_face_gaps, interpolate_gaps
@@ -358,4 +357,4 @@ class TrackFile(Stage):
         return assemble(sequences, params, face3d, face3d_name, "TrackFile")
 
 
-__all__ = ["FaceMesh", "OpticalFlow", "TrackFile", "inter_ocular"]
+__all__ = ["FaceMesh", "OpticalFlow", "TrackFile"]
