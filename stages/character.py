@@ -533,38 +533,44 @@ def build_ict_character(source: Path, destination: Path, *, sparse_tolerance: fl
 
 
 def _readme(summary: dict, expressions: list[str], identities: list[str]) -> str:
-    return f"""# Embedded default character: ICT FaceKit
+    import textwrap
 
-`{summary['file']}` is the default character of the retargeting stages (`stages.character:GltfCharacter`).
+    def para(text: str, indent: str = "") -> str:
+        return textwrap.fill(" ".join(text.split()), width=110, initial_indent=indent,
+                             subsequent_indent=" " * len(indent))
 
-## Provenance
-Built from the ICT FaceKit light face model (USC Institute for Creative Technologies, MIT licence: see
-`LICENSE` and `CREDITS.md` in this folder; https://github.com/ICT-VGL/ICT-FaceKit) with this project's own code:
-
-    python -m stages.character build /path/to/ict-facekit {Path('data/characters') / summary['file']}
-
-The source folder holds `generic_neutral_mesh.obj.gz`, one `.obj.gz` per blendshape, `identity000..009.obj.gz`,
-`ICTFaceModelMaterial.mtl` and `vertex_indices.json`. The build is deterministic.
-
-## Contents
-- One mesh `ICTFaceKit`, {summary['vertices']} vertices, {summary['triangles']} triangles (quads split in two),
-  one primitive per ICT material; coordinates in metres (ICT's centimetres x 0.01), +y up, facing +z.
-  The overlay geometry made for alpha textures ({', '.join(summary['dropped_groups'])}) is left out, and so is
-  the outer eye shell (M_ScleraLeft/Right: {summary['eye_shell_triangles_removed']} triangles, a transparent cornea
-  in front that would hide the eyeball without textures); the inner eyeball (M_IrisLeft/Right) is split by the
-  angle from the eye axis into sclera, iris (< 22 degrees) and pupil (< 8 degrees, and the inward-facing walls of the
-  pupil's tunnel, which PupilDilate opens) materials. Vertex ids are
-  renumbered and the landmark ids remapped with them.
-- {summary['expression_targets']} expression morph targets (ARKit-style names with `_L`/`_R`), as sparse
-  accessors: deltas below {summary['sparse_tolerance_m'] * 1e6:.0f} micrometres are not stored.
-  {', '.join(expressions)}.
-- {summary['identity_targets']} identity morph targets ({', '.join(identities)}): shape parameters, listed in
-  `mesh.extras.identityTargetNames`; the character stage mixes them into the neutral (`params.identity`) and does
-  not animate them.
-- `mesh.extras.landmarkVertexIds`: the 68 iBUG landmark vertex ids (ICT's `idx_to_landmark_verts`, remapped);
-  `mesh.extras.headPivot`: the point the head turns about (metres).
-- Size: {summary['bytes']} bytes.
-"""
+    contents = [
+        f"One mesh `ICTFaceKit`: {summary['vertices']} vertices, {summary['triangles']} triangles (ICT's quads split "
+        f"in two), one primitive per material; metres (ICT's centimetres x 0.01), +y up, facing +z.",
+        f"Left out: the overlay geometry made for alpha textures ({', '.join(summary['dropped_groups'])}) and the "
+        f"outer eye shells M_ScleraLeft/Right ({summary['eye_shell_triangles_removed']} triangles; transparent "
+        f"cornea in front, they hide the eyeball without textures). The inner eyeballs (M_IrisLeft/Right) are "
+        f"split by the angle from the eye axis into sclera, iris (< 22 degrees) and pupil (< 8 degrees, plus the "
+        f"inward-facing walls of the pupil's tunnel that PupilDilate opens) materials. Vertex ids are renumbered "
+        f"and the landmark ids remapped with them.",
+        f"{summary['expression_targets']} expression morph targets as sparse accessors (deltas below "
+        f"{summary['sparse_tolerance_m'] * 1e6:.0f} micrometres are not stored): {', '.join(expressions)}.",
+        f"{summary['identity_targets']} identity morph targets ({', '.join(identities)}), listed in "
+        f"`mesh.extras.identityTargetNames`: shape parameters that the character stage mixes into the neutral "
+        f"(`params.identity`, neutral + sum c_i delta_i) and does not animate.",
+        "`mesh.extras.landmarkVertexIds`: the 68 iBUG landmark vertex ids (ICT's `idx_to_landmark_verts`, "
+        "remapped); `mesh.extras.headPivot`: the point the head turns about (metres).",
+        f"Size: {summary['bytes']} bytes. Passes the Khronos glTF Validator without errors or warnings.",
+    ]
+    return "\n".join([
+        "# Embedded default character: ICT FaceKit", "",
+        f"`{summary['file']}` is the default character of the retargeting stages (`stages.character:GltfCharacter`).",
+        "", "## Provenance",
+        para("Built from the ICT FaceKit light face model (USC Institute for Creative Technologies, MIT licence: "
+             "see `LICENSE` and `CREDITS.md` in this folder; https://github.com/ICT-VGL/ICT-FaceKit) with this "
+             "project's own code (OBJ reader, identity split, sparse glTF writer in `stages/`):"), "",
+        f"    python -m stages.character build /path/to/ict-facekit data/characters/{summary['file']}", "",
+        para("The source folder holds `generic_neutral_mesh.obj.gz`, one `.obj.gz` per blendshape, "
+             "`identity000..009.obj.gz`, `ICTFaceModelMaterial.mtl`, `vertex_indices.json`, `LICENSE` and "
+             "`CREDITS.md`. The build is deterministic (same input, same bytes)."),
+        "", "## Contents",
+        *[para(item, "- ") for item in contents], "",
+    ])
 
 
 def main(argv: list[str] | None = None) -> int:
