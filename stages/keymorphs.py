@@ -80,14 +80,33 @@ def fit_similarity(source: np.ndarray, target: np.ndarray) -> Similarity2D:
 
 def symmetric_pairs(names: list[str]) -> list[tuple[int, int]]:
     """Index pairs of left/right morph targets: ``x_L``/``x_R`` (ICT), ``xLeft``/``xRight`` (ARKit)."""
-    index = {name: i for i, name in enumerate(names)}
+    index: dict[tuple[str, str], int] = {}
+    for i, name in enumerate(names):
+        index.setdefault(split_side(name), i)
+    return [(i, index[(stem, "R")]) for (stem, side), i in index.items() if side == "L" and (stem, "R") in index]
+
+
+_SIDES = (("_L", "L"), ("_R", "R"), ("_l", "L"), ("_r", "R"), ("Left", "L"), ("Right", "R"), ("_left", "L"),
+          ("_right", "R"))
+
+
+def split_side(name: str) -> tuple[str, str]:
+    """(stem, side) of a morph target name: "mouthSmile_L" -> ("mouthSmile", "L"), "jawOpen" -> ("jawOpen", "")."""
+    for suffix, side in _SIDES:
+        if name.endswith(suffix) and len(name) > len(suffix):
+            return name[: -len(suffix)], side
+    return name, ""
+
+
+def antagonist_pairs(names: list[str], stems: list[tuple[str, str]]) -> list[tuple[int, int]]:
+    """Index pairs of targets that oppose each other (stem pairs such as ("browDown", "browInnerUp")), matched
+    on the same side of the face; a target without a side pairs with both sides."""
+    parsed = [split_side(n) for n in names]
     pairs = []
-    for name, i in index.items():
-        for left, right in (("_L", "_R"), ("_l", "_r"), ("Left", "Right"), ("_left", "_right")):
-            if name.endswith(left):
-                other = name[: -len(left)] + right
-                if other in index:
-                    pairs.append((i, index[other]))
+    for i, (stem_a, side_a) in enumerate(parsed):
+        for j, (stem_b, side_b) in enumerate(parsed):
+            if (stem_a, stem_b) in stems and (side_a == side_b or not side_a or not side_b):
+                pairs.append((i, j))
     return pairs
 
 
@@ -115,36 +134,59 @@ class LandmarkRig:
         to_character = fit_similarity(np.asarray(actor_rest, np.float64)[stable], rest[stable])
         return cls(rest, projected, to_character, np.asarray(actor_rest, np.float64))
 
-    def target_deformation(self, keyshapes: np.ndarray) -> np.ndarray:
-        """Keyshape deformations from the actor's rest pose, expressed in character units (K, 68, 2)."""
-        return self.to_character.apply_linear(np.asarray(keyshapes, np.float64) - self.actor_rest)
+    def target_deformation(self, keyshapes: np.ndarray, pose: np.ndarray | None = None) -> np.ndarray:
+        """Keyshape deformations from the actor's rest pose, expressed in character units (K, 68, 2), less the
+        part a head rotation explains (``pose``, from ``pose_effects``) when given."""
+        deformation = self.to_character.apply_linear(np.asarray(keyshapes, np.float64) - self.actor_rest)
+        return deformation if pose is None else deformation - pose
 
-    def keymorph_landmarks(self, weights: np.ndarray) -> np.ndarray:
-        """Where the keymorphs put the landmarks, mapped back into the keyshapes' frame (K, 68, 2)."""
+    def keymorph_landmarks(self, weights: np.ndarray, pose: np.ndarray | None = None) -> np.ndarray:
+        """Where the keymorphs (and the head rotation, ``pose``) put the landmarks, in the keyshapes' frame."""
         deformation = np.einsum("km,mpc->kpc", np.asarray(weights, np.float64), self.deltas)
+        if pose is not None:
+            deformation = deformation + pose
         return self.actor_rest + self.to_character.inverse_linear(deformation)
+
+    def pose_effects(self, neutral_landmarks: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+        """How much a head rotation alone moves the aligned 2D landmarks (K, 68, 2), character units.
+
+        Tracked landmarks are aligned in 2D only (similarity), so a nod or turn of the actor's head changes them
+        like an expression would (brows against eyes when nodding). ``rotations`` (K, 3, 3) turn the character's
+        neutral landmarks (68, 3); the projection is similarity-aligned back onto the rest projection, as the
+        aam alignment does, and what remains is the pose effect.
+        """
+        points = np.asarray(neutral_landmarks, np.float64)
+        effects = np.empty((len(rotations), 68, 2))
+        for k, rotation in enumerate(np.asarray(rotations, np.float64)):
+            seen = project_front(points @ rotation.T)
+            effects[k] = fit_similarity(seen, self.rest).apply(seen) - self.rest
+        return effects
 
 
 def fit_keymorph_weights(rig: LandmarkRig, keyshapes: np.ndarray, names: list[str], *, l2: float, l1: float,
                          symmetry: float, exclude: list[str], contour_weight: float,
-                         rtol: float = 1e-7) -> tuple[np.ndarray, dict]:
+                         antagonists: list[tuple[str, str]] = (), antagonism: float = 0.0,
+                         pose: np.ndarray | None = None, rtol: float = 1e-7) -> tuple[np.ndarray, dict]:
     """Morph weights u in [0, 1]^M per keyshape minimising (Sec 4.3 keymorphs, automated)
 
         1/2 sum_p c_p ||sum_m u_m d_mp - delta_p||^2 + e (l2/2 ||u||^2 + l1 sum_m u_m)
-            + symmetry/2 sum_(L,R pairs) e_LR (u_L - u_R)^2
+            + symmetry/2 sum_(L,R pairs) e_LR (u_L - u_R)^2 + antagonism sum_(antagonists a,b) e_ab u_a u_b
 
     with d_mp the projected landmark deltas of target m, delta_p the keyshape's deformation from rest in character
     units, c_p = ``contour_weight`` on the jaw line (2D trackers place it least reliably) and 1 elsewhere,
-    e = the mean landmark energy sum_p c_p ||d_mp||^2 of the usable targets and e_LR that of the pair (so the
-    regularisers are unit-free). Targets matching
-    ``exclude`` stay 0. All keyshapes share the Hessian, so they are solved as one batched box QP.
+    e = the mean landmark energy sum_p c_p ||d_mp||^2 of the usable targets and e_LR, e_ab those of a pair (so
+    the regularisers are unit-free). The antagonist term keeps opposing targets (browDown with browInnerUp, smile
+    with frown) from cancelling each other to fit small landmark details; it makes the problem slightly
+    non-convex, and projected gradient from zero weights finds a stationary point. Targets matching
+    ``exclude`` stay 0; ``pose`` (K, 68, 2) removes what head rotation explains (``LandmarkRig.pose_effects``).
+    All keyshapes share the Hessian, so they are solved as one batched box QP.
     """
     M = len(names)
     landmark_weight = np.ones(68)
     landmark_weight[list(JAW_CONTOUR)] = contour_weight
     root = np.sqrt(landmark_weight)[None, :, None]
     J = (rig.deltas * root).reshape(M, -1).T                      # (136, M)
-    targets = (rig.target_deformation(keyshapes) * root).reshape(len(keyshapes), -1)
+    targets = (rig.target_deformation(keyshapes, pose) * root).reshape(len(keyshapes), -1)
     usable = ~matching_targets(names, exclude) & (np.abs(J).max(axis=0) > 0)
     energy = float((J[:, usable] ** 2).sum(axis=0).mean()) if usable.any() else 1.0
     H = J.T @ J + l2 * energy * np.eye(M)
@@ -154,6 +196,10 @@ def fit_keymorph_weights(rig: LandmarkRig, keyshapes: np.ndarray, names: list[st
         coupling[i], coupling[j] = 1.0, -1.0
         # relative to the pair's own energy, so a faint pair (eyelids) is coupled as firmly as a strong one
         H += symmetry * 0.5 * (column_energy[i] + column_energy[j]) * np.outer(coupling, coupling)
+    for i, j in antagonist_pairs(names, list(antagonists)):
+        strength = antagonism * 0.5 * (column_energy[i] + column_energy[j])
+        H[i, j] += 0.5 * strength
+        H[j, i] += 0.5 * strength
     F = targets @ J - l1 * energy
     idx = np.flatnonzero(usable)
     weights = np.zeros((len(keyshapes), M))
@@ -166,9 +212,10 @@ def fit_keymorph_weights(rig: LandmarkRig, keyshapes: np.ndarray, names: list[st
                      "usable_targets": [names[i] for i in idx], "energy": energy}
 
 
-def landmark_errors(rig: LandmarkRig, keyshapes: np.ndarray, weights: np.ndarray, scale: float) -> np.ndarray:
+def landmark_errors(rig: LandmarkRig, keyshapes: np.ndarray, weights: np.ndarray, scale: float,
+                    pose: np.ndarray | None = None) -> np.ndarray:
     """Per keyshape RMS landmark distance between keyshape and keymorph (keyshape frame) / ``scale``."""
-    diff = rig.keymorph_landmarks(weights) - np.asarray(keyshapes, np.float64)
+    diff = rig.keymorph_landmarks(weights, pose) - np.asarray(keyshapes, np.float64)
     return np.sqrt((diff ** 2).sum(-1).mean(-1)) / scale
 
 
@@ -481,25 +528,65 @@ _INPUTS = {
     "character": Input.artifact("neutral", "triangles", "deltas", "landmark_ids", doc="character artifact"),
     "tracks": Input.artifact("crops", "crop_landmarks", optional=True,
                              doc="training tracking artifact: face crops of the keyshapes' source frames for the "
-                                 "contact sheet (landmark drawings instead when absent)"),
+                                 "contact sheet (landmark drawings instead when absent) and head rotations for "
+                                 "the pose correction"),
 }
+
+
+@dataclass
+class _Prepared:
+    rig: LandmarkRig
+    shapes: np.ndarray
+    scale: float
+    pose: np.ndarray | None
+    pose_note: str
 
 
 class _KeymorphStage(Stage):
     outputs = KEYMORPHS_OUTPUTS
     figures = {"contact_sheet": figure_contact_sheet, "landmark_fit": figure_landmark_fit}
 
-    def _common(self, params, inputs, weights: np.ndarray, yaml_text: str, metrics: dict, meta: dict) -> Result:
+    def _prepare(self, params, inputs) -> "_Prepared":
+        keyshapes, character = inputs["keyshapes"], inputs["character"]
+        rig = self._rig(keyshapes, character)
+        shapes = np.asarray(keyshapes["keyshapes"], np.float64)
+        scale = float(inter_ocular_distance(keyshapes["rest_shape"]))
+        pose, pose_note = None, "off (params.pose_correction)"
+        tracks = inputs.get("tracks")
+        if params.pose_correction:
+            if tracks is None or "rotation" not in tracks or "rest_frames" not in keyshapes:
+                pose_note = "not applied: needs the tracks input with head rotations (and keyshapes rest_frames)"
+            else:
+                pose = self._pose_effects(rig, character, keyshapes, tracks["rotation"])
+                pose_note = "applied"
+        return _Prepared(rig, shapes, scale, pose, pose_note)
+
+    @staticmethod
+    def _pose_effects(rig: LandmarkRig, character, keyshapes, rotation: np.ndarray) -> np.ndarray:
+        from stages.rotations import quat_mean, quat_to_matrix
+
+        frames = np.asarray(keyshapes["keyshape_frame"])
+        rest = np.asarray(keyshapes["rest_frames"])
+        rotation = np.asarray(rotation, np.float64)
+        if max(frames.max(initial=0), rest.max(initial=0)) >= len(rotation):
+            raise UserError(f"keyshape source frames reach {int(max(frames.max(), rest.max()))} but the tracking "
+                            f"input has {len(rotation)} frames: wire the training tracking the aam was built from",
+                            field="inputs.tracks")
+        # the head rotation of each keyshape's frame relative to the rest frames' mean rotation
+        relative = quat_to_matrix(rotation[frames]) @ quat_to_matrix(quat_mean(rotation[rest])).T
+        ids = np.asarray(character["landmark_ids"])
+        return rig.pose_effects(np.asarray(character["neutral"], np.float64)[ids], relative)
+
+    def _common(self, params, inputs, prepared: "_Prepared", weights: np.ndarray, yaml_text: str, metrics: dict,
+                meta: dict) -> Result:
         keyshapes, character = inputs["keyshapes"], inputs["character"]
         names = list(character.meta["target_names"])
-        rig = self._rig(keyshapes, character)
-        scale = float(inter_ocular_distance(keyshapes["rest_shape"]))
-        shapes = np.asarray(keyshapes["keyshapes"], np.float64)
-        errors = landmark_errors(rig, shapes, weights, scale)
-        baseline = landmark_errors(rig, shapes, np.zeros_like(weights), scale)
+        rig, shapes, scale, pose = prepared.rig, prepared.shapes, prepared.scale, prepared.pose
+        errors = landmark_errors(rig, shapes, weights, scale, pose)
+        baseline = landmark_errors(rig, shapes, np.zeros_like(weights), scale, pose)
         arrays = {
             "keymorph_weights": weights.astype(np.float32),
-            "keymorph_landmarks": rig.keymorph_landmarks(weights).astype(np.float32),
+            "keymorph_landmarks": rig.keymorph_landmarks(weights, pose).astype(np.float32),
             "landmark_error": errors.astype(np.float32),
             "keymorphs": yaml_text.encode("utf-8"),
         }
@@ -513,7 +600,10 @@ class _KeymorphStage(Stage):
         metrics["landmark_error_rms_iod"] = float(np.sqrt(np.mean(errors ** 2)))
         metrics["landmark_error_neutral_rms_iod"] = float(np.sqrt(np.mean(baseline ** 2)))
         metrics["mean_active_targets"] = float((weights > 0).sum(axis=1).mean())
-        meta = dict(meta, target_names=names, labels=labels,
+        if pose is not None:
+            metrics["pose_effect_rms_iod"] = float(np.sqrt(np.mean(
+                (rig.to_character.inverse_linear(pose) ** 2).sum(-1)) / scale ** 2))
+        meta = dict(meta, target_names=names, labels=labels, pose_correction=prepared.pose_note,
                     keyshape_ids=[f"{labels[e]}/{int(i)}" for e, i in zip(expression, keyshapes["keyshape_index"])],
                     similarity_scale=rig.to_character.scale)
         return Result(arrays, meta=meta, metrics=metrics)
@@ -557,6 +647,12 @@ class KeymorphFit(_KeymorphStage):
         l1: float = 0.02
         #: coupling of left/right pairs (x_L, x_R): penalty on their difference
         symmetry: float = 0.2
+        #: penalty on using opposing targets together (product of their weights), per side of the face
+        antagonism: float = 1.0
+        antagonists: list[tuple[str, str]] = [("browDown", "browInnerUp"), ("browDown", "browOuterUp"),
+                                              ("mouthSmile", "mouthFrown"), ("eyeWide", "eyeBlink"),
+                                              ("eyeWide", "eyeSquint"), ("jawLeft", "jawRight"),
+                                              ("mouthLeft", "mouthRight"), ("mouthPucker", "mouthStretch")]
         #: weight of the jaw-line landmarks (0-16) relative to the others
         contour_weight: float = 0.5
         #: targets the fit leaves at 0 (fnmatch patterns): gaze and pupils are not in 2D landmarks, and ARKit's
@@ -564,6 +660,8 @@ class KeymorphFit(_KeymorphStage):
         exclude: list[str] = ["eyeLook*", "PupilDilate*", "mouthClose"]
         #: decimals of the weights in the YAML (the output weights are exactly the YAML's)
         decimals: int = 3
+        #: discount the landmark motion that the actor's head rotation explains (needs the tracks input)
+        pose_correction: bool = True
         contact_sheet: bool = True
         tile_size: int = 128
 
@@ -572,18 +670,18 @@ class KeymorphFit(_KeymorphStage):
     def run(self, params, inputs):
         keyshapes, character = inputs["keyshapes"], inputs["character"]
         names = list(character.meta["target_names"])
-        for field in ("l2", "l1", "symmetry", "contour_weight"):
+        for field in ("l2", "l1", "symmetry", "contour_weight", "antagonism"):
             if getattr(params, field) < 0:
                 raise UserError(f"{field} must be >= 0", field=f"params.{field}")
         unknown = [p for p in params.exclude if not matching_targets(names, [p]).any()]
-        rig = self._rig(keyshapes, character)
-        shapes = np.asarray(keyshapes["keyshapes"], np.float64)
-        weights, info = fit_keymorph_weights(rig, shapes, names, l2=params.l2, l1=params.l1,
+        prepared = self._prepare(params, inputs)
+        weights, info = fit_keymorph_weights(prepared.rig, prepared.shapes, names, l2=params.l2, l1=params.l1,
                                              symmetry=params.symmetry, exclude=list(params.exclude),
-                                             contour_weight=params.contour_weight)
+                                             contour_weight=params.contour_weight,
+                                             antagonists=[tuple(p) for p in params.antagonists],
+                                             antagonism=params.antagonism, pose=prepared.pose)
         weights = rounded_weights(weights, params.decimals)
-        scale = float(inter_ocular_distance(keyshapes["rest_shape"]))
-        errors = landmark_errors(rig, shapes, weights, scale)
+        errors = landmark_errors(prepared.rig, prepared.shapes, weights, prepared.scale, prepared.pose)
         header = ("Keymorphs: expression -> keyshape id -> {morph target: weight in [0, 1]} (paper Sec 4.3).\n"
                   "First draft fitted by KeymorphFit to the keyshapes' landmarks: edit freely and load it with\n"
                   "stages.keymorphs:KeymorphFile. Targets left out are 0; {} is the neutral face.\n"
@@ -594,7 +692,7 @@ class KeymorphFit(_KeymorphStage):
                                          decimals=params.decimals)
         meta = {"fit": {"usable_targets": info["usable_targets"], "iterations": info["iterations"],
                         "unmatched_exclude_patterns": unknown}}
-        return self._common(params, inputs, weights, yaml_text, {"fit_kkt_max": info["kkt_max"]}, meta)
+        return self._common(params, inputs, prepared, weights, yaml_text, {"fit_kkt_max": info["kkt_max"]}, meta)
 
 
 class KeymorphFile(_KeymorphStage):
@@ -603,6 +701,8 @@ class KeymorphFile(_KeymorphStage):
     class Params(Stage.Params):
         #: keyshapes the file does not mention get the neutral face instead of an error
         allow_missing: bool = False
+        #: measure the landmark error net of the actor's head rotation (needs the tracks input)
+        pose_correction: bool = True
         contact_sheet: bool = True
         tile_size: int = 128
 
@@ -627,4 +727,5 @@ class KeymorphFile(_KeymorphStage):
         yaml_text = format_keymorph_yaml(labels, expression, keyshapes["keyshape_index"], weights, names,
                                          comments=self._yaml_comments(keyshapes),
                                          header=f"Keymorphs read from {path.name}", decimals=None)
-        return self._common(params, inputs, weights, yaml_text, {}, {"source": path.name})
+        return self._common(params, inputs, self._prepare(params, inputs), weights, yaml_text, {},
+                            {"source": path.name})

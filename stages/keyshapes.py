@@ -99,7 +99,8 @@ def select_keyshapes(shapes: np.ndarray, k: int, *, dedupe_threshold: float, sca
             if chosen:
                 distance = mean_squared_landmark_distance(shapes[chosen], shapes[frame])
                 nearest = int(np.argmin(distance))
-                if distance[nearest] < threshold:
+                # the same frame again (an extreme of several axes) is always a duplicate
+                if distance[nearest] < threshold or frame in chosen:
                     dropped.append({"frame": frame, "axis": axis, "extreme": sign,
                                     "duplicate_of": chosen[nearest],
                                     "distance": float(distance[nearest] / scale ** 2)})
@@ -130,16 +131,21 @@ def relative_rms_error(shapes: np.ndarray, reference: np.ndarray, scale: float) 
     return np.sqrt(mean_squared_landmark_distance(shapes, reference)) / scale
 
 
-def rest_shape(shapes: np.ndarray, quantile: float = 0.1) -> np.ndarray:
-    """A closed-mouth rest pose: the mean of the frames whose inner-lip gap is in the lowest ``quantile``.
+def rest_frames(shapes: np.ndarray, quantile: float = 0.1) -> np.ndarray:
+    """Indices of a closed-mouth rest pose: the frames whose inner-lip gap is in the lowest ``quantile``.
 
     The plain mean of a talking face has its mouth half open; retargeting measures deformations from a rest
     pose that matches a character's closed-mouth neutral.
     """
-    shapes = np.asarray(shapes, np.float64)
     gap = mouth_opening(shapes)
-    count = max(1, int(np.ceil(quantile * len(shapes))))
-    return shapes[np.argsort(gap, kind="stable")[:count]].mean(axis=0)
+    count = max(1, int(np.ceil(quantile * len(gap))))
+    return np.sort(np.argsort(gap, kind="stable")[:count])
+
+
+def rest_shape(shapes: np.ndarray, quantile: float = 0.1) -> np.ndarray:
+    """The mean shape of ``rest_frames``."""
+    shapes = np.asarray(shapes, np.float64)
+    return shapes[rest_frames(shapes, quantile)].mean(axis=0)
 
 
 # ---------------------------------------------------------------------------------------------------- figures
@@ -258,6 +264,8 @@ KEYSHAPES_OUTPUTS = {
     "rest_shape": Output.array("f", shape=(68, 2), dtype="float32",
                                doc="closed-mouth rest pose of meta['rest_expression'] (keymorph fits measure "
                                    "deformation from it)"),
+    "rest_frames": Output.array("i", shape=("rest",), dtype="int32",
+                                doc="frames (aam/tracking axis) averaged into rest_shape"),
     "expression_mean": Output.array("f", shape=("labels", 68, 2), dtype="float32",
                                     doc="mean training shape per expression"),
 }
@@ -275,8 +283,8 @@ class Keyshapes(Stage):
         #: keyshapes per expression (paper: about 20); a mapping gives each expression its own count
         k: int | dict[str, int] = 20
         #: drop a candidate whose mean squared landmark distance to a chosen keyshape, in units of the squared
-        #: inter-ocular distance, is below this (1e-3: about 3% of the inter-ocular distance RMS)
-        dedupe_threshold: float = 1e-3
+        #: inter-ocular distance, is below this (1e-4: 1% of the inter-ocular distance RMS)
+        dedupe_threshold: float = 1e-4
         #: keep searching further PCA axes until k keyshapes are found (the paper stops at k/2 axes)
         refill: bool = False
         #: NNLS solver: exact vectorised active set, or FISTA with a KKT stopping rule
@@ -360,8 +368,9 @@ class Keyshapes(Stage):
         train_residual = np.concatenate(train_residual)
 
         rest_label = params.rest_expression if params.rest_expression in labels else None
-        rest_frames = np.flatnonzero(usable & ((sequence == labels.index(rest_label)) if rest_label else True))
-        rest = rest_shape(aligned[rest_frames])
+        candidates = np.flatnonzero(usable & ((sequence == labels.index(rest_label)) if rest_label else True))
+        rest_idx = candidates[rest_frames(aligned[candidates])]
+        rest = aligned[rest_idx].mean(axis=0)
 
         metrics = {
             "residual_rms_iod": float(np.sqrt(np.mean(residual ** 2))) if residual.size else 0.0,
@@ -396,6 +405,7 @@ class Keyshapes(Stage):
             "reconstruction": reconstruction.astype(np.float32),
             "residual": residual.astype(np.float32),
             "rest_shape": rest.astype(np.float32),
+            "rest_frames": rest_idx.astype(np.int32),
             "expression_mean": np.asarray(expression_means, dtype=np.float32),
         }, meta=meta, metrics=metrics)
 

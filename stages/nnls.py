@@ -186,7 +186,8 @@ def solve_box_qp(H: np.ndarray, F: np.ndarray, *, lower: float = 0.0, upper: flo
     H = np.asarray(H, np.float64)
     F = np.atleast_2d(np.asarray(F, np.float64))
     n, k = F.shape
-    lipschitz = float(np.linalg.eigvalsh(H)[-1]) + 4.0 * smoothing
+    # the gradient's Lipschitz constant; |eigenvalues| so that a slightly indefinite H (non-convex) still works
+    lipschitz = float(np.abs(np.linalg.eigvalsh(H)).max(initial=0.0)) + 4.0 * smoothing
     lipschitz = max(lipschitz, EPS)
     h_norm = lipschitz
 

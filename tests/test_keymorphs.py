@@ -7,7 +7,7 @@ from msflow import UserError
 from msflow.testing import artifact, run_stage
 from stages.character import GltfCharacter
 from stages.keymorphs import (KeymorphFile, KeymorphFit, LandmarkRig, fit_similarity, format_keymorph_yaml,
-                              parse_keymorph_yaml, project_front, symmetric_pairs)
+                              parse_keymorph_yaml, project_front, symmetric_pairs, antagonist_pairs)
 from stages.keyshapes import inter_ocular_distance
 
 ICT = "data/characters/ict-facekit.glb"
@@ -37,8 +37,9 @@ def actor_frame(points):
     return points @ rot.T * 11.0 + [0.4, -0.2]
 
 
-def keyshapes_from_weights(character, poses, noise=0.0, seed=0):
-    """A keyshapes artifact whose keyshapes are the character's own landmarks under known weights."""
+def keyshapes_from_weights(character, poses, noise=0.0, seed=0, rotations=None):
+    """A keyshapes artifact whose keyshapes are the character's own landmarks under known weights, seen with
+    head rotations (K, 3, 3) if given and similarity-aligned in 2D as the aam aligns tracked shapes."""
     names = character.meta["target_names"]
     truth = np.zeros((len(poses), len(names)))
     for k, (_, pose) in enumerate(poses):
@@ -46,8 +47,13 @@ def keyshapes_from_weights(character, poses, noise=0.0, seed=0):
             truth[k, names.index(name)] = w
     ids = character["landmark_ids"]
     rest = project_front(character["neutral"][ids])
-    deltas = project_front(character["deltas"][:, ids])
-    shapes = actor_frame(rest + np.einsum("km,mpc->kpc", truth, deltas))
+    posed = character["neutral"][ids] + np.einsum("km,mpc->kpc", truth, character["deltas"][:, ids])
+    if rotations is None:
+        seen = project_front(posed)
+    else:
+        seen = np.stack([project_front(p @ r.T) for p, r in zip(posed, rotations)])
+        seen = np.stack([fit_similarity(s, rest).apply(s) for s in seen])
+    shapes = actor_frame(seen)
     shapes += noise * np.random.default_rng(seed).normal(size=shapes.shape) * inter_ocular_distance(shapes[0])
     expression = np.array([LABELS.index(e) for e, _ in poses], np.int32)
     index = np.concatenate([np.arange((expression == s).sum()) for s in range(len(LABELS))]).astype(np.int32)
@@ -55,14 +61,19 @@ def keyshapes_from_weights(character, poses, noise=0.0, seed=0):
         "keyshapes": shapes.astype(np.float32), "keyshape_expression": expression, "keyshape_index": index,
         "keyshape_frame": np.arange(len(poses), dtype=np.int32) * 3,
         "keyshape_axis": (index // 2).astype(np.int32), "keyshape_extreme": np.where(index % 2, -1, 1).astype(np.int8),
-        "rest_shape": actor_frame(rest).astype(np.float32),
+        "rest_shape": actor_frame(rest).astype(np.float32), "rest_frames": np.array([0], np.int32),
     }, meta={"labels": LABELS})
     return view, truth
 
 
-def tracks_for(keyshapes, frames=30, size=96):
-    """A tracking-like artifact: grey crops with a bright disk where each landmark is."""
+def tracks_for(keyshapes, frames=30, size=96, rotations=None):
+    """A tracking-like artifact: grey crops with a bright disk where each landmark is; head rotations."""
+    from stages.rotations import matrix_to_quat
+
     shapes = keyshapes["keyshapes"]
+    rotation = np.tile([1.0, 0.0, 0.0, 0.0], (frames, 1))
+    if rotations is not None:
+        rotation[keyshapes["keyshape_frame"]] = matrix_to_quat(np.asarray(rotations))
     crops = np.full((frames, size, size), 90, np.uint8)
     crop_landmarks = np.zeros((frames, 68, 2), np.float32)
     for k, f in enumerate(keyshapes["keyshape_frame"]):
@@ -71,7 +82,7 @@ def tracks_for(keyshapes, frames=30, size=96):
         crop_landmarks[f] = p
         for q in p:
             cv2.circle(crops[f], (int(q[0]), int(q[1])), 2, 255, -1)
-    return artifact({"crops": crops, "crop_landmarks": crop_landmarks})
+    return artifact({"crops": crops, "crop_landmarks": crop_landmarks, "rotation": rotation})
 
 
 # ------------------------------------------------------------------------------------------------- geometry
@@ -89,6 +100,25 @@ def test_similarity_recovers_a_known_transform():
 def test_symmetric_pairs_in_ict_and_arkit_naming():
     names = ["mouthSmile_L", "jawOpen", "mouthSmile_R", "eyeBlinkLeft", "eyeBlinkRight", "browDown_L"]
     assert sorted(symmetric_pairs(names)) == [(0, 2), (3, 4)]
+
+
+def test_antagonists_pair_on_the_same_side():
+    names = ["browDown_L", "browDown_R", "browInnerUp_L", "browInnerUp_R", "browInnerUp", "browDownLeft", "jawOpen"]
+    pairs = {(names[i], names[j]) for i, j in antagonist_pairs(names, [("browDown", "browInnerUp")])}
+    assert pairs == {("browDown_L", "browInnerUp_L"), ("browDown_R", "browInnerUp_R"), ("browDown_L", "browInnerUp"),
+                     ("browDown_R", "browInnerUp"), ("browDownLeft", "browInnerUp_L"), ("browDownLeft", "browInnerUp")}
+
+
+def test_antagonism_keeps_opposing_targets_apart(character):
+    names = character.meta["target_names"]
+    both = {"browInnerUp_L": 0.6, "browInnerUp_R": 0.6, "browDown_L": 0.35, "browDown_R": 0.35}
+    keyshapes, _ = keyshapes_from_weights(character, [("neutral", {}), ("happy", both), ("angry", {})])
+    weights = {a: run_stage(KeymorphFit, {"contact_sheet": False, "antagonism": a, "l1": 0.0, "l2": 0.0},
+                            {"keyshapes": keyshapes, "character": character}).arrays["keymorph_weights"][1]
+               for a in (0.0, 5.0)}
+    co = {a: w[names.index("browDown_L")] * w[names.index("browInnerUp_L")] for a, w in weights.items()}
+    assert co[0.0] > 0.05  # without the penalty the fit finds the co-activation that made the keyshape
+    assert co[5.0] < 0.3 * co[0.0]
 
 
 # ---------------------------------------------------------------------------------------------- KeymorphFit
@@ -305,6 +335,32 @@ def test_tracking_that_does_not_match_the_keyshapes_is_a_user_error(character):
     with pytest.raises(UserError, match="beyond the 4 frames"):
         run_stage(KeymorphFit, {"tile_size": 32}, {"keyshapes": keyshapes, "character": character,
                                                    "tracks": short})
+
+
+def test_pose_correction_discounts_head_rotation(character):
+    from stages.rotations import euler_to_quat, quat_to_matrix
+
+    poses = [("neutral", {}), ("neutral", {}), ("neutral", {}), ("happy", {"mouthSmile_L": 0.6, "mouthSmile_R": 0.6}),
+             ("angry", {"browDown_L": 0.6, "browDown_R": 0.6})]
+    # nods and turns of 8-12 degrees: the 2D landmarks move as if brows and mouth moved
+    euler = np.radians([[0, 0, 0], [0, 10, 0], [12, -8, 0], [8, 8, 3], [-10, 9, 0]])
+    rotations = quat_to_matrix(euler_to_quat(euler[:, 0], euler[:, 1], euler[:, 2]))
+    keyshapes, truth = keyshapes_from_weights(character, poses, rotations=rotations)
+    tracks = tracks_for(keyshapes, rotations=rotations)
+    inputs = {"keyshapes": keyshapes, "character": character, "tracks": tracks}
+    corrected = run_stage(KeymorphFit, {"contact_sheet": False}, inputs)
+    naive = run_stage(KeymorphFit, {"contact_sheet": False, "pose_correction": False}, inputs)
+    assert corrected.meta["pose_correction"] == "applied"
+    assert naive.meta["pose_correction"].startswith("off")
+    wc, wn = corrected.arrays["keymorph_weights"], naive.arrays["keymorph_weights"]
+    # head rotation alone: no expression once the pose is discounted, spurious targets without
+    assert wc[1:3].sum() < 0.1 and wn[1:3].sum() > 3 * max(wc[1:3].sum(), 0.05)
+    assert np.abs(wc - truth).sum() < 0.6 * np.abs(wn - truth).sum()
+    # what remains is the small interaction of rotation and expression (deltas are fitted unrotated)
+    assert corrected.metrics["landmark_error_rms_iod"] < 0.01
+    assert corrected.metrics["pose_effect_rms_iod"] > 0.01
+    no_tracks = run_stage(KeymorphFit, {"contact_sheet": False}, {"keyshapes": keyshapes, "character": character})
+    assert no_tracks.meta["pose_correction"].startswith("not applied")
 
 
 def test_rig_maps_keyshapes_into_character_units(character):

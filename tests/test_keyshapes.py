@@ -99,7 +99,12 @@ def test_odd_k_takes_the_maximum_of_the_last_axis_only_and_k_caps_the_count():
     assert list(select_keyshapes(shapes, 3, dedupe_threshold=0.0).axes) == [0, 0, 1]
     assert len(select_keyshapes(shapes, 1, dedupe_threshold=0.0).frames) == 1
     # only 3 axes carry variance: asking for 20 gives at most 6 (noise-free data has rank 3)
-    assert len(select_keyshapes(shapes, 20, dedupe_threshold=0.0).frames) == 6
+    many = select_keyshapes(shapes, 20, dedupe_threshold=0.0)
+    assert 3 <= len(many.frames) <= 6
+    # a frame that is the extreme of two axes is kept once, whatever the threshold
+    assert len(set(many.frames)) == len(many.frames)
+    assert len(many.frames) + len(many.dropped) == 6
+    assert all(d["frame"] == d["duplicate_of"] for d in many.dropped)
 
 
 def test_duplicate_extreme_is_dropped_from_the_lower_variance_axis():
@@ -194,6 +199,9 @@ def test_stage_outputs_follow_the_schema(synthetic_run):
     for s in range(3):
         np.testing.assert_array_equal(a["keyshape_index"][a["keyshape_expression"] == s], np.arange(counts[s]))
     assert out.meta["keyshape_ids"][0] == "neutral/0"
+    # the rest pose: closed-mouth frames of the neutral take
+    assert np.all(sequence[a["rest_frames"]] == 0)
+    np.testing.assert_allclose(a["rest_shape"], shapes[a["rest_frames"]].mean(axis=0), atol=1e-5)
     assert a["weights"].min() >= 0
 
 
