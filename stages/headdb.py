@@ -75,9 +75,11 @@ def check_lengths(rec: Recording, max_mismatch: float) -> None:
 
 def resample_motion(time: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
                     fps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Slerp rotations and interpolate translations onto k / fps, k = 0 .. the last frame's time."""
+    """Slerp rotations and interpolate translations onto k / fps, k = 0 .. the last frame's time, give or take a
+    tenth of a frame: container timestamps are rounded (to milliseconds in FLV), and the same rate must keep every
+    frame."""
     t = time - time[0]
-    n = int(np.floor(t[-1] * fps + 1e-6)) + 1
+    n = int(np.floor(t[-1] * fps + 0.1)) + 1
     grid = np.arange(n) / fps
     rot = quat_resample(t, rotation, grid)
     trans = np.stack([np.interp(grid, t, translation[:, k]) for k in range(3)], axis=1)

@@ -297,10 +297,13 @@ def search_utterance(test: SegmentTable, test_features: np.ndarray, db: Database
                         repeat, distance, selected, dist)
 
 
-def reference_medians(view, labels: list[str]) -> np.ndarray:
+def reference_medians(view, fallback: float | None = None) -> np.ndarray:
+    """Speaker median f0 per utterance; silent utterances (no median) take the others' or ``fallback``."""
     median = np.asarray(view["speaker_median"], dtype=np.float64)
     if not np.isfinite(median).any():
-        raise UserError("no voiced speech anywhere in this pitch artifact", field="inputs")
+        if fallback is None:
+            raise UserError("no voiced speech anywhere in the database's pitch", field="inputs.database_pitch")
+        return np.full_like(median, fallback)
     return np.where(np.isfinite(median), median, np.nanmedian(median))
 
 
@@ -312,7 +315,7 @@ def build_database(db_view, db_pitch, *, unit: str, length: int | None, window: 
         raise UserError("database_pitch was not computed from this database (its labels differ: "
                         f"{pitch_labels[:4]}... vs {labels[:4]}...); run pitch on the headdb artifact",
                         field="inputs.database_pitch")
-    medians = reference_medians(db_pitch, labels)
+    medians = reference_medians(db_pitch)
     step = float(db_pitch.meta.get("time_step", 0.01))
     segs = np.asarray(db_pitch["segments"]).reshape(-1, 3)
     if length is None:
@@ -443,7 +446,7 @@ class Trellis(Stage):
 
 def references_of_test(test_view, db: Database, test_speaker: str) -> tuple[np.ndarray, np.ndarray]:
     """Semitone reference per test utterance and the shift of its level phrase features (semitones)."""
-    own = reference_medians(test_view, list(test_view.meta.get("labels") or []))
+    own = reference_medians(test_view, fallback=db.median_hz)
     if test_speaker == "database":
         return np.full_like(own, db.median_hz), semitones(own, db.median_hz)
     return own, np.zeros_like(own)

@@ -1,0 +1,246 @@
+"""Pitch matching and Viterbi path search (paper Sec. 5.2-5.3, Eq. 10-15)."""
+import itertools
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from head_synthetic import synth_database, tracking_artifact
+from msflow import UserError
+from msflow.testing import artifact, run_stage
+from stages.headdb import TrackedHeadDb
+from stages.pitch import Pitch
+from stages.trellis import (Database, SegmentTable, Trellis, contour_geometry, references_of_test,
+                            segment_distances, smoothness_weights, transition_costs, viterbi)
+
+
+@pytest.fixture(scope="module")
+def phrases():
+    return synth_database(24, seed=7)
+
+
+@pytest.fixture(scope="module")
+def database(phrases):
+    headdb = run_stage(TrackedHeadDb, {}, {"tracks": tracking_artifact(phrases)})
+    return headdb, run_stage(Pitch, {}, {"source": headdb})
+
+
+@pytest.fixture(scope="module")
+def plain_database(phrases):
+    headdb = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": tracking_artifact(phrases)})
+    return headdb, run_stage(Pitch, {}, {"source": headdb})
+
+
+@pytest.fixture(scope="module")
+def test_pitch(phrases):
+    return run_stage(Pitch, {}, {"source": tracking_artifact(phrases[:8])})
+
+
+def search(db, test, **params):
+    return run_stage(Trellis, params, {"database": db[0], "database_pitch": db[1], "test_pitch": test})
+
+
+# ------------------------------------------------------------------------------------------- pure maths
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 5), st.integers(1, 4), st.integers(0, 10_000))
+def test_viterbi_finds_the_cheapest_path(n, k, seed):
+    rng = np.random.default_rng(seed)
+    node = rng.uniform(0, 3, (n, k))
+    trans = rng.uniform(0, 3, (max(n - 1, 0), k, k))
+    path, cost = viterbi(node, trans)
+
+    def total(p):
+        return node[np.arange(n), p].sum() + sum(trans[t, p[t], p[t + 1]] for t in range(n - 1))
+
+    best = min(total(np.array(p)) for p in itertools.product(range(k), repeat=n))
+    assert cost == pytest.approx(best) and total(path) == pytest.approx(best)
+
+
+def test_repeat_cost_values():
+    """R = 0 for database-consecutive segments, 2 for the same segment, 1 otherwise (Eq. 14)."""
+    utterance = np.array([0, 0, 0, 1, 1])
+    position = np.array([0, 1, 2, 0, 1])
+    kin = np.zeros((5, 3, 3))
+    h, r = transition_costs(np.array([1]), np.array([2, 1, 3, 0, 4]), kin, kin, utterance, position,
+                            np.ones(3), 1.0, 1.0)
+    # from take 0's segment 1: its successor (R 0), itself (R 2), segments of the other take or earlier (R 1)
+    np.testing.assert_array_equal(r[0], [0.0, 2.0, 1.0, 1.0, 1.0])
+    assert h.shape == (1, 5)
+
+
+def test_smoothness_terms_each_average_a_third():
+    rng = np.random.default_rng(0)
+    start = rng.normal(size=(30, 3, 3)) * np.array([1.0, 10.0, 100.0])[None, :, None]
+    end = rng.normal(size=(30, 3, 3)) * np.array([1.0, 10.0, 100.0])[None, :, None] + 0.5
+    w = smoothness_weights(start, end)
+    for k in range(3):
+        pairs = ((end[:, None, k, :] - start[None, :, k, :]) ** 2).sum(-1)
+        assert w[k] * pairs.mean() == pytest.approx(1 / 3)
+
+
+def table(contours, lengths, voiced=None):
+    contours = np.asarray(contours, dtype=float)
+    n = len(contours)
+    lengths = np.asarray(lengths, dtype=float)
+    voiced = lengths * 0.6 if voiced is None else np.asarray(voiced, dtype=float)
+    times = np.stack([np.zeros(n), voiced, lengths], axis=1)
+    return SegmentTable(times, np.arange(n), np.zeros(n, int), np.ones(n, bool), contours,
+                        contour_geometry(contours, voiced))
+
+
+def test_segment_distance_terms():
+    base = np.sin(np.linspace(0, 3, 20)) * 2
+    test = table([base], [0.4])
+    db = table([base, base + 1.5, base], [0.4, 0.4, 0.6])
+    d = segment_distances(test, db, np.arange(3), b=0.05, c=0.3, geometry_mean=np.zeros(6),
+                          geometry_sd=np.ones(6))
+    assert d.total[0, 0] == pytest.approx(0.0, abs=1e-9)
+    assert d.pitch[0, 1] == pytest.approx(1.5)             # Eq. 10: RMS of a constant offset
+    assert d.length[0, 2] == pytest.approx(0.5)            # Eq. 11: |0.6 - 0.4| / 0.4
+    assert d.pitch[0, 2] == pytest.approx(0.0, abs=1e-9)
+    # Eq. 12 weights
+    expected = 0.05 * d.geometry[0, 1] + 0.3 * 1.5 + 0.65 * 0.0
+    assert d.total[0, 1] == pytest.approx(expected)
+    # G_d sees the offset in min and max
+    assert d.geometry[0, 1] == pytest.approx(np.sqrt((1.5 ** 2 * 2) / 6))
+
+
+def test_contour_geometry_of_lines_and_parabolas():
+    u = np.linspace(0, 0.5, 11)
+    g = contour_geometry(np.stack([3 * u, 4 * (u - 0.25) ** 2]), np.array([0.5, 0.5]))
+    names = ["min", "max", "range", "min_slope", "max_slope", "curvature"]
+    line, parabola = dict(zip(names, g[0])), dict(zip(names, g[1]))
+    assert line["min_slope"] == pytest.approx(3) and line["max_slope"] == pytest.approx(3)
+    assert line["curvature"] == pytest.approx(0, abs=1e-9) and line["range"] == pytest.approx(1.5)
+    assert parabola["curvature"] == pytest.approx(8.0)
+
+
+def test_test_speaker_reference():
+    db = Database(None, None, None, None, None, [], [], [], median_hz=100.0)
+    view = artifact({"speaker_median": np.array([200.0])}, {"labels": ["t"]})
+    own, shift_own = references_of_test(view, db, "own")
+    same, shift_same = references_of_test(view, db, "database")
+    assert own[0] == 200.0 and shift_own[0] == 0.0
+    assert same[0] == 100.0 and shift_same[0] == pytest.approx(12.0)
+
+
+# ---------------------------------------------------------------------------------------- the stage
+
+def test_an_utterance_in_the_database_finds_itself(phrases, plain_database, test_pitch):
+    run = search(plain_database, test_pitch)
+    db_labels = run.meta["db_labels"]
+    for u, phrase in enumerate(phrases[:8]):
+        rows = run.arrays["segment_utterance"] == u
+        chosen = run.arrays["chosen"][rows]
+        sequences = run.arrays["db_segment_sequence"][chosen]
+        assert {db_labels[s] for s in sequences} == {phrase.label}
+        np.testing.assert_array_equal(run.arrays["db_segment_position"][chosen], np.arange(rows.sum()))
+        np.testing.assert_allclose(run.arrays["node_cost"][rows], 0.0, atol=1e-6)
+        np.testing.assert_allclose(run.arrays["transition_cost"][rows], 0.0, atol=1e-6)
+    assert run.metrics["consecutive_fraction"] == 1.0 and run.metrics["total_cost"] < 1e-4
+
+
+def test_leave_one_out_never_uses_the_held_out_recording(phrases, database, test_pitch):
+    run = search(database, test_pitch, exclude_source=True)
+    db_labels = run.meta["db_labels"]
+    for u, phrase in enumerate(phrases[:8]):
+        rows = run.arrays["segment_utterance"] == u
+        used = {db_labels[s] for s in run.arrays["db_segment_sequence"][run.arrays["candidates"][rows].ravel()]}
+        assert phrase.label not in used and f"{phrase.label}~mirror" not in used
+        assert run.meta["excluded"][u] == [phrase.label, f"{phrase.label}~mirror"]
+        excluded = [db_labels.index(x) for x in run.meta["excluded"][u]]
+        assert np.isnan(run.arrays["phrase_distance"][u, excluded]).all()
+        assert not run.arrays["phrase_selected"][u, excluded].any()
+
+
+def test_phrase_stage_prefers_the_same_speaking_style(phrases, database, test_pitch):
+    run = search(database, test_pitch, exclude_source=True, top_m=6)
+    styles = [phrases[int(label.split("_")[0][1:])].style for label in run.meta["db_labels"]]
+    hits = []
+    for u, phrase in enumerate(phrases[:8]):
+        order = np.argsort(np.nan_to_num(run.arrays["phrase_distance"][u], nan=np.inf))[:6]
+        hits.append(np.mean([styles[i] == phrase.style for i in order]))
+    assert np.mean(hits) > 0.6      # chance is 0.25 with four styles
+
+
+def test_candidates_are_the_k_best_and_sorted(database, test_pitch):
+    run = search(database, test_pitch, k=7, exclude_source=True)
+    cost = run.arrays["candidate_cost"]
+    assert cost.shape[1] == 7 and np.all(np.diff(cost, axis=1) >= 0)
+    np.testing.assert_array_equal(run.arrays["candidates"][np.arange(len(cost)), run.arrays["chosen_rank"]],
+                                  run.arrays["chosen"])
+    np.testing.assert_allclose(run.arrays["node_cost"], cost[np.arange(len(cost)), run.arrays["chosen_rank"]])
+
+
+def test_sub_sentences_are_searched_separately(database, test_pitch):
+    run = search(database, test_pitch, exclude_source=True)
+    sub = run.arrays["subsentence_start"]
+    assert sub.sum() >= 16       # two or three sentences per phrase
+    np.testing.assert_array_equal(run.arrays["transition_cost"][sub], 0.0)
+    joins = ~sub
+    np.testing.assert_allclose(run.arrays["transition_cost"][joins],
+                               run.arrays["transition_smoothness"][joins] + run.arrays["transition_repeat"][joins])
+    # the search beats taking every segment's best match, in total cost per sub-sentence
+    greedy = run_stage(Trellis, {"exclude_source": True, "w1": 0.0, "w2": 0.0},
+                       {"database": database[0], "database_pitch": database[1], "test_pitch": test_pitch})
+    assert greedy.arrays["chosen_rank"].max() == 0
+    assert run.metrics["mean_transition_cost"] < 0.8 * np.mean(
+        _transition_costs_of(run, greedy.arrays["chosen"], database))
+
+
+def _transition_costs_of(run, chosen, database):
+    """C of a given path under the run's weights (for comparing paths)."""
+    from stages.trellis import build_database
+
+    db, _ = build_database(database[0].view(), database[1].view(), unit="semitones", length=None, window=0.1)
+    sub = run.arrays["subsentence_start"]
+    h, r = transition_costs(chosen[:-1][None], chosen[1:][None], db.end, db.start, db.segments.utterance,
+                            db.segments.position, db.weights, 1.0, 1.0)
+    steps = np.arange(len(chosen) - 1)
+    total = h[0][steps, steps] + r[0][steps, steps]
+    return total[~sub[1:]]
+
+
+def test_top_m_grows_until_it_holds_k_segments(database, test_pitch):
+    run = search(database, test_pitch, top_m=1, k=40, exclude_source=True)
+    assert all(m > 1 for m in run.meta["phrases_searched"])
+    assert run.arrays["candidates"].shape[1] == 40
+
+
+def test_hz_unit_and_own_reference_run(database, test_pitch):
+    hz = search(database, test_pitch, unit="hz", exclude_source=True)
+    own = search(database, test_pitch, test_speaker="own", exclude_source=True)
+    assert hz.meta["unit"] == "hz" and own.meta["test_speaker"] == "own"
+    assert len(hz.arrays["chosen"]) == len(own.arrays["chosen"])
+
+
+def test_fewer_segments_than_k_is_an_error(database, test_pitch):
+    with pytest.raises(UserError) as err:
+        search(database, test_pitch, k=100_000)
+    assert "fewer than k" in str(err.value) and err.value.field == "params.k"
+
+
+def test_exclusions_by_label(database, test_pitch):
+    run = search(database, test_pitch, exclude_labels=[database[0].meta["labels"][0]])
+    assert all(database[0].meta["labels"][0] in ex for ex in run.meta["excluded"])
+    with pytest.raises(UserError, match="exclude_labels"):
+        search(database, test_pitch, exclude_labels=["nobody"])
+
+
+def test_database_pitch_must_match_the_database(database, plain_database, test_pitch):
+    with pytest.raises(UserError, match="database_pitch"):
+        run_stage(Trellis, {}, {"database": database[0], "database_pitch": plain_database[1],
+                                "test_pitch": test_pitch})
+
+
+def test_bad_weights(database, test_pitch):
+    with pytest.raises(UserError):
+        search(database, test_pitch, b=0.8, c=0.4)
+
+
+def test_trellis_figure_renders(database, test_pitch):
+    run = search(database, test_pitch, exclude_source=True)
+    fig = Trellis.figures["trellis"](run.view(), {})
+    assert fig.axes[0].get_xlabel() == "test segment"
