@@ -225,6 +225,16 @@ def solve_box_qp(H: np.ndarray, F: np.ndarray, *, lower: float = 0.0, upper: flo
     return W, it, residual
 
 
+def support_guess(Q: np.ndarray, C: np.ndarray) -> np.ndarray | None:
+    """Where the unconstrained least-squares weights are positive: a guess of the NNLS support that saves
+    most active-set iterations. None when A lacks full column rank (a guessed set could then be dependent and
+    its restricted system singular)."""
+    eigenvalues = np.linalg.eigvalsh(Q)
+    if eigenvalues.size == 0 or eigenvalues[0] <= 1e-10 * eigenvalues[-1]:
+        return None
+    return C @ np.linalg.inv(Q) > 0
+
+
 def batched_nnls(A: np.ndarray, X: np.ndarray, *, method: str = "active_set", sum_to_one: float = 0.0,
                  smoothing: float = 0.0, rtol: float | None = None, max_iter: int | None = None) -> NnlsResult:
     """Non-negative weights w_t minimising ``||A w_t - x_t||^2`` for every row x_t of X (paper Eq 8).
@@ -253,11 +263,16 @@ def batched_nnls(A: np.ndarray, X: np.ndarray, *, method: str = "active_set", su
     Q = A_fit.T @ A_fit
     C = X_fit @ A_fit
     x_norms = np.linalg.norm(X_fit, axis=1)
-    # support guess for the active set: where the unconstrained least-squares weights are positive
-    guess = C @ np.linalg.pinv(Q, rcond=1e-12, hermitian=True) > 0
+    guess = support_guess(Q, C)
     if method == "active_set" and smoothing <= 0:
         W, iterations, converged = nnls_active_set(Q, C, x_norms, rtol=rtol or 1e-10, max_iter=max_iter,
                                                    initial_passive=guess)
+        if guess is not None:
+            # a warm start is only a shortcut: frames it left short of optimal start again from scratch
+            retry = ~converged | (kkt_violation(A_fit, X_fit, W) > 1e-6)
+            if retry.any():
+                W[retry], iterations[retry], converged[retry] = nnls_active_set(
+                    Q, C[retry], x_norms[retry], rtol=rtol or 1e-10, max_iter=max_iter)
     else:
         W0 = None
         if smoothing > 0 or method == "active_set":
