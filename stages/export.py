@@ -228,8 +228,12 @@ def encode_mp4(frames, fps: float, size: tuple[int, int], *, audio: np.ndarray |
         if audio is not None and len(audio):
             astream = container.add_stream("aac", rate=int(audio_rate))
             astream.layout = "mono"
-        for rgb in frames:
+        for index, rgb in enumerate(frames):
             frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
+            # explicit timestamps: without them x264's rate control sees undefined frame times and the output
+            # varies from run to run
+            frame.pts = index
+            frame.time_base = 1 / rate
             for packet in video.encode(frame):
                 container.mux(packet)
         for packet in video.encode(None):

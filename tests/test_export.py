@@ -355,6 +355,6 @@ def test_exports_are_byte_identical_from_run_to_run(character):
     """Same inputs, same bytes (GLB, CSV, MP4, BVH): content-addressed caching and diffing rely on it."""
     inputs = {"character": character.view(), "blend": make_blend(12), "head": make_head(12),
               "audio": make_audio(offset=0.1)}
-    first, second = (run_stage(Export, {"sequence": "beep", "video_size": 96}, inputs) for _ in range(2))
+    first, second = (run_stage(Export, {"sequence": "beep", "video_size": 128}, inputs) for _ in range(2))
     for name in ("animation", "live_link", "preview", "head_bvh"):
         assert np.array_equal(first.arrays[name], second.arrays[name]), name
