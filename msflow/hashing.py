@@ -60,6 +60,16 @@ class FileHashMemo:
         self.dirty = False
 
     def hash(self, path: Path) -> str:
+        """Content hash of a file, or of a folder (its files' relative paths and hashes, hidden ones skipped)."""
+        if os.path.isdir(path):
+            entries = {}
+            for dirpath, dirnames, files in os.walk(path):
+                dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
+                for name in sorted(files):
+                    if not name.startswith("."):
+                        full = os.path.join(dirpath, name)
+                        entries[os.path.relpath(full, path).replace(os.sep, "/")] = self.hash(Path(full))
+            return json_hash({"folder": entries})
         key = str(path)
         sig = stat_signature(path)
         hit = self.entries.get(key)

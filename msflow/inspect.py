@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from msflow.api import Session
 from msflow.errors import UserError
 from msflow.hashing import FileHashMemo, json_hash
-from msflow.runner import StageState, input_parts, key_parts
+from msflow.runner import StageState, input_parts, key_parts, resource_hashes
 from msflow.spec import topological_order
 
 
@@ -56,7 +56,7 @@ def dry_run(session: Session) -> dict[str, DryState]:
             states[name] = StageState(name, state="pending")
             continue
         parts, _, provenance = input_parts(pipeline, name, states, memo, plan.interface)
-        full = key_parts(plan, parts)
+        full = key_parts(plan, parts, resource_hashes(plan, pipeline.root, memo))
         key = json_hash(full)
         state = StageState(name, key=key, parts=full, inputs=provenance)
         if store.has(key):
@@ -98,6 +98,9 @@ def explain(old: dict, new: dict, provenance: dict | None = None) -> list[str]:
     if old_code.get("python") != new_code.get("python"):
         reasons.append(f"python {old_code.get('python')} -> {new_code.get('python')}")
     reasons += [f"param {p}" for p in _diff_values(old.get("params") or {}, new.get("params") or {})]
+    old_r, new_r = old.get("resources") or {}, new.get("resources") or {}
+    reasons += [f"data file of the stage's code changed: resource {r}" for r in sorted(set(old_r) | set(new_r))
+                if old_r.get(r) != new_r.get(r) and new.get("inputs") is not None]
     if new.get("inputs") is not None:
         old_in, new_in = old.get("inputs") or {}, new.get("inputs") or {}
         for name in sorted(set(old_in) | set(new_in)):

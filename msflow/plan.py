@@ -8,12 +8,13 @@ from __future__ import annotations
 import importlib
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from msflow.errors import UserError
 from msflow.fingerprint import CodeIndex, defined_names, distribution_versions
 from msflow.hashing import json_hash
-from msflow.spec import FilesRef, Pipeline, StageRef, _suggest
+from msflow.spec import FilesRef, Pipeline, StageRef, _suggest, rel_to
 
 PYTHON = f"{sys.version_info.major}.{sys.version_info.minor}"
 
@@ -182,7 +183,13 @@ def resolve(pipeline: Pipeline, memo: dict) -> dict[str, StagePlan]:
         if interface is None:
             cls = import_stage_class(node.uses, file=file, stage=name, root=pipeline.root)
             interface = cls.interface()
+            interface["resources"] = {k: rel_to(Path(v), pipeline.root)
+                                      for k, v in interface.get("resources", {}).items()}
             interfaces[iface_key] = interface
+        for resource, path in interface.get("resources", {}).items():
+            if not (pipeline.root / path).exists():
+                raise UserError(f"{node.uses} needs its data file '{path}' (resource '{resource}'), which is "
+                                "missing", file=file, stage=name, field="uses")
         params_key = json_hash([iface_key, node.params])
         params = params_memo.get(params_key)
         if params is None:

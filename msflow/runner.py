@@ -103,8 +103,16 @@ def input_parts(pipeline: Pipeline, name: str, states: dict[str, StageState], fi
     return parts, job, provenance
 
 
-def key_parts(plan: StagePlan, inputs: dict) -> dict:
-    return {"scheme": KEY_SCHEME, "class": plan.uses, "code": plan.code, "params": plan.params, "inputs": inputs}
+def resource_hashes(plan: StagePlan, root, file_memo: FileHashMemo) -> dict:
+    """Content hashes of the data files a stage's code reads by default (Stage.resources)."""
+    return {name: file_memo.hash(root / path) for name, path in plan.interface.get("resources", {}).items()}
+
+
+def key_parts(plan: StagePlan, inputs: dict, resources: dict | None = None) -> dict:
+    parts = {"scheme": KEY_SCHEME, "class": plan.uses, "code": plan.code, "params": plan.params, "inputs": inputs}
+    if resources:
+        parts["resources"] = resources
+    return parts
 
 
 class Runner:
@@ -136,7 +144,7 @@ class Runner:
         plan = self.plans[name]
         parts, job_inputs, provenance = input_parts(self.pipeline, name, self.states, self.file_memo,
                                                     plan.interface)
-        state.parts = key_parts(plan, parts)
+        state.parts = key_parts(plan, parts, resource_hashes(plan, self.pipeline.root, self.file_memo))
         state.key = json_hash(state.parts)
         state.inputs = provenance
         if name not in self.force and self.store.has(state.key):

@@ -330,7 +330,7 @@ def parse_ref(ref: Any, base: Path, root: Path, file: str, stage: str, where: st
                 raise UserError("the path must be a non-empty string", file=file, stage=stage, field=where)
             if "glob" in ref or GLOB_CHARS & set(pattern):
                 matches = sorted(globlib.glob(str(base / pattern), recursive=True))
-                matches = [m for m in matches if Path(m).is_file()]
+                matches = [m for m in matches if Path(m).is_file() or Path(m).is_dir()]
                 if not matches:
                     raise UserError(f"the glob '{pattern}' matches no files", file=file, stage=stage, field=where)
                 return FilesRef(tuple((rel_to(Path(m), root), m) for m in matches), "glob")
@@ -350,8 +350,8 @@ def _existing_file(base: Path, value: str, file: str, stage: str, where: str) ->
     target = (base / value).resolve()
     if not target.exists():
         raise UserError(f"data file not found: {value}", file=file, stage=stage, field=where)
-    if not target.is_file():
-        raise UserError(f"not a file: {value}", file=file, stage=stage, field=where)
+    if not (target.is_file() or target.is_dir()):
+        raise UserError(f"not a file or folder: {value}", file=file, stage=stage, field=where)
     return str(target)
 
 

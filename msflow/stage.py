@@ -127,6 +127,9 @@ class Stage:
     #: figures for the run report: name -> function(view: ArtifactView, inputs: dict) returning a matplotlib
     #: Figure, PNG bytes or MP4 bytes; rendered from artifacts at report time (import matplotlib inside).
     figures: ClassVar[Mapping[str, Callable[..., Any]]] = {}
+    #: data files or folders the stage's code reads by default (models, reference meshes): name -> path. They
+    #: are hashed by content into the cache key like inputs, so replacing a model file reruns the stage.
+    resources: ClassVar[Mapping[str, Any]] = {}
 
     def __init__(self, name: str = ""):
         self.name = name or type(self).__name__
@@ -137,8 +140,11 @@ class Stage:
     @classmethod
     def interface(cls) -> dict:
         """JSON description of inputs and outputs, used to check a pipeline without importing the stage."""
+        from pathlib import Path
+
         return {"inputs": {k: v.describe() for k, v in cls.inputs.items()},
-                "outputs": {k: v.describe() for k, v in cls.outputs.items()}}
+                "outputs": {k: v.describe() for k, v in cls.outputs.items()},
+                "resources": {k: str(Path(v).resolve()) for k, v in cls.resources.items()}}
 
 
 def to_strict_json(value: Any, where: str) -> Any:

@@ -161,3 +161,28 @@ def test_run_record_and_lock_file(numproject, log):
     before = (numproject / "pipeline.lock").stat().st_mtime_ns
     run(numproject, "scaled.factor=4")
     assert (numproject / "pipeline.lock").stat().st_mtime_ns == before  # unchanged state: not rewritten
+
+
+def test_stage_resource_files_are_part_of_the_key(numproject, log):
+    pipeline = numproject / "resources.yaml"
+    first = msflow.run(pipeline)
+    assert list(first.load("ref.v")) == [10.0, 20.0, 30.0]
+    ref = numproject / "data" / "reference.txt"
+    os.utime(ref, ns=(10**18, 10**18))
+    assert msflow.run(pipeline).executed == []
+    ref.write_text("1 2\n")
+    from conftest import run_cli
+
+    assert "data file of the stage's code changed: resource ref" in run_cli(numproject, "why", "ref",
+                                                                          "resources.yaml").stdout
+    again = msflow.run(pipeline)
+    assert again.executed == ["ref"] and list(again.load("ref.v")) == [1.0, 2.0]
+
+
+def test_folder_inputs_are_hashed_by_their_files(numproject, log):
+    pipeline = numproject / "resources.yaml"
+    assert msflow.run(pipeline).load("folder.total") == 6.0
+    assert msflow.run(pipeline).executed == []
+    (numproject / "data" / "parts" / "c.txt").write_text("4\n")
+    result = msflow.run(pipeline)
+    assert result.executed == ["folder"] and result.load("folder.total") == 10.0

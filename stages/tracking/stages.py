@@ -26,6 +26,10 @@ VIDEOS_DOC = "labelled videos (label -> file); any container/codec FFmpeg reads"
 FACE3D_DOC = "optional 3D face for head pose: a JSON file with 'neutral' (68, 3) like data/face3d"
 MODELS_DOC = "optional MediaPipe models: labels 'detector' and 'landmarks' (.tflite); default data/models"
 
+# default data files the stages read when no input overrides them: hashed into the cache key
+DEFAULT_FACE3D_FILE = Path(__file__).resolve().parents[2] / "data" / "face3d" / "ict_landmarks68.json"
+MESH_RESOURCES = {"detector": DETECTOR_MODEL, "landmarks": LANDMARK_MODEL, "face3d": DEFAULT_FACE3D_FILE}
+
 
 def model_paths(models: dict | None) -> tuple[Path, Path]:
     models = dict(models or {})
@@ -91,6 +95,7 @@ class FaceMesh(Stage):
     inputs = {"videos": Input.files(doc=VIDEOS_DOC), "face3d": Input.files(optional=True, doc=FACE3D_DOC),
               "models": Input.files(optional=True, doc=MODELS_DOC)}
     outputs = TRACKING_OUTPUTS
+    resources = MESH_RESOURCES
     figures = FIGURES
 
     def run(self, params: FaceMeshParams, inputs: dict) -> Result:
@@ -202,6 +207,7 @@ class OpticalFlow(Stage):
               "face3d": Input.files(optional=True, doc=FACE3D_DOC),
               "models": Input.files(optional=True, doc=MODELS_DOC)}
     outputs = TRACKING_OUTPUTS
+    resources = MESH_RESOURCES
     figures = FIGURES
 
     def run(self, params: OpticalFlowParams, inputs: dict) -> Result:
@@ -294,6 +300,7 @@ class TrackFile(Stage):
               "videos": Input.files(optional=True, doc="the tracked videos, same labels: crops, timing, audio"),
               "face3d": Input.files(optional=True, doc=FACE3D_DOC)}
     outputs = TRACKING_OUTPUTS
+    resources = {"face3d": DEFAULT_FACE3D_FILE}
     figures = FIGURES
 
     def run(self, params: TrackFileParams, inputs: dict) -> Result:

@@ -102,3 +102,27 @@ class Broken(Stage):
 
 class NotAStage:
     pass
+
+
+class Reference(Stage):
+    """Reads a data file its code depends on (a resource), not an input."""
+
+    resources = {"ref": __import__("pathlib").Path(__file__).resolve().parents[1] / "data" / "reference.txt"}
+    outputs = {"v": Output.array("f", ndim=1)}
+
+    def run(self, params, inputs):
+        log_execution(self.name)
+        return Result({"v": np.loadtxt(self.resources["ref"], ndmin=1)})
+
+
+class LoadFolder(Stage):
+    """Sums the numbers in every file of a folder input."""
+
+    inputs = {"folder": Input.files()}
+    outputs = {"total": Output.array("f", shape=())}
+
+    def run(self, params, inputs):
+        log_execution(self.name)
+        (folder,) = inputs["folder"].values()
+        files = sorted(p for p in folder.iterdir() if p.is_file())
+        return Result({"total": np.array(sum(np.loadtxt(p, ndmin=1).sum() for p in files))})
