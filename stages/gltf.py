@@ -26,6 +26,8 @@ COMPONENT_DTYPES = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint
 TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
 MODE_TRIANGLES, MODE_TRIANGLE_STRIP, MODE_TRIANGLE_FAN = 4, 5, 6
+#: required extensions that need nothing beyond this reader (quantized accessors are plain accessors + node scale)
+SUPPORTED_REQUIRED_EXTENSIONS = {"KHR_mesh_quantization", "KHR_materials_unlit", "KHR_texture_transform"}
 #: morph deltas smaller than this (scene units, metres) are not stored: 10 micrometres is far below visibility
 DEFAULT_SPARSE_TOLERANCE = 1e-5
 
@@ -235,6 +237,10 @@ def read_morph_mesh(path: str | Path, mesh_name: str | None = None) -> MorphMesh
     """
     path = Path(path)
     gltf = _load_gltf(path)
+    unsupported = sorted(set(gltf.extensionsRequired or []) - SUPPORTED_REQUIRED_EXTENSIONS)
+    if unsupported:
+        raise UserError(f"the file requires glTF extensions this reader does not decode: {unsupported} (e.g. "
+                        f"Draco or meshopt compression); export it again without them", file=str(path))
     meshes = gltf.meshes or []
     with_targets = [i for i, m in enumerate(meshes) if any(p.targets for p in m.primitives)]
     if mesh_name is not None:

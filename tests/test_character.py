@@ -273,6 +273,17 @@ def test_character_without_morph_targets_is_a_user_error(tmp_path):
         run_stage(GltfCharacter, {}, {"mesh": gltf_without_targets(tmp_path)})
 
 
+def test_compressed_gltf_is_refused_clearly(tmp_path):
+    import pygltflib
+
+    path = gltf_without_targets(tmp_path)
+    gltf = pygltflib.GLTF2().load(str(path))
+    gltf.extensionsUsed = gltf.extensionsRequired = ["KHR_draco_mesh_compression"]
+    path.write_bytes(b"".join(gltf.save_to_bytes()))
+    with pytest.raises(UserError, match="KHR_draco_mesh_compression"):
+        run_stage(GltfCharacter, {}, {"mesh": path})
+
+
 def test_broken_and_wrong_files_are_user_errors(tmp_path):
     (tmp_path / "broken.glb").write_bytes(b"glTF\x02\x00\x00\x00garbage")
     with pytest.raises(UserError):
