@@ -30,7 +30,6 @@ from pydantic import BaseModel, ConfigDict, Field
 from msflow import Input, Output, Result, Stage, UserError
 from stages.aam import AamModel, apply_similarity, check_landmark_scheme, check_landmarks
 from stages.bilinear import BilinearModel, synthesise, synthesise_grid
-from stages.warp import fill_outside
 
 # ----------------------------------------------------------------------------------------------- analysis
 
@@ -331,13 +330,11 @@ def edited_crops(model: AamModel, y: np.ndarray, crops: np.ndarray, crop_similar
 
     shapes, textures = model.reconstruct(y)
     crop_shapes = apply_similarity(shapes, crop_similarity)
-    images = model.texture_images(textures, texture_offset, texture_scale)
-    mask = model.warp.pixels.mask
+    images = model.warp.fill_outside(model.texture_images(textures, texture_offset, texture_scale))
     h, w = crops.shape[1:]
     out = np.empty_like(crops)
     for f in range(len(y)):
-        texture = fill_outside(images[f], mask)
-        drawn, covered = model.warp.draw_on_shape(texture, crop_shapes[f], (w, h))
+        drawn, covered = model.warp.draw_on_shape(images[f], crop_shapes[f], (w, h))
         alpha = covered.astype(np.float32)
         if feather > 0:
             alpha = cv2.GaussianBlur(cv2.erode(alpha, np.ones((3, 3), np.uint8)), (0, 0), feather)

@@ -80,15 +80,18 @@ def rasterise_triangles(points: np.ndarray, triangles: np.ndarray, size: tuple[i
 class PixelTriangles:
     """Pixels of an image covered by a triangulated shape: where they are and how they weigh the shape's points.
 
-    ``weights`` (P, n_points) holds the three barycentric coordinates of each pixel in its triangle (zero
-    elsewhere), so ``weights @ other_shape`` gives every pixel's corresponding position in another shape with
-    the same triangulation: the piecewise-affine correspondence as one matrix product.
+    Each covered pixel has its triangle's three vertex indices and its barycentric coordinates there, so the
+    same weights applied to another shape with the same triangulation give the pixel's corresponding position:
+    the piecewise-affine correspondence. ``weights`` is that map as a dense (P, n_points) matrix, so positions for
+    many shapes at once are one matrix product.
     """
 
     size: tuple[int, int]          # (w, h) of the image
+    n_points: int
     pixel_index: np.ndarray        # (P,) flat indices (row-major) of covered pixels
     triangle: np.ndarray           # (P,) triangle of each covered pixel
-    weights: np.ndarray            # (P, n_points) float32 barycentric weights
+    vertices: np.ndarray           # (P, 3) point indices of that triangle
+    bary: np.ndarray               # (P, 3) barycentric coordinates
 
     @property
     def mask(self) -> np.ndarray:
@@ -97,6 +100,18 @@ class PixelTriangles:
         m[self.pixel_index] = True
         return m.reshape(h, w)
 
+    @property
+    def weights(self) -> np.ndarray:
+        """(P, n_points) float32, three nonzero barycentric weights per row."""
+        dense = np.zeros((len(self.pixel_index), self.n_points), dtype=np.float32)
+        rows = np.repeat(np.arange(len(self.pixel_index)), 3)
+        np.add.at(dense, (rows, self.vertices.reshape(-1)), self.bary.reshape(-1))
+        return dense
+
+    def positions(self, shape: np.ndarray) -> np.ndarray:
+        """(P, 2) positions of the covered pixels in another shape (n_points, 2) with the same triangulation."""
+        return np.einsum("pk,pkd->pd", self.bary, np.asarray(shape, dtype=np.float64)[self.vertices])
+
     @classmethod
     def from_index_map(cls, points: np.ndarray, triangles: np.ndarray, index_map: np.ndarray) -> "PixelTriangles":
         h, w = index_map.shape
@@ -104,12 +119,9 @@ class PixelTriangles:
         pixel_index = np.flatnonzero(flat >= 0)
         tri = flat[pixel_index]
         xy = np.stack([pixel_index % w, pixel_index // w], axis=-1).astype(np.float64)
-        corners = np.asarray(points, dtype=np.float64)[triangles[tri]]
-        bary = barycentric(xy, corners)
-        weights = np.zeros((len(pixel_index), len(points)), dtype=np.float32)
-        rows = np.repeat(np.arange(len(pixel_index)), 3)
-        np.add.at(weights, (rows, triangles[tri].reshape(-1)), bary.reshape(-1))
-        return cls((w, h), pixel_index, tri.astype(np.int32), weights)
+        vertices = np.asarray(triangles)[tri]
+        bary = barycentric(xy, np.asarray(points, dtype=np.float64)[vertices])
+        return cls((w, h), len(points), pixel_index, tri.astype(np.int32), vertices, bary)
 
 
 def pixels_of_reference(points: np.ndarray, triangles: np.ndarray, size: tuple[int, int]) -> PixelTriangles:
@@ -151,6 +163,8 @@ class PiecewiseAffineWarp:
         self.triangles = np.asarray(triangles, dtype=np.int32)
         self.size = (int(size[0]), int(size[1]))
         self.pixels = pixels_of_reference(self.reference, self.triangles, self.size)
+        self._weights = self.pixels.weights
+        self._nearest_inside = nearest_inside_index(self.pixels.mask)
 
     @property
     def n_pixels(self) -> int:
@@ -161,7 +175,7 @@ class PiecewiseAffineWarp:
         shapes = np.asarray(shapes, dtype=np.float32)
         n, k, _ = shapes.shape
         flat = shapes.transpose(1, 0, 2).reshape(k, n * 2)          # (points, frames*2)
-        pos = self.pixels.weights @ flat                             # (P, frames*2)
+        pos = self._weights @ flat                                   # (P, frames*2)
         return pos.reshape(-1, n, 2).transpose(1, 0, 2)
 
     def warp(self, images: np.ndarray, shapes: np.ndarray, chunk: int = 256) -> np.ndarray:
@@ -211,7 +225,7 @@ class PiecewiseAffineWarp:
         shape = np.asarray(shape, dtype=np.float64)
         index_map = rasterise_triangles(shape, self.triangles, (w, h))
         target = PixelTriangles.from_index_map(shape, self.triangles, index_map)
-        pos = target.weights @ self.reference.astype(np.float32)     # (P, 2) positions in the texture image
+        pos = target.positions(self.reference)                      # (P, 2) positions in the texture image
         map_x = np.full(h * w, -1.0, dtype=np.float32)
         map_y = np.full(h * w, -1.0, dtype=np.float32)
         map_x[target.pixel_index] = pos[:, 0]
@@ -220,13 +234,20 @@ class PiecewiseAffineWarp:
                           interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return image, target.mask
 
+    def fill_outside(self, images: np.ndarray) -> np.ndarray:
+        """Texture images (..., h, w) with every pixel outside the hull set to its nearest inside pixel, so
+        bilinear sampling at the hull edge does not blend in the background."""
+        h, w = self.size[1], self.size[0]
+        flat = np.asarray(images).reshape(images.shape[:-2] + (h * w,))
+        return flat[..., self._nearest_inside].reshape(images.shape)
 
-def fill_outside(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Extend a texture image beyond its mask by nearest-inside values, so bilinear sampling at the hull edge
-    does not blend in the fill value."""
+
+def nearest_inside_index(mask: np.ndarray) -> np.ndarray:
+    """(h*w,) flat index of the nearest pixel inside ``mask`` for every pixel (itself when inside)."""
     from scipy.ndimage import distance_transform_edt
 
-    if mask.all():
-        return image
+    h, w = mask.shape
+    if mask.all() or not mask.any():
+        return np.arange(h * w)
     _, (iy, ix) = distance_transform_edt(~mask, return_indices=True)
-    return image[iy, ix]
+    return (iy * w + ix).reshape(-1)

@@ -1,0 +1,281 @@
+"""Expression analysis and editing (stages.edit, paper Eq 5-7) and the ExpressionEdit stage."""
+import io
+import warnings
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from face_fixtures import aam_run, bilinear_run, edit_run, tracked
+from msflow import UserError
+from msflow.testing import artifact, run_stage
+from stages.bilinear import fit_symmetric_bilinear, synthesise, synthesise_grid
+from stages.edit import (BilinearAnalyser, ExpressionEdit, Keyframe, analyse_style_content, check_extrapolation,
+                         classify_styles, edit_configuration, initial_content, interpolation_path, jitter,
+                         keyframed_weights, solve_temporal, style_barycentric, weight_vector)
+
+
+@pytest.fixture(scope="module")
+def synthetic():
+    """A bilinear model fitted exactly to synthetic data: I = S = 3 styles, J = 5, K = 40."""
+    rng = np.random.default_rng(0)
+    style, content, w = rng.normal(size=(3, 3)), rng.normal(size=(30, 5)), rng.normal(size=(3, 5, 40))
+    fit = fit_symmetric_bilinear(synthesise_grid(w, style, content), 3, 5)
+    assert fit.error < 1e-20
+    return fit
+
+
+def test_analysis_recovers_training_styles_and_content_exactly(synthetic):
+    fit = synthetic
+    s_idx, c_idx = np.meshgrid(np.arange(3), np.arange(30), indexing="ij")
+    y = synthesise(fit.w, fit.style[s_idx.ravel()], fit.content[c_idx.ravel()])
+    result = analyse_style_content(fit.w, fit.style, fit.content.mean(0), y, tol=1e-14, max_iter=500)
+    assert result.converged
+    assert np.max(result.residual / np.sum(y ** 2, -1)) < 1e-10
+    np.testing.assert_allclose(style_barycentric(result.style, fit.style), np.eye(3)[s_idx.ravel()], atol=1e-5)
+    np.testing.assert_array_equal(classify_styles(result.style, fit.style)[0], s_idx.ravel())
+
+
+def test_analysis_recovers_barycentric_mixtures_and_fixes_the_gauge(synthetic):
+    fit = synthetic
+    rng = np.random.default_rng(1)
+    alpha = rng.dirichlet(np.ones(3), 200)
+    content = fit.content[rng.integers(0, 30, 200)] * rng.uniform(0.8, 1.2, (200, 1))
+    y = synthesise(fit.w, alpha @ fit.style, content)
+    result = analyse_style_content(fit.w, fit.style, initial_content(y, _model(fit), "nearest"), y,
+                                   tol=1e-14, max_iter=1000)
+    ok = result.residual / np.sum(y ** 2, -1) < 1e-10
+    assert ok.mean() > 0.97                                # rare local minima are allowed, not common
+    np.testing.assert_allclose(style_barycentric(result.style, fit.style)[ok], alpha[ok], atol=1e-5)
+    mean_style = fit.style.mean(0)
+    np.testing.assert_allclose(result.style @ mean_style, mean_style @ mean_style, rtol=1e-10)
+    np.testing.assert_allclose(synthesise(fit.w, result.style, result.content)[ok], y[ok], atol=1e-6)
+
+
+def _model(fit):
+    from stages.bilinear import BilinearModel
+
+    return BilinearModel(fit.w, fit.style, fit.content, ["a", "b", "c"])
+
+
+def test_batched_analysis_equals_frame_by_frame(synthetic):
+    fit = synthetic
+    rng = np.random.default_rng(2)
+    y = synthesise(fit.w, rng.dirichlet(np.ones(3), 12) @ fit.style, fit.content[:12]) + rng.normal(0, 0.1, (12, 40))
+    batch = analyse_style_content(fit.w, fit.style, fit.content.mean(0), y, tol=1e-13)
+    for f in range(12):
+        single = analyse_style_content(fit.w, fit.style, fit.content.mean(0), y[f:f + 1], tol=1e-13)
+        np.testing.assert_allclose(single.style[0], batch.style[f], atol=1e-6)
+
+
+def test_solve_temporal_equals_the_dense_normal_equations():
+    rng = np.random.default_rng(3)
+    f, d = 9, 3
+    a = rng.normal(size=(f, d, d))
+    gram = a @ a.transpose(0, 2, 1) + 0.1 * np.eye(d)
+    rhs = rng.normal(size=(f, d))
+    p = rng.normal(size=(f - 1, d, d))
+    pair = p @ p.transpose(0, 2, 1)
+    dense = np.zeros((f * d, f * d))
+    for t in range(f):
+        dense[t * d:(t + 1) * d, t * d:(t + 1) * d] += gram[t]
+    for t in range(f - 1):
+        sl, sr = slice(t * d, (t + 1) * d), slice((t + 1) * d, (t + 2) * d)
+        dense[sl, sl] += pair[t]
+        dense[sr, sr] += pair[t]
+        dense[sl, sr] -= pair[t]
+        dense[sr, sl] -= pair[t]
+    expected = np.linalg.solve(dense, rhs.reshape(-1)).reshape(f, d)
+    np.testing.assert_allclose(solve_temporal(gram, rhs, pair), expected, rtol=1e-6, atol=1e-8)
+    scalar = solve_temporal(gram, rhs, 0.7)
+    np.testing.assert_allclose(scalar, solve_temporal(gram, rhs, np.broadcast_to(0.7 * np.eye(d), (f - 1, d, d))))
+
+
+def test_temporal_prior_trades_jitter_for_residual(synthetic):
+    fit = synthetic
+    rng = np.random.default_rng(4)
+    f = 150
+    t = np.linspace(0, 1, f)
+    alpha = np.c_[t, 1 - t, np.zeros(f)]
+    pos = np.linspace(0, 29, f)
+    content = np.stack([np.interp(pos, np.arange(30), fit.content[:, j]) for j in range(5)], axis=-1)
+    clean = synthesise(fit.w, alpha @ fit.style, content)
+    y = clean + rng.normal(size=clean.shape) * 0.2 * clean.std()
+    start = initial_content(y, _model(fit), "nearest")
+    paper = analyse_style_content(fit.w, fit.style, start, y)
+    plain = BilinearAnalyser(fit.w, fit.style).analyse(y, start)        # same thing through the class
+    np.testing.assert_allclose(plain.style, paper.style)
+    jitters, residuals, errors = [], [], []
+    for lam in (0.0, 0.1, 1.0, 10.0):
+        r = analyse_style_content(fit.w, fit.style, start, y, smooth=lam)
+        jitters.append(jitter(r.style))
+        residuals.append(float(np.sum(r.residual)))
+        errors.append(float(np.mean(np.abs(style_barycentric(r.style, fit.style) - alpha))))
+    assert all(a > b for a, b in zip(jitters, jitters[1:]))             # smoother with every step of lambda
+    assert all(a <= b * (1 + 1e-9) for a, b in zip(residuals, residuals[1:]))   # fit to the noisy data worsens
+    assert residuals[-1] < 1.2 * residuals[0]                           # but only a little
+    assert min(errors[1:]) < 0.5 * errors[0]                            # and the style is closer to the truth
+
+
+def test_classify_and_barycentric_agree_for_orthonormal_styles(synthetic):
+    fit = synthetic
+    alpha = np.array([[0.7, 0.2, 0.1], [0.1, 0.1, 0.8], [-0.2, 0.7, 0.5]])
+    e = alpha @ fit.style
+    np.testing.assert_allclose(style_barycentric(e, fit.style), alpha, atol=1e-12)
+    classes, cosine = classify_styles(e, fit.style)
+    np.testing.assert_array_equal(classes, [0, 2, 1])
+    assert np.all(np.abs(cosine) <= 1 + 1e-12)
+
+
+def test_edit_configuration_is_eq7(synthetic):
+    fit = synthetic
+    c = fit.content[:4]
+    half = edit_configuration(fit.w, fit.style, np.array([0.5, 0.5, 0.0]), c)
+    np.testing.assert_allclose(half, 0.5 * synthesise(fit.w, fit.style[[0]], c) + 0.5 * synthesise(fit.w, fit.style[[1]], c))
+    np.testing.assert_allclose(edit_configuration(fit.w, fit.style, np.eye(3)[[2] * 4], c),
+                               synthesise_grid(fit.w, fit.style, c)[2])
+
+
+def test_weights_validation_and_keyframes():
+    labels = ["neutral", "happy", "angry"]
+    np.testing.assert_allclose(weight_vector({"happy": 0.25, "angry": 0.75}, labels, "params.mix"), [0, 0.25, 0.75])
+    with pytest.raises(UserError, match="sum to 1"):
+        weight_vector({"happy": 0.5}, labels, "params.mix")
+    with pytest.raises(UserError, match="unknown expression"):
+        weight_vector({"sad": 1.0}, labels, "params.mix")
+    keys = [Keyframe(time=1.0, weights={"angry": 1.0}), Keyframe(time=0.0, weights={"happy": 1.0})]
+    weights = keyframed_weights(keys, labels, np.array([-1.0, 0.0, 0.25, 1.0, 2.0]), "params.keyframes")
+    np.testing.assert_allclose(weights, [[0, 1, 0], [0, 1, 0], [0, 0.75, 0.25], [0, 0, 1], [0, 0, 1]])
+    with pytest.raises(UserError, match="distinct"):
+        keyframed_weights([keys[0], keys[0]], labels, np.zeros(2), "params.keyframes")
+
+
+def test_extrapolation_bound():
+    assert not check_extrapolation(np.array([0.2, 0.8]), 0.3, "params.mix")
+    with pytest.warns(UserWarning, match="extrapolate"):
+        assert check_extrapolation(np.array([-0.2, 1.2]), 0.3, "params.mix")
+    with pytest.raises(UserError, match="max_extrapolation"):
+        check_extrapolation(np.array([-0.5, 1.5]), 0.3, "params.mix")
+
+
+def test_interpolation_path_visits_every_expression_once():
+    weights, names = interpolation_path(["happy", "neutral", "angry"], ["neutral", "happy", "angry"], 4)
+    assert len(weights) == 7 and names[0] == "happy" and names[3] == "neutral" and names[-1] == "angry"
+    np.testing.assert_allclose(weights.sum(1), 1)
+    np.testing.assert_allclose(weights[3], [1, 0, 0])
+
+
+# ----------------------------------------------------------------------------------------------- stage
+
+def test_edit_stage_outputs_follow_the_contract(tmp_path):
+    run = edit_run()
+    a, meta = run.arrays, run.meta
+    frames = len(tracked("sad")["landmarks"])
+    labels = meta["labels"]
+    assert labels == ["neutral", "happy", "angry"] and meta["targets"] == labels
+    assert a["shapes"].shape == (3, frames, 68, 2) and a["shapes"].dtype == np.float32
+    assert a["style"].shape[0] == frames and a["content"].shape[0] == frames
+    assert a["weights"].shape == (3, frames, 3) and a["frames"].shape[:2] == (3, frames)
+    assert meta["fps"] == pytest.approx(29.97, abs=0.01)
+    np.testing.assert_allclose(a["style_weights"].sum(1), 1, atol=1e-8)
+    assert sum(meta["classified_as"].values()) == frames
+    # edited shapes live in the mean-shape frame (inter-ocular distance 1) and are the synthesis of y
+    from stages.aam import AamModel, interocular_distance
+
+    model = AamModel.from_view(aam_run().view())
+    np.testing.assert_allclose(a["shapes"], model.reconstruct_shapes(model.split(a["y"])[0]), atol=1e-5)
+    assert np.all(np.abs(interocular_distance(a["shapes"]) - 1) < 0.2)
+    assert run.metrics["mean_residual"] < 0.5
+    # store round trip keeps the file outputs
+    stored = run_stage(ExpressionEdit, {"video": False}, {"model": bilinear_run(), "aam": aam_run(),
+                                                          "tracks": tracked("sad")}, store=tmp_path)
+    assert "video" not in stored.arrays and stored.arrays["strip"].dtype == np.uint8
+
+
+def test_edit_stage_writes_a_side_by_side_video_and_a_strip():
+    import av
+    import cv2
+
+    run = edit_run()
+    crops = tracked("sad")["crops"]
+    frames, h, w = crops.shape
+    with av.open(io.BytesIO(run.arrays["video"].tobytes())) as container:
+        stream = container.streams.video[0]
+        decoded = [f.to_ndarray(format="gray") for f in container.decode(stream)]
+    assert len(decoded) == frames
+    assert decoded[0].shape[0] >= h and decoded[0].shape[1] >= 4 * w
+    strip = cv2.imdecode(run.arrays["strip"], cv2.IMREAD_UNCHANGED)
+    assert strip.shape[0] == h and strip.shape[1] >= 7 * w
+    # the input panel of the video is the input crop (up to H.264 loss and the caption)
+    assert np.mean(np.abs(decoded[10][20:h, :w].astype(float) - crops[10][20:h].astype(float))) < 6
+
+
+def test_edited_frames_change_the_face_and_keep_the_background():
+    run = edit_run()
+    crops = tracked("sad")["crops"].astype(float)
+    happy = run.arrays["frames"][run.meta["targets"].index("happy")].astype(float)
+    shapes = run.arrays["crop_shapes"][0]
+    h, w = crops.shape[1:]
+    ys, xs = np.mgrid[0:h, 0:w]
+    face = np.zeros(crops.shape, dtype=bool)
+    for f, shape in enumerate(shapes):
+        lo, hi = shape.min(0) - 3, shape.max(0) + 3
+        face[f] = (xs >= lo[0]) & (xs <= hi[0]) & (ys >= lo[1]) & (ys <= hi[1])
+    assert np.mean(np.abs(happy - crops)[~face]) < 0.5
+    assert np.mean(np.abs(happy - crops)[face]) > 2
+
+
+def test_edit_stage_mix_and_keyframes():
+    times = tracked("sad")["time"]
+    params = {"targets": ["happy"], "mix": {"happy": 0.5, "angry": 0.5}, "video": False,
+              "keyframes": [{"time": 0.0, "weights": {"happy": 1.0}}, {"time": float(times[-1]), "weights":
+                                                                       {"angry": 1.0}}]}
+    run = run_stage(ExpressionEdit, params, {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")})
+    assert run.meta["targets"] == ["happy", "mix", "keyframed"]
+    y = run.arrays["y"]
+    happy_only = y[0]
+    keyed = run.arrays["weights"][2]
+    np.testing.assert_allclose(keyed[0], [0, 1, 0])
+    np.testing.assert_allclose(keyed[-1], [0, 0, 1])
+    np.testing.assert_allclose(run.arrays["weights"][1], np.broadcast_to([0, 0.5, 0.5], keyed.shape))
+    np.testing.assert_allclose(y[2][0], happy_only[0], atol=1e-8)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = run_stage(ExpressionEdit, {"mix": {"happy": 1.2, "neutral": -0.2}, "video": False},
+                        {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")})
+    assert out.meta["extrapolated"] and any("extrapolate" in str(w.message) for w in caught)
+    with pytest.raises(UserError, match="max_extrapolation"):
+        run_stage(ExpressionEdit, {"mix": {"happy": 2.0, "neutral": -1.0}, "video": False},
+                  {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")})
+
+
+def test_edit_stage_errors():
+    sad = tracked("sad")
+    inputs = {"model": bilinear_run(), "aam": aam_run()}
+    arrays = {k: np.array(sad[k]) for k in sad.names}
+    other_scheme = artifact(arrays, {**sad.meta, "landmark_scheme": "openface68"})
+    with pytest.raises(UserError, match="landmark scheme 'openface68' differs"):
+        run_stage(ExpressionEdit, {"video": False}, {**inputs, "tracks": other_scheme})
+    broken = dict(arrays)
+    broken["landmarks"] = arrays["landmarks"].copy()
+    broken["landmarks"][3, 10] = np.nan
+    with pytest.raises(UserError, match="NaN"):
+        run_stage(ExpressionEdit, {"video": False}, {**inputs, "tracks": artifact(broken, dict(sad.meta))})
+    # a bilinear model from another appearance model (different K)
+    model_view = bilinear_run().view()
+    wrong = {k: model_view[k] for k in model_view.names}
+    wrong["W"] = wrong["W"][..., :-1]
+    with pytest.raises(UserError, match="same aam artifact"):
+        run_stage(ExpressionEdit, {"video": False},
+                  {"model": artifact(wrong, dict(model_view.meta)), "aam": aam_run(), "tracks": sad})
+    with pytest.raises(UserError, match="not a training expression"):
+        run_stage(ExpressionEdit, {"targets": ["sad"], "video": False}, {**inputs, "tracks": sad})
+    with pytest.raises(ValidationError):
+        ExpressionEdit.Params(smooth=-1)
+
+
+def test_edit_figures_render():
+    run = edit_run()
+    for name, fig in ExpressionEdit.figures.items():
+        out = fig(run.view(), {})
+        assert isinstance(out, bytes) or hasattr(out, "savefig"), name
