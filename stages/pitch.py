@@ -181,7 +181,7 @@ def wav_bytes(samples: np.ndarray, rate: int) -> bytes:
     """16-bit PCM mono WAV of float samples in [-1, 1]."""
     import wave
 
-    pcm = (np.clip(np.asarray(samples, dtype=np.float64), -1, 1) * 32767).astype("<i2")
+    pcm = (np.clip(np.asarray(samples, dtype=np.float32), -1, 1) * 32767).astype("<i2")
     buffer = io.BytesIO()
     with wave.open(buffer, "wb") as out:
         out.setnchannels(1)
@@ -332,7 +332,8 @@ class Pitch(Stage):
         breath_pause: float = 0.3
         median_over: Literal["speaker", "utterance"] = "speaker"
         on_silence: Literal["error", "still"] = "error"
-        audio_rate: int = 16000
+        audio_rate: int = 16000           # decoding rate of audio files
+        analysis_rate: int = 8000         # audio above this rate is resampled to it for Praat (speed; f0 << 4 kHz)
 
     inputs = {
         "source": Input.artifact(optional=True, doc="tracking or headdb artifact with audio per sequence"),
@@ -351,7 +352,24 @@ class Pitch(Stage):
             utterances = utterances_from_files(inputs["audio"], params.audio_rate)
         if not utterances:
             raise UserError("no utterances to analyse", field="inputs")
+        if params.analysis_rate < 4 * params.ceiling:
+            raise UserError(f"analysis_rate {params.analysis_rate} Hz is too low for a pitch ceiling of "
+                            f"{params.ceiling} Hz (needs at least 4x)", field="params.analysis_rate")
+        if not 0 < params.floor < params.ceiling:
+            raise UserError(f"need 0 < floor < ceiling (got {params.floor}, {params.ceiling})", field="params.floor")
         return pitch_result(utterances, params)
+
+
+def analysis_signal(samples: np.ndarray, rate: int, analysis_rate: int) -> tuple[np.ndarray, int]:
+    """The signal Praat analyses: resampled down to ``analysis_rate`` (anti-aliased) when recorded faster."""
+    if rate <= analysis_rate:
+        return samples, rate
+    from math import gcd
+
+    from scipy.signal import resample_poly
+
+    g = gcd(int(rate), int(analysis_rate))
+    return resample_poly(np.asarray(samples, dtype=np.float64), analysis_rate // g, rate // g), int(analysis_rate)
 
 
 def analyse_utterances(utterances: list[Utterance], params) -> list[dict]:
@@ -363,7 +381,8 @@ def analyse_utterances(utterances: list[Utterance], params) -> list[dict]:
             if len(utt.samples) < int(0.1 * utt.rate):
                 raise UserError(f"audio of '{utt.label}' is too short to analyse ({len(utt.samples)} samples)",
                                 file=utt.source, field=utt.field)
-            tau, raw = praat_pitch(utt.samples, utt.rate, method=params.method, time_step=params.time_step,
+            samples, rate = analysis_signal(utt.samples, utt.rate, params.analysis_rate)
+            tau, raw = praat_pitch(samples, rate, method=params.method, time_step=params.time_step,
                                    floor=params.floor, ceiling=params.ceiling,
                                    voicing_threshold=params.voicing_threshold,
                                    silence_threshold=params.silence_threshold)

@@ -377,7 +377,7 @@ def _plot_trellis(view, inputs=None, utterance: int = 0, max_segments: int = 40)
     pos = view["db_segment_position"][chosen]
     db_labels = view.meta.get("db_labels", [])
     n, k = cost.shape if cost.ndim == 2 else (0, 0)
-    fig, ax = plt.subplots(figsize=(max(6, 0.45 * n + 2), 4.5), constrained_layout=True)
+    fig, ax = plt.subplots(figsize=(max(8, 0.45 * n + 2), 5), constrained_layout=True)
     if n:
         xs, ys = np.meshgrid(np.arange(n), np.arange(k), indexing="ij")
         for t in range(n - 1):
@@ -399,12 +399,17 @@ def _plot_trellis(view, inputs=None, utterance: int = 0, max_segments: int = 40)
             name = db_labels[seq[t]] if seq[t] < len(db_labels) else str(seq[t])
             ax.annotate(f"{name}:{pos[t]}", (t, rank[t]), textcoords="offset points", xytext=(0, 9), fontsize=6,
                         ha="center", rotation=60)
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("test segment")
     ax.set_ylabel("candidate rank (0 = best D)")
+    ax.set_ylim(k - 0.5 if k else 1, -2.2)   # rank 0 on top, room for the database labels above it
+    ax.set_yticks(range(k))
     labels = view.meta.get("labels", [])
-    ax.set_title(f"trellis: {labels[utterance] if labels else ''} (path: red; orange = consecutive in the "
-                 f"database; dashed: sub-sentence)")
-    ax.invert_yaxis()
+    ax.set_title(f"trellis of {labels[utterance] if labels else 'the test'}: chosen path in red, orange where "
+                 f"database-consecutive;\nlabels: database take:segment; dashed lines: sub-sentence starts",
+                 fontsize=10)
     return fig
 
 

@@ -1,0 +1,86 @@
+"""Speed of the head-motion branch (paper Sec. 5). Targets: pitch >= 100x real time; trellis + blend for a 60 s
+utterance against a 67-phrase database < 1 s.
+
+    OPENBLAS_NUM_THREADS=1 python bench/bench_head.py
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+from head_synthetic import synth_database, synth_phrase, tracking_artifact  # noqa: E402
+from msflow.testing import run_stage  # noqa: E402
+from stages.headdb import TrackedHeadDb  # noqa: E402
+from stages.motion_blend import MotionBlend  # noqa: E402
+from stages.pitch import Pitch, praat_pitch  # noqa: E402
+from stages.trellis import Trellis  # noqa: E402
+
+
+def best_of(repeats: int, func):
+    times, result = [], None
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = func()
+        times.append(time.perf_counter() - start)
+    return min(times), result
+
+
+def long_utterance(seconds: float = 60.0, seed: int = 1):
+    rng = np.random.default_rng(seed)
+    sentences = 20
+    while True:
+        phrase = synth_phrase(rng, "neutral", "long", sentences=sentences)
+        if phrase.duration >= seconds:
+            return phrase
+        sentences = int(sentences * seconds / phrase.duration) + 2
+
+
+def main():
+    utterance = long_utterance()
+    test_tracks = tracking_artifact([utterance], fps=30.0)
+    print(f"test utterance: {utterance.duration:.1f} s, {len(utterance.onsets)} syllables, "
+          f"{len(utterance.sentence_starts)} sentences")
+
+    for method in ("ac", "cc"):
+        seconds, _ = best_of(3, lambda: praat_pitch(utterance.audio, utterance.audio_rate, method=method))
+        print(f"praat pitch ({method}) alone at the recorded 16 kHz: {seconds:.3f} s = "
+              f"{utterance.duration / seconds:.0f}x real time")
+        seconds, _ = best_of(3, lambda: run_stage(Pitch, {"method": method}, {"source": test_tracks}))
+        print(f"pitch stage ({method}, clean, segment, features, TextGrid/PitchTier/WAV): {seconds:.3f} s = "
+              f"{utterance.duration / seconds:.0f}x real time")
+
+    start = time.perf_counter()
+    phrases = synth_database(67, seed=0)
+    database_tracks = tracking_artifact(phrases, fps=30.0)
+    synth_seconds = time.perf_counter() - start
+    seconds, headdb = best_of(1, lambda: run_stage(TrackedHeadDb, {}, {"tracks": database_tracks}))
+    print(f"database: 67 phrases ({sum(p.duration for p in phrases):.0f} s of speech, synthesised in "
+          f"{synth_seconds:.1f} s), headdb with mirroring {seconds:.3f} s")
+    audio_seconds = headdb.metrics["audio_seconds"]
+    seconds, db_pitch = best_of(1, lambda: run_stage(Pitch, {}, {"source": headdb}))
+    print(f"pitch over the database ({audio_seconds:.0f} s of audio; mirrors share it): {seconds:.3f} s = "
+          f"{audio_seconds / seconds:.0f}x real time, {db_pitch.metrics['segments']} segments")
+    test_pitch = run_stage(Pitch, {}, {"source": test_tracks})
+
+    def search_and_blend():
+        tr = run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": test_pitch})
+        mb = run_stage(MotionBlend, {}, {"trellis": tr, "database": headdb})
+        return tr, mb
+
+    seconds, (tr, mb) = best_of(3, search_and_blend)
+    trellis_seconds, _ = best_of(3, lambda: run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch,
+                                                                     "test_pitch": test_pitch}))
+    print(f"trellis + blend, {utterance.duration:.0f} s utterance ({tr.metrics['segments']} segments, K = 10) "
+          f"against {tr.metrics['db_segments']} database segments: {seconds:.3f} s "
+          f"(trellis alone {trellis_seconds:.3f} s); {len(mb.arrays['rotation'])} frames out")
+
+
+if __name__ == "__main__":
+    main()
