@@ -246,3 +246,33 @@ def test_inconsistent_inputs_are_user_errors():
                       meta={"labels": TARGETS, "targets": TARGETS})
     with pytest.raises(UserError, match="no frame rate"):
         run_stage(Blend, {"alpha": {"happy": 1}}, {"keyshapes": no_fps, "keymorphs": keymorphs})
+
+
+# ------------------------------------------------------------------------------------------- real data (CREMA-D)
+
+def test_crema_blend_carries_the_expression_into_the_morph_weights():
+    from test_keyshapes import crema_face_branch
+
+    from stages.character import GltfCharacter
+    from stages.keymorphs import KeymorphFit
+
+    branch = crema_face_branch()
+    character = run_stage(GltfCharacter, {}, {"mesh": {"path": "data/characters/ict-facekit.glb"}}).view()
+    keymorphs = run_stage(KeymorphFit, {"contact_sheet": False}, {"keyshapes": branch.keyshapes,
+                                                                  "character": character, "tracks": branch.train})
+    inputs = {"keyshapes": branch.keyshapes, "keymorphs": keymorphs.view(), "edit": branch.edit,
+              "bilinear": branch.bilinear}
+    names = character.meta["target_names"]
+    smile = [names.index(n) for n in ("mouthSmile_L", "mouthSmile_R")]
+    brow = [names.index(n) for n in ("browDown_L", "browDown_R")]
+    out = {e: run_stage(Blend, {"alpha": {e: 1.0}}, inputs) for e in ("happy", "angry")}
+    happy, angry = out["happy"].arrays["weights"], out["angry"].arrays["weights"]
+    assert happy[:, smile].mean() > angry[:, smile].mean()
+    assert angry[:, brow].mean() > happy[:, brow].mean()
+    for run in out.values():
+        assert run.metrics["clipped_fraction"] < 0.05
+        assert len(run.arrays["weights"]) == len(branch.edit["style"])
+    analysed = run_stage(Blend, {}, inputs)
+    alpha = analysed.arrays["alpha"]
+    assert alpha.min() >= 0 and np.allclose(alpha.sum(axis=1), 1, atol=1e-5)
+    assert analysed.meta["fps"] == pytest.approx(branch.edit.meta["fps"])

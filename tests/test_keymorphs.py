@@ -369,3 +369,35 @@ def test_rig_maps_keyshapes_into_character_units(character):
                             keyshapes["rest_shape"])
     assert rig.to_character.scale == pytest.approx(1 / 11.0, rel=1e-5)
     np.testing.assert_allclose(rig.keymorph_landmarks(truth), keyshapes["keyshapes"], atol=1e-4)
+
+
+# ------------------------------------------------------------------------------------------- real data (CREMA-D)
+
+@pytest.fixture(scope="module")
+def crema_keymorphs(character):
+    from test_keyshapes import crema_face_branch
+
+    branch = crema_face_branch()
+    out = run_stage(KeymorphFit, {"tile_size": 48},
+                    {"keyshapes": branch.keyshapes, "character": character, "tracks": branch.train})
+    return branch, out
+
+
+def test_crema_keymorph_drafts_match_the_keyshapes(crema_keymorphs, character):
+    branch, out = crema_keymorphs
+    ks = branch.keyshapes
+    w = out.arrays["keymorph_weights"]
+    assert w.shape == (len(ks["keyshapes"]), len(character.meta["target_names"]))
+    assert out.meta["pose_correction"] == "applied"
+    # the drafts explain most of the landmark deformation, with a handful of targets each
+    assert out.metrics["landmark_error_rms_iod"] < 0.6 * out.metrics["landmark_error_neutral_rms_iod"]
+    assert out.metrics["mean_active_targets"] < 20
+    # expression semantics survive: happy keymorphs smile more than angry ones, angry ones lower the brows more
+    names = character.meta["target_names"]
+    smile = [names.index(n) for n in ("mouthSmile_L", "mouthSmile_R")]
+    brow = [names.index(n) for n in ("browDown_L", "browDown_R")]
+    mean = {label: w[ks["keyshape_expression"] == s].mean(axis=0) for s, label in enumerate(ks.meta["labels"])}
+    assert mean["happy"][smile].mean() > 2 * mean["angry"][smile].mean()
+    assert mean["angry"][brow].mean() > 2 * mean["happy"][brow].mean()
+    sheet = cv2.imdecode(out.arrays["contact_sheet"], cv2.IMREAD_COLOR)
+    assert sheet.shape[1] == max(ks.meta["keyshape_counts"]) * 48
