@@ -242,3 +242,12 @@ def test_crema_d_tracked_database(crema_tracks):
     pitch = run_stage(Pitch, {}, {"source": run})
     assert pitch.metrics["segments"] >= 10
     np.testing.assert_allclose(pitch.meta["audio_offset"], crema_tracks.meta["audio_offset"][0])
+
+
+def test_unreadable_audio_names_the_file(phrases, tmp_path):
+    motion, audio = write_bvh_and_wav(phrases[:1], tmp_path, "ZXY")
+    fake = tmp_path / "take0.mp3"
+    fake.write_text("not audio at all")
+    with pytest.raises(UserError) as err:
+        run_stage(BvhHeadDb, {"joint": "head_jnt"}, {"motion": motion, "audio": {"take0": fake}})
+    assert "take0.mp3" in str(err.value)

@@ -278,3 +278,11 @@ def test_wav_bytes_is_16_bit_mono(tmp_path):
 def test_pitch_figure_renders(phrase_pitch):
     fig = Pitch.figures["pitch_segments"](phrase_pitch.view(), {})
     assert len(fig.axes) == 2 and fig.axes[1].get_title().startswith("cleaned")
+
+
+def test_pitch_settings_are_checked(phrases):
+    source = tracking_artifact([phrases[0]])
+    with pytest.raises(UserError, match="analysis_rate"):
+        run_stage(Pitch, {"ceiling": 3000.0}, {"source": source})
+    with pytest.raises(UserError, match="floor"):
+        run_stage(Pitch, {"floor": 600.0, "ceiling": 500.0}, {"source": source})
