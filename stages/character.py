@@ -24,6 +24,8 @@ import numpy as np
 from msflow import Input, Output, Result, Stage, UserError
 from stages.gltf import MaterialGroup, MorphMesh, read_morph_mesh, write_morph_glb
 
+#: the embedded default character (built by ``python -m stages.character build``)
+DEFAULT_CHARACTER = Path(__file__).resolve().parents[1] / "data" / "characters" / "ict-facekit.glb"
 N_LANDMARKS = 68
 LANDMARK_SCHEME = "ibug68"
 #: mesh.extras keys of the glTF characters this project writes (and reads from any glTF that has them)
@@ -396,13 +398,15 @@ class GltfCharacter(Stage):
         identity: dict[str, float] = {}
         identity_targets: list[str] | None = None
 
-    inputs = {"mesh": Input.files(doc="one .glb/.gltf file"),
+    inputs = {"mesh": Input.files(optional=True, doc="one .glb/.gltf file; default: the embedded ICT FaceKit "
+                                                    "character (data/characters/ict-facekit.glb)"),
               "landmarks": Input.files(optional=True, doc="JSON with the 68 landmark vertex ids (overrides the "
                                                          "ids stored in the glTF)")}
     outputs = CHARACTER_OUTPUTS
+    resources = {"character": DEFAULT_CHARACTER}
 
     def run(self, params, inputs):
-        path = _single_file(inputs["mesh"], "inputs.mesh", (".glb", ".gltf"))
+        path = _single_file(inputs.get("mesh") or {"default": DEFAULT_CHARACTER}, "inputs.mesh", (".glb", ".gltf"))
         mesh = read_morph_mesh(path, params.mesh_name)
         identity_names = params.identity_targets
         if identity_names is None:

@@ -393,6 +393,16 @@ def test_embedded_character_has_all_57_targets_and_sane_landmarks(ict):
     assert jaw[ids[8], 1] < -0.005          # the chin goes down
 
 
+def test_embedded_character_is_the_default(ict):
+    from stages.character import DEFAULT_CHARACTER
+
+    assert DEFAULT_CHARACTER == ICT_GLB.resolve()
+    assert GltfCharacter.resources == {"character": DEFAULT_CHARACTER}
+    default = run_stage(GltfCharacter, {}, {})
+    assert np.array_equal(default.arrays["neutral"], ict.arrays["neutral"])
+    assert default.meta["target_names"] == ict.meta["target_names"]
+
+
 def test_embedded_character_identity_mix(ict):
     mixed = run_stage(GltfCharacter, {"identity": {"identity000": 1.0, "identity003": -0.5}}, {"mesh": ICT_GLB})
     raw = read_morph_mesh(ICT_GLB)
