@@ -11,7 +11,6 @@ from msflow.hashing import json_hash
 from msflow.plan import StagePlan, resolve
 from msflow.runner import Runner, StageState, new_run_id
 from msflow.spec import Pipeline, load_pipeline
-from msflow.store import open_store
 
 
 @dataclass
@@ -35,7 +34,7 @@ class Session:
 
 def open_session(path: str | Path, overrides=()) -> Session:
     pipeline = load_pipeline(path, tuple(overrides))
-    store = open_store(pipeline.store)
+    store = pipeline.open_store()
     memo = store.load_memo()
     digest = json_hash(memo)
     plans = resolve(pipeline, memo)

@@ -198,10 +198,8 @@ def gc(file: Path = FILE_ARG, keep_runs: int = typer.Option(10, "--keep-runs", h
     """Drop artifacts that none of the most recent runs references; clear leftovers of killed runs."""
     from msflow.gc import collect_garbage
     from msflow.spec import load_pipeline
-    from msflow.store import open_store
 
-    pipeline = load_pipeline(file)
-    report = collect_garbage(open_store(pipeline.store), keep_runs=keep_runs, dry_run=dry_run)
+    report = collect_garbage(load_pipeline(file).open_store(), keep_runs=keep_runs, dry_run=dry_run)
     verb = "would remove" if dry_run else "removed"
     _echo(f"{verb} {len(report['artifacts'])} artifacts ({report['bytes'] / 1e6:.1f} MB), kept {report['kept']}, "
           f"cleared {len(report['tmp'])} temporary directories")
@@ -210,16 +208,14 @@ def gc(file: Path = FILE_ARG, keep_runs: int = typer.Option(10, "--keep-runs", h
 @app.command()
 def verify(file: Path = FILE_ARG, delete: bool = typer.Option(False, "--delete", help="remove corrupt artifacts")):
     """Recompute every artifact's content hashes; list corrupt ones (exit 1 if any)."""
-    from msflow.artifact import verify_artifact
     from msflow.spec import load_pipeline
-    from msflow.store import open_store
 
-    store = open_store(load_pipeline(file).store)
+    store = load_pipeline(file).open_store()
     bad = 0
     total = 0
     for key in store.keys():
         total += 1
-        problems = verify_artifact(store.artifact_path(key))
+        problems = store.verify(key)
         if problems:
             bad += 1
             _echo(f"corrupt {key}: " + "; ".join(problems))

@@ -154,7 +154,7 @@ class Runner:
             return None
         state.state = "running"
         self._report(state)
-        return {"store": self.store.url, "project_root": str(self.pipeline.root), "key": state.key,
+        return {"store": self.store.url, "store_options": self.store.options, "project_root": str(self.pipeline.root), "key": state.key,
                 "stage": name, "uses": plan.uses, "params": plan.params, "inputs": job_inputs,
                 "force": name in self.force, "key_parts": state.parts}
 

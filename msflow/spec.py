@@ -47,6 +47,7 @@ class PipelineSpec(BaseModel):
 
     version: Literal[1] = FORMAT_VERSION
     store: str | None = None
+    store_options: dict[str, Any] = {}
     vars: dict[str, Any] = {}
     stages: dict[str, StageSpec]
     publish: dict[str, str] = {}
@@ -96,6 +97,12 @@ class Pipeline:
     stages: dict[str, StageNode]
     publish: dict[str, str] = field(default_factory=dict)
     overrides: tuple[str, ...] = ()
+    store_options: dict[str, Any] = field(default_factory=dict)
+
+    def open_store(self):
+        from msflow.store import open_store
+
+        return open_store(self.store, self.store_options, self.path.parent / ".msflow" / "cache")
 
     @property
     def rel_path(self) -> str:
@@ -307,7 +314,7 @@ def load_pipeline(path: str | Path, overrides: tuple[str, ...] | list[str] = ())
             raise UserError(f"'{target}' is not stage.output of a known stage", file=file, field=f"publish.{target}")
     check_cycles(nodes, file)
     publish = {k: str((pipeline_dir / v).resolve()) for k, v in spec.publish.items()}
-    return Pipeline(path.resolve(), root, store, nodes, publish, overrides)
+    return Pipeline(path.resolve(), root, store, nodes, publish, overrides, spec.store_options)
 
 
 def parse_ref(ref: Any, base: Path, root: Path, file: str, stage: str, where: str) -> StageRef | FilesRef:

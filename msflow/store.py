@@ -30,21 +30,28 @@ from msflow.errors import UserError
 HOST = socket.gethostname()
 
 
-def open_store(location: str) -> "LocalStore":
-    """A store for a path or URL (``file://`` here; object stores come from msflow.remote)."""
+def open_store(location: str, options: dict | None = None, cache_dir: str | Path | None = None):
+    """A store for a path or URL: ``file://`` and plain paths here, object stores (``s3://`` ...) through fsspec
+    in msflow.remote. ``options`` are fsspec storage options; ``cache_dir`` holds machine-local memos of
+    remote stores (file stat signatures mean nothing on another machine)."""
     if location.startswith("file://"):
         return LocalStore(location[len("file://"):])
     if "://" in location:
         from msflow.remote import open_remote_store
 
-        return open_remote_store(location)
+        return open_remote_store(location, options or {}, cache_dir)
     return LocalStore(location)
 
 
 class LocalStore:
+    """The store interface every backend implements: has, manifest, open, keys, write, remove, verify, size,
+    clean_tmp, lock, load_memo/save_memo, write_run/run_ids/read_run/remove_run, plus ``url`` and ``options``
+    (what a worker needs to reopen it)."""
+
     def __init__(self, root: str | Path):
         self.root = Path(root)
         self.url = str(self.root)
+        self.options: dict = {}
 
     # ------------------------------------------------------------------ paths
     @property
@@ -108,6 +115,19 @@ class LocalStore:
             if exc.errno in (errno.ENOTEMPTY, errno.EEXIST) and self.has(key):
                 return  # published meanwhile by another writer of the same key: same content by construction
             raise
+
+    def verify(self, key: str) -> list[str]:
+        from msflow.artifact import verify_artifact
+
+        return verify_artifact(self.artifact_path(key))
+
+    def size(self, key: str) -> int:
+        total = 0
+        for dirpath, _, files in os.walk(self.artifact_path(key)):
+            for name in files:
+                with contextlib.suppress(OSError):
+                    total += os.path.getsize(os.path.join(dirpath, name))
+        return total
 
     def remove(self, key: str) -> None:
         target = self.artifact_path(key)

@@ -60,7 +60,7 @@ def _run(job: dict) -> dict:
     from msflow.store import open_store
 
     ensure_importable(job["project_root"])
-    store = open_store(job["store"])
+    store = open_store(job["store"], job.get("store_options"))
     key = job["key"]
     with store.lock(key):
         if store.has(key) and not job.get("force"):
