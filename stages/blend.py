@@ -21,9 +21,13 @@ from __future__ import annotations
 from typing import Literal, Union
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
+
+
+ALPHA_FORMS = ("alpha is 'from_analysis', constant weights such as {happy: 0.5, neutral: 0.5}, or "
+               "{keyframes: {seconds: {expression: weight}}, interpolation: linear|step|smooth}")
 
 
 class AlphaKeyframes(BaseModel):
@@ -179,6 +183,19 @@ class Blend(Stage):
         #: "from_analysis", constant weights {expression: weight}, or {keyframes: {seconds: {expression: w}},
         #: interpolation: linear|step|smooth}; weights must be >= 0 and sum to 1
         alpha: Union[Literal["from_analysis"], dict[str, float], AlphaKeyframes] = "from_analysis"
+
+        @field_validator("alpha", mode="before")
+        @classmethod
+        def _alpha_form(cls, value):
+            # one clear message instead of pydantic's per-branch union errors
+            if isinstance(value, str) and value != "from_analysis":
+                raise ValueError(ALPHA_FORMS)
+            if isinstance(value, dict) and "keyframes" not in value:
+                bad = {k: v for k, v in value.items()
+                       if isinstance(v, bool) or not isinstance(v, (int, float))}
+                if bad:
+                    raise ValueError(f"{ALPHA_FORMS}; these weights are not numbers: {bad}")
+            return value
         #: Gaussian smoothing of alpha over time, sigma in seconds (the analysed e(t) jitters, paper Sec 7)
         alpha_smoothing: float = 0.0
         #: allowed deviation of the alpha sum from 1

@@ -276,3 +276,15 @@ def test_crema_blend_carries_the_expression_into_the_morph_weights():
     alpha = analysed.arrays["alpha"]
     assert alpha.min() >= 0 and np.allclose(alpha.sum(axis=1), 1, atol=1e-5)
     assert analysed.meta["fps"] == pytest.approx(branch.edit.meta["fps"])
+
+
+def test_alpha_param_forms_are_explained():
+    from pydantic import ValidationError
+
+    keyshapes, keymorphs = retarget_inputs()
+    for bad in ("from_anlysis", {"happy": "lots"}):
+        with pytest.raises(ValidationError, match="alpha is 'from_analysis', constant weights"):
+            run_stage(Blend, {"alpha": bad}, {"keyshapes": keyshapes, "keymorphs": keymorphs})
+    with pytest.raises(ValidationError):
+        run_stage(Blend, {"alpha": {"keyframes": {0.0: {"happy": 1.0}}, "interpolation": "cubic"}},
+                  {"keyshapes": keyshapes, "keymorphs": keymorphs})
