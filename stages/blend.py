@@ -95,6 +95,15 @@ def interpolate_keyframes(times: np.ndarray, key_times: np.ndarray, key_values: 
     return key_values[seg] * (1.0 - u)[:, None] + key_values[seg + 1] * u[:, None]
 
 
+def frame_times(sequence: np.ndarray, fps: float) -> np.ndarray:
+    """Seconds since the first frame of each frame's own take (takes are concatenated along frames)."""
+    sequence = np.asarray(sequence)
+    index = np.arange(len(sequence))
+    starts = np.r_[0, np.flatnonzero(np.diff(sequence) != 0) + 1]
+    first = starts[np.searchsorted(starts, index, side="right") - 1]
+    return (index - first) / float(fps)
+
+
 def smooth_in_time(values: np.ndarray, sigma_frames: float) -> np.ndarray:
     """Gaussian smoothing along frames (edges held); rows of a simplex stay on it."""
     if sigma_frames <= 0:
@@ -170,7 +179,9 @@ BLEND_OUTPUTS = {
     "expression_weights": Output.array("f", shape=("expressions", "frames", "morphs"), dtype="float32",
                                        doc="the retargeted animation of each expression before blending "
                                            "(unclipped)"),
-    "time": Output.array("f", shape=("frames",), dtype="float64", doc="seconds from the first frame"),
+    "time": Output.array("f", shape=("frames",), dtype="float64", doc="seconds from the first frame of the take"),
+    "sequence": Output.array("i", shape=("frames",), dtype="int32",
+                             doc="test take of each frame, index into meta['labels'] (several takes concatenated)"),
     "vertices": Output.array("f", shape=("frames", None, 3), dtype="float32", optional=True,
                              doc="posed character vertices per frame (params.vertices)"),
 }
@@ -225,9 +236,10 @@ class Blend(Stage):
         self._check_consistency(keyshapes, keymorphs, w, G, names, targets)
         n_frames = w.shape[1]
         fps = self._fps(keyshapes, edit, n_frames)
-        time = np.arange(n_frames) / fps
+        sequence, take_labels = self._takes(edit, n_frames)
+        time = frame_times(sequence, fps)
 
-        alpha, alpha_meta = self._alpha(params, inputs, targets, time, fps)
+        alpha, alpha_meta = self._alpha(params, inputs, targets, time, fps, sequence)
         per_expression = retarget_expressions(w, G)
         raw = blend_expressions(per_expression, alpha)
         weights = np.clip(raw, 0.0, 1.0)
@@ -237,6 +249,7 @@ class Blend(Stage):
             "alpha": alpha.astype(np.float32),
             "expression_weights": per_expression.astype(np.float32),
             "time": time,
+            "sequence": sequence.astype(np.int32),
         }
         if params.vertices:
             character = inputs.get("character")
@@ -256,8 +269,18 @@ class Blend(Stage):
         }
         for j, name in enumerate(targets):
             metrics[f"mean_alpha_{name}"] = float(alpha[:, j].mean()) if n_frames else 0.0
-        meta = {"target_names": names, "fps": fps, "expressions": targets, **alpha_meta}
+        meta = {"target_names": names, "fps": fps, "expressions": targets, "labels": take_labels, **alpha_meta}
         return Result(arrays, meta=meta, metrics=metrics)
+
+    @staticmethod
+    def _takes(edit, n_frames) -> tuple[np.ndarray, list[str]]:
+        """Which test take each frame belongs to (the edit may analyse several, concatenated)."""
+        labels = list(edit.meta.get("test_labels", [])) if edit is not None else []
+        if edit is not None and "sequence" in edit:
+            sequence = np.asarray(edit["sequence"]).astype(np.int64)
+            if len(sequence) == n_frames:
+                return sequence, labels or [f"take{i}" for i in range(int(sequence.max(initial=0)) + 1)]
+        return np.zeros(n_frames, dtype=np.int64), labels[:1] or ["take"]
 
     # ---------------------------------------------------------------------------------------------- checks
     @staticmethod
@@ -301,7 +324,7 @@ class Blend(Stage):
         return float(fps)
 
     # ----------------------------------------------------------------------------------------------- alpha
-    def _alpha(self, params, inputs, targets, time, fps):
+    def _alpha(self, params, inputs, targets, time, fps, sequence):
         spec = params.alpha
         if spec == "from_analysis":
             alpha, meta = self._alpha_from_analysis(inputs, targets)
@@ -319,7 +342,9 @@ class Blend(Stage):
             meta = {"alpha_mode": "constant", "alpha_constant": dict(zip(targets, vector.tolist()))}
         if params.alpha_smoothing < 0:
             raise UserError("alpha_smoothing must be >= 0 (seconds)", field="params.alpha_smoothing")
-        alpha = smooth_in_time(alpha, params.alpha_smoothing * fps)
+        for take in np.unique(sequence):  # smooth within each take, never across a cut
+            rows = sequence == take
+            alpha[rows] = smooth_in_time(alpha[rows], params.alpha_smoothing * fps)
         return alpha, meta
 
     @staticmethod

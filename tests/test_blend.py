@@ -288,3 +288,17 @@ def test_alpha_param_forms_are_explained():
     with pytest.raises(ValidationError):
         run_stage(Blend, {"alpha": {"keyframes": {0.0: {"happy": 1.0}}, "interpolation": "cubic"}},
                   {"keyshapes": keyshapes, "keymorphs": keymorphs})
+
+
+def test_several_test_takes_keep_their_own_clock():
+    keyshapes, keymorphs = retarget_inputs(frames=20)
+    edit, bilinear, _ = analysis_inputs(frames=20)
+    sequence = np.repeat([0, 1], [12, 8]).astype(np.int32)
+    two_takes = artifact({"style": edit["style"], "sequence": sequence},
+                         meta={"labels": TARGETS, "fps": FPS, "test_labels": ["sad", "fear"]})
+    params = {"alpha": {"keyframes": {0.0: {"neutral": 1.0}, 0.2: {"happy": 1.0}}}}
+    out = run_stage(Blend, params, {"keyshapes": keyshapes, "keymorphs": keymorphs, "edit": two_takes})
+    np.testing.assert_allclose(out.arrays["time"], np.r_[np.arange(12), np.arange(8)] / FPS)
+    np.testing.assert_array_equal(out.arrays["sequence"], sequence)
+    assert out.meta["labels"] == ["sad", "fear"]
+    np.testing.assert_allclose(out.arrays["alpha"][12], [1, 0, 0])  # the second take starts at its own t = 0
