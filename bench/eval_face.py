@@ -146,7 +146,7 @@ def evaluate(args):
         # 3. temporal prior on the held-out windows of every take
         row["smooth"] = {}
         for lam in smooths:
-            jit, err, acc = [], [], []
+            jit, err, acc = [], [], []  # per take
             for s in range(len(labels)):
                 frames = takes[s][fold.heldout_local[s]]
                 y = proj.y[frames]
@@ -155,7 +155,8 @@ def evaluate(args):
                 err.append(float(np.sum(result.residual) / np.sum(y ** 2)))
                 acc.append(float(np.mean(classify_styles(result.style, bilinear.style)[0] == s)))
             row["smooth"][str(lam)] = {"jitter": float(np.mean(jit)), "recon_error": float(np.mean(err)),
-                                       "accuracy": float(np.mean(acc))}
+                                       "accuracy": float(np.mean(acc)),
+                                       "accuracy_per_take": dict(zip(labels, acc))}
         folds.append(row)
 
     # unseen expressions, analysed with the model fitted on every training frame
@@ -218,8 +219,10 @@ def report(res):
         j_mean, j = stat([f["smooth"][lam]["jitter"] for f in folds])
         r_mean, r = stat([f["smooth"][lam]["recon_error"] for f in folds])
         a_mean, a = stat([f["smooth"][lam]["accuracy"] for f in folds])
+        per_take = "  ".join(f"{label} {np.mean([f['smooth'][lam]['accuracy_per_take'][label] for f in folds]):.0%}"
+                             for label in labels)
         print(f"   smooth {float(lam):6g}: jitter {j_mean:.3e} (worst {j.max():.3e})  recon error {r_mean:.4f} "
-              f"(worst {r.max():.4f})  accuracy {a_mean:.1%} (worst {a.min():.1%})")
+              f"(worst {r.max():.4f})  accuracy {a_mean:.1%} (worst fold {a.min():.1%}; {per_take})")
 
 
 def main(argv=None):

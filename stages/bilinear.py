@@ -5,6 +5,12 @@ y_k(s, c) = e_s' W_k c_c, fitted with Tenenbaum & Freeman's (2000) SVD-based alt
 Arrays here use a 3-D layout instead of the stacked matrices: observations Y[s, c, k], basis W[i, j, k],
 style vectors as rows style[s] (= a^s), content vectors as rows content[c] (= b^c). ``vector_transpose``
 converts between the stacked matrices the algorithm is written in.
+
+The stage first time-aligns the training takes (stages.alignment, DTW) so that column c of Y holds the same speech
+content in every expression, then fits the model. One addition to the paper: the configuration vectors are centred
+PCA coordinates, so the model also sees the mean face as a constant extra component (``BilinearModel``,
+``mean_weight``); without it, frames near the mean face have no defined style and the out-of-sample analysis
+collapses (bench/eval_face.py --mean-weight 0 shows it).
 """
 from __future__ import annotations
 
@@ -226,6 +232,35 @@ BILINEAR_OUTPUTS = {
 }
 
 
+def figure_alignment(view, inputs=None):
+    """DTW warping paths of every take against the reference take, and the fitted style vectors."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = view.meta["labels"]
+    paths = np.asarray(view["dtw_paths"])
+    style = np.asarray(view["style"])
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(9, 3.6), gridspec_kw={"width_ratios": [1.4, 1]})
+    for s, label in enumerate(labels):
+        p = paths[paths[:, 0] == s]
+        ax.plot(p[:, 1], p[:, 2], label=label)
+    ax.set_xlabel(f"{view.meta['reference']} frame (content axis)")
+    ax.set_ylabel("take frame")
+    ax.set_title(f"content alignment ({view.meta['align']})")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    im = bx.imshow(style, cmap="coolwarm", vmin=-np.abs(style).max(), vmax=np.abs(style).max())
+    bx.set_yticks(range(len(labels)), labels)
+    bx.set_xticks(range(style.shape[1]))
+    bx.set_xlabel("style dimension")
+    bx.set_title("style vectors e_s")
+    fig.colorbar(im, ax=bx, shrink=0.8)
+    fig.tight_layout()
+    return fig
+
+
 class BilinearFit(Stage):
     """Content alignment (DTW on audio MFCCs or mouth shape) and the symmetric bilinear fit (Eq 4)."""
 
@@ -245,6 +280,7 @@ class BilinearFit(Stage):
         "tracks": Input.artifact(optional=True, doc="tracking artifact of the same takes (audio for align=audio)"),
     }
     outputs = BILINEAR_OUTPUTS
+    figures = {"alignment": figure_alignment}
 
     def run(self, params, inputs):
         aam = inputs["aam"]

@@ -2,15 +2,18 @@
 
 Analysis factors every frame's configuration vector y (the test take projected through the training appearance
 model) into a style vector e and a content vector c under the trained bilinear basis W, by the paper's
-alternation (Eq 5: e = pinv([W c]^VT) y, Eq 6: c = pinv([W^VT e]^VT) y), batched over all frames. The pair is
+alternation (Eq 5: e = pinv([W c]^VT) y, Eq 6: c = pinv([W^VT e]^VT) y) from the mean training content (``init``
+'nearest' starts each frame from its closest training observation instead), batched over all frames: each step is
+a batch of small normal-equation solves built from W's precomputed quadratic forms. The pair is
 only defined up to e -> s e, c -> c / s; we fix s by requiring e . m = m . m where m is the mean training style
 vector. When the style dimension equals the number of training expressions (the default), this constraint is
 exactly the affine hull of the training styles, so e has barycentric coordinates over them.
 
 Beyond the paper (whose stated weakness is jitter), ``smooth`` = lambda > 0 adds a temporal prior on the style,
 lambda_e * sum_t |e_t - e_{t-1}|^2 (lambda_e = lambda times the typical diagonal of the style's data Hessian, so lambda
-is dimensionless); ``smooth_content`` optionally penalises the change of y caused by content changes. With other
-factor fixed, each half-step is a banded (block-tridiagonal) least-squares problem over the whole sequence.
+is dimensionless); ``smooth_content`` optionally penalises the change of y caused by content changes (off by
+default: speech content legitimately changes fast, and a content prior pushes that change into the style). With
+the other factor fixed, each half-step is a banded (block-tridiagonal) least-squares problem over the whole take.
 lambda = 0 is exactly the paper's per-frame alternation.
 
 Editing replaces e by a training expression's style vector or a barycentric mix (Eq 7), constant or keyframed;
@@ -226,6 +229,34 @@ def analyse_style_content(w: np.ndarray, training_styles: np.ndarray, initial_co
     """Eq 5-6 for every frame of y (F, K): style e(t) and content c(t); see ``BilinearAnalyser``."""
     return BilinearAnalyser(w, training_styles).analyse(y, initial_content, smooth=smooth,
                                                         smooth_content=smooth_content, tol=tol, max_iter=max_iter)
+
+
+def analyse_takes(model: BilinearModel, y_model: np.ndarray, sequence: np.ndarray, *, init: str = "mean",
+                  smooth: float = 0.0, smooth_content: float = 0.0, tol: float = 1e-9, max_iter: int = 200
+                  ) -> StyleContent:
+    """Eq 5-6 for model-space vectors (F, K(+1)) of one or more takes (``sequence`` labels each frame's take).
+
+    Without a temporal prior all frames are one batch; with it, each take is its own sequence (the prior must not
+    tie the last frame of one take to the first of the next).
+    """
+    analyser = BilinearAnalyser(model.w_full, model.style)
+    start = initial_content(y_model, model, init)
+    if smooth == 0 and smooth_content == 0:
+        return analyser.analyse(y_model, start, tol=tol, max_iter=max_iter)
+    sequence = np.asarray(sequence)
+    start = np.broadcast_to(start, (len(y_model), model.content.shape[1]))
+    parts = {}
+    for take in np.unique(sequence):
+        idx = np.flatnonzero(sequence == take)
+        parts[int(take)] = (idx, analyser.analyse(y_model[idx], start[idx], smooth=smooth,
+                                                  smooth_content=smooth_content, tol=tol, max_iter=max_iter))
+    style = np.zeros((len(y_model), model.style.shape[1]))
+    content = np.zeros((len(y_model), model.content.shape[1]))
+    residual = np.zeros(len(y_model))
+    for idx, part in parts.values():
+        style[idx], content[idx], residual[idx] = part.style, part.content, part.residual
+    return StyleContent(style, content, max(p.iterations for _, p in parts.values()),
+                        all(p.converged for _, p in parts.values()), residual)
 
 
 def style_barycentric(style: np.ndarray, training_styles: np.ndarray) -> np.ndarray:
@@ -478,10 +509,8 @@ class ExpressionEdit(Stage):
         proj = model.project(landmarks, crops, tracks["crop_landmarks"])
 
         y_model = bilinear.augment(proj.y)
-        analysis = analyse_style_content(bilinear.w_full, bilinear.style,
-                                         initial_content(y_model, bilinear, params.init), y_model,
-                                         smooth=params.smooth, smooth_content=params.smooth_content,
-                                         tol=params.tol, max_iter=params.max_iter)
+        analysis = analyse_takes(bilinear, y_model, sequence, init=params.init, smooth=params.smooth,
+                                 smooth_content=params.smooth_content, tol=params.tol, max_iter=params.max_iter)
         classes, cosine = classify_styles(analysis.style, bilinear.style)
         bary = style_barycentric(analysis.style, bilinear.style)
         y_fit = bilinear.synthesise(analysis.style, analysis.content)
@@ -508,9 +537,8 @@ class ExpressionEdit(Stage):
         if params.video:
             panels = [crops] + list(frames)
             arrays["video"] = encode_mp4(side_by_side(panels, ["input"] + target_names), fps)
-        strip_path = params.strip_path or default_strip_path(labels)
-        if strip_path:
-            arrays["strip"] = self.strip(params, strip_path, labels, bilinear, model, proj, analysis, crops)
+        strip_path = params.strip_path if params.strip_path is not None else default_strip_path(labels)
+        arrays["strip"] = self.strip(params, strip_path, labels, bilinear, model, proj, analysis, crops)
         counts = np.bincount(classes, minlength=len(labels))
         meta = {"labels": labels, "targets": target_names, "fps": fps, "test_labels": test_labels,
                 "smooth": params.smooth, "iterations": analysis.iterations, "converged": analysis.converged,
@@ -607,6 +635,7 @@ def figure_style_over_time(view, inputs=None):
 
 
 def figure_strip(view, inputs=None) -> bytes:
+    """The interpolation strip (paper Fig. 2) as PNG."""
     return view.bytes("strip")
 
 

@@ -161,3 +161,9 @@ def test_bilinear_stage_errors():
         run_stage(BilinearFit, {"align": "mouth", "reference": "sad"}, {"aam": view})
     with pytest.raises(ValidationError):
         BilinearFit.Params(align="video")
+
+
+def test_bilinear_figure_renders():
+    run = bilinear_run()
+    for name, fig in BilinearFit.figures.items():
+        assert hasattr(fig(run.view(), {}), "savefig"), name

@@ -279,3 +279,14 @@ def test_edit_figures_render():
     for name, fig in ExpressionEdit.figures.items():
         out = fig(run.view(), {})
         assert isinstance(out, bytes) or hasattr(out, "savefig"), name
+
+
+def test_smoothing_in_the_stage_treats_each_take_as_its_own_sequence():
+    two = tracked("happy", "sad")
+    params = {"smooth": 1.0, "video": False, "targets": ["neutral"]}
+    inputs = {"model": bilinear_run(), "aam": aam_run()}
+    both = run_stage(ExpressionEdit, params, {**inputs, "tracks": two})
+    sad_only = run_stage(ExpressionEdit, params, {**inputs, "tracks": tracked("sad")})
+    is_sad = two["sequence"] == 1
+    np.testing.assert_allclose(both.arrays["style"][is_sad], sad_only.arrays["style"], atol=1e-6)
+    assert both.meta["test_labels"] == ["happy", "sad"]

@@ -1,0 +1,97 @@
+"""Speed of the face analysis (issue 4): texture warp, Eq 5-6 analysis, fitting the three CREMA-D takes.
+
+    OPENBLAS_NUM_THREADS=1 python bench/bench_face.py [--repeats 5]
+
+Targets: texture warp >= 500 frames/s; analysis >= 10,000 frames/s; aam + alignment + bilinear fit of the three
+training takes < 2 s (tracking excluded: it is the tracking stage's cost). Prints the median of the repeats.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from msflow.testing import run_stage  # noqa: E402
+from stages.aam import AamModel, AamPca  # noqa: E402
+from stages.bilinear import BilinearFit, BilinearModel  # noqa: E402
+from stages.edit import analyse_style_content, edited_crops, initial_content  # noqa: E402
+
+CLIPS = {"neutral": "NEU", "happy": "HAP", "angry": "ANG", "sad": "SAD"}
+
+
+def track(labels):
+    from stages.tracking import FaceMesh
+
+    videos = {label: ROOT / "data" / "crema-d" / f"1001_DFA_{CLIPS[label]}_XX.flv" for label in labels}
+    return run_stage(FaceMesh, {}, {"videos": videos}).view()
+
+
+def timed(fn, repeats):
+    times = []
+    result = None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        result = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), result
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--analysis-frames", type=int, default=20000)
+    args = parser.parse_args(argv)
+    train = track(["neutral", "happy", "angry"])
+    sad = track(["sad"])
+    n_train = len(train["landmarks"])
+
+    def fit_all():
+        aam = run_stage(AamPca, {}, {"tracks": train})
+        bilinear = run_stage(BilinearFit, {}, {"aam": aam, "tracks": train})
+        return aam, bilinear
+
+    fit_time, (aam, bilinear) = timed(fit_all, args.repeats)
+    aam_time, _ = timed(lambda: run_stage(AamPca, {}, {"tracks": train}), args.repeats)
+    print(f"fit: aam + DTW alignment + bilinear on the 3 training takes ({n_train} frames): {fit_time:.3f} s "
+          f"(aam alone {aam_time:.3f} s)  [target < 2 s]")
+
+    model = AamModel.from_view(aam.view())
+    crops = np.concatenate([train["crops"]] * 4)
+    crop_landmarks = np.concatenate([train["crop_landmarks"]] * 4)
+    warp_time, _ = timed(lambda: model.warp.warp(crops, crop_landmarks), args.repeats)
+    print(f"texture warp: {len(crops) / warp_time:,.0f} frames/s ({len(crops)} crops "
+          f"{crops.shape[2]}x{crops.shape[1]} -> {model.texture_size[0]}x{model.texture_size[1]}, "
+          f"{model.warp.n_pixels} pixels)  [target >= 500]")
+
+    bil = BilinearModel.from_view(bilinear.view())
+    proj = model.project(sad["landmarks"], sad["crops"], sad["crop_landmarks"])
+    rng = np.random.default_rng(0)
+    reps = int(np.ceil(args.analysis_frames / len(proj.y)))
+    y = np.concatenate([proj.y] * reps)[:args.analysis_frames]
+    y = y + rng.normal(0, 0.05, y.shape) * proj.y.std(0)
+    y_model = bil.augment(y)
+    for label, init, smooth in (("paper (mean init, smooth 0)", "mean", 0.0),
+                                ("nearest init, smooth 0", "nearest", 0.0),
+                                ("mean init, smooth 1", "mean", 1.0)):
+        def run():
+            return analyse_style_content(bil.w_full, bil.style, initial_content(y_model, bil, init), y_model,
+                                         smooth=smooth)
+        t, result = timed(run, max(1, args.repeats // 2))
+        print(f"analysis {label}: {len(y) / t:,.0f} frames/s ({len(y)} frames, I={bil.w.shape[0]} "
+              f"J={bil.w.shape[1]} K={bil.w_full.shape[2]}, {result.iterations} iterations)  [target >= 10,000]")
+
+    y_edit = proj.y[:60]
+    images_time, _ = timed(lambda: edited_crops(model, y_edit, sad["crops"][:60], proj.crop_similarity[:60],
+                                                proj.texture_offset[:60], proj.texture_scale[:60]), args.repeats)
+    print(f"edited images (inverse warp + paste): {60 / images_time:,.0f} frames/s")
+
+
+if __name__ == "__main__":
+    main()
