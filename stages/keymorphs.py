@@ -170,7 +170,7 @@ def fit_keymorph_weights(rig: LandmarkRig, keyshapes: np.ndarray, names: list[st
     """Morph weights u in [0, 1]^M per keyshape minimising (Sec 4.3 keymorphs, automated)
 
         1/2 sum_p c_p ||sum_m u_m d_mp - delta_p||^2 + e (l2/2 ||u||^2 + l1 sum_m u_m)
-            + symmetry/2 sum_(L,R pairs) e_LR (u_L - u_R)^2 + antagonism sum_(antagonists a,b) e_ab u_a u_b
+            + symmetry/2 sum_(L,R pairs) e_LR (u_L - u_R)^2 + antagonism/2 sum_(antagonists a,b) e_ab u_a u_b
 
     with d_mp the projected landmark deltas of target m, delta_p the keyshape's deformation from rest in character
     units, c_p = ``contour_weight`` on the jaw line (2D trackers place it least reliably) and 1 elsewhere,
