@@ -150,19 +150,30 @@ def align_head_motion(rotation: np.ndarray, translation: np.ndarray, head_fps: f
     return rot, trans, info
 
 
-def take_audio(audio_view, label: str | None, fps: float, frames: int) -> tuple[np.ndarray, int, dict]:
+def choose_take(labels: list[str], explicit: str | None, preferred: str | None, field: str) -> int:
+    """Index of the take to use among ``labels``: the one named by params.sequence (must exist), else the one the
+    blend's take is called (when present), else the only one; several takes and no way to choose is an error."""
+    if explicit is not None:
+        if labels and explicit not in labels:
+            raise UserError(f"no take labelled '{explicit}' in {field}; labels: {labels}", field="params.sequence")
+        return labels.index(explicit) if labels else 0
+    if preferred is not None and preferred in labels:
+        return labels.index(preferred)
+    if len(labels) > 1:
+        raise UserError(f"{field} holds several takes {labels}; choose one with params.sequence",
+                        field="params.sequence")
+    return 0
+
+
+def take_audio(audio_view, explicit: str | None, preferred: str | None, fps: float,
+               frames: int) -> tuple[np.ndarray, int, dict]:
     """The chosen take's audio on the animation timeline: shifted by its audio_offset (leading silence or
     dropped samples) and cut or padded to ``frames / fps`` seconds."""
     meta = audio_view.meta
     if "audio" not in audio_view or "audio_bounds" not in audio_view:
         raise UserError("the audio input has no audio (its tracking ran without audio)", field="inputs.audio")
     labels = list(meta.get("labels") or [])
-    if label is None:
-        index = 0
-    elif label in labels:
-        index = labels.index(label)
-    else:
-        raise UserError(f"no take labelled '{label}' in the audio input; labels: {labels}", field="params.sequence")
+    index = choose_take(labels, explicit, preferred, "the audio input")
 
     def per_take(key, default=None):
         value = meta.get(key, default)
@@ -260,16 +271,19 @@ def encode_mp4(frames, fps: float, size: tuple[int, int], *, audio: np.ndarray |
 
 # ------------------------------------------------------------------------------------------------ the stage
 
-def _select_frames(blend, label: str | None) -> tuple[np.ndarray, str | None]:
-    """Rows of the blend weights for one take when the blend carries several (``sequence`` + meta labels)."""
+def _select_frames(blend, explicit: str | None) -> tuple[np.ndarray, str | None]:
+    """Rows of the blend weights for one take when the blend holds several (``sequence`` + meta labels), and
+    the take's label (None when the blend does not name it)."""
     weights = np.asarray(blend["weights"], dtype=np.float64)
-    labels = blend.meta.get("labels")
-    if "sequence" in blend and labels and len(set(np.asarray(blend["sequence"]).tolist())) > 1:
-        pick = labels[0] if label is None else label
-        if pick not in labels:
-            raise UserError(f"no take labelled '{pick}' in the blend; labels: {labels}", field="params.sequence")
-        return weights[np.asarray(blend["sequence"]) == labels.index(pick)], pick
-    return weights, label
+    labels = list(blend.meta.get("labels") or [])
+    if "sequence" in blend and labels:
+        sequence = np.asarray(blend["sequence"])
+        present = [labels[i] for i in np.unique(sequence)]
+        if len(present) > 1:
+            index = choose_take(labels, explicit, None, "the blend")
+            return weights[sequence == index], labels[index]
+        return weights, present[0] if present else None
+    return weights, (labels[0] if len(labels) == 1 else None)
 
 
 def character_weights(blend_weights: np.ndarray, blend_names: list[str], character_names: list[str]) -> np.ndarray:
@@ -299,28 +313,25 @@ def translation_scale(meta: dict, override: float | None) -> tuple[float | None,
     return UNITS_TO_METRES[str(units).lower()], str(units)
 
 
-def select_take(view, names: tuple[str, ...], label: str | None, field: str) -> tuple[list[np.ndarray], str | None]:
+def select_take(view, names: tuple[str, ...], explicit: str | None, preferred: str | None,
+                field: str) -> tuple[list[np.ndarray], str | None]:
     """Rows of ``names`` for one take of an artifact holding several back to back (``sequence`` output + meta
     labels, e.g. motion_blend over several test utterances); an artifact with one take is used whole."""
     arrays = [np.asarray(view[n]) for n in names]
     labels = list(view.meta.get("labels") or [])
     if "sequence" not in view or len(labels) <= 1:
-        return arrays, (labels[0] if labels else label)
-    sequence = np.asarray(view["sequence"])
-    if label is None:
-        label = labels[0]
-    if label not in labels:
-        raise UserError(f"no take labelled '{label}' in {field}; labels: {labels} (set params.sequence)",
-                        field=field)
-    rows = sequence == labels.index(label)
-    return [a[rows] for a in arrays], label
+        return arrays, (labels[0] if labels else None)
+    index = choose_take(labels, explicit, preferred, field)
+    rows = np.asarray(view["sequence"]) == index
+    return [a[rows] for a in arrays], labels[index]
 
 
 class Export(Stage):
     """GLB with morph-weight (and head) animation, Live Link Face CSV, preview MP4 with audio, head BVH."""
 
     class Params(Stage.Params):
-        #: take label (in the audio input's, and a multi-take blend's, meta labels); default: the first
+        #: take label: picks the take in a multi-take blend, head motion and audio input (their meta labels);
+        #: default: the blend's take, or the only take
         sequence: str | None = None
         #: head motion at another frame rate than the blend: False = error, True = resample onto the blend's frames
         resample_head: bool = False
@@ -402,8 +413,8 @@ class Export(Stage):
             head_fps = head.meta.get("fps")
             if not head_fps:
                 raise UserError("the head motion has no meta fps", field="inputs.head")
-            (head_rot, head_trans), head_label = select_take(head, ("rotation", "translation"),
-                                                             params.sequence or label, "inputs.head")
+            (head_rot, head_trans), head_label = select_take(head, ("rotation", "translation"), params.sequence,
+                                                             label, "the head motion")
             rotation, translation, info = align_head_motion(
                 head_rot.astype(np.float64), head_trans.astype(np.float64), float(head_fps), fps, frames,
                 resample=params.resample_head, max_mismatch=params.max_length_mismatch)
@@ -460,8 +471,7 @@ class Export(Stage):
         if params.preview:
             samples = rate = None
             if audio is not None:
-                samples, rate, audio_info = take_audio(audio, params.sequence if params.sequence else label, fps,
-                                                       frames)
+                samples, rate, audio_info = take_audio(audio, params.sequence, label, fps, frames)
                 meta["audio"] = audio_info
             video, codec = render_preview(character, weights, rotation, translation, fps, params, samples, rate)
             arrays["preview"] = video

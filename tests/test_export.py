@@ -280,6 +280,8 @@ def test_export_errors(character):
     with pytest.raises(UserError, match="no take labelled 'sad'"):
         run_stage(Export, {"sequence": "sad", "video_size": 64},
                   {"character": view, "blend": make_blend(6), "audio": make_audio(0.0)})
+    with pytest.raises(UserError, match="several takes"):
+        run_stage(Export, {"video_size": 64}, {"character": view, "blend": make_blend(6), "audio": make_audio(0.0)})
     with pytest.raises(UserError, match="translation_scale"):
         run_stage(Export, {"preview": False}, {"character": view, "blend": make_blend(), "head": make_head(units="px")})
     out = run_stage(Export, {"preview": False, "head_translation": "none"},
@@ -296,7 +298,8 @@ def test_export_errors(character):
     mismatched = make_audio(0.0)
     mismatched.meta["fps"] = [25.0, 25.0]
     with pytest.raises(UserError, match="frame-rate mismatch"):
-        run_stage(Export, {"video_size": 64}, {"character": view, "blend": make_blend(6), "audio": mismatched})
+        run_stage(Export, {"video_size": 64, "sequence": "beep"},
+                  {"character": view, "blend": make_blend(6), "audio": mismatched})
 
 
 def test_head_motion_of_several_takes_is_cut_to_the_chosen_one(character):
@@ -313,6 +316,23 @@ def test_head_motion_of_several_takes_is_cut_to_the_chosen_one(character):
     with pytest.raises(UserError, match="no take labelled 'third'"):
         run_stage(Export, {"preview": False, "sequence": "third"},
                   {"character": character.view(), "blend": make_blend(), "head": both})
+
+
+def test_the_blends_take_picks_the_audio_and_head_takes(character):
+    """A blend over two test takes (sequence + labels): params.sequence picks its frames, and the take's name
+    picks the matching audio and head motion; a single-take blend's label does the same without the param."""
+    w = make_blend()["weights"]
+    two = artifact({"weights": np.r_[w[:20] * 0, w], "sequence": np.r_[np.zeros(20, np.int32),
+                                                                      np.ones(FRAMES, np.int32)]},
+                   {"target_names": DRIVEN, "fps": FPS, "labels": ["happy", "beep"]})
+    out = run_stage(Export, {"sequence": "beep", "video_size": 64},
+                    {"character": character.view(), "blend": two, "audio": make_audio(0.1)})
+    assert out.meta["take"] == "beep" and out.meta["audio"]["audio_label"] == "beep"
+    assert len(out.arrays["weights"]) == FRAMES
+    one = artifact({"weights": w}, {"target_names": DRIVEN, "fps": FPS, "labels": ["beep"]})
+    out = run_stage(Export, {"video_size": 64}, {"character": character.view(), "blend": one,
+                                                 "audio": make_audio(0.1)})
+    assert out.meta["audio"]["audio_label"] == "beep"
 
 
 def test_weights_outside_unit_range_are_clipped_and_counted(character):
