@@ -452,11 +452,20 @@ EDIT_OUTPUTS = {
     "weights": Output.array("f", shape=("targets", "frames", "labels"), doc="Eq 7 weights used per target"),
     "y": Output.array("f", shape=("targets", "frames", None), doc="edited configuration vectors"),
     "shapes": Output.array("f", shape=("targets", "frames", 68, 2), dtype="float32",
-                           doc="edited shapes in the aam mean-shape frame, one set per meta['targets']"),
+                           doc="edited shapes in the aam mean-shape frame, one set per meta['targets'] (training "
+                               "expressions only; mixes are in mixed_shapes)"),
     "crop_shapes": Output.array("f", shape=("targets", "frames", 68, 2), dtype="float32",
                                 doc="edited shapes in the test take's crop pixels"),
     "frames": Output.array("u", shape=("targets", "frames", None, None), dtype="uint8",
                            doc="edited face crops (grey)"),
+    "mixed_weights": Output.array("f", shape=("mixes", "frames", "labels"), optional=True,
+                                  doc="Eq 7 weights of the mix / keyframed edits (meta['mixes'])"),
+    "mixed_y": Output.array("f", shape=("mixes", "frames", None), optional=True),
+    "mixed_shapes": Output.array("f", shape=("mixes", "frames", 68, 2), dtype="float32", optional=True),
+    "mixed_crop_shapes": Output.array("f", shape=("mixes", "frames", 68, 2), dtype="float32", optional=True),
+    "mixed_frames": Output.array("u", shape=("mixes", "frames", None, None), dtype="uint8", optional=True),
+    "sequence": Output.array("i", shape=("frames",), dtype="int32", doc="test take of each frame (meta test_labels)"),
+    "time": Output.array("f", shape=("frames",), doc="seconds since the take's first frame"),
     "video": Output.file(".mp4", optional=True, doc="input | edited expressions side by side"),
     "strip": Output.file(".png", optional=True, doc="interpolation strip of one frame (paper Fig. 2)"),
 }
@@ -518,29 +527,27 @@ class ExpressionEdit(Stage):
 
         fps = first_number(tracks.meta.get("fps"), 30.0)
         times = np.asarray(tracks.get("time", np.arange(len(landmarks)) / fps), dtype=np.float64)
-        target_names, weights, extrapolated = self.target_weights(params, labels, times)
-        y_edit = np.stack([edit_configuration(bilinear.w, bilinear.style, wt, analysis.content) for wt in weights])
-        shapes = model.reconstruct_shapes(model.split(y_edit)[0]).astype(np.float32)
-        frames, crop_shapes = [], []
-        for y_t in y_edit:
-            img, cs = edited_crops(model, y_t, crops, proj.crop_similarity, proj.texture_offset, proj.texture_scale)
-            frames.append(img)
-            crop_shapes.append(cs)
-        frames = np.stack(frames)
+        (target_names, weights), (mix_names, mix_weights), extrapolated = self.target_weights(params, labels, times)
         arrays = {
             "style": analysis.style, "content": analysis.content, "style_weights": bary, "style_cosine": cosine,
-            "classification": classes.astype(np.int32),
-            "residual": residual,
-            "weights": weights, "y": y_edit, "shapes": shapes,
-            "crop_shapes": np.stack(crop_shapes).astype(np.float32), "frames": frames,
+            "classification": classes.astype(np.int32), "residual": residual,
+            "sequence": sequence.astype(np.int32), "time": times,
         }
+        panels, panel_names = [crops], ["input"]
+        for prefix, names, wts in (("", target_names, weights), ("mixed_", mix_names, mix_weights)):
+            if prefix and not names:
+                continue
+            y_edit, shapes, crop_shapes, frames = self.render(wts, bilinear, model, proj, analysis, crops)
+            arrays.update({f"{prefix}weights": wts, f"{prefix}y": y_edit, f"{prefix}shapes": shapes,
+                           f"{prefix}crop_shapes": crop_shapes, f"{prefix}frames": frames})
+            panels += list(frames)
+            panel_names += names
         if params.video:
-            panels = [crops] + list(frames)
-            arrays["video"] = encode_mp4(side_by_side(panels, ["input"] + target_names), fps)
+            arrays["video"] = encode_mp4(side_by_side(panels, panel_names), fps)
         strip_path = params.strip_path if params.strip_path is not None else default_strip_path(labels)
         arrays["strip"] = self.strip(params, strip_path, labels, bilinear, model, proj, analysis, crops)
         counts = np.bincount(classes, minlength=len(labels))
-        meta = {"labels": labels, "targets": target_names, "fps": fps, "test_labels": test_labels,
+        meta = {"labels": labels, "targets": target_names, "mixes": mix_names, "fps": fps, "test_labels": test_labels,
                 "smooth": params.smooth, "iterations": analysis.iterations, "converged": analysis.converged,
                 "extrapolated": extrapolated, "strip_path": strip_path,
                 "classified_as": {labels[s]: int(counts[s]) for s in range(len(labels))}}
@@ -551,28 +558,46 @@ class ExpressionEdit(Stage):
 
     @staticmethod
     def target_weights(params, labels, times):
+        """((expression targets, weights (T, F, S)), (mix names, weights (M, F, S)), extrapolated)."""
         names, rows = [], []
         for name in params.targets if params.targets is not None else labels:
             if name not in labels:
                 raise UserError(f"target '{name}' is not a training expression {labels}", field="params.targets")
-            vec = np.zeros(len(labels))
-            vec[labels.index(name)] = 1.0
             names.append(name)
-            rows.append(np.broadcast_to(vec, (len(times), len(labels))))
+            rows.append(np.broadcast_to(np.eye(len(labels))[labels.index(name)], (len(times), len(labels))))
+        mix_names, mix_rows = [], []
         extrapolated = False
         if params.mix is not None:
             vec = weight_vector(params.mix, labels, "params.mix")
             extrapolated |= check_extrapolation(vec, params.max_extrapolation, "params.mix")
-            names.append("mix")
-            rows.append(np.broadcast_to(vec, (len(times), len(labels))))
+            mix_names.append("mix")
+            mix_rows.append(np.broadcast_to(vec, (len(times), len(labels))))
         if params.keyframes is not None:
             wt = keyframed_weights(params.keyframes, labels, times, "params.keyframes")
             extrapolated |= check_extrapolation(wt, params.max_extrapolation, "params.keyframes")
-            names.append("keyframed")
-            rows.append(wt)
-        if not rows:
+            mix_names.append("keyframed")
+            mix_rows.append(wt)
+        if not rows and not mix_rows:
             raise UserError("nothing to synthesise: give targets, mix or keyframes", field="params.targets")
-        return names, np.stack(rows).astype(np.float64), extrapolated
+
+        def stack(r):
+            return np.stack(r).astype(np.float64) if r else np.zeros((0, len(times), len(labels)))
+        return (names, stack(rows)), (mix_names, stack(mix_rows)), extrapolated
+
+    @staticmethod
+    def render(weights, bilinear, model, proj, analysis, crops):
+        """Eq 7 for each row of weights (T, F, S), back to shapes and face crops: (y, shapes, crop shapes, crops)."""
+        y_edit = np.stack([edit_configuration(bilinear.w, bilinear.style, wt, analysis.content) for wt in weights]) \
+            if len(weights) else np.zeros((0, len(crops), bilinear.w.shape[2]))
+        shapes = model.reconstruct_shapes(model.split(y_edit)[0]).astype(np.float32)
+        frames, crop_shapes = [], []
+        for y_t in y_edit:
+            img, cs = edited_crops(model, y_t, crops, proj.crop_similarity, proj.texture_offset, proj.texture_scale)
+            frames.append(img)
+            crop_shapes.append(cs)
+        frames = np.stack(frames) if frames else np.zeros((0,) + crops.shape, dtype=np.uint8)
+        crop_shapes = np.stack(crop_shapes).astype(np.float32) if crop_shapes else shapes.copy()
+        return y_edit, shapes, crop_shapes, frames
 
     @staticmethod
     def strip(params, path, labels, bilinear, model, proj, analysis, crops) -> bytes:

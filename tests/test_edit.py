@@ -176,6 +176,9 @@ def test_edit_stage_outputs_follow_the_contract(tmp_path):
     assert a["shapes"].shape == (3, frames, 68, 2) and a["shapes"].dtype == np.float32
     assert a["style"].shape[0] == frames and a["content"].shape[0] == frames
     assert a["weights"].shape == (3, frames, 3) and a["frames"].shape[:2] == (3, frames)
+    assert meta["mixes"] == [] and "mixed_shapes" not in a
+    np.testing.assert_array_equal(a["sequence"], 0)
+    np.testing.assert_allclose(a["time"], tracked("sad")["time"])
     assert meta["fps"] == pytest.approx(29.97, abs=0.01)
     np.testing.assert_allclose(a["style_weights"].sum(1), 1, atol=1e-8)
     assert sum(meta["classified_as"].values()) == frames
@@ -231,14 +234,17 @@ def test_edit_stage_mix_and_keyframes():
               "keyframes": [{"time": 0.0, "weights": {"happy": 1.0}}, {"time": float(times[-1]), "weights":
                                                                        {"angry": 1.0}}]}
     run = run_stage(ExpressionEdit, params, {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")})
-    assert run.meta["targets"] == ["happy", "mix", "keyframed"]
-    y = run.arrays["y"]
-    happy_only = y[0]
-    keyed = run.arrays["weights"][2]
+    assert run.meta["targets"] == ["happy"] and run.meta["mixes"] == ["mix", "keyframed"]
+    assert run.arrays["shapes"].shape[0] == 1 and run.arrays["mixed_shapes"].shape[0] == 2
+    keyed = run.arrays["mixed_weights"][1]
     np.testing.assert_allclose(keyed[0], [0, 1, 0])
     np.testing.assert_allclose(keyed[-1], [0, 0, 1])
-    np.testing.assert_allclose(run.arrays["weights"][1], np.broadcast_to([0, 0.5, 0.5], keyed.shape))
-    np.testing.assert_allclose(y[2][0], happy_only[0], atol=1e-8)
+    np.testing.assert_allclose(run.arrays["mixed_weights"][0], np.broadcast_to([0, 0.5, 0.5], keyed.shape))
+    # the keyframed edit starts as the pure happy edit, the constant mix is the average of happy and angry
+    np.testing.assert_allclose(run.arrays["mixed_y"][1][0], run.arrays["y"][0][0], atol=1e-8)
+    both = run_stage(ExpressionEdit, {"targets": ["happy", "angry"], "video": False},
+                     {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")})
+    np.testing.assert_allclose(run.arrays["mixed_y"][0], both.arrays["y"].mean(0), atol=1e-8)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         out = run_stage(ExpressionEdit, {"mix": {"happy": 1.2, "neutral": -0.2}, "video": False},
