@@ -296,7 +296,8 @@ class BilinearFit(Stage):
         style_dim = params.style_dim if params.style_dim is not None else len(labels)
         min_frames = max(params.content_dim or 2, 2)
         why = f"content_dim {params.content_dim}" if params.content_dim else "content alignment"
-        takes = check_takes(sequence, labels, min_frames, why, "inputs.aam")
+        takes = check_takes(sequence, labels, min_frames, why,
+                            "params.content_dim" if params.content_dim else "inputs.aam")
         alignment = align_takes(features, reference, params.dtw_band)
         aligned_frames = np.stack([takes[s][alignment.aligned_local[s]] for s in range(len(labels))])
         y = y_all[aligned_frames]                                   # (S, C, K)

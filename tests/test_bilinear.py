@@ -148,7 +148,7 @@ def test_bilinear_stage_errors():
     with pytest.raises(UserError, match=f"take '{view.meta['labels'][shortest]}' has {lengths[shortest]} frames.*"
                                         f"at least {too_many}") as exc:
         run_stage(BilinearFit, {"content_dim": too_many}, {"aam": view, "tracks": training_tracks()})
-    assert exc.value.field
+    assert exc.value.field == "params.content_dim"
     with pytest.raises(UserError, match="style_dim 4"):
         run_stage(BilinearFit, {"style_dim": 4, "align": "mouth"}, {"aam": view})
     one = {k: view[k] for k in view.names}
