@@ -13,6 +13,7 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
                   help="msflow: cached dataflow pipelines (Mood Swings expressive speech animation).")
 
 FILE_ARG = typer.Argument(Path("pipeline.yaml"), help="pipeline file", show_default=True)
+FILE_OPT = typer.Option(Path("pipeline.yaml"), "-f", "--file", help="pipeline file")
 
 
 def _echo(text: str = "", err: bool = False) -> None:
@@ -83,7 +84,7 @@ def status(file: Path = FILE_ARG,
 
 
 @app.command()
-def why(stage: str = typer.Argument(..., help="stage name"), file: Path = FILE_ARG,
+def why(stage: str = typer.Argument(..., help="stage name"), file: Path = FILE_OPT,
         overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override")):
     """Which part of STAGE's cache key changed since its last run (code file, param, input)."""
     from msflow.api import open_session
@@ -120,7 +121,7 @@ def dag(file: Path = FILE_ARG, mermaid: bool = typer.Option(False, "--mermaid"),
 
 # ---------------------------------------------------------------------------------------------------------- show / export
 @app.command()
-def show(target: str = typer.Argument(..., help="STAGE or STAGE.output"), file: Path = FILE_ARG):
+def show(target: str = typer.Argument(..., help="STAGE or STAGE.output"), file: Path = FILE_OPT):
     """Shapes, dtypes, statistics, metadata and metrics of a stage's artifact."""
     import json
 
@@ -175,7 +176,7 @@ def describe_array(name: str, view) -> str:
 
 @app.command()
 def export(target: str = typer.Argument(..., help="STAGE.output"), dest: Path = typer.Argument(...),
-           file: Path = typer.Option(Path("pipeline.yaml"), "--file", "-f", help="pipeline file")):
+           file: Path = FILE_OPT):
     """Write one output to a file: .npy, .npz, .csv, .json, or a file output's own bytes (GLB, MP4, ...)."""
     from msflow.api import open_session
     from msflow.exporting import export_output
@@ -227,9 +228,19 @@ def verify(file: Path = FILE_ARG, delete: bool = typer.Option(False, "--delete",
 
 
 # ---------------------------------------------------------------------------------------------------------- entry point
-def main(argv: list[str] | None = None) -> int:
-    import click
+def _usage_error_types() -> tuple[type, ...]:
+    """Usage-error classes of the click that typer really uses (typer >= 0.26 vendors it as typer._click)."""
+    found = []
+    for module in ("typer._click.exceptions", "click.exceptions"):
+        try:
+            found.append(__import__(module, fromlist=["ClickException"]).ClickException)
+        except ImportError:
+            pass
+    return tuple(found)
 
+
+def main(argv: list[str] | None = None) -> int:
+    usage_errors = _usage_error_types()
     command = typer.main.get_command(app)
     try:
         code = command.main(args=argv if argv is not None else sys.argv[1:], prog_name="msflow",
@@ -242,12 +253,12 @@ def main(argv: list[str] | None = None) -> int:
     except StageFailed as exc:
         _echo(f"error: {exc}", err=True)
         return 1
-    except click.exceptions.Exit as exc:
+    except typer.Exit as exc:
         return exc.exit_code
-    except click.exceptions.Abort:
+    except typer.Abort:
         _echo("aborted", err=True)
         return 130
-    except click.ClickException as exc:
+    except usage_errors as exc:
         _echo(f"error: {exc.format_message()}", err=True)
         return 2
     except KeyboardInterrupt:

@@ -132,6 +132,7 @@ class Runner:
         self.force = set(force)
         self.reporter = reporter
         self.states = {name: StageState(name) for name in self.selected}
+        self.waiting: list[str] = []
         self.file_memo = FileHashMemo(memo.setdefault("data", {}))
 
     def _report(self, state: StageState) -> None:
@@ -166,6 +167,8 @@ class Runner:
             state.state = outcome["state"]
             if outcome.get("concurrent"):
                 state.detail = "computed by a concurrent run"
+            elif outcome["state"] == "cached" and not state.detail:
+                state.detail = "computed meanwhile"
         else:
             state.state = "failed"
             state.error = outcome.get("error")
@@ -173,47 +176,84 @@ class Runner:
             state.traceback = outcome.get("traceback")
         self._report(state)
 
+    def ready(self) -> list[str]:
+        """Stages whose upstream is settled, removed from the waiting list; marks skips on upstream failure."""
+        out = []
+        for name in list(self.waiting):
+            dep_states = [self.states[d].state for d in self.pipeline.stages[name].deps]
+            if any(s in ("failed", "skipped") for s in dep_states):
+                self.waiting.remove(name)
+                self.states[name].state = "skipped"
+                self.states[name].detail = "an upstream stage failed"
+                self._report(self.states[name])
+                out.append(None)
+            elif all(s in DONE for s in dep_states):
+                self.waiting.remove(name)
+                out.append(name)
+        return out
+
     def run(self) -> dict[str, StageState]:
-        waiting = list(self.selected)
-        running: dict[Future, str] = {}
-        while waiting or running:
-            progressed = True
-            while progressed:
-                progressed = False
-                for name in list(waiting):
-                    deps = self.pipeline.stages[name].deps
-                    dep_states = [self.states[d].state for d in deps]
-                    if any(s in ("failed", "skipped") for s in dep_states):
-                        waiting.remove(name)
-                        self.states[name].state = "skipped"
-                        self.states[name].detail = "an upstream stage failed"
-                        self._report(self.states[name])
-                        progressed = True
-                    elif all(s in DONE for s in dep_states):
-                        waiting.remove(name)
-                        progressed = True
-                        try:
-                            job = self.prepare(name)
-                        except UserError as exc:
-                            self.settle(name, {"state": "failed", "user_error": exc.located(stage=name).to_json(),
-                                               "error": str(exc)})
-                            continue
-                        if job is None:
-                            continue
-                        future = self.executor.submit(json.dumps(job, allow_nan=False))
-                        if future.done():
-                            self.settle(name, _outcome(future, name))
-                        else:
-                            running[future] = name
-            if running:
-                finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
-                for future in finished:
-                    name = running.pop(future)
-                    self.settle(name, _outcome(future, name))
+        schedule([self], self.executor)
         return self.states
 
 
-def _outcome(future: Future, name: str) -> dict:
+def schedule(runners: list[Runner], executor) -> None:
+    """Advance several runners (one per sweep variant) on one executor until all stages are settled.
+
+    A key needed by several runners at the same time is submitted once; the others wait for it and count it as
+    cached ("shared"). Across processes and machines the per-key store lock gives the same guarantee.
+    """
+    for runner in runners:
+        runner.waiting = list(runner.selected)
+    inflight: dict[str, list[tuple[Runner, str]]] = {}
+    running: dict[Future, str] = {}
+
+    def settle(key: str, outcome: dict) -> None:
+        waiters = inflight.pop(key)
+        first_runner, first_name = waiters[0]
+        first_runner.settle(first_name, outcome)
+        for runner, name in waiters[1:]:
+            shared = dict(outcome)
+            if shared["state"] == "ran":
+                shared["state"] = "cached"
+                shared["concurrent"] = False
+                runner.states[name].detail = f"computed once for several variants ({first_name})"
+            runner.settle(name, shared)
+
+    while any(r.waiting for r in runners) or running:
+        progressed = True
+        while progressed:
+            progressed = False
+            for runner in runners:
+                for name in runner.ready():
+                    progressed = True
+                    if name is None:
+                        continue
+                    try:
+                        job = runner.prepare(name)
+                    except UserError as exc:
+                        runner.settle(name, {"state": "failed", "user_error": exc.located(stage=name).to_json(),
+                                             "error": str(exc)})
+                        continue
+                    if job is None:
+                        continue
+                    key = job["key"]
+                    if key in inflight:
+                        inflight[key].append((runner, name))
+                        continue
+                    inflight[key] = [(runner, name)]
+                    future = executor.submit(json.dumps(job, allow_nan=False))
+                    if future.done():
+                        settle(key, _outcome(future))
+                    else:
+                        running[future] = key
+        if running:
+            finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
+            for future in finished:
+                settle(running.pop(future), _outcome(future))
+
+
+def _outcome(future: Future) -> dict:
     try:
         return json.loads(future.result())
     except Exception as exc:  # a worker process died (SIGKILL, OOM) or the executor broke

@@ -173,7 +173,7 @@ def test_stage_resource_files_are_part_of_the_key(numproject, log):
     ref.write_text("1 2\n")
     from conftest import run_cli
 
-    assert "data file of the stage's code changed: resource ref" in run_cli(numproject, "why", "ref",
+    assert "data file of the stage's code changed: resource ref" in run_cli(numproject, "why", "ref", "-f",
                                                                           "resources.yaml").stdout
     again = msflow.run(pipeline)
     assert again.executed == ["ref"] and list(again.load("ref.v")) == [1.0, 2.0]

@@ -190,3 +190,17 @@ def test_cli_main_in_process_returns_2_for_user_errors(numproject, capsys, monke
     (numproject / "bad.yaml").write_text("version: 1\nstages: {}\n")
     assert main(["run", "bad.yaml"]) == 2
     assert "'stages' is empty" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["frobnicate"], "No such command 'frobnicate'"),
+    (["run", "--jobs", "x"], "Invalid value for '-j'"),
+    (["show", "--nope", "src"], "No such option: --nope"),
+    (["run", "-j", "0"], "-j must be at least 1"),
+    (["run", "--until", "nope"], "unknown stage 'nope'"),
+    (["run", "--force", "nope"], "unknown stage(s) ['nope']"),
+])
+def test_cli_usage_errors_exit_2_without_traceback(numproject, args, fragment):
+    result = run_cli(numproject, *args)
+    assert result.returncode == 2, result.stderr
+    assert fragment in result.stderr and "Traceback" not in result.stderr
