@@ -84,8 +84,10 @@ def main(argv=None):
             return analyse_style_content(bil.w_full, bil.style, initial_content(y_model, bil, init), y_model,
                                          smooth=smooth)
         t, result = timed(run, max(1, args.repeats // 2))
+        target = "[target >= 10,000]" if smooth == 0 else "[beyond the paper; no target]"
         print(f"analysis {label}: {len(y) / t:,.0f} frames/s ({len(y)} frames, I={bil.w.shape[0]} "
-              f"J={bil.w.shape[1]} K={bil.w_full.shape[2]}, {result.iterations} iterations)  [target >= 10,000]")
+              f"J={bil.w.shape[1]} K={bil.w_full.shape[2]}, {result.iterations} iterations, converged "
+              f"{result.converged})  {target}")
 
     y_edit = proj.y[:60]
     images_time, _ = timed(lambda: edited_crops(model, y_edit, sad["crops"][:60], proj.crop_similarity[:60],
