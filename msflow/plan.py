@@ -199,6 +199,12 @@ def resolve(pipeline: Pipeline, memo: dict) -> dict[str, StagePlan]:
         plans[name] = StagePlan(name, node.uses, code, code_digest, interface, params)
     for name, node in pipeline.stages.items():
         check_inputs(pipeline, plans, name)
+    for target in pipeline.publish:
+        stage, _, output = target.partition(".")
+        outputs = plans[stage].interface["outputs"]
+        if output not in outputs:
+            raise UserError(f"stage '{stage}' has no output '{output}'{_suggest(output, outputs)}; outputs: "
+                            f"{', '.join(outputs)}", file=file, field=f"publish.{target}")
     return plans
 
 
