@@ -1,8 +1,9 @@
 """Code fingerprints: a stage class's module and every project module it imports, transitively, hashed by AST.
 
-Comments, docstrings and formatting do not change a fingerprint; any other edit does. Imports of third-party
-packages contribute their distributions' versions, standard-library imports nothing (the Python minor version is
-part of the key instead). Nothing is imported to compute this: modules are parsed, and parse results are memoised
+Comments, docstrings and formatting do not change a fingerprint; any other edit does. "Project" covers the
+pipeline's project root and packages installed in development mode (``pip install -e``). Imports of third-party
+packages, and of msflow itself, contribute their distributions' versions; standard-library imports nothing (the
+Python minor version is part of the key instead). Nothing is imported to compute this: modules are parsed, and parse results are memoised
 by (size, mtime_ns, inode) so a no-op run only stats files.
 """
 from __future__ import annotations
@@ -17,6 +18,9 @@ from msflow.hashing import bytes_hash, json_hash, stat_signature
 
 IGNORED_PARTS = {"site-packages", "dist-packages", ".msflow", "node_modules", ".git", "__pycache__"}
 STDLIB = frozenset(sys.stdlib_module_names) | frozenset(sys.builtin_module_names)
+#: the framework is versioned, not fingerprinted: its runner, CLI and store do not change what a stage computes,
+#: and a change that alters stored results bumps msflow.runner.KEY_SCHEME instead
+FRAMEWORK = frozenset({"msflow"})
 
 
 def strip_docstrings(tree: ast.AST) -> ast.AST:
@@ -73,22 +77,29 @@ class CodeIndex:
 
     # ------------------------------------------------------------------ locating modules
     def project_file(self, dotted: str) -> Path | None:
-        """File of a project module (``pkg/__init__.py`` for packages), or None if not in the project."""
-        parts = dotted.split(".")
-        base = self.root
-        for i, part in enumerate(parts):
-            last = i == len(parts) - 1
-            pkg = base / part
-            if last:
-                if (pkg / "__init__.py").is_file():
-                    return pkg / "__init__.py"
-                if (base / f"{part}.py").is_file():
-                    return base / f"{part}.py"
-                return None
-            if not pkg.is_dir() or part in IGNORED_PARTS:
-                return None
-            base = pkg
-        return None
+        """File of a source module (``pkg/__init__.py`` for packages): in the project, or in a package installed
+        in development mode (``pip install -e``) whose code lives outside site-packages. None otherwise."""
+        if dotted.split(".")[0] in FRAMEWORK:
+            return None
+        found = _module_file(self.root, dotted)
+        if found is not None:
+            return found
+        root = self.source_root(dotted.split(".")[0])
+        return _module_file(root, dotted) if root is not None else None
+
+    def source_root(self, top: str) -> Path | None:
+        """Folder holding an importable top-level package that is source code under development, not a
+        distribution's installed files: edits to it must change fingerprints like edits to the project."""
+        if top in STDLIB or not top:
+            return None
+        roots = self.memo.setdefault("roots", {})
+        signature = _path_signature()
+        if roots.get("sig") != signature:
+            roots.clear()
+            roots["sig"] = signature
+        if top not in roots:
+            roots[top] = _find_source_root(top)
+        return Path(roots[top]) if roots[top] else None
 
     def is_project_module(self, dotted: str) -> bool:
         return self.project_file(dotted) is not None or self._is_namespace(dotted)
@@ -99,7 +110,15 @@ class CodeIndex:
             (path / "__init__.py").exists() is False and any(path.glob("*.py"))
 
     def rel(self, path: Path) -> str:
-        return path.resolve().relative_to(self.root).as_posix()
+        """Path relative to the project root, or to the development package's own root: no absolute paths."""
+        path = path.resolve()
+        try:
+            return path.relative_to(self.root).as_posix()
+        except ValueError:
+            top = path
+            while top.parent != top and (top.parent / "__init__.py").exists():
+                top = top.parent
+            return path.relative_to(top.parent).as_posix()
 
     # ------------------------------------------------------------------ parsing with memo
     def module_info(self, path: Path) -> tuple[str, list[list]]:
@@ -168,13 +187,56 @@ class CodeIndex:
         return out
 
 
+def _module_file(base: Path, dotted: str) -> Path | None:
+    parts = dotted.split(".")
+    for i, part in enumerate(parts):
+        pkg = base / part
+        if i == len(parts) - 1:
+            if (pkg / "__init__.py").is_file():
+                return pkg / "__init__.py"
+            if (base / f"{part}.py").is_file():
+                return base / f"{part}.py"
+            return None
+        if not pkg.is_dir() or part in IGNORED_PARTS:
+            return None
+        base = pkg
+    return None
+
+
+def _find_source_root(top: str) -> str | None:
+    import importlib.util
+    import sysconfig
+
+    try:
+        spec = importlib.util.find_spec(top)
+    except (ImportError, ValueError):
+        return None
+    if spec is None:
+        return None
+    locations = list(spec.submodule_search_locations or [])
+    origin = spec.origin if spec.origin not in (None, "built-in", "frozen") else None
+    path = Path(locations[0]) if locations else Path(origin) if origin else None
+    if path is None or not origin or not origin.endswith(".py"):
+        return None  # compiled extension modules and namespace packages: versioned as distributions
+    installed = {sysconfig.get_paths()[k] for k in ("stdlib", "platstdlib", "purelib", "platlib")}
+    resolved = path.resolve()
+    if any(part in ("site-packages", "dist-packages") for part in resolved.parts) or \
+            any(str(resolved).startswith(str(Path(p).resolve())) for p in installed):
+        return None
+    return str(resolved.parent if locations else resolved.parent)
+
+
+def _path_signature() -> str:
+    return json_hash([[p, _mtime(p)] for p in sys.path])
+
+
 def distribution_versions(names: list[str], memo: dict) -> dict[str, str]:
     """Map top-level import names to "dist==version"; memoised on the state of sys.path's directories.
 
     A name with no distribution and no importable module is recorded as absent (an optional dependency that is not
     installed is a fact about the environment, hashed like a version).
     """
-    signature = json_hash([[p, _mtime(p)] for p in sys.path])
+    signature = _path_signature()
     cache = memo.get("dists")
     if not cache or cache.get("sig") != signature:
         cache = {"sig": signature, "map": {}}

@@ -186,3 +186,28 @@ def test_folder_inputs_are_hashed_by_their_files(numproject, log):
     (numproject / "data" / "parts" / "c.txt").write_text("4\n")
     result = msflow.run(pipeline)
     assert result.executed == ["folder"] and result.load("folder.total") == 10.0
+
+
+def test_development_package_outside_the_project_is_fingerprinted(tmp_path):
+    """Stages from a package installed for development (on sys.path, outside site-packages) count as code."""
+    from conftest import run_cli
+
+    pkg = tmp_path / "devsrc" / "devstages"
+    pkg.mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "mod.py").write_text(
+        "import numpy as np\nfrom msflow import Stage, Output, Result\n\n"
+        "class Const(Stage):\n    outputs = {'x': Output.array('f')}\n\n"
+        "    def run(self, params, inputs):\n        return Result({'x': np.array([1.0])})\n")
+    project = tmp_path / "elsewhere"
+    project.mkdir()
+    (project / "pipeline.yaml").write_text("version: 1\nstages:\n  c:\n    uses: devstages.mod:Const\n")
+    env = {"PYTHONPATH": str(tmp_path / "devsrc")}
+    assert run_cli(project, "run", "-q", env=env).returncode == 0
+    assert "1 cached, 0 to run" in run_cli(project, "status", env=env).stdout
+    source = (pkg / "mod.py").read_text()
+    (pkg / "mod.py").write_text("# a comment\n" + source)
+    assert "1 cached, 0 to run" in run_cli(project, "status", env=env).stdout
+    (pkg / "mod.py").write_text(source.replace("np.array([1.0])", "np.array([2.0])"))
+    status = run_cli(project, "status", env=env).stdout
+    assert "code: devstages/mod.py changed" in status
