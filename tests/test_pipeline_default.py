@@ -1,0 +1,53 @@
+"""The default pipeline.yaml on the embedded data: runs end to end, reruns nothing, exports what animators open."""
+import csv
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import msflow
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def default_run(tmp_path_factory):
+    """The repository's pipeline run in a copy (own store), so the working tree's store is never touched."""
+    dest = tmp_path_factory.mktemp("repo") / "msflow"
+    dest.mkdir()
+    for name in ("pipeline.yaml", "data", "stages", "pyproject.toml"):
+        src = ROOT / name
+        (shutil.copytree if src.is_dir() else shutil.copy2)(src, dest / name)
+    return dest, msflow.run(dest / "pipeline.yaml")
+
+
+def test_default_pipeline_runs_every_stage(default_run):
+    proj, result = default_run
+    spec = (proj / "pipeline.yaml").read_text()
+    assert result.ok
+    assert set(result.executed) == set(result.states)
+    for stage in ("track_train", "track_test", "aam", "bilinear", "edit", "character", "keyshapes", "keymorphs",
+                  "blend", "headdb", "pitch_db", "pitch_test", "trellis", "motion_blend", "export"):
+        assert f"  {stage}:" in spec and result.states[stage].state == "ran"
+
+
+def test_default_pipeline_rerun_is_a_no_op(default_run):
+    proj, first = default_run
+    again = msflow.run(proj / "pipeline.yaml")
+    assert again.executed == []
+    assert {n: again.key(n) for n in again.states} == {n: first.key(n) for n in first.states}
+
+
+def test_default_pipeline_publishes_animation_files(default_run):
+    proj, result = default_run
+    out = proj / "out"
+    glb = (out / "sad.glb").read_bytes()
+    assert glb[:4] == b"glTF"
+    rows = list(csv.reader((out / "sad_live_link.csv").open()))
+    assert rows[0][:2] == ["Timecode", "BlendShapeCount"] and len(rows[0]) == 2 + 61
+    weights = result.load("blend.weights")
+    assert len(rows) - 1 == weights.shape[0] == result.load("track_test.landmarks").shape[0]
+    assert (out / "sad_head.bvh").read_text().startswith("HIERARCHY")
+    assert (out / "sad_preview.mp4").stat().st_size > 10_000
+    assert np.all((weights >= 0) & (weights <= 1))
