@@ -32,10 +32,11 @@ class Session:
             self.memo_digest = json_hash(self.memo)
 
 
-def open_session(path: str | Path, overrides=()) -> Session:
+def open_session(path: str | Path, overrides=(), memo: dict | None = None) -> Session:
+    """Load and resolve a pipeline; ``memo`` shares one memo between sessions (sweep variants)."""
     pipeline = load_pipeline(path, tuple(overrides))
     store = pipeline.open_store()
-    memo = store.load_memo()
+    memo = store.load_memo() if memo is None else memo
     digest = json_hash(memo)
     plans = resolve(pipeline, memo)
     return Session(pipeline, store, memo, plans, digest)
@@ -82,7 +83,8 @@ class RunResult:
 
 def run(path: str | Path, overrides=(), *, jobs: int = 1, until: str | None = None, force=(),
         executor: str = "local", scheduler: str | None = None, reporter=None, argv: list[str] | None = None,
-        raise_on_failure: bool = True, label: dict | None = None, session: Session | None = None) -> RunResult:
+        raise_on_failure: bool = True, label: dict | None = None, session: Session | None = None,
+        connect_timeout: float = 10.0) -> RunResult:
     """Run a pipeline. Raises UserError for mistakes in the pipeline (nothing is written), and after the run
     StageFailed (a stage crashed) or UserError (a stage rejected its data) unless ``raise_on_failure`` is False."""
     from msflow.executors import make_executor
@@ -95,7 +97,7 @@ def run(path: str | Path, overrides=(), *, jobs: int = 1, until: str | None = No
     runner = Runner(session.pipeline, session.plans, session.store, session.memo, executor=None, until=until,
                     force=tuple(force), reporter=reporter)
     needs_work = bool(runner.force) or _might_run(runner)
-    pool = make_executor(executor, jobs, scheduler) if needs_work else None
+    pool = make_executor(executor, jobs, scheduler, connect_timeout) if needs_work else None
     if needs_work:
         session.store.clean_tmp()  # leftovers of runs killed mid-write
     runner.executor = pool

@@ -186,16 +186,25 @@ def read_artifact(path: Path, key: str | None = None) -> ArtifactView:
 
 def verify_artifact(path: Path) -> list[str]:
     """Recompute every content hash of an artifact; return a list of problems (empty when intact)."""
-    problems = []
     try:
         manifest = read_manifest(path)
     except Exception as exc:  # unreadable zarr.json is itself the finding
         return [f"manifest unreadable: {exc}"]
     try:
         view = read_artifact(path)
+    except Exception as exc:
+        return [f"unreadable: {type(exc).__name__}: {exc}"]
+    return check_contents(manifest, view.__getitem__)
+
+
+def check_contents(manifest: dict, load) -> list[str]:
+    """Problems found recomputing the content hashes recorded in ``manifest``; ``load(name)`` reads an output
+    (from a local zarr group, an object store, ...)."""
+    problems = []
+    try:
         for name, entry in manifest["outputs"].items():
             try:
-                got = array_hash(view[name])
+                got = array_hash(load(name))
             except Exception as exc:
                 problems.append(f"output '{name}': unreadable ({type(exc).__name__}: {exc})")
                 continue

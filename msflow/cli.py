@@ -1,6 +1,7 @@
 """The ``msflow`` command line. Exit codes: 0 ok, 1 a stage failed, 2 user error (no traceback)."""
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 from typing import List, Optional
@@ -33,6 +34,7 @@ def run(file: Path = FILE_ARG,
         jobs: int = typer.Option(1, "-j", "--jobs", help="stages to run at once (processes)"),
         executor: str = typer.Option("local", "--executor", help="local or dask"),
         scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address tcp://host:port"),
+        connect_timeout: float = typer.Option(10.0, "--connect-timeout", help="seconds to reach the scheduler"),
         quiet: bool = typer.Option(False, "-q", "--quiet", help="no progress display")):
     """Run the pipeline: compute what is missing, reuse everything else."""
     from msflow.api import open_session, run as run_pipeline
@@ -45,7 +47,7 @@ def run(file: Path = FILE_ARG,
     try:
         result = run_pipeline(file, session=session, jobs=jobs, until=until, force=_split(force),
                               executor=executor, scheduler=scheduler, reporter=reporter, argv=sys.argv[1:],
-                              raise_on_failure=False)
+                              raise_on_failure=False, connect_timeout=connect_timeout)
     finally:
         if reporter:
             reporter.stop()
@@ -225,6 +227,92 @@ def verify(file: Path = FILE_ARG, delete: bool = typer.Option(False, "--delete",
     _echo(f"verified {total} artifacts: {bad} corrupt" + (" (removed)" if delete and bad else ""))
     if bad:
         raise typer.Exit(1)
+
+
+# ---------------------------------------------------------------------------------------------------------- sweeps, runs
+@app.command()
+def sweep(file: Path = FILE_ARG,
+          values: Optional[List[str]] = typer.Option(None, "-S", "--set",
+                                                     help="stage.param=v1,v2,... (comma lists form a grid)"),
+          grid: Optional[Path] = typer.Option(None, "--grid", help="grid file: grid / zip / variants"),
+          jobs: int = typer.Option(1, "-j", "--jobs", help="stages to run at once across variants"),
+          executor: str = typer.Option("local", "--executor", help="local or dask"),
+          scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler tcp://host:port"),
+          fmt: str = typer.Option("table", "--format", help="table, md, csv or json"),
+          sort: Optional[str] = typer.Option(None, "--sort", help="column to sort by (-column: descending)"),
+          metrics: Optional[str] = typer.Option(None, "--metrics", help="stage.metric patterns, comma separated"),
+          quiet: bool = typer.Option(False, "-q", "--quiet")):
+    """Run a grid of parameter variants; print variant parameters against stage metrics."""
+    from msflow.progress import SweepReporter
+    from msflow.sweep import expand_variants, format_table, metric_columns, results_rows, run_sweep
+
+    variants = expand_variants(list(values or ()), grid)
+    from msflow.spec import load_pipeline
+
+    stage_count = len(load_pipeline(file).stages)
+    reporter = None if quiet else SweepReporter(len(variants), stage_count)
+    result = run_sweep(file, variants, jobs=jobs, executor=executor, scheduler=scheduler, reporter=reporter)
+    header, rows = results_rows(result, metric_columns(result, _split([metrics]) if metrics else None), sort)
+    _echo(format_table(header, rows, fmt))
+    failed = sum(1 for v in result.variants if not v.ok)
+    _echo(f"sweep {result.sweep_id}: {len(result.variants)} variants, {result.executed} stage executions for "
+          f"{result.unique_keys} distinct keys, {failed} failed, {result.seconds:.2f}s", err=True)
+    if failed:
+        raise typer.Exit(1)
+
+
+@app.command()
+def runs(file: Path = FILE_ARG, limit: int = typer.Option(20, "--limit", "-n", help="newest N runs")):
+    """List runs (newest last): id, time, variant or overrides, stage counts."""
+    from msflow.spec import load_pipeline
+
+    store = load_pipeline(file).open_store()
+    ids = store.run_ids()[-limit:]
+    for run_id in ids:
+        record = store.read_run(run_id)
+        counts = ", ".join(f"{v} {k}" for k, v in record.get("counts", {}).items() if v)
+        label = record.get("variant") or record.get("overrides") or ""
+        sweep = f" sweep {record['sweep']}" if record.get("sweep") else ""
+        _echo(f"{run_id}  {'ok    ' if record.get('ok') else 'FAILED'}  {record.get('seconds', 0):7.2f}s  "
+              f"{counts}{sweep}  {json.dumps(label) if label else ''}")
+    if not ids:
+        _echo("no runs yet")
+
+
+@app.command()
+def compare(run_a: str = typer.Argument(..., help="run id (or unique prefix/suffix)"),
+            run_b: str = typer.Argument(...), file: Path = FILE_OPT):
+    """Differences between two runs: params, cache keys, metrics."""
+    from msflow.spec import load_pipeline
+
+    store = load_pipeline(file).open_store()
+    a, b = store.read_run(run_a), store.read_run(run_b)
+    _echo(f"A = {a['id']}\nB = {b['id']}")
+    for stage in sorted(set(a["stages"]) | set(b["stages"])):
+        sa, sb = a["stages"].get(stage), b["stages"].get(stage)
+        if sa is None or sb is None:
+            _echo(f"{stage}: only in {'B' if sa is None else 'A'}")
+            continue
+        lines = []
+        pa = (a["config"].get(stage) or {}).get("params", {})
+        pb = (b["config"].get(stage) or {}).get("params", {})
+        for name in sorted(set(pa) | set(pb)):
+            if pa.get(name) != pb.get(name):
+                lines.append(f"  param {name}: {pa.get(name)!r} -> {pb.get(name)!r}")
+        if sa.get("key") != sb.get("key"):
+            lines.append(f"  key {str(sa.get('key'))[:12]} -> {str(sb.get('key'))[:12]}")
+        ma, mb = sa.get("metrics") or {}, sb.get("metrics") or {}
+        for name in sorted(set(ma) | set(mb)):
+            va, vb = ma.get(name), mb.get(name)
+            if va != vb:
+                delta = f" ({vb - va:+.4g})" if isinstance(va, (int, float)) and isinstance(vb, (int, float)) else ""
+                lines.append(f"  metric {name}: {va} -> {vb}{delta}")
+        if lines:
+            _echo(f"{stage}:")
+            for line in lines:
+                _echo(line)
+    same = [s for s in a["stages"] if s in b["stages"] and a["stages"][s].get("key") == b["stages"][s].get("key")]
+    _echo(f"{len(same)} stages identical (same key)")
 
 
 # ---------------------------------------------------------------------------------------------------------- entry point

@@ -46,7 +46,7 @@ class ProcessExecutor:
         self.pool.shutdown(wait=True, cancel_futures=True)
 
 
-def make_executor(kind: str = "local", jobs: int = 1, scheduler: str | None = None):
+def make_executor(kind: str = "local", jobs: int = 1, scheduler: str | None = None, timeout: float = 10.0):
     from msflow.errors import UserError
 
     if jobs < 1:
@@ -54,7 +54,7 @@ def make_executor(kind: str = "local", jobs: int = 1, scheduler: str | None = No
     if kind == "dask" or scheduler:
         from msflow.dask_executor import DaskExecutor
 
-        return DaskExecutor(jobs=jobs, scheduler=scheduler)
+        return DaskExecutor(jobs=jobs, scheduler=scheduler, timeout=timeout)
     if kind not in ("local", "inline"):
         raise UserError(f"unknown executor '{kind}'; choose local or dask", field="--executor")
     return InlineExecutor() if jobs == 1 or kind == "inline" else ProcessExecutor(jobs)

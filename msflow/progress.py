@@ -76,3 +76,40 @@ def make_reporter(names: list[str], quiet: bool = False):
     if sys.stderr.isatty():
         return RichReporter(names)
     return PlainReporter(names)
+
+
+class SweepReporter:
+    """One line per variant: how many of its stages are settled, cached, run, failed."""
+
+    def __init__(self, total: int, stages: int, stream=None):
+        self.stream = stream or sys.stderr
+        self.total = total
+        self.stages = stages
+        self.rows: dict[int, dict] = {}
+        self.finished = 0
+
+    def for_variant(self, index: int, params: dict):
+        reporter = self
+
+        class Proxy:
+            def update(self, state):
+                reporter.update(index, params, state)
+        return Proxy()
+
+    def start(self) -> None:
+        pass
+
+    def update(self, index: int, params: dict, state) -> None:
+        row = self.rows.setdefault(index, {"states": {}, "done": False})
+        row["states"][state.name] = state.state
+        settled = [s for s in row["states"].values() if s in ("cached", "ran", "failed", "skipped")]
+        if len(settled) == self.stages and not row["done"]:
+            row["done"] = True
+            self.finished += 1
+            counts = {k: settled.count(k) for k in ("ran", "cached", "failed", "skipped") if settled.count(k)}
+            described = ", ".join(f"{k}={v}" for k, v in params.items())
+            print(f"[{self.finished}/{self.total}] variant {index + 1} ({described}): "
+                  + ", ".join(f"{v} {k}" for k, v in counts.items()), file=self.stream, flush=True)
+
+    def stop(self) -> None:
+        pass

@@ -216,6 +216,22 @@ class LocalStore:
         with open(path, "rb") as fh:
             return json.load(fh)
 
+    def write_sweep(self, record: dict) -> Path:
+        path = self._dir("sweeps") / f"{record['id']}.json"
+        write_json_atomic(path, record, indent=1)
+        return path
+
+    def sweep_ids(self) -> list[str]:
+        sweeps = self.root / "sweeps"
+        return sorted(p.stem for p in sweeps.glob("*.json")) if sweeps.is_dir() else []
+
+    def read_sweep(self, sweep_id: str) -> dict:
+        path = self.root / "sweeps" / f"{sweep_id}.json"
+        if not path.is_file():
+            raise UserError(f"no sweep '{sweep_id}'", file=str(self.root))
+        with open(path, "rb") as fh:
+            return json.load(fh)
+
     def remove_run(self, run_id: str) -> None:
         with contextlib.suppress(FileNotFoundError):
             (self.root / "runs" / f"{run_id}.json").unlink()

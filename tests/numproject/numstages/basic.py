@@ -97,6 +97,8 @@ class Broken(Stage):
             return Result({"y": np.zeros(3)}, meta={"bad": float("nan")})
         if params.mode == "user":
             raise UserError("the data is unusable", field="inputs.x")
+        if params.mode == "fine":
+            return Result({"y": np.ones(3)}, metrics={"score": 1.0})
         raise RuntimeError("boom")
 
 
@@ -126,3 +128,23 @@ class LoadFolder(Stage):
         (folder,) = inputs["folder"].values()
         files = sorted(p for p in folder.iterdir() if p.is_file())
         return Result({"total": np.array(sum(np.loadtxt(p, ndmin=1).sum() for p in files))})
+
+
+class DieOnce(Stage):
+    """Kills its own process the first time it runs (a worker dying mid-stage), succeeds afterwards.
+
+    NUMSTAGES_MARKER names the file that records the first attempt."""
+
+    inputs = {"x": Input.array("f")}
+    outputs = {"y": Output.array("f", ndim=1)}
+
+    def run(self, params, inputs):
+        import signal
+
+        marker = os.environ["NUMSTAGES_MARKER"]
+        if not os.path.exists(marker):
+            with open(marker, "w") as fh:
+                fh.write(str(os.getpid()))
+            os.kill(os.getpid(), signal.SIGKILL)
+        log_execution(self.name)
+        return Result({"y": inputs["x"] + 1})

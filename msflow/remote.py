@@ -1,0 +1,432 @@
+"""The artifact store on an object store (``s3://bucket/prefix`` or any fsspec URL), same interface as LocalStore.
+
+Layout under the store's prefix::
+
+    commits/<k[:2]>/<key>.json       commit marker: names the key's data folder and holds its manifest
+    artifacts/<k[:2]>/<key>/<wid>/   zarr v3 groups, one folder per writer (wid: time, random)
+    pending/<key>.<wid>.json         journal of folders that may become garbage (being written or retired)
+    locks/<key>.lease                per-key leases (msflow.remote_leases)
+    runs/<id>.json                   one record per run (shared by every machine using the store)
+
+The memo of file stat signatures and code fingerprints is machine-local: it lives in the pipeline's cache_dir
+(``.msflow/cache``), never in the store.
+
+Atomic publish
+    A writer journals its folder, uploads the zarr group into it, then writes the commit marker: one small
+    object, created conditionally (``If-None-Match: *``) so the first committed artifact of a key stays. Readers
+    (has, manifest, open, keys, verify) look at commit markers only, so a folder without one - a writer killed
+    mid-upload - is invisible. ``replace=True`` (``msflow run --force``) journals the old folder, overwrites the
+    marker in one PUT (readers see the old artifact or the new one, never a mix); the old folder stays for
+    RETIRE_SECONDS, so a reader that read the old marker can finish. Removal deletes the marker first.
+Cleanup
+    clean_tmp reads the journal (small: only unfinished work is in it). A folder being written is deleted once
+    its writer is gone - a dead process on this host, or for another host no live lease on the key and older
+    than ``max_age`` (default an hour) - unless the marker names it (killed between commit and journal
+    cleanup). A retired folder is deleted RETIRE_SECONDS (or ``max_age``) after its replacement. Leases of
+    dead holders are deleted too. Every run that computes something and ``msflow gc`` call it.
+Locks
+    One lease per key, renewed by a heartbeat, broken when expired or when its holder on this host is dead (see
+    msflow.remote_leases). The rule users rely on: any number of runs, on any machines, may share a store;
+    each stage instance is computed once while leases hold. Clocks matter only for the cleanup grace period.
+No-op path
+    ``has`` is one GET of the commit marker, and the manifest comes with it: a cached stage costs one small
+    request. Opening an artifact reads no metadata beyond the marker; outputs are fetched chunk by chunk in
+    parallel, or through zarr for lazy access.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import time
+import uuid
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+from msflow.errors import UserError
+from msflow.remote_leases import Lease, lease_is_stale, parse_holder
+from msflow.remote_objects import dumps, iter_chunks, make_objects
+from msflow.store import HOST, _pid_alive, write_json_atomic
+
+MARKER_FORMAT = 1
+STALE_SECONDS = 3600.0    # a journalled folder of a writer on another host, without a live lease, is gone after this
+RETIRE_SECONDS = 60.0     # a folder replaced by --force stays readable this long for readers that opened it
+
+_PROBED: set[str] = set()
+
+
+def open_remote_store(url: str, options: dict | None, cache_dir: str | Path | None = None) -> "RemoteStore":
+    """A RemoteStore for ``url``; the first opening in a process checks bucket, credentials and endpoint."""
+    store = RemoteStore(url, options or {}, cache_dir)
+    probe_key = json.dumps([url, options or {}], sort_keys=True, default=str)
+    if probe_key not in _PROBED:
+        store.objects.probe()
+        _PROBED.add(probe_key)
+    return store
+
+
+def writer_id() -> str:
+    """Unique and sortable by creation time."""
+    return f"{time.time_ns() // 1000:x}-{uuid.uuid4().hex[:10]}"
+
+
+class RemoteStore:
+    def __init__(self, url: str, options: dict, cache_dir: str | Path | None = None):
+        protocol, sep, path = url.partition("://")
+        self.url = protocol + sep + path.rstrip("/")
+        self.options = dict(options)
+        self.cache_dir = Path(cache_dir) if cache_dir is not None else None
+        self.objects = make_objects(self.url, self.options)
+        self._recent: dict[str, dict] = {}   # markers read by has(), consumed by the manifest() that follows
+
+    # ------------------------------------------------------------------ paths
+    @staticmethod
+    def marker_path(key: str) -> str:
+        return f"commits/{key[:2]}/{key}.json"
+
+    @staticmethod
+    def data_path(key: str, wid: str) -> str:
+        return f"artifacts/{key[:2]}/{key}/{wid}"
+
+    @staticmethod
+    def journal_path(key: str, wid: str) -> str:
+        return f"pending/{key}.{wid}.json"
+
+    # ------------------------------------------------------------------ reading
+    def _marker(self, key: str) -> dict | None:
+        data = self.objects.get(self.marker_path(key))
+        if data is None:
+            return None
+        try:
+            marker = json.loads(data)
+        except ValueError:
+            return None
+        return marker if isinstance(marker, dict) and "data" in marker and "manifest" in marker else None
+
+    def has(self, key: str) -> bool:
+        marker = self._marker(key)
+        if marker is None:
+            self._recent.pop(key, None)
+            return False
+        self._recent[key] = marker
+        return True
+
+    def _committed(self, key: str) -> dict:
+        marker = self._recent.pop(key, None) or self._marker(key)
+        if marker is None:
+            raise FileNotFoundError(f"no artifact {key} in {self.url}")
+        return marker
+
+    def manifest(self, key: str) -> dict:
+        return self._committed(key)["manifest"]
+
+    def open(self, key: str):
+        return self._view(key, self._committed(key))
+
+    def _view(self, key: str, marker: dict):
+        from msflow.artifact import ArtifactView
+
+        manifest = marker["manifest"]
+        folder = self.data_path(key, marker["data"])
+        chunks = marker.get("chunks", {})
+        arrays = {name: RemoteArray(self, folder, name, entry, chunks.get(name))
+                  for name, entry in manifest["outputs"].items()}
+        return ArtifactView(arrays, manifest.get("meta", {}), manifest.get("metrics", {}), key=key,
+                            manifest=manifest)
+
+    def keys(self) -> Iterator[str]:
+        for info in self.objects.list("commits/"):
+            name = info.path.rsplit("/", 1)[-1]
+            if name.endswith(".json"):
+                yield name[:-len(".json")]
+
+    def verify(self, key: str) -> list[str]:
+        from msflow.artifact import check_contents
+
+        raw = self.objects.get(self.marker_path(key))
+        if raw is None:
+            return ["no commit marker (not published)"]
+        marker = self._marker(key)
+        if marker is None:
+            return ["commit marker unreadable"]
+        folder = self.data_path(key, marker["data"])
+        problems = []
+        group = self.objects.get(f"{folder}/zarr.json")
+        if group is None:
+            problems.append(f"zarr.json missing under {folder}")
+        else:
+            try:
+                stored = json.loads(group)["attributes"]["msflow"]
+            except (ValueError, KeyError, TypeError) as exc:
+                problems.append(f"zarr.json unreadable: {type(exc).__name__}: {exc}")
+            else:
+                if stored != marker["manifest"]:
+                    problems.append("zarr.json manifest differs from the commit marker's")
+        return problems + check_contents(marker["manifest"], self._view(key, marker).__getitem__)
+
+    def size(self, key: str) -> int:
+        marker = self._marker(key)
+        if marker is None:
+            return 0
+        return sum(o.size for o in self.objects.list(self.data_path(key, marker["data"]) + "/"))
+
+    # ------------------------------------------------------------------ writing
+    def write(self, key: str, arrays: dict, extra: dict, file_suffixes: dict | None = None,
+              replace: bool = False) -> dict:
+        """Upload the zarr group under a fresh folder, then commit it with the marker; returns the manifest."""
+        from msflow.artifact import array_metadata, encode_artifact, prepare_manifest
+
+        arrays, manifest = prepare_manifest(arrays, extra, file_suffixes)
+        wid = writer_id()
+        folder = self.data_path(key, wid)
+        journal = self.journal_path(key, wid)
+        self.objects.put(journal, self._journal_entry(key, wid, "write"))
+        committed = False
+        try:
+            for batch in iter_chunks(encode_artifact(arrays, manifest)):
+                self.objects.put_many({f"{folder}/{rel}": data for rel, data in batch.items()})
+            chunks = {name: array_metadata(arr)["chunk_grid"]["configuration"]["chunk_shape"]
+                      for name, arr in arrays.items()}
+            marker = dumps({"format": MARKER_FORMAT, "key": key, "data": wid, "manifest": manifest,
+                            "chunks": chunks, "host": HOST, "pid": os.getpid(), "committed": time.time()})
+            if replace:
+                committed = self._replace(key, wid, marker)
+            else:
+                committed = self.objects.create(self.marker_path(key), marker) is not None
+                if not committed:  # published meanwhile by another writer of the key: same content by construction
+                    self.objects.delete_prefix(folder + "/")
+        except BaseException:
+            self._abandon(key, wid)
+            raise
+        self.objects.delete(journal)
+        self._recent.pop(key, None)
+        return manifest
+
+    def _replace(self, key: str, wid: str, marker: bytes) -> bool:
+        """Overwrite the marker; the old folder is retired, not deleted, so a reader that read the old marker
+        a moment ago can still read its chunks. clean_tmp deletes it RETIRE_SECONDS later."""
+        old = self._marker(key)
+        if old and old["data"] != wid:
+            self.objects.put(self.journal_path(key, old["data"]), self._journal_entry(key, old["data"], "retire"))
+        self.objects.put(self.marker_path(key), marker)
+        return True
+
+    def _abandon(self, key: str, wid: str) -> None:
+        """Best effort after a failed write: delete our folder unless the marker names it (a commit whose
+        response was lost); whatever this cannot do, clean_tmp does later from the journal."""
+        with contextlib.suppress(Exception):
+            marker = self._marker(key)
+            if marker is None or marker.get("data") != wid:
+                self.objects.delete_prefix(self.data_path(key, wid) + "/")
+            self.objects.delete(self.journal_path(key, wid))
+
+    @staticmethod
+    def _journal_entry(key: str, wid: str, action: str) -> bytes:
+        return dumps({"key": key, "data": wid, "action": action, "host": HOST, "pid": os.getpid(),
+                      "started": time.time()})
+
+    def remove(self, key: str) -> None:
+        marker = self._marker(key)
+        if marker is None:
+            return
+        wid = marker["data"]
+        self.objects.put(self.journal_path(key, wid), self._journal_entry(key, wid, "retire"))
+        self.objects.delete(self.marker_path(key))
+        self._recent.pop(key, None)
+        self.objects.delete_prefix(self.data_path(key, wid) + "/")
+        self.objects.delete(self.journal_path(key, wid))
+
+    def clean_tmp(self, *, max_age: float | None = None) -> list[str]:
+        """Delete folders of writers that are gone and folders retired by replace (see the module docstring),
+        and leases of dead holders; returns the deleted folders as ``<key>.<wid>``."""
+        removed = []
+        for info in self.objects.list("pending/"):
+            raw = self.objects.get(info.path)
+            if raw is None:
+                continue  # finished meanwhile
+            try:
+                entry = json.loads(raw)
+                key, wid = entry["key"], entry["data"]
+            except (ValueError, KeyError, TypeError):
+                self.objects.delete(info.path)
+                continue
+            if entry.get("action") == "retire":
+                keep = _age(entry) < (RETIRE_SECONDS if max_age is None else max_age)
+            else:
+                keep = self._writer_alive(entry, STALE_SECONDS if max_age is None else max_age)
+            if keep:
+                continue
+            marker = self._marker(key)
+            if marker is None or marker.get("data") != wid:
+                self.objects.delete_prefix(self.data_path(key, wid) + "/")
+                removed.append(f"{key}.{wid}")
+            self.objects.delete(info.path)
+        for info in self.objects.list("locks/"):
+            current = self.objects.get_versioned(info.path)
+            if current is not None and lease_is_stale(parse_holder(current.data), current.age):
+                self.objects.delete_if(info.path, current.etag)
+        return removed
+
+    def _writer_alive(self, entry: dict, grace: float) -> bool:
+        pid = entry.get("pid")
+        if entry.get("host") == HOST and isinstance(pid, int):
+            return _pid_alive(pid)
+        lease = self.objects.get_versioned(self.lease_path(entry["key"]))
+        if lease is not None and not lease_is_stale(parse_holder(lease.data), lease.age):
+            return True
+        return _age(entry) < grace
+
+    # ------------------------------------------------------------------ locks
+    @staticmethod
+    def lease_path(key: str) -> str:
+        return f"locks/{key}.lease"
+
+    @contextlib.contextmanager
+    def lock(self, key: str, on_wait: Callable[[dict], None] | None = None, poll: float = 0.1):
+        """Exclusive per-key lease across processes and machines (msflow.remote_leases)."""
+        lease = Lease(self.objects, self.lease_path(key))
+        lease.acquire(on_wait, poll)
+        try:
+            yield lease
+        finally:
+            lease.release()
+
+    # ------------------------------------------------------------------ memo, runs
+    def load_memo(self) -> dict:
+        if self.cache_dir is None:
+            return {}
+        try:
+            with open(self.cache_dir / "memo.json", "rb") as fh:
+                return json.load(fh)
+        except (OSError, ValueError):
+            return {}
+
+    def save_memo(self, memo: dict) -> None:
+        if self.cache_dir is None:
+            return
+        self.cache_dir.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(self.cache_dir / "memo.json", memo)
+
+    def write_run(self, record: dict) -> str:
+        path = f"runs/{record['id']}.json"
+        self.objects.put(path, json.dumps(record, indent=1, sort_keys=True, allow_nan=False).encode())
+        return f"{self.url}/{path}"
+
+    def run_ids(self) -> list[str]:
+        names = (info.path.rsplit("/", 1)[-1] for info in self.objects.list("runs/"))
+        return sorted(n[:-len(".json")] for n in names if n.endswith(".json"))
+
+    def read_run(self, run_id: str) -> dict:
+        data = self.objects.get(f"runs/{run_id}.json")
+        if data is None:
+            matches = [r for r in self.run_ids() if r.startswith(run_id) or r.endswith(run_id)]
+            if len(matches) != 1:
+                raise UserError(f"no single run matches '{run_id}' ({len(matches)} do)", file=self.url)
+            data = self.objects.get(f"runs/{matches[0]}.json")
+            if data is None:
+                raise UserError(f"run '{matches[0]}' vanished from {self.url}", file=self.url)
+        return json.loads(data)
+
+    def remove_run(self, run_id: str) -> None:
+        self.objects.delete(f"runs/{run_id}.json")
+
+
+def _age(entry: dict) -> float:
+    started = entry.get("started")
+    return time.time() - started if isinstance(started, (int, float)) else float("inf")
+
+
+class RemoteArray:
+    """One stored output, read on demand. ``[...]`` (what ArtifactView uses) fetches every chunk in parallel and
+    decodes them directly; any other indexing, and every zarr attribute, goes through a zarr array opened on
+    the store, so lazy inputs behave as zarr arrays do on a local store."""
+
+    def __init__(self, store: RemoteStore, folder: str, name: str, entry: dict, chunks: list | None):
+        import numpy as np
+
+        self._store = store
+        self._folder = folder
+        self._name = name
+        self.shape = tuple(entry["shape"])
+        self.dtype = np.dtype(entry["dtype"]).newbyteorder("=")  # stored little endian, read as native
+        self._chunks = chunks
+        self._zarr = None
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    @property
+    def size(self) -> int:
+        out = 1
+        for s in self.shape:
+            out *= s
+        return out
+
+    def __len__(self) -> int:
+        if not self.shape:
+            raise TypeError("len() of a 0-d array")
+        return self.shape[0]
+
+    def __repr__(self) -> str:
+        return f"RemoteArray({self._store.url}/{self._folder}/{self._name}, shape={self.shape}, dtype={self.dtype})"
+
+    @property
+    def zarr(self):
+        if self._zarr is None:
+            import zarr
+            from zarr.storage import FsspecStore
+
+            from msflow.remote_objects import s3_defaults
+
+            protocol = self._store.url.split("://", 1)[0]
+            options = s3_defaults(self._store.options) if protocol in ("s3", "s3a") else self._store.options
+            zstore = FsspecStore.from_url(f"{self._store.url}/{self._folder}", storage_options=options,
+                                          read_only=True)
+            self._zarr = zarr.open_array(zstore, path=self._name, mode="r")
+        return self._zarr
+
+    def __getattr__(self, attr: str) -> Any:
+        if attr.startswith("_"):
+            raise AttributeError(attr)
+        return getattr(self.zarr, attr)
+
+    def __getitem__(self, selection):
+        if selection is Ellipsis or selection == () or selection == slice(None):
+            return self.read()
+        return self.zarr[selection]
+
+    def __array__(self, dtype=None, copy=None):
+        out = self.read()
+        return out if dtype is None else out.astype(dtype)
+
+    def read(self):
+        """The whole array: every chunk object fetched concurrently, zstd-decoded, concatenated."""
+        import numpy as np
+        from numcodecs import Zstd
+
+        from msflow.artifact import chunk_shape
+
+        native = self.dtype
+        if self.size == 0:
+            return np.zeros(self.shape, dtype=native)
+        little = native.newbyteorder("<") if native.itemsize > 1 else native
+        if not self.shape:
+            paths, chunk = [f"{self._name}/c"], ()
+        else:
+            chunk = tuple(self._chunks) if self._chunks else chunk_shape(self.shape, native.itemsize)
+            count = -(-self.shape[0] // chunk[0])
+            rest = "/0" * (len(self.shape) - 1)
+            paths = [f"{self._name}/c/{i}{rest}" for i in range(count)]
+        blobs = self._store.objects.get_many([f"{self._folder}/{p}" for p in paths])
+        codec = Zstd()
+        blocks = []
+        for path in paths:
+            blob = blobs[f"{self._folder}/{path}"]
+            if blob is None:
+                raise FileNotFoundError(f"chunk {path} of {self._store.url}/{self._folder} is missing")
+            blocks.append(np.frombuffer(codec.decode(blob), dtype=little).reshape(chunk))
+        out = blocks[0] if len(blocks) == 1 else np.concatenate(blocks)
+        if self.shape:
+            out = out[:self.shape[0]]
+        return np.array(out, dtype=native, order="C")  # writable and native-endian, as zarr would return

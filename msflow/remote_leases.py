@@ -1,0 +1,141 @@
+"""Per-key leases on an object store: the remote counterpart of LocalStore's flock.
+
+A lease is one small JSON object ``locks/<key>.lease`` naming its holder (host, pid, a random token) and its
+time to live. Protocol:
+
+acquire
+    Create the object with a conditional PUT (``If-None-Match: *``): of several writers racing, the server lets
+    exactly one through. The winner reads the object back and proceeds only if it carries its own token, which
+    also protects against S3-compatible servers that ignore the condition. On backends without conditional
+    writes (FsspecObjects) the winner first waits ``settle`` seconds, so that a concurrent writer who checked
+    before our write but wrote after it is seen by the read-back.
+hold
+    A daemon thread renews the lease every ttl/3 with ``If-Match: <etag>``; a failed renewal means the lease was
+    broken (the holder stalled for longer than the ttl) and is recorded in ``lost``.
+wait / break
+    A waiter polls. A lease is broken, by a delete conditional on the etag it inspected (so a renewal in between
+    wins), when it expired - older than its ttl (plus a margin) by the server's clock - or when its holder ran on
+    this host and that process is gone (a SIGKILLed run frees its keys at once, as flock does locally).
+release
+    Stop the heartbeat, delete the lease if it still has our etag.
+
+Leases make "each stage instance computed once" hold across machines; they are not what keeps the store
+consistent. Publishing is atomic and content-addressed (msflow.remote), so a lost lease costs duplicated work,
+never a torn or mixed artifact.
+"""
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+import uuid
+from typing import Callable
+
+from msflow.store import HOST, _pid_alive
+
+DEFAULT_TTL = 60.0
+SKEW = 2.0          # seconds of grace beyond a lease's ttl before it is broken (clock and timestamp granularity)
+
+
+def lease_ttl() -> float:
+    """Lease time to live in seconds: 60, or MSFLOW_LEASE_SECONDS."""
+    try:
+        return max(1.0, float(os.environ.get("MSFLOW_LEASE_SECONDS", DEFAULT_TTL)))
+    except ValueError:
+        return DEFAULT_TTL
+
+
+def parse_holder(data: bytes) -> dict:
+    try:
+        holder = json.loads(data)
+        return holder if isinstance(holder, dict) else {}
+    except ValueError:
+        return {}
+
+
+def lease_is_stale(holder: dict, age: float | None, now: float | None = None) -> bool:
+    """Whether a lease may be broken: its holder on this host is gone, or it was not renewed within its ttl."""
+    if holder.get("host") == HOST and isinstance(holder.get("pid"), int) and not _pid_alive(holder["pid"]):
+        return True
+    ttl = holder.get("ttl") if isinstance(holder.get("ttl"), (int, float)) else DEFAULT_TTL
+    if age is not None:  # server clock: immune to skew between machines
+        return age > ttl + SKEW
+    renewed = holder.get("renewed")
+    if not isinstance(renewed, (int, float)):
+        return False
+    return (now or time.time()) > renewed + ttl + SKEW
+
+
+class Lease:
+    def __init__(self, objects, path: str, ttl: float | None = None, settle: float = 0.5):
+        self.objects = objects
+        self.path = path
+        self.ttl = ttl or lease_ttl()
+        self.settle = 0.0 if objects.conditional else settle
+        self.token = uuid.uuid4().hex
+        self.since = 0.0
+        self.etag: str | None = None
+        self.lost = False
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _body(self) -> bytes:
+        return json.dumps({"owner": self.token, "host": HOST, "pid": os.getpid(), "since": self.since,
+                           "renewed": time.time(), "ttl": self.ttl}).encode()
+
+    def acquire(self, on_wait: Callable[[dict], None] | None = None, poll: float = 0.1,
+                timeout: float | None = None) -> None:
+        self.since = time.time()
+        deadline = None if timeout is None else time.monotonic() + timeout
+        told = False
+        delay = poll
+        while True:
+            if self.objects.create(self.path, self._body()) is not None:
+                if self.settle:
+                    time.sleep(self.settle)
+                current = self.objects.get_versioned(self.path)
+                if current is not None and parse_holder(current.data).get("owner") == self.token:
+                    self.etag = current.etag
+                    self._start_heartbeat()
+                    return
+            else:
+                current = self.objects.get_versioned(self.path)
+            if current is None:
+                continue  # released between our attempt and the read: try again at once
+            holder = parse_holder(current.data)
+            if lease_is_stale(holder, current.age):
+                self.objects.delete_if(self.path, current.etag)
+                continue
+            if not told and on_wait is not None:
+                on_wait(holder)
+                told = True
+            if deadline is not None and time.monotonic() > deadline:
+                raise TimeoutError(f"lease {self.path} held by {holder}")
+            time.sleep(delay)
+            delay = min(delay * 1.5, 1.0)
+
+    def _start_heartbeat(self) -> None:
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._heartbeat, name=f"msflow-lease-{self.path}", daemon=True)
+        self._thread.start()
+
+    def _heartbeat(self) -> None:
+        while not self._stop.wait(self.ttl / 3):
+            try:
+                etag = self.objects.replace_if(self.path, self._body(), self.etag)
+            except Exception:  # noqa: BLE001 - a transient failure: the next beat retries before the ttl runs out
+                continue
+            if etag is None:
+                self.lost = True
+                return
+            self.etag = etag
+
+    def release(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        if not self.lost and self.etag is not None:
+            self.objects.delete_if(self.path, self.etag)
+        self.etag = None

@@ -1,0 +1,287 @@
+"""Parameter sweeps: grids, zipped and explicit variants, run together with shared work, and results tables.
+
+    msflow sweep pipeline.yaml -S keyshapes.k=10,20,30 -S bilinear.content_dim=4,8
+    msflow sweep pipeline.yaml --grid sweep.yaml
+
+A grid file::
+
+    grid:                 # cartesian product (a list of such mappings: the union of their products)
+      keyshapes.k: [10, 20, 30]
+    zip:                  # varied together, row by row (all lists of one length), crossed with the grid
+      trellis.b: [0.05, 0.1]
+      trellis.c: [0.3, 0.2]
+    variants:             # explicit extra variants
+      - {keyshapes.k: 5, edit.smooth: 1.0}
+
+Every variant is a normal run with its own record (``variant`` holds its parameters, ``sweep`` the sweep id). All
+variants are scheduled together on one executor: a stage with the same cache key in several variants runs once.
+"""
+from __future__ import annotations
+
+import fnmatch
+import itertools
+import json
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from msflow.errors import UserError
+
+GRID_KEYS = {"grid", "zip", "variants"}
+
+
+def parse_values(text: str) -> tuple[str, list[Any]]:
+    """``stage.param=v1,v2`` -> ("stage.param", [v1, v2]); values are YAML (``[1,2],[3,4]`` is two lists)."""
+    import yaml
+
+    from msflow.spec import _UniqueKeyLoader
+
+    if "=" not in text:
+        raise UserError(f"bad sweep parameter '{text}': expected stage.param=value1,value2,...", field="-S")
+    target, _, raw = text.partition("=")
+    target = target.strip()
+    if target.count(".") < 1 or not all(target.split(".")):
+        raise UserError(f"bad sweep parameter '{text}': the target must be stage.param", field="-S")
+    try:
+        values = yaml.load(f"[{raw}]", Loader=_UniqueKeyLoader)  # noqa: S506 - safe loader subclass
+    except yaml.YAMLError:
+        values = [v.strip() for v in raw.split(",")]
+    if not values:
+        raise UserError(f"sweep parameter '{target}' has no values: the grid is empty", field="-S")
+    return target, values
+
+
+def grid_product(axes: dict[str, list[Any]]) -> list[dict[str, Any]]:
+    if not axes:
+        return [{}]
+    names = list(axes)
+    return [dict(zip(names, combo)) for combo in itertools.product(*(axes[n] for n in names))]
+
+
+def load_grid_file(path: Path) -> list[dict[str, Any]]:
+    import yaml
+
+    from msflow.spec import parse_yaml
+
+    file = str(path)
+    if not path.is_file():
+        raise UserError("grid file not found", file=file)
+    doc = parse_yaml(path.read_text(encoding="utf-8"), file)
+    if not isinstance(doc, dict) or not doc:
+        raise UserError("a grid file is a mapping with 'grid', 'zip' and/or 'variants'", file=file)
+    unknown = set(doc) - GRID_KEYS
+    if unknown:
+        raise UserError(f"unknown key(s) {sorted(unknown)}; allowed: grid, zip, variants", file=file,
+                        field=sorted(unknown)[0])
+    grids = doc.get("grid") or {}
+    grids = grids if isinstance(grids, list) else [grids]
+    base: list[dict[str, Any]] = []
+    for i, grid in enumerate(grids):
+        if not isinstance(grid, dict):
+            raise UserError("each grid is a mapping stage.param: [values]", file=file, field=f"grid[{i}]")
+        for name, values in grid.items():
+            if not isinstance(values, list) or not values:
+                raise UserError("needs a non-empty list of values", file=file, field=f"grid.{name}")
+        base.extend(grid_product(grid))
+    if not grids:
+        base = [{}]
+    zipped = doc.get("zip") or {}
+    if zipped:
+        if not isinstance(zipped, dict):
+            raise UserError("zip is a mapping stage.param: [values]", file=file, field="zip")
+        lengths = {n: len(v) if isinstance(v, list) else -1 for n, v in zipped.items()}
+        if len(set(lengths.values())) != 1 or -1 in lengths.values() or 0 in lengths.values():
+            raise UserError(f"zipped lists must be non-empty and of one length, got {lengths}", file=file,
+                            field="zip")
+        rows = [dict(zip(zipped, row)) for row in zip(*zipped.values())]
+        base = [{**b, **r} for b in base for r in rows]
+    explicit = doc.get("variants") or []
+    if not isinstance(explicit, list) or not all(isinstance(v, dict) for v in explicit):
+        raise UserError("variants is a list of mappings stage.param: value", file=file, field="variants")
+    if not doc.get("grid") and not zipped:
+        base = []
+    variants = base + [dict(v) for v in explicit]
+    if not variants:
+        raise UserError("the grid is empty: no variant to run", file=file)
+    return variants
+
+
+def expand_variants(cli: list[str], grid_file: Path | None) -> list[dict[str, Any]]:
+    """Variants from ``-S`` (comma lists form a grid) crossed with the grid file's variants."""
+    axes: dict[str, list[Any]] = {}
+    for text in cli:
+        target, values = parse_values(text)
+        axes[target] = values
+    variants = grid_product(axes)
+    if grid_file is not None:
+        from_file = load_grid_file(grid_file)
+        variants = [{**v, **f} for v in variants for f in from_file]
+    if not variants or (not cli and grid_file is None):
+        raise UserError("the grid is empty: give -S stage.param=v1,v2 or --grid FILE", field="-S")
+    return variants
+
+
+def variant_overrides(variant: dict[str, Any]) -> list[str]:
+    return [f"{target}={json.dumps(value)}" for target, value in variant.items()]
+
+
+@dataclass
+class VariantOutcome:
+    index: int
+    params: dict[str, Any]
+    run_id: str | None = None
+    ok: bool = False
+    error: str | None = None
+    metrics: dict[str, dict] = field(default_factory=dict)
+    counts: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass
+class SweepResult:
+    sweep_id: str
+    pipeline: str
+    variants: list[VariantOutcome]
+    seconds: float
+    executed: int            # stage executions across all variants
+    unique_keys: int         # distinct cache keys across all variants
+
+    def to_json(self) -> dict:
+        return {"id": self.sweep_id, "pipeline": self.pipeline, "seconds": self.seconds, "executed": self.executed,
+                "unique_keys": self.unique_keys,
+                "variants": [vars(v) for v in self.variants]}
+
+
+def run_sweep(path: str | Path, variants: list[dict[str, Any]], *, base_overrides=(), jobs: int = 1,
+              executor: str = "local", scheduler: str | None = None, reporter=None) -> SweepResult:
+    """Validate every variant (nothing runs if one is invalid), then run them together on one executor."""
+    from msflow.api import open_session
+    from msflow.executors import make_executor
+    from msflow.records import build_record
+    from msflow.runner import Runner, new_run_id, schedule
+    from msflow.worker import pin_blas_threads
+
+    started = time.time()
+    sessions = []
+    memo = None
+    for index, variant in enumerate(variants):
+        try:
+            session = open_session(path, [*base_overrides, *variant_overrides(variant)], memo=memo)
+        except UserError as exc:
+            raise UserError(f"variant {index + 1} {variant}: {exc.message}", file=exc.file, stage=exc.stage,
+                            field=exc.field) from None
+        memo = session.memo
+        sessions.append(session)
+    pin_blas_threads()
+    runners = []
+    for index, session in enumerate(sessions):
+        proxy = reporter.for_variant(index, variants[index]) if reporter is not None else None
+        runners.append(Runner(session.pipeline, session.plans, session.store, session.memo, executor=None,
+                              reporter=proxy))
+    pool = make_executor(executor, jobs, scheduler)
+    try:
+        for runner in runners:
+            runner.executor = pool
+        sessions[0].store.clean_tmp()
+        schedule(runners, pool)
+    finally:
+        pool.shutdown()
+    sessions[0].save_memo()
+    sweep_id = new_run_id()
+    outcomes = []
+    for index, (session, runner) in enumerate(zip(sessions, runners)):
+        record = build_record(new_run_id(), session.pipeline, session.plans, runner.states, started=started,
+                              finished=time.time(), executor=pool.name, jobs=jobs, label=variants[index])
+        record["sweep"] = sweep_id
+        session.store.write_run(record)
+        failed = [s for s in runner.states.values() if s.state == "failed"]
+        outcomes.append(VariantOutcome(index, variants[index], record["id"], not failed,
+                                       failed[0].error if failed else None,
+                                       {n: s["metrics"] for n, s in record["stages"].items() if s["metrics"]},
+                                       record["counts"]))
+    keys = {s.key for r in runners for s in r.states.values() if s.key}
+    executed = sum(1 for r in runners for s in r.states.values() if s.state == "ran")
+    result = SweepResult(sweep_id, sessions[0].pipeline.rel_path, outcomes, time.time() - started, executed,
+                         len(keys))
+    _write_sweep_record(sessions[0].store, result)
+    return result
+
+
+def _write_sweep_record(store, result: SweepResult) -> None:
+    record = {"id": result.sweep_id, "kind": "sweep", **result.to_json()}
+    if hasattr(store, "write_sweep"):
+        store.write_sweep(record)
+
+
+# ---------------------------------------------------------------------------------------------------------- tables
+def metric_columns(result: SweepResult, patterns: list[str] | None) -> list[str]:
+    names = sorted({f"{stage}.{m}" for v in result.variants for stage, ms in v.metrics.items() for m in ms})
+    if patterns:
+        return [n for n in names if any(fnmatch.fnmatch(n, p) for p in patterns)]
+    swept_stages = {t.split(".")[0] for v in result.variants for t in v.params}
+    # a metric that only echoes a swept parameter of the same name adds nothing to the table
+    echoes = {n for n in names if all(v.params.get(n, object()) == _metric(v, n) for v in result.variants)}
+    varying = [n for n in names if n not in echoes and len({json.dumps(_metric(v, n)) for v in result.variants}) > 1]
+    return varying or [n for n in names if n.split(".")[0] in swept_stages and n not in echoes]
+
+
+def _metric(variant: VariantOutcome, column: str):
+    stage, _, name = column.partition(".")
+    return variant.metrics.get(stage, {}).get(name)
+
+
+def results_rows(result: SweepResult, metrics: list[str], sort: str | None = None) -> tuple[list[str], list[list]]:
+    params = list(dict.fromkeys(t for v in result.variants for t in v.params))
+    header = ["#", *params, "status", *metrics]
+    variants = list(result.variants)
+    if sort:
+        descending = sort.startswith("-")
+        column = sort.lstrip("-")
+        if column not in metrics and column not in params:
+            raise UserError(f"cannot sort by '{column}': not a column; columns: {', '.join(params + metrics)}",
+                            field="--sort")
+        def sort_key(v):
+            value = v.params.get(column) if column in params else _metric(v, column)
+            return (value is None, -value if descending and isinstance(value, (int, float)) else value)
+        variants.sort(key=sort_key)
+    rows = [[v.index + 1, *[v.params.get(p) for p in params], "ok" if v.ok else f"failed: {v.error}",
+             *[_metric(v, m) for m in metrics]] for v in variants]
+    return header, rows
+
+
+def format_table(header: list[str], rows: list[list], fmt: str) -> str:
+    if fmt == "json":
+        return json.dumps([dict(zip(header, r)) for r in rows], indent=1)
+    if fmt == "csv":
+        import csv
+        import io
+
+        buf = io.StringIO()
+        writer = csv.writer(buf)
+        writer.writerow(header)
+        writer.writerows(rows)
+        return buf.getvalue()
+    cells = [[_fmt(c) for c in r] for r in rows]
+    if fmt == "md":
+        lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+        lines += ["| " + " | ".join(r) + " |" for r in cells]
+        return "\n".join(lines)
+    if fmt != "table":
+        raise UserError(f"unknown format '{fmt}'; choose table, md, csv or json", field="--format")
+    widths = [max(len(str(h)), *(len(r[i]) for r in cells)) for i, h in enumerate(header)]
+    lines = ["  ".join(str(h).ljust(w) for h, w in zip(header, widths))]
+    lines += ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in cells]
+    return "\n".join(lines)
+
+
+def _fmt(value) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+def new_sweep_id() -> str:
+    return uuid.uuid4().hex[:8]
