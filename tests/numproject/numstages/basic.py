@@ -148,3 +148,22 @@ class DieOnce(Stage):
             os.kill(os.getpid(), signal.SIGKILL)
         log_execution(self.name)
         return Result({"y": inputs["x"] + 1})
+
+
+class Burn(Stage):
+    """CPU-bound work of a fixed amount (for executor speed-up benchmarks)."""
+
+    class Params(Stage.Params):
+        rounds: int = 200
+        seed: int = 0
+
+    outputs = {"v": Output.array("f", ndim=1)}
+
+    def run(self, params, inputs):
+        log_execution(self.name)
+        rng = np.random.default_rng(params.seed)
+        m = rng.standard_normal((200, 200)) / 20
+        v = rng.standard_normal(200)
+        for _ in range(params.rounds):
+            v = np.tanh(m @ v + np.sin(v))
+        return Result({"v": v})
