@@ -7,6 +7,7 @@ Layout under the store's prefix::
     pending/<key>.<wid>.json         journal of folders that may become garbage (being written or retired)
     locks/<key>.lease                per-key leases (msflow.remote_leases)
     runs/<id>.json                   one record per run (shared by every machine using the store)
+    sweeps/<id>.json                 one record per sweep
 
 The memo of file stat signatures and code fingerprints is machine-local: it lives in the pipeline's cache_dir
 (``.msflow/cache``), never in the store.
@@ -307,14 +308,20 @@ class RemoteStore:
         self.cache_dir.mkdir(parents=True, exist_ok=True)
         write_json_atomic(self.cache_dir / "memo.json", memo)
 
-    def write_run(self, record: dict) -> str:
-        path = f"runs/{record['id']}.json"
+    def _write_record(self, folder: str, record: dict) -> str:
+        path = f"{folder}/{record['id']}.json"
         self.objects.put(path, json.dumps(record, indent=1, sort_keys=True, allow_nan=False).encode())
         return f"{self.url}/{path}"
 
-    def run_ids(self) -> list[str]:
-        names = (info.path.rsplit("/", 1)[-1] for info in self.objects.list("runs/"))
+    def _record_ids(self, folder: str) -> list[str]:
+        names = (info.path.rsplit("/", 1)[-1] for info in self.objects.list(f"{folder}/"))
         return sorted(n[:-len(".json")] for n in names if n.endswith(".json"))
+
+    def write_run(self, record: dict) -> str:
+        return self._write_record("runs", record)
+
+    def run_ids(self) -> list[str]:
+        return self._record_ids("runs")
 
     def read_run(self, run_id: str) -> dict:
         data = self.objects.get(f"runs/{run_id}.json")
@@ -329,6 +336,18 @@ class RemoteStore:
 
     def remove_run(self, run_id: str) -> None:
         self.objects.delete(f"runs/{run_id}.json")
+
+    def write_sweep(self, record: dict) -> str:
+        return self._write_record("sweeps", record)
+
+    def sweep_ids(self) -> list[str]:
+        return self._record_ids("sweeps")
+
+    def read_sweep(self, sweep_id: str) -> dict:
+        data = self.objects.get(f"sweeps/{sweep_id}.json")
+        if data is None:
+            raise UserError(f"no sweep '{sweep_id}'", file=self.url)
+        return json.loads(data)
 
 
 def _age(entry: dict) -> float:

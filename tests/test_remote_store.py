@@ -1,0 +1,446 @@
+"""Remote (object) stores: the numeric project on S3 end to end, atomic publish, leases, cleanup and errors.
+
+Every test talks to a moto S3 server on 127.0.0.1 that this module starts; credentials are dummies. Instance
+metadata lookups are disabled (AWS_EC2_METADATA_DISABLED) so botocore never leaves the loopback.
+"""
+import json
+import logging
+import os
+import random
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import executions, run_cli
+from msflow.artifact import check_contents, encode_artifact, prepare_manifest
+from msflow.errors import UserError
+from msflow.remote import RemoteStore, open_remote_store
+from msflow.remote_leases import Lease
+from msflow.store import HOST, open_store
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class MotoS3:
+    def __init__(self, endpoint: str):
+        import boto3
+
+        self.endpoint = endpoint
+        self.options = {"endpoint_url": endpoint, "key": "testing", "secret": "testing"}
+        self.client = boto3.client("s3", endpoint_url=endpoint, aws_access_key_id="testing",
+                                   aws_secret_access_key="testing", region_name="us-east-1")
+
+    def bucket(self) -> str:
+        name = f"b-{uuid.uuid4().hex[:12]}"
+        self.client.create_bucket(Bucket=name)
+        return name
+
+    def objects(self, bucket: str, prefix: str = "") -> list[str]:
+        keys, token = [], None
+        while True:
+            kwargs = {"Bucket": bucket, "Prefix": prefix, **({"ContinuationToken": token} if token else {})}
+            resp = self.client.list_objects_v2(**kwargs)
+            keys += [o["Key"] for o in resp.get("Contents", [])]
+            if not resp.get("IsTruncated"):
+                return keys
+            token = resp["NextContinuationToken"]
+
+    def store(self, bucket: str, prefix: str = "p") -> RemoteStore:
+        return open_store(f"s3://{bucket}/{prefix}", self.options)
+
+
+@pytest.fixture(scope="module")
+def s3():
+    from moto.server import ThreadedMotoServer
+
+    logging.getLogger("werkzeug").setLevel(logging.ERROR)
+    os.environ["AWS_EC2_METADATA_DISABLED"] = "true"
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    yield MotoS3(f"http://{host}:{port}")
+    server.stop()
+
+
+def on_s3(proj: Path, s3: MotoS3, bucket: str, files=("pipeline.yaml", "crash.yaml"), options=None,
+          url=None) -> str:
+    """Point the project's pipeline files at ``s3://bucket/num``; returns the store URL."""
+    url = url or f"s3://{bucket}/num"
+    header = f"store: {url}\nstore_options: {json.dumps(s3.options if options is None else options)}\n"
+    for name in files:
+        text = (proj / name).read_text()
+        (proj / name).write_text(text.replace("version: 1\n", "version: 1\n" + header, 1))
+    return url
+
+
+def start_run(proj, *args, env):
+    return subprocess.Popen([sys.executable, "-m", "msflow.cli", "run", *args, "-q"], cwd=proj,
+                            env=dict(os.environ, **env), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def stage_keys(record: dict) -> dict:
+    return {name: s["key"] for name, s in record["stages"].items()}
+
+
+def uncommitted_folders(store: RemoteStore) -> set[str]:
+    folders = {"/".join(o.path.split("/")[:4]) for o in store.objects.list("artifacts/")}
+    committed = set()
+    for key in store.keys():
+        committed.add(store.data_path(key, json.loads(store.objects.get(store.marker_path(key)))["data"]))
+    return folders - committed
+
+
+def uploads_of(store: RemoteStore, pid: int) -> set[str]:
+    """Folders that process ``pid`` journalled for writing and put at least one object into."""
+    folders = set()
+    for info in store.objects.list("pending/"):
+        entry = json.loads(store.objects.get(info.path) or b"{}")
+        if entry.get("action") == "write" and entry.get("pid") == pid:
+            folder = store.data_path(entry["key"], entry["data"])
+            if store.objects.list(folder + "/"):
+                folders.add(folder)
+    return folders
+
+
+# ------------------------------------------------------------------------------------------- end to end
+def test_numeric_project_on_s3_matches_a_local_store(numproject, tmp_path, s3):
+    local = tmp_path / "local"
+    import shutil
+
+    shutil.copytree(numproject, local)
+    bucket = s3.bucket()
+    on_s3(numproject, s3, bucket)
+    log = tmp_path / "log"
+    env = {"NUMSTAGES_LOG": str(log)}
+
+    first = run_cli(numproject, "run", "-q", env=env)
+    assert first.returncode == 0, first.stderr
+    assert sorted(executions(log)) == ["csv", "scaled", "sign", "src", "total"]
+    assert not (numproject / ".msflow" / "artifacts").exists()  # artifacts went to S3, only the memo is local
+    assert (numproject / ".msflow" / "cache" / "memo.json").is_file()
+
+    noop = run_cli(numproject, "run", "-q", env=env)
+    assert noop.returncode == 0 and len(executions(log)) == 5, noop.stderr
+
+    changed = run_cli(numproject, "run", "-q", "-S", "scaled.factor=4", env=env)
+    assert changed.returncode == 0, changed.stderr
+    assert sorted(executions(log)[5:]) == ["scaled", "sign"]  # sign's output is unchanged: total stays cached
+
+    # same keys and results as a local store
+    assert run_cli(local, "run", "-q").returncode == 0
+    store = s3.store(bucket, "num")
+    runs = store.run_ids()
+    assert len(runs) == 3
+    local_record = json.loads(next((local / ".msflow" / "runs").glob("*.json")).read_text())
+    assert stage_keys(store.read_run(runs[0])) == stage_keys(local_record)
+    local_store = open_store(str(local / ".msflow"))
+    for key in stage_keys(local_record).values():
+        remote_view, local_view = store.open(key), local_store.open(key)
+        assert remote_view.manifest["content_hash"] == local_view.manifest["content_hash"]
+        for name in local_view.names:
+            assert np.array_equal(remote_view[name], local_view[name])
+
+    verify = run_cli(numproject, "verify")
+    assert verify.returncode == 0 and "verified 7 artifacts: 0 corrupt" in verify.stdout, verify.stdout
+
+    chunks = [k for k in s3.objects(bucket, "num/artifacts/") if "/c/" in k or k.endswith("/c")]
+    victim = max(chunks, key=lambda k: s3.client.head_object(Bucket=bucket, Key=k)["ContentLength"])
+    data = bytearray(s3.client.get_object(Bucket=bucket, Key=victim)["Body"].read())
+    data[len(data) // 2] ^= 0x40
+    s3.client.put_object(Bucket=bucket, Key=victim, Body=bytes(data))
+    corrupt_key = victim.split("/")[3]
+    found = run_cli(numproject, "verify")
+    assert found.returncode == 1 and f"corrupt {corrupt_key}" in found.stdout and "1 corrupt" in found.stdout
+    assert run_cli(numproject, "verify", "--delete").returncode == 1
+    assert run_cli(numproject, "run", "-q", "-S", "scaled.factor=4").returncode == 0
+    assert run_cli(numproject, "verify").returncode == 0
+
+    last_run = set(stage_keys(store.read_run(store.run_ids()[-1])).values())
+    unreferenced = set(store.keys()) - last_run
+    assert unreferenced  # at least the factor-3 versions of scaled and sign
+    gc = run_cli(numproject, "gc", "--keep-runs", "1")
+    assert gc.returncode == 0 and f"removed {len(unreferenced)} artifacts" in gc.stdout, gc.stdout
+    kept = set(store.keys())
+    assert kept == last_run
+    assert {k.split("/")[3] for k in s3.objects(bucket, "num/artifacts/")} == kept
+    assert uncommitted_folders(store) == set()
+
+
+def test_concurrent_runs_on_s3_execute_each_stage_once(numproject, tmp_path, s3):
+    bucket = s3.bucket()
+    on_s3(numproject, s3, bucket)
+    log = tmp_path / "log"
+    env = {"NUMSTAGES_LOG": str(log), "NUMSTAGES_SLEEP": "1.0"}
+    procs = [start_run(numproject, "crash.yaml", env=env) for _ in range(3)]
+    outs = [p.communicate(timeout=120) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0, 0], outs
+    assert sorted(executions(log)) == ["after", "scaled", "slow", "src"]
+    store = s3.store(bucket, "num")
+    records = [store.read_run(r) for r in store.run_ids()]
+    assert len(records) == 3
+    for stage in ("slow", "after", "src", "scaled"):
+        assert sum(r["stages"][stage]["state"] == "ran" for r in records) == 1
+    assert store.objects.list("locks/") == [] and store.objects.list("pending/") == []
+
+
+def test_sigkilled_runs_leave_nothing_visible_and_the_next_run_recovers(numproject, tmp_path, s3):
+    bucket = s3.bucket()
+    on_s3(numproject, s3, bucket)
+    store = s3.store(bucket, "num")
+    rng = random.Random(99)
+    env = {"NUMSTAGES_SLEEP": "0.3"}
+    killed_mid_upload = 0
+    for attempt in range(4):
+        proc = start_run(numproject, "crash.yaml", "--force", "slow", env=env)
+        if attempt % 2 == 0:  # the moment its upload has begun
+            deadline = time.monotonic() + 20
+            while not uploads_of(store, proc.pid) and time.monotonic() < deadline:
+                time.sleep(0.01)
+        else:
+            time.sleep(rng.uniform(0.5, 2.0))
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        killed_mid_upload += bool(uploads_of(store, proc.pid) & uncommitted_folders(store))
+        for key in store.keys():  # whatever is visible is complete
+            assert store.verify(key) == [], key
+    assert killed_mid_upload >= 2
+    result = run_cli(numproject, "run", "crash.yaml", "-q", env={"NUMSTAGES_SLEEP": "0"})
+    assert result.returncode == 0, result.stderr
+    verify = run_cli(numproject, "verify", "crash.yaml")
+    assert verify.returncode == 0 and "0 corrupt" in verify.stdout, verify.stdout
+    import msflow
+
+    out = msflow.run(numproject / "crash.yaml")
+    assert out.executed == []
+    big = out.load("slow.big")
+    assert np.array_equal(big, np.random.default_rng(7).standard_normal(3_000_000))
+    assert out.load("after.total") == np.float64(big.sum() + 45)
+    # killed writers' folders (dead pids on this host) and retired folders are gone after cleanup
+    store.clean_tmp(max_age=0)
+    assert uncommitted_folders(store) == set()
+    assert store.objects.list("pending/") == [] and store.objects.list("locks/") == []
+
+
+# ------------------------------------------------------------------------------------------- store contract
+@pytest.fixture(params=["s3", "memory"])
+def any_store(request, s3):
+    if request.param == "s3":
+        return s3.store(s3.bucket())
+    return open_store(f"memory://msflow-test/{uuid.uuid4().hex[:8]}", {})
+
+
+def artifact_objects(arrays, meta):
+    arrays, manifest = prepare_manifest(arrays, {"meta": meta, "metrics": {}})
+    return dict(encode_artifact(arrays, manifest))
+
+
+def test_store_contract_write_read_lazy_verify_remove(any_store):
+    store = any_store
+    rng = np.random.default_rng(0)
+    arrays = {"big": rng.standard_normal((700_000, 2)), "scalar": np.array(3, dtype=np.int32),
+              "empty": np.zeros((0, 4)), "flags": rng.random(17) > 0.5, "wave": rng.random(9).astype(">f4")}
+    key = "ab" + "0" * 30
+    assert not store.has(key) and list(store.keys()) == []
+    manifest = store.write(key, arrays, {"meta": {"note": "x"}, "metrics": {"m": 1.5}})
+    assert store.has(key) and list(store.keys()) == [key]
+    assert store.manifest(key) == manifest
+    view = store.open(key)
+    for name, arr in arrays.items():
+        assert view[name].dtype == arr.dtype.newbyteorder("=") and np.array_equal(view[name], arr), name
+    lazy = view.lazy("big")  # zarr semantics for partial reads
+    assert lazy.shape == (700_000, 2) and lazy.chunks[0] < 700_000
+    assert np.array_equal(lazy[123_456:400_000:7], arrays["big"][123_456:400_000:7])
+    assert view.meta == {"note": "x"} and view.metrics == {"m": 1.5}
+    assert store.verify(key) == [] and store.size(key) > 1_000_000
+    store.remove(key)
+    assert not store.has(key) and list(store.keys()) == [] and store.objects.list("artifacts/") == []
+
+
+def test_uncommitted_objects_are_invisible_and_cleaned_by_age_or_dead_writer(s3):
+    store = s3.store(s3.bucket())
+    done = "cd" + "1" * 30
+    store.write(done, {"x": np.arange(5.0)}, {})
+    dead_pid = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                              text=True).stdout.strip()
+    writers = {"ee" + "2" * 30: {"host": HOST, "pid": int(dead_pid)},            # killed on this host
+               "ef" + "3" * 30: {"host": "elsewhere", "pid": 1},                  # another host, no lease
+               "f0" + "4" * 30: {"host": "elsewhere", "pid": 1}}                  # another host, live lease
+    for key, writer in writers.items():
+        wid = f"0-{key[:4]}"
+        store.objects.put(store.journal_path(key, wid),
+                          json.dumps({"key": key, "data": wid, "action": "write", "started": time.time(),
+                                      **writer}).encode())
+        store.objects.put_many({f"{store.data_path(key, wid)}/{rel}": data
+                                for rel, data in artifact_objects({"x": np.ones(3)}, {}).items()})
+    live = "f0" + "4" * 30
+    store.objects.put(store.lease_path(live), json.dumps({"owner": "o", "host": "elsewhere", "pid": 1,
+                                                          "ttl": 60, "renewed": time.time()}).encode())
+    for key in writers:
+        assert not store.has(key)
+        with pytest.raises(FileNotFoundError):
+            store.open(key)
+        assert store.verify(key) == ["no commit marker (not published)"]
+    assert list(store.keys()) == [done]
+
+    assert store.clean_tmp() == [f"{'ee' + '2' * 30}.0-ee22"]  # dead local pid: at once
+    assert store.clean_tmp(max_age=0) == [f"{'ef' + '3' * 30}.0-ef33"]  # old enough, no lease
+    assert store.clean_tmp(max_age=0) == []  # a live lease keeps its writer's folder
+    assert uncommitted_folders(store) == {store.data_path(live, "0-f044")}
+    assert store.has(done) and store.verify(done) == []
+
+
+def test_replace_swaps_whole_artifacts_under_concurrent_readers(s3):
+    store = s3.store(s3.bucket())
+    key = "aa" + "5" * 30
+    versions = [{"x": np.full(50_000, float(i)), "y": np.arange(i + 3)} for i in range(2)]
+    store.write(key, versions[0], {"meta": {"v": 0}})
+    seen, problems, stop = set(), [], threading.Event()
+
+    def reader():
+        reader_store = RemoteStore(store.url, store.options)
+        while not stop.is_set():
+            view = reader_store.open(key)
+            found = check_contents(view.manifest, view.__getitem__)
+            problems.extend(found)
+            seen.add(float(view["x"][0]))
+            if view["y"].shape != (int(view["x"][0]) + 3,):
+                problems.append("mixed versions")
+
+    thread = threading.Thread(target=reader)
+    thread.start()
+    for i in range(1, 9):
+        store.write(key, versions[i % 2], {"meta": {"v": i % 2}}, replace=True)
+        time.sleep(0.05)
+    stop.set()
+    thread.join()
+    assert problems == [] and seen == {0.0, 1.0}
+    assert len(store.objects.list("pending/")) == 8  # eight retired folders, readable for a grace period
+    assert len(store.clean_tmp(max_age=0)) == 8
+    assert uncommitted_folders(store) == set() and store.verify(key) == []
+
+
+# ------------------------------------------------------------------------------------------- leases
+def test_leases_exclude_each_other_renew_and_break_when_stale(s3):
+    store = s3.store(s3.bucket())
+    # mutual exclusion among racing threads
+    inside, overlaps, count = [0], [], [0]
+
+    def contender():
+        for _ in range(3):
+            with store.lock("k-excl"):
+                inside[0] += 1
+                overlaps.append(inside[0])
+                time.sleep(0.02)
+                count[0] += 1
+                inside[0] -= 1
+
+    threads = [threading.Thread(target=contender) for _ in range(4)]
+    for t in threads:
+        t.start()
+
+    # a lease held with a short ttl stays valid through heartbeats ...
+    holder = Lease(store.objects, store.lease_path("k-beat"), ttl=1.0)
+    holder.acquire()
+    waiter_result = []
+
+    def waiter():
+        try:
+            Lease(store.objects, store.lease_path("k-beat")).acquire(timeout=6.0)
+            waiter_result.append("acquired")
+        except TimeoutError:
+            waiter_result.append("timeout")
+
+    beat = threading.Thread(target=waiter)
+    beat.start()
+
+    # ... while one whose holder stopped renewing is broken once older than its ttl (server clock)
+    store.objects.put(store.lease_path("k-expired"), json.dumps(
+        {"owner": "gone", "host": "elsewhere", "pid": 1, "ttl": 1, "renewed": time.time()}).encode())
+    waits = []
+    started = time.monotonic()
+    with store.lock("k-expired", on_wait=waits.append):
+        broke_after = time.monotonic() - started
+    assert waits and waits[0]["host"] == "elsewhere"
+    assert 2.0 < broke_after < 8.0
+
+    # a dead holder on this host is broken at once, a live one elsewhere is waited for
+    dead = int(subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                              text=True).stdout)
+    store.objects.put(store.lease_path("k-dead"), json.dumps(
+        {"owner": "gone", "host": HOST, "pid": dead, "ttl": 60, "renewed": time.time()}).encode())
+    started = time.monotonic()
+    with store.lock("k-dead"):
+        assert time.monotonic() - started < 1.0
+    store.objects.put(store.lease_path("k-live"), json.dumps(
+        {"owner": "busy", "host": "elsewhere", "pid": 1, "ttl": 60, "renewed": time.time()}).encode())
+    with pytest.raises(TimeoutError):
+        Lease(store.objects, store.lease_path("k-live")).acquire(timeout=0.5)
+
+    beat.join()
+    assert waiter_result == ["timeout"] and not holder.lost
+    holder.release()
+    with store.lock("k-beat"):
+        pass
+    for t in threads:
+        t.join()
+    assert count[0] == 12 and max(overlaps) == 1
+
+
+# ------------------------------------------------------------------------------------------- errors
+def cli_without_aws_env(proj, *args, extra=None, timeout=60):
+    env = {k: v for k, v in os.environ.items() if not k.startswith("AWS_")}
+    env.update({"AWS_EC2_METADATA_DISABLED": "true", "AWS_SHARED_CREDENTIALS_FILE": "/nonexistent",
+                "AWS_CONFIG_FILE": "/nonexistent"}, **(extra or {}))
+    return subprocess.run([sys.executable, "-m", "msflow.cli", *args], cwd=proj, env=env, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def test_store_errors_are_user_errors_naming_the_store(numproject, s3):
+    pipeline = numproject / "pipeline.yaml"
+    original = pipeline.read_text()
+
+    def attempt(url, options, extra=None):
+        pipeline.write_text(original)
+        on_s3(numproject, s3, "", files=("pipeline.yaml",), options=options, url=url)
+        started = time.monotonic()
+        result = cli_without_aws_env(numproject, "run", "-q", extra=extra)
+        assert result.returncode == 2, (url, result.stdout, result.stderr)
+        assert url in result.stderr and "Traceback" not in result.stderr, result.stderr
+        return result.stderr, time.monotonic() - started
+
+    message, _ = attempt("gs://bucket/prefix", {})
+    assert "gcsfs" in message
+    message, _ = attempt("nosuchscheme://bucket/prefix", {})
+    assert "unknown URL scheme" in message
+    message, _ = attempt(f"s3://{s3.bucket()}/p", {"endpoint_url": s3.endpoint})
+    assert "no credentials" in message and "AWS_ACCESS_KEY_ID" in message
+    message, _ = attempt("s3://no-such-bucket/p", s3.options)
+    assert "does not exist" in message
+    with socket.socket() as closed:
+        closed.bind(("127.0.0.1", 0))
+        port = closed.getsockname()[1]
+    message, seconds = attempt(f"s3://{s3.bucket()}/p", dict(s3.options, endpoint_url=f"http://127.0.0.1:{port}"))
+    assert "cannot reach" in message and seconds < 30
+    with socket.socket() as silent:  # accepts connections, never answers
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(8)
+        url = f"http://127.0.0.1:{silent.getsockname()[1]}"
+        message, seconds = attempt(f"s3://{s3.bucket()}/p", dict(s3.options, endpoint_url=url),
+                                   extra={"MSFLOW_STORE_TIMEOUT": "1.5"})
+    assert "cannot reach" in message and seconds < 10
+    assert not (numproject / ".msflow" / "runs").exists()
+
+
+def test_open_remote_store_rejects_bad_options_and_urls(s3):
+    with pytest.raises(UserError, match="invalid store_options"):
+        open_remote_store(f"s3://{s3.bucket()}/p", {"no_such_option": 1})
+    with pytest.raises(UserError, match="no bucket"):
+        open_remote_store("s3://", s3.options)
