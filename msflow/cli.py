@@ -315,6 +315,23 @@ def compare(run_a: str = typer.Argument(..., help="run id (or unique prefix/suff
     _echo(f"{len(same)} stages identical (same key)")
 
 
+# ---------------------------------------------------------------------------------------------------------- report
+@app.command()
+def report(run: Optional[str] = typer.Argument(None, help="run or sweep id (default: the newest run)"),
+           out: Path = typer.Option(Path("report.html"), "-o", "--out", help="HTML file to write"),
+           file: Path = FILE_OPT,
+           jobs: int = typer.Option(2, "-j", "--jobs", help="processes rendering figures"),
+           metric: Optional[str] = typer.Option(None, "--metric", help="sweeps: stage.metric to plot")):
+    """Write one self-contained HTML page of a run (graph, params, keys, metrics, figures) or of a sweep."""
+    from msflow.report import build_report
+
+    summary = build_report(file, out, run, jobs=jobs, metric=metric)
+    _echo(f"wrote {summary['path']} ({summary['bytes'] / 1e6:.1f} MB, {summary['figures']} figures, "
+          f"{summary['rendered']} rendered) in {summary['seconds']:.2f}s", err=True)
+    for failure in summary["failed"]:
+        _echo(f"figure failed: {failure}", err=True)
+
+
 # ---------------------------------------------------------------------------------------------------------- entry point
 def _usage_error_types() -> tuple[type, ...]:
     """Usage-error classes of the click that typer really uses (typer >= 0.26 vendors it as typer._click)."""

@@ -369,6 +369,11 @@ class FsspecObjects:
         return len(objects)
 
 
+# One filesystem (one botocore client: ~0.1 s to create) per process and set of options, shared by every store
+# opened on it: a worker opens the store once per job.
+_FILESYSTEMS: dict[str, object] = {}
+
+
 def make_objects(url: str, options: dict):
     """The object backend for ``scheme://bucket/prefix``; raises UserError when fsspec cannot serve the scheme."""
     protocol, _, rest = url.partition("://")
@@ -389,16 +394,21 @@ def make_objects(url: str, options: dict):
         raise UserError(f"store_options must be a mapping of fsspec storage options, got {options!r}",
                         field="store_options")
     is_s3 = protocol in ("s3", "s3a") and cls.__module__.startswith("s3fs")
-    try:
-        fs = cls(**(s3_defaults(options) if is_s3 else options), skip_instance_cache=True)
-    except TypeError as exc:
-        raise UserError(f"store {url}: invalid store_options for {cls.__name__}: {exc}",
-                        field="store_options") from None
+    cache_key = json.dumps([os.getpid(), protocol, options], sort_keys=True, default=repr)
+    fs = _FILESYSTEMS.get(cache_key)
+    if fs is None:
+        try:
+            fs = cls(**(s3_defaults(options) if is_s3 else options), skip_instance_cache=True)
+        except TypeError as exc:
+            raise UserError(f"store {url}: invalid store_options for {cls.__name__}: {exc}",
+                            field="store_options") from None
+        if is_s3:
+            fs.retries = 3  # s3fs's own retry loop, on top of botocore's
+        _FILESYSTEMS[cache_key] = fs
     if is_s3:
         bucket, _, prefix = rest.partition("/")
         if not bucket:
             raise UserError(f"store {url}: no bucket in the URL (write s3://bucket/prefix)")
-        fs.retries = 3  # s3fs's own retry loop, on top of botocore's (5 by default, with backoff)
         return S3Objects(fs, bucket, prefix, url)
     root = cls._strip_protocol(url)
     return FsspecObjects(fs, root if isinstance(root, str) else url, url)

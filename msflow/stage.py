@@ -144,7 +144,8 @@ class Stage:
 
         return {"inputs": {k: v.describe() for k, v in cls.inputs.items()},
                 "outputs": {k: v.describe() for k, v in cls.outputs.items()},
-                "resources": {k: str(Path(v).resolve()) for k, v in cls.resources.items()}}
+                "resources": {k: str(Path(v).resolve()) for k, v in cls.resources.items()},
+                "figures": list(cls.figures)}
 
 
 def to_strict_json(value: Any, where: str) -> Any:

@@ -39,3 +39,19 @@ def executions(log_path):
     """Stage names executed, in order, from a NUMSTAGES_LOG side channel."""
     path = Path(log_path)
     return [line.split()[0] for line in path.read_text().splitlines()] if path.exists() else []
+
+
+@pytest.fixture(scope="session")
+def default_run(tmp_path_factory):
+    """The repository's default pipeline, run once per session in a copy with its own store."""
+    import msflow
+
+    dest = tmp_path_factory.mktemp("repo") / "msflow"
+    dest.mkdir()
+    for name in ("pipeline.yaml", "data", "stages", "pyproject.toml"):
+        src = ROOT / name
+        if src.is_dir():
+            shutil.copytree(src, dest / name, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy2(src, dest / name)
+    return dest, msflow.run(dest / "pipeline.yaml")

@@ -1,25 +1,8 @@
 """The default pipeline.yaml on the embedded data: runs end to end, reruns nothing, exports what animators open."""
 import csv
-import shutil
-from pathlib import Path
-
 import numpy as np
-import pytest
 
 import msflow
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="module")
-def default_run(tmp_path_factory):
-    """The repository's pipeline run in a copy (own store), so the working tree's store is never touched."""
-    dest = tmp_path_factory.mktemp("repo") / "msflow"
-    dest.mkdir()
-    for name in ("pipeline.yaml", "data", "stages", "pyproject.toml"):
-        src = ROOT / name
-        (shutil.copytree if src.is_dir() else shutil.copy2)(src, dest / name)
-    return dest, msflow.run(dest / "pipeline.yaml")
 
 
 def test_default_pipeline_runs_every_stage(default_run):
