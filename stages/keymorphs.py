@@ -472,41 +472,15 @@ def figure_contact_sheet(view, inputs):
 
 def figure_landmark_fit(view, inputs):
     """Keyshape landmarks (black) against the landmarks the keymorph gives the character (red), per keyshape."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from stages.keyshapes import plot_shape
+    from stages.keyshapes import plot_keyshape_grid
 
     keyshapes = inputs["keyshapes"]
-    shapes = keyshapes["keyshapes"]
-    fitted = view["keymorph_landmarks"]
-    expression = np.asarray(keyshapes["keyshape_expression"])
-    labels = list(keyshapes.meta["labels"])
     errors = view["landmark_error"]
-    cols = max(int(np.bincount(expression, minlength=len(labels)).max(initial=1)), 1)
-    fig, axes = plt.subplots(len(labels), cols, figsize=(1.2 * cols, 1.4 * len(labels)), squeeze=False)
-    lo, hi = shapes.reshape(-1, 2).min(0), shapes.reshape(-1, 2).max(0)
-    for s, label in enumerate(labels):
-        mine = np.flatnonzero(expression == s)
-        for c in range(cols):
-            ax = axes[s, c]
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if c >= len(mine):
-                ax.axis("off")
-                continue
-            plot_shape(ax, shapes[mine[c]], color="k", lw=0.7)
-            plot_shape(ax, fitted[mine[c]], color="r", lw=0.7)
-            ax.set_xlim(lo[0], hi[0])
-            ax.set_ylim(hi[1], lo[1])
-            ax.set_aspect("equal")
-            ax.set_title(f"{c}: {100 * errors[mine[c]]:.1f}%", fontsize=6)
-        axes[s, 0].set_ylabel(label)
-    fig.suptitle("Keyshape (black) vs keymorph landmarks (red), RMS error % inter-ocular")
-    fig.tight_layout()
-    return fig
+    return plot_keyshape_grid([(keyshapes["keyshapes"], {"color": "k", "lw": 0.7}),
+                               (view["keymorph_landmarks"], {"color": "r", "lw": 0.7})],
+                              keyshapes["keyshape_expression"], list(keyshapes.meta["labels"]),
+                              "Keyshape (black) vs keymorph landmarks (red), RMS error % inter-ocular",
+                              lambda i, c: f"{c}: {100 * errors[i]:.1f}%")
 
 
 # ----------------------------------------------------------------------------------------------------- stages

@@ -157,8 +157,9 @@ def plot_shape(ax, shape: np.ndarray, **style):
         ax.plot(pts[:, 0], pts[:, 1], **style)
 
 
-def plot_keyshapes(keyshapes, expression, labels, frames):
-    """Grid of keyshapes: one row per expression, drawn in the aam mean-shape frame."""
+def plot_keyshape_grid(layers, expression, labels, title, caption):
+    """Grid of shapes, one row per expression; ``layers`` = [(shapes (k, 68, 2), line style), ...] drawn over each
+    other, ``caption(index, column)`` titles each cell. Shapes are in the aam mean-shape frame (y down)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -167,7 +168,8 @@ def plot_keyshapes(keyshapes, expression, labels, frames):
     expression = np.asarray(expression)
     cols = max(int(np.bincount(expression, minlength=len(labels)).max(initial=1)), 1)
     fig, axes = plt.subplots(len(labels), cols, figsize=(1.2 * cols, 1.4 * len(labels)), squeeze=False)
-    lo, hi = keyshapes.reshape(-1, 2).min(0), keyshapes.reshape(-1, 2).max(0)
+    first = layers[0][0]
+    lo, hi = first.reshape(-1, 2).min(0), first.reshape(-1, 2).max(0)
     for s, label in enumerate(labels):
         mine = np.flatnonzero(expression == s)
         for c in range(cols):
@@ -178,14 +180,22 @@ def plot_keyshapes(keyshapes, expression, labels, frames):
             if c >= len(mine):
                 ax.axis("off")
                 continue
-            plot_shape(ax, keyshapes[mine[c]], color="k", lw=0.8)
+            for shapes, style in layers:
+                plot_shape(ax, shapes[mine[c]], **style)
             ax.set_xlim(lo[0], hi[0])
             ax.set_ylim(hi[1], lo[1])
-            ax.set_title(f"{c} (f{int(frames[mine[c]])})", fontsize=6)
+            ax.set_title(caption(mine[c], c), fontsize=6)
         axes[s, 0].set_ylabel(label)
-    fig.suptitle("Keyshapes per expression (PCA extremes, Sec 4.1)")
+    fig.suptitle(title)
     fig.tight_layout()
     return fig
+
+
+def plot_keyshapes(keyshapes, expression, labels, frames):
+    """Grid of keyshapes: one row per expression, with each keyshape's source frame."""
+    return plot_keyshape_grid([(keyshapes, {"color": "k", "lw": 0.8})], expression, labels,
+                              "Keyshapes per expression (PCA extremes, Sec 4.1)",
+                              lambda i, c: f"{c} (f{int(frames[i])})")
 
 
 def plot_residual(residual, targets, fps):

@@ -5,43 +5,17 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from face_fixtures import face_modes as fixture_modes
+from face_fixtures import face_template
 from msflow import UserError
 from msflow.testing import artifact, run_stage
 from stages.keyshapes import (Keyshapes, decompose_into_keyshapes, inter_ocular_distance, mouth_opening,
                               rest_shape, select_keyshapes)
 
 
-def face_template():
-    """A frontal iBUG-68 face in image convention (y down), outer-eye-corner distance 1.1."""
-    pts = np.zeros((68, 2))
-    pts[0:17, 0] = -0.9 * np.cos(np.linspace(0, np.pi, 17))
-    pts[0:17, 1] = -0.2 + 1.1 * np.abs(np.sin(np.linspace(0, np.pi, 17))) ** 0.8
-    arch = 0.05 * np.sin(np.linspace(0, np.pi, 5))
-    pts[17:22] = np.c_[np.linspace(-0.75, -0.15, 5), -0.45 - arch]
-    pts[22:27] = np.c_[np.linspace(0.15, 0.75, 5), -0.45 - arch]
-    pts[27:31] = np.c_[np.zeros(4), np.linspace(-0.3, 0.15, 4)]
-    pts[31:36] = np.c_[np.linspace(-0.2, 0.2, 5), 0.25 + 0.03 * np.cos(np.linspace(-1.5, 1.5, 5))]
-    eye = np.pi - np.arange(6) * np.pi / 3
-    for start, cx in ((36, -0.4), (42, 0.4)):
-        pts[start:start + 6] = np.c_[cx + 0.15 * np.cos(eye), -0.25 - 0.06 * np.sin(eye)]
-    lip = np.pi - np.arange(12) * np.pi / 6
-    pts[48:60] = np.c_[0.25 * np.cos(lip), 0.55 - 0.1 * np.sin(lip)]
-    inner = np.pi - np.arange(8) * np.pi / 4
-    pts[60:68] = np.c_[0.18 * np.cos(inner), 0.55 - 0.03 * np.sin(inner)]
-    return pts
-
-
 def face_modes():
-    """Three orthogonalised deformation modes: jaw open, smile, brow raise (each ~0.1 inter-ocular)."""
-    jaw = np.zeros((68, 2))
-    jaw[3:14, 1] = np.sin(np.linspace(0, np.pi, 11)) * 0.3
-    jaw[[56, 57, 58, 65, 66, 67], 1] = 0.25
-    smile = np.zeros((68, 2))
-    smile[[48, 60], :] = [-0.08, -0.06]
-    smile[[54, 64], :] = [0.08, -0.06]
-    brow = np.zeros((68, 2))
-    brow[17:27, 1] = -0.12
-    modes = np.stack([jaw, smile, brow]).reshape(3, -1)
+    """The fixture's jaw, smile and brow modes, orthonormalised (each ~0.1 inter-ocular)."""
+    modes = fixture_modes().reshape(3, -1)
     q, r = np.linalg.qr(modes.T)
     return (q * np.sign(np.diag(r))).T.reshape(3, 68, 2) * 0.5
 
