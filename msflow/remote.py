@@ -147,10 +147,12 @@ class RemoteStore:
         raw = self.objects.get(self.marker_path(key))
         if raw is None:
             return ["no commit marker (not published)"]
-        marker = self._marker(key)
-        if marker is None:
-            return ["commit marker unreadable"]
-        folder = self.data_path(key, marker["data"])
+        try:
+            marker = json.loads(raw)
+            folder = self.data_path(key, marker["data"])
+            recorded = marker["manifest"]
+        except (ValueError, KeyError, TypeError) as exc:
+            return [f"commit marker unreadable: {type(exc).__name__}: {exc}"]
         problems = []
         group = self.objects.get(f"{folder}/zarr.json")
         if group is None:
@@ -161,9 +163,9 @@ class RemoteStore:
             except (ValueError, KeyError, TypeError) as exc:
                 problems.append(f"zarr.json unreadable: {type(exc).__name__}: {exc}")
             else:
-                if stored != marker["manifest"]:
+                if stored != recorded:
                     problems.append("zarr.json manifest differs from the commit marker's")
-        return problems + check_contents(marker["manifest"], self._view(key, marker).__getitem__)
+        return problems + check_contents(recorded, self._view(key, marker).__getitem__)
 
     def size(self, key: str) -> int:
         marker = self._marker(key)
@@ -194,8 +196,9 @@ class RemoteStore:
                 committed = self._replace(key, wid, marker)
             else:
                 committed = self.objects.create(self.marker_path(key), marker) is not None
-                if not committed:  # published meanwhile by another writer of the key: same content by construction
+                if not committed:  # published meanwhile by another writer of the key: theirs stays
                     self.objects.delete_prefix(folder + "/")
+                    manifest = (self._marker(key) or {}).get("manifest", manifest)
         except BaseException:
             self._abandon(key, wid)
             raise
@@ -350,6 +353,12 @@ class RemoteStore:
         return json.loads(data)
 
 
+def _selects_everything(selection) -> bool:
+    if isinstance(selection, tuple):
+        return selection in ((), (Ellipsis,))
+    return selection is Ellipsis or (isinstance(selection, slice) and selection == slice(None))
+
+
 def _age(entry: dict) -> float:
     started = entry.get("started")
     return time.time() - started if isinstance(started, (int, float)) else float("inf")
@@ -411,7 +420,7 @@ class RemoteArray:
         return getattr(self.zarr, attr)
 
     def __getitem__(self, selection):
-        if selection is Ellipsis or selection == () or selection == slice(None):
+        if _selects_everything(selection):
             return self.read()
         return self.zarr[selection]
 

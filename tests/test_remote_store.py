@@ -258,8 +258,19 @@ def test_store_contract_write_read_lazy_verify_remove(any_store):
     lazy = view.lazy("big")  # zarr semantics for partial reads
     assert lazy.shape == (700_000, 2) and lazy.chunks[0] < 700_000
     assert np.array_equal(lazy[123_456:400_000:7], arrays["big"][123_456:400_000:7])
+    assert np.array_equal(lazy.oindex[[1, 5, 699_999], :], arrays["big"][[1, 5, 699_999]])
     assert view.meta == {"note": "x"} and view.metrics == {"m": 1.5}
     assert store.verify(key) == [] and store.size(key) > 1_000_000
+
+    # a second writer of the key (no lock held) loses the commit: the first artifact stays, nothing is left over
+    again = store.write(key, {"x": np.zeros(3)}, {"meta": {"note": "late"}})
+    assert again == manifest and store.manifest(key) == manifest
+    assert len({o.path.split("/")[3] for o in store.objects.list("artifacts/")}) == 1
+
+    # a lost chunk object is found by verify
+    chunk = next(o.path for o in store.objects.list("artifacts/") if o.path.endswith("big/c/1/0"))
+    store.objects.delete(chunk)
+    assert any("output 'big': unreadable" in p for p in store.verify(key))
     store.remove(key)
     assert not store.has(key) and list(store.keys()) == [] and store.objects.list("artifacts/") == []
 

@@ -1,0 +1,168 @@
+"""Remote store figures (issue 7) against a moto S3 server on 127.0.0.1, with a local store for reference.
+
+    python bench/bench_remote.py [--repeats 7]
+
+1. No-op rerun of the 10-stage numeric pipeline (bench_core.ten_stage_pipeline): wall clock and CPU (user+sys
+   of the ``msflow run`` child process), best of N; and the S3 requests it makes, by operation.
+2. Per-stage overhead: 40 tiny Source stages run from an empty store in one process (wall per stage, which is
+   almost all store work: lease, has, upload, commit, release), and the requests per executed stage.
+
+moto answers on the loopback in about a millisecond; on real S3 each request costs ~10-30 ms, so the request
+counts are what carries over: multiply them by the round trip of your endpoint.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import logging
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE))
+
+from bench_core import NUMPROJECT, ten_stage_pipeline  # noqa: E402
+
+
+def start_moto():
+    import boto3
+    from moto.server import ThreadedMotoServer
+
+    logging.getLogger("werkzeug").setLevel(logging.ERROR)
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    endpoint = f"http://{host}:{port}"
+    boto3.client("s3", endpoint_url=endpoint, aws_access_key_id="bench", aws_secret_access_key="bench",
+                 region_name="us-east-1").create_bucket(Bucket="bench")
+    return server, {"endpoint_url": endpoint, "key": "bench", "secret": "bench"}
+
+
+def use_store(pipeline_file: Path, url: str, options: dict) -> None:
+    text = pipeline_file.read_text()
+    header = f"store: {url}\nstore_options: {json.dumps(options)}\n"
+    pipeline_file.write_text(text.replace("version: 1\n", "version: 1\n" + header, 1))
+
+
+def child_run(cmd: list[str], cwd: Path) -> tuple[float, float]:
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    started = time.perf_counter()
+    subprocess.run(cmd, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=True)
+    wall = time.perf_counter() - started
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime
+
+
+class RequestCounter:
+    """Counts S3 requests made in this process (by API operation)."""
+
+    def __init__(self):
+        from msflow.remote_objects import S3Objects
+
+        self.counts: collections.Counter = collections.Counter()
+        self._cls = S3Objects
+        self._original = S3Objects._call
+        counts = self.counts
+        original = self._original
+
+        async def counted(self_, method, **kwargs):
+            counts[method] += 1
+            return await original(self_, method, **kwargs)
+
+        S3Objects._call = counted
+
+    def take(self) -> dict:
+        out = dict(self.counts)
+        self.counts.clear()
+        return out
+
+    def close(self) -> None:
+        self._cls._call = self._original
+
+
+def bench_noop(tmp: Path, options: dict, repeats: int) -> dict:
+    import msflow
+
+    cli = [sys.executable, "-m", "msflow.cli", "run", "ten.yaml", "-q"]
+    out = {}
+    for label, url in (("local", None), ("s3", "s3://bench/noop")):
+        proj = tmp / f"noop-{label}"
+        ten_stage_pipeline(proj)
+        if url:
+            use_store(proj / "ten.yaml", url, options)
+        first_wall, _ = child_run(cli, proj)
+        runs = [child_run(cli, proj) for _ in range(repeats)]
+        out[label] = {"first_run_wall_s": round(first_wall, 3),
+                      "noop_wall_s": round(min(w for w, _ in runs), 3),
+                      "noop_cpu_s": round(min(c for _, c in runs), 3)}
+        if url:
+            counter = RequestCounter()
+            try:
+                msflow.run(proj / "ten.yaml")
+                out[label]["noop_requests"] = counter.take()
+            finally:
+                counter.close()
+    baseline = min(child_run([sys.executable, "-c", "import s3fs, botocore.session"], tmp)[1]
+                   for _ in range(3))
+    out["cpu_to_import_s3fs_s"] = round(baseline, 3)
+    return out
+
+
+def bench_stage_overhead(tmp: Path, options: dict, stages: int = 40) -> dict:
+    import msflow
+
+    out = {}
+    for label, url in (("local", None), ("s3", "s3://bench/overhead")):
+        proj = tmp / f"overhead-{label}"
+        shutil.copytree(NUMPROJECT, proj, ignore=shutil.ignore_patterns(".msflow", "*.lock", "__pycache__"))
+        body = "".join(f"  s{i}:\n    uses: numstages.basic:Source\n    params: {{n: {i + 3}}}\n"
+                       for i in range(stages))
+        (proj / "many.yaml").write_text("version: 1\nstages:\n" + body)
+        if url:
+            use_store(proj / "many.yaml", url + "-warm", options)
+        msflow.run(proj / "many.yaml", overrides=["s0.n=2"])  # warm imports, store connection, memo
+        if url:  # measure against an empty prefix
+            (proj / "many.yaml").write_text((proj / "many.yaml").read_text().replace(url + "-warm", url))
+        else:
+            shutil.rmtree(proj / ".msflow" / "artifacts")
+        counter = RequestCounter() if url else None
+        try:
+            started = time.perf_counter()
+            result = msflow.run(proj / "many.yaml")
+            wall = time.perf_counter() - started
+            requests = counter.take() if counter else None
+        finally:
+            if counter:
+                counter.close()
+        out[label] = {"stages": stages, "executed": len(result.executed), "wall_s": round(wall, 3),
+                      "per_stage_ms": round(1000 * wall / stages, 1)}
+        if requests is not None:
+            out[label]["requests_per_stage"] = {k: round(v / stages, 2) for k, v in sorted(requests.items())}
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--repeats", type=int, default=7)
+    args = parser.parse_args()
+    os.environ.setdefault("AWS_EC2_METADATA_DISABLED", "true")
+    server, options = start_moto()
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            tmp = Path(tmp)
+            print("no-op rerun, 10 stages:", json.dumps(bench_noop(tmp, options, args.repeats), indent=1))
+            print("per-stage overhead:", json.dumps(bench_stage_overhead(tmp, options), indent=1))
+    finally:
+        server.stop()
+
+
+if __name__ == "__main__":
+    main()
