@@ -23,7 +23,8 @@ class InlineExecutor:
 
 
 class ProcessExecutor:
-    """A pool of ``jobs`` worker processes started with forkserver (no inherited threads or locks)."""
+    """A pool of ``jobs`` worker processes, spawned: no inherited threads or locks, and the environment of the
+    run (a fork server would freeze the environment of its first use)."""
 
     name = "local"
 
@@ -33,8 +34,8 @@ class ProcessExecutor:
 
         from msflow.worker import pin_blas_threads
 
-        pin_blas_threads()  # inherited by the fork server, so set before any worker imports numpy
-        self.pool = ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("forkserver"),
+        pin_blas_threads()  # inherited by the workers, so set before any of them imports numpy
+        self.pool = ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
                                         initializer=pin_blas_threads)
 
     def submit(self, job_json: str) -> Future:

@@ -153,7 +153,7 @@ def collect_figures(session, record: dict, jobs: int) -> list[Figure]:
         from msflow.worker import pin_blas_threads
 
         pin_blas_threads()
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("forkserver"),
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
                                  initializer=pin_blas_threads) as pool:
             futures = {s: pool.submit(_render_job, payloads[s]) for s in pending}
             for stage, future in futures.items():

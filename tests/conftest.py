@@ -27,11 +27,18 @@ def numproject(tmp_path):
     return dest
 
 
-def run_cli(cwd, *args, env=None, timeout=120):
-    """Run ``python -m msflow.cli`` in a subprocess; returns CompletedProcess with text output."""
+def cli_env(env=None):
+    """Environment for msflow subprocesses: this checkout first on PYTHONPATH, whichever checkout
+    `pip install -e` last pointed at."""
     full_env = dict(os.environ)
     full_env.update(env or {})
-    return subprocess.run([sys.executable, "-m", "msflow.cli", *map(str, args)], cwd=cwd, env=full_env,
+    full_env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), full_env.get("PYTHONPATH", "")) if p)
+    return full_env
+
+
+def run_cli(cwd, *args, env=None, timeout=120):
+    """Run ``python -m msflow.cli`` in a subprocess; returns CompletedProcess with text output."""
+    return subprocess.run([sys.executable, "-m", "msflow.cli", *map(str, args)], cwd=cwd, env=cli_env(env),
                           capture_output=True, text=True, timeout=timeout)
 
 

@@ -211,3 +211,11 @@ def test_development_package_outside_the_project_is_fingerprinted(tmp_path):
     (pkg / "mod.py").write_text(source.replace("np.array([1.0])", "np.array([2.0])"))
     status = run_cli(project, "status", env=env).stdout
     assert "code: devstages/mod.py changed" in status
+
+
+def test_parallel_workers_see_the_environment_of_each_run(numproject, tmp_path, monkeypatch):
+    for i in range(2):  # a pool started by the first run must not freeze the environment for the second
+        log_file = tmp_path / f"log{i}"
+        monkeypatch.setenv("NUMSTAGES_LOG", str(log_file))
+        msflow.run(numproject / "pipeline.yaml", overrides=[f"src.n={3 + i}"], jobs=2)
+        assert "src" in executions(log_file)

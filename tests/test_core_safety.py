@@ -9,13 +9,12 @@ import time
 
 import numpy as np
 
-from conftest import executions, run_cli
+from conftest import cli_env, executions, run_cli
 from msflow.artifact import read_manifest
 
 
 def start_run(proj, *args, env):
-    full = dict(os.environ, **env)
-    return subprocess.Popen([sys.executable, "-m", "msflow.cli", "run", *args, "-q"], cwd=proj, env=full,
+    return subprocess.Popen([sys.executable, "-m", "msflow.cli", "run", *args, "-q"], cwd=proj, env=cli_env(env),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
