@@ -25,10 +25,17 @@ Cleanup
     than ``max_age`` (default an hour) - unless the marker names it (killed between commit and journal
     cleanup). A retired folder is deleted RETIRE_SECONDS (or ``max_age``) after its replacement. Leases of
     dead holders are deleted too. Every run that computes something and ``msflow gc`` call it.
-Locks
-    One lease per key, renewed by a heartbeat, broken when expired or when its holder on this host is dead (see
-    msflow.remote_leases). The rule users rely on: any number of runs, on any machines, may share a store;
-    each stage instance is computed once while leases hold. Clocks matter only for the cleanup grace period.
+Locks (the rule)
+    Any number of runs, on any number of machines, may share a store. Each key has a lease (60 s, or
+    MSFLOW_LEASE_SECONDS) renewed by a heartbeat while its stage runs; a lease is broken when it expired or when
+    its holder ran on this host and is dead (see msflow.remote_leases). So each stage instance is computed
+    once; a holder stalled past its ttl may see its work duplicated, never a torn or mixed artifact, because
+    the commit is conditional. On S3 expiry is judged by the server's clock; on other fsspec backends by the
+    machines' clocks (keep them within a second or two).
+Errors
+    The first opening in a process makes one cheap request (bounded by MSFLOW_STORE_TIMEOUT, 15 s), so a
+    missing bucket, missing credentials or an unreachable endpoint stop the run at once with a UserError that
+    names the store URL.
 No-op path
     ``has`` is one GET of the commit marker, and the manifest comes with it: a cached stage costs one small
     request. Opening an artifact reads no metadata beyond the marker; outputs are fetched chunk by chunk in
@@ -184,7 +191,6 @@ class RemoteStore:
         folder = self.data_path(key, wid)
         journal = self.journal_path(key, wid)
         self.objects.put(journal, self._journal_entry(key, wid, "write"))
-        committed = False
         try:
             for batch in iter_chunks(encode_artifact(arrays, manifest)):
                 self.objects.put_many({f"{folder}/{rel}": data for rel, data in batch.items()})
@@ -193,12 +199,11 @@ class RemoteStore:
             marker = dumps({"format": MARKER_FORMAT, "key": key, "data": wid, "manifest": manifest,
                             "chunks": chunks, "host": HOST, "pid": os.getpid(), "committed": time.time()})
             if replace:
-                committed = self._replace(key, wid, marker)
-            else:
-                committed = self.objects.create(self.marker_path(key), marker) is not None
-                if not committed:  # published meanwhile by another writer of the key: theirs stays
-                    self.objects.delete_prefix(folder + "/")
-                    manifest = (self._marker(key) or {}).get("manifest", manifest)
+                self._replace(key, wid, marker)
+            elif self.objects.create(self.marker_path(key), marker) is None:
+                # published meanwhile by another writer of the key: theirs stays
+                self.objects.delete_prefix(folder + "/")
+                manifest = (self._marker(key) or {}).get("manifest", manifest)
         except BaseException:
             self._abandon(key, wid)
             raise
@@ -206,14 +211,13 @@ class RemoteStore:
         self._recent.pop(key, None)
         return manifest
 
-    def _replace(self, key: str, wid: str, marker: bytes) -> bool:
+    def _replace(self, key: str, wid: str, marker: bytes) -> None:
         """Overwrite the marker; the old folder is retired, not deleted, so a reader that read the old marker
         a moment ago can still read its chunks. clean_tmp deletes it RETIRE_SECONDS later."""
         old = self._marker(key)
         if old and old["data"] != wid:
             self.objects.put(self.journal_path(key, old["data"]), self._journal_entry(key, old["data"], "retire"))
         self.objects.put(self.marker_path(key), marker)
-        return True
 
     def _abandon(self, key: str, wid: str) -> None:
         """Best effort after a failed write: delete our folder unless the marker names it (a commit whose

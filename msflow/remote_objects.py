@@ -94,7 +94,7 @@ def translate_failure(exc: BaseException, url: str, endpoint: str | None = None)
                          "bucket and prefix)")
     network = ("EndpointConnectionError", "ConnectTimeoutError", "ReadTimeoutError", "ConnectionClosedError",
                "ProxyConnectionError", "SSLError", "ClientConnectorError", "ServerDisconnectedError",
-               "ClientOSError", "TimeoutError", "CancelledError")
+               "ClientOSError", "TimeoutError")
     if name in network or isinstance(exc, (ConnectionError, asyncio.TimeoutError, TimeoutError)):
         detail = str(exc) or f"no answer within {probe_seconds():g} s"
         return UserError(f"cannot reach {where}: {name}: {detail}")

@@ -98,15 +98,13 @@ def uncommitted_folders(store: RemoteStore) -> set[str]:
     return folders - committed
 
 
-def uploads_of(store: RemoteStore, pid: int) -> set[str]:
-    """Folders that process ``pid`` journalled for writing and put at least one object into."""
+def writes_of(store: RemoteStore, pid: int) -> set[str]:
+    """Folders that process ``pid`` journalled for writing and has not finished (committed or abandoned)."""
     folders = set()
     for info in store.objects.list("pending/"):
         entry = json.loads(store.objects.get(info.path) or b"{}")
         if entry.get("action") == "write" and entry.get("pid") == pid:
-            folder = store.data_path(entry["key"], entry["data"])
-            if store.objects.list(folder + "/"):
-                folders.add(folder)
+            folders.add(store.data_path(entry["key"], entry["data"]))
     return folders
 
 
@@ -197,21 +195,23 @@ def test_sigkilled_runs_leave_nothing_visible_and_the_next_run_recovers(numproje
     store = s3.store(bucket, "num")
     rng = random.Random(99)
     env = {"NUMSTAGES_SLEEP": "0.3"}
-    killed_mid_upload = 0
+    killed_mid_write = 0
     for attempt in range(4):
         proc = start_run(numproject, "crash.yaml", "--force", "slow", env=env)
-        if attempt % 2 == 0:  # the moment its upload has begun
+        if attempt % 2 == 0:  # once it has begun writing the artifact of 'slow' (the first stage run)
             deadline = time.monotonic() + 20
-            while not uploads_of(store, proc.pid) and time.monotonic() < deadline:
-                time.sleep(0.01)
+            while not writes_of(store, proc.pid) and time.monotonic() < deadline:
+                time.sleep(0.005)
+            time.sleep(rng.uniform(0.0, 0.05))
         else:
             time.sleep(rng.uniform(0.5, 2.0))
         proc.send_signal(signal.SIGKILL)
         proc.wait()
-        killed_mid_upload += bool(uploads_of(store, proc.pid) & uncommitted_folders(store))
+        killed_mid_write += bool(writes_of(store, proc.pid) - {store.data_path(k, json.loads(
+            store.objects.get(store.marker_path(k)))["data"]) for k in store.keys()})
         for key in store.keys():  # whatever is visible is complete
             assert store.verify(key) == [], key
-    assert killed_mid_upload >= 2
+    assert killed_mid_write >= 2
     result = run_cli(numproject, "run", "crash.yaml", "-q", env={"NUMSTAGES_SLEEP": "0"})
     assert result.returncode == 0, result.stderr
     verify = run_cli(numproject, "verify", "crash.yaml")
