@@ -47,24 +47,6 @@ def parse_module(source: str | bytes, filename: str) -> tuple[str, list[list]]:
     return digest, imports
 
 
-def defined_names(path: Path) -> set[str]:
-    """Top-level names a module defines or imports: lets the loader say 'no class X' without importing."""
-    tree = ast.parse(path.read_bytes(), filename=str(path))
-    names: set[str] = set()
-    for node in tree.body:
-        if isinstance(node, (ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
-            names.add(node.name)
-        elif isinstance(node, (ast.Import, ast.ImportFrom)):
-            names.update((a.asname or a.name).split(".")[0] for a in node.names)
-        elif isinstance(node, ast.Assign):
-            names.update(t.id for t in node.targets if isinstance(t, ast.Name))
-        elif isinstance(node, (ast.AnnAssign,)) and isinstance(node.target, ast.Name):
-            names.add(node.target.id)
-        elif isinstance(node, (ast.If, ast.Try)):
-            return {"*"}  # conditional definitions: cannot tell statically
-    return names
-
-
 class CodeIndex:
     """Finds project modules under ``root`` and fingerprints import closures, with a JSON-able memo."""
 
@@ -137,12 +119,39 @@ class CodeIndex:
 
     # ------------------------------------------------------------------ closure
     def closure(self, module: str) -> dict:
-        """{"modules": {relpath: digest}, "external": sorted top-level third-party names} for a module."""
+        """{"modules": {relpath: digest}, "external": sorted top-level third-party names} for a module.
+
+        Memoised on the stat signatures of the closure's files and of their package folders (a new module file
+        changes its folder's mtime), so a no-op run validates a closure with a few stats instead of resolving
+        every import again."""
         if module in self._closures:
             return self._closures[module]
+        memo = self.memo.setdefault("closures", {})
+        hit = memo.get(module)
+        if hit and self._signature(hit["files"]) == hit["sig"]:
+            self._closures[module] = hit["closure"]
+            return hit["closure"]
+        result, files = self._compute_closure(module)
+        memo[module] = {"files": files, "sig": self._signature(files), "closure": result}
+        self._closures[module] = result
+        return result
+
+    def _signature(self, files: list[str]) -> list[str]:
+        """Stat signatures of closure files; relative entries are under the project root (clones stay valid)."""
+        out = []
+        for path in files:
+            try:
+                st = os.stat(path if os.path.isabs(path) else self.root / path)
+                out.append(f"{st.st_size}:{st.st_mtime_ns}:{st.st_ino}")
+            except OSError:
+                out.append("missing")
+        return out
+
+    def _compute_closure(self, module: str) -> tuple[dict, list[str]]:
         modules: dict[str, str] = {}
         external: set[str] = set()
         seen: set[str] = set()
+        watched: set[str] = {str(self.root)}
         queue = [module]
         while queue:
             name = queue.pop()
@@ -160,6 +169,7 @@ class CodeIndex:
                 continue
             digest, imports = self.module_info(path)
             modules[self.rel(path)] = digest
+            watched.update((str(path), str(path.parent)))
             is_package = path.name == "__init__.py"
             for target, level, names in imports:
                 for absolute in self._resolve(name, is_package, target, level, names):
@@ -169,8 +179,13 @@ class CodeIndex:
                     elif top and top not in STDLIB and not top.startswith("_"):
                         external.add(top)
         result = {"modules": dict(sorted(modules.items())), "external": sorted(external)}
-        self._closures[module] = result
-        return result
+        return result, sorted(self._relative(w) for w in watched)
+
+    def _relative(self, path: str) -> str:
+        try:
+            return Path(path).relative_to(self.root).as_posix() or "."
+        except ValueError:
+            return path
 
     def _resolve(self, current: str, is_package: bool, target: str, level: int, names: list[str]) -> list[str]:
         if level:

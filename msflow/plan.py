@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from msflow.errors import UserError
-from msflow.fingerprint import CodeIndex, defined_names, distribution_versions
+from msflow.fingerprint import CodeIndex, distribution_versions
 from msflow.hashing import json_hash
 from msflow.spec import FilesRef, Pipeline, StageRef, _suggest, rel_to
 
@@ -159,12 +159,9 @@ def resolve(pipeline: Pipeline, memo: dict) -> dict[str, StagePlan]:
     plans: dict[str, StagePlan] = {}
     ensure_importable(pipeline.root)
     for name, node in pipeline.stages.items():
-        module_name, _, cls_name = node.uses.partition(":")
+        module_name = node.uses.partition(":")[0]
         in_project = index.project_file(module_name)
         if in_project is not None:
-            names = defined_names(in_project)
-            if "*" not in names and cls_name not in names:
-                _ = import_stage_class(node.uses, file=file, stage=name, root=pipeline.root)  # produces the precise error
             closure = index.closure(module_name)
         else:
             import importlib.util

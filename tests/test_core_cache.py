@@ -219,3 +219,14 @@ def test_parallel_workers_see_the_environment_of_each_run(numproject, tmp_path, 
         monkeypatch.setenv("NUMSTAGES_LOG", str(log_file))
         msflow.run(numproject / "pipeline.yaml", overrides=[f"src.n={3 + i}"], jobs=2)
         assert "src" in executions(log_file)
+
+
+def test_edit_in_a_clone_is_seen_although_the_original_is_unchanged(numproject, tmp_path, log):
+    run(numproject)
+    clone = tmp_path / "clone"
+    shutil.copytree(numproject, clone)  # store and memo included
+    assert run(clone).executed == []
+    helper = clone / "numstages" / "helpers.py"
+    helper.write_text(helper.read_text().replace("return 2 * np.asarray(x)", "return -2 * np.asarray(x)"))
+    assert "scaled" in run(clone).executed
+    assert run(numproject).executed == []
