@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import executions, run_cli
+from conftest import cli_env, executions, run_cli
 from msflow.artifact import check_contents, encode_artifact, prepare_manifest
 from msflow.errors import UserError
 from msflow.remote import RemoteStore, open_remote_store
@@ -83,7 +83,7 @@ def on_s3(proj: Path, s3: MotoS3, bucket: str, files=("pipeline.yaml", "crash.ya
 
 def start_run(proj, *args, env):
     return subprocess.Popen([sys.executable, "-m", "msflow.cli", "run", *args, "-q"], cwd=proj,
-                            env=dict(os.environ, **env), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            env=cli_env(env), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def stage_keys(record: dict) -> dict:
@@ -407,7 +407,7 @@ def test_leases_exclude_each_other_renew_and_break_when_stale(s3):
 
 # ------------------------------------------------------------------------------------------- errors
 def cli_without_aws_env(proj, *args, extra=None, timeout=60):
-    env = {k: v for k, v in os.environ.items() if not k.startswith("AWS_")}
+    env = {k: v for k, v in cli_env().items() if not k.startswith("AWS_")}
     env.update({"AWS_EC2_METADATA_DISABLED": "true", "AWS_SHARED_CREDENTIALS_FILE": "/nonexistent",
                 "AWS_CONFIG_FILE": "/nonexistent"}, **(extra or {}))
     return subprocess.run([sys.executable, "-m", "msflow.cli", *args], cwd=proj, env=env, capture_output=True,
