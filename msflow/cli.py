@@ -81,8 +81,11 @@ def status(file: Path = FILE_ARG,
         _echo(f"{name:<{width}}  {label}")
         for reason in d.reasons:
             _echo(f"{'':<{width}}    - {reason}")
-    todo = sum(1 for d in dry.values() if d.state != "cached")
-    _echo(f"{len(dry) - todo} cached, {todo} to run")
+    counts = {state: sum(1 for d in dry.values() if d.state == state) for state in ("cached", "run", "blocked")}
+    summary = f"{counts['cached']} cached, {counts['run']} to run"
+    if counts["blocked"]:
+        summary += f", {counts['blocked']} waiting on them (rerun only if their inputs change)"
+    _echo(summary)
 
 
 @app.command()
