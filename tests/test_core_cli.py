@@ -17,7 +17,10 @@ def test_status_lists_what_would_run_and_why(numproject):
     changed = run_cli(numproject, "status", "-S", "src.n=4")
     assert "param n: 6 -> 4" in changed.stdout
     assert "upstream src must run first" in changed.stdout
-    assert not list((numproject / ".msflow" / "runs").glob("*-status*"))  # status records no run
+    runs = numproject / ".msflow" / "runs"
+    before = sorted(runs.glob("*.json"))
+    run_cli(numproject, "status")
+    assert sorted(runs.glob("*.json")) == before  # status computes keys but records no run
 
 
 def test_why_names_the_changed_code_file_param_and_input(numproject):
