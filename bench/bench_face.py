@@ -21,7 +21,8 @@ sys.path.insert(0, str(ROOT))
 from msflow.testing import run_stage  # noqa: E402
 from stages.aam import AamModel, AamPca  # noqa: E402
 from stages.bilinear import BilinearFit, BilinearModel  # noqa: E402
-from stages.edit import analyse_style_content, edited_crops, initial_content  # noqa: E402
+from stages.edit import (ExpressionEdit, analyse_style_content, analyse_takes, component_weights,  # noqa: E402
+                         edited_crops, initial_content)
 
 CLIPS = {"neutral": "NEU", "happy": "HAP", "angry": "ANG", "sad": "SAD"}
 
@@ -77,12 +78,19 @@ def main(argv=None):
     y = np.concatenate([proj.y] * reps)[:args.analysis_frames]
     y = y + rng.normal(0, 0.05, y.shape) * proj.y.std(0)
     y_model = bil.augment(y)
-    for label, init, smooth in (("paper (mean init, smooth 0)", "mean", 0.0),
-                                ("nearest init, smooth 0", "nearest", 0.0),
-                                ("mean init, smooth 1", "mean", 1.0)):
+    default_weight = ExpressionEdit.Params().analysis_shape_weight
+    rows = component_weights(model.n_shape, y_model.shape[1], default_weight)
+    frames = np.zeros(len(y_model), dtype=int)
+    for label, init, smooth, weights in (("paper (mean init, smooth 0, all rows)", "mean", 0.0, None),
+                                         (f"stage default (analysis_shape_weight {default_weight:g})", "mean", 0.0,
+                                          rows),
+                                         ("nearest init, smooth 0, all rows", "nearest", 0.0, None),
+                                         ("mean init, smooth 1, all rows", "mean", 1.0, None)):
         def run():
-            return analyse_style_content(bil.w_full, bil.style, initial_content(y_model, bil, init), y_model,
-                                         smooth=smooth)
+            if weights is None:
+                return analyse_style_content(bil.w_full, bil.style, initial_content(y_model, bil, init), y_model,
+                                             smooth=smooth)
+            return analyse_takes(bil, y_model, frames, init=init, smooth=smooth, weights=weights)
         t, result = timed(run, max(1, args.repeats // 2))
         target = "[target >= 10,000]" if smooth == 0 else "[beyond the paper; no target]"
         print(f"analysis {label}: {len(y) / t:,.0f} frames/s ({len(y)} frames, I={bil.w.shape[0]} "

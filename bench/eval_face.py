@@ -1,15 +1,22 @@
 """Out-of-sample evaluation of the face analysis (issue 4: aam, bilinear, edit) on CREMA-D actor 1001.
 
-    python bench/eval_face.py [--align audio|mouth] [--folds 5] [--content-dim J] [--init mean|nearest] [--json out.json]
+    OPENBLAS_NUM_THREADS=1 python bench/eval_face.py [--align audio|mouth] [--folds 5] [--content-dim J]
+        [--init mean|nearest] [--shape-balance B] [--analysis-shape-weight A] [--smooth 0,0.1,1,10] [--json out.json]
+
+Defaults are the stages' defaults; ``--analysis-shape-weight 1`` (with smooth 0) is exactly the paper's analysis.
 
 Protocol (temporal k-fold): the training takes (neutral, happy, angry; same sentence) are tracked and time-aligned
 to the neutral take's frames (the content axis) once. Each fold holds out one contiguous window of the content axis
-in all takes (each take's frames aligned to the window, a contiguous run), fits the appearance model and the
-bilinear model on the remaining frames only, projects the held-out frames into that model (never refitting) and
-scores them:
+in all takes (each take's frames aligned to the window, a contiguous run; the runs partition every take, so each
+frame is scored exactly once), fits the appearance model and the bilinear model on the remaining frames only,
+projects the held-out frames into that model (never refitting) and scores them:
 
-1. style classification: held-out frames of each take analysed (Eq 5-6), nearest training style by cosine;
-   accuracy per take. The unseen disgust, fear and sad takes are analysed with the model fitted on all frames.
+1. style classification: held-out frames of each take analysed (Eq 5-6, the edit stage's analysis), nearest
+   training style by cosine (the issue's rule); per take the mean over folds, the worst fold and the fraction of all
+   its frames, split into the silent lead-in before the sentence starts (audio onset) and the rest. Two references
+   beside it: the training style that explains each frame best with its content re-solved (maximum likelihood), and
+   the take of the nearest training frame (no model). The unseen disgust, fear and sad takes are analysed with the
+   model fitted on all frames.
 2. edit fidelity: the held-out neutral frames are re-synthesised as happy and angry (Eq 7) and compared with the
    real happy and angry frames aligned to them: mean landmark error over the 68 points in inter-ocular distances
    (both shapes in the model's Procrustes frame), edited->real versus neutral->real; the same for the shape-free
@@ -28,15 +35,17 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.distance import cdist
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from msflow.testing import run_stage  # noqa: E402
-from stages.aam import fit_aam, generalised_procrustes, interocular_distance  # noqa: E402
+from stages.aam import AamPca, fit_aam, generalised_procrustes, interocular_distance  # noqa: E402
 from stages.alignment import align_takes  # noqa: E402
 from stages.bilinear import content_features, fit_bilinear_model, reference_index  # noqa: E402
-from stages.edit import analyse_style_content, classify_styles, initial_content, jitter  # noqa: E402
+from stages.edit import (ExpressionEdit, analyse_takes, classify_by_fit, classify_styles,  # noqa: E402
+                         component_weights, jitter)
 
 CLIPS = {"neutral": "NEU", "happy": "HAP", "angry": "ANG", "disgust": "DIS", "fear": "FEA", "sad": "SAD"}
 TRAIN = ["neutral", "happy", "angry"]
@@ -51,12 +60,21 @@ def track(labels: list[str]):
 
 
 class Fold:
-    """One temporal fold: which frames train, which are held out, and the models fitted without them."""
+    """One temporal fold: the window of the content axis it holds out, each take's held-out frames, the frames and
+    content positions left for training.
 
-    def __init__(self, window, aligned_local, takes, n_frames):
+    Each take's frames are partitioned at the frames aligned to the window boundaries, so over the k folds every
+    frame is held out exactly once (taking min..max of the aligned frames instead can score a frame twice or never,
+    where the warping path repeats or skips frames at a boundary).
+    """
+
+    def __init__(self, window, windows, aligned_local, takes, n_frames):
         self.window = window
-        self.heldout_local = [np.arange(aligned_local[s, window].min(), aligned_local[s, window].max() + 1)
-                              for s in range(len(takes))]
+        self.heldout_local = []
+        for s, frames in enumerate(takes):
+            starts = [0] + [int(aligned_local[s, w[0]]) for w in windows[1:]] + [len(frames)]
+            f = next(i for i, w in enumerate(windows) if w[0] == window[0])
+            self.heldout_local.append(np.arange(starts[f], max(starts[f + 1], starts[f])))
         self.heldout = np.concatenate([takes[s][h] for s, h in enumerate(self.heldout_local)])
         self.train_mask = np.ones(n_frames, dtype=bool)
         self.train_mask[self.heldout] = False
@@ -69,7 +87,7 @@ class Fold:
 
 def fit_models(tracks, frames, aligned_global, positions, args):
     model, _ = fit_aam(tracks["landmarks"][frames], tracks["crops"][frames], tracks["crop_landmarks"][frames],
-                       texture_width=args.texture_width)
+                       texture_width=args.texture_width, shape_balance=args.shape_balance)
     proj = model.project(tracks["landmarks"], tracks["crops"], tracks["crop_landmarks"])
     y = proj.y[aligned_global[:, positions]]                        # (S, C_train, K)
     bilinear, fit = fit_bilinear_model(y, TRAIN, content_dim=args.content_dim,
@@ -77,13 +95,49 @@ def fit_models(tracks, frames, aligned_global, positions, args):
     return model, proj, bilinear, fit
 
 
-def analyse(bilinear, y, args, smooth=0.0):
-    """Eq 5-6 on configuration vectors y (F, K); residual relative to |y|^2 of the y components."""
+def analysis_weights(model, bilinear, args):
+    """The edit stage's weights of the components in Eq 5-6 (None: all 1, the paper's analysis)."""
+    if args.analysis_shape_weight == 1:
+        return None
+    return component_weights(model.n_shape, bilinear.w_full.shape[2], args.analysis_shape_weight)
+
+
+def analyse(model, bilinear, y, args, smooth=0.0):
+    """Eq 5-6 on configuration vectors y (F, K) of one take (the stage's analyse_takes with the run's params);
+    residual |y - e' W c|^2 of the unweighted y components."""
     augmented = bilinear.augment(y)
-    result = analyse_style_content(bilinear.w_full, bilinear.style, initial_content(augmented, bilinear, args.init),
-                                   augmented, smooth=smooth)
+    result = analyse_takes(bilinear, augmented, np.zeros(len(y), dtype=int), init=args.init, smooth=smooth,
+                           weights=analysis_weights(model, bilinear, args))
     result.residual = np.sum((y - bilinear.synthesise(result.style, result.content)) ** 2, -1)
     return result
+
+
+def classify(model, bilinear, y, result, args):
+    """Both rules for the analysed frames: 'cosine' (the issue's: nearest training style to e(t) by cosine) and
+    'fit' (the training style that, with its content re-solved, explains y best: maximum likelihood)."""
+    by_fit, _ = classify_by_fit(bilinear, bilinear.augment(y), analysis_weights(model, bilinear, args))
+    return {"cosine": classify_styles(result.style, bilinear.style)[0], "fit": by_fit}
+
+
+def speech_onsets(tracks, labels, below_peak_db: float = 25.0) -> list[int]:
+    """Per take, the first video frame whose audio level (one frame period around its time) is within
+    ``below_peak_db`` of the take's loudest frame: where the sentence starts (CREMA-D takes open with silence)."""
+    audio = np.asarray(tracks["audio"], dtype=np.float64)
+    bounds = np.asarray(tracks["audio_bounds"])
+    rate = float(np.ravel([tracks.meta["audio_rate"]])[0])
+    offsets = np.broadcast_to(np.asarray(tracks.meta.get("audio_offset", 0.0), dtype=np.float64), (len(labels),))
+    times = np.asarray(tracks["time"], dtype=np.float64)
+    sequence = np.asarray(tracks["sequence"])
+    fps = float(np.ravel([tracks.meta.get("fps", 30.0)])[0])
+    onsets = []
+    for s in range(len(labels)):
+        samples = audio[bounds[s, 0]:bounds[s, 1]]
+        centre = np.round((times[sequence == s] - offsets[s]) * rate).astype(int)
+        half = int(rate / fps / 2)
+        level = np.array([np.sqrt(np.mean(samples[max(c - half, 0):max(c + half, 1)] ** 2) + 1e-20) for c in centre])
+        db = 20 * np.log10(level)
+        onsets.append(int(np.argmax(db > db.max() - below_peak_db)))
+    return onsets
 
 
 def raw_textures(proj):
@@ -107,25 +161,45 @@ def evaluate(args):
     windows = np.array_split(np.arange(n_content), args.folds)
     smooths = [float(v) for v in args.smooth.split(",")]
     targets = [t for t in labels if t != labels[ref]]
+    onsets = speech_onsets(train, labels)
 
     folds = []
+    times_held = [np.zeros(len(frames)) for frames in takes]
     for f, window in enumerate(windows):
-        fold = Fold(window, alignment.aligned_local, takes, len(sequence))
+        fold = Fold(window, windows, alignment.aligned_local, takes, len(sequence))
+        for s, local in enumerate(fold.heldout_local):
+            times_held[s][local] += 1
         model, proj, bilinear, fit = fit_models(train, fold.train_mask, aligned_global, fold.train_positions, args)
         iod = float(interocular_distance(model.mean_shape))
         row = {"fold": f, "window": [int(window[0]), int(window[-1])], "train_content": len(fold.train_positions),
-               "heldout_frames": {labels[s]: len(h) for s, h in enumerate(fold.heldout_local)},
+               "heldout_frames": {labels[s]: [int(h[0]), int(h[-1])] if len(h) else [] for s, h in
+                                  enumerate(fold.heldout_local)},
                "n_shape": model.n_shape, "n_texture": model.n_texture, "content_dim": int(fit.content.shape[1]),
-               "train_error": fit.error}
+               "shape_weight": model.shape_weight, "train_error": fit.error}
         # 1. style classification of each take's held-out frames
-        row["accuracy"] = {}
+        row["accuracy"], row["correct"], row["classes"] = {}, {}, {}
+        train_frames = np.flatnonzero(fold.train_mask)
+        weights = analysis_weights(model, bilinear, args)
+        weights = np.ones(proj.y.shape[1]) if weights is None else weights[:proj.y.shape[1]]
         for s, label in enumerate(labels):
-            frames = takes[s][fold.heldout_local[s]]
-            result = analyse(bilinear, proj.y[frames], args)
-            row["accuracy"][label] = float(np.mean(classify_styles(result.style, bilinear.style)[0] == s))
+            local = fold.heldout_local[s]
+            frames = takes[s][local]
+            result = analyse(model, bilinear, proj.y[frames], args)
+            rules = classify(model, bilinear, proj.y[frames], result, args)
+            # no-model reference: the take of the nearest training frame (same weighted y)
+            dist = cdist(proj.y[frames] * weights, proj.y[train_frames] * weights)
+            rules["nearest_frame"] = sequence[train_frames][np.argmin(dist, axis=1)]
+            row["classes"][label] = {rule: classes.tolist() for rule, classes in rules.items()}
+            row["correct"][label] = {
+                rule: {"all": [int(np.sum(classes == s)), len(classes)],
+                       "lead_in": [int(np.sum((classes == s) & (local < onsets[s]))), int(np.sum(local < onsets[s]))],
+                       "speech_on": [int(np.sum((classes == s) & (local >= onsets[s]))),
+                                     int(np.sum(local >= onsets[s]))]}
+                for rule, classes in rules.items()}
+            row["accuracy"][label] = float(np.mean(rules["cosine"] == s)) if len(frames) else 1.0
         # 2. edit fidelity: held-out neutral frames re-synthesised as each other expression
         neutral_frames = aligned_global[ref, window]
-        neutral = analyse(bilinear, proj.y[neutral_frames], args)
+        neutral = analyse(model, bilinear, proj.y[neutral_frames], args)
         row["landmarks"], row["texture"] = {}, {}
         raw = raw_textures(proj)
         for target in targets:
@@ -150,7 +224,7 @@ def evaluate(args):
             for s in range(len(labels)):
                 frames = takes[s][fold.heldout_local[s]]
                 y = proj.y[frames]
-                result = analyse(bilinear, y, args, smooth=lam)
+                result = analyse(model, bilinear, y, args, smooth=lam)
                 jit.append(jitter(result.style))
                 err.append(float(np.sum(result.residual) / np.sum(y ** 2)))
                 acc.append(float(np.mean(classify_styles(result.style, bilinear.style)[0] == s)))
@@ -158,7 +232,8 @@ def evaluate(args):
                                        "accuracy": float(np.mean(acc)),
                                        "accuracy_per_take": dict(zip(labels, acc))}
         folds.append(row)
-
+    if not all(np.array_equal(times_held[s], np.ones(len(takes[s]))) for s in range(len(labels))):
+        raise RuntimeError(f"folds do not hold out every frame exactly once: {times_held}")
     # unseen expressions, analysed with the model fitted on every training frame
     every = np.ones(len(sequence), dtype=bool)
     model, _, bilinear, fit = fit_models(train, every, aligned_global, np.arange(n_content), args)
@@ -166,10 +241,14 @@ def evaluate(args):
     seq_u = np.asarray(unseen["sequence"])
     unseen_result = {}
     for s, label in enumerate(unseen.meta["labels"]):
-        result = analyse(bilinear, proj_u.y[seq_u == s], args)
-        classes = classify_styles(result.style, bilinear.style)[0]
-        unseen_result[label] = {labels[c]: float(np.mean(classes == c)) for c in range(len(labels))}
-    return {"align": args.align, "init": args.init, "mean_weight": args.mean_weight, "folds": folds, "unseen": unseen_result, "labels": labels,
+        y = proj_u.y[seq_u == s]
+        rules = classify(model, bilinear, y, analyse(model, bilinear, y, args), args)
+        unseen_result[label] = {rule: {labels[c]: float(np.mean(classes == c)) for c in range(len(labels))}
+                                for rule, classes in rules.items()}
+    settings = {name: getattr(args, name) for name in ("align", "init", "mean_weight", "shape_balance",
+                                                       "analysis_shape_weight", "content_dim", "content_variance",
+                                                       "texture_width", "dtw_band", "folds")}
+    return {**settings, "folds": folds, "unseen": unseen_result, "labels": labels, "speech_onset": onsets,
             "content_dim_full": int(fit.content.shape[1]), "tracking_seconds": t_track,
             "dtw_cost": alignment.costs.tolist()}
 
@@ -187,17 +266,31 @@ def report(res):
         values = np.asarray(values, dtype=float)
         return values.mean(), values
 
-    print(f"align={res['align']} init={res['init']} mean_weight={res['mean_weight']} folds={len(folds)} "
-          f"content_dim per fold={[f['content_dim'] for f in folds]} "
+    print(f"align={res['align']} init={res['init']} mean_weight={res['mean_weight']} "
+          f"shape_balance={res['shape_balance']} analysis_shape_weight={res['analysis_shape_weight']} "
+          f"folds={len(folds)} content_dim per fold={[f['content_dim'] for f in folds]} "
           f"n_shape={[f['n_shape'] for f in folds]} n_texture={[f['n_texture'] for f in folds]}")
-    print("\n1. style classification of held-out frames (nearest training style by cosine)")
-    for label in labels:
-        mean, vals = stat([f["accuracy"][label] for f in folds])
-        print(f"   {label:8s} accuracy mean {mean:6.1%}  worst fold {vals.min():6.1%}   per fold "
-              + " ".join(f"{v:.0%}" for v in vals))
+    print(f"\n1. style classification of held-out frames, per take: mean over folds, worst fold, all frames pooled "
+          f"[lead-in = frames before the speech onset {res['speech_onset']}, speech = from the onset on]")
+    rules = (("cosine", "nearest training style to e(t) by cosine (the issue's rule)"),
+             ("fit", "training style explaining y best, content re-solved (maximum likelihood)"),
+             ("nearest_frame", "no model: take of the nearest training frame in y (reference)"))
+    for rule, title in rules:
+        print(f"   {title}")
+        for label in labels:
+            counts = np.array([f["correct"][label][rule]["all"] for f in folds], dtype=float)
+            per_fold = counts[:, 0] / np.maximum(counts[:, 1], 1)
+            parts = {part: np.sum([f["correct"][label][rule][part] for f in folds], axis=0)
+                     for part in ("lead_in", "speech_on")}
+            right, total = int(counts[:, 0].sum()), int(counts[:, 1].sum())
+            print(f"   {label:8s} mean {per_fold.mean():6.1%}  worst fold {per_fold.min():6.1%}  frames "
+                  f"{right / total:6.1%} ({right}/{total})"
+                  f"   lead-in {parts['lead_in'][0]}/{parts['lead_in'][1]}  speech {parts['speech_on'][0]}/"
+                  f"{parts['speech_on'][1]}   per fold " + " ".join(f"{v:.0%}" for v in per_fold))
     print("   unseen takes (model fitted on all training frames), fraction of frames classified as:")
-    for label, fractions in res["unseen"].items():
-        print(f"   {label:8s} " + "  ".join(f"{k} {v:5.1%}" for k, v in fractions.items()))
+    for label, by_rule in res["unseen"].items():
+        print(f"   {label:8s} " + "   ".join(f"{rule}: " + " ".join(f"{k} {v:5.1%}" for k, v in fr.items())
+                                           for rule, fr in by_rule.items() if rule != "nearest_frame"))
     print("\n2. edit fidelity on held-out windows (landmarks: mean point error / inter-ocular distance; "
           "texture: mean |grey level| error)")
     for target in folds[0]["landmarks"]:
@@ -235,6 +328,11 @@ def main(argv=None):
     parser.add_argument("--texture-width", type=int, default=64)
     parser.add_argument("--dtw-band", type=float, default=0.3)
     parser.add_argument("--init", default="mean", choices=["mean", "nearest"])
+    parser.add_argument("--shape-balance", type=float, default=AamPca.Params().shape_balance,
+                        help="aam shape_balance: r in Eq 3 as a multiple of Cootes' balance")
+    parser.add_argument("--analysis-shape-weight", type=float, default=ExpressionEdit.Params().analysis_shape_weight,
+                        help="edit analysis_shape_weight: weight of the shape rows when solving the style "
+                             "(1 with --smooth 0: the paper's analysis)")
     parser.add_argument("--smooth", default="0,0.1,1,10", help="comma-separated smooth values")
     parser.add_argument("--json", default=None, help="write all numbers to this file")
     args = parser.parse_args(argv)

@@ -332,10 +332,20 @@ def reconstruct(model: AamModel, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return model.reconstruct(y)
 
 
+def balanced_shape_weight(shape_eigenvalues: np.ndarray, texture_eigenvalues: np.ndarray) -> float:
+    """Cootes' r: r^2 = sum lambda_g / sum lambda_s, so r b_s and b_g carry equal total variance (Eq 3)."""
+    return float(np.sqrt(np.sum(texture_eigenvalues) / max(float(np.sum(shape_eigenvalues)), 1e-300)))
+
+
 def fit_aam(landmarks: np.ndarray, crops: np.ndarray, crop_landmarks: np.ndarray, *,
             shape_variance: float = 0.98, n_shape: int | None = None, texture_variance: float = 0.95,
-            n_texture: int | None = None, texture_width: int = 64) -> tuple[AamModel, AamProjection]:
-    """Fit Eq 1-3 on training frames; returns the model and the training frames projected into it."""
+            n_texture: int | None = None, texture_width: int = 64, shape_balance: float = 1.0
+            ) -> tuple[AamModel, AamProjection]:
+    """Fit Eq 1-3 on training frames; returns the model and the training frames projected into it.
+
+    B_s = r I with r = shape_balance * sqrt(sum lambda_g / sum lambda_s): ``shape_balance`` 1 is Cootes' balance
+    (shape and texture carry equal total variance in y); below 1 the texture dominates y.
+    """
     aligned, mean_shape, similarity = generalised_procrustes(landmarks)
     shape_pca = fit_pca(aligned.reshape(len(aligned), -1), shape_variance, n_shape)
     mean_shape = shape_pca.mean.reshape(mean_shape.shape)
@@ -345,7 +355,7 @@ def fit_aam(landmarks: np.ndarray, crops: np.ndarray, crop_landmarks: np.ndarray
     raw = warp.warp(crops, crop_landmarks)
     textures, _, _ = photometric_normalise(raw)
     texture_pca = fit_pca(textures, texture_variance, n_texture)
-    shape_weight = float(np.sqrt(texture_pca.eigenvalues.sum() / max(shape_pca.eigenvalues.sum(), 1e-300)))
+    shape_weight = float(shape_balance) * balanced_shape_weight(shape_pca.eigenvalues, texture_pca.eigenvalues)
     model = AamModel(mean_shape, shape_pca.basis, shape_pca.eigenvalues, texture_pca.mean, texture_pca.basis,
                      texture_pca.eigenvalues, shape_weight, points, triangles, size)
     model.__dict__["_warp"] = warp
@@ -468,6 +478,7 @@ class AamPca(Stage):
         texture_variance: float = Field(0.95, gt=0, le=1)
         n_texture: int | None = Field(None, ge=1)
         texture_width: int = Field(64, ge=16, le=1024)
+        shape_balance: float = Field(1.0, gt=0)
         heldout_folds: int = Field(5, ge=2)
 
     inputs = {"tracks": Input.artifact("landmarks", "crops", "crop_landmarks", "sequence",
@@ -488,7 +499,7 @@ class AamPca(Stage):
         model, proj = fit_aam(landmarks, view["crops"], view["crop_landmarks"],
                               shape_variance=params.shape_variance, n_shape=params.n_shape,
                               texture_variance=params.texture_variance, n_texture=params.n_texture,
-                              texture_width=params.texture_width)
+                              texture_width=params.texture_width, shape_balance=params.shape_balance)
         folds = temporal_folds(sequence, min(params.heldout_folds, int(np.bincount(sequence).max())))
         folds = [f for f in folds if 0 < len(f) < len(sequence)]
         shape_err = heldout_pca_error(proj.aligned_shapes.reshape(len(sequence), -1), folds, model.n_shape + 5)
@@ -502,7 +513,8 @@ class AamPca(Stage):
             heldout_shape_error=shape_err, heldout_texture_error=texture_err)
         shape_resid = proj.aligned_shapes - model.reconstruct_shapes(proj.b_s)
         meta = {"labels": labels, "fps": view.meta.get("fps"), "landmark_scheme": scheme,
-                "shape_weight": model.shape_weight, "texture_width": params.texture_width,
+                "shape_weight": model.shape_weight, "shape_balance": params.shape_balance,
+                "texture_width": params.texture_width,
                 "texture_size": list(model.texture_size), "n_shape": model.n_shape, "n_texture": model.n_texture,
                 "shape_frame": "mean-shape frame: centroid 0, eyes level, inter-ocular distance 1, y down"}
         shape_total = shape_pca_total(proj.aligned_shapes)

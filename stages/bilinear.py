@@ -178,6 +178,19 @@ class BilinearModel:
         """Eq 4: y (..., K) for paired style (..., I) and content (..., J)."""
         return synthesise(self.w, style, content)
 
+    def weighted(self, weights: np.ndarray) -> "BilinearModel":
+        """The same model seen through component weights (K,) or (K+1,) (mean-face component last):
+        ``weighted(d).augment(y * d[:K]) == augment(y) * d`` and ``weighted(d).w_full == w_full * d``. Styles and
+        content vectors are unchanged, so an analysis of weighted vectors is a weighted least squares."""
+        weights = np.asarray(weights, dtype=np.float64)
+        k = self.w.shape[2]
+        if weights.shape not in ((k,), (self.w_full.shape[2],)):
+            raise ValueError(f"weights {weights.shape} do not match the model's {self.w_full.shape[2]} components")
+        mean_weight = float(weights[k]) if len(weights) > k else 1.0
+        return BilinearModel(self.w * weights[:k], self.style, self.content, list(self.labels),
+                             None if self.w_mean is None else self.w_mean * mean_weight,
+                             self.mean_component * mean_weight)
+
     @classmethod
     def from_view(cls, view) -> "BilinearModel":
         w_mean = view.get("W_mean")

@@ -129,6 +129,12 @@ def test_fit_aam_on_synthetic_faces_recovers_shape_modes_and_a_rigid_texture():
     assert model.shape_weight == pytest.approx(np.sqrt(model.texture_eigenvalues.sum()
                                                        / model.shape_eigenvalues.sum()))
     np.testing.assert_allclose(proj.y[:, :model.n_shape], model.shape_weight * proj.b_s)
+    # shape_balance scales r and nothing else
+    lighter, proj_lighter = fit_aam(shapes, crops, shapes, shape_variance=0.99, shape_balance=0.25)
+    assert lighter.shape_weight == pytest.approx(0.25 * model.shape_weight)
+    np.testing.assert_allclose(proj_lighter.b_s, proj.b_s, atol=1e-10)
+    np.testing.assert_allclose(proj_lighter.y[:, :model.n_shape], 0.25 * proj.y[:, :model.n_shape], atol=1e-10)
+    np.testing.assert_allclose(lighter.split(proj_lighter.y)[0], proj.b_s, atol=1e-10)
     # b_s is a linear function of the true coefficients (first order in small deformations)
     design = np.c_[coef, np.ones(len(coef))]
     fit = np.linalg.lstsq(design, proj.b_s, rcond=None)

@@ -296,3 +296,101 @@ def test_smoothing_in_the_stage_treats_each_take_as_its_own_sequence():
     is_sad = two["sequence"] == 1
     np.testing.assert_allclose(both.arrays["style"][is_sad], sad_only.arrays["style"], atol=1e-6)
     assert both.meta["test_labels"] == ["happy", "sad"]
+
+
+# ----------------------------------------------------------------------------------------------- weighted analysis
+
+def test_component_weights_and_the_weighted_model():
+    from stages.bilinear import BilinearModel
+    from stages.edit import component_weights
+
+    np.testing.assert_array_equal(component_weights(2, 5, 0.25), [0.25, 0.25, 1, 1, 1])
+    rng = np.random.default_rng(7)
+    model = BilinearModel(rng.normal(size=(3, 4, 6)), rng.normal(size=(3, 3)), rng.normal(size=(10, 4)),
+                          ["a", "b", "c"], rng.normal(size=(3, 4)), 2.5)
+    d = component_weights(2, 7, 0.3)
+    weighted = model.weighted(d)
+    y = rng.normal(size=(5, 6))
+    np.testing.assert_allclose(weighted.augment(y * d[:6]), model.augment(y) * d)
+    np.testing.assert_allclose(weighted.w_full, model.w_full * d)
+    with pytest.raises(ValueError):
+        model.weighted(np.ones(4))
+
+
+def test_weighted_analysis_reads_the_style_from_the_weighted_rows_and_the_content_from_all(synthetic):
+    """With the first rows weighted 0, their values cannot change the style; the content is Eq 6 on every row."""
+    from stages.edit import analyse_takes, component_weights
+
+    fit = synthetic
+    model = _model(fit)
+    rng = np.random.default_rng(8)
+    alpha = rng.dirichlet(np.ones(3), 20)
+    clean = synthesise(fit.w, alpha @ fit.style, fit.content[:20])
+    d = component_weights(8, 40, 0.0)
+    seq = np.zeros(20, dtype=int)
+    exact = analyse_takes(model, clean, seq, init="nearest", weights=d, tol=1e-14, max_iter=500)
+    np.testing.assert_allclose(exact.style, alpha @ fit.style, atol=1e-6)       # noise-free: still exact
+    np.testing.assert_allclose(exact.residual, 0, atol=1e-8 * np.sum(clean ** 2, -1).max())
+    disturbed = clean.copy()
+    disturbed[:, :8] += rng.normal(size=(20, 8)) * clean.std()
+    moved = analyse_takes(model, disturbed, seq, init="nearest", weights=d, tol=1e-14, max_iter=500)
+    np.testing.assert_allclose(moved.style, exact.style, atol=1e-6)              # the weighted-out rows do not count
+    # ... but the content solves Eq 6 with every row, given that style
+    expected = BilinearAnalyser(fit.w, fit.style).content_given_style(disturbed, moved.style)
+    np.testing.assert_allclose(moved.content, expected, atol=1e-10)
+    assert not np.allclose(moved.content, exact.content, atol=1e-3)
+    np.testing.assert_allclose(moved.residual, np.sum((disturbed - synthesise(fit.w, moved.style, moved.content)) ** 2,
+                                                      -1))
+    # unit weights are the paper's analysis
+    paper = analyse_takes(model, disturbed, seq, init="nearest")
+    unit = analyse_takes(model, disturbed, seq, init="nearest", weights=np.ones(40))
+    np.testing.assert_allclose(unit.style, paper.style, atol=1e-8)
+    np.testing.assert_allclose(unit.content, paper.content, atol=1e-6)
+
+
+def test_classification_by_fit_is_the_maximum_likelihood_style(synthetic):
+    from stages.edit import classify_by_fit, style_fit_residuals
+
+    fit = synthetic
+    model = _model(fit)
+    rng = np.random.default_rng(9)
+    labels = rng.integers(0, 3, 40)
+    c = rng.normal(size=(40, 5))
+    clean = synthesise(fit.w, fit.style[labels], c)
+    res = style_fit_residuals(model, clean)
+    np.testing.assert_allclose(res[np.arange(40), labels], 0, atol=1e-8 * np.sum(clean ** 2, -1).max())
+    noisy = clean + rng.normal(size=clean.shape) * 0.05 * clean.std()
+    classes, res = classify_by_fit(model, noisy)
+    np.testing.assert_array_equal(classes, labels)
+    # brute force: least squares of y on the columns of e_s' W for every style
+    for s in range(3):
+        basis = np.einsum("i,ijk->kj", fit.style[s], fit.w)
+        coef = np.linalg.lstsq(basis, noisy.T, rcond=None)[0]
+        np.testing.assert_allclose(res[:, s], np.sum((basis @ coef - noisy.T) ** 2, 0), rtol=1e-8)
+
+
+def test_edit_stage_analysis_weight_one_is_the_papers_analysis():
+    from stages.aam import AamModel
+    from stages.bilinear import BilinearModel
+
+    inputs = {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")}
+    paper = run_stage(ExpressionEdit, {"video": False, "targets": ["happy"], "analysis_shape_weight": 1.0}, inputs)
+    bilinear = BilinearModel.from_view(bilinear_run().view())
+    model = AamModel.from_view(aam_run().view())
+    t = tracked("sad")
+    y = bilinear.augment(model.project(t["landmarks"], t["crops"], t["crop_landmarks"]).y)
+    direct = analyse_style_content(bilinear.w_full, bilinear.style, bilinear.mean_content, y)
+    np.testing.assert_allclose(paper.arrays["style"], direct.style, atol=1e-8)
+    assert paper.meta["analysis_shape_weight"] == 1.0
+    default = edit_run()
+    assert default.meta["analysis_shape_weight"] == 0.0 and default.meta["classify"] == "cosine"
+    assert not np.allclose(default.arrays["style"], paper.arrays["style"], atol=1e-3)
+    # style_fit_residual is relative, one column per training expression; classify: fit uses it
+    fitres = default.arrays["style_fit_residual"]
+    assert fitres.shape == (len(y), 3) and np.all((fitres >= 0) & (fitres <= 1 + 1e-9))
+    by_fit = run_stage(ExpressionEdit, {"video": False, "targets": ["happy"], "classify": "fit"}, inputs)
+    np.testing.assert_array_equal(by_fit.arrays["classification"], np.argmin(fitres, axis=1))
+    with pytest.raises(ValidationError):
+        ExpressionEdit.Params(classify="vote")
+    with pytest.raises(ValidationError):
+        ExpressionEdit.Params(analysis_shape_weight=-1)
