@@ -80,6 +80,13 @@ def main():
     print(f"trellis + blend, {utterance.duration:.0f} s utterance ({tr.metrics['segments']} segments, K = 10) "
           f"against {tr.metrics['db_segments']} database segments: {seconds:.3f} s "
           f"(trellis alone {trellis_seconds:.3f} s); {len(mb.arrays['rotation'])} frames out")
+    for label, params in (("velocity blend, adaptive windows (default)", {}),
+                          ("velocity blend, speed preserved", {"preserve_speed": True}),
+                          ("velocity blend, fixed windows", {"join_acceleration": 0.0}),
+                          ("position crossfade (earlier method)", {"join_smoothing": "crossfade"})):
+        seconds, run = best_of(3, lambda: run_stage(MotionBlend, params, {"trellis": tr, "database": headdb}))
+        print(f"  blend alone, {label}: {seconds:.3f} s (mean join window "
+              f"{run.metrics.get('mean_join_window', float('nan')):.2f} s)")
 
 
 if __name__ == "__main__":

@@ -2,16 +2,32 @@
 
 Each chosen segment's motion is resampled to its test segment's length and moved so that it starts where the
 previous one ended. Each sub-sentence (bounded by breath pauses) starts at its own segment's recorded pose and is
-warped linearly so that it ends where the next sub-sentence starts, which stops drift. Joins are crossfaded over a
-short window between the two segments' real continuations in the database, so the velocity passes smoothly from
-one segment's to the next's instead of jumping.
+warped linearly so that it ends where the next sub-sentence starts, which stops drift. Finally "the end positions
+where the segments are connected are smoothed to minimize high frequency artifact caused by a mismatch in the
+velocity" -- the paper does not say how; here (``join_smoothing="velocity"``, the default):
+
+- the blend works on velocities, not positions: the output's frame-to-frame increments are a smoothstep
+  partition-of-unity mix of the joined segments' own increments (each segment continued by its real database
+  continuation), integrated from the anchors. Position is continuous by construction and the velocity passes from
+  one segment's to the next's along a smoothstep, so the acceleration stays continuous and the velocity never
+  overshoots. The earlier position crossfade (``join_smoothing="crossfade"``, kept for comparison) matched position
+  at the join but overshot the velocity inside its window by w'(t) (x_next - x_prev), which added about
+  2 x 1.875 dv / (2 W) of acceleration at every join -- what made synthesised joins rougher than real motion;
+- each join's window is chosen from its velocity step dv (the same parabola-fit velocities that the trellis's H
+  compares): at least +-``blend_window``, widened so that the step adds at most ``join_acceleration`` (default:
+  half the database's median angular acceleration), up to +-``max_blend_window``;
+- the linear drift warp is a constant velocity added to a sub-sentence's segments, blended at its ends like any
+  other velocity, so it adds no velocity kink at sub-sentence boundaries;
+- optionally (``preserve_speed``) the blended velocity is rescaled to keep the speed of the joined segments where
+  their motions are unrelated (a plain average of two unrelated velocities is slower than either).
 
 Motion is blended as (yaw, pitch, roll) angles and translation: the database is centred on each take's mean pose,
-so angles stay small and far from the Euler singularity.
+so angles stay small and far from the Euler singularity, where angle rates are close to the angular velocity.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -36,6 +52,25 @@ class DatabaseMotion:
         base = int(self.first[sequence])
         return (1 - w) * self.channels[base + below] + w * self.channels[base + above]
 
+    def typical_acceleration(self) -> float:
+        """Median angular acceleration of the database motion (deg/s^2), the yardstick for what a join may add."""
+        values = []
+        for first, n in zip(self.first, self.frames):
+            if n >= 3:
+                values.append(angular_acceleration(self.channels[first:first + n, :3], self.fps))
+        return float(np.median(np.concatenate(values))) if values else 0.0
+
+
+JOIN_BUDGET_OF_MEDIAN = 0.5   # default acceleration a join's velocity step may add, as a fraction of the
+#                               database's median angular acceleration (bench/eval_head.py: with it the largest
+#                               join acceleration stays below the held-out real motion's 99th percentile)
+
+
+def smoothstep(u: np.ndarray) -> np.ndarray:
+    """C1 ramp from 0 (u <= 0) to 1 (u >= 1), slope 1.5 at its centre."""
+    u = np.clip(u, 0.0, 1.0)
+    return u * u * (3 - 2 * u)
+
 
 def smootherstep(u: np.ndarray) -> np.ndarray:
     """C2 ramp from 0 (u <= 0) to 1 (u >= 1)."""
@@ -45,23 +80,220 @@ def smootherstep(u: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Stitched:
-    channels: np.ndarray    # (frames, 6)
-    joins: np.ndarray       # times where two chosen segments meet (all boundaries after the first segment)
+    channels: np.ndarray            # (frames, 6)
+    joins: np.ndarray               # times where two chosen segments meet (all boundaries after the first segment)
+    windows: np.ndarray             # (joins, 2) start and end of each join's blend (seconds)
+    velocity_mismatch: np.ndarray   # (joins,) angular velocity step the join had to absorb (deg/s, output clock)
+
+
+def join_velocity_mismatch(db: DatabaseMotion, prev_sequence: np.ndarray, prev_time: np.ndarray,
+                           prev_scale: np.ndarray, next_sequence: np.ndarray, next_time: np.ndarray,
+                           next_scale: np.ndarray, window: float = 0.1) -> np.ndarray:
+    """Velocity step (joins, channels) per output second between the outgoing segment's continuation (database
+    ``prev_time``) and the incoming segment's start (``next_time``), each time-warped by its ``scale`` (database
+    seconds per output second). Velocities are the same least-squares parabola fits over +-``window`` database
+    seconds that the trellis's transition cost H uses (stages.trellis.boundary_kinematics)."""
+    from stages.trellis import boundary_kinematics
+
+    if len(prev_time) == 0:
+        return np.zeros((0, db.channels.shape[1]))
+    kin = lambda seq, t: boundary_kinematics(db.channels, db.first, db.frames, db.fps, np.asarray(seq, np.int64),
+                                             np.asarray(t, np.float64), window)[:, 1, :]
+    return kin(next_sequence, next_time) * np.asarray(next_scale)[:, None] - \
+        kin(prev_sequence, prev_time) * np.asarray(prev_scale)[:, None]
+
+
+def join_windows(join_times: np.ndarray, half: np.ndarray, mismatch_deg: np.ndarray | None = None, *,
+                 acceleration_budget: float | None = None, max_half: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Start and end of each join's velocity blend.
+
+    A smoothstep velocity blend over a window of length 2W passes a velocity step dv with an added acceleration of
+    at most 1.5 dv / (2 W); with an ``acceleration_budget`` (deg/s^2) each half-window is widened from ``half`` to
+    0.75 dv / budget, at most ``max_half``. The windows' starts and ends are then made non-decreasing (by widening),
+    which keeps every segment's blend weight in [0, 1] however the windows overlap."""
+    half = np.asarray(half, dtype=np.float64).copy()
+    if acceleration_budget is not None and acceleration_budget > 0 and mismatch_deg is not None:
+        wanted = 0.75 * np.asarray(mismatch_deg) / acceleration_budget
+        half = np.maximum(half, np.minimum(wanted, np.maximum(max_half, half)))
+    left, right = join_times - half, join_times + half
+    if len(left):
+        left = np.minimum.accumulate(left[::-1])[::-1]
+        right = np.maximum.accumulate(right)
+    return left, right
+
+
+def segment_weights(x: np.ndarray, k: int, left: np.ndarray, right: np.ndarray, join_times: np.ndarray) -> np.ndarray:
+    """Blend weight of segment k at times x: ramp_k - ramp_k+1, where ramp_j rises over join j's window (a step at
+    join j when the window is empty). Weights of all segments sum to one."""
+    def ramp(j: int) -> np.ndarray:
+        if j == 0:
+            return np.ones(len(x))
+        if j > len(join_times):
+            return np.zeros(len(x))
+        lo, hi = left[j - 1], right[j - 1]
+        if hi - lo <= 1e-12:
+            return (x >= join_times[j - 1]).astype(float)
+        return smoothstep((x - lo) / (hi - lo))
+
+    return np.clip(ramp(k) - ramp(k + 1), 0.0, 1.0)
 
 
 def stitch_segments(db: DatabaseMotion, test_segments: np.ndarray, subsentence_start: np.ndarray,
                     db_sequence: np.ndarray, db_segments: np.ndarray, times: np.ndarray, *,
                     blend_window: float = 0.15, break_blend_window: float = 0.25,
-                    drift_correction: bool = True) -> Stitched:
+                    drift_correction: bool = True, smoothing: str = "velocity",
+                    acceleration_budget: float | None = None, max_blend_window: float = 0.5,
+                    preserve_speed: bool = False, boundary_window: float = 0.1) -> Stitched:
     """Sec. 5.4 for one utterance. ``test_segments`` (N, 3) and the chosen database segments' sequence (N,) and
-    times (N, 3); ``times`` the output frame times. Returns the blended channels on ``times``.
+    times (N, 3); ``times`` the output frame times (increasing). Returns the blended channels on ``times``.
 
-    Joins crossfade over +-``blend_window`` seconds; joins between sub-sentences (searched independently, so
-    nothing matched their boundary motion) over +-``break_blend_window``, inside the breath pause."""
+    Each segment's motion is resampled to its test segment's length; each segment starts where the previous one
+    ended; each sub-sentence starts at its first segment's recorded pose and (``drift_correction``) is warped
+    linearly so that it ends where the next sub-sentence starts.
+
+    ``smoothing="velocity"`` (default) smooths the joins in the velocity domain: the output's frame-to-frame
+    increments are a partition-of-unity blend of the segments' own increments (each segment continued by its real
+    database continuation), integrated from the anchors. Position is continuous by construction, velocity passes
+    from one segment's to the next's along a smoothstep (so acceleration stays continuous), and a segment that is
+    the database continuation of the previous one at the same time scale is reproduced exactly. The linear warp of
+    each sub-sentence is a constant velocity added to its segments, blended at its ends like any other velocity.
+    Windows are +-``blend_window`` (+-``break_blend_window`` at sub-sentence joins, inside the breath pause), widened
+    up to ``max_blend_window`` where the velocity step would otherwise add more than ``acceleration_budget``
+    (deg/s^2; None: fixed windows).
+
+    ``smoothing="crossfade"`` is the earlier position crossfade (kept for comparison): it matches position at the
+    join but overshoots the velocity inside the window, adding about 2 * 1.875 dv / (2 W) of acceleration."""
+    if smoothing == "crossfade":
+        return crossfade_segments(db, test_segments, subsentence_start, db_sequence, db_segments, times,
+                                  blend_window=blend_window, break_blend_window=break_blend_window,
+                                  drift_correction=drift_correction)
+    if smoothing != "velocity":
+        raise ValueError(f"unknown join smoothing {smoothing!r}")
+    times = np.asarray(times, dtype=np.float64)
+    n = len(test_segments)
+    channels = db.channels.shape[1]
+    out = np.zeros((len(times), channels))
+    if n == 0:
+        return Stitched(out, np.zeros(0), np.zeros((0, 2)), np.zeros(0))
+    a, e = test_segments[:, 0], test_segments[:, 2]
+    da, de = db_segments[:, 0], db_segments[:, 2]
+    scale = (de - da) / np.maximum(e - a, 1e-9)          # database seconds per output second
+    sequence = np.asarray(db_sequence, dtype=np.int64)
+
+    def raw(k: int, t: np.ndarray) -> np.ndarray:
+        return db.sample(int(sequence[k]), da[k] + (t - a[k]) * scale[k])
+
+    starts = np.asarray(subsentence_start, dtype=bool).copy()
+    starts[0] = True
+    joins = a[1:].copy()
+    dv = join_velocity_mismatch(db, sequence[:-1], de[:-1], scale[:-1], sequence[1:], da[1:], scale[1:],
+                                boundary_window)
+    dv_deg = np.degrees(np.linalg.norm(dv[:, :3], axis=1))
+    half = np.where(starts[1:], break_blend_window, blend_window)
+    left, right = join_windows(joins, half, dv_deg, acceleration_budget=acceleration_budget,
+                               max_half=max_blend_window)
+    windows = np.stack([left, right], axis=1)
+    if len(times) == 0:
+        return Stitched(out, joins, windows, dv_deg)
+    if len(times) == 1:
+        out[0] = raw(0, times)[0]
+        return Stitched(out, joins, windows, dv_deg)
+
+    mid = 0.5 * (times[1:] + times[:-1])
+    step = np.diff(times)
+    group = np.cumsum(starts) - 1
+    n_groups = int(group[-1]) + 1
+    increments = np.zeros((len(mid), channels))
+    group_weight = np.zeros((len(mid), n_groups))          # time each group's drift velocity acts in each step
+    bounds_lo = np.concatenate([[-np.inf], left])
+    bounds_hi = np.concatenate([right, [np.inf]])
+    parts = []                                             # (first step, weights, increments) per segment
+    for k in range(n):
+        idx = np.flatnonzero((mid >= bounds_lo[k]) & (mid <= bounds_hi[k]))
+        if len(idx) == 0:
+            parts.append((0, np.zeros(0), np.zeros((0, channels))))
+            continue
+        w = segment_weights(mid[idx], k, left, right, joins)
+        delta = raw(k, times[idx + 1]) - raw(k, times[idx])
+        parts.append((int(idx[0]), w, delta))
+        increments[idx] += w[:, None] * delta
+        group_weight[idx, group[k]] += w * step[idx]
+    if preserve_speed:
+        increments *= speed_preserving_gain(parts, len(mid))[:, None]
+    base = np.concatenate([np.zeros((1, channels)), np.cumsum(increments, axis=0)])
+    drift = np.concatenate([np.zeros((1, n_groups)), np.cumsum(group_weight, axis=0)])
+    first_of = np.flatnonzero(starts)
+    anchor_t = a[first_of]
+    target = np.stack([raw(k, a[k:k + 1])[0] for k in first_of])          # recorded pose at each sub-sentence start
+    at = lambda curve: np.stack([np.interp(anchor_t, times, curve[:, c]) for c in range(curve.shape[1])], axis=1)
+    base_at = at(base)
+    if drift_correction:
+        # x = c + base + sum_g d_g drift_g: one constant, one drift velocity per sub-sentence but the last,
+        # such that every sub-sentence starts at its recorded pose
+        system = np.concatenate([np.ones((n_groups, 1)), at(drift)[:, :n_groups - 1]], axis=1)
+        solution = np.linalg.lstsq(system, target - base_at, rcond=None)[0]        # (groups, channels)
+        out = solution[0][None, :] + base + drift[:, :n_groups - 1] @ solution[1:]
+    else:
+        # each sub-sentence starts at its recorded pose and is not warped: the head jumps between sub-sentences
+        frame_group = np.clip(np.searchsorted(anchor_t, times, side="right") - 1, 0, n_groups - 1)
+        out = base + (target - base_at)[frame_group]
+    return Stitched(out, joins, windows, dv_deg)
+
+
+def speed_preserving_gain(parts: list[tuple[int, np.ndarray, np.ndarray]], steps: int) -> np.ndarray:
+    """Gain (steps,) that keeps the blended velocity as fast as the segments' own inside blend windows.
+
+    Blending velocities v = sum_k w_k v_k of segments whose motion is unrelated shrinks the speed (two
+    uncorrelated halves give 1/sqrt(2) of it), and with joins a syllable apart the windows cover most of the
+    utterance, so the synthesis would move more slowly than its sources. The expected squared speed of the blend is
+    sum_kl w_k w_l rho_kl E|v|^2, with rho_kl the correlation of the increments of segments k and l over their
+    common window (clamped to [0, 1]; non-neighbours take the product along the chain), so the gain is
+    1 / sqrt(sum_kl w_k w_l rho_kl): 1 wherever one segment has all the weight or the joined segments move alike
+    (a segment continued by its database successor is reproduced exactly), at most sqrt(2) for two unrelated
+    ones. It is smooth wherever the weights are, so it keeps the blend C1."""
+    def span(k):
+        first, w, _ = parts[k]
+        return first, first + len(w)
+
+    rho = np.ones(len(parts))                         # rho[k]: segment k-1 with segment k
+    for k in range(1, len(parts)):
+        lo = max(span(k - 1)[0], span(k)[0])
+        hi = min(span(k - 1)[1], span(k)[1])
+        if hi - lo < 2:
+            rho[k] = 1.0
+            continue
+        a = parts[k - 1][2][lo - span(k - 1)[0]:hi - span(k - 1)[0], :3]
+        b = parts[k][2][lo - span(k)[0]:hi - span(k)[0], :3]
+        norm = np.sqrt((a * a).sum() * (b * b).sum())
+        rho[k] = float(np.clip((a * b).sum() / norm, 0.0, 1.0)) if norm > 1e-300 else 1.0
+    energy = np.zeros(steps)
+    for k in range(len(parts)):
+        first, w, _ = parts[k]
+        if len(w) == 0:
+            continue
+        energy[first:first + len(w)] += w * w
+        chain = 1.0
+        for m in range(k - 1, -1, -1):
+            chain *= rho[m + 1]
+            lo, hi = max(span(m)[0], first), min(span(m)[1], first + len(w))
+            if hi <= lo:
+                if span(m)[1] <= first:
+                    break
+                continue
+            energy[lo:hi] += 2 * chain * parts[m][1][lo - span(m)[0]:hi - span(m)[0]] * w[lo - first:hi - first]
+    return 1.0 / np.sqrt(np.clip(energy, 0.5, 1.0))
+
+
+def crossfade_segments(db: DatabaseMotion, test_segments: np.ndarray, subsentence_start: np.ndarray,
+                       db_sequence: np.ndarray, db_segments: np.ndarray, times: np.ndarray, *,
+                       blend_window: float = 0.15, break_blend_window: float = 0.25,
+                       drift_correction: bool = True) -> Stitched:
+    """The position crossfade (smoothing="crossfade" of ``stitch_segments``): each segment's chained, drift-warped
+    curve, weighted by a smootherstep partition of unity over +-window of each join."""
     n = len(test_segments)
     out = np.zeros((len(times), db.channels.shape[1]))
     if n == 0:
-        return Stitched(out, np.zeros(0))
+        return Stitched(out, np.zeros(0), np.zeros((0, 2)), np.zeros(0))
     a, e = test_segments[:, 0], test_segments[:, 2]
     da, de = db_segments[:, 0], db_segments[:, 2]
     scale = (de - da) / np.maximum(e - a, 1e-9)          # database seconds per output second
@@ -118,10 +350,14 @@ def stitch_segments(db: DatabaseMotion, test_segments: np.ndarray, subsentence_s
         out[idx] += weight[:, None] * curve
         total[idx] += weight
     out /= np.maximum(total, 1e-12)[:, None]
-    return Stitched(out, a[1:].copy())
+    windows = np.stack([a[1:] - window[1:], a[1:] + window[1:]], axis=1)
+    return Stitched(out, a[1:].copy(), windows, np.full(n - 1, np.nan))
 
 
 # ---------------------------------------------------------------------------------- evaluation measures
+
+JOIN_MEASURE_WINDOW = 0.15   # seconds either side of a join over which join acceleration is measured (fixed, so
+#                              that every smoothing method and parameter is measured alike)
 
 def angular_speed(angles: np.ndarray, fps: float) -> np.ndarray:
     """Angular speed (frames - 1,) in degrees per second from (yaw, pitch, roll) angles in radians."""
@@ -182,6 +418,11 @@ MOTION_BLEND_OUTPUTS = {
     "sequence": Output.array("i", shape=("frames",), dtype="int32", doc="test utterance (meta labels)"),
     "joins": Output.array("f", shape=("joins",), dtype="float64", doc="join times on each utterance's clock"),
     "join_utterance": Output.array("i", shape=("joins",), dtype="int32"),
+    "join_window": Output.array("f", shape=("joins", 2), dtype="float64",
+                                doc="start and end of each join's blend (seconds, utterance clock)"),
+    "join_velocity_step": Output.array("f", shape=("joins",), dtype="float64",
+                                       doc="angular velocity step between the joined segments (deg/s; NaN for the "
+                                           "crossfade)"),
     "bvh": Output.file(".bvh", doc="the head joint's motion, utterances back to back"),
 }
 
@@ -231,8 +472,11 @@ def _plot_head_angles(view, inputs=None):
         ref = _reference_angles(inputs["reference"], labels[0], len(labels), fps)
         reference = None if ref is None else np.degrees(ref)
     joins = view["joins"][view["join_utterance"] == 0]
+    windows = view["join_window"][view["join_utterance"] == 0] if "join_window" in view else np.zeros((0, 2))
     fig, axes = plt.subplots(3, 1, figsize=(9, 6), sharex=True, constrained_layout=True)
     for c, (ax, name) in enumerate(zip(axes, ("yaw", "pitch", "roll"))):
+        for lo, hi in windows:
+            ax.axvspan(lo, hi, color="0.5", alpha=0.06, lw=0, zorder=0)
         for j in joins:
             ax.axvline(j, color="0.85", lw=0.8, zorder=0)
         ax.plot(t, angles[:, c], color="crimson", lw=1.6, label="synthesised")
@@ -240,19 +484,26 @@ def _plot_head_angles(view, inputs=None):
             ax.plot(np.arange(len(reference)) / fps, reference[:, c], color="0.25", lw=1.2, label="real")
         ax.set_ylabel(f"{name} (deg)")
     axes[0].legend(loc="upper right", fontsize=8)
-    axes[0].set_title(f"head angles: {labels[0] if labels else ''} (grey lines: segment joins)")
+    axes[0].set_title(f"head angles: {labels[0] if labels else ''} (grey lines: segment joins, shaded: their "
+                      f"blend windows)")
     axes[-1].set_xlabel("time (s)")
     return fig
 
 
 class MotionBlend(Stage):
-    """Stitch, drift-correct and crossfade the chosen database motion (Sec. 5.4); head rotation, translation and
-    a BVH of the head joint at the output rate."""
+    """Stitch, drift-correct and smooth the joins of the chosen database motion (Sec. 5.4); head rotation,
+    translation and a BVH of the head joint at the output rate."""
 
     class Params(Stage.Params):
         fps: float | None = None          # output rate; None: the test take's video rate, else the database's
-        blend_window: float = 0.15        # seconds either side of a join to crossfade over
+        join_smoothing: Literal["velocity", "crossfade"] = "velocity"   # velocity-domain blend, or the earlier
+        #                                   position crossfade (overshoots the velocity inside its window)
+        blend_window: float = 0.15        # seconds either side of a join to blend over (at least)
         break_blend_window: float = 0.25  # the same at joins between sub-sentences (breath pauses)
+        max_blend_window: float = 0.5     # widest half-window a large velocity step may get
+        join_acceleration: float | None = None   # deg/s^2 a join's velocity step may add (sets its window);
+        #                                   None: half the database's median angular acceleration; 0: fixed windows
+        preserve_speed: bool = False      # keep the blended velocity as fast as the joined segments' own
         drift_correction: bool = True     # warp each sub-sentence to meet the next
         translation: bool = True          # False: rotation only (translation zero)
         bvh_joint: str = "Head"
@@ -278,27 +529,43 @@ class MotionBlend(Stage):
                             field="inputs.database")
         if params.blend_window < 0 or params.break_blend_window < 0:
             raise UserError("blend_window must be >= 0", field="params.blend_window")
+        if params.max_blend_window < 0:
+            raise UserError("max_blend_window must be >= 0", field="params.max_blend_window")
+        if params.join_acceleration is not None and params.join_acceleration < 0:
+            raise UserError("join_acceleration must be >= 0 (0: fixed windows)", field="params.join_acceleration")
         db = database_motion(database, use_translation=params.translation)
+        budget = JOIN_BUDGET_OF_MEDIAN * db.typical_acceleration() if params.join_acceleration is None \
+            else params.join_acceleration
         labels = list(trellis.meta.get("labels") or [])
         test_fps = [f for f in (trellis.meta.get("fps") or []) if f]
         fps = float(params.fps or (test_fps[0] if test_fps else db.fps))
         if not fps > 0:
             raise UserError(f"fps must be positive, got {fps}", field="params.fps")
-        synth = synthesise(trellis, db, fps, blend_window=params.blend_window,
-                           break_blend_window=params.break_blend_window, drift_correction=params.drift_correction)
-        angles = np.concatenate([s[0][:, :3] for s in synth]) if synth else np.zeros((0, 3))
-        translation = np.concatenate([s[0][:, 3:] for s in synth]) if synth else np.zeros((0, 3))
+        synth = synthesise(trellis, db, fps, smoothing=params.join_smoothing, blend_window=params.blend_window,
+                           break_blend_window=params.break_blend_window, max_blend_window=params.max_blend_window,
+                           acceleration_budget=budget or None, preserve_speed=params.preserve_speed,
+                           drift_correction=params.drift_correction)
+        angles = np.concatenate([s.channels[:, :3] for s in synth]) if synth else np.zeros((0, 3))
+        translation = np.concatenate([s.channels[:, 3:] for s in synth]) if synth else np.zeros((0, 3))
         rotation = euler_to_quat(angles[:, 0], angles[:, 1], angles[:, 2])
         arrays = {
             "rotation": rotation, "translation": translation, "angles": angles,
-            "time": np.concatenate([np.arange(len(s[0])) / fps for s in synth]),
-            "sequence": np.concatenate([np.full(len(s[0]), u, np.int32) for u, s in enumerate(synth)]),
-            "joins": np.concatenate([s[1] for s in synth]),
-            "join_utterance": np.concatenate([np.full(len(s[1]), u, np.int32) for u, s in enumerate(synth)]),
+            "time": np.concatenate([np.arange(len(s.channels)) / fps for s in synth]),
+            "sequence": np.concatenate([np.full(len(s.channels), u, np.int32) for u, s in enumerate(synth)]),
+            "joins": np.concatenate([s.joins for s in synth]),
+            "join_utterance": np.concatenate([np.full(len(s.joins), u, np.int32) for u, s in enumerate(synth)]),
+            "join_window": np.concatenate([s.windows for s in synth]).reshape(-1, 2),
+            "join_velocity_step": np.concatenate([s.velocity_mismatch for s in synth]),
             "bvh": head_bvh(rotation, translation, fps, joint=params.bvh_joint, order=params.bvh_order).encode(),
         }
-        metrics = motion_metrics(arrays, fps, params.blend_window, inputs.get("reference"), labels)
-        meta = {"fps": fps, "labels": labels, "frames": [len(s[0]) for s in synth],
+        metrics = motion_metrics(arrays, fps, JOIN_MEASURE_WINDOW, inputs.get("reference"), labels)
+        steps = arrays["join_velocity_step"][np.isfinite(arrays["join_velocity_step"])]
+        if len(steps):
+            widths = np.diff(arrays["join_window"], axis=1)[:, 0]
+            metrics.update({"mean_join_velocity_step": float(steps.mean()),
+                            "mean_join_window": float(widths.mean())})
+        meta = {"fps": fps, "labels": labels, "frames": [len(s.channels) for s in synth],
+                "join_smoothing": params.join_smoothing, "join_acceleration_budget": float(budget),
                 "translation_units": database.meta.get("translation_units", "unknown"),
                 "bvh_joint": params.bvh_joint, "db_labels": db_labels}
         return Result(arrays, meta, metrics)
@@ -316,12 +583,14 @@ def database_motion(view, *, use_translation: bool = True) -> DatabaseMotion:
     return DatabaseMotion(channels, np.concatenate([[0], np.cumsum(frames)[:-1]]), frames, float(view.meta["fps"]))
 
 
-def synthesise(trellis, db: DatabaseMotion, fps: float, *, blend_window: float = 0.15,
-               break_blend_window: float = 0.25,
-               drift_correction: bool = True) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Blended channels and join times per test utterance of a trellis artifact (a still head where silent)."""
+def synthesise(trellis, db: DatabaseMotion, fps: float, **blend) -> list[Stitched]:
+    """The stitched motion of each test utterance of a trellis artifact (a still head where silent); ``blend``:
+    keyword arguments of ``stitch_segments``."""
     labels = list(trellis.meta.get("labels") or [])
     durations = trellis.meta.get("durations") or []
+    if blend.get("smoothing", "velocity") == "velocity":
+        # velocity steps measured like the trellis's H measured them
+        blend.setdefault("boundary_window", float(trellis.meta.get("boundary_window", 0.1)))
     test_fps = trellis.meta.get("fps") or [None] * len(labels)
     test_frames = trellis.meta.get("frames") or [None] * len(labels)
     segments = np.asarray(trellis["segments"]).reshape(-1, 3)
@@ -338,9 +607,8 @@ def synthesise(trellis, db: DatabaseMotion, fps: float, *, blend_window: float =
         rows = np.flatnonzero(seg_utt == u)
         stitched = stitch_segments(db, segments[rows], np.asarray(trellis["subsentence_start"])[rows],
                                    db_seq[chosen[rows]], db_segments[chosen[rows]], np.arange(n_frames) / fps,
-                                   blend_window=blend_window, break_blend_window=break_blend_window,
-                                   drift_correction=drift_correction)
-        out.append((stitched.channels, stitched.joins))
+                                   **blend)
+        out.append(stitched)
     return out
 
 

@@ -7,6 +7,14 @@ For each test utterance:
    those phrases, keep the top K;
 3. Viterbi over the trellis of K candidates per test segment with transition cost C = w1 H + w2 R (Eq. 13-15),
    one search per sub-sentence (breath pauses bound the search, Sec. 5.4).
+
+H compares the boundary velocity and acceleration as the blend will join them: each candidate is resampled to
+its test segment's length (Sec. 5.4), so its V and A are scaled by its rate, and the pair is compared on its common
+clock (``warp_boundaries``, default; see ``transition_costs``). Comparing each recording's own-clock V and A
+(the earlier behaviour) mixed units whenever two candidates play at different rates; comparing on the output
+clock would reward slowing motion down (it shrinks V and A), which on CREMA-D picked segments played at 65%.
+Motion-blend measures its join velocity steps with the same parabola fits (``boundary_kinematics``, meta
+``boundary_window``).
 """
 from __future__ import annotations
 
@@ -180,12 +188,35 @@ def smoothness_weights(start: np.ndarray, end: np.ndarray) -> np.ndarray:
     return weights
 
 
+def warp_kinematics(kinematics: np.ndarray, scale: np.ndarray | None) -> np.ndarray:
+    """P, V, A (..., 3, channels) of database motion played ``scale`` database seconds per output second
+    (Sec. 5.4 resamples each segment to its test segment's length): V times scale, A times scale^2."""
+    if scale is None:
+        return kinematics
+    powers = np.asarray(scale, dtype=np.float64)[..., None, None] ** np.arange(3)[:, None]
+    return kinematics * powers
+
+
 def transition_costs(prev: np.ndarray, nxt: np.ndarray, db_end: np.ndarray, db_start: np.ndarray,
                      db_utterance: np.ndarray, db_position: np.ndarray, weights: np.ndarray, w1: float,
-                     w2: float) -> tuple[np.ndarray, np.ndarray]:
+                     w2: float, prev_scale: np.ndarray | None = None,
+                     next_scale: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """H (Eq. 13) and R (Eq. 14) between candidate sets ``prev`` (..., K) and ``nxt`` (..., K) of database
-    segments: arrays (..., K, K). R = 0 when the database holds them consecutively, 2 for the same segment."""
-    diff = db_end[prev][..., :, None, :, :] - db_start[nxt][..., None, :, :, :]     # (..., K, K, 3, channels)
+    segments: arrays (..., K, K). R = 0 when the database holds them consecutively, 2 for the same segment.
+
+    With ``prev_scale`` / ``next_scale`` (same shapes as ``prev`` / ``nxt``: database seconds per output second of
+    each candidate for its test segment), velocities and accelerations are compared as the blend will join them,
+    each segment resampled to its test segment's length, on the pair's common clock: the velocity step
+    V_i s_i - V_j s_j is divided by sqrt(s_i s_j) (the acceleration step by s_i s_j). When both play at the same
+    rate this is Eq. 13 on the recordings' clock, so playing a pair uniformly slower is not rewarded (on the
+    output clock it would be: slowing shrinks V and A, and the search then prefers slowed-down motion)."""
+    end = warp_kinematics(db_end[prev], prev_scale)
+    start = warp_kinematics(db_start[nxt], next_scale)
+    diff = end[..., :, None, :, :] - start[..., None, :, :, :]     # (..., K, K, 3, channels)
+    if prev_scale is not None and next_scale is not None:
+        rate = np.asarray(prev_scale, np.float64)[..., :, None] * np.asarray(next_scale, np.float64)[..., None, :]
+        common = rate[..., None, None] ** (np.arange(3)[:, None] / 2.0)          # (..., K, K, 3, 1)
+        diff = diff / common
     h = np.einsum("...kc,k->...", diff ** 2, weights)
     same = prev[..., :, None] == nxt[..., None, :]
     consecutive = (db_utterance[prev][..., :, None] == db_utterance[nxt][..., None, :]) & \
@@ -245,7 +276,7 @@ class SearchResult:
 
 
 def search_utterance(test: SegmentTable, test_features: np.ndarray, db: Database, *, allowed: np.ndarray,
-                     top_m: int, k: int, b: float, c: float, w1: float, w2: float,
+                     top_m: int, k: int, b: float, c: float, w1: float, w2: float, warp_boundaries: bool = True,
                      geometry_stats: tuple[np.ndarray, np.ndarray],
                      feature_stats: tuple[np.ndarray, np.ndarray]) -> SearchResult:
     """Phrase stage, segment stage and per-sub-sentence Viterbi for one test utterance's segments."""
@@ -278,8 +309,11 @@ def search_utterance(test: SegmentTable, test_features: np.ndarray, db: Database
     top = np.take_along_axis(top, np.argsort(np.take_along_axis(dist.total, top, 1), axis=1, kind="stable"), 1)
     candidates = pool[top]
     candidate_cost = np.take_along_axis(dist.total, top, 1)
+    # each candidate plays at its own speed once resampled to its test segment's length (Sec. 5.4)
+    scale = db.segments.length[candidates] / np.maximum(test.length, 1e-6)[:, None] if warp_boundaries else None
     h, r = transition_costs(candidates[:-1], candidates[1:], db.end, db.start, db.segments.utterance,
-                            db.segments.position, db.weights, w1, w2)
+                            db.segments.position, db.weights, w1, w2,
+                            None if scale is None else scale[:-1], None if scale is None else scale[1:])
     rank = np.zeros(n, dtype=np.int64)
     starts = np.flatnonzero(test.subsentence_start)
     if len(starts) == 0 or starts[0] != 0:
@@ -428,6 +462,9 @@ class Trellis(Stage):
         #                                                   database speaker's (same speaker in test and database)
         contour_length: int | None = None                 # None: the database's mean voiced length in frames
         boundary_window: float = 0.1                      # seconds either side for P, V, A at segment boundaries
+        warp_boundaries: bool = True                      # H on the output clock: V, A of each candidate scaled by
+        #                                                   its resampling to the test segment's length (False: on
+        #                                                   the recordings' own clocks)
         exclude_source: bool = False                      # leave the test's own recording out of the database
         exclude_labels: list[str] = []                    # database recordings (labels) to leave out
 
@@ -485,6 +522,7 @@ def search(db: Database, test_view, params, length: int, db_meta: dict) -> Resul
                            test.subsentence_start[rows], test.contour[rows], test.geometry[rows])
         results.append(search_utterance(sub, features[u], db, allowed=allowed, top_m=params.top_m, k=params.k,
                                         b=params.b, c=params.c, w1=params.w1, w2=params.w2,
+                                        warp_boundaries=params.warp_boundaries,
                                         geometry_stats=geometry_stats, feature_stats=feature_stats))
     cat = lambda name: np.concatenate([getattr(r, name) for r in results]) if results else np.zeros(0)
     k = params.k
@@ -519,6 +557,7 @@ def search(db: Database, test_view, params, length: int, db_meta: dict) -> Resul
         "fps": list(test_view.meta.get("fps") or [None] * len(test_labels)),
         "frames": list(test_view.meta.get("frames") or [None] * len(test_labels)),
         "db_labels": db.labels, "db_fps": float(db_meta["fps"]), "k": k, "contour_length": length,
+        "boundary_window": float(params.boundary_window), "warp_boundaries": bool(params.warp_boundaries),
         "unit": params.unit, "test_speaker": params.test_speaker, "smoothness_weights": db.weights.tolist(),
         "phrases_searched": [int(r.phrase_selected.sum()) for r in results], "excluded": excluded,
     }

@@ -9,9 +9,12 @@ from msflow import UserError
 from msflow.testing import artifact, run_stage
 from stages.bvh import joint_rotation, joint_translation, parse_bvh
 from stages.headdb import TrackedHeadDb
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
 from stages.motion_blend import (DatabaseMotion, MotionBlend, _reference_angles, angular_acceleration,
-                                 angular_speed, join_acceleration, pitch_velocity_correlation, stitch_segments,
-                                 wasserstein_speed)
+                                 angular_speed, join_acceleration, join_windows, pitch_velocity_correlation,
+                                 segment_weights, stitch_segments, wasserstein_speed)
 from stages.pitch import Pitch
 from stages.rotations import euler_to_quat
 from stages.trellis import Trellis
@@ -126,6 +129,152 @@ def test_crossfade_removes_the_velocity_step():
     np.testing.assert_allclose(soft[far], hard[far], atol=1e-12)
 
 
+def curve_database(functions, seconds=6.0, fps=100.0):
+    """One sequence per function of time; rotation channels (yaw, pitch, roll) follow it, translation is zero."""
+    n = int(seconds * fps)
+    t = np.arange(n) / fps
+    channels = np.concatenate([np.concatenate([np.stack([f(t)] * 3, axis=1), np.zeros((n, 3))], axis=1)
+                               for f in functions])
+    return DatabaseMotion(channels, np.arange(len(functions)) * n, np.full(len(functions), n), fps)
+
+
+def steps(x, fps):
+    velocity = np.diff(x, axis=0) * fps
+    return velocity, np.diff(velocity, axis=0) * fps
+
+
+def test_velocity_blend_is_continuous_in_position_and_velocity_across_a_velocity_step():
+    """Two segments whose velocities differ by 2 rad/s at the join: the blend keeps position and velocity
+    continuous, passes the velocity monotonically from one slope to the other (no overshoot), and adds no more
+    acceleration than the smoothstep bound 1.5 dv / (2 W)."""
+    fps = 200.0
+    db = line_database([1.0, -1.0], fps=fps)
+    times = np.arange(0, 2.0, 1 / fps)
+    test = np.array([[0.0, 0.5, 1.0], [1.0, 1.5, 2.0]])
+    chosen = np.array([[1.0, 1.5, 2.0], [1.0, 1.5, 2.0]])
+    out = stitch_segments(db, test, np.array([True, False]), np.array([0, 1]), chosen, times, blend_window=0.2)
+    x = out.channels[:, 0]
+    velocity, acceleration = steps(x, fps)
+    assert np.abs(np.diff(x)).max() <= 1.0 / fps + 1e-9                      # no position jump
+    assert np.abs(np.diff(velocity)).max() < 0.025 * 2.0                     # no velocity jump (a 2 rad/s step)
+    assert velocity.max() <= 1.0 + 1e-9 and velocity.min() >= -1.0 - 1e-9   # never faster than either segment
+    assert np.all(np.diff(velocity) <= 1e-9)                                 # 1 -> -1 monotonically
+    assert np.abs(acceleration).max() <= 1.5 * 2.0 / 0.4 * 1.02
+    np.testing.assert_allclose(out.windows, [[0.8, 1.2]])
+    assert out.velocity_mismatch[0] == pytest.approx(np.degrees(2.0 * np.sqrt(3)), rel=1e-6)
+    # the position crossfade over the same window overshoots the velocity and accelerates far harder
+    fade = stitch_segments(db, test, np.array([True, False]), np.array([0, 1]), chosen, times, blend_window=0.2,
+                           smoothing="crossfade").channels[:, 0]
+    fade_velocity, fade_acceleration = steps(fade, fps)
+    assert fade_velocity.max() > 1.2 and np.abs(fade_acceleration).max() > 2 * np.abs(acceleration).max()
+
+
+def test_velocity_blend_on_curves_is_c1_and_meets_both_segments_outside_the_window():
+    fps = 100.0
+    db = curve_database([lambda t: 0.3 * np.sin(2 * t), lambda t: 0.2 * np.cos(5 * t)], fps=fps)
+    times = np.arange(0, 3.0, 1 / fps)
+    test = np.array([[0.0, 1.0, 1.5], [1.5, 2.5, 3.0]])
+    chosen = np.array([[1.0, 2.0, 2.5], [3.0, 4.0, 4.5]])
+    out = stitch_segments(db, test, np.array([True, False]), np.array([0, 1]), chosen, times, blend_window=0.15)
+    x = out.channels[:, 1]
+    velocity, acceleration = steps(x, fps)
+    hard = stitch_segments(db, test, np.array([True, False]), np.array([0, 1]), chosen, times, blend_window=0.0)
+    hard_velocity, hard_acceleration = steps(hard.channels[:, 1], fps)
+    assert np.abs(acceleration).max() < 0.2 * np.abs(hard_acceleration).max()
+    # outside the window each segment moves with its own velocity
+    before, after = times[1:] < 1.35, times[:-1] > 1.65
+    np.testing.assert_allclose(velocity[before], hard_velocity[before], atol=1e-9)
+    np.testing.assert_allclose(velocity[after], hard_velocity[after], atol=1e-9)
+
+
+def test_a_segment_continued_by_its_database_successor_is_reproduced_exactly():
+    """Consecutive database segments played at the same rate: every smoothing option gives back the recording."""
+    fps = 100.0
+    db = curve_database([lambda t: 0.3 * np.sin(2 * t) + 0.1 * np.sin(11 * t)], fps=fps)
+    times = np.arange(0, 2.4, 1 / fps)
+    test = np.array([[0.0, 0.3, 0.7], [0.7, 1.0, 1.3], [1.3, 1.9, 2.4]])
+    chosen = test + 1.1                                       # the recording from 1.1 s on, in three pieces
+    truth = db.sample(0, times + 1.1)
+    for options in ({}, {"acceleration_budget": 1.0, "max_blend_window": 0.5}, {"preserve_speed": True},
+                    {"blend_window": 0.3, "preserve_speed": True, "acceleration_budget": 1.0}):
+        out = stitch_segments(db, test, np.array([True, False, False]), np.zeros(3, int), chosen, times,
+                              **options)
+        np.testing.assert_allclose(out.channels, truth, atol=1e-9, err_msg=str(options))
+        np.testing.assert_allclose(out.velocity_mismatch, 0.0, atol=1e-6)
+
+
+def test_windows_widen_with_the_velocity_step_to_respect_the_acceleration_budget():
+    joins = np.array([1.0, 2.0, 3.0])
+    mismatch = np.array([0.0, 60.0, 600.0])                  # deg/s
+    left, right = join_windows(joins, np.full(3, 0.1), mismatch, acceleration_budget=100.0, max_half=0.5)
+    half = (right - left) / 2
+    assert half[0] == pytest.approx(0.1)                     # no step: the minimum window
+    assert half[1] == pytest.approx(0.75 * 60 / 100)         # 1.5 dv / (2 W) = budget
+    assert half[2] == pytest.approx(0.5)                     # capped
+    fixed = join_windows(joins, np.full(3, 0.1), mismatch)   # no budget: fixed windows
+    np.testing.assert_allclose(fixed[1] - fixed[0], 0.2)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(0.02, 0.6), min_size=2, max_size=8), st.lists(st.floats(0.0, 0.5), min_size=7,
+                                                                          max_size=7))
+def test_blend_weights_are_a_partition_of_unity_however_windows_overlap(lengths, halves):
+    joins = np.cumsum(lengths)[:-1]
+    half = np.array(halves[:len(joins)])
+    left, right = join_windows(joins, half)
+    assert np.all(left <= joins + 1e-12) and np.all(right >= joins - 1e-12)
+    x = np.linspace(-1, joins[-1] + 1, 500)
+    weights = np.stack([segment_weights(x, k, left, right, joins) for k in range(len(joins) + 1)])
+    assert weights.min() >= 0 and weights.max() <= 1
+    np.testing.assert_allclose(weights.sum(0), 1.0, atol=1e-12)
+
+
+def test_every_sub_sentence_starts_at_its_recorded_pose_with_blended_joins():
+    fps = 100.0
+    db = curve_database([lambda t: 0.3 * np.sin(2 * t), lambda t: 0.5 + 0.2 * np.cos(3 * t)], fps=fps)
+    times = np.arange(0, 3.0, 1 / fps)
+    test = np.array([[0.0, 0.4, 0.8], [0.8, 1.2, 1.6], [1.6, 2.0, 2.3], [2.3, 2.6, 3.0]])
+    sub = np.array([True, False, True, False])
+    seqs = np.array([0, 1, 1, 0])
+    chosen = np.array([[0.5, 0.9, 1.3], [2.0, 2.4, 2.8], [4.0, 4.4, 4.7], [1.0, 1.3, 1.7]])
+    out = stitch_segments(db, test, sub, seqs, chosen, times, blend_window=0.15, break_blend_window=0.25)
+    for k in (0, 2):
+        recorded = db.sample(seqs[k], chosen[k, :1])[0]
+        at = np.array([np.interp(test[k, 0], times, out.channels[:, c]) for c in range(6)])
+        np.testing.assert_allclose(at, recorded, atol=1e-9)
+    velocity, _ = steps(out.channels[:, 0], fps)
+    assert np.abs(np.diff(velocity)).max() < 0.2                 # no kink where the drift warps meet
+    # the drift warp is a constant velocity within each sub-sentence: away from every window, the output moves
+    # like its segment plus that constant
+    drifting = stitch_segments(db, test, sub, seqs, chosen, times, blend_window=0.15, break_blend_window=0.25,
+                               drift_correction=False)
+    inside = (times[1:] > 0.3) & (times[:-1] < 0.6)
+    difference = np.diff(out.channels[:, 0] - drifting.channels[:, 0])[inside]
+    np.testing.assert_allclose(difference, difference[0], atol=1e-12)
+
+
+def test_speed_preserving_gain_keeps_the_speed_of_unrelated_segments():
+    """Yaw moving at 1 rad/s joined to pitch moving at 1 rad/s: the plain velocity blend slows to 1/sqrt(2) at the
+    join, the speed-preserving one keeps 1 rad/s throughout."""
+    fps = 100.0
+    n = 600
+    t = np.arange(n) / fps
+    yaw = np.zeros((n, 6))
+    yaw[:, 0] = t
+    pitch = np.zeros((n, 6))
+    pitch[:, 1] = t
+    db = DatabaseMotion(np.concatenate([yaw, pitch]), np.array([0, n]), np.array([n, n]), fps)
+    times = np.arange(0, 2.0, 1 / fps)
+    test = np.array([[0.0, 0.5, 1.0], [1.0, 1.5, 2.0]])
+    chosen = np.array([[1.0, 1.5, 2.0], [1.0, 1.5, 2.0]])
+    args = (db, test, np.array([True, False]), np.array([0, 1]), chosen, times)
+    plain = np.linalg.norm(np.diff(stitch_segments(*args, blend_window=0.2).channels[:, :3], axis=0), axis=1) * fps
+    kept = np.linalg.norm(np.diff(stitch_segments(*args, blend_window=0.2, preserve_speed=True).channels[:, :3],
+                                  axis=0), axis=1) * fps
+    assert plain.min() == pytest.approx(1 / np.sqrt(2), abs=0.01)
+    np.testing.assert_allclose(kept, 1.0, atol=0.01)
+
+
 def test_measures():
     fps = 30.0
     t = np.arange(60) / fps
@@ -177,9 +326,16 @@ def test_outputs_frames_rate_and_bvh(leave_one_out, database, tracks):
 
 def test_leave_one_out_motion_is_plausible_and_smooth_at_joins(leave_one_out, database, tracks):
     soft = run_stage(MotionBlend, {}, {"trellis": leave_one_out, "database": database[0]})
-    hard = run_stage(MotionBlend, {"blend_window": 0.0, "break_blend_window": 0.0},
+    hard = run_stage(MotionBlend, {"blend_window": 0.0, "break_blend_window": 0.0, "join_acceleration": 0.0},
                      {"trellis": leave_one_out, "database": database[0]})
+    fade = run_stage(MotionBlend, {"join_smoothing": "crossfade"}, {"trellis": leave_one_out, "database": database[0]})
     assert soft.metrics["max_join_acceleration"] < 0.8 * hard.metrics["max_join_acceleration"]
+    assert soft.metrics["max_join_acceleration"] < 0.8 * fade.metrics["max_join_acceleration"]
+    # windows are at least the minimum, wider where the velocity step is large
+    widths = np.diff(soft.arrays["join_window"], axis=1)[:, 0]
+    step = soft.arrays["join_velocity_step"]
+    assert widths.min() >= 2 * 0.15 - 1e-9 and np.isfinite(step).all()
+    assert np.median(widths[step > np.median(step)]) > np.median(widths[step <= np.median(step)])
     db_angles = database[0].arrays["angles"]
     assert np.abs(soft.arrays["angles"]).max() < 2 * np.abs(db_angles).max()
     # the synthesis moves about as fast as the database does
@@ -203,6 +359,14 @@ def test_a_silent_test_take_gives_a_still_head(database):
     assert run.meta["frames"] == [45] and run.meta["fps"] == database[0].meta["fps"]
     np.testing.assert_allclose(run.arrays["rotation"], np.tile([1.0, 0, 0, 0], (45, 1)))
     assert len(run.arrays["joins"]) == 0
+
+
+@pytest.mark.parametrize("params, field", [({"join_acceleration": -1.0}, "join_acceleration"),
+                                           ({"max_blend_window": -0.1}, "max_blend_window"),
+                                           ({"blend_window": -0.1}, "blend_window")])
+def test_bad_blend_settings(leave_one_out, database, params, field):
+    with pytest.raises(UserError, match=field):
+        run_stage(MotionBlend, params, {"trellis": leave_one_out, "database": database[0]})
 
 
 def test_trellis_from_another_database_is_an_error(leave_one_out, phrases):

@@ -70,6 +70,37 @@ def test_repeat_cost_values():
     assert h.shape == (1, 5)
 
 
+def test_boundary_terms_on_the_common_clock_of_the_pair():
+    """H with each candidate's resampling rate: Eq. 13 itself when both play at the same rate (whatever it is, so
+    slowing a pair down earns nothing), and the velocity and acceleration steps the resampling creates otherwise."""
+    rng = np.random.default_rng(3)
+    kin = rng.normal(size=(6, 3, 3))
+    utterance, position = np.arange(6), np.zeros(6, int)
+    prev, nxt = np.array([[0, 1, 2]]), np.array([[3, 4, 5]])
+    weights = np.array([0.5, 0.3, 0.2])
+    plain, _ = transition_costs(prev, nxt, kin, kin, utterance, position, weights, 1.0, 1.0)
+    for rate in (0.5, 1.0, 1.7):
+        same, _ = transition_costs(prev, nxt, kin, kin, utterance, position, weights, 1.0, 1.0,
+                                   np.full((1, 3), rate), np.full((1, 3), rate))
+        np.testing.assert_allclose(same, plain, rtol=1e-12)
+    # the same motion on both sides, the second played twice as fast: no position step, the velocity step V
+    # (V - 2V over sqrt(1 * 2) squared: V^2 / 2) and the acceleration step (A - 4A over 2, squared: 9 A^2 / 4)
+    both = np.array([[0]])
+    h, _ = transition_costs(both, both, kin, kin, utterance, position, weights, 1.0, 1.0, np.array([[1.0]]),
+                            np.array([[2.0]]))
+    expected = weights[1] * (kin[0, 1] ** 2).sum() / 2 + weights[2] * 9 * (kin[0, 2] ** 2).sum() / 4
+    assert h[0, 0, 0] == pytest.approx(expected)
+
+
+def test_search_records_how_boundaries_were_compared(database, test_pitch):
+    warped = search(database, test_pitch, exclude_source=True)
+    plain = search(database, test_pitch, exclude_source=True, warp_boundaries=False)
+    assert warped.meta["warp_boundaries"] and not plain.meta["warp_boundaries"]
+    assert warped.meta["boundary_window"] == 0.1
+    # the same node costs either way; only the transition term differs
+    np.testing.assert_allclose(warped.arrays["candidate_cost"], plain.arrays["candidate_cost"])
+
+
 def test_smoothness_terms_each_average_a_third():
     rng = np.random.default_rng(0)
     start = rng.normal(size=(30, 3, 3)) * np.array([1.0, 10.0, 100.0])[None, :, None]
@@ -196,8 +227,10 @@ def _transition_costs_of(run, chosen, database):
 
     db, _ = build_database(database[0].view(), database[1].view(), unit="semitones", length=None, window=0.1)
     sub = run.arrays["subsentence_start"]
+    seg = run.arrays["segments"]
+    scale = (db.segments.length[chosen] / (seg[:, 2] - seg[:, 0]))[None]
     h, r = transition_costs(chosen[:-1][None], chosen[1:][None], db.end, db.start, db.segments.utterance,
-                            db.segments.position, db.weights, 1.0, 1.0)
+                            db.segments.position, db.weights, 1.0, 1.0, scale[:, :-1], scale[:, 1:])
     steps = np.arange(len(chosen) - 1)
     total = h[0][steps, steps] + r[0][steps, steps]
     return total[~sub[1:]]
