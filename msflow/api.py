@@ -24,12 +24,13 @@ class Session:
     memo_digest: str
 
     def save_memo(self) -> None:
-        if json_hash(self.memo) != self.memo_digest:
+        digest = json_hash(self.memo)
+        if digest != self.memo_digest:
             try:
                 self.store.save_memo(self.memo)
             except OSError:
                 pass  # a read-only store still runs; it only loses the memo
-            self.memo_digest = json_hash(self.memo)
+            self.memo_digest = digest
 
 
 def open_session(path: str | Path, overrides=(), memo: dict | None = None) -> Session:
@@ -94,58 +95,26 @@ def run(path: str | Path, overrides=(), *, jobs: int = 1, until: str | None = No
     started = time.time()
     session = session or open_session(path, overrides)
     pin_blas_threads()
-    runner = Runner(session.pipeline, session.plans, session.store, session.memo, executor=None, until=until,
+    pool = make_executor(executor, jobs, scheduler, connect_timeout, on_start=session.store.clean_tmp)
+    runner = Runner(session.pipeline, session.plans, session.store, session.memo, executor=pool, until=until,
                     force=tuple(force), reporter=reporter)
-    needs_work = bool(runner.force) or _might_run(runner)
-    pool = make_executor(executor, jobs, scheduler, connect_timeout) if needs_work else None
-    if needs_work:
-        session.store.clean_tmp()  # leftovers of runs killed mid-write
-    runner.executor = pool
     try:
-        states = runner.run() if pool is not None else _settle_all_cached(runner)
+        states = runner.run()
     finally:
-        if pool is not None:
-            pool.shutdown()
-    session.save_memo()
+        pool.shutdown()
     record = build_record(new_run_id(), session.pipeline, session.plans, states, started=started,
-                          finished=time.time(), executor=getattr(pool, "name", "none"), jobs=jobs, argv=argv,
-                          label=label)
+                          finished=time.time(), executor=pool.name, jobs=jobs, argv=argv, label=label)
     session.store.write_run(record)
     update_lock(session.pipeline, session.plans, states)
     if session.pipeline.publish:
         from msflow.exporting import publish_outputs
 
         publish_outputs(session, states)
-        session.save_memo()
+    session.save_memo()
     result = RunResult(session, states, record)
     if raise_on_failure:
         raise_for_failures(states)
     return result
-
-
-def _might_run(runner: Runner) -> bool:
-    """Cheap pre-pass: if every selected stage is cached, no executor (and no process pool) is needed."""
-    reporter, runner.reporter = runner.reporter, None
-    try:
-        for name in runner.selected:
-            try:
-                job = runner.prepare(name)
-            except UserError:
-                job = True
-            if job is not None:
-                for state in runner.states.values():  # reset: the real pass recomputes and reports
-                    state.state, state.key, state.manifest = "pending", None, None
-                return True
-    finally:
-        runner.reporter = reporter
-    if reporter is not None:
-        for state in runner.states.values():
-            reporter.update(state)
-    return False
-
-
-def _settle_all_cached(runner: Runner) -> dict[str, StageState]:
-    return runner.states
 
 
 def raise_for_failures(states: dict[str, StageState]) -> None:

@@ -47,15 +47,46 @@ class ProcessExecutor:
         self.pool.shutdown(wait=True, cancel_futures=True)
 
 
-def make_executor(kind: str = "local", jobs: int = 1, scheduler: str | None = None, timeout: float = 10.0):
+class LazyExecutor:
+    """Starts the real executor on the first job: a run whose stages are all cached starts no process pool and
+    no Dask cluster. ``on_start`` runs once, just before (e.g. clearing leftovers of killed runs)."""
+
+    def __init__(self, factory, on_start=None):
+        self._factory = factory
+        self._on_start = on_start
+        self._executor = None
+
+    @property
+    def name(self) -> str:
+        return self._executor.name if self._executor is not None else "none"
+
+    def submit(self, job_json: str) -> Future:
+        if self._executor is None:
+            if self._on_start is not None:
+                self._on_start()
+            self._executor = self._factory()
+        return self._executor.submit(job_json)
+
+    def shutdown(self) -> None:
+        if self._executor is not None:
+            self._executor.shutdown()
+
+
+def make_executor(kind: str = "local", jobs: int = 1, scheduler: str | None = None, timeout: float = 10.0,
+                  on_start=None) -> LazyExecutor:
+    """Validate the executor options now; start the executor when the first job arrives."""
     from msflow.errors import UserError
 
     if jobs < 1:
         raise UserError(f"-j must be at least 1, got {jobs}", field="-j")
     if kind == "dask" or scheduler:
-        from msflow.dask_executor import DaskExecutor
+        def factory():
+            from msflow.dask_executor import DaskExecutor
 
-        return DaskExecutor(jobs=jobs, scheduler=scheduler, timeout=timeout)
-    if kind not in ("local", "inline"):
+            return DaskExecutor(jobs=jobs, scheduler=scheduler, timeout=timeout)
+    elif kind in ("local", "inline"):
+        def factory():
+            return InlineExecutor() if jobs == 1 or kind == "inline" else ProcessExecutor(jobs)
+    else:
         raise UserError(f"unknown executor '{kind}'; choose local or dask", field="--executor")
-    return InlineExecutor() if jobs == 1 or kind == "inline" else ProcessExecutor(jobs)
+    return LazyExecutor(factory, on_start)

@@ -229,7 +229,7 @@ def check_inputs(pipeline: Pipeline, plans: dict[str, StagePlan], name: str) -> 
                                 f"'{ref.describe()}'", file=file, stage=name, field=where)
             continue
         if not isinstance(ref, StageRef):
-            raise UserError(f"expects a stage reference ('stage' or 'stage.output'), got data files", file=file,
+            raise UserError("expects a stage reference ('stage' or 'stage.output'), got data files", file=file,
                             stage=name, field=where)
         upstream = plans[ref.stage].interface["outputs"]
         if ref.output is not None and ref.output not in upstream:

@@ -7,7 +7,6 @@ special case. Keys never contain paths or times.
 from __future__ import annotations
 
 import json
-import time
 import uuid
 from concurrent.futures import Future, wait, FIRST_COMPLETED
 from dataclasses import dataclass, field
@@ -16,7 +15,7 @@ from typing import Any
 from msflow.errors import UserError
 from msflow.hashing import FileHashMemo, json_hash
 from msflow.plan import StagePlan
-from msflow.spec import FilesRef, Pipeline, StageRef, rel_to, topological_order
+from msflow.spec import FilesRef, Pipeline, rel_to, topological_order
 
 KEY_SCHEME = 1
 DONE = ("cached", "ran")
@@ -35,10 +34,6 @@ class StageState:
     traceback: str | None = None
     inputs: dict = field(default_factory=dict)
     detail: str = ""
-
-    @property
-    def done(self) -> bool:
-        return self.state in DONE
 
 
 def select_stages(pipeline: Pipeline, until: str | None) -> list[str]:

@@ -61,8 +61,6 @@ def grid_product(axes: dict[str, list[Any]]) -> list[dict[str, Any]]:
 
 
 def load_grid_file(path: Path) -> list[dict[str, Any]]:
-    import yaml
-
     from msflow.spec import parse_yaml
 
     file = str(path)
@@ -174,16 +172,13 @@ def run_sweep(path: str | Path, variants: list[dict[str, Any]], *, base_override
         memo = session.memo
         sessions.append(session)
     pin_blas_threads()
+    pool = make_executor(executor, jobs, scheduler, on_start=sessions[0].store.clean_tmp)
     runners = []
     for index, session in enumerate(sessions):
         proxy = reporter.for_variant(index, variants[index]) if reporter is not None else None
-        runners.append(Runner(session.pipeline, session.plans, session.store, session.memo, executor=None,
+        runners.append(Runner(session.pipeline, session.plans, session.store, session.memo, executor=pool,
                               reporter=proxy))
-    pool = make_executor(executor, jobs, scheduler)
     try:
-        for runner in runners:
-            runner.executor = pool
-        sessions[0].store.clean_tmp()
         schedule(runners, pool)
     finally:
         pool.shutdown()

@@ -31,8 +31,9 @@ def test_first_run_computes_everything_and_noop_rerun_runs_nothing(numproject, l
     first = run(numproject)
     assert sorted(first.executed) == sorted(ALL)
     assert first.load("total.total") == pytest.approx(expected_total())
-    second = run(numproject)
+    second = run(numproject, jobs=2)
     assert second.executed == []
+    assert second.record["executor"] == "none"  # everything cached: no process pool was started
     assert all(s.state == "cached" for s in second.states.values())
     assert sorted(executions(log)) == sorted(ALL)  # each stage executed exactly once over both runs
     assert second.key("total") == first.key("total")
