@@ -13,6 +13,21 @@ from msflow.runner import Runner, StageState, new_run_id
 from msflow.spec import Pipeline, load_pipeline
 
 
+MEMO_ENTRIES = 2000  # per memo section; an evicted entry is only recomputed (one parse, import or file hash)
+
+
+def trim_memo(memo: dict) -> None:
+    """Keep each growing memo section to its newest entries: every code edit adds fingerprints, interfaces and
+    params that later runs never ask for again, and the memo is read by every no-op run."""
+    sections = [memo.get("interfaces"), memo.get("params"), memo.get("data"), memo.get("published")]
+    code = memo.get("code") or {}
+    sections += [code.get("files"), code.get("closures")]
+    for section in sections:
+        if isinstance(section, dict) and len(section) > MEMO_ENTRIES:
+            for key in list(section)[:len(section) - MEMO_ENTRIES]:
+                del section[key]
+
+
 @dataclass
 class Session:
     """A loaded, resolved pipeline with its store and memo: what every command starts from."""
@@ -24,6 +39,7 @@ class Session:
     memo_digest: str
 
     def save_memo(self) -> None:
+        trim_memo(self.memo)
         digest = json_hash(self.memo)
         if digest != self.memo_digest:
             try:

@@ -93,15 +93,16 @@ def why(stage: str = typer.Argument(..., help="stage name"), file: Path = FILE_O
         overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override")):
     """Which part of STAGE's cache key changed since its last run (code file, param, input)."""
     from msflow.api import open_session
-    from msflow.inspect import dry_run, last_stage_record
+    from msflow.inspect import RunHistory, dry_run
     from msflow.spec import _suggest
 
     session = open_session(file, tuple(overrides or ()))
     if stage not in session.pipeline.stages:
         raise UserError(f"unknown stage '{stage}'{_suggest(stage, session.pipeline.stages)}", file=str(file),
                         field="STAGE")
-    d = dry_run(session)[stage]
-    previous = last_stage_record(session, stage)
+    history = RunHistory(session)
+    d = dry_run(session, history)[stage]
+    previous = history.last(stage)
     session.save_memo()
     if d.state == "cached":
         _echo(f"{stage}: up to date (key {d.key[:12]})")

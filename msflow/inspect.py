@@ -5,8 +5,8 @@ from dataclasses import dataclass, field
 
 from msflow.api import Session
 from msflow.errors import UserError
-from msflow.hashing import FileHashMemo, json_hash
-from msflow.runner import StageState, input_parts, key_parts, resource_hashes
+from msflow.hashing import FileHashMemo
+from msflow.runner import StageState, key_parts, stage_key
 from msflow.spec import topological_order
 
 
@@ -20,50 +20,61 @@ class DryState:
     manifest: dict | None = None
 
 
-def last_stage_record(session: Session, stage: str, *, settled_only: bool = True) -> dict | None:
-    """The newest run record entry of ``stage`` for this pipeline (cached or ran)."""
-    rel = session.pipeline.rel_path
-    for run_id in reversed(session.store.run_ids()):
-        try:
-            record = session.store.read_run(run_id)
-        except (UserError, OSError, ValueError):
-            continue
-        if record.get("pipeline") != rel:
-            continue
-        entry = record.get("stages", {}).get(stage)
-        if entry and entry.get("key_parts") and (not settled_only or entry["state"] in ("cached", "ran")):
-            return {**entry, "run": run_id}
-    return None
+class RunHistory:
+    """This pipeline's run records, newest first, each read at most once (records can be large)."""
+
+    def __init__(self, session: Session):
+        self.session = session
+        self._pending = list(reversed(session.store.run_ids()))
+        self._read: list[tuple[str, dict]] = []
+
+    def _records(self):
+        yield from self._read
+        while self._pending:
+            run_id = self._pending.pop(0)
+            try:
+                record = self.session.store.read_run(run_id)
+            except (UserError, OSError, ValueError):
+                continue
+            if record.get("pipeline") == self.session.pipeline.rel_path:
+                self._read.append((run_id, record))
+                yield run_id, record
+
+    def last(self, stage: str) -> dict | None:
+        """The newest settled (cached or ran) entry of ``stage``, with its run id."""
+        for run_id, record in self._records():
+            entry = record.get("stages", {}).get(stage)
+            if entry and entry.get("key_parts") and entry["state"] in ("cached", "ran"):
+                return {**entry, "run": run_id}
+        return None
 
 
-def dry_run(session: Session) -> dict[str, DryState]:
+def dry_run(session: Session, history: RunHistory | None = None) -> dict[str, DryState]:
     """Keys of every stage whose upstream artifacts exist; reasons for each stage that would run."""
     pipeline, store = session.pipeline, session.store
+    history = history or RunHistory(session)
     states: dict[str, StageState] = {}
     dry: dict[str, DryState] = {}
     memo = FileHashMemo(session.memo.setdefault("data", {}))
     for name in topological_order(pipeline.stages):
-        deps = pipeline.stages[name].deps
-        blocked = [d for d in deps if dry[d].state != "cached"]
-        previous = last_stage_record(session, name)
+        blocked = [d for d in pipeline.stages[name].deps if dry[d].state != "cached"]
         plan = session.plans[name]
         if blocked:
             reasons = [f"upstream {', '.join(blocked)} must run first; this stage reruns if their outputs change"]
+            previous = history.last(name)
             if previous:
                 reasons += [r for r in explain(previous["key_parts"], {**key_parts(plan, {}), "inputs": None})
                             if not r.startswith("input")]
             dry[name] = DryState(name, "blocked", reasons=reasons)
             states[name] = StageState(name, state="pending")
             continue
-        parts, _, provenance = input_parts(pipeline, name, states, memo, plan.interface)
-        full = key_parts(plan, parts, resource_hashes(plan, pipeline.root, memo))
-        key = json_hash(full)
+        full, key, _, provenance = stage_key(pipeline, plan, name, states, memo)
         state = StageState(name, key=key, parts=full, inputs=provenance)
         if store.has(key):
             state.state, state.manifest = "cached", store.manifest(key)
             dry[name] = DryState(name, "cached", key, full, manifest=state.manifest)
         else:
-            state.state = "pending"
+            previous = history.last(name)
             if previous is None:
                 reasons = ["never run (no earlier run record of this stage)"]
             else:
@@ -138,10 +149,11 @@ def resolve_artifact_key(session: Session, stage: str) -> tuple[str, str]:
 
         raise UserError(f"unknown stage '{stage}'{_suggest(stage, session.pipeline.stages)}",
                         file=str(session.pipeline.path), field="STAGE")
-    dry = dry_run(session)
+    history = RunHistory(session)
+    dry = dry_run(session, history)
     if dry[stage].state == "cached":
         return dry[stage].key, "current"
-    previous = last_stage_record(session, stage)
+    previous = history.last(stage)
     if previous and session.store.has(previous["key"]):
         return previous["key"], f"from run {previous['run']} (stale: the pipeline changed since)"
     raise UserError(f"stage '{stage}' has no artifact in the store yet: run the pipeline first "

@@ -110,6 +110,14 @@ def key_parts(plan: StagePlan, inputs: dict, resources: dict | None = None) -> d
     return parts
 
 
+def stage_key(pipeline: Pipeline, plan: StagePlan, name: str, states: dict[str, StageState],
+              file_memo: FileHashMemo) -> tuple[dict, str, dict, dict]:
+    """(key parts, key, job inputs, input provenance) of a stage whose upstream stages are settled."""
+    inputs, job_inputs, provenance = input_parts(pipeline, name, states, file_memo, plan.interface)
+    parts = key_parts(plan, inputs, resource_hashes(plan, pipeline.root, file_memo))
+    return parts, json_hash(parts), job_inputs, provenance
+
+
 class Runner:
     """Runs the selected stages of a resolved pipeline on an executor, reporting state changes."""
 
@@ -138,11 +146,8 @@ class Runner:
         """Compute the key; return a job when the stage must run, None when it is cached."""
         state = self.states[name]
         plan = self.plans[name]
-        parts, job_inputs, provenance = input_parts(self.pipeline, name, self.states, self.file_memo,
-                                                    plan.interface)
-        state.parts = key_parts(plan, parts, resource_hashes(plan, self.pipeline.root, self.file_memo))
-        state.key = json_hash(state.parts)
-        state.inputs = provenance
+        state.parts, state.key, job_inputs, state.inputs = stage_key(self.pipeline, plan, name, self.states,
+                                                                     self.file_memo)
         if name not in self.force and self.store.has(state.key):
             state.manifest = self.store.manifest(state.key)
             state.state = "cached"
@@ -150,8 +155,8 @@ class Runner:
             return None
         state.state = "running"
         self._report(state)
-        return {"store": self.store.url, "store_options": self.store.options, "project_root": str(self.pipeline.root), "key": state.key,
-                "stage": name, "uses": plan.uses, "params": plan.params, "inputs": job_inputs,
+        return {"store": self.store.url, "store_options": self.store.options,
+                "project_root": str(self.pipeline.root), "key": state.key, "stage": name, "uses": plan.uses, "params": plan.params, "inputs": job_inputs,
                 "force": name in self.force, "key_parts": state.parts}
 
     def settle(self, name: str, outcome: dict) -> None:

@@ -216,7 +216,7 @@ def apply_overrides(raw: dict, overrides: tuple[str, ...], file: str) -> None:
             raw.setdefault("vars", {})
             if not isinstance(raw["vars"], dict):
                 raise UserError("'vars' must be a mapping", file=file, field="vars")
-            raw["vars"][rest[0]] = value if len(rest) == 1 else _nested_set(raw["vars"].get(rest[0]), rest[1:], value)
+            _set_path(raw["vars"], rest, value)
             continue
         if head not in stages:
             raise UserError(f"override '{text}': unknown stage '{head}'{_suggest(head, stages)}; "
@@ -227,23 +227,17 @@ def apply_overrides(raw: dict, overrides: tuple[str, ...], file: str) -> None:
         params = stage.setdefault("params", {})
         if not isinstance(params, dict):
             raise UserError("'params' must be a mapping", file=file, stage=head, field="params")
-        cursor = params
-        for key in rest[:-1]:
-            nxt = cursor.get(key)
-            if not isinstance(nxt, dict):
-                nxt = {}
-                cursor[key] = nxt
-            cursor = nxt
-        cursor[rest[-1]] = value
+        _set_path(params, rest, value)
 
 
-def _nested_set(container: Any, path: list[str], value: Any) -> Any:
-    container = dict(container) if isinstance(container, dict) else {}
+def _set_path(container: dict, path: list[str], value: Any) -> None:
+    """container[a][b]... = value for path [a, b, ...], creating (or replacing non-mapping) levels."""
     cursor = container
     for key in path[:-1]:
-        cursor = cursor.setdefault(key, {})
+        if not isinstance(cursor.get(key), dict):
+            cursor[key] = {}
+        cursor = cursor[key]
     cursor[path[-1]] = value
-    return container
 
 
 # ---------------------------------------------------------------------------------------------------------- loading

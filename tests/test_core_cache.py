@@ -231,3 +231,12 @@ def test_edit_in_a_clone_is_seen_although_the_original_is_unchanged(numproject, 
     helper.write_text(helper.read_text().replace("return 2 * np.asarray(x)", "return -2 * np.asarray(x)"))
     assert "scaled" in run(clone).executed
     assert run(numproject).executed == []
+
+
+def test_memo_keeps_its_newest_entries_only(monkeypatch):
+    from msflow import api
+
+    monkeypatch.setattr(api, "MEMO_ENTRIES", 3)
+    memo = {"params": {f"k{i}": i for i in range(5)}, "code": {"files": {"a": 1}}, "data": {}}
+    api.trim_memo(memo)
+    assert list(memo["params"]) == ["k2", "k3", "k4"] and memo["code"]["files"] == {"a": 1}
