@@ -320,7 +320,7 @@ def run_page(session, record: dict, figures: list[Figure]) -> str:
 """
 
 
-def sweep_page(pipeline_name: str, sweep: dict, runs: list[dict], metric: str | None) -> str:
+def sweep_page(pipeline_name: str, sweep: dict, metric: str | None) -> str:
     """Results table of a sweep and a plot of a chosen metric against each swept parameter."""
     from msflow.sweep import SweepResult, VariantOutcome, format_table, metric_columns, results_rows
 
@@ -406,8 +406,7 @@ def build_report(path: str | Path, out: str | Path, run: str | None = None, *, j
     if run and hasattr(store, "sweep_ids") and any(s == run or s.endswith(run) for s in store.sweep_ids()):
         sweep_id = next(s for s in store.sweep_ids() if s == run or s.endswith(run))
         sweep = store.read_sweep(sweep_id)
-        runs = [store.read_run(v["run_id"]) for v in sweep["variants"] if v.get("run_id")]
-        page = sweep_page(session.pipeline.path.name, sweep, runs, metric)
+        page = sweep_page(session.pipeline.path.name, sweep, metric)
         figures: list[Figure] = []
     else:
         record = find_record(session, run)

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from face_fixtures import aam_run, face_modes, face_template, synthetic_faces, tracked, training_tracks
+from face_fixtures import aam_run, face_template, synthetic_faces, tracked, training_tracks
 from msflow import UserError
 from msflow.testing import artifact, run_stage
 from stages.aam import (AamModel, AamPca, apply_similarity, canonical_pose, choose_modes, eye_centres, fit_aam,

@@ -1,6 +1,5 @@
 """Crash and concurrency safety: SIGKILL at any moment, concurrent runs, dead lock holders, corruption."""
 import json
-import os
 import random
 import signal
 import subprocess

@@ -11,7 +11,7 @@ from msflow.testing import artifact, run_stage
 from stages.bvh import head_bvh
 from stages.headdb import BvhHeadDb, CsvHeadDb, TrackedHeadDb
 from stages.pitch import Pitch, wav_bytes
-from stages.rotations import euler_to_quat, quat_mean, quat_to_euler
+from stages.rotations import euler_to_quat, quat_mean
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -16,7 +16,6 @@ from stages.motion_blend import (DatabaseMotion, MotionBlend, _reference_angles,
                                  angular_speed, join_acceleration, join_windows, pitch_velocity_correlation,
                                  segment_weights, stitch_segments, wasserstein_speed)
 from stages.pitch import Pitch
-from stages.rotations import euler_to_quat
 from stages.trellis import Trellis
 
 ROOT = Path(__file__).resolve().parents[1]
