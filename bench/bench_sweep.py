@@ -72,10 +72,10 @@ def speedup(tmp: Path) -> dict:
         result = run_sweep(pipeline, variants, **options)
         times[label] = time.perf_counter() - started
         assert result.executed == 8, result.executed
-    from msflow.executors import make_executor
+    from msflow.dask_executor import DaskExecutor
 
     started = time.perf_counter()
-    make_executor("dask", 2).shutdown()
+    DaskExecutor(jobs=2).shutdown()
     cluster = time.perf_counter() - started
     return {"j1_s": round(times["j1"], 2), "j2_s": round(times["j2"], 2), "dask2_s": round(times["dask2"], 2),
             "speedup_j2": round(times["j1"] / times["j2"], 2), "speedup_dask2": round(times["j1"] / times["dask2"], 2),
@@ -98,10 +98,10 @@ def dask_overhead(tmp: Path, stages: int = 40) -> dict:
         started = time.perf_counter()
         msflow.run(dest / "many.yaml", **options)
         results[label] = time.perf_counter() - started
-    from msflow.executors import make_executor
+    from msflow.dask_executor import DaskExecutor
 
     started = time.perf_counter()
-    make_executor("dask", 1).shutdown()
+    DaskExecutor(jobs=1).shutdown()
     startup = time.perf_counter() - started
     return {"inline_per_stage_ms": round(1000 * results["inline"] / stages, 1),
             "dask_per_stage_ms_incl_cluster_start": round(1000 * results["dask1"] / stages, 1),

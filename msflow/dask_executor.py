@@ -32,9 +32,13 @@ class DaskExecutor:
                                 f"({type(exc).__name__}); is it running and is the address right?",
                                 field="--scheduler") from None
         else:
+            import dask
+
             env = {var: "1" for var in BLAS_VARS}
-            self.cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True,
-                                        dashboard_address=None, env=env, silence_logs=40)
+            # the statistical profiler samples every worker's stack every 10 ms; msflow never reads it
+            with dask.config.set({"distributed.worker.profile.enabled": False}):
+                self.cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True,
+                                            dashboard_address=None, env=env, silence_logs=40)
             self.client = Client(self.cluster, set_as_default=False)
 
     def submit(self, job_json: str) -> Future:
