@@ -19,9 +19,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from msflow.testing import run_stage  # noqa: E402
-from stages.aam import AamModel, AamPca  # noqa: E402
-from stages.bilinear import BilinearFit, BilinearModel  # noqa: E402
-from stages.edit import (ExpressionEdit, analyse_style_content, analyse_takes, component_weights,  # noqa: E402
+from stages.face.aam import AamModel, AamPca  # noqa: E402
+from stages.face.bilinear import BilinearFit, BilinearModel  # noqa: E402
+from stages.face.edit import (ExpressionEdit, analyse_style_content, analyse_takes, component_weights,  # noqa: E402
                          edited_crops, initial_content)
 
 CLIPS = {"neutral": "NEU", "happy": "HAP", "angry": "ANG", "sad": "SAD"}

@@ -17,10 +17,10 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from head_synthetic import synth_database, synth_phrase, tracking_artifact  # noqa: E402
 from msflow.testing import run_stage  # noqa: E402
-from stages.headdb import TrackedHeadDb  # noqa: E402
-from stages.motion_blend import MotionBlend  # noqa: E402
-from stages.pitch import Pitch, praat_pitch  # noqa: E402
-from stages.trellis import Trellis  # noqa: E402
+from stages.head.database import TrackedHeadDb  # noqa: E402
+from stages.head.motion_blend import MotionBlend  # noqa: E402
+from stages.head.pitch import Pitch, praat_pitch  # noqa: E402
+from stages.head.trellis import Trellis  # noqa: E402
 
 
 def best_of(repeats: int, func):

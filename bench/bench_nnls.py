@@ -1,4 +1,4 @@
-"""Speed and accuracy of the batched NNLS solvers (stages.nnls) against a per-frame scipy.optimize.nnls loop.
+"""Speed and accuracy of the batched NNLS solvers (stages.geometry.nnls) against a per-frame scipy.optimize.nnls loop.
 
 Problems shaped like the keyshape decomposition (Eq 8): d = 136 (68 landmarks x 2), k keyshapes that all look
 alike (raw landmark shapes near the mean face, so the dictionary is ill-conditioned), frames = rows that move
@@ -18,7 +18,7 @@ from scipy.optimize import nnls as scipy_nnls
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stages.nnls import batched_nnls, kkt_violation  # noqa: E402
+from stages.geometry.nnls import batched_nnls, kkt_violation  # noqa: E402
 
 
 def keyshape_like_problem(frames: int, k: int, seed: int = 0):

@@ -1,4 +1,4 @@
-"""Render speed on one core: the numpy z-buffer of stages.render against OpenCV fillConvexPoly per triangle in
+"""Render speed on one core: the numpy z-buffer of stages.geometry.render against OpenCV fillConvexPoly per triangle in
 back-to-front order (painter's algorithm), on the embedded ICT FaceKit character, plus the whole preview path
 (pose + render + H.264 encode).
 
@@ -23,7 +23,7 @@ def painter_render(vertices, triangles, size, view, colors):
     """OpenCV alternative: cull back faces, sort by depth, fill each triangle with its flat Lambert shade."""
     import cv2
 
-    from stages.render import project, shade_vertices, vertex_normals_fast
+    from stages.geometry.render import project, shade_vertices, vertex_normals_fast
 
     cam, xy = project(vertices, view, size)
     p = xy[triangles]
@@ -60,9 +60,9 @@ def main():
     args = parser.parse_args()
 
     from msflow.testing import run_stage
-    from stages.character import GltfCharacter
-    from stages.export import encode_mp4
-    from stages.render import CharacterRenderer, render
+    from stages.retarget.character import GltfCharacter
+    from stages.export.animation import encode_mp4
+    from stages.geometry.render import CharacterRenderer, render
 
     character = run_stage(GltfCharacter, {}, {"mesh": ROOT / "data" / "characters" / "ict-facekit.glb"}).view()
     names = character.meta["target_names"]

@@ -23,7 +23,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from msflow.testing import run_stage  # noqa: E402
-from stages.rotations import quat_to_euler  # noqa: E402
+from stages.geometry.rotations import quat_to_euler  # noqa: E402
 from stages.tracking import FaceMesh, OpticalFlow, TrackFile  # noqa: E402
 from stages.tracking.assemble import inter_ocular  # noqa: E402
 from stages.tracking.stages import DETECTOR_MODEL, LANDMARK_MODEL  # noqa: E402

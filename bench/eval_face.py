@@ -41,10 +41,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from msflow.testing import run_stage  # noqa: E402
-from stages.aam import AamPca, fit_aam, generalised_procrustes, interocular_distance  # noqa: E402
-from stages.alignment import align_takes  # noqa: E402
-from stages.bilinear import content_features, fit_bilinear_model, reference_index  # noqa: E402
-from stages.edit import (ExpressionEdit, analyse_takes, classify_by_fit, classify_styles,  # noqa: E402
+from stages.face.aam import AamPca, fit_aam, generalised_procrustes, interocular_distance  # noqa: E402
+from stages.face.alignment import align_takes  # noqa: E402
+from stages.face.bilinear import content_features, fit_bilinear_model, reference_index  # noqa: E402
+from stages.face.edit import (ExpressionEdit, analyse_takes, classify_by_fit, classify_styles,  # noqa: E402
                          component_weights, jitter)
 
 CLIPS = {"neutral": "NEU", "happy": "HAP", "angry": "ANG", "disgust": "DIS", "fear": "FEA", "sad": "SAD"}

@@ -5,7 +5,7 @@ exclude_source), its audio drives the synthesis, and the result is compared with
   (1) Wasserstein-1 distance between angular-speed distributions (deg/s), synthesis vs real;
   (2) the largest angular acceleration within +-0.15 s of each join (deg/s^2; a fixed window, the same for every
       motion and every blend setting), against the real motion's 99th percentile and maximum; every motion is
-      measured at the synthesis's join times the same way (stages.motion_blend.join_acceleration: frame-difference
+      measured at the synthesis's join times the same way (stages.head.motion_blend.join_acceleration: frame-difference
       angular acceleration at the output rate, no smoothing);
   (3) correlation between voice pitch (semitones) and head-pitch velocity, synthesised and real.
 Baselines: random database segments stitched the same way (same test segments, same blending), and smooth noise
@@ -37,12 +37,12 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 from msflow.testing import artifact, run_stage  # noqa: E402
-from stages.headdb import TrackedHeadDb  # noqa: E402
-from stages.motion_blend import (JOIN_MEASURE_WINDOW, MotionBlend, _reference_angles,  # noqa: E402
+from stages.head.database import TrackedHeadDb  # noqa: E402
+from stages.head.motion_blend import (JOIN_MEASURE_WINDOW, MotionBlend, _reference_angles,  # noqa: E402
                                  angular_acceleration, database_motion, join_acceleration,
                                  pitch_velocity_correlation, synthesise, wasserstein_speed)
-from stages.pitch import Pitch, semitones  # noqa: E402
-from stages.trellis import Trellis  # noqa: E402
+from stages.head.pitch import Pitch, semitones  # noqa: E402
+from stages.head.trellis import Trellis  # noqa: E402
 
 
 def synthetic_inputs(n_phrases: int, seed: int):

@@ -37,13 +37,13 @@ def save_figure(fig, path):
 
 
 def main():
-    from stages.aam import AamPca
-    from stages.bilinear import BilinearFit
-    from stages.blend import Blend
-    from stages.character import GltfCharacter
-    from stages.edit import ExpressionEdit
-    from stages.keymorphs import KeymorphFit
-    from stages.keyshapes import Keyshapes
+    from stages.face.aam import AamPca
+    from stages.face.bilinear import BilinearFit
+    from stages.retarget.blend import Blend
+    from stages.retarget.character import GltfCharacter
+    from stages.face.edit import ExpressionEdit
+    from stages.retarget.keymorphs import KeymorphFit
+    from stages.retarget.keyshapes import Keyshapes
     from stages.tracking import FaceMesh
 
     train = timed("track_train", lambda: run_stage(FaceMesh, {}, {"videos": {

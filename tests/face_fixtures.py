@@ -53,7 +53,7 @@ def random_similarity(rng, n: int) -> np.ndarray:
 
 def synthetic_faces(n: int = 40, seed: int = 0, noise: float = 0.0):
     """Shapes (n, 68, 2) = similarity(template + coefficients @ modes) with known coefficients (n, 3)."""
-    from stages.aam import apply_similarity
+    from stages.face.aam import apply_similarity
 
     rng = np.random.default_rng(seed)
     coef = rng.normal(0, 1, (n, 3)) * np.array([0.5, 0.3, 0.2])
@@ -88,7 +88,7 @@ def training_tracks():
 @lru_cache(maxsize=None)
 def aam_run():
     from msflow.testing import run_stage
-    from stages.aam import AamPca
+    from stages.face.aam import AamPca
 
     return run_stage(AamPca, {}, {"tracks": training_tracks()})
 
@@ -96,7 +96,7 @@ def aam_run():
 @lru_cache(maxsize=None)
 def bilinear_run(align: str = "audio"):
     from msflow.testing import run_stage
-    from stages.bilinear import BilinearFit
+    from stages.face.bilinear import BilinearFit
 
     return run_stage(BilinearFit, {"align": align}, {"aam": aam_run(), "tracks": training_tracks()})
 
@@ -104,6 +104,6 @@ def bilinear_run(align: str = "audio"):
 @lru_cache(maxsize=None)
 def edit_run():
     from msflow.testing import run_stage
-    from stages.edit import ExpressionEdit
+    from stages.face.edit import ExpressionEdit
 
     return run_stage(ExpressionEdit, {}, {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")})

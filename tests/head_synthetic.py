@@ -144,7 +144,7 @@ def synth_database(n_phrases: int = 67, *, seed: int = 0, audio_rate: int = 1600
 def tracking_artifact(phrases: list[Phrase], fps: float = 30.0, *, audio_offset: float = 0.0):
     """A tracking-shaped artifact (rotation, translation, time, sequence, audio, audio_bounds, meta)."""
     from msflow.testing import artifact
-    from stages.rotations import euler_to_quat
+    from stages.geometry.rotations import euler_to_quat
 
     rot, trans, time, seq, audio, bounds = [], [], [], [], [], []
     cursor = 0

@@ -1,4 +1,4 @@
-"""Appearance model (stages.aam, paper Eq 1-3): Procrustes, PCA, texture sampling, project/reconstruct, stage."""
+"""Appearance model (stages.face.aam, paper Eq 1-3): Procrustes, PCA, texture sampling, project/reconstruct, stage."""
 import numpy as np
 import pytest
 from pydantic import ValidationError
@@ -6,7 +6,7 @@ from pydantic import ValidationError
 from face_fixtures import aam_run, face_template, synthetic_faces, tracked, training_tracks
 from msflow import UserError
 from msflow.testing import artifact, run_stage
-from stages.aam import (AamModel, AamPca, apply_similarity, canonical_pose, choose_modes, eye_centres, fit_aam,
+from stages.face.aam import (AamModel, AamPca, apply_similarity, canonical_pose, choose_modes, eye_centres, fit_aam,
                         fit_pca, generalised_procrustes, heldout_pca_error, interocular_distance, project,
                         reconstruct, similarity_align, temporal_folds)
 
@@ -103,7 +103,7 @@ def test_temporal_folds_hold_out_one_window_of_every_take():
 
 def painted_crops(shapes, model_points, texture_image, size=128):
     """Crops showing the same texture (in the model's texture frame) drawn onto each shape."""
-    from stages.warp import PiecewiseAffineWarp, delaunay_triangles
+    from stages.face.warp import PiecewiseAffineWarp, delaunay_triangles
 
     tri = delaunay_triangles(model_points)
     warp = PiecewiseAffineWarp(model_points, tri, (texture_image.shape[1], texture_image.shape[0]))
@@ -115,7 +115,7 @@ def painted_crops(shapes, model_points, texture_image, size=128):
 
 
 def test_fit_aam_on_synthetic_faces_recovers_shape_modes_and_a_rigid_texture():
-    from stages.aam import texture_reference
+    from stages.face.aam import texture_reference
 
     shapes, coef, similarity, _ = synthetic_faces(40, seed=5)
     points, size = texture_reference(canonical_pose(face_template()), 64)

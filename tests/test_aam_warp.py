@@ -1,10 +1,10 @@
-"""Piecewise-affine warp (stages.warp): identity, known affine maps, inverse warp, pixel coverage."""
+"""Piecewise-affine warp (stages.face.warp): identity, known affine maps, inverse warp, pixel coverage."""
 import numpy as np
 import pytest
 
 from face_fixtures import face_template
-from stages.aam import canonical_pose, texture_reference
-from stages.warp import (PiecewiseAffineWarp, barycentric, delaunay_triangles, nearest_inside_index,
+from stages.face.aam import canonical_pose, texture_reference
+from stages.face.warp import (PiecewiseAffineWarp, barycentric, delaunay_triangles, nearest_inside_index,
                          rasterise_triangles, triangle_signed_areas)
 
 

@@ -1,4 +1,4 @@
-"""Symmetric bilinear model (stages.bilinear, paper Eq 4, Tenenbaum & Freeman 2000) and the BilinearFit stage."""
+"""Symmetric bilinear model (stages.face.bilinear, paper Eq 4, Tenenbaum & Freeman 2000) and the BilinearFit stage."""
 import numpy as np
 import pytest
 from pydantic import ValidationError
@@ -6,7 +6,7 @@ from pydantic import ValidationError
 from face_fixtures import aam_run, bilinear_run, training_tracks
 from msflow import UserError
 from msflow.testing import artifact, run_stage
-from stages.bilinear import (BilinearFit, BilinearModel, check_dimensions, fit_bilinear_model,
+from stages.face.bilinear import (BilinearFit, BilinearModel, check_dimensions, fit_bilinear_model,
                              fit_symmetric_bilinear, stack_observations, subspace_angles, synthesise,
                              synthesise_grid, vector_transpose)
 

@@ -1,8 +1,8 @@
-"""Content alignment (stages.alignment): DTW against a plain reference implementation, known warps, MFCC features."""
+"""Content alignment (stages.face.alignment): DTW against a plain reference implementation, known warps, MFCC features."""
 import numpy as np
 import pytest
 
-from stages.alignment import (align_takes, aligned_index, dtw_cost_matrix, dtw_path, mfcc_at_frames,
+from stages.face.alignment import (align_takes, aligned_index, dtw_cost_matrix, dtw_path, mfcc_at_frames,
                               standardise_per_take)
 
 

@@ -7,7 +7,7 @@ from hypothesis.extra.numpy import arrays
 
 from msflow import UserError
 from msflow.testing import artifact, run_stage
-from stages.blend import (Blend, alpha_from_analysis, barycentric_coordinates, interpolate_keyframes,
+from stages.retarget.blend import (Blend, alpha_from_analysis, barycentric_coordinates, interpolate_keyframes,
                           project_to_simplex)
 
 TARGETS = ["neutral", "happy", "angry"]
@@ -253,8 +253,8 @@ def test_inconsistent_inputs_are_user_errors():
 def test_crema_blend_carries_the_expression_into_the_morph_weights():
     from test_keyshapes import crema_face_branch
 
-    from stages.character import GltfCharacter
-    from stages.keymorphs import KeymorphFit
+    from stages.retarget.character import GltfCharacter
+    from stages.retarget.keymorphs import KeymorphFit
 
     branch = crema_face_branch()
     character = run_stage(GltfCharacter, {}, {"mesh": {"path": "data/characters/ict-facekit.glb"}}).view()

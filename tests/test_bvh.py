@@ -1,12 +1,12 @@
-"""BVH reading/writing (stages.bvh) and the rotation helpers the head-motion area added to stages.rotations."""
+"""BVH reading/writing (stages.formats.bvh) and the rotation helpers the head-motion area added to stages.geometry.rotations."""
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from msflow import UserError
-from stages.bvh import BvhJoint, format_bvh, head_bvh, joint_rotation, joint_translation, parse_bvh
-from stages.rotations import (angular_velocity, euler_order_to_quat, euler_to_quat, quat_mean, quat_multiply,
+from stages.formats.bvh import BvhJoint, format_bvh, head_bvh, joint_rotation, joint_translation, parse_bvh
+from stages.geometry.rotations import (angular_velocity, euler_order_to_quat, euler_to_quat, quat_mean, quat_multiply,
                               quat_resample, quat_slerp, quat_to_euler_order, quat_to_matrix)
 
 ORDERS = ["XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX"]

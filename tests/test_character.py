@@ -9,9 +9,9 @@ import pytest
 
 from msflow import UserError
 from msflow.testing import run_stage
-from stages.character import (GltfCharacter, ObjBlendshapes, build_ict_character, mix_identity, parse_obj_faces,
+from stages.retarget.character import (GltfCharacter, ObjBlendshapes, build_ict_character, mix_identity, parse_obj_faces,
                               parse_obj_vertices)
-from stages.gltf import MaterialGroup, MorphMesh, read_morph_mesh, validate_glb, write_morph_glb
+from stages.formats.gltf import MaterialGroup, MorphMesh, read_morph_mesh, validate_glb, write_morph_glb
 
 ROOT = Path(__file__).resolve().parents[1]
 ICT_GLB = ROOT / "data" / "characters" / "ict-facekit.glb"
@@ -367,7 +367,7 @@ def test_embedded_character_files_size_and_validity():
     assert "MIT License" in (folder / "LICENSE").read_text()
     assert "Bladin" in (folder / "CREDITS.md").read_text()
     readme = (folder / "README.md").read_text()
-    assert "python -m stages.character build" in readme
+    assert "python -m stages.retarget.character build" in readme
     report = validate_glb(ICT_GLB.read_bytes())
     assert report["numErrors"] == 0 and report["numWarnings"] == 0, report["messages"]
 
@@ -394,7 +394,7 @@ def test_embedded_character_has_all_57_targets_and_sane_landmarks(ict):
 
 
 def test_embedded_character_is_the_default(ict):
-    from stages.character import DEFAULT_CHARACTER
+    from stages.retarget.character import DEFAULT_CHARACTER
 
     assert DEFAULT_CHARACTER == ICT_GLB.resolve()
     assert GltfCharacter.resources == {"character": DEFAULT_CHARACTER}
@@ -494,7 +494,7 @@ def sphere_quads(n_lat, n_lon, centre, radius):
 def test_figures_render_pngs(obj_folder):
     import cv2
 
-    from stages.character import figure_landmarks, figure_targets
+    from stages.retarget.character import figure_landmarks, figure_targets
 
     f = obj_folder
     out = run_stage(ObjBlendshapes, {"neutral": "neutral"},

@@ -1,4 +1,4 @@
-"""Expression analysis and editing (stages.edit, paper Eq 5-7) and the ExpressionEdit stage."""
+"""Expression analysis and editing (stages.face.edit, paper Eq 5-7) and the ExpressionEdit stage."""
 import io
 import warnings
 
@@ -9,8 +9,8 @@ from pydantic import ValidationError
 from face_fixtures import aam_run, bilinear_run, edit_run, tracked
 from msflow import UserError
 from msflow.testing import artifact, run_stage
-from stages.bilinear import fit_symmetric_bilinear, synthesise, synthesise_grid
-from stages.edit import (BilinearAnalyser, ExpressionEdit, Keyframe, analyse_style_content, check_extrapolation,
+from stages.face.bilinear import fit_symmetric_bilinear, synthesise, synthesise_grid
+from stages.face.edit import (BilinearAnalyser, ExpressionEdit, Keyframe, analyse_style_content, check_extrapolation,
                          classify_styles, edit_configuration, initial_content, interpolation_path, jitter,
                          keyframed_weights, solve_temporal, style_barycentric, weight_vector)
 
@@ -53,7 +53,7 @@ def test_analysis_recovers_barycentric_mixtures_and_fixes_the_gauge(synthetic):
 
 
 def _model(fit):
-    from stages.bilinear import BilinearModel
+    from stages.face.bilinear import BilinearModel
 
     return BilinearModel(fit.w, fit.style, fit.content, ["a", "b", "c"])
 
@@ -183,7 +183,7 @@ def test_edit_stage_outputs_follow_the_contract(tmp_path):
     np.testing.assert_allclose(a["style_weights"].sum(1), 1, atol=1e-8)
     assert sum(meta["classified_as"].values()) == frames
     # edited shapes live in the mean-shape frame (inter-ocular distance 1) and are the synthesis of y
-    from stages.aam import AamModel, interocular_distance
+    from stages.face.aam import AamModel, interocular_distance
 
     model = AamModel.from_view(aam_run().view())
     np.testing.assert_allclose(a["shapes"], model.reconstruct_shapes(model.split(a["y"])[0]), atol=1e-5)
@@ -301,8 +301,8 @@ def test_smoothing_in_the_stage_treats_each_take_as_its_own_sequence():
 # ----------------------------------------------------------------------------------------------- weighted analysis
 
 def test_component_weights_and_the_weighted_model():
-    from stages.bilinear import BilinearModel
-    from stages.edit import component_weights
+    from stages.face.bilinear import BilinearModel
+    from stages.face.edit import component_weights
 
     np.testing.assert_array_equal(component_weights(2, 5, 0.25), [0.25, 0.25, 1, 1, 1])
     rng = np.random.default_rng(7)
@@ -319,7 +319,7 @@ def test_component_weights_and_the_weighted_model():
 
 def test_weighted_analysis_reads_the_style_from_the_weighted_rows_and_the_content_from_all(synthetic):
     """With the first rows weighted 0, their values cannot change the style; the content is Eq 6 on every row."""
-    from stages.edit import analyse_takes, component_weights
+    from stages.face.edit import analyse_takes, component_weights
 
     fit = synthetic
     model = _model(fit)
@@ -349,7 +349,7 @@ def test_weighted_analysis_reads_the_style_from_the_weighted_rows_and_the_conten
 
 
 def test_classification_by_fit_is_the_maximum_likelihood_style(synthetic):
-    from stages.edit import classify_by_fit, style_fit_residuals
+    from stages.face.edit import classify_by_fit, style_fit_residuals
 
     fit = synthetic
     model = _model(fit)
@@ -370,8 +370,8 @@ def test_classification_by_fit_is_the_maximum_likelihood_style(synthetic):
 
 
 def test_edit_stage_analysis_weight_one_is_the_papers_analysis():
-    from stages.aam import AamModel
-    from stages.bilinear import BilinearModel
+    from stages.face.aam import AamModel
+    from stages.face.bilinear import BilinearModel
 
     inputs = {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")}
     paper = run_stage(ExpressionEdit, {"video": False, "targets": ["happy"], "analysis_shape_weight": 1.0}, inputs)

@@ -9,12 +9,12 @@ import pytest
 
 from msflow import UserError
 from msflow.testing import artifact, run_stage
-from stages.audio import decode_audio
-from stages.character import GltfCharacter
-from stages.export import (ANGLE_COLUMNS, ARKIT_NAMES, Export, align_head_motion, arkit_key, arkit_weights,
+from stages.formats.audio import decode_audio
+from stages.retarget.character import GltfCharacter
+from stages.export.animation import (ANGLE_COLUMNS, ARKIT_NAMES, Export, align_head_motion, arkit_key, arkit_weights,
                            format_timecode, live_link_csv)
-from stages.gltf import read_morph_mesh, validate_glb
-from stages.rotations import euler_to_quat, quat_to_euler
+from stages.formats.gltf import read_morph_mesh, validate_glb
+from stages.geometry.rotations import euler_to_quat, quat_to_euler
 
 ROOT = Path(__file__).resolve().parents[1]
 ICT_GLB = ROOT / "data" / "characters" / "ict-facekit.glb"
@@ -245,7 +245,7 @@ def test_preview_video_frames_rate_and_audio_offset(exported):
 
 
 def test_bvh_carries_the_head_rotation(exported):
-    from stages.bvh import joint_rotation, parse_bvh
+    from stages.formats.bvh import joint_rotation, parse_bvh
 
     bvh = parse_bvh(exported.arrays["head_bvh"].tobytes().decode())
     assert bvh.frames == FRAMES and bvh.fps == pytest.approx(FPS)
@@ -363,7 +363,7 @@ def test_real_take_audio_is_muxed(character):
 
 
 def test_figures(exported):
-    from stages.export import plot_curves, preview_video
+    from stages.export.animation import plot_curves, preview_video
 
     view = artifact(exported.arrays, exported.meta, exported.metrics)
     fig = plot_curves(view)

@@ -8,10 +8,10 @@ import pytest
 from head_synthetic import synth_database, synth_phrase, tracking_artifact
 from msflow import UserError
 from msflow.testing import artifact, run_stage
-from stages.bvh import head_bvh
-from stages.headdb import BvhHeadDb, CsvHeadDb, TrackedHeadDb
-from stages.pitch import Pitch, wav_bytes
-from stages.rotations import euler_to_quat, quat_mean
+from stages.formats.bvh import head_bvh
+from stages.head.database import BvhHeadDb, CsvHeadDb, TrackedHeadDb
+from stages.head.pitch import Pitch, wav_bytes
+from stages.geometry.rotations import euler_to_quat, quat_mean
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -86,7 +86,7 @@ def test_centring_removes_the_resting_pose(phrases):
     turned = tracking_artifact(phrases[:1], fps=30.0)
     rotation = turned["rotation"]
     offset = euler_to_quat(0.5, -0.2, 0.1)
-    from stages.rotations import quat_multiply
+    from stages.geometry.rotations import quat_multiply
 
     shifted = artifact({**{k: turned[k] for k in turned.names}, "rotation": quat_multiply(offset, rotation)},
                        turned.meta)

@@ -5,10 +5,10 @@ import pytest
 
 from msflow import UserError
 from msflow.testing import artifact, run_stage
-from stages.character import GltfCharacter
-from stages.keymorphs import (KeymorphFile, KeymorphFit, LandmarkRig, fit_similarity, format_keymorph_yaml,
+from stages.retarget.character import GltfCharacter
+from stages.retarget.keymorphs import (KeymorphFile, KeymorphFit, LandmarkRig, fit_similarity, format_keymorph_yaml,
                               parse_keymorph_yaml, project_front, symmetric_pairs, antagonist_pairs)
-from stages.keyshapes import inter_ocular_distance
+from stages.retarget.keyshapes import inter_ocular_distance
 
 ICT = "data/characters/ict-facekit.glb"
 
@@ -68,7 +68,7 @@ def keyshapes_from_weights(character, poses, noise=0.0, seed=0, rotations=None):
 
 def tracks_for(keyshapes, frames=30, size=96, rotations=None):
     """A tracking-like artifact: grey crops with a bright disk where each landmark is; head rotations."""
-    from stages.rotations import matrix_to_quat
+    from stages.geometry.rotations import matrix_to_quat
 
     shapes = keyshapes["keyshapes"]
     rotation = np.tile([1.0, 0.0, 0.0, 0.0], (frames, 1))
@@ -338,7 +338,7 @@ def test_tracking_that_does_not_match_the_keyshapes_is_a_user_error(character):
 
 
 def test_pose_correction_discounts_head_rotation(character):
-    from stages.rotations import euler_to_quat, quat_to_matrix
+    from stages.geometry.rotations import euler_to_quat, quat_to_matrix
 
     poses = [("neutral", {}), ("neutral", {}), ("neutral", {}), ("happy", {"mouthSmile_L": 0.6, "mouthSmile_R": 0.6}),
              ("angry", {"browDown_L": 0.6, "browDown_R": 0.6})]

@@ -1,4 +1,4 @@
-"""Keyshape selection (Sec 4.1) and the NNLS decomposition of edited sequences (Eq 8), stage stages.keyshapes."""
+"""Keyshape selection (Sec 4.1) and the NNLS decomposition of edited sequences (Eq 8), stage stages.retarget.keyshapes."""
 import functools
 from types import SimpleNamespace
 
@@ -9,7 +9,7 @@ from face_fixtures import face_modes as fixture_modes
 from face_fixtures import face_template
 from msflow import UserError
 from msflow.testing import artifact, run_stage
-from stages.keyshapes import (Keyshapes, decompose_into_keyshapes, inter_ocular_distance, mouth_opening,
+from stages.retarget.keyshapes import (Keyshapes, decompose_into_keyshapes, inter_ocular_distance, mouth_opening,
                               rest_shape, select_keyshapes)
 
 
@@ -277,9 +277,9 @@ def crema_face_branch():
     """CREMA-D actor 1001 through the face branch (FaceMesh tracking, aam, bilinear, edit of the SAD take towards
     every training expression) and the keyshapes: computed once per test session, shared by the retargeting
     test modules (they import this function)."""
-    from stages.aam import AamPca
-    from stages.bilinear import BilinearFit
-    from stages.edit import ExpressionEdit
+    from stages.face.aam import AamPca
+    from stages.face.bilinear import BilinearFit
+    from stages.face.edit import ExpressionEdit
     from stages.tracking import FaceMesh
 
     clip = "data/crema-d/1001_DFA_{}_XX.flv"

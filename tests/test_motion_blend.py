@@ -7,16 +7,16 @@ import pytest
 from head_synthetic import synth_database, tracking_artifact
 from msflow import UserError
 from msflow.testing import artifact, run_stage
-from stages.bvh import joint_rotation, joint_translation, parse_bvh
-from stages.headdb import TrackedHeadDb
+from stages.formats.bvh import joint_rotation, joint_translation, parse_bvh
+from stages.head.database import TrackedHeadDb
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stages.motion_blend import (DatabaseMotion, MotionBlend, _reference_angles, angular_acceleration,
+from stages.head.motion_blend import (DatabaseMotion, MotionBlend, _reference_angles, angular_acceleration,
                                  angular_speed, join_acceleration, join_windows, pitch_velocity_correlation,
                                  segment_weights, stitch_segments, wasserstein_speed)
-from stages.pitch import Pitch
-from stages.trellis import Trellis
+from stages.head.pitch import Pitch
+from stages.head.trellis import Trellis
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,11 +1,11 @@
-"""Batched NNLS (stages.nnls): agreement with scipy.optimize.nnls, the KKT conditions, options, bounded QP."""
+"""Batched NNLS (stages.geometry.nnls): agreement with scipy.optimize.nnls, the KKT conditions, options, bounded QP."""
 import numpy as np
 import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy.optimize import nnls as scipy_nnls
 
-from stages.nnls import batched_nnls, kkt_violation, projected_gradient, solve_box_qp
+from stages.geometry.nnls import batched_nnls, kkt_violation, projected_gradient, solve_box_qp
 
 
 def problem(seed, d=40, k=12, n=50, offset=0.0, sparsity=0.5, noise=0.3):

@@ -8,7 +8,7 @@ import pytest
 from head_synthetic import synth_phrase, tracking_artifact
 from msflow import UserError
 from msflow.testing import artifact, run_stage
-from stages.pitch import (PHRASE_FEATURES, Pitch, clean_pitch, phrase_features, segment_pitch, semitones,
+from stages.head.pitch import (PHRASE_FEATURES, Pitch, clean_pitch, phrase_features, segment_pitch, semitones,
                           voiced_runs, wav_bytes)
 
 ROOT = Path(__file__).resolve().parents[1]

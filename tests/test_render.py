@@ -4,7 +4,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages.render import CharacterRenderer, View, project, rasterize, render
+from stages.geometry.render import CharacterRenderer, View, project, rasterize, render
 
 ROOT = Path(__file__).resolve().parents[1]
 ICT_GLB = ROOT / "data" / "characters" / "ict-facekit.glb"
@@ -163,7 +163,7 @@ def test_named_views_and_supersampling():
 @pytest.fixture(scope="module")
 def ict():
     from msflow.testing import run_stage
-    from stages.character import GltfCharacter
+    from stages.retarget.character import GltfCharacter
 
     return run_stage(GltfCharacter, {}, {"mesh": ICT_GLB}).view()
 
@@ -182,7 +182,7 @@ def test_character_renderer_shows_the_face_and_its_expressions(ict):
     rows = np.nonzero(changed)[0]
     assert changed.mean() > 0.01
     assert rows.mean() > 256 * 0.55  # the jaw is in the lower half of the face framing
-    from stages.rotations import euler_to_quat
+    from stages.geometry.rotations import euler_to_quat
 
     turned = renderer(np.zeros(len(names)), rotation=euler_to_quat(0.4, 0.0, 0.0))
     assert np.abs(turned.astype(int) - neutral.astype(int)).mean() > 5

@@ -7,7 +7,7 @@ import pytest
 
 from msflow import UserError
 from msflow.testing import run_stage
-from stages.rotations import quat_to_euler
+from stages.geometry.rotations import quat_to_euler
 from stages.tracking import FaceMesh, OpticalFlow, TrackFile
 from stages.tracking.assemble import inter_ocular, rotation_steps_deg
 from stages.tracking.crops import eye_centres

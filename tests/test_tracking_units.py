@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from msflow import UserError
-from stages.rotations import euler_to_quat, quat_to_euler, quat_to_matrix
+from stages.geometry.rotations import euler_to_quat, quat_to_euler, quat_to_matrix
 from stages.tracking.blazeface import (ANCHORS, box_iou, decode_boxes, letterbox_transform, ssd_anchor_centres,
                                        weighted_nms)
 from stages.tracking.crops import apply_transforms, eye_centres, similarity_transform, similarity_transforms
@@ -186,7 +186,7 @@ def test_pitch_sign_looks_down(face3d):
 
 def test_openface_pose_conversion_agrees_with_solvepnp(face3d):
     """OpenFace's convention (R = Rx Ry Rz on a head model in OpenCV camera axes, T in mm) projected
-    independently, then recovered through solvePnP in the stages.rotations convention."""
+    independently, then recovered through solvePnP in the stages.geometry.rotations convention."""
     cam = camera_matrix(640, 480)
     euler_of = np.radians([[10, -20, 5], [-8, 15, -3]])
     t_mm = np.array([[20.0, -10.0, 700.0], [-30, 15, 650.0]])

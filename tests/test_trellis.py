@@ -9,9 +9,9 @@ from hypothesis import strategies as st
 from head_synthetic import synth_database, tracking_artifact
 from msflow import UserError
 from msflow.testing import artifact, run_stage
-from stages.headdb import TrackedHeadDb
-from stages.pitch import Pitch
-from stages.trellis import (Database, SegmentTable, Trellis, contour_geometry, references_of_test,
+from stages.head.database import TrackedHeadDb
+from stages.head.pitch import Pitch
+from stages.head.trellis import (Database, SegmentTable, Trellis, contour_geometry, references_of_test,
                             segment_distances, smoothness_weights, transition_costs, viterbi)
 
 
@@ -223,7 +223,7 @@ def test_sub_sentences_are_searched_separately(database, test_pitch):
 
 def _transition_costs_of(run, chosen, database):
     """C of a given path under the run's weights (for comparing paths)."""
-    from stages.trellis import build_database
+    from stages.head.trellis import build_database
 
     db, _ = build_database(database[0].view(), database[1].view(), unit="semitones", length=None, window=0.1)
     sub = run.arrays["subsentence_start"]

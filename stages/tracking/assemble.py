@@ -11,7 +11,7 @@ from pydantic import Field
 
 from msflow import Result, UserError
 from msflow.stage import Params
-from stages.rotations import quat_multiply, quat_conjugate, quat_to_euler, quat_to_rotvec
+from stages.geometry.rotations import quat_multiply, quat_conjugate, quat_to_euler, quat_to_rotvec
 from stages.tracking.crops import apply_transforms, similarity_transform, similarity_transforms, warp_crop
 from stages.tracking.face3d import DEFAULT_FACE3D, Face3D, load_face3d
 from stages.tracking.landmarks68 import NOSE_BRIDGE_TOP
@@ -124,7 +124,7 @@ def pose_point_indices(params: TrackingParams, face3d: Face3D) -> np.ndarray | N
 
 def load_audio(seq: SequenceTrack, params: TrackingParams):
     """DecodedAudio of the sequence's video, or None (audio 'none', or 'optional' and there is none)."""
-    from stages.audio import decode_audio
+    from stages.formats.audio import decode_audio
 
     if params.audio == "none":
         return None

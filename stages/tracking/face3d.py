@@ -4,7 +4,7 @@ the ICT FaceKit neutral mesh (plus their expression and identity offsets).
 ``extract_ict_landmarks`` builds ``data/face3d/ict_landmarks68.json`` once from an ICT FaceKit copy
 (``generic_neutral_mesh.obj.gz`` + ``vertex_indices.json["idx_to_landmark_verts"]``); the stages read only the
 JSON. Units are the FaceKit's centimetres; axes are glTF's head frame (x to the viewer's right when the face
-looks at the viewer, y up, z out of the face), the frame of stages.rotations.
+looks at the viewer, y up, z out of the face), the frame of stages.geometry.rotations.
 """
 from __future__ import annotations
 
@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from msflow import UserError
+from stages.data import DATA
 
-ROOT = Path(__file__).resolve().parents[2]
-DEFAULT_FACE3D = ROOT / "data" / "face3d" / "ict_landmarks68.json"
+DEFAULT_FACE3D = DATA / "face3d" / "ict_landmarks68.json"
 
 
 def read_obj_vertices(path: str | Path) -> np.ndarray:

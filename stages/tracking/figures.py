@@ -122,7 +122,7 @@ def head_pose_figure(view, inputs: dict | None = None):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from stages.rotations import quat_to_euler
+    from stages.geometry.rotations import quat_to_euler
 
     euler = np.degrees(quat_to_euler(view["rotation"]))
     time, sequence = view["time"], view["sequence"]

@@ -3,14 +3,14 @@
 The 3D face is the 68 ICT FaceKit landmark vertices (cm, glTF head frame). A pinhole camera with square pixels,
 principal point at the image centre and an assumed focal length (pixels) is the only camera model: the pose is
 the rigid motion that best reprojects the 3D landmarks onto the tracked ones. OpenCV's camera frame (x right,
-y down, z forward) is converted to the stages.rotations convention: glTF axes (x right, y up, z towards the
+y down, z forward) is converted to the stages.geometry.rotations convention: glTF axes (x right, y up, z towards the
 viewer), identity = the head facing the camera upright. With C = diag(1, -1, -1): R = C R_cv, t = C t_cv.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from stages.rotations import matrix_to_quat, quat_continuous
+from stages.geometry.rotations import matrix_to_quat, quat_continuous
 
 CV_TO_GLTF = np.diag([1.0, -1.0, -1.0])
 
@@ -61,7 +61,7 @@ def solve_head_pose(landmarks: np.ndarray, face3d: np.ndarray, camera: np.ndarra
 def project_face(face3d: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
                  camera: np.ndarray) -> np.ndarray:
     """Image points (frames, P, 2) of 3D points (P, 3) under glTF-convention poses (inverse of solve_head_pose)."""
-    from stages.rotations import quat_to_matrix
+    from stages.geometry.rotations import quat_to_matrix
 
     r = quat_to_matrix(rotation)                                  # (frames, 3, 3)
     cam_gl = np.einsum("fij,pj->fpi", r, face3d) + np.asarray(translation)[:, None, :]
@@ -71,7 +71,7 @@ def project_face(face3d: np.ndarray, rotation: np.ndarray, translation: np.ndarr
 
 
 def openface_pose_to_gltf(euler_xyz: np.ndarray, translation_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """OpenFace 2.0 pose columns to the stages.rotations convention.
+    """OpenFace 2.0 pose columns to the stages.geometry.rotations convention.
 
     OpenFace: R = Rx(pose_Rx) Ry(pose_Ry) Rz(pose_Rz) acting on its head model, whose axes match OpenCV's
     camera when the head faces the camera (x right, y down, z away); pose_T in millimetres, camera axes. So

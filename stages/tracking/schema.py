@@ -17,7 +17,7 @@ TRACKING_OUTPUTS = {
     "time": Output.array("f", shape=("frames",), dtype="float64", doc="seconds since the sequence's first frame"),
     "sequence": Output.array("i", shape=("frames",), dtype="int32", doc="index into meta['labels']"),
     "rotation": Output.array("f", shape=("frames", 4), dtype="float64",
-                             doc="head rotation, unit quaternion (w, x, y, z) in the stages.rotations convention"),
+                             doc="head rotation, unit quaternion (w, x, y, z) in the stages.geometry.rotations convention"),
     "translation": Output.array("f", shape=("frames", 3), dtype="float64",
                                 doc="head position in camera space, glTF axes, units in meta['translation_units']"),
     "crops": Output.array("u", shape=("frames", None, None), dtype="uint8",

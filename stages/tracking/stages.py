@@ -12,13 +12,14 @@ from pydantic import Field
 from msflow import Input, Result, Stage, UserError
 from stages.tracking.assemble import CropCollector, SequenceTrack, TrackingParams, assemble, resolve_face3d
 from stages.tracking.crops import to_gray
+from stages.data import DATA
 from stages.tracking.figures import FIGURES
 from stages.tracking.gaps import fill_face_gaps, interpolate_gaps
 from stages.tracking.landmarks68 import mesh_to_ibug68
 from stages.tracking.schema import TRACKING_OUTPUTS
 from stages.tracking.video import iter_frames, probe_video
 
-MODELS = Path(__file__).resolve().parents[2] / "data" / "models" / "mediapipe-face"
+MODELS = DATA / "models" / "mediapipe-face"
 DETECTOR_MODEL = MODELS / "face_detection_short_range.tflite"
 LANDMARK_MODEL = MODELS / "face_landmark.tflite"
 
@@ -27,7 +28,7 @@ FACE3D_DOC = "optional 3D face for head pose: a JSON file with 'neutral' (68, 3)
 MODELS_DOC = "optional MediaPipe models: labels 'detector' and 'landmarks' (.tflite); default data/models"
 
 # default data files the stages read when no input overrides them: hashed into the cache key
-DEFAULT_FACE3D_FILE = Path(__file__).resolve().parents[2] / "data" / "face3d" / "ict_landmarks68.json"
+DEFAULT_FACE3D_FILE = DATA / "face3d" / "ict_landmarks68.json"
 MESH_RESOURCES = {"detector": DETECTOR_MODEL, "landmarks": LANDMARK_MODEL, "face3d": DEFAULT_FACE3D_FILE}
 
 
@@ -261,7 +262,7 @@ class TrackFileParams(TrackingParams):
                                                "no video is given (needed for head pose)")
     pose_source: Literal["landmarks", "file"] = Field(
         "landmarks", description="'landmarks': solvePnP like the other implementations; 'file': the OpenFace "
-        "CSV's pose_T/pose_R columns converted to the stages.rotations convention")
+        "CSV's pose_T/pose_R columns converted to the stages.geometry.rotations convention")
     audio: Literal["required", "optional", "none"] = Field(
         "optional", description="audio from the videos, when given")
 

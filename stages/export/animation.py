@@ -5,8 +5,8 @@
   on its ``Head`` node (valid for the Khronos glTF Validator: no errors, no warnings);
 - a Live Link Face CSV: ``Timecode, BlendShapeCount``, the 52 ARKit blendshapes in PascalCase, then head and eye
   angles (61 values per row), as the Live Link Face app records them;
-- a preview MP4: the character rendered (stages.render) at the pipeline fps with the take's audio muxed in;
-- a BVH of the head joint, given head motion (stages.bvh).
+- a preview MP4: the character rendered (stages.geometry.render) at the pipeline fps with the take's audio muxed in;
+- a BVH of the head joint, given head motion (stages.formats.bvh).
 
 Streams are on one timeline: frame i of the blend weights is at i / fps seconds, the take's audio is placed by its
 ``audio_offset`` (start of the audio relative to the first video frame). A head motion at another frame rate is an
@@ -22,7 +22,7 @@ from fractions import Fraction
 import numpy as np
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.rotations import quat_continuous, quat_normalize, quat_slerp, quat_to_euler
+from stages.geometry.rotations import quat_continuous, quat_normalize, quat_slerp, quat_to_euler
 
 #: the 52 ARKit blendshapes in the column order of Live Link Face CSV files
 ARKIT_NAMES = [
@@ -353,7 +353,7 @@ class Export(Stage):
         supersample: int = 1
 
     inputs = {
-        "character": Input.artifact("neutral", "triangles", "deltas", "landmark_ids", doc="stages.character"),
+        "character": Input.artifact("neutral", "triangles", "deltas", "landmark_ids", doc="stages.retarget.character"),
         "blend": Input.artifact("weights", doc="morph weights (frames, M) in [0, 1], meta target_names, fps"),
         "head": Input.artifact("rotation", "translation", optional=True, doc="head motion, meta fps"),
         "audio": Input.artifact(optional=True, doc="a tracking artifact with the take's audio"),
@@ -375,7 +375,7 @@ class Export(Stage):
     }
 
     def run(self, params, inputs):
-        from stages.gltf import Animation, MaterialGroup, MorphMesh, write_morph_glb
+        from stages.formats.gltf import Animation, MaterialGroup, MorphMesh, write_morph_glb
 
         if params.head_translation not in ("relative", "absolute", "none"):
             raise UserError("head_translation must be 'relative', 'absolute' or 'none'",
@@ -445,7 +445,7 @@ class Export(Stage):
                                  "headPivot": list(pivot)}, name="Character")
         animation = Animation(times=times, weights=weights, rotation=rotation, translation=translation,
                               pivot=pivot)
-        glb = write_morph_glb(mesh, animation=animation, generator="msflow stages.export",
+        glb = write_morph_glb(mesh, animation=animation, generator="msflow stages.export.animation",
                               scene_extras={"fps": fps, "take": label})
 
         arkit, sources = arkit_weights(weights, char_names)
@@ -461,7 +461,7 @@ class Export(Stage):
         arrays = {"animation": glb, "live_link": csv, "weights": weights.astype(np.float32),
                   "arkit": arkit.astype(np.float32), "time": times}
         if rotation is not None:
-            from stages.bvh import head_bvh
+            from stages.formats.bvh import head_bvh
 
             arrays["head_rotation"] = rotation
             arrays["head_translation"] = translation
@@ -483,8 +483,8 @@ class Export(Stage):
 
 def render_preview(character, weights: np.ndarray, rotation, translation, fps: float, params, audio=None,
                    audio_rate=None) -> tuple[bytes, str]:
-    """Render every frame (stages.render) and encode the MP4 (frames stream into the encoder one by one)."""
-    from stages.render import CharacterRenderer
+    """Render every frame (stages.geometry.render) and encode the MP4 (frames stream into the encoder one by one)."""
+    from stages.geometry.render import CharacterRenderer
 
     size = int(params.video_size) // 2 * 2  # yuv420p needs even sides
     renderer = CharacterRenderer.from_artifact(character, size=size, framing=params.framing, yaw=params.view_yaw,

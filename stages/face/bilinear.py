@@ -6,7 +6,7 @@ Arrays here use a 3-D layout instead of the stacked matrices: observations Y[s, 
 style vectors as rows style[s] (= a^s), content vectors as rows content[c] (= b^c). ``vector_transpose``
 converts between the stacked matrices the algorithm is written in.
 
-The stage first time-aligns the training takes (stages.alignment, DTW) so that column c of Y holds the same speech
+The stage first time-aligns the training takes (stages.face.alignment, DTW) so that column c of Y holds the same speech
 content in every expression, then fits the model. One addition to the paper: the configuration vectors are centred
 PCA coordinates, so the model also sees the mean face as a constant extra component (``BilinearModel``,
 ``mean_weight``); without it, frames near the mean face have no defined style and the out-of-sample analysis
@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import Field
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.alignment import align_takes, audio_features, check_takes, mouth_features
+from stages.face.alignment import align_takes, audio_features, check_takes, mouth_features
 
 
 # ----------------------------------------------------------------------------------------------- algebra

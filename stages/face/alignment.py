@@ -152,7 +152,7 @@ def audio_features(audio: np.ndarray, audio_bounds: np.ndarray, rate: float, fra
 def mouth_features(aligned_shapes: np.ndarray, sequence: np.ndarray, n_takes: int, variance: float = 0.95,
                    max_modes: int = 8) -> list[np.ndarray]:
     """Per take: mouth-region shape parameters (PCA of the aligned mouth points over all takes), take mean removed."""
-    from stages.aam import IBUG68_MOUTH, fit_pca
+    from stages.face.aam import IBUG68_MOUTH, fit_pca
 
     mouth = np.asarray(aligned_shapes, dtype=np.float64)[:, IBUG68_MOUTH].reshape(len(aligned_shapes), -1)
     pca = fit_pca(mouth, variance, max_modes=max_modes)

@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.keyshapes import IBUG68_CONTOURS, inter_ocular_distance
-from stages.nnls import solve_box_qp
+from stages.retarget.keyshapes import IBUG68_CONTOURS, inter_ocular_distance
+from stages.geometry.nnls import solve_box_qp
 
 #: landmarks that fix the similarity between actor and character: eyes (36-47) and nose (27-35) barely move
 #: with expression, unlike the jaw line, brows and lips
@@ -384,8 +384,8 @@ def face_crop_tile(crop: np.ndarray, landmarks: np.ndarray, size: int) -> np.nda
 
 
 def render_keymorph_tiles(character, weights: np.ndarray, size: int, supersample: int = 2) -> list[np.ndarray]:
-    """The character's face from the front (stages.render, "face" framing) posed by each row of ``weights``."""
-    from stages.render import CharacterRenderer, View
+    """The character's face from the front (stages.geometry.render, "face" framing) posed by each row of ``weights``."""
+    from stages.geometry.render import CharacterRenderer, View
 
     # frame the landmarks tightly (brows to chin), like the tracking crops beside them
     points = np.asarray(character["neutral"], np.float64)[np.asarray(character["landmark_ids"])]
@@ -472,7 +472,7 @@ def figure_contact_sheet(view, inputs):
 
 def figure_landmark_fit(view, inputs):
     """Keyshape landmarks (black) against the landmarks the keymorph gives the character (red), per keyshape."""
-    from stages.keyshapes import plot_keyshape_grid
+    from stages.retarget.keyshapes import plot_keyshape_grid
 
     keyshapes = inputs["keyshapes"]
     errors = view["landmark_error"]
@@ -537,7 +537,7 @@ class _KeymorphStage(Stage):
 
     @staticmethod
     def _pose_effects(rig: LandmarkRig, character, keyshapes, rotation: np.ndarray) -> np.ndarray:
-        from stages.rotations import quat_mean, quat_to_matrix
+        from stages.geometry.rotations import quat_mean, quat_to_matrix
 
         frames = np.asarray(keyshapes["keyshape_frame"])
         rest = np.asarray(keyshapes["rest_frames"])
@@ -658,7 +658,7 @@ class KeymorphFit(_KeymorphStage):
         errors = landmark_errors(prepared.rig, prepared.shapes, weights, prepared.scale, prepared.pose)
         header = ("Keymorphs: expression -> keyshape id -> {morph target: weight in [0, 1]} (paper Sec 4.3).\n"
                   "First draft fitted by KeymorphFit to the keyshapes' landmarks: edit freely and load it with\n"
-                  "stages.keymorphs:KeymorphFile. Targets left out are 0; {} is the neutral face.\n"
+                  "stages.retarget.keymorphs:KeymorphFile. Targets left out are 0; {} is the neutral face.\n"
                   + textwrap.fill("Character targets: " + ", ".join(names), 110, subsequent_indent="  "))
         yaml_text = format_keymorph_yaml(list(keyshapes.meta["labels"]), keyshapes["keyshape_expression"],
                                          keyshapes["keyshape_index"], weights, names,

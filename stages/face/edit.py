@@ -45,8 +45,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.aam import AamModel, apply_similarity, check_landmark_scheme, check_landmarks
-from stages.bilinear import BilinearModel, synthesise, synthesise_grid
+from stages.face.aam import AamModel, apply_similarity, check_landmark_scheme, check_landmarks
+from stages.face.bilinear import BilinearModel, synthesise, synthesise_grid
 
 # ----------------------------------------------------------------------------------------------- analysis
 

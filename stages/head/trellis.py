@@ -24,7 +24,7 @@ from typing import Literal
 import numpy as np
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.pitch import semitones
+from stages.head.pitch import semitones
 
 GEOMETRY_FEATURES = ("min", "max", "range", "min_slope", "max_slope", "curvature")
 

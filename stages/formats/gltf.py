@@ -8,7 +8,7 @@ accessor, unit normals and quaternions, strictly increasing key times, plain Pyt
 silently writes an empty file when handed numpy scalars).
 
 glTF conventions used: metres, +y up, the character faces +z; quaternions in glTF are (x, y, z, w) while
-``stages.rotations`` uses (w, x, y, z): conversion happens here and nowhere else.
+``stages.geometry.rotations`` uses (w, x, y, z): conversion happens here and nowhere else.
 """
 from __future__ import annotations
 
@@ -66,7 +66,7 @@ class Animation:
     """Keyframes sampled at ``times`` (seconds, strictly increasing), played with LINEAR interpolation.
 
     ``weights`` (frames, M) drive the morph targets in the mesh's target order; ``rotation`` (frames, 4) is in the
-    stages.rotations (w, x, y, z) convention and ``translation`` (frames, 3) in metres: both animate the head node,
+    stages.geometry.rotations (w, x, y, z) convention and ``translation`` (frames, 3) in metres: both animate the head node,
     which turns about ``pivot`` (a point in mesh coordinates, e.g. the top of the neck).
     """
 
@@ -176,7 +176,7 @@ def _node_world_matrices(gltf) -> dict[int, np.ndarray]:
     def local(node) -> np.ndarray:
         if node.matrix:
             return np.asarray(node.matrix, dtype=np.float64).reshape(4, 4).T  # glTF stores column-major
-        from stages.rotations import quat_to_matrix
+        from stages.geometry.rotations import quat_to_matrix
 
         m = np.eye(4)
         scale = np.asarray(node.scale if node.scale else [1, 1, 1], dtype=np.float64)
@@ -539,7 +539,7 @@ def _animation(bin_: _BinaryBuilder, anim: Animation, n_targets: int, pivot: lis
             raise ValueError(f"animation weights {w.shape}, expected {(len(times), n_targets)}")
         channel(w.reshape(-1), "SCALAR", 1, "weights", "morph weights")
     if anim.rotation is not None:
-        from stages.rotations import quat_continuous, quat_normalize
+        from stages.geometry.rotations import quat_continuous, quat_normalize
 
         q = quat_continuous(quat_normalize(np.asarray(anim.rotation, dtype=np.float64)))
         if q.shape != (len(times), 4):
@@ -579,7 +579,9 @@ def validate_glb(data: bytes, *, project_root: Path | None = None, timeout: floa
     import shutil
     import subprocess
 
-    root = Path(project_root) if project_root else Path(__file__).resolve().parents[1]
+    from stages.data import PROJECT_ROOT
+
+    root = Path(project_root) if project_root else PROJECT_ROOT
     node = shutil.which("node")
     if node is None:
         raise RuntimeError("node (Node.js) is not installed; the glTF validator needs it")

@@ -4,7 +4,7 @@ Per training expression s, PCA of that expression's aligned landmark shapes; fro
 axis on, the frames with the maximum and the minimum projection are keyshapes B^(s), k_s of them from the first
 k_s/2 axes; a candidate within ``dedupe_threshold`` of an already chosen keyshape is dropped (being chosen
 later, it comes from the lower-variance axis). Every frame x^(s)(t) of the sequence edited towards expression s
-is then written as x^(s)(t) ~ sum_i w_i(t) B_i^(s), w_i >= 0, solved for all frames at once (stages.nnls).
+is then written as x^(s)(t) ~ sum_i w_i(t) B_i^(s), w_i >= 0, solved for all frames at once (stages.geometry.nnls).
 
 Distances are measured in the aam mean-shape frame relative to the inter-ocular distance (outer eye corners,
 iBUG points 36 and 45, the 300-W convention) of the mean training shape, so thresholds and residuals do not
@@ -18,7 +18,7 @@ from typing import Literal
 import numpy as np
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.nnls import batched_nnls
+from stages.geometry.nnls import batched_nnls
 
 #: iBUG-68 polylines (point ranges; closed ones repeat their first point) for drawing shapes
 IBUG68_CONTOURS: tuple[tuple[int, ...], ...] = (

@@ -2,7 +2,7 @@
 
 BVH rotations are intrinsic Euler angles in degrees, composed in the order the channels are listed
 ("Zrotation Xrotation Yrotation" is R = R_Z R_X R_Y). BVH's usual axes (y up, the character facing +z, its left
-towards +x) are the glTF axes of stages.rotations, so a joint's local rotation maps to a quaternion unchanged.
+towards +x) are the glTF axes of stages.geometry.rotations, so a joint's local rotation maps to a quaternion unchanged.
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from msflow import UserError
-from stages.rotations import euler_order_to_quat, quat_to_euler_order
+from stages.geometry.rotations import euler_order_to_quat, quat_to_euler_order
 
 POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
 ROTATION_CHANNELS = ("Xrotation", "Yrotation", "Zrotation")

@@ -19,12 +19,12 @@ from typing import Literal
 import numpy as np
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.rotations import (euler_order_to_quat, mirror_quat, quat_conjugate, quat_continuous, quat_mean,
+from stages.geometry.rotations import (euler_order_to_quat, mirror_quat, quat_conjugate, quat_continuous, quat_mean,
                               quat_multiply, quat_normalize, quat_resample, quat_to_euler, quat_to_matrix)
 
 HEADDB_OUTPUTS = {
     "rotation": Output.array("f", shape=("frames", 4), dtype="float64",
-                             doc="unit quaternions (stages.rotations), relative to each sequence's mean pose "
+                             doc="unit quaternions (stages.geometry.rotations), relative to each sequence's mean pose "
                                  "when meta center is true"),
     "translation": Output.array("f", shape=("frames", 3), dtype="float64", doc="glTF axes, meta translation_units"),
     "angles": Output.array("f", shape=("frames", 3), dtype="float64", doc="yaw, pitch, roll in radians"),
@@ -232,7 +232,7 @@ def _paired(motion: dict, audio: dict, kind: str) -> list[tuple[str, object, obj
 
 
 def _decode(path, rate: int, label: str):
-    from stages.audio import decode_audio
+    from stages.formats.audio import decode_audio
 
     return decode_audio(path, rate, field=f"inputs.audio.{label}").samples
 
@@ -255,7 +255,7 @@ class BvhHeadDb(Stage):
     outputs = HEADDB_OUTPUTS
 
     def run(self, params, inputs):
-        from stages.bvh import joint_rotation, joint_translation, read_bvh
+        from stages.formats.bvh import joint_rotation, joint_translation, read_bvh
 
         recordings, rates = [], []
         for label, motion_path, audio_path in _paired(inputs["motion"], inputs["audio"], "motion"):

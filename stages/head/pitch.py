@@ -256,7 +256,7 @@ def utterances_from_artifact(view, field: str = "inputs.source") -> list[Utteran
 
 
 def utterances_from_files(files: dict, rate: int, field: str = "inputs.audio") -> list[Utterance]:
-    from stages.audio import decode_audio
+    from stages.formats.audio import decode_audio
 
     out = []
     for label, path in files.items():

@@ -40,8 +40,8 @@ class View:
     def fit(cls, points: np.ndarray, *, yaw: float = 0.0, pitch: float = 0.0, margin: float = 1.1,
             **kwargs) -> "View":
         """Frame ``points`` (e.g. the neutral mesh, or its face landmarks) seen from ``yaw``/``pitch`` radians
-        (stages.rotations convention: yaw about +y, pitch about +x)."""
-        from stages.rotations import euler_to_quat, quat_to_matrix
+        (stages.geometry.rotations convention: yaw about +y, pitch about +x)."""
+        from stages.geometry.rotations import euler_to_quat, quat_to_matrix
 
         rot = quat_to_matrix(euler_to_quat(-yaw, -pitch, 0.0))  # turn the world the other way to move the eye
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -287,7 +287,7 @@ class CharacterRenderer:
 
     @classmethod
     def from_artifact(cls, character, **kwargs) -> "CharacterRenderer":
-        """From a character artifact (ArtifactView of stages.character)."""
+        """From a character artifact (ArtifactView of stages.retarget.character)."""
         meta = character.meta
         groups = character["triangle_groups"] if "triangle_groups" in character else None
         kwargs.setdefault("pivot", meta.get("pivot"))
@@ -306,7 +306,7 @@ class CharacterRenderer:
             if active.size:
                 v = v + (w[active] @ self.deltas[active]).reshape(-1, 3)
         if rotation is not None:
-            from stages.rotations import quat_to_matrix
+            from stages.geometry.rotations import quat_to_matrix
 
             r = quat_to_matrix(np.asarray(rotation, dtype=np.float64)).astype(np.float32)
             v = (v - self.pivot.astype(np.float32)) @ r.T + self.pivot.astype(np.float32)

@@ -32,7 +32,7 @@ from typing import Literal
 import numpy as np
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.rotations import euler_to_quat, quat_to_euler
+from stages.geometry.rotations import euler_to_quat, quat_to_euler
 
 
 @dataclass
@@ -92,8 +92,8 @@ def join_velocity_mismatch(db: DatabaseMotion, prev_sequence: np.ndarray, prev_t
     """Velocity step (joins, channels) per output second between the outgoing segment's continuation (database
     ``prev_time``) and the incoming segment's start (``next_time``), each time-warped by its ``scale`` (database
     seconds per output second). Velocities are the same least-squares parabola fits over +-``window`` database
-    seconds that the trellis's transition cost H uses (stages.trellis.boundary_kinematics)."""
-    from stages.trellis import boundary_kinematics
+    seconds that the trellis's transition cost H uses (stages.head.trellis.boundary_kinematics)."""
+    from stages.head.trellis import boundary_kinematics
 
     if len(prev_time) == 0:
         return np.zeros((0, db.channels.shape[1]))
@@ -361,7 +361,7 @@ JOIN_MEASURE_WINDOW = 0.15   # seconds either side of a join over which join acc
 
 def angular_speed(angles: np.ndarray, fps: float) -> np.ndarray:
     """Angular speed (frames - 1,) in degrees per second from (yaw, pitch, roll) angles in radians."""
-    from stages.rotations import angular_velocity
+    from stages.geometry.rotations import angular_velocity
 
     q = euler_to_quat(angles[:, 0], angles[:, 1], angles[:, 2])
     return np.degrees(np.linalg.norm(angular_velocity(q, fps), axis=1))
@@ -369,7 +369,7 @@ def angular_speed(angles: np.ndarray, fps: float) -> np.ndarray:
 
 def angular_acceleration(angles: np.ndarray, fps: float) -> np.ndarray:
     """Magnitude of angular acceleration (frames - 2,) in degrees per second^2."""
-    from stages.rotations import angular_velocity
+    from stages.geometry.rotations import angular_velocity
 
     q = euler_to_quat(angles[:, 0], angles[:, 1], angles[:, 2])
     w = angular_velocity(q, fps)
@@ -411,7 +411,7 @@ def pitch_velocity_correlation(angles: np.ndarray, fps: float, f0_time: np.ndarr
 # ---------------------------------------------------------------------------------------------- the stage
 
 MOTION_BLEND_OUTPUTS = {
-    "rotation": Output.array("f", shape=("frames", 4), dtype="float64", doc="unit quaternions (stages.rotations)"),
+    "rotation": Output.array("f", shape=("frames", 4), dtype="float64", doc="unit quaternions (stages.geometry.rotations)"),
     "translation": Output.array("f", shape=("frames", 3), dtype="float64", doc="offset from the rest position"),
     "angles": Output.array("f", shape=("frames", 3), dtype="float64", doc="yaw, pitch, roll in radians"),
     "time": Output.array("f", shape=("frames",), dtype="float64", doc="seconds since the utterance's start"),
@@ -430,7 +430,7 @@ MOTION_BLEND_OUTPUTS = {
 def _reference_angles(view, label: str, n_labels: int, fps: float) -> np.ndarray | None:
     """The real head motion of ``label`` from a tracking or headdb artifact, centred like the database and
     resampled to ``fps``; None when it has no such sequence."""
-    from stages.headdb import center_motion, resample_motion
+    from stages.head.database import center_motion, resample_motion
 
     labels = list(view.meta.get("labels") or [])
     if label in labels:
@@ -520,7 +520,7 @@ class MotionBlend(Stage):
     figures = {"head_angles": _plot_head_angles}
 
     def run(self, params, inputs):
-        from stages.bvh import head_bvh
+        from stages.formats.bvh import head_bvh
 
         trellis, database = inputs["trellis"], inputs["database"]
         db_labels = list(database.meta.get("labels") or [])

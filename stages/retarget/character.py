@@ -9,7 +9,7 @@ Implementations:
 Both can mix an identity: neutral + sum_i c_i (identity_i - neutral), the expression deltas transfer unchanged.
 
 The embedded default character, data/characters/ict-facekit.glb, is built from the ICT FaceKit OBJs by this module:
-``python -m stages.character build /path/to/ict-facekit data/characters/ict-facekit.glb``.
+``python -m stages.retarget.character build /path/to/ict-facekit data/characters/ict-facekit.glb``.
 """
 from __future__ import annotations
 
@@ -22,10 +22,11 @@ from typing import Any
 import numpy as np
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.gltf import MaterialGroup, MorphMesh, read_morph_mesh, write_morph_glb
+from stages.data import DATA
+from stages.formats.gltf import MaterialGroup, MorphMesh, read_morph_mesh, write_morph_glb
 
-#: the embedded default character (built by ``python -m stages.character build``)
-DEFAULT_CHARACTER = Path(__file__).resolve().parents[1] / "data" / "characters" / "ict-facekit.glb"
+#: the embedded default character (built by ``python -m stages.retarget.character build``)
+DEFAULT_CHARACTER = DATA / "characters" / "ict-facekit.glb"
 N_LANDMARKS = 68
 LANDMARK_SCHEME = "ibug68"
 #: mesh.extras keys of the glTF characters this project writes (and reads from any glTF that has them)
@@ -519,8 +520,8 @@ def build_ict_character(source: Path, destination: Path, *, sparse_tolerance: fl
                     extras={EXTRAS_LANDMARKS: [int(i) for i in ids], "landmarkScheme": LANDMARK_SCHEME,
                             EXTRAS_IDENTITY: identity_names, EXTRAS_PIVOT: [float(v) for v in pivot],
                             "source": "ICT FaceKit light face model (generic neutral, 57 expressions, 10 identity "
-                                      "components), built by msflow stages.character"})
-    glb = write_morph_glb(out, sparse_tolerance=sparse_tolerance, generator="msflow stages.character build",
+                                      "components), built by msflow stages.retarget.character"})
+    glb = write_morph_glb(out, sparse_tolerance=sparse_tolerance, generator="msflow stages.retarget.character build",
                           copyright=ICT_COPYRIGHT)
     destination.parent.mkdir(parents=True, exist_ok=True)
     destination.write_bytes(glb)
@@ -563,12 +564,12 @@ def _readme(summary: dict, expressions: list[str], identities: list[str]) -> str
     ]
     return "\n".join([
         "# Embedded default character: ICT FaceKit", "",
-        f"`{summary['file']}` is the default character of the retargeting stages (`stages.character:GltfCharacter`).",
+        f"`{summary['file']}` is the default character of the retargeting stages (`stages.retarget.character:GltfCharacter`).",
         "", "## Provenance",
         para("Built from the ICT FaceKit light face model (USC Institute for Creative Technologies, MIT licence: "
              "see `LICENSE` and `CREDITS.md` in this folder; https://github.com/ICT-VGL/ICT-FaceKit) with this "
              "project's own code (OBJ reader, identity split, sparse glTF writer in `stages/`):"), "",
-        f"    python -m stages.character build /path/to/ict-facekit data/characters/{summary['file']}", "",
+        f"    python -m stages.retarget.character build /path/to/ict-facekit data/characters/{summary['file']}", "",
         para("The source folder holds `generic_neutral_mesh.obj.gz`, one `.obj.gz` per blendshape, "
              "`identity000..009.obj.gz`, `ICTFaceModelMaterial.mtl`, `vertex_indices.json`, `LICENSE` and "
              "`CREDITS.md`. The build is deterministic (same input, same bytes)."),
@@ -580,7 +581,7 @@ def _readme(summary: dict, expressions: list[str], identities: list[str]) -> str
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
-    parser = argparse.ArgumentParser(prog="python -m stages.character",
+    parser = argparse.ArgumentParser(prog="python -m stages.retarget.character",
                                      description="Build the embedded ICT FaceKit character GLB.")
     sub = parser.add_subparsers(dest="command", required=True)
     build = sub.add_parser("build", help="ICT FaceKit folder -> GLB (+ LICENSE, CREDITS.md, README.md)")
@@ -607,7 +608,7 @@ def figure_landmarks(view, inputs=None, size: int = 512) -> bytes:
     """PNG: the neutral character from the front with its 68 landmark vertices numbered (checks the map)."""
     import cv2
 
-    from stages.render import CharacterRenderer, project
+    from stages.geometry.render import CharacterRenderer, project
 
     renderer = CharacterRenderer.from_artifact(view, size=size, supersample=2)
     image = np.ascontiguousarray(renderer()[..., ::-1])
@@ -624,7 +625,7 @@ def figure_targets(view, inputs=None, tile: int = 160, columns: int = 10) -> byt
     """PNG: every morph target at weight 1, named, as a contact sheet."""
     import cv2
 
-    from stages.render import CharacterRenderer
+    from stages.geometry.render import CharacterRenderer
 
     renderer = CharacterRenderer.from_artifact(view, size=tile)
     names = view.meta["target_names"]

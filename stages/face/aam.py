@@ -18,7 +18,7 @@ import numpy as np
 from pydantic import Field
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.warp import PiecewiseAffineWarp, delaunay_triangles
+from stages.face.warp import PiecewiseAffineWarp, delaunay_triangles
 
 #: iBUG 68-point indices of the two eyes (image left, image right)
 IBUG68_EYES = (np.arange(36, 42), np.arange(42, 48))
