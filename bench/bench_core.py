@@ -8,6 +8,7 @@
 2. Hashing a 1 GB data file from the page cache (GB/s; goal >= 3) and a rerun with the file unchanged (no reread).
 3. Store overhead per executed stage for small outputs (open, write, publish, record; goal <= 20 ms).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -38,8 +39,11 @@ def ten_stage_pipeline(dest: Path) -> Path:
     shutil.copytree(NUMPROJECT, dest, ignore=shutil.ignore_patterns(".msflow", "*.lock", "__pycache__"))
     stages = ["  s0:\n    uses: numstages.basic:Source\n    params: {n: 50}\n"]
     for i in range(1, 8):
-        stages.append(f"  s{i}:\n    uses: numstages.scaling:Scale\n    inputs: {{x: s{i - 1}.x}}\n"
-                      if i == 1 else f"  s{i}:\n    uses: numstages.scaling:Scale\n    inputs: {{x: s{i - 1}.y}}\n")
+        stages.append(
+            f"  s{i}:\n    uses: numstages.scaling:Scale\n    inputs: {{x: s{i - 1}.x}}\n"
+            if i == 1
+            else f"  s{i}:\n    uses: numstages.scaling:Scale\n    inputs: {{x: s{i - 1}.y}}\n"
+        )
     stages.append("  csv:\n    uses: numstages.basic:LoadCsv\n    inputs: {table: {path: data/table.csv}}\n")
     stages.append("  total:\n    uses: numstages.basic:Sum\n    inputs: {a: s7, b: csv.x}\n")
     (dest / "ten.yaml").write_text("version: 1\nstages:\n" + "".join(stages))
@@ -55,12 +59,26 @@ def bench_noop(tmp: Path, repeats: int) -> dict:
     status = child_cpu(msflow + ["status", "ten.yaml"], proj, repeats)
     baseline = child_cpu([sys.executable, "-c", "pass"], proj, repeats)
     # the no-op path must not import zarr, numpy or stage modules
-    probe = subprocess.run([sys.executable, "-c", (
-        "import sys; from msflow.cli import main; main(['run', 'ten.yaml', '-q']); "
-        "print(sorted(m for m in ('zarr', 'numpy', 'numstages', 'stages') if m in sys.modules))")],
-        cwd=proj, capture_output=True, text=True, check=True)
-    return {"noop_run_cpu_s": noop, "status_cpu_s": status, "python_startup_cpu_s": baseline,
-            "noop_imports_heavy": probe.stdout.strip()}
+    probe = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            (
+                "import sys; from msflow.cli import main; main(['run', 'ten.yaml', '-q']); "
+                "print(sorted(m for m in ('zarr', 'numpy', 'numstages', 'stages') if m in sys.modules))"
+            ),
+        ],
+        cwd=proj,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    return {
+        "noop_run_cpu_s": noop,
+        "status_cpu_s": status,
+        "python_startup_cpu_s": baseline,
+        "noop_imports_heavy": probe.stdout.strip(),
+    }
 
 
 def bench_hashing(tmp: Path) -> dict:
@@ -91,8 +109,7 @@ def bench_store_overhead(tmp: Path, stages: int = 40) -> dict:
     started = time.perf_counter()
     result = msflow.run(proj / "many.yaml")
     wall = time.perf_counter() - started
-    return {"stages": stages, "wall_s": wall, "per_stage_ms": 1000 * wall / stages,
-            "executed": len(result.executed)}
+    return {"stages": stages, "wall_s": wall, "per_stage_ms": 1000 * wall / stages, "executed": len(result.executed)}
 
 
 def _timed(fn) -> float:

@@ -5,6 +5,7 @@
 Targets: texture warp >= 500 frames/s; analysis >= 10,000 frames/s; aam + alignment + bilinear fit of the three
 training takes < 2 s (tracking excluded: it is the tracking stage's cost). Prints the median of the repeats.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,8 +22,14 @@ sys.path.insert(0, str(ROOT))
 from msflow.testing import run_stage  # noqa: E402
 from stages.face.aam import AamModel, AamPca  # noqa: E402
 from stages.face.bilinear import BilinearFit, BilinearModel  # noqa: E402
-from stages.face.edit import (ExpressionEdit, analyse_style_content, analyse_takes, component_weights,  # noqa: E402
-                         edited_crops, initial_content)
+from stages.face.edit import (  # noqa: E402
+    ExpressionEdit,
+    analyse_style_content,
+    analyse_takes,
+    component_weights,
+    edited_crops,
+    initial_content,
+)
 
 CLIPS = {"neutral": "NEU", "happy": "HAP", "angry": "ANG", "sad": "SAD"}
 
@@ -60,46 +67,65 @@ def main(argv=None):
 
     fit_time, (aam, bilinear) = timed(fit_all, args.repeats)
     aam_time, _ = timed(lambda: run_stage(AamPca, {}, {"tracks": train}), args.repeats)
-    print(f"fit: aam + DTW alignment + bilinear on the 3 training takes ({n_train} frames): {fit_time:.3f} s "
-          f"(aam alone {aam_time:.3f} s)  [target < 2 s]")
+    print(
+        f"fit: aam + DTW alignment + bilinear on the 3 training takes ({n_train} frames): {fit_time:.3f} s "
+        f"(aam alone {aam_time:.3f} s)  [target < 2 s]"
+    )
 
     model = AamModel.from_view(aam.view())
     crops = np.concatenate([train["crops"]] * 4)
     crop_landmarks = np.concatenate([train["crop_landmarks"]] * 4)
     warp_time, _ = timed(lambda: model.warp.warp(crops, crop_landmarks), args.repeats)
-    print(f"texture warp: {len(crops) / warp_time:,.0f} frames/s ({len(crops)} crops "
-          f"{crops.shape[2]}x{crops.shape[1]} -> {model.texture_size[0]}x{model.texture_size[1]}, "
-          f"{model.warp.n_pixels} pixels)  [target >= 500]")
+    print(
+        f"texture warp: {len(crops) / warp_time:,.0f} frames/s ({len(crops)} crops "
+        f"{crops.shape[2]}x{crops.shape[1]} -> {model.texture_size[0]}x{model.texture_size[1]}, "
+        f"{model.warp.n_pixels} pixels)  [target >= 500]"
+    )
 
     bil = BilinearModel.from_view(bilinear.view())
     proj = model.project(sad["landmarks"], sad["crops"], sad["crop_landmarks"])
     rng = np.random.default_rng(0)
     reps = int(np.ceil(args.analysis_frames / len(proj.y)))
-    y = np.concatenate([proj.y] * reps)[:args.analysis_frames]
+    y = np.concatenate([proj.y] * reps)[: args.analysis_frames]
     y = y + rng.normal(0, 0.05, y.shape) * proj.y.std(0)
     y_model = bil.augment(y)
     default_weight = ExpressionEdit.Params().analysis_shape_weight
     rows = component_weights(model.n_shape, y_model.shape[1], default_weight)
     frames = np.zeros(len(y_model), dtype=int)
-    for label, init, smooth, weights in (("paper (mean init, smooth 0, all rows)", "mean", 0.0, None),
-                                         (f"stage default (analysis_shape_weight {default_weight:g})", "mean", 0.0,
-                                          rows),
-                                         ("nearest init, smooth 0, all rows", "nearest", 0.0, None),
-                                         ("mean init, smooth 1, all rows", "mean", 1.0, None)):
+    for label, init, smooth, weights in (
+        ("paper (mean init, smooth 0, all rows)", "mean", 0.0, None),
+        (f"stage default (analysis_shape_weight {default_weight:g})", "mean", 0.0, rows),
+        ("nearest init, smooth 0, all rows", "nearest", 0.0, None),
+        ("mean init, smooth 1, all rows", "mean", 1.0, None),
+    ):
+
         def run():
             if weights is None:
-                return analyse_style_content(bil.w_full, bil.style, initial_content(y_model, bil, init), y_model,
-                                             smooth=smooth)
+                return analyse_style_content(
+                    bil.w_full, bil.style, initial_content(y_model, bil, init), y_model, smooth=smooth
+                )
             return analyse_takes(bil, y_model, frames, init=init, smooth=smooth, weights=weights)
+
         t, result = timed(run, max(1, args.repeats // 2))
         target = "[target >= 10,000]" if smooth == 0 else "[beyond the paper; no target]"
-        print(f"analysis {label}: {len(y) / t:,.0f} frames/s ({len(y)} frames, I={bil.w.shape[0]} "
-              f"J={bil.w.shape[1]} K={bil.w_full.shape[2]}, {result.iterations} iterations, converged "
-              f"{result.converged})  {target}")
+        print(
+            f"analysis {label}: {len(y) / t:,.0f} frames/s ({len(y)} frames, I={bil.w.shape[0]} "
+            f"J={bil.w.shape[1]} K={bil.w_full.shape[2]}, {result.iterations} iterations, converged "
+            f"{result.converged})  {target}"
+        )
 
     y_edit = proj.y[:60]
-    images_time, _ = timed(lambda: edited_crops(model, y_edit, sad["crops"][:60], proj.crop_similarity[:60],
-                                                proj.texture_offset[:60], proj.texture_scale[:60]), args.repeats)
+    images_time, _ = timed(
+        lambda: edited_crops(
+            model,
+            y_edit,
+            sad["crops"][:60],
+            proj.crop_similarity[:60],
+            proj.texture_offset[:60],
+            proj.texture_scale[:60],
+        ),
+        args.repeats,
+    )
     print(f"edited images (inverse warp + paste): {60 / images_time:,.0f} frames/s")
 
 

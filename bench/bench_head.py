@@ -3,6 +3,7 @@ utterance against a 67-phrase database < 1 s.
 
     OPENBLAS_NUM_THREADS=1 python bench/bench_head.py
 """
+
 from __future__ import annotations
 
 import sys
@@ -16,6 +17,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 from head_synthetic import synth_database, synth_phrase, tracking_artifact  # noqa: E402
+
 from msflow.testing import run_stage  # noqa: E402
 from stages.head.database import TrackedHeadDb  # noqa: E402
 from stages.head.motion_blend import MotionBlend  # noqa: E402
@@ -45,28 +47,38 @@ def long_utterance(seconds: float = 60.0, seed: int = 1):
 def main():
     utterance = long_utterance()
     test_tracks = tracking_artifact([utterance], fps=30.0)
-    print(f"test utterance: {utterance.duration:.1f} s, {len(utterance.onsets)} syllables, "
-          f"{len(utterance.sentence_starts)} sentences")
+    print(
+        f"test utterance: {utterance.duration:.1f} s, {len(utterance.onsets)} syllables, "
+        f"{len(utterance.sentence_starts)} sentences"
+    )
 
     for method in ("ac", "cc"):
         seconds, _ = best_of(3, lambda: praat_pitch(utterance.audio, utterance.audio_rate, method=method))
-        print(f"praat pitch ({method}) alone at the recorded 16 kHz: {seconds:.3f} s = "
-              f"{utterance.duration / seconds:.0f}x real time")
+        print(
+            f"praat pitch ({method}) alone at the recorded 16 kHz: {seconds:.3f} s = "
+            f"{utterance.duration / seconds:.0f}x real time"
+        )
         seconds, _ = best_of(3, lambda: run_stage(Pitch, {"method": method}, {"source": test_tracks}))
-        print(f"pitch stage ({method}, clean, segment, features, TextGrid/PitchTier/WAV): {seconds:.3f} s = "
-              f"{utterance.duration / seconds:.0f}x real time")
+        print(
+            f"pitch stage ({method}, clean, segment, features, TextGrid/PitchTier/WAV): {seconds:.3f} s = "
+            f"{utterance.duration / seconds:.0f}x real time"
+        )
 
     start = time.perf_counter()
     phrases = synth_database(67, seed=0)
     database_tracks = tracking_artifact(phrases, fps=30.0)
     synth_seconds = time.perf_counter() - start
     seconds, headdb = best_of(1, lambda: run_stage(TrackedHeadDb, {}, {"tracks": database_tracks}))
-    print(f"database: 67 phrases ({sum(p.duration for p in phrases):.0f} s of speech, synthesised in "
-          f"{synth_seconds:.1f} s), headdb with mirroring {seconds:.3f} s")
+    print(
+        f"database: 67 phrases ({sum(p.duration for p in phrases):.0f} s of speech, synthesised in "
+        f"{synth_seconds:.1f} s), headdb with mirroring {seconds:.3f} s"
+    )
     audio_seconds = headdb.metrics["audio_seconds"]
     seconds, db_pitch = best_of(1, lambda: run_stage(Pitch, {}, {"source": headdb}))
-    print(f"pitch over the database ({audio_seconds:.0f} s of audio; mirrors share it): {seconds:.3f} s = "
-          f"{audio_seconds / seconds:.0f}x real time, {db_pitch.metrics['segments']} segments")
+    print(
+        f"pitch over the database ({audio_seconds:.0f} s of audio; mirrors share it): {seconds:.3f} s = "
+        f"{audio_seconds / seconds:.0f}x real time, {db_pitch.metrics['segments']} segments"
+    )
     test_pitch = run_stage(Pitch, {}, {"source": test_tracks})
 
     def search_and_blend():
@@ -75,18 +87,25 @@ def main():
         return tr, mb
 
     seconds, (tr, mb) = best_of(3, search_and_blend)
-    trellis_seconds, _ = best_of(3, lambda: run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch,
-                                                                     "test_pitch": test_pitch}))
-    print(f"trellis + blend, {utterance.duration:.0f} s utterance ({tr.metrics['segments']} segments, K = 10) "
-          f"against {tr.metrics['db_segments']} database segments: {seconds:.3f} s "
-          f"(trellis alone {trellis_seconds:.3f} s); {len(mb.arrays['rotation'])} frames out")
-    for label, params in (("velocity blend, adaptive windows (default)", {}),
-                          ("velocity blend, speed preserved", {"preserve_speed": True}),
-                          ("velocity blend, fixed windows", {"join_acceleration": 0.0}),
-                          ("position crossfade (earlier method)", {"join_smoothing": "crossfade"})):
+    trellis_seconds, _ = best_of(
+        3, lambda: run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": test_pitch})
+    )
+    print(
+        f"trellis + blend, {utterance.duration:.0f} s utterance ({tr.metrics['segments']} segments, K = 10) "
+        f"against {tr.metrics['db_segments']} database segments: {seconds:.3f} s "
+        f"(trellis alone {trellis_seconds:.3f} s); {len(mb.arrays['rotation'])} frames out"
+    )
+    for label, params in (
+        ("velocity blend, adaptive windows (default)", {}),
+        ("velocity blend, speed preserved", {"preserve_speed": True}),
+        ("velocity blend, fixed windows", {"join_acceleration": 0.0}),
+        ("position crossfade (earlier method)", {"join_smoothing": "crossfade"}),
+    ):
         seconds, run = best_of(3, lambda: run_stage(MotionBlend, params, {"trellis": tr, "database": headdb}))
-        print(f"  blend alone, {label}: {seconds:.3f} s (mean join window "
-              f"{run.metrics.get('mean_join_window', float('nan')):.2f} s)")
+        print(
+            f"  blend alone, {label}: {seconds:.3f} s (mean join window "
+            f"{run.metrics.get('mean_join_window', float('nan')):.2f} s)"
+        )
 
 
 if __name__ == "__main__":

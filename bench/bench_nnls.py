@@ -6,6 +6,7 @@ smoothly in time.
 
     OPENBLAS_NUM_THREADS=1 python bench/bench_nnls.py [--frames 60 600 6000] [--k 10 20 40]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -18,7 +19,7 @@ from scipy.optimize import nnls as scipy_nnls
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stages.geometry.nnls import batched_nnls, kkt_violation  # noqa: E402
+from stages.geometry.nnls import batched_nnls, kkt_violation
 
 
 def keyshape_like_problem(frames: int, k: int, seed: int = 0):
@@ -50,8 +51,10 @@ def main(argv=None) -> int:
     parser.add_argument("--k", type=int, nargs="+", default=[10, 20, 40])
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
-    print(f"{'frames':>7} {'k':>4} {'cond(A)':>9} | {'scipy loop':>10} {'active set':>10} {'fista':>10} | "
-          f"{'act. KKT':>9} {'fista KKT':>9} {'scipy KKT':>9} | {'max |res-res_scipy|/|x|':>22}")
+    print(
+        f"{'frames':>7} {'k':>4} {'cond(A)':>9} | {'scipy loop':>10} {'active set':>10} {'fista':>10} | "
+        f"{'act. KKT':>9} {'fista KKT':>9} {'scipy KKT':>9} | {'max |res-res_scipy|/|x|':>22}"
+    )
     for frames in args.frames:
         for k in args.k:
             A, X = keyshape_like_problem(frames, k)
@@ -60,9 +63,11 @@ def main(argv=None) -> int:
             t_fista, fis = best_of(lambda: batched_nnls(A, X, method="fista"), 1)
             ref_res = np.linalg.norm(ref @ A.T - X, axis=1)
             gap = max(np.abs(act.residual_norm - ref_res).max(), np.abs(fis.residual_norm - ref_res).max())
-            print(f"{frames:7d} {k:4d} {np.linalg.cond(A):9.2e} | {1e3 * t_scipy:8.1f}ms {1e3 * t_active:8.1f}ms "
-                  f"{1e3 * t_fista:8.1f}ms | {act.kkt.max():9.1e} {fis.kkt.max():9.1e} "
-                  f"{kkt_violation(A, X, ref).max():9.1e} | {gap / np.linalg.norm(X, axis=1).min():22.1e}")
+            print(
+                f"{frames:7d} {k:4d} {np.linalg.cond(A):9.2e} | {1e3 * t_scipy:8.1f}ms {1e3 * t_active:8.1f}ms "
+                f"{1e3 * t_fista:8.1f}ms | {act.kkt.max():9.1e} {fis.kkt.max():9.1e} "
+                f"{kkt_violation(A, X, ref).max():9.1e} | {gap / np.linalg.norm(X, axis=1).min():22.1e}"
+            )
     return 0
 
 

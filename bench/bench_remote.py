@@ -10,6 +10,7 @@
 moto answers on the loopback in about a millisecond; on real S3 each request costs ~10-30 ms, so the request
 counts are what carries over: multiply them by the round trip of your endpoint.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -41,8 +42,9 @@ def start_moto():
     server.start()
     host, port = server.get_host_and_port()
     endpoint = f"http://{host}:{port}"
-    boto3.client("s3", endpoint_url=endpoint, aws_access_key_id="bench", aws_secret_access_key="bench",
-                 region_name="us-east-1").create_bucket(Bucket="bench")
+    boto3.client(
+        "s3", endpoint_url=endpoint, aws_access_key_id="bench", aws_secret_access_key="bench", region_name="us-east-1"
+    ).create_bucket(Bucket="bench")
     return server, {"endpoint_url": endpoint, "key": "bench", "secret": "bench"}
 
 
@@ -100,9 +102,11 @@ def bench_noop(tmp: Path, options: dict, repeats: int) -> dict:
             use_store(proj / "ten.yaml", url, options)
         first_wall, _ = child_run(cli, proj)
         runs = [child_run(cli, proj) for _ in range(repeats)]
-        out[label] = {"first_run_wall_s": round(first_wall, 3),
-                      "noop_wall_s": round(min(w for w, _ in runs), 3),
-                      "noop_cpu_s": round(min(c for _, c in runs), 3)}
+        out[label] = {
+            "first_run_wall_s": round(first_wall, 3),
+            "noop_wall_s": round(min(w for w, _ in runs), 3),
+            "noop_cpu_s": round(min(c for _, c in runs), 3),
+        }
         if url:
             counter = RequestCounter()
             try:
@@ -110,8 +114,7 @@ def bench_noop(tmp: Path, options: dict, repeats: int) -> dict:
                 out[label]["noop_requests"] = counter.take()
             finally:
                 counter.close()
-    baseline = min(child_run([sys.executable, "-c", "import s3fs, botocore.session"], tmp)[1]
-                   for _ in range(3))
+    baseline = min(child_run([sys.executable, "-c", "import s3fs, botocore.session"], tmp)[1] for _ in range(3))
     out["cpu_to_import_s3fs_s"] = round(baseline, 3)
     return out
 
@@ -123,8 +126,9 @@ def bench_stage_overhead(tmp: Path, options: dict, stages: int = 40) -> dict:
     for label, url in (("local", None), ("s3", "s3://bench/overhead")):
         proj = tmp / f"overhead-{label}"
         shutil.copytree(NUMPROJECT, proj, ignore=shutil.ignore_patterns(".msflow", "*.lock", "__pycache__"))
-        body = "".join(f"  s{i}:\n    uses: numstages.basic:Source\n    params: {{n: {i + 3}}}\n"
-                       for i in range(stages))
+        body = "".join(
+            f"  s{i}:\n    uses: numstages.basic:Source\n    params: {{n: {i + 3}}}\n" for i in range(stages)
+        )
         (proj / "many.yaml").write_text("version: 1\nstages:\n" + body)
         if url:
             use_store(proj / "many.yaml", url + "-warm", options)
@@ -142,8 +146,12 @@ def bench_stage_overhead(tmp: Path, options: dict, stages: int = 40) -> dict:
         finally:
             if counter:
                 counter.close()
-        out[label] = {"stages": stages, "executed": len(result.executed), "wall_s": round(wall, 3),
-                      "per_stage_ms": round(1000 * wall / stages, 1)}
+        out[label] = {
+            "stages": stages,
+            "executed": len(result.executed),
+            "wall_s": round(wall, 3),
+            "per_stage_ms": round(1000 * wall / stages, 1),
+        }
         if requests is not None:
             out[label]["requests_per_stage"] = {k: round(v / stages, 2) for k, v in sorted(requests.items())}
     return out

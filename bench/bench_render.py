@@ -4,6 +4,7 @@ back-to-front order (painter's algorithm), on the embedded ICT FaceKit character
 
     OPENBLAS_NUM_THREADS=1 python bench/bench_render.py [--frames 60] [--sizes 256 384 512]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -60,27 +61,34 @@ def main():
     args = parser.parse_args()
 
     from msflow.testing import run_stage
-    from stages.retarget.character import GltfCharacter
     from stages.export.animation import encode_mp4
     from stages.geometry.render import CharacterRenderer, render
+    from stages.retarget.character import GltfCharacter
 
     character = run_stage(GltfCharacter, {}, {"mesh": ROOT / "data" / "characters" / "ict-facekit.glb"}).view()
     names = character.meta["target_names"]
     rng = np.random.default_rng(0)
     weights = rng.uniform(0, 0.6, (args.frames, len(names))) * (rng.uniform(size=len(names)) < 0.3)
     n_tri = len(character["triangles"])
-    print(f"ICT FaceKit: {len(character['neutral'])} vertices, {n_tri} triangles, {len(names)} targets; "
-          f"{args.frames} frames, one core (CPU time)")
+    print(
+        f"ICT FaceKit: {len(character['neutral'])} vertices, {n_tri} triangles, {len(names)} targets; "
+        f"{args.frames} frames, one core (CPU time)"
+    )
     print(f"{'size':>5} {'numpy z-buffer':>16} {'+2x supersample':>16} {'opencv painter':>16} {'pose only':>10}")
     for size in args.sizes:
         renderer = CharacterRenderer.from_artifact(character, size=size)
         verts = renderer.vertices(weights[0])
-        zbuf = timed(lambda: render(verts, renderer.triangles, size, renderer.view, colors=renderer.colors),
-                     args.frames)
-        ss = timed(lambda: render(verts, renderer.triangles, size, renderer.view, colors=renderer.colors,
-                                  supersample=2), max(args.frames // 4, 3))
-        painter = timed(lambda: painter_render(verts, renderer.triangles, size, renderer.view, renderer.colors),
-                        max(args.frames // 4, 3))
+        zbuf = timed(
+            lambda: render(verts, renderer.triangles, size, renderer.view, colors=renderer.colors), args.frames
+        )
+        ss = timed(
+            lambda: render(verts, renderer.triangles, size, renderer.view, colors=renderer.colors, supersample=2),
+            max(args.frames // 4, 3),
+        )
+        painter = timed(
+            lambda: painter_render(verts, renderer.triangles, size, renderer.view, renderer.colors),
+            max(args.frames // 4, 3),
+        )
         pose = timed(lambda: renderer.vertices(weights[1]), args.frames)
         print(f"{size:>5} {1 / zbuf:>12.1f} f/s {1 / ss:>12.1f} f/s {1 / painter:>12.1f} f/s {pose * 1e3:>7.1f} ms")
     size = 384
@@ -88,8 +96,10 @@ def main():
     start, cpu = time.perf_counter(), time.process_time()
     data, codec = encode_mp4((renderer(w) for w in weights), 30.0, (size, size))
     elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu
-    print(f"preview path at {size} px (pose + render + {codec} encode): {args.frames / cpu:.1f} frames/s of CPU "
-          f"time ({args.frames / elapsed:.1f} wall-clock, load {os.getloadavg()[0]:.1f}), {len(data) / 1024:.0f} KiB")
+    print(
+        f"preview path at {size} px (pose + render + {codec} encode): {args.frames / cpu:.1f} frames/s of CPU "
+        f"time ({args.frames / elapsed:.1f} wall-clock, load {os.getloadavg()[0]:.1f}), {len(data) / 1024:.0f} KiB"
+    )
 
 
 if __name__ == "__main__":

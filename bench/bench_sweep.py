@@ -10,6 +10,7 @@
    variants (goal >= 1.7x on 2 cores).
 3. Overhead per stage through Dask (trivial stages) against in-process execution.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,9 +27,9 @@ def copy_repo(dest: Path) -> Path:
     dest.mkdir(parents=True)
     for name in ("pipeline.yaml", "data", "stages", "pyproject.toml"):
         src = ROOT / name
-        (shutil.copytree if src.is_dir() else shutil.copy2)(src, dest / name,
-                                                            **({"ignore": shutil.ignore_patterns("__pycache__")}
-                                                               if src.is_dir() else {}))
+        (shutil.copytree if src.is_dir() else shutil.copy2)(
+            src, dest / name, **({"ignore": shutil.ignore_patterns("__pycache__")} if src.is_dir() else {})
+        )
     return dest / "pipeline.yaml"
 
 
@@ -48,16 +49,23 @@ def default_sweep(tmp: Path, jobs: int) -> dict:
         started = time.perf_counter()
         msflow.run(alone, overrides=[f"keyshapes.k={variant['keyshapes.k']}"])
         sequential += time.perf_counter() - started
-    return {"variants": len(variants), "executed": result.executed, "distinct_keys": result.unique_keys,
-            "sweep_wall_s": round(sweep_wall, 2), "sequential_empty_store_wall_s": round(sequential, 2),
-            "jobs": jobs, "failed": sum(not v.ok for v in result.variants)}
+    return {
+        "variants": len(variants),
+        "executed": result.executed,
+        "distinct_keys": result.unique_keys,
+        "sweep_wall_s": round(sweep_wall, 2),
+        "sequential_empty_store_wall_s": round(sequential, 2),
+        "jobs": jobs,
+        "failed": sum(not v.ok for v in result.variants),
+    }
 
 
 def numeric_project(tmp: Path, name: str) -> Path:
     dest = tmp / name
     shutil.copytree(NUMPROJECT, dest, ignore=shutil.ignore_patterns(".msflow", "*.lock", "__pycache__"))
-    (dest / "burn.yaml").write_text("version: 1\nstages:\n  burn:\n    uses: numstages.basic:Burn\n"
-                                    "    params: {rounds: 400000}\n")
+    (dest / "burn.yaml").write_text(
+        "version: 1\nstages:\n  burn:\n    uses: numstages.basic:Burn\n    params: {rounds: 400000}\n"
+    )
     return dest / "burn.yaml"
 
 
@@ -77,10 +85,15 @@ def speedup(tmp: Path) -> dict:
     started = time.perf_counter()
     DaskExecutor(jobs=2).shutdown()
     cluster = time.perf_counter() - started
-    return {"j1_s": round(times["j1"], 2), "j2_s": round(times["j2"], 2), "dask2_s": round(times["dask2"], 2),
-            "speedup_j2": round(times["j1"] / times["j2"], 2), "speedup_dask2": round(times["j1"] / times["dask2"], 2),
-            "dask2_cluster_start_s": round(cluster, 2),
-            "speedup_dask2_excluding_cluster_start": round(times["j1"] / (times["dask2"] - cluster), 2)}
+    return {
+        "j1_s": round(times["j1"], 2),
+        "j2_s": round(times["j2"], 2),
+        "dask2_s": round(times["dask2"], 2),
+        "speedup_j2": round(times["j1"] / times["j2"], 2),
+        "speedup_dask2": round(times["j1"] / times["dask2"], 2),
+        "dask2_cluster_start_s": round(cluster, 2),
+        "speedup_dask2_excluding_cluster_start": round(times["j1"] / (times["dask2"] - cluster), 2),
+    }
 
 
 def dask_overhead(tmp: Path, stages: int = 40) -> dict:
@@ -103,10 +116,12 @@ def dask_overhead(tmp: Path, stages: int = 40) -> dict:
     started = time.perf_counter()
     DaskExecutor(jobs=1).shutdown()
     startup = time.perf_counter() - started
-    return {"inline_per_stage_ms": round(1000 * results["inline"] / stages, 1),
-            "dask_per_stage_ms_incl_cluster_start": round(1000 * results["dask1"] / stages, 1),
-            "dask_cluster_start_s": round(startup, 2),
-            "dask_per_stage_ms": round(1000 * (results["dask1"] - startup) / stages, 1)}
+    return {
+        "inline_per_stage_ms": round(1000 * results["inline"] / stages, 1),
+        "dask_per_stage_ms_incl_cluster_start": round(1000 * results["dask1"] / stages, 1),
+        "dask_cluster_start_s": round(startup, 2),
+        "dask_per_stage_ms": round(1000 * (results["dask1"] - startup) / stages, 1),
+    }
 
 
 def main() -> None:

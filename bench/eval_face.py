@@ -26,6 +26,7 @@ projects the held-out frames into that model (never refitting) and scores them:
 
 Prints tables with the mean over folds and the worst fold; --json writes every number.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -44,8 +45,7 @@ from msflow.testing import run_stage  # noqa: E402
 from stages.face.aam import AamPca, fit_aam, generalised_procrustes, interocular_distance  # noqa: E402
 from stages.face.alignment import align_takes  # noqa: E402
 from stages.face.bilinear import content_features, fit_bilinear_model, reference_index  # noqa: E402
-from stages.face.edit import (ExpressionEdit, analyse_takes, classify_by_fit, classify_styles,  # noqa: E402
-                         component_weights, jitter)
+from stages.face.edit import ExpressionEdit, analyse_takes, classify_by_fit, classify_styles, component_weights, jitter  # noqa: E402
 
 CLIPS = {"neutral": "NEU", "happy": "HAP", "angry": "ANG", "disgust": "DIS", "fear": "FEA", "sad": "SAD"}
 TRAIN = ["neutral", "happy", "angry"]
@@ -86,12 +86,18 @@ class Fold:
 
 
 def fit_models(tracks, frames, aligned_global, positions, args):
-    model, _ = fit_aam(tracks["landmarks"][frames], tracks["crops"][frames], tracks["crop_landmarks"][frames],
-                       texture_width=args.texture_width, shape_balance=args.shape_balance)
+    model, _ = fit_aam(
+        tracks["landmarks"][frames],
+        tracks["crops"][frames],
+        tracks["crop_landmarks"][frames],
+        texture_width=args.texture_width,
+        shape_balance=args.shape_balance,
+    )
     proj = model.project(tracks["landmarks"], tracks["crops"], tracks["crop_landmarks"])
-    y = proj.y[aligned_global[:, positions]]                        # (S, C_train, K)
-    bilinear, fit = fit_bilinear_model(y, TRAIN, content_dim=args.content_dim,
-                                       content_variance=args.content_variance, mean_weight=args.mean_weight)
+    y = proj.y[aligned_global[:, positions]]  # (S, C_train, K)
+    bilinear, fit = fit_bilinear_model(
+        y, TRAIN, content_dim=args.content_dim, content_variance=args.content_variance, mean_weight=args.mean_weight
+    )
     return model, proj, bilinear, fit
 
 
@@ -106,8 +112,14 @@ def analyse(model, bilinear, y, args, smooth=0.0):
     """Eq 5-6 on configuration vectors y (F, K) of one take (the stage's analyse_takes with the run's params);
     residual |y - e' W c|^2 of the unweighted y components."""
     augmented = bilinear.augment(y)
-    result = analyse_takes(bilinear, augmented, np.zeros(len(y), dtype=int), init=args.init, smooth=smooth,
-                           weights=analysis_weights(model, bilinear, args))
+    result = analyse_takes(
+        bilinear,
+        augmented,
+        np.zeros(len(y), dtype=int),
+        init=args.init,
+        smooth=smooth,
+        weights=analysis_weights(model, bilinear, args),
+    )
     result.residual = np.sum((y - bilinear.synthesise(result.style, result.content)) ** 2, -1)
     return result
 
@@ -131,10 +143,10 @@ def speech_onsets(tracks, labels, below_peak_db: float = 25.0) -> list[int]:
     fps = float(np.ravel([tracks.meta.get("fps", 30.0)])[0])
     onsets = []
     for s in range(len(labels)):
-        samples = audio[bounds[s, 0]:bounds[s, 1]]
+        samples = audio[bounds[s, 0] : bounds[s, 1]]
         centre = np.round((times[sequence == s] - offsets[s]) * rate).astype(int)
         half = int(rate / fps / 2)
-        level = np.array([np.sqrt(np.mean(samples[max(c - half, 0):max(c + half, 1)] ** 2) + 1e-20) for c in centre])
+        level = np.array([np.sqrt(np.mean(samples[max(c - half, 0) : max(c + half, 1)] ** 2) + 1e-20) for c in centre])
         db = 20 * np.log10(level)
         onsets.append(int(np.argmax(db > db.max() - below_peak_db)))
     return onsets
@@ -171,16 +183,24 @@ def evaluate(args):
             times_held[s][local] += 1
         model, proj, bilinear, fit = fit_models(train, fold.train_mask, aligned_global, fold.train_positions, args)
         iod = float(interocular_distance(model.mean_shape))
-        row = {"fold": f, "window": [int(window[0]), int(window[-1])], "train_content": len(fold.train_positions),
-               "heldout_frames": {labels[s]: [int(h[0]), int(h[-1])] if len(h) else [] for s, h in
-                                  enumerate(fold.heldout_local)},
-               "n_shape": model.n_shape, "n_texture": model.n_texture, "content_dim": int(fit.content.shape[1]),
-               "shape_weight": model.shape_weight, "train_error": fit.error}
+        row = {
+            "fold": f,
+            "window": [int(window[0]), int(window[-1])],
+            "train_content": len(fold.train_positions),
+            "heldout_frames": {
+                labels[s]: [int(h[0]), int(h[-1])] if len(h) else [] for s, h in enumerate(fold.heldout_local)
+            },
+            "n_shape": model.n_shape,
+            "n_texture": model.n_texture,
+            "content_dim": int(fit.content.shape[1]),
+            "shape_weight": model.shape_weight,
+            "train_error": fit.error,
+        }
         # 1. style classification of each take's held-out frames
         row["accuracy"], row["correct"], row["classes"] = {}, {}, {}
         train_frames = np.flatnonzero(fold.train_mask)
         weights = analysis_weights(model, bilinear, args)
-        weights = np.ones(proj.y.shape[1]) if weights is None else weights[:proj.y.shape[1]]
+        weights = np.ones(proj.y.shape[1]) if weights is None else weights[: proj.y.shape[1]]
         for s, label in enumerate(labels):
             local = fold.heldout_local[s]
             frames = takes[s][local]
@@ -191,11 +211,13 @@ def evaluate(args):
             rules["nearest_frame"] = sequence[train_frames][np.argmin(dist, axis=1)]
             row["classes"][label] = {rule: classes.tolist() for rule, classes in rules.items()}
             row["correct"][label] = {
-                rule: {"all": [int(np.sum(classes == s)), len(classes)],
-                       "lead_in": [int(np.sum((classes == s) & (local < onsets[s]))), int(np.sum(local < onsets[s]))],
-                       "speech_on": [int(np.sum((classes == s) & (local >= onsets[s]))),
-                                     int(np.sum(local >= onsets[s]))]}
-                for rule, classes in rules.items()}
+                rule: {
+                    "all": [int(np.sum(classes == s)), len(classes)],
+                    "lead_in": [int(np.sum((classes == s) & (local < onsets[s]))), int(np.sum(local < onsets[s]))],
+                    "speech_on": [int(np.sum((classes == s) & (local >= onsets[s]))), int(np.sum(local >= onsets[s]))],
+                }
+                for rule, classes in rules.items()
+            }
             row["accuracy"][label] = float(np.mean(rules["cosine"] == s)) if len(frames) else 1.0
         # 2. edit fidelity: held-out neutral frames re-synthesised as each other expression
         neutral_frames = aligned_global[ref, window]
@@ -213,10 +235,12 @@ def evaluate(args):
             row["landmarks"][target] = {
                 "edited": point_error(shapes, real_shapes, iod),
                 "neutral": point_error(proj.aligned_shapes[neutral_frames], real_shapes, iod),
-                "model_floor": point_error(recon_real, real_shapes, iod)}
+                "model_floor": point_error(recon_real, real_shapes, iod),
+            }
             row["texture"][target] = {
                 "edited": float(np.mean(np.abs(edited_raw - raw[real]))),
-                "neutral": float(np.mean(np.abs(raw[neutral_frames] - raw[real])))}
+                "neutral": float(np.mean(np.abs(raw[neutral_frames] - raw[real]))),
+            }
         # 3. temporal prior on the held-out windows of every take
         row["smooth"] = {}
         for lam in smooths:
@@ -226,11 +250,14 @@ def evaluate(args):
                 y = proj.y[frames]
                 result = analyse(model, bilinear, y, args, smooth=lam)
                 jit.append(jitter(result.style))
-                err.append(float(np.sum(result.residual) / np.sum(y ** 2)))
+                err.append(float(np.sum(result.residual) / np.sum(y**2)))
                 acc.append(float(np.mean(classify_styles(result.style, bilinear.style)[0] == s)))
-            row["smooth"][str(lam)] = {"jitter": float(np.mean(jit)), "recon_error": float(np.mean(err)),
-                                       "accuracy": float(np.mean(acc)),
-                                       "accuracy_per_take": dict(zip(labels, acc))}
+            row["smooth"][str(lam)] = {
+                "jitter": float(np.mean(jit)),
+                "recon_error": float(np.mean(err)),
+                "accuracy": float(np.mean(acc)),
+                "accuracy_per_take": dict(zip(labels, acc)),
+            }
         folds.append(row)
     if not all(np.array_equal(times_held[s], np.ones(len(takes[s]))) for s in range(len(labels))):
         raise RuntimeError(f"folds do not hold out every frame exactly once: {times_held}")
@@ -243,14 +270,35 @@ def evaluate(args):
     for s, label in enumerate(unseen.meta["labels"]):
         y = proj_u.y[seq_u == s]
         rules = classify(model, bilinear, y, analyse(model, bilinear, y, args), args)
-        unseen_result[label] = {rule: {labels[c]: float(np.mean(classes == c)) for c in range(len(labels))}
-                                for rule, classes in rules.items()}
-    settings = {name: getattr(args, name) for name in ("align", "init", "mean_weight", "shape_balance",
-                                                       "analysis_shape_weight", "content_dim", "content_variance",
-                                                       "texture_width", "dtw_band", "folds")}
-    return {**settings, "folds": folds, "unseen": unseen_result, "labels": labels, "speech_onset": onsets,
-            "content_dim_full": int(fit.content.shape[1]), "tracking_seconds": t_track,
-            "dtw_cost": alignment.costs.tolist()}
+        unseen_result[label] = {
+            rule: {labels[c]: float(np.mean(classes == c)) for c in range(len(labels))}
+            for rule, classes in rules.items()
+        }
+    settings = {
+        name: getattr(args, name)
+        for name in (
+            "align",
+            "init",
+            "mean_weight",
+            "shape_balance",
+            "analysis_shape_weight",
+            "content_dim",
+            "content_variance",
+            "texture_width",
+            "dtw_band",
+            "folds",
+        )
+    }
+    return {
+        **settings,
+        "folds": folds,
+        "unseen": unseen_result,
+        "labels": labels,
+        "speech_onset": onsets,
+        "content_dim_full": int(fit.content.shape[1]),
+        "tracking_seconds": t_track,
+        "dtw_cost": alignment.costs.tolist(),
+    }
 
 
 def point_error(a, b, iod):
@@ -266,56 +314,83 @@ def report(res):
         values = np.asarray(values, dtype=float)
         return values.mean(), values
 
-    print(f"align={res['align']} init={res['init']} mean_weight={res['mean_weight']} "
-          f"shape_balance={res['shape_balance']} analysis_shape_weight={res['analysis_shape_weight']} "
-          f"folds={len(folds)} content_dim per fold={[f['content_dim'] for f in folds]} "
-          f"n_shape={[f['n_shape'] for f in folds]} n_texture={[f['n_texture'] for f in folds]}")
-    print(f"\n1. style classification of held-out frames, per take: mean over folds, worst fold, all frames pooled "
-          f"[lead-in = frames before the speech onset {res['speech_onset']}, speech = from the onset on]")
-    rules = (("cosine", "nearest training style to e(t) by cosine (the issue's rule)"),
-             ("fit", "training style explaining y best, content re-solved (maximum likelihood)"),
-             ("nearest_frame", "no model: take of the nearest training frame in y (reference)"))
+    print(
+        f"align={res['align']} init={res['init']} mean_weight={res['mean_weight']} "
+        f"shape_balance={res['shape_balance']} analysis_shape_weight={res['analysis_shape_weight']} "
+        f"folds={len(folds)} content_dim per fold={[f['content_dim'] for f in folds]} "
+        f"n_shape={[f['n_shape'] for f in folds]} n_texture={[f['n_texture'] for f in folds]}"
+    )
+    print(
+        f"\n1. style classification of held-out frames, per take: mean over folds, worst fold, all frames pooled "
+        f"[lead-in = frames before the speech onset {res['speech_onset']}, speech = from the onset on]"
+    )
+    rules = (
+        ("cosine", "nearest training style to e(t) by cosine (the issue's rule)"),
+        ("fit", "training style explaining y best, content re-solved (maximum likelihood)"),
+        ("nearest_frame", "no model: take of the nearest training frame in y (reference)"),
+    )
     for rule, title in rules:
         print(f"   {title}")
         for label in labels:
             counts = np.array([f["correct"][label][rule]["all"] for f in folds], dtype=float)
             per_fold = counts[:, 0] / np.maximum(counts[:, 1], 1)
-            parts = {part: np.sum([f["correct"][label][rule][part] for f in folds], axis=0)
-                     for part in ("lead_in", "speech_on")}
+            parts = {
+                part: np.sum([f["correct"][label][rule][part] for f in folds], axis=0)
+                for part in ("lead_in", "speech_on")
+            }
             right, total = int(counts[:, 0].sum()), int(counts[:, 1].sum())
-            print(f"   {label:8s} mean {per_fold.mean():6.1%}  worst fold {per_fold.min():6.1%}  frames "
-                  f"{right / total:6.1%} ({right}/{total})"
-                  f"   lead-in {parts['lead_in'][0]}/{parts['lead_in'][1]}  speech {parts['speech_on'][0]}/"
-                  f"{parts['speech_on'][1]}   per fold " + " ".join(f"{v:.0%}" for v in per_fold))
+            print(
+                f"   {label:8s} mean {per_fold.mean():6.1%}  worst fold {per_fold.min():6.1%}  frames "
+                f"{right / total:6.1%} ({right}/{total})"
+                f"   lead-in {parts['lead_in'][0]}/{parts['lead_in'][1]}  speech {parts['speech_on'][0]}/"
+                f"{parts['speech_on'][1]}   per fold " + " ".join(f"{v:.0%}" for v in per_fold)
+            )
     print("   unseen takes (model fitted on all training frames), fraction of frames classified as:")
     for label, by_rule in res["unseen"].items():
-        print(f"   {label:8s} " + "   ".join(f"{rule}: " + " ".join(f"{k} {v:5.1%}" for k, v in fr.items())
-                                           for rule, fr in by_rule.items() if rule != "nearest_frame"))
-    print("\n2. edit fidelity on held-out windows (landmarks: mean point error / inter-ocular distance; "
-          "texture: mean |grey level| error)")
+        print(
+            f"   {label:8s} "
+            + "   ".join(
+                f"{rule}: " + " ".join(f"{k} {v:5.1%}" for k, v in fr.items())
+                for rule, fr in by_rule.items()
+                if rule != "nearest_frame"
+            )
+        )
+    print(
+        "\n2. edit fidelity on held-out windows (landmarks: mean point error / inter-ocular distance; "
+        "texture: mean |grey level| error)"
+    )
     for target in folds[0]["landmarks"]:
         e_mean, e = stat([f["landmarks"][target]["edited"] for f in folds])
         n_mean, n = stat([f["landmarks"][target]["neutral"] for f in folds])
         m_mean, _ = stat([f["landmarks"][target]["model_floor"] for f in folds])
         wins = int(np.sum(e < n))
-        print(f"   {target:8s} landmarks edited->real {e_mean:.4f} (worst {e.max():.4f})  neutral->real "
-              f"{n_mean:.4f} (worst {n.max():.4f})  [edited lower in {wins}/{len(folds)} folds; "
-              f"model floor {m_mean:.4f}]")
+        print(
+            f"   {target:8s} landmarks edited->real {e_mean:.4f} (worst {e.max():.4f})  neutral->real "
+            f"{n_mean:.4f} (worst {n.max():.4f})  [edited lower in {wins}/{len(folds)} folds; "
+            f"model floor {m_mean:.4f}]"
+        )
         e_mean, e = stat([f["texture"][target]["edited"] for f in folds])
         n_mean, n = stat([f["texture"][target]["neutral"] for f in folds])
         wins = int(np.sum(e < n))
-        print(f"   {target:8s} texture   edited->real {e_mean:7.2f} (worst {e.max():7.2f})  neutral->real "
-              f"{n_mean:7.2f} (worst {n.max():7.2f})  [edited lower in {wins}/{len(folds)} folds]")
-    print("\n3. temporal prior (held-out windows of all takes): smooth, jitter of e(t), relative "
-          "reconstruction error, classification accuracy")
+        print(
+            f"   {target:8s} texture   edited->real {e_mean:7.2f} (worst {e.max():7.2f})  neutral->real "
+            f"{n_mean:7.2f} (worst {n.max():7.2f})  [edited lower in {wins}/{len(folds)} folds]"
+        )
+    print(
+        "\n3. temporal prior (held-out windows of all takes): smooth, jitter of e(t), relative "
+        "reconstruction error, classification accuracy"
+    )
     for lam in folds[0]["smooth"]:
         j_mean, j = stat([f["smooth"][lam]["jitter"] for f in folds])
         r_mean, r = stat([f["smooth"][lam]["recon_error"] for f in folds])
         a_mean, a = stat([f["smooth"][lam]["accuracy"] for f in folds])
-        per_take = "  ".join(f"{label} {np.mean([f['smooth'][lam]['accuracy_per_take'][label] for f in folds]):.0%}"
-                             for label in labels)
-        print(f"   smooth {float(lam):6g}: jitter {j_mean:.3e} (worst {j.max():.3e})  recon error {r_mean:.4f} "
-              f"(worst {r.max():.4f})  accuracy {a_mean:.1%} (worst fold {a.min():.1%}; {per_take})")
+        per_take = "  ".join(
+            f"{label} {np.mean([f['smooth'][lam]['accuracy_per_take'][label] for f in folds]):.0%}" for label in labels
+        )
+        print(
+            f"   smooth {float(lam):6g}: jitter {j_mean:.3e} (worst {j.max():.3e})  recon error {r_mean:.4f} "
+            f"(worst {r.max():.4f})  accuracy {a_mean:.1%} (worst fold {a.min():.1%}; {per_take})"
+        )
 
 
 def main(argv=None):
@@ -328,11 +403,19 @@ def main(argv=None):
     parser.add_argument("--texture-width", type=int, default=64)
     parser.add_argument("--dtw-band", type=float, default=0.3)
     parser.add_argument("--init", default="mean", choices=["mean", "nearest"])
-    parser.add_argument("--shape-balance", type=float, default=AamPca.Params().shape_balance,
-                        help="aam shape_balance: r in Eq 3 as a multiple of Cootes' balance")
-    parser.add_argument("--analysis-shape-weight", type=float, default=ExpressionEdit.Params().analysis_shape_weight,
-                        help="edit analysis_shape_weight: weight of the shape rows when solving the style "
-                             "(1 with --smooth 0: the paper's analysis)")
+    parser.add_argument(
+        "--shape-balance",
+        type=float,
+        default=AamPca.Params().shape_balance,
+        help="aam shape_balance: r in Eq 3 as a multiple of Cootes' balance",
+    )
+    parser.add_argument(
+        "--analysis-shape-weight",
+        type=float,
+        default=ExpressionEdit.Params().analysis_shape_weight,
+        help="edit analysis_shape_weight: weight of the shape rows when solving the style "
+        "(1 with --smooth 0: the paper's analysis)",
+    )
     parser.add_argument("--smooth", default="0,0.1,1,10", help="comma-separated smooth values")
     parser.add_argument("--json", default=None, help="write all numbers to this file")
     args = parser.parse_args(argv)

@@ -3,12 +3,19 @@
 Stage authors import ``Stage, Input, Output, Result, UserError`` from here; users call ``msflow.run``. Exports
 load on first use so that ``msflow status`` and a no-op ``msflow run`` import as little as possible.
 """
+
 from msflow.errors import StageFailed, UserError
 
 __version__ = "0.1.0"
 
-_LAZY = {"Stage": "msflow.stage", "Params": "msflow.stage", "Input": "msflow.stage", "Output": "msflow.stage",
-         "Result": "msflow.stage"}
+_LAZY = {
+    "Stage": "msflow.stage",
+    "Params": "msflow.stage",
+    "Input": "msflow.stage",
+    "Output": "msflow.stage",
+    "Result": "msflow.stage",
+    "Files": "msflow.stage",
+}
 
 
 def __getattr__(name):
@@ -26,4 +33,4 @@ def run(path, overrides=(), **options):
     return _run(path, overrides=overrides, **options)
 
 
-__all__ = ["Stage", "Params", "Input", "Output", "Result", "UserError", "StageFailed", "run", "__version__"]
+__all__ = ["Stage", "Params", "Input", "Output", "Result", "Files", "UserError", "StageFailed", "run", "__version__"]

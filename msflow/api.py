@@ -1,4 +1,5 @@
 """Python API: ``msflow.run(path, overrides=...)`` and the helpers the CLI shares with it."""
+
 from __future__ import annotations
 
 import time
@@ -12,7 +13,6 @@ from msflow.plan import StagePlan, resolve
 from msflow.runner import Runner, StageState, new_run_id
 from msflow.spec import Pipeline, load_pipeline
 
-
 MEMO_ENTRIES = 2000  # per memo section; an evicted entry is only recomputed (one parse, import or file hash)
 
 
@@ -24,7 +24,7 @@ def trim_memo(memo: dict) -> None:
     sections += [code.get("files"), code.get("closures")]
     for section in sections:
         if isinstance(section, dict) and len(section) > MEMO_ENTRIES:
-            for key in list(section)[:len(section) - MEMO_ENTRIES]:
+            for key in list(section)[: len(section) - MEMO_ENTRIES]:
                 del section[key]
 
 
@@ -76,6 +76,15 @@ class RunResult:
         return self.record["id"]
 
     @property
+    def warnings(self) -> dict[str, list[str]]:
+        """Stage -> the warnings its artifact carries (stages that ran or were reused)."""
+        return {
+            n: list((s.manifest or {}).get("warnings", []))
+            for n, s in self.states.items()
+            if (s.manifest or {}).get("warnings")
+        }
+
+    @property
     def executed(self) -> list[str]:
         return [n for n, s in self.states.items() if s.state == "ran"]
 
@@ -98,10 +107,22 @@ class RunResult:
         return self.artifact(stage)[output]
 
 
-def run(path: str | Path, overrides=(), *, jobs: int = 1, until: str | None = None, force=(),
-        executor: str = "local", scheduler: str | None = None, reporter=None, argv: list[str] | None = None,
-        raise_on_failure: bool = True, label: dict | None = None, session: Session | None = None,
-        connect_timeout: float = 10.0) -> RunResult:
+def run(
+    path: str | Path,
+    overrides=(),
+    *,
+    jobs: int = 1,
+    until: str | None = None,
+    force=(),
+    executor: str = "local",
+    scheduler: str | None = None,
+    reporter=None,
+    argv: list[str] | None = None,
+    raise_on_failure: bool = True,
+    label: dict | None = None,
+    session: Session | None = None,
+    connect_timeout: float = 10.0,
+) -> RunResult:
     """Run a pipeline. Raises UserError for mistakes in the pipeline (nothing is written), and after the run
     StageFailed (a stage crashed) or UserError (a stage rejected its data) unless ``raise_on_failure`` is False."""
     from msflow.executors import make_executor
@@ -112,14 +133,32 @@ def run(path: str | Path, overrides=(), *, jobs: int = 1, until: str | None = No
     session = session or open_session(path, overrides)
     pin_blas_threads()
     pool = make_executor(executor, jobs, scheduler, connect_timeout, on_start=session.store.clean_tmp)
-    runner = Runner(session.pipeline, session.plans, session.store, session.memo, executor=pool, until=until,
-                    force=tuple(force), reporter=reporter)
+    runner = Runner(
+        session.pipeline,
+        session.plans,
+        session.store,
+        session.memo,
+        executor=pool,
+        until=until,
+        force=tuple(force),
+        reporter=reporter,
+    )
     try:
         states = runner.run()
     finally:
         pool.shutdown()
-    record = build_record(new_run_id(), session.pipeline, session.plans, states, started=started,
-                          finished=time.time(), executor=pool.name, jobs=jobs, argv=argv, label=label)
+    record = build_record(
+        new_run_id(),
+        session.pipeline,
+        session.plans,
+        states,
+        started=started,
+        finished=time.time(),
+        executor=pool.name,
+        jobs=jobs,
+        argv=argv,
+        label=label,
+    )
     session.store.write_run(record)
     update_lock(session.pipeline, session.plans, states)
     if session.pipeline.publish:

@@ -4,6 +4,7 @@ The manifest (``attributes["msflow"]``) records every output's content hash, sha
 metadata and metrics, and the artifact's content hash. It is plain JSON in ``zarr.json``, so the no-op path reads
 it with ``json`` alone; zarr is imported only to read or write arrays.
 """
+
 from __future__ import annotations
 
 import json
@@ -19,14 +20,20 @@ CHUNK_BYTES = 4 << 20
 class ArtifactView:
     """Read access to an artifact: ``view["name"]`` is numpy, ``view.lazy("name")`` the stored (zarr) array."""
 
-    def __init__(self, arrays: Mapping[str, Any], meta: dict, metrics: dict, key: str | None = None,
-                 manifest: dict | None = None):
+    def __init__(
+        self, arrays: Mapping[str, Any], meta: dict, metrics: dict, key: str | None = None, manifest: dict | None = None
+    ):
         self._arrays = dict(arrays)
         self._loaded: dict[str, Any] = {}
         self.meta = meta
         self.metrics = metrics
         self.key = key
         self.manifest = manifest or {}
+
+    @property
+    def warnings(self) -> list[str]:
+        """The warnings the stage attached to this result (``Result.warnings``)."""
+        return list(self.manifest.get("warnings", []))
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -72,8 +79,21 @@ def _prod(values) -> int:
     return out
 
 
-def build_manifest(arrays: Mapping[str, Any], meta: dict, metrics: dict,
-                   file_suffixes: Mapping[str, str | None] | None = None) -> dict:
+def meta_digest(meta: dict, metrics: dict, warnings: list[str] | None = None) -> str:
+    """Hash of the JSON part of an artifact (warnings enter only when there are some: older hashes hold)."""
+    content: dict[str, Any] = {"meta": meta, "metrics": metrics}
+    if warnings:
+        content["warnings"] = warnings
+    return json_hash(content)
+
+
+def build_manifest(
+    arrays: Mapping[str, Any],
+    meta: dict,
+    metrics: dict,
+    file_suffixes: Mapping[str, str | None] | None = None,
+    warnings: list[str] | None = None,
+) -> dict:
     """Content hashes of arrays and metadata; ``content_hash`` identifies the artifact's content."""
     outputs = {}
     for name, arr in arrays.items():
@@ -82,10 +102,19 @@ def build_manifest(arrays: Mapping[str, Any], meta: dict, metrics: dict,
         if suffix:
             entry["file_suffix"] = suffix
         outputs[name] = entry
-    meta_hash = json_hash({"meta": meta, "metrics": metrics})
+    meta_hash = meta_digest(meta, metrics, warnings)
     content = json_hash({"outputs": {k: v["hash"] for k, v in sorted(outputs.items())}, "meta": meta_hash})
-    return {"format": FORMAT, "outputs": outputs, "meta": meta, "metrics": metrics, "meta_hash": meta_hash,
-            "content_hash": content}
+    manifest = {
+        "format": FORMAT,
+        "outputs": outputs,
+        "meta": meta,
+        "metrics": metrics,
+        "meta_hash": meta_hash,
+        "content_hash": content,
+    }
+    if warnings:
+        manifest["warnings"] = list(warnings)
+    return manifest
 
 
 ZSTD_LEVEL = 3
@@ -99,13 +128,21 @@ def array_metadata(arr) -> dict:
     fill = False if arr.dtype.kind == "b" else 0.0 if arr.dtype.kind in "fc" else 0
     if arr.dtype.kind == "c":
         fill = [0.0, 0.0]
-    return {"shape": list(arr.shape), "data_type": arr.dtype.name,
-            "chunk_grid": {"name": "regular",
-                           "configuration": {"chunk_shape": list(chunk_shape(arr.shape, arr.dtype.itemsize))}},
-            "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
-            "fill_value": fill,
-            "codecs": [bytes_codec, {"name": "zstd", "configuration": {"level": ZSTD_LEVEL, "checksum": False}}],
-            "attributes": {}, "zarr_format": 3, "node_type": "array", "storage_transformers": []}
+    return {
+        "shape": list(arr.shape),
+        "data_type": arr.dtype.name,
+        "chunk_grid": {
+            "name": "regular",
+            "configuration": {"chunk_shape": list(chunk_shape(arr.shape, arr.dtype.itemsize))},
+        },
+        "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
+        "fill_value": fill,
+        "codecs": [bytes_codec, {"name": "zstd", "configuration": {"level": ZSTD_LEVEL, "checksum": False}}],
+        "attributes": {},
+        "zarr_format": 3,
+        "node_type": "array",
+        "storage_transformers": [],
+    }
 
 
 def encode_artifact(arrays: Mapping[str, Any], manifest: dict):
@@ -131,29 +168,36 @@ def encode_artifact(arrays: Mapping[str, Any], manifest: dict):
         step = meta["chunk_grid"]["configuration"]["chunk_shape"][0]
         rest = "/0" * (arr.ndim - 1)
         for index, start in enumerate(range(0, arr.shape[0], step)):
-            block = little[start:start + step]
+            block = little[start : start + step]
             if block.shape[0] < step:  # zarr stores edge chunks at full chunk size, padded with the fill value
                 padded = np.zeros((step,) + block.shape[1:], dtype=block.dtype)
-                padded[:block.shape[0]] = block
+                padded[: block.shape[0]] = block
                 block = padded
             yield f"{name}/c/{index}{rest}", codec.encode(np.ascontiguousarray(block).tobytes())
     group = {"attributes": {"msflow": manifest}, "zarr_format": 3, "node_type": "group"}
     yield "zarr.json", json.dumps(group, allow_nan=False).encode()
 
 
-def prepare_manifest(arrays: Mapping[str, Any], manifest_extra: dict,
-                     file_suffixes: Mapping[str, str | None] | None = None) -> tuple[dict, dict]:
+def prepare_manifest(
+    arrays: Mapping[str, Any], manifest_extra: dict, file_suffixes: Mapping[str, str | None] | None = None
+) -> tuple[dict, dict]:
     import numpy as np
 
     arrays = {k: np.asarray(v, order="C") for k, v in arrays.items()}
-    manifest = build_manifest(arrays, manifest_extra.get("meta", {}), manifest_extra.get("metrics", {}),
-                              file_suffixes)
-    manifest.update({k: v for k, v in manifest_extra.items() if k not in ("meta", "metrics")})
+    manifest = build_manifest(
+        arrays,
+        manifest_extra.get("meta", {}),
+        manifest_extra.get("metrics", {}),
+        file_suffixes,
+        manifest_extra.get("warnings"),
+    )
+    manifest.update({k: v for k, v in manifest_extra.items() if k not in ("meta", "metrics", "warnings")})
     return arrays, manifest
 
 
-def write_artifact(path: Path, arrays: Mapping[str, Any], manifest_extra: dict,
-                   file_suffixes: Mapping[str, str | None] | None = None) -> dict:
+def write_artifact(
+    path: Path, arrays: Mapping[str, Any], manifest_extra: dict, file_suffixes: Mapping[str, str | None] | None = None
+) -> dict:
     """Write a new zarr group at ``path`` (which must not exist) and return its manifest."""
     arrays, manifest = prepare_manifest(arrays, manifest_extra, file_suffixes)
     path = Path(path)
@@ -210,11 +254,16 @@ def check_contents(manifest: dict, load) -> list[str]:
                 continue
             if got != entry["hash"]:
                 problems.append(f"output '{name}': content hash {got} != recorded {entry['hash']}")
-        if json_hash({"meta": manifest.get("meta", {}), "metrics": manifest.get("metrics", {})}) != \
-                manifest.get("meta_hash"):
+        if meta_digest(manifest.get("meta", {}), manifest.get("metrics", {}), manifest.get("warnings")) != manifest.get(
+            "meta_hash"
+        ):
             problems.append("metadata: hash differs from recorded")
-        content = json_hash({"outputs": {k: v["hash"] for k, v in sorted(manifest["outputs"].items())},
-                             "meta": manifest.get("meta_hash")})
+        content = json_hash(
+            {
+                "outputs": {k: v["hash"] for k, v in sorted(manifest["outputs"].items())},
+                "meta": manifest.get("meta_hash"),
+            }
+        )
         if content != manifest.get("content_hash"):
             problems.append("manifest: content hash differs from recorded")
     except Exception as exc:

@@ -1,4 +1,5 @@
 """The ``msflow`` command line. Exit codes: 0 ok, 1 a stage failed, 2 user error (no traceback)."""
+
 from __future__ import annotations
 
 import json
@@ -10,8 +11,12 @@ import typer
 
 from msflow.errors import StageFailed, UserError
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="msflow: cached dataflow pipelines (Mood Swings expressive speech animation).")
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="msflow: cached dataflow pipelines (Mood Swings expressive speech animation).",
+)
 
 FILE_ARG = typer.Argument(Path("pipeline.yaml"), help="pipeline file", show_default=True)
 FILE_OPT = typer.Option(Path("pipeline.yaml"), "-f", "--file", help="pipeline file")
@@ -27,17 +32,20 @@ def _split(values: list[str] | None) -> tuple[str, ...]:
 
 # ---------------------------------------------------------------------------------------------------------- run
 @app.command()
-def run(file: Path = FILE_ARG,
-        until: Optional[str] = typer.Option(None, "--until", help="run only this stage and what it needs"),
-        force: Optional[List[str]] = typer.Option(None, "--force", help="rerun these stages even if cached"),
-        overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
-        jobs: int = typer.Option(1, "-j", "--jobs", help="stages to run at once (processes)"),
-        executor: str = typer.Option("local", "--executor", help="local or dask"),
-        scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address tcp://host:port"),
-        connect_timeout: float = typer.Option(10.0, "--connect-timeout", help="seconds to reach the scheduler"),
-        quiet: bool = typer.Option(False, "-q", "--quiet", help="no progress display")):
+def run(
+    file: Path = FILE_ARG,
+    until: Optional[str] = typer.Option(None, "--until", help="run only this stage and what it needs"),
+    force: Optional[List[str]] = typer.Option(None, "--force", help="rerun these stages even if cached"),
+    overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
+    jobs: int = typer.Option(1, "-j", "--jobs", help="stages to run at once (processes)"),
+    executor: str = typer.Option("local", "--executor", help="local or dask"),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address tcp://host:port"),
+    connect_timeout: float = typer.Option(10.0, "--connect-timeout", help="seconds to reach the scheduler"),
+    quiet: bool = typer.Option(False, "-q", "--quiet", help="no progress display"),
+):
     """Run the pipeline: compute what is missing, reuse everything else."""
-    from msflow.api import open_session, run as run_pipeline
+    from msflow.api import open_session
+    from msflow.api import run as run_pipeline
     from msflow.progress import make_reporter
 
     session = open_session(file, tuple(overrides or ()))
@@ -45,9 +53,19 @@ def run(file: Path = FILE_ARG,
     if reporter:
         reporter.start()
     try:
-        result = run_pipeline(file, session=session, jobs=jobs, until=until, force=_split(force),
-                              executor=executor, scheduler=scheduler, reporter=reporter, argv=sys.argv[1:],
-                              raise_on_failure=False, connect_timeout=connect_timeout)
+        result = run_pipeline(
+            file,
+            session=session,
+            jobs=jobs,
+            until=until,
+            force=_split(force),
+            executor=executor,
+            scheduler=scheduler,
+            reporter=reporter,
+            argv=sys.argv[1:],
+            raise_on_failure=False,
+            connect_timeout=connect_timeout,
+        )
     finally:
         if reporter:
             reporter.stop()
@@ -55,6 +73,7 @@ def run(file: Path = FILE_ARG,
     summary = ", ".join(f"{v} {k}" for k, v in counts.items() if v)
     if not quiet:
         _echo(f"{summary or 'nothing selected'} in {result.record['seconds']:.2f}s (run {result.run_id})", err=True)
+    _echo_warnings(result.warnings, {n: s.state for n, s in result.states.items()})
     for name, state in result.states.items():
         if state.state == "failed" and not state.user_error and state.traceback:
             _echo(f"\n--- stage '{name}' failed; traceback (also in the run record):", err=True)
@@ -64,10 +83,22 @@ def run(file: Path = FILE_ARG,
     raise_for_failures(result.states)
 
 
+def _echo_warnings(warnings: dict[str, list[str]], states: dict[str, str]) -> None:
+    """Stage warnings, yellow on a terminal; those of reused results say so (they were raised when computed)."""
+    colour = sys.stderr.isatty()
+    for stage, messages in warnings.items():
+        origin = " (cached result)" if states.get(stage) == "cached" else ""
+        for message in messages:
+            line = f"warning: {stage}{origin}: {message}"
+            _echo(f"\033[33m{line}\033[0m" if colour else line, err=True)
+
+
 # ---------------------------------------------------------------------------------------------------------- status / why
 @app.command()
-def status(file: Path = FILE_ARG,
-           overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override")):
+def status(
+    file: Path = FILE_ARG,
+    overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
+):
     """What a run would do now, and why."""
     from msflow.api import open_session
     from msflow.inspect import dry_run
@@ -89,8 +120,11 @@ def status(file: Path = FILE_ARG,
 
 
 @app.command()
-def why(stage: str = typer.Argument(..., help="stage name"), file: Path = FILE_OPT,
-        overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override")):
+def why(
+    stage: str = typer.Argument(..., help="stage name"),
+    file: Path = FILE_OPT,
+    overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
+):
     """Which part of STAGE's cache key changed since its last run (code file, param, input)."""
     from msflow.api import open_session
     from msflow.inspect import RunHistory, dry_run
@@ -98,8 +132,9 @@ def why(stage: str = typer.Argument(..., help="stage name"), file: Path = FILE_O
 
     session = open_session(file, tuple(overrides or ()))
     if stage not in session.pipeline.stages:
-        raise UserError(f"unknown stage '{stage}'{_suggest(stage, session.pipeline.stages)}", file=str(file),
-                        field="STAGE")
+        raise UserError(
+            f"unknown stage '{stage}'{_suggest(stage, session.pipeline.stages)}", file=str(file), field="STAGE"
+        )
     history = RunHistory(session)
     d = dry_run(session, history)[stage]
     previous = history.last(stage)
@@ -115,8 +150,9 @@ def why(stage: str = typer.Argument(..., help="stage name"), file: Path = FILE_O
 
 # ---------------------------------------------------------------------------------------------------------- dag
 @app.command()
-def dag(file: Path = FILE_ARG, mermaid: bool = typer.Option(False, "--mermaid"),
-        dot: bool = typer.Option(False, "--dot")):
+def dag(
+    file: Path = FILE_ARG, mermaid: bool = typer.Option(False, "--mermaid"), dot: bool = typer.Option(False, "--dot")
+):
     """Print the stage graph (text, Mermaid or Graphviz dot)."""
     from msflow.dag import render_dot, render_mermaid, render_text
     from msflow.spec import load_pipeline
@@ -142,8 +178,9 @@ def show(target: str = typer.Argument(..., help="STAGE or STAGE.output"), file: 
     _echo(f"{stage}  {session.plans[stage].uses}\nkey {key}  ({origin})")
     names = [output] if output else list(view.names)
     if output and output not in view:
-        raise UserError(f"stage '{stage}' has no output '{output}'; outputs: {', '.join(view.names)}",
-                        field="STAGE.output")
+        raise UserError(
+            f"stage '{stage}' has no output '{output}'; outputs: {', '.join(view.names)}", field="STAGE.output"
+        )
     for name in names:
         _echo("  " + describe_array(name, view))
     if output:
@@ -152,6 +189,10 @@ def show(target: str = typer.Argument(..., help="STAGE or STAGE.output"), file: 
         with np.printoptions(threshold=200, edgeitems=3, precision=5, suppress=True):
             _echo(str(view[output]))
         return
+    if view.warnings:
+        _echo("warnings:")
+        for message in view.warnings:
+            _echo(f"  {message}")
     if view.metrics:
         _echo("metrics:")
         for k, v in view.metrics.items():
@@ -181,8 +222,9 @@ def describe_array(name: str, view) -> str:
 
 
 @app.command()
-def export(target: str = typer.Argument(..., help="STAGE.output"), dest: Path = typer.Argument(...),
-           file: Path = FILE_OPT):
+def export(
+    target: str = typer.Argument(..., help="STAGE.output"), dest: Path = typer.Argument(...), file: Path = FILE_OPT
+):
     """Write one output to a file: .npy, .npz, .csv, .json, or a file output's own bytes (GLB, MP4, ...)."""
     from msflow.api import open_session
     from msflow.exporting import export_output
@@ -200,16 +242,21 @@ def export(target: str = typer.Argument(..., help="STAGE.output"), dest: Path = 
 
 # ---------------------------------------------------------------------------------------------------------- gc / verify
 @app.command()
-def gc(file: Path = FILE_ARG, keep_runs: int = typer.Option(10, "--keep-runs", help="runs whose artifacts stay"),
-       dry_run: bool = typer.Option(False, "--dry-run", help="only list what would go")):
+def gc(
+    file: Path = FILE_ARG,
+    keep_runs: int = typer.Option(10, "--keep-runs", help="runs whose artifacts stay"),
+    dry_run: bool = typer.Option(False, "--dry-run", help="only list what would go"),
+):
     """Drop artifacts that none of the most recent runs references; clear leftovers of killed runs."""
     from msflow.gc import collect_garbage
     from msflow.spec import load_pipeline
 
     report = collect_garbage(load_pipeline(file).open_store(), keep_runs=keep_runs, dry_run=dry_run)
     verb = "would remove" if dry_run else "removed"
-    _echo(f"{verb} {len(report['artifacts'])} artifacts ({report['bytes'] / 1e6:.1f} MB), kept {report['kept']}, "
-          f"cleared {len(report['tmp'])} temporary directories")
+    _echo(
+        f"{verb} {len(report['artifacts'])} artifacts ({report['bytes'] / 1e6:.1f} MB), kept {report['kept']}, "
+        f"cleared {len(report['tmp'])} temporary directories"
+    )
 
 
 @app.command()
@@ -235,17 +282,20 @@ def verify(file: Path = FILE_ARG, delete: bool = typer.Option(False, "--delete",
 
 # ---------------------------------------------------------------------------------------------------------- sweeps, runs
 @app.command()
-def sweep(file: Path = FILE_ARG,
-          values: Optional[List[str]] = typer.Option(None, "-S", "--set",
-                                                     help="stage.param=v1,v2,... (comma lists form a grid)"),
-          grid: Optional[Path] = typer.Option(None, "--grid", help="grid file: grid / zip / variants"),
-          jobs: int = typer.Option(1, "-j", "--jobs", help="stages to run at once across variants"),
-          executor: str = typer.Option("local", "--executor", help="local or dask"),
-          scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler tcp://host:port"),
-          fmt: str = typer.Option("table", "--format", help="table, md, csv or json"),
-          sort: Optional[str] = typer.Option(None, "--sort", help="column to sort by (-column: descending)"),
-          metrics: Optional[str] = typer.Option(None, "--metrics", help="stage.metric patterns, comma separated"),
-          quiet: bool = typer.Option(False, "-q", "--quiet")):
+def sweep(
+    file: Path = FILE_ARG,
+    values: Optional[List[str]] = typer.Option(
+        None, "-S", "--set", help="stage.param=v1,v2,... (comma lists form a grid)"
+    ),
+    grid: Optional[Path] = typer.Option(None, "--grid", help="grid file: grid / zip / variants"),
+    jobs: int = typer.Option(1, "-j", "--jobs", help="stages to run at once across variants"),
+    executor: str = typer.Option("local", "--executor", help="local or dask"),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler tcp://host:port"),
+    fmt: str = typer.Option("table", "--format", help="table, md, csv or json"),
+    sort: Optional[str] = typer.Option(None, "--sort", help="column to sort by (-column: descending)"),
+    metrics: Optional[str] = typer.Option(None, "--metrics", help="stage.metric patterns, comma separated"),
+    quiet: bool = typer.Option(False, "-q", "--quiet"),
+):
     """Run a grid of parameter variants; print variant parameters against stage metrics."""
     from msflow.progress import SweepReporter
     from msflow.sweep import expand_variants, format_table, metric_columns, results_rows, run_sweep
@@ -259,8 +309,11 @@ def sweep(file: Path = FILE_ARG,
     header, rows = results_rows(result, metric_columns(result, _split([metrics]) if metrics else None), sort)
     _echo(format_table(header, rows, fmt))
     failed = sum(1 for v in result.variants if not v.ok)
-    _echo(f"sweep {result.sweep_id}: {len(result.variants)} variants, {result.executed} stage executions for "
-          f"{result.unique_keys} distinct keys, {failed} failed, {result.seconds:.2f}s", err=True)
+    _echo(
+        f"sweep {result.sweep_id}: {len(result.variants)} variants, {result.executed} stage executions for "
+        f"{result.unique_keys} distinct keys, {failed} failed, {result.seconds:.2f}s",
+        err=True,
+    )
     if failed:
         raise typer.Exit(1)
 
@@ -277,15 +330,20 @@ def runs(file: Path = FILE_ARG, limit: int = typer.Option(20, "--limit", "-n", h
         counts = ", ".join(f"{v} {k}" for k, v in record.get("counts", {}).items() if v)
         label = record.get("variant") or record.get("overrides") or ""
         sweep = f" sweep {record['sweep']}" if record.get("sweep") else ""
-        _echo(f"{run_id}  {'ok    ' if record.get('ok') else 'FAILED'}  {record.get('seconds', 0):7.2f}s  "
-              f"{counts}{sweep}  {json.dumps(label) if label else ''}")
+        _echo(
+            f"{run_id}  {'ok    ' if record.get('ok') else 'FAILED'}  {record.get('seconds', 0):7.2f}s  "
+            f"{counts}{sweep}  {json.dumps(label) if label else ''}"
+        )
     if not ids:
         _echo("no runs yet")
 
 
 @app.command()
-def compare(run_a: str = typer.Argument(..., help="run id (or unique prefix/suffix)"),
-            run_b: str = typer.Argument(...), file: Path = FILE_OPT):
+def compare(
+    run_a: str = typer.Argument(..., help="run id (or unique prefix/suffix)"),
+    run_b: str = typer.Argument(...),
+    file: Path = FILE_OPT,
+):
     """Differences between two runs: params, cache keys, metrics."""
     from msflow.spec import load_pipeline
 
@@ -321,17 +379,22 @@ def compare(run_a: str = typer.Argument(..., help="run id (or unique prefix/suff
 
 # ---------------------------------------------------------------------------------------------------------- report
 @app.command()
-def report(run: Optional[str] = typer.Argument(None, help="run or sweep id (default: the newest run)"),
-           out: Path = typer.Option(Path("report.html"), "-o", "--out", help="HTML file to write"),
-           file: Path = FILE_OPT,
-           jobs: int = typer.Option(2, "-j", "--jobs", help="processes rendering figures"),
-           metric: Optional[str] = typer.Option(None, "--metric", help="sweeps: stage.metric to plot")):
+def report(
+    run: Optional[str] = typer.Argument(None, help="run or sweep id (default: the newest run)"),
+    out: Path = typer.Option(Path("report.html"), "-o", "--out", help="HTML file to write"),
+    file: Path = FILE_OPT,
+    jobs: int = typer.Option(2, "-j", "--jobs", help="processes rendering figures"),
+    metric: Optional[str] = typer.Option(None, "--metric", help="sweeps: stage.metric to plot"),
+):
     """Write one self-contained HTML page of a run (graph, params, keys, metrics, figures) or of a sweep."""
     from msflow.report import build_report
 
     summary = build_report(file, out, run, jobs=jobs, metric=metric)
-    _echo(f"wrote {summary['path']} ({summary['bytes'] / 1e6:.1f} MB, {summary['figures']} figures, "
-          f"{summary['rendered']} rendered) in {summary['seconds']:.2f}s", err=True)
+    _echo(
+        f"wrote {summary['path']} ({summary['bytes'] / 1e6:.1f} MB, {summary['figures']} figures, "
+        f"{summary['rendered']} rendered) in {summary['seconds']:.2f}s",
+        err=True,
+    )
     for failure in summary["failed"]:
         _echo(f"figure failed: {failure}", err=True)
 
@@ -352,8 +415,7 @@ def main(argv: list[str] | None = None) -> int:
     usage_errors = _usage_error_types()
     command = typer.main.get_command(app)
     try:
-        code = command.main(args=argv if argv is not None else sys.argv[1:], prog_name="msflow",
-                            standalone_mode=False)
+        code = command.main(args=argv if argv is not None else sys.argv[1:], prog_name="msflow", standalone_mode=False)
         if isinstance(code, int):  # click returns typer.Exit's code instead of raising it here
             return code
     except UserError as exc:

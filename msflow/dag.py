@@ -1,10 +1,17 @@
 """Rendering the stage graph: plain text, Mermaid and Graphviz dot (optionally coloured by stage state)."""
+
 from __future__ import annotations
 
 from msflow.spec import FilesRef, Pipeline, StageRef, topological_order
 
-STATE_COLOURS = {"cached": "#9ecae1", "ran": "#74c476", "failed": "#fb6a4a", "skipped": "#d9d9d9",
-                 "run": "#fdd49e", "blocked": "#fdd49e"}
+STATE_COLOURS = {
+    "cached": "#9ecae1",
+    "ran": "#74c476",
+    "failed": "#fb6a4a",
+    "skipped": "#d9d9d9",
+    "run": "#fdd49e",
+    "blocked": "#fdd49e",
+}
 
 
 def edges(pipeline: Pipeline) -> list[tuple[str, str, str]]:

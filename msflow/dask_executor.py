@@ -5,6 +5,7 @@ through the scheduler. Each worker runs one task at a time with BLAS pinned to o
 mid-stage leaves at most an unpublished temporary directory, and Dask reschedules the task on another worker
 (``distributed.scheduler.allowed-failures`` times); the per-key store lock keeps reruns exactly-once.
 """
+
 from __future__ import annotations
 
 import uuid
@@ -21,24 +22,33 @@ class DaskExecutor:
         try:
             from distributed import Client, LocalCluster
         except ImportError:
-            raise UserError("the Dask executor needs dask.distributed: pip install 'msflow[dask]'",
-                            field="--executor") from None
+            raise UserError(
+                "the Dask executor needs dask.distributed: pip install 'msflow[dask]'", field="--executor"
+            ) from None
         self.cluster = None
         if scheduler:
             try:
                 self.client = Client(scheduler, timeout=timeout, set_as_default=False)
             except (OSError, TimeoutError) as exc:
-                raise UserError(f"cannot reach the Dask scheduler at {scheduler} within {timeout:g}s "
-                                f"({type(exc).__name__}); is it running and is the address right?",
-                                field="--scheduler") from None
+                raise UserError(
+                    f"cannot reach the Dask scheduler at {scheduler} within {timeout:g}s "
+                    f"({type(exc).__name__}); is it running and is the address right?",
+                    field="--scheduler",
+                ) from None
         else:
             import dask
 
             env = {var: "1" for var in BLAS_VARS}
             # the statistical profiler samples every worker's stack every 10 ms; msflow never reads it
             with dask.config.set({"distributed.worker.profile.enabled": False}):
-                self.cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True,
-                                            dashboard_address=None, env=env, silence_logs=40)
+                self.cluster = LocalCluster(
+                    n_workers=jobs,
+                    threads_per_worker=1,
+                    processes=True,
+                    dashboard_address=None,
+                    env=env,
+                    silence_logs=40,
+                )
             self.client = Client(self.cluster, set_as_default=False)
 
     def submit(self, job_json: str) -> Future:
@@ -54,8 +64,9 @@ class DaskExecutor:
         def transfer(done) -> None:
             try:
                 future.set_result(done.result())
-            except Exception as exc:  # noqa: BLE001 - KilledWorker, cancelled, lost
+            except Exception as exc:
                 future.set_exception(exc)
+
         task.add_done_callback(transfer)
         return future
 

@@ -1,4 +1,5 @@
 """Errors msflow distinguishes: a user's mistake (exit 2) versus a failing stage (exit 1)."""
+
 from __future__ import annotations
 
 
@@ -12,16 +13,14 @@ class UserError(Exception):
 
     exit_code = 2
 
-    def __init__(self, message: str, *, file: str | None = None, stage: str | None = None,
-                 field: str | None = None):
+    def __init__(self, message: str, *, file: str | None = None, stage: str | None = None, field: str | None = None):
         super().__init__(message)
         self.message = message
         self.file = file
         self.stage = stage
         self.field = field
 
-    def located(self, *, file: str | None = None, stage: str | None = None,
-                field: str | None = None) -> "UserError":
+    def located(self, *, file: str | None = None, stage: str | None = None, field: str | None = None) -> UserError:
         """Fill in location parts that are still unknown; returns self."""
         self.file = self.file or file
         self.stage = self.stage or stage
@@ -39,8 +38,13 @@ class UserError(Exception):
         return (": ".join(where) + ": " if where else "") + self.message
 
     def to_json(self) -> dict:
-        return {"type": "UserError", "message": self.message, "file": self.file, "stage": self.stage,
-                "field": self.field}
+        return {
+            "type": "UserError",
+            "message": self.message,
+            "file": self.file,
+            "stage": self.stage,
+            "field": self.field,
+        }
 
 
 class StageFailed(Exception):

@@ -3,6 +3,7 @@
 ``inline`` runs in the calling process (``-j 1``); ``local`` is a process pool (``-j N``) whose workers pin BLAS to
 one thread; ``dask`` lives in msflow.dask_executor. All produce the same artifacts and keys.
 """
+
 from __future__ import annotations
 
 from concurrent.futures import Future
@@ -35,8 +36,9 @@ class ProcessExecutor:
         from msflow.worker import pin_blas_threads
 
         pin_blas_threads()  # inherited by the workers, so set before any of them imports numpy
-        self.pool = ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
-                                        initializer=pin_blas_threads)
+        self.pool = ProcessPoolExecutor(
+            max_workers=jobs, mp_context=multiprocessing.get_context("spawn"), initializer=pin_blas_threads
+        )
 
     def submit(self, job_json: str) -> Future:
         from msflow.worker import run_job
@@ -72,19 +74,22 @@ class LazyExecutor:
             self._executor.shutdown()
 
 
-def make_executor(kind: str = "local", jobs: int = 1, scheduler: str | None = None, timeout: float = 10.0,
-                  on_start=None) -> LazyExecutor:
+def make_executor(
+    kind: str = "local", jobs: int = 1, scheduler: str | None = None, timeout: float = 10.0, on_start=None
+) -> LazyExecutor:
     """Validate the executor options now; start the executor when the first job arrives."""
     from msflow.errors import UserError
 
     if jobs < 1:
         raise UserError(f"-j must be at least 1, got {jobs}", field="-j")
     if kind == "dask" or scheduler:
+
         def factory():
             from msflow.dask_executor import DaskExecutor
 
             return DaskExecutor(jobs=jobs, scheduler=scheduler, timeout=timeout)
     elif kind in ("local", "inline"):
+
         def factory():
             return InlineExecutor() if jobs == 1 or kind == "inline" else ProcessExecutor(jobs)
     else:

@@ -1,5 +1,6 @@
 """Writing one artifact output to a file (``msflow export``, ``publish:``): .npy, .npz, .csv, .json, or the raw
 bytes of a file output (GLB, MP4, CSV ... produced by a stage)."""
+
 from __future__ import annotations
 
 import json
@@ -34,11 +35,16 @@ def export_output(view, output: str, dest: Path) -> None:
         tmp.write_text(array_to_csv(arr, output), encoding="utf-8")
     elif suffix == ".json":
         data = np.where(np.isfinite(arr), arr, np.nan).tolist() if arr.dtype.kind == "f" else arr.tolist()
-        tmp.write_text(json.dumps({"name": output, "shape": list(arr.shape), "dtype": str(arr.dtype),
-                                   "data": _nan_to_none(data)}), encoding="utf-8")
+        tmp.write_text(
+            json.dumps({"name": output, "shape": list(arr.shape), "dtype": str(arr.dtype), "data": _nan_to_none(data)}),
+            encoding="utf-8",
+        )
     else:
-        raise UserError(f"unsupported export format '{suffix or dest.name}'; use one of "
-                        f"{', '.join(ARRAY_SUFFIXES)}", file=str(dest), field="FILE")
+        raise UserError(
+            f"unsupported export format '{suffix or dest.name}'; use one of {', '.join(ARRAY_SUFFIXES)}",
+            file=str(dest),
+            field="FILE",
+        )
     os.replace(tmp, dest)
 
 
@@ -85,8 +91,9 @@ def publish_outputs(session, states) -> list[str]:
             continue
         digest = state.manifest["outputs"].get(output, {}).get("hash")
         if digest is None:
-            raise UserError(f"stage '{stage}' has no output '{output}'", file=str(session.pipeline.path),
-                            field=f"publish.{ref}")
+            raise UserError(
+                f"stage '{stage}' has no output '{output}'", file=str(session.pipeline.path), field=f"publish.{ref}"
+            )
         previous = published.get(dest)
         if previous and previous[0] == digest and os.path.exists(dest) and previous[1] == stat_signature(Path(dest)):
             continue

@@ -6,6 +6,7 @@ packages, and of msflow itself, contribute their distributions' versions; standa
 Python minor version is part of the key instead). Nothing is imported to compute this: modules are parsed, and parse results are memoised
 by (size, mtime_ns, inode) so a no-op run only stats files.
 """
+
 from __future__ import annotations
 
 import ast
@@ -27,8 +28,12 @@ def strip_docstrings(tree: ast.AST) -> ast.AST:
     for node in ast.walk(tree):
         if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
             body = node.body
-            if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant) \
-                    and isinstance(body[0].value.value, str):
+            if (
+                body
+                and isinstance(body[0], ast.Expr)
+                and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)
+            ):
                 node.body = body[1:] or [ast.Pass()]
     return tree
 
@@ -88,8 +93,12 @@ class CodeIndex:
 
     def _is_namespace(self, dotted: str) -> bool:
         path = self.root.joinpath(*dotted.split("."))
-        return path.is_dir() and dotted.split(".")[0] not in IGNORED_PARTS and \
-            (path / "__init__.py").exists() is False and any(path.glob("*.py"))
+        return (
+            path.is_dir()
+            and dotted.split(".")[0] not in IGNORED_PARTS
+            and (path / "__init__.py").exists() is False
+            and any(path.glob("*.py"))
+        )
 
     def rel(self, path: Path) -> str:
         """Path relative to the project root, or to the development package's own root: no absolute paths."""
@@ -235,8 +244,9 @@ def _find_source_root(top: str) -> str | None:
         return None  # compiled extension modules and namespace packages: versioned as distributions
     installed = {sysconfig.get_paths()[k] for k in ("stdlib", "platstdlib", "purelib", "platlib")}
     resolved = path.resolve()
-    if any(part in ("site-packages", "dist-packages") for part in resolved.parts) or \
-            any(str(resolved).startswith(str(Path(p).resolve())) for p in installed):
+    if any(part in ("site-packages", "dist-packages") for part in resolved.parts) or any(
+        str(resolved).startswith(str(Path(p).resolve())) for p in installed
+    ):
         return None
     return str(resolved.parent if locations else resolved.parent)
 
@@ -283,8 +293,10 @@ def _unpackaged_digest(name: str) -> str:
     if origin and origin not in ("built-in", "frozen") and os.path.isfile(origin):
         with open(origin, "rb") as fh:
             return bytes_hash(fh.read())
-    raise UserError(f"cannot fingerprint module '{name}': it is not in the project, not from an installed "
-                    "distribution and has no source file")
+    raise UserError(
+        f"cannot fingerprint module '{name}': it is not in the project, not from an installed "
+        "distribution and has no source file"
+    )
 
 
 def _mtime(path: str) -> int:

@@ -1,4 +1,5 @@
 """Content hashes (xxh3-128, hex): canonical JSON, numpy arrays, files (memoised by stat)."""
+
 from __future__ import annotations
 
 import json

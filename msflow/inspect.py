@@ -1,4 +1,5 @@
 """What would run and why: dry key computation against the store and comparison with the last run's key parts."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -13,7 +14,7 @@ from msflow.spec import topological_order
 @dataclass
 class DryState:
     name: str
-    state: str                    # cached | run | blocked (an upstream stage must run first)
+    state: str  # cached | run | blocked (an upstream stage must run first)
     key: str | None = None
     parts: dict | None = None
     reasons: list[str] = field(default_factory=list)
@@ -63,8 +64,11 @@ def dry_run(session: Session, history: RunHistory | None = None) -> dict[str, Dr
             reasons = [f"upstream {', '.join(blocked)} must run first; this stage reruns if their outputs change"]
             previous = history.last(name)
             if previous:
-                reasons += [r for r in explain(previous["key_parts"], {**key_parts(plan, {}), "inputs": None})
-                            if not r.startswith("input")]
+                reasons += [
+                    r
+                    for r in explain(previous["key_parts"], {**key_parts(plan, {}), "inputs": None})
+                    if not r.startswith("input")
+                ]
             dry[name] = DryState(name, "blocked", reasons=reasons)
             states[name] = StageState(name, state="pending")
             continue
@@ -80,7 +84,8 @@ def dry_run(session: Session, history: RunHistory | None = None) -> dict[str, Dr
             else:
                 reasons = explain(previous["key_parts"], full, provenance) or [
                     "key unchanged since the last run but its artifact is missing from the store "
-                    "(garbage-collected, or a different store)"]
+                    "(garbage-collected, or a different store)"
+                ]
             dry[name] = DryState(name, "run", key, full, reasons)
         states[name] = state
     return dry
@@ -110,8 +115,11 @@ def explain(old: dict, new: dict, provenance: dict | None = None) -> list[str]:
         reasons.append(f"python {old_code.get('python')} -> {new_code.get('python')}")
     reasons += [f"param {p}" for p in _diff_values(old.get("params") or {}, new.get("params") or {})]
     old_r, new_r = old.get("resources") or {}, new.get("resources") or {}
-    reasons += [f"data file of the stage's code changed: resource {r}" for r in sorted(set(old_r) | set(new_r))
-                if old_r.get(r) != new_r.get(r) and new.get("inputs") is not None]
+    reasons += [
+        f"data file of the stage's code changed: resource {r}"
+        for r in sorted(set(old_r) | set(new_r))
+        if old_r.get(r) != new_r.get(r) and new.get("inputs") is not None
+    ]
     if new.get("inputs") is not None:
         old_in, new_in = old.get("inputs") or {}, new.get("inputs") or {}
         for name in sorted(set(old_in) | set(new_in)):
@@ -120,11 +128,19 @@ def explain(old: dict, new: dict, provenance: dict | None = None) -> list[str]:
                 continue
             source = (provenance or {}).get(name, {})
             if isinstance(b, dict) and "files" in b and isinstance(a, dict) and "files" in a:
-                changed = sorted(k for k in set(a["files"]) | set(b["files"])
-                                 if a["files"].get(k) != b["files"].get(k))
+                changed = sorted(k for k in set(a["files"]) | set(b["files"]) if a["files"].get(k) != b["files"].get(k))
                 paths = source.get("files", {})
-                reasons.append(f"input {name}: data file content changed: "
-                               f"{', '.join(paths.get(k, k) for k in changed)}")
+                if changed:
+                    reasons.append(
+                        f"input {name}: data file content changed: {', '.join(paths.get(k, k) for k in changed)}"
+                    )
+                relabelled = sorted(
+                    k
+                    for k in set(a.get("fields", {})) | set(b.get("fields", {}))
+                    if a.get("fields", {}).get(k) != b.get("fields", {}).get(k)
+                )
+                if relabelled:
+                    reasons.append(f"input {name}: fields of {', '.join(relabelled)} changed")
             else:
                 origin = f" (from {source['from']})" if source.get("from") else ""
                 reasons.append(f"input {name}: content changed{origin}")
@@ -147,8 +163,11 @@ def resolve_artifact_key(session: Session, stage: str) -> tuple[str, str]:
     if stage not in session.pipeline.stages:
         from msflow.spec import _suggest
 
-        raise UserError(f"unknown stage '{stage}'{_suggest(stage, session.pipeline.stages)}",
-                        file=str(session.pipeline.path), field="STAGE")
+        raise UserError(
+            f"unknown stage '{stage}'{_suggest(stage, session.pipeline.stages)}",
+            file=str(session.pipeline.path),
+            field="STAGE",
+        )
     history = RunHistory(session)
     dry = dry_run(session, history)
     if dry[stage].state == "cached":
@@ -156,6 +175,9 @@ def resolve_artifact_key(session: Session, stage: str) -> tuple[str, str]:
     previous = history.last(stage)
     if previous and session.store.has(previous["key"]):
         return previous["key"], f"from run {previous['run']} (stale: the pipeline changed since)"
-    raise UserError(f"stage '{stage}' has no artifact in the store yet: run the pipeline first "
-                    f"(msflow run {session.pipeline.path.name} --until {stage})", file=str(session.pipeline.path),
-                    stage=stage)
+    raise UserError(
+        f"stage '{stage}' has no artifact in the store yet: run the pipeline first "
+        f"(msflow run {session.pipeline.path.name} --until {stage})",
+        file=str(session.pipeline.path),
+        stage=stage,
+    )

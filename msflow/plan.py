@@ -3,6 +3,7 @@
 A stage class is imported only when its code fingerprint has no memoised interface or when a params set has not
 been validated before under that fingerprint; a no-op run therefore imports no stage module (and no numpy).
 """
+
 from __future__ import annotations
 
 import importlib
@@ -23,10 +24,10 @@ PYTHON = f"{sys.version_info.major}.{sys.version_info.minor}"
 class StagePlan:
     name: str
     uses: str
-    code: dict            # {"modules": {relpath: digest}, "dists": {name: version}, "python": "3.11"}
+    code: dict  # {"modules": {relpath: digest}, "dists": {name: version}, "python": "3.11"}
     code_digest: str
-    interface: dict       # {"inputs": {...}, "outputs": {...}}
-    params: dict          # canonical: validated, defaults filled in
+    interface: dict  # {"inputs": {...}, "outputs": {...}}
+    params: dict  # canonical: validated, defaults filled in
 
 
 _PROJECT_ROOTS: set[str] = set()
@@ -84,8 +85,13 @@ def _remember_project_modules() -> None:
             continue
         _SEEN_MODULES.add(name)
         path = getattr(module, "__file__", None)
-        if path and name not in _IMPORTED and name.split(".")[0] != "msflow" and \
-                any(path.startswith(root) for root in _PROJECT_ROOTS) and "site-packages" not in path:
+        if (
+            path
+            and name not in _IMPORTED
+            and name.split(".")[0] != "msflow"
+            and any(path.startswith(root) for root in _PROJECT_ROOTS)
+            and "site-packages" not in path
+        ):
             try:
                 _IMPORTED[name] = stat_signature(path)
             except OSError:
@@ -103,22 +109,37 @@ def import_stage_class(uses: str, *, file: str | None = None, stage: str | None 
         _remember_project_modules()
     except ModuleNotFoundError as exc:
         missing = exc.name or module_name
-        what = "unknown stage module" if missing == module_name or module_name.startswith(missing + ".") \
+        what = (
+            "unknown stage module"
+            if missing == module_name or module_name.startswith(missing + ".")
             else f"module '{module_name}' needs '{missing}', which is not installed;"
-        raise UserError(f"{what} '{module_name}'" if what.startswith("unknown") else f"{what} {exc}", file=file,
-                        stage=stage, field="uses") from None
+        )
+        raise UserError(
+            f"{what} '{module_name}'" if what.startswith("unknown") else f"{what} {exc}",
+            file=file,
+            stage=stage,
+            field="uses",
+        ) from None
     except SyntaxError as exc:
-        raise UserError(f"syntax error in {exc.filename} line {exc.lineno}: {exc.msg}", file=file, stage=stage,
-                        field="uses") from None
+        raise UserError(
+            f"syntax error in {exc.filename} line {exc.lineno}: {exc.msg}", file=file, stage=stage, field="uses"
+        ) from None
     except Exception as exc:  # the module raised while importing
-        raise UserError(f"importing '{module_name}' failed: {type(exc).__name__}: {exc}", file=file, stage=stage,
-                        field="uses") from None
+        raise UserError(
+            f"importing '{module_name}' failed: {type(exc).__name__}: {exc}", file=file, stage=stage, field="uses"
+        ) from None
     cls = getattr(module, cls_name, None)
     if cls is None:
-        classes = sorted(n for n, v in vars(module).items() if isinstance(v, type) and issubclass(v, Stage)
-                         and v is not Stage)
-        raise UserError(f"module '{module_name}' has no class '{cls_name}'{_suggest(cls_name, classes)}; stages "
-                        f"there: {classes or 'none'}", file=file, stage=stage, field="uses")
+        classes = sorted(
+            n for n, v in vars(module).items() if isinstance(v, type) and issubclass(v, Stage) and v is not Stage
+        )
+        raise UserError(
+            f"module '{module_name}' has no class '{cls_name}'{_suggest(cls_name, classes)}; stages "
+            f"there: {classes or 'none'}",
+            file=file,
+            stage=stage,
+            field="uses",
+        )
     if not (isinstance(cls, type) and issubclass(cls, Stage)):
         raise UserError(f"'{uses}' is not a msflow Stage subclass", file=file, stage=stage, field="uses")
     return cls
@@ -168,11 +189,18 @@ def resolve(pipeline: Pipeline, memo: dict) -> dict[str, StagePlan]:
 
             top = module_name.split(".")[0]
             if importlib.util.find_spec(top) is None:
-                raise UserError(f"unknown stage module '{module_name}' (not in the project at {pipeline.root} and "
-                                "not installed)", file=file, stage=name, field="uses")
+                raise UserError(
+                    f"unknown stage module '{module_name}' (not in the project at {pipeline.root} and not installed)",
+                    file=file,
+                    stage=name,
+                    field="uses",
+                )
             closure = {"modules": {}, "external": [top]}
-        code = {"modules": closure["modules"], "dists": distribution_versions(closure["external"], index.memo),
-                "python": PYTHON}
+        code = {
+            "modules": closure["modules"],
+            "dists": distribution_versions(closure["external"], index.memo),
+            "python": PYTHON,
+        }
         code_digest = json_hash(code)
         iface_key = json_hash([node.uses, code_digest])
         interface = interfaces.get(iface_key)
@@ -180,13 +208,18 @@ def resolve(pipeline: Pipeline, memo: dict) -> dict[str, StagePlan]:
         if interface is None:
             cls = import_stage_class(node.uses, file=file, stage=name, root=pipeline.root)
             interface = cls.interface()
-            interface["resources"] = {k: rel_to(Path(v), pipeline.root)
-                                      for k, v in interface.get("resources", {}).items()}
+            interface["resources"] = {
+                k: rel_to(Path(v), pipeline.root) for k, v in interface.get("resources", {}).items()
+            }
             interfaces[iface_key] = interface
         for resource, path in interface.get("resources", {}).items():
             if not (pipeline.root / path).exists():
-                raise UserError(f"{node.uses} needs its data file '{path}' (resource '{resource}'), which is "
-                                "missing", file=file, stage=name, field="uses")
+                raise UserError(
+                    f"{node.uses} needs its data file '{path}' (resource '{resource}'), which is missing",
+                    file=file,
+                    stage=name,
+                    field="uses",
+                )
         params_key = json_hash([iface_key, node.params])
         params = params_memo.get(params_key)
         if params is None:
@@ -200,8 +233,11 @@ def resolve(pipeline: Pipeline, memo: dict) -> dict[str, StagePlan]:
         stage, _, output = target.partition(".")
         outputs = plans[stage].interface["outputs"]
         if output not in outputs:
-            raise UserError(f"stage '{stage}' has no output '{output}'{_suggest(output, outputs)}; outputs: "
-                            f"{', '.join(outputs)}", file=file, field=f"publish.{target}")
+            raise UserError(
+                f"stage '{stage}' has no output '{output}'{_suggest(output, outputs)}; outputs: {', '.join(outputs)}",
+                file=file,
+                field=f"publish.{target}",
+            )
     return plans
 
 
@@ -211,38 +247,68 @@ def check_inputs(pipeline: Pipeline, plans: dict[str, StagePlan], name: str) -> 
     declared: dict[str, Any] = plans[name].interface["inputs"]
     for input_name in node.inputs:
         if input_name not in declared:
-            raise UserError(f"unknown input '{input_name}'{_suggest(input_name, declared)}; "
-                            f"{node.uses} takes: {', '.join(declared) or 'no inputs'}", file=file, stage=name,
-                            field=f"inputs.{input_name}")
+            raise UserError(
+                f"unknown input '{input_name}'{_suggest(input_name, declared)}; "
+                f"{node.uses} takes: {', '.join(declared) or 'no inputs'}",
+                file=file,
+                stage=name,
+                field=f"inputs.{input_name}",
+            )
     for input_name, decl in declared.items():
         where = f"inputs.{input_name}"
         ref = node.inputs.get(input_name)
         if ref is None:
             if not decl["optional"]:
-                raise UserError(f"missing required input '{input_name}' ({decl['kind']})", file=file, stage=name,
-                                field=where)
+                raise UserError(
+                    f"missing required input '{input_name}' ({decl['kind']})", file=file, stage=name, field=where
+                )
             continue
         kind = decl["kind"]
         if kind == "files":
             if not isinstance(ref, FilesRef):
-                raise UserError(f"expects data files ({{path: ...}} or {{label: path}}), got stage reference "
-                                f"'{ref.describe()}'", file=file, stage=name, field=where)
+                raise UserError(
+                    f"expects data files ({{path: ...}} or {{label: path}}), got stage reference '{ref.describe()}'",
+                    file=file,
+                    stage=name,
+                    field=where,
+                )
             continue
         if not isinstance(ref, StageRef):
-            raise UserError("expects a stage reference ('stage' or 'stage.output'), got data files", file=file,
-                            stage=name, field=where)
+            raise UserError(
+                "expects a stage reference ('stage' or 'stage.output'), got data files",
+                file=file,
+                stage=name,
+                field=where,
+            )
         upstream = plans[ref.stage].interface["outputs"]
         if ref.output is not None and ref.output not in upstream:
-            raise UserError(f"stage '{ref.stage}' has no output '{ref.output}'{_suggest(ref.output, upstream)}; "
-                            f"outputs: {', '.join(upstream)}", file=file, stage=name, field=where)
+            raise UserError(
+                f"stage '{ref.stage}' has no output '{ref.output}'{_suggest(ref.output, upstream)}; "
+                f"outputs: {', '.join(upstream)}",
+                file=file,
+                stage=name,
+                field=where,
+            )
         if kind == "array" and ref.output is None:
-            raise UserError(f"expects one array: write '{ref.stage}.<output>' (outputs: {', '.join(upstream)})",
-                            file=file, stage=name, field=where)
+            raise UserError(
+                f"expects one array: write '{ref.stage}.<output>' (outputs: {', '.join(upstream)})",
+                file=file,
+                stage=name,
+                field=where,
+            )
         if kind == "artifact":
             if ref.output is not None:
-                raise UserError(f"expects a whole artifact: write '{ref.stage}' instead of '{ref.describe()}'",
-                                file=file, stage=name, field=where)
+                raise UserError(
+                    f"expects a whole artifact: write '{ref.stage}' instead of '{ref.describe()}'",
+                    file=file,
+                    stage=name,
+                    field=where,
+                )
             missing = [r for r in decl["requires"] if r not in upstream]
             if missing:
-                raise UserError(f"stage '{ref.stage}' ({plans[ref.stage].uses}) lacks outputs {missing} this input "
-                                "requires", file=file, stage=name, field=where)
+                raise UserError(
+                    f"stage '{ref.stage}' ({plans[ref.stage].uses}) lacks outputs {missing} this input requires",
+                    file=file,
+                    stage=name,
+                    field=where,
+                )

@@ -2,13 +2,21 @@
 
 On a terminal a live rich table; otherwise one line per state change (logs, CI). Both write to stderr.
 """
+
 from __future__ import annotations
 
 import sys
 import time
 
-STYLE = {"pending": ("·", "dim"), "cached": ("=", "cyan"), "running": ("…", "yellow"), "ran": ("✓", "green"),
-         "failed": ("✗", "bold red"), "skipped": ("-", "dim"), "waiting": ("⏳", "magenta")}
+STYLE = {
+    "pending": ("·", "dim"),
+    "cached": ("=", "cyan"),
+    "running": ("…", "yellow"),
+    "ran": ("✓", "green"),
+    "failed": ("✗", "bold red"),
+    "skipped": ("-", "dim"),
+    "waiting": ("⏳", "magenta"),
+}
 LABEL = {"ran": "done"}
 
 
@@ -26,8 +34,11 @@ class PlainReporter:
         mark, _ = STYLE.get(state.state, ("?", ""))
         timing = f"{state.seconds:7.2f}s" if state.state in ("ran", "failed") and state.seconds else ""
         detail = f"  ({state.detail})" if state.detail else ""
-        print(f"{mark} {state.name:<{self.width}}  {LABEL.get(state.state, state.state):<8}{timing}{detail}",
-              file=self.stream, flush=True)
+        print(
+            f"{mark} {state.name:<{self.width}}  {LABEL.get(state.state, state.state):<8}{timing}{detail}",
+            file=self.stream,
+            flush=True,
+        )
 
     def stop(self) -> None:
         pass
@@ -53,8 +64,9 @@ class RichReporter:
             if state == "running" and since is not None:
                 seconds = time.perf_counter() - since
             timing = f"{seconds:.2f}s" if state in ("running", "ran", "failed") else ""
-            table.add_row(f"[{style}]{mark}[/]", name, f"[{style}]{LABEL.get(state, state)}[/]", timing,
-                          f"[dim]{detail}[/]")
+            table.add_row(
+                f"[{style}]{mark}[/]", name, f"[{style}]{LABEL.get(state, state)}[/]", timing, f"[dim]{detail}[/]"
+            )
         return table
 
     def start(self) -> None:
@@ -94,6 +106,7 @@ class SweepReporter:
         class Proxy:
             def update(self, state):
                 reporter.update(index, params, state)
+
         return Proxy()
 
     def start(self) -> None:
@@ -108,8 +121,12 @@ class SweepReporter:
             self.finished += 1
             counts = {k: settled.count(k) for k in ("ran", "cached", "failed", "skipped") if settled.count(k)}
             described = ", ".join(f"{k}={v}" for k, v in params.items())
-            print(f"[{self.finished}/{self.total}] variant {index + 1} ({described}): "
-                  + ", ".join(f"{v} {k}" for k, v in counts.items()), file=self.stream, flush=True)
+            print(
+                f"[{self.finished}/{self.total}] variant {index + 1} ({described}): "
+                + ", ".join(f"{v} {k}" for k, v in counts.items()),
+                file=self.stream,
+                flush=True,
+            )
 
     def stop(self) -> None:
         pass

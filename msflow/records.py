@@ -1,4 +1,5 @@
 """Run records (one JSON per run in the store) and ``pipeline.lock`` (diffable YAML beside the pipeline file)."""
+
 from __future__ import annotations
 
 import os
@@ -12,8 +13,10 @@ from msflow.plan import StagePlan
 from msflow.runner import StageState
 from msflow.spec import Pipeline
 
-LOCK_HEADER = ("# pipeline.lock: written by msflow after each run of {name}; the state of every stage's last\n"
-               "# successful execution (cache key, params, input and output content hashes). Commit it; do not edit.\n")
+LOCK_HEADER = (
+    "# pipeline.lock: written by msflow after each run of {name}; the state of every stage's last\n"
+    "# successful execution (cache key, params, input and output content hashes). Commit it; do not edit.\n"
+)
 
 
 def stage_record(plan: StagePlan, state: StageState) -> dict:
@@ -29,6 +32,7 @@ def stage_record(plan: StagePlan, state: StageState) -> dict:
         "shapes": {k: v["shape"] for k, v in manifest.get("outputs", {}).items()},
         "content_hash": manifest.get("content_hash"),
         "metrics": manifest.get("metrics", {}),
+        "warnings": manifest.get("warnings", []),
         "seconds": round(state.seconds, 6),
         "error": state.error,
         "user_error": state.user_error,
@@ -36,9 +40,19 @@ def stage_record(plan: StagePlan, state: StageState) -> dict:
     }
 
 
-def build_record(run_id: str, pipeline: Pipeline, plans: dict[str, StagePlan], states: dict[str, StageState], *,
-                 started: float, finished: float, executor: str, jobs: int, argv: list[str] | None = None,
-                 label: dict | None = None) -> dict:
+def build_record(
+    run_id: str,
+    pipeline: Pipeline,
+    plans: dict[str, StagePlan],
+    states: dict[str, StageState],
+    *,
+    started: float,
+    finished: float,
+    executor: str,
+    jobs: int,
+    argv: list[str] | None = None,
+    label: dict | None = None,
+) -> dict:
     dists: dict[str, str] = {}
     for plan in plans.values():
         dists.update(plan.code["dists"])
@@ -56,15 +70,26 @@ def build_record(run_id: str, pipeline: Pipeline, plans: dict[str, StagePlan], s
         "argv": argv or [],
         "overrides": list(pipeline.overrides),
         "variant": label or {},
-        "config": {name: {"uses": node.uses, "params": plans[name].params,
-                          "inputs": {k: v.describe() for k, v in node.inputs.items()}}
-                   for name, node in pipeline.stages.items()},
+        "config": {
+            name: {
+                "uses": node.uses,
+                "params": plans[name].params,
+                "inputs": {k: v.describe() for k, v in node.inputs.items()},
+            }
+            for name, node in pipeline.stages.items()
+        },
         "stages": {name: stage_record(plans[name], state) for name, state in states.items()},
-        "counts": {s: sum(1 for st in states.values() if st.state == s)
-                   for s in ("cached", "ran", "failed", "skipped")},
+        "counts": {
+            s: sum(1 for st in states.values() if st.state == s) for s in ("cached", "ran", "failed", "skipped")
+        },
         "versions": {"msflow": __version__, "python": platform.python_version(), **dists},
-        "platform": {"system": platform.system(), "release": platform.release(), "machine": platform.machine(),
-                     "python": sys.implementation.name, "cpus": os.cpu_count()},
+        "platform": {
+            "system": platform.system(),
+            "release": platform.release(),
+            "machine": platform.machine(),
+            "python": sys.implementation.name,
+            "cpus": os.cpu_count(),
+        },
     }
 
 
@@ -79,16 +104,21 @@ def lock_entries(pipeline: Pipeline, plans: dict[str, StagePlan], states: dict[s
             "key": state.key,
             "code": plans[name].code_digest,
             "params": plans[name].params,
-            "inputs": {k: (v.get("hash") if "hash" in v and "files" not in v else v.get("hashes"))
-                       for k, v in state.inputs.items()},
+            "inputs": {
+                k: (v.get("hash") if "hash" in v and "files" not in v else v.get("hashes"))
+                for k, v in state.inputs.items()
+            },
             "outputs": {k: v["hash"] for k, v in sorted(manifest.get("outputs", {}).items())},
         }
     return entries
 
 
 def lock_path(pipeline: Pipeline) -> Path:
-    return pipeline.path.with_suffix(".lock") if pipeline.path.suffix in (".yaml", ".yml") \
+    return (
+        pipeline.path.with_suffix(".lock")
+        if pipeline.path.suffix in (".yaml", ".yml")
         else pipeline.path.with_name(pipeline.path.name + ".lock")
+    )
 
 
 def read_lock(pipeline: Pipeline) -> dict:
@@ -96,7 +126,7 @@ def read_lock(pipeline: Pipeline) -> dict:
 
     try:
         loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-        data = yaml.load(lock_path(pipeline).read_text(encoding="utf-8"), Loader=loader)  # noqa: S506
+        data = yaml.load(lock_path(pipeline).read_text(encoding="utf-8"), Loader=loader)
         return data if isinstance(data, dict) else {}
     except (OSError, ValueError, yaml.YAMLError):
         return {}

@@ -41,6 +41,7 @@ No-op path
     request. Opening an artifact reads no metadata beyond the marker; outputs are fetched chunk by chunk in
     parallel, or through zarr for lazy access.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -57,13 +58,13 @@ from msflow.remote_objects import dumps, iter_chunks, make_objects
 from msflow.store import HOST, _pid_alive, write_json_atomic
 
 MARKER_FORMAT = 1
-STALE_SECONDS = 3600.0    # a journalled folder of a writer on another host, without a live lease, is gone after this
-RETIRE_SECONDS = 60.0     # a folder replaced by --force stays readable this long for readers that opened it
+STALE_SECONDS = 3600.0  # a journalled folder of a writer on another host, without a live lease, is gone after this
+RETIRE_SECONDS = 60.0  # a folder replaced by --force stays readable this long for readers that opened it
 
 _PROBED: set[str] = set()
 
 
-def open_remote_store(url: str, options: dict | None, cache_dir: str | Path | None = None) -> "RemoteStore":
+def open_remote_store(url: str, options: dict | None, cache_dir: str | Path | None = None) -> RemoteStore:
     """A RemoteStore for ``url``; the first opening in a process checks bucket, credentials and endpoint."""
     store = RemoteStore(url, options or {}, cache_dir)
     probe_key = json.dumps([url, options or {}], sort_keys=True, default=str)
@@ -85,7 +86,7 @@ class RemoteStore:
         self.options = dict(options)
         self.cache_dir = Path(cache_dir) if cache_dir is not None else None
         self.objects = make_objects(self.url, self.options)
-        self._recent: dict[str, dict] = {}   # markers read by has(), consumed by the manifest() that follows
+        self._recent: dict[str, dict] = {}  # markers read by has(), consumed by the manifest() that follows
 
     # ------------------------------------------------------------------ paths
     @staticmethod
@@ -137,16 +138,17 @@ class RemoteStore:
         manifest = marker["manifest"]
         folder = self.data_path(key, marker["data"])
         chunks = marker.get("chunks", {})
-        arrays = {name: RemoteArray(self, folder, name, entry, chunks.get(name))
-                  for name, entry in manifest["outputs"].items()}
-        return ArtifactView(arrays, manifest.get("meta", {}), manifest.get("metrics", {}), key=key,
-                            manifest=manifest)
+        arrays = {
+            name: RemoteArray(self, folder, name, entry, chunks.get(name))
+            for name, entry in manifest["outputs"].items()
+        }
+        return ArtifactView(arrays, manifest.get("meta", {}), manifest.get("metrics", {}), key=key, manifest=manifest)
 
     def keys(self) -> Iterator[str]:
         for info in self.objects.list("commits/"):
             name = info.path.rsplit("/", 1)[-1]
             if name.endswith(".json"):
-                yield name[:-len(".json")]
+                yield name[: -len(".json")]
 
     def verify(self, key: str) -> list[str]:
         from msflow.artifact import check_contents
@@ -181,8 +183,9 @@ class RemoteStore:
         return sum(o.size for o in self.objects.list(self.data_path(key, marker["data"]) + "/"))
 
     # ------------------------------------------------------------------ writing
-    def write(self, key: str, arrays: dict, extra: dict, file_suffixes: dict | None = None,
-              replace: bool = False) -> dict:
+    def write(
+        self, key: str, arrays: dict, extra: dict, file_suffixes: dict | None = None, replace: bool = False
+    ) -> dict:
         """Upload the zarr group under a fresh folder, then commit it with the marker; returns the manifest."""
         from msflow.artifact import array_metadata, encode_artifact, prepare_manifest
 
@@ -194,10 +197,21 @@ class RemoteStore:
         try:
             for batch in iter_chunks(encode_artifact(arrays, manifest)):
                 self.objects.put_many({f"{folder}/{rel}": data for rel, data in batch.items()})
-            chunks = {name: array_metadata(arr)["chunk_grid"]["configuration"]["chunk_shape"]
-                      for name, arr in arrays.items()}
-            marker = dumps({"format": MARKER_FORMAT, "key": key, "data": wid, "manifest": manifest,
-                            "chunks": chunks, "host": HOST, "pid": os.getpid(), "committed": time.time()})
+            chunks = {
+                name: array_metadata(arr)["chunk_grid"]["configuration"]["chunk_shape"] for name, arr in arrays.items()
+            }
+            marker = dumps(
+                {
+                    "format": MARKER_FORMAT,
+                    "key": key,
+                    "data": wid,
+                    "manifest": manifest,
+                    "chunks": chunks,
+                    "host": HOST,
+                    "pid": os.getpid(),
+                    "committed": time.time(),
+                }
+            )
             if replace:
                 self._replace(key, wid, marker)
             elif self.objects.create(self.marker_path(key), marker) is None:
@@ -230,8 +244,9 @@ class RemoteStore:
 
     @staticmethod
     def _journal_entry(key: str, wid: str, action: str) -> bytes:
-        return dumps({"key": key, "data": wid, "action": action, "host": HOST, "pid": os.getpid(),
-                      "started": time.time()})
+        return dumps(
+            {"key": key, "data": wid, "action": action, "host": HOST, "pid": os.getpid(), "started": time.time()}
+        )
 
     def remove(self, key: str) -> None:
         marker = self._marker(key)
@@ -322,7 +337,7 @@ class RemoteStore:
 
     def _record_ids(self, folder: str) -> list[str]:
         names = (info.path.rsplit("/", 1)[-1] for info in self.objects.list(f"{folder}/"))
-        return sorted(n[:-len(".json")] for n in names if n.endswith(".json"))
+        return sorted(n[: -len(".json")] for n in names if n.endswith(".json"))
 
     def write_run(self, record: dict) -> str:
         return self._write_record("runs", record)
@@ -413,8 +428,7 @@ class RemoteArray:
 
             protocol = self._store.url.split("://", 1)[0]
             options = s3_defaults(self._store.options) if protocol in ("s3", "s3a") else self._store.options
-            zstore = FsspecStore.from_url(f"{self._store.url}/{self._folder}", storage_options=options,
-                                          read_only=True)
+            zstore = FsspecStore.from_url(f"{self._store.url}/{self._folder}", storage_options=options, read_only=True)
             self._zarr = zarr.open_array(zstore, path=self._name, mode="r")
         return self._zarr
 
@@ -460,5 +474,5 @@ class RemoteArray:
             blocks.append(np.frombuffer(codec.decode(blob), dtype=little).reshape(chunk))
         out = blocks[0] if len(blocks) == 1 else np.concatenate(blocks)
         if self.shape:
-            out = out[:self.shape[0]]
+            out = out[: self.shape[0]]
         return np.array(out, dtype=native, order="C")  # writable and native-endian, as zarr would return

@@ -23,6 +23,7 @@ Leases make "each stage instance computed once" hold across machines; they are n
 consistent. Publishing is atomic and content-addressed (msflow.remote), so a lost lease costs duplicated work,
 never a torn or mixed artifact.
 """
+
 from __future__ import annotations
 
 import json
@@ -35,7 +36,7 @@ from typing import Callable
 from msflow.store import HOST, _pid_alive
 
 DEFAULT_TTL = 60.0
-SKEW = 2.0          # seconds of grace beyond a lease's ttl before it is broken (clock and timestamp granularity)
+SKEW = 2.0  # seconds of grace beyond a lease's ttl before it is broken (clock and timestamp granularity)
 
 
 def lease_ttl() -> float:
@@ -81,11 +82,20 @@ class Lease:
         self._thread: threading.Thread | None = None
 
     def _body(self) -> bytes:
-        return json.dumps({"owner": self.token, "host": HOST, "pid": os.getpid(), "since": self.since,
-                           "renewed": time.time(), "ttl": self.ttl}).encode()
+        return json.dumps(
+            {
+                "owner": self.token,
+                "host": HOST,
+                "pid": os.getpid(),
+                "since": self.since,
+                "renewed": time.time(),
+                "ttl": self.ttl,
+            }
+        ).encode()
 
-    def acquire(self, on_wait: Callable[[dict], None] | None = None, poll: float = 0.1,
-                timeout: float | None = None) -> None:
+    def acquire(
+        self, on_wait: Callable[[dict], None] | None = None, poll: float = 0.1, timeout: float | None = None
+    ) -> None:
         self.since = time.time()
         deadline = None if timeout is None else time.monotonic() + timeout
         told = False
@@ -124,7 +134,7 @@ class Lease:
         while not self._stop.wait(self.ttl / 3):
             try:
                 etag = self.objects.replace_if(self.path, self._body(), self.etag)
-            except Exception:  # noqa: BLE001 - a transient failure: the next beat retries before the ttl runs out
+            except Exception:
                 continue
             if etag is None:
                 self.lost = True

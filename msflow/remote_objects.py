@@ -14,6 +14,7 @@ Two backends:
 
 Paths given to these methods are relative to the store's root.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -25,8 +26,8 @@ from typing import Iterable
 
 from msflow.errors import UserError
 
-PROBE_SECONDS = 15.0     # the first request to a store gives up after this long (MSFLOW_STORE_TIMEOUT)
-CONCURRENCY = 16         # parallel requests when reading or writing many objects
+PROBE_SECONDS = 15.0  # the first request to a store gives up after this long (MSFLOW_STORE_TIMEOUT)
+CONCURRENCY = 16  # parallel requests when reading or writing many objects
 
 
 def probe_seconds() -> float:
@@ -49,7 +50,7 @@ class Versioned:
 
 @dataclass
 class ObjectInfo:
-    path: str      # relative to the store root
+    path: str  # relative to the store root
     size: int
 
 
@@ -83,18 +84,38 @@ def translate_failure(exc: BaseException, url: str, endpoint: str | None = None)
     if isinstance(exc, TypeError) and "unexpected keyword argument" in str(exc):
         return UserError(f"invalid store_options for {where}: {exc}", field="store_options")
     if name in ("NoCredentialsError", "PartialCredentialsError", "CredentialRetrievalError"):
-        return UserError(f"no credentials for {where}: set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY (or "
-                         "AWS_PROFILE) in the environment, or key and secret in store_options")
+        return UserError(
+            f"no credentials for {where}: set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY (or "
+            "AWS_PROFILE) in the environment, or key and secret in store_options"
+        )
     if code == "NoSuchBucket" or (isinstance(exc, FileNotFoundError) and "bucket does not exist" in str(exc)):
-        return UserError(f"the bucket of {where} does not exist; create it first (msflow creates objects, "
-                         "never buckets)")
-    if code in ("InvalidAccessKeyId", "SignatureDoesNotMatch", "ExpiredToken", "InvalidToken", "AccessDenied",
-                "AllAccessDisabled", "403") or isinstance(exc, PermissionError):
-        return UserError(f"access denied to {where}: {exc} (check the credentials and their permissions on the "
-                         "bucket and prefix)")
-    network = ("EndpointConnectionError", "ConnectTimeoutError", "ReadTimeoutError", "ConnectionClosedError",
-               "ProxyConnectionError", "SSLError", "ClientConnectorError", "ServerDisconnectedError",
-               "ClientOSError", "TimeoutError")
+        return UserError(
+            f"the bucket of {where} does not exist; create it first (msflow creates objects, never buckets)"
+        )
+    if code in (
+        "InvalidAccessKeyId",
+        "SignatureDoesNotMatch",
+        "ExpiredToken",
+        "InvalidToken",
+        "AccessDenied",
+        "AllAccessDisabled",
+        "403",
+    ) or isinstance(exc, PermissionError):
+        return UserError(
+            f"access denied to {where}: {exc} (check the credentials and their permissions on the bucket and prefix)"
+        )
+    network = (
+        "EndpointConnectionError",
+        "ConnectTimeoutError",
+        "ReadTimeoutError",
+        "ConnectionClosedError",
+        "ProxyConnectionError",
+        "SSLError",
+        "ClientConnectorError",
+        "ServerDisconnectedError",
+        "ClientOSError",
+        "TimeoutError",
+    )
     if name in network or isinstance(exc, (ConnectionError, asyncio.TimeoutError, TimeoutError)):
         detail = str(exc) or f"no answer within {probe_seconds():g} s"
         return UserError(f"cannot reach {where}: {name}: {detail}")
@@ -116,7 +137,7 @@ class S3Objects:
         return f"{self.prefix}/{rel}" if self.prefix else rel
 
     def _rel(self, key: str) -> str:
-        return key[len(self.prefix) + 1:] if self.prefix else key
+        return key[len(self.prefix) + 1 :] if self.prefix else key
 
     def _run(self, coro_fn, *args):
         from fsspec.asyn import sync
@@ -165,9 +186,11 @@ class S3Objects:
     # ------------------------------------------------------------------ primitives
     def probe(self) -> None:
         """One cheap request that fails clearly when the bucket, credentials or endpoint are wrong."""
+
         async def list_one():
             return await asyncio.wait_for(
-                self._call("list_objects_v2", Prefix=self._key(""), MaxKeys=1), probe_seconds())
+                self._call("list_objects_v2", Prefix=self._key(""), MaxKeys=1), probe_seconds()
+            )
 
         self._run(list_one)
 
@@ -200,13 +223,18 @@ class S3Objects:
             return await self._call(method, **kwargs)
         except (OSError, ValueError) as exc:
             code = _client_error_code(exc)
-            if code in PRECONDITION_CODES or code in MISSING_CODES or isinstance(exc, FileExistsError) or (
-                    isinstance(exc, FileNotFoundError) and code != "NoSuchBucket"):
+            if (
+                code in PRECONDITION_CODES
+                or code in MISSING_CODES
+                or isinstance(exc, FileExistsError)
+                or (isinstance(exc, FileNotFoundError) and code != "NoSuchBucket")
+            ):
                 return None
             raise
 
     def create(self, rel: str, data: bytes) -> str | None:
         """Write ``rel`` only if no object is there (atomic on the server); its etag, or None if one existed."""
+
         async def create():
             resp = await self._conditional("put_object", Key=self._key(rel), Body=data, IfNoneMatch="*")
             return None if resp is None else resp["ETag"]
@@ -215,6 +243,7 @@ class S3Objects:
 
     def replace_if(self, rel: str, data: bytes, etag: str) -> str | None:
         """Overwrite ``rel`` only if it is still at version ``etag``; the new etag, or None."""
+
         async def replace():
             resp = await self._conditional("put_object", Key=self._key(rel), Body=data, IfMatch=etag)
             return None if resp is None else resp["ETag"]
@@ -259,7 +288,7 @@ class S3Objects:
             objects = await self._alist(rel_prefix)
             keys = [self._key(o.path) for o in objects]
             for start in range(0, len(keys), 1000):
-                batch = [{"Key": k} for k in keys[start:start + 1000]]
+                batch = [{"Key": k} for k in keys[start : start + 1000]]
                 await self._call("delete_objects", Delete={"Objects": batch, "Quiet": True})
             return len(keys)
 
@@ -357,7 +386,7 @@ class FsspecObjects:
         out = []
         for path, info in found.items():
             path = path if path.startswith("/") or not self.root.startswith("/") else "/" + path
-            rel = path[len(self.root) + 1:]
+            rel = path[len(self.root) + 1 :]
             if rel.startswith(rel_prefix) and info.get("type", "file") == "file":
                 out.append(ObjectInfo(rel, int(info.get("size") or 0)))
         return sorted(out, key=lambda o: o.path)
@@ -391,8 +420,9 @@ def make_objects(url: str, options: dict):
         known = ", ".join(sorted(p for p in known_implementations if len(p) <= 5)[:20])
         raise UserError(f"store {url}: unknown URL scheme '{protocol}://' (fsspec knows {known}, ...)") from None
     if not isinstance(options, dict):
-        raise UserError(f"store_options must be a mapping of fsspec storage options, got {options!r}",
-                        field="store_options")
+        raise UserError(
+            f"store_options must be a mapping of fsspec storage options, got {options!r}", field="store_options"
+        )
     is_s3 = protocol in ("s3", "s3a") and cls.__module__.startswith("s3fs")
     cache_key = json.dumps([os.getpid(), protocol, options], sort_keys=True, default=repr)
     fs = _FILESYSTEMS.get(cache_key)
@@ -400,8 +430,9 @@ def make_objects(url: str, options: dict):
         try:
             fs = cls(**(s3_defaults(options) if is_s3 else options), skip_instance_cache=True)
         except TypeError as exc:
-            raise UserError(f"store {url}: invalid store_options for {cls.__name__}: {exc}",
-                            field="store_options") from None
+            raise UserError(
+                f"store {url}: invalid store_options for {cls.__name__}: {exc}", field="store_options"
+            ) from None
         if is_s3:
             fs.retries = 3  # s3fs's own retry loop, on top of botocore's
         _FILESYSTEMS[cache_key] = fs

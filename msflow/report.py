@@ -5,6 +5,7 @@ figures. Figures are declared by stage classes (``Stage.figures``) and rendered 
 matplotlib; each rendered figure is cached in the store under a key derived from its stage's cache key, so a second
 report of the same run renders nothing.
 """
+
 from __future__ import annotations
 
 import base64
@@ -19,15 +20,14 @@ from msflow.errors import UserError
 from msflow.hashing import json_hash
 
 FIGURE_SCHEME = 1
-STATE_COLOURS = {"cached": "#9ecae1", "ran": "#74c476", "failed": "#fb6a4a", "skipped": "#d9d9d9",
-                 "pending": "#eeeeee"}
+STATE_COLOURS = {"cached": "#9ecae1", "ran": "#74c476", "failed": "#fb6a4a", "skipped": "#d9d9d9", "pending": "#eeeeee"}
 
 
 @dataclass
 class Figure:
     stage: str
     name: str
-    media: str          # "image/png" | "video/mp4"
+    media: str  # "image/png" | "video/mp4"
     data: bytes
     cached: bool
     seconds: float
@@ -100,25 +100,36 @@ def render_stage_figures(job: dict) -> list[dict]:
         started = time.perf_counter()
         if store.has(key):
             cached = store.open(key)
-            out.append({"name": name, "key": key, "media": cached.meta["media"], "cached": True,
-                        "seconds": time.perf_counter() - started})
+            out.append(
+                {
+                    "name": name,
+                    "key": key,
+                    "media": cached.meta["media"],
+                    "cached": True,
+                    "seconds": time.perf_counter() - started,
+                }
+            )
             continue
         try:
             if view is None:
                 view = store.open(entry["key"])
                 inputs = stage_inputs(record, stage, store, Path(job["root"]))
             media, data = to_media(func(view, inputs))
-        except Exception as exc:  # noqa: BLE001 - a broken figure must not sink the report
+        except Exception as exc:
             out.append({"name": name, "error": f"{type(exc).__name__}: {exc}", "seconds": 0.0})
             continue
         import numpy as np
 
         with store.lock(key):
             if not store.has(key):
-                store.write(key, {"data": np.frombuffer(data, np.uint8)},
-                            {"meta": {"media": media, "stage": stage, "figure": name}})
-        out.append({"name": name, "key": key, "media": media, "cached": False,
-                    "seconds": time.perf_counter() - started})
+                store.write(
+                    key,
+                    {"data": np.frombuffer(data, np.uint8)},
+                    {"meta": {"media": media, "stage": stage, "figure": name}},
+                )
+        out.append(
+            {"name": name, "key": key, "media": media, "cached": False, "seconds": time.perf_counter() - started}
+        )
     return out
 
 
@@ -131,19 +142,34 @@ def _render_job(job_json: str) -> str:
 
 def collect_figures(session, record: dict, jobs: int) -> list[Figure]:
     """Figures of every settled stage of a run, rendered in parallel worker processes when ``jobs`` > 1."""
-    stages = [s for s in session.pipeline.stages if record["stages"].get(s, {}).get("state") in ("cached", "ran")
-              and session.store.has(record["stages"][s]["key"])]
-    payloads = {s: json.dumps({"root": str(session.pipeline.root), "store": session.store.url,
-                               "store_options": session.store.options, "record": _slim(record), "stage": s})
-                for s in stages}
+    stages = [
+        s
+        for s in session.pipeline.stages
+        if record["stages"].get(s, {}).get("state") in ("cached", "ran")
+        and session.store.has(record["stages"][s]["key"])
+    ]
+    payloads = {
+        s: json.dumps(
+            {
+                "root": str(session.pipeline.root),
+                "store": session.store.url,
+                "store_options": session.store.options,
+                "record": _slim(record),
+                "stage": s,
+            }
+        )
+        for s in stages
+    }
     results: dict[str, list[dict]] = {}
     pending = []
     for stage in stages:  # cheap pass: stages whose figures are all cached need no worker
         entry = record["stages"][stage]
         names = session.plans[stage].interface.get("figures") if stage in session.plans else None
         if names and all(session.store.has(figure_key(entry["key"], entry["uses"], n)) for n in names):
-            results[stage] = [{"name": n, "key": figure_key(entry["key"], entry["uses"], n), "cached": True,
-                               "seconds": 0.0} for n in names]
+            results[stage] = [
+                {"name": n, "key": figure_key(entry["key"], entry["uses"], n), "cached": True, "seconds": 0.0}
+                for n in names
+            ]
         else:
             pending.append(stage)
     if jobs > 1 and len(pending) > 1:
@@ -153,8 +179,9 @@ def collect_figures(session, record: dict, jobs: int) -> list[Figure]:
         from msflow.worker import pin_blas_threads
 
         pin_blas_threads()
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
-                                 initializer=pin_blas_threads) as pool:
+        with ProcessPoolExecutor(
+            max_workers=jobs, mp_context=multiprocessing.get_context("spawn"), initializer=pin_blas_threads
+        ) as pool:
             futures = {s: pool.submit(_render_job, payloads[s]) for s in pending}
             for stage, future in futures.items():
                 results[stage] = json.loads(future.result())
@@ -168,15 +195,17 @@ def collect_figures(session, record: dict, jobs: int) -> list[Figure]:
                 figures.append(Figure(stage, item["name"], "", b"", False, item["seconds"], item["error"]))
                 continue
             view = session.store.open(item["key"])
-            figures.append(Figure(stage, item["name"], view.meta["media"], view.bytes("data"), item["cached"],
-                                  item["seconds"]))
+            figures.append(
+                Figure(stage, item["name"], view.meta["media"], view.bytes("data"), item["cached"], item["seconds"])
+            )
     return figures
 
 
 def _slim(record: dict) -> dict:
     """What a figure worker needs of the run record (not the tracebacks and key parts)."""
-    return {"stages": {n: {k: s.get(k) for k in ("uses", "key", "inputs", "state")}
-                       for n, s in record["stages"].items()}}
+    return {
+        "stages": {n: {k: s.get(k) for k in ("uses", "key", "inputs", "state")} for n, s in record["stages"].items()}
+    }
 
 
 # ---------------------------------------------------------------------------------------------------------- DAG svg
@@ -195,8 +224,9 @@ def dag_svg(pipeline, record: dict) -> str:
     row_of = {n: i for col in columns.values() for i, n in enumerate(col)}
     for _ in range(3):  # barycentre ordering: a stage sits near the rows of what it reads, fewer crossings
         for col in sorted(columns)[1:]:
-            columns[col].sort(key=lambda n: sum(row_of[d] for d in pipeline.stages[n].deps) /
-                              max(1, len(pipeline.stages[n].deps)))
+            columns[col].sort(
+                key=lambda n: sum(row_of[d] for d in pipeline.stages[n].deps) / max(1, len(pipeline.stages[n].deps))
+            )
             row_of.update({n: i for i, n in enumerate(columns[col])})
     box_w, box_h, gap_x, gap_y = 128, 44, 40, 16
     pos = {}
@@ -205,32 +235,38 @@ def dag_svg(pipeline, record: dict) -> str:
             pos[name] = (20 + col * (box_w + gap_x), 20 + row * (box_h + gap_y))
     width = 40 + len(columns) * (box_w + gap_x)
     height = 40 + max(len(v) for v in columns.values()) * (box_h + gap_y)
-    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
-             f'viewBox="0 0 {width} {height}" style="max-width:100%;height:auto" role="img" '
-             f'aria-label="stage graph">',
-             '<defs><marker id="arrow" viewBox="0 0 10 10" refX="10" refY="5" markerWidth="7" markerHeight="7" '
-             'orient="auto"><path d="M0,0 L10,5 L0,10 z" fill="#666"/></marker></defs>']
+    parts = [
+        f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
+        f'viewBox="0 0 {width} {height}" style="max-width:100%;height:auto" role="img" '
+        f'aria-label="stage graph">',
+        '<defs><marker id="arrow" viewBox="0 0 10 10" refX="10" refY="5" markerWidth="7" markerHeight="7" '
+        'orient="auto"><path d="M0,0 L10,5 L0,10 z" fill="#666"/></marker></defs>',
+    ]
     for name in order:
         x2, y2 = pos[name]
         for dep in pipeline.stages[name].deps:
             x1, y1 = pos[dep]
             sx, sy, ex, ey = x1 + box_w, y1 + box_h / 2, x2, y2 + box_h / 2
             mid = (sx + ex) / 2
-            parts.append(f'<path d="M{sx},{sy} C{mid},{sy} {mid},{ey} {ex},{ey}" fill="none" stroke="#888" '
-                         f'stroke-width="1.2" marker-end="url(#arrow)"/>')
+            parts.append(
+                f'<path d="M{sx},{sy} C{mid},{sy} {mid},{ey} {ex},{ey}" fill="none" stroke="#888" '
+                f'stroke-width="1.2" marker-end="url(#arrow)"/>'
+            )
     for name in order:
         x, y = pos[name]
         entry = record["stages"].get(name, {})
         state = entry.get("state", "pending")
         seconds = entry.get("seconds") or 0.0
         timing = f"{seconds:.2f}s" if state in ("ran", "failed") else state
-        parts.append(f'<g><title>{html.escape(name)}: {html.escape(state)}</title>'
-                     f'<rect x="{x}" y="{y}" width="{box_w}" height="{box_h}" rx="7" '
-                     f'fill="{STATE_COLOURS.get(state, "#eee")}" stroke="#555"/>'
-                     f'<text x="{x + box_w / 2}" y="{y + 18}" text-anchor="middle" font-size="13" '
-                     f'font-family="sans-serif" font-weight="bold">{html.escape(name)}</text>'
-                     f'<text x="{x + box_w / 2}" y="{y + 34}" text-anchor="middle" font-size="11" '
-                     f'font-family="sans-serif">{html.escape(timing)}</text></g>')
+        parts.append(
+            f"<g><title>{html.escape(name)}: {html.escape(state)}</title>"
+            f'<rect x="{x}" y="{y}" width="{box_w}" height="{box_h}" rx="7" '
+            f'fill="{STATE_COLOURS.get(state, "#eee")}" stroke="#555"/>'
+            f'<text x="{x + box_w / 2}" y="{y + 18}" text-anchor="middle" font-size="13" '
+            f'font-family="sans-serif" font-weight="bold">{html.escape(name)}</text>'
+            f'<text x="{x + box_w / 2}" y="{y + 34}" text-anchor="middle" font-size="11" '
+            f'font-family="sans-serif">{html.escape(timing)}</text></g>'
+        )
     parts.append("</svg>")
     return "".join(parts)
 
@@ -263,10 +299,11 @@ def _media_html(fig: Figure) -> str:
         return f'<figure><p class="muted">figure failed: {html.escape(fig.error)}</p>{caption}</figure>'
     data = base64.b64encode(fig.data).decode()
     if fig.media.startswith("video/"):
-        return (f'<figure><video controls preload="auto" src="data:{fig.media};base64,{data}"></video>'
-                f'{caption}</figure>')
-    return f'<figure><img alt="{html.escape(fig.stage)} {html.escape(fig.name)}" ' \
-           f'src="data:{fig.media};base64,{data}">{caption}</figure>'
+        return f'<figure><video controls preload="auto" src="data:{fig.media};base64,{data}"></video>{caption}</figure>'
+    return (
+        f'<figure><img alt="{html.escape(fig.stage)} {html.escape(fig.name)}" '
+        f'src="data:{fig.media};base64,{data}">{caption}</figure>'
+    )
 
 
 def run_page(session, record: dict, figures: list[Figure]) -> str:
@@ -278,19 +315,31 @@ def run_page(session, record: dict, figures: list[Figure]) -> str:
     rows = []
     for name in order:
         entry = record["stages"][name]
-        params = "\n".join(f"{k}: {json.dumps(v)}" for k, v in
-                           (record["config"].get(name) or {}).get("params", {}).items())
-        rows.append(f"<tr><td><b>{html.escape(name)}</b><br><span class='muted'>{html.escape(entry['uses'])}"
-                    f"</span></td><td>{_state_badge(entry['state'])}</td><td>{entry.get('seconds', 0):.2f}s</td>"
-                    f"<td><code>{html.escape(str(entry.get('key') or '')[:16])}</code></td>"
-                    f"<td><pre>{html.escape(params)}</pre></td></tr>")
+        params = "\n".join(
+            f"{k}: {json.dumps(v)}" for k, v in (record["config"].get(name) or {}).get("params", {}).items()
+        )
+        rows.append(
+            f"<tr><td><b>{html.escape(name)}</b><br><span class='muted'>{html.escape(entry['uses'])}"
+            f"</span></td><td>{_state_badge(entry['state'])}</td><td>{entry.get('seconds', 0):.2f}s</td>"
+            f"<td><code>{html.escape(str(entry.get('key') or '')[:16])}</code></td>"
+            f"<td><pre>{html.escape(params)}</pre></td></tr>"
+        )
     metric_rows = []
     for name in order:
         for metric, value in (record["stages"][name].get("metrics") or {}).items():
-            metric_rows.append(f"<tr><td>{html.escape(name)}</td><td>{html.escape(metric)}</td>"
-                               f"<td>{_fmt(value)}</td></tr>")
-    errors = [f"<li><b>{html.escape(n)}</b>: {html.escape(str(record['stages'][n].get('error')))}</li>"
-              for n in order if record["stages"][n]["state"] == "failed"]
+            metric_rows.append(
+                f"<tr><td>{html.escape(name)}</td><td>{html.escape(metric)}</td><td>{_fmt(value)}</td></tr>"
+            )
+    errors = [
+        f"<li><b>{html.escape(n)}</b>: {html.escape(str(record['stages'][n].get('error')))}</li>"
+        for n in order
+        if record["stages"][n]["state"] == "failed"
+    ]
+    warnings = [
+        f"<li><b>{html.escape(n)}</b>: {html.escape(w)}</li>"
+        for n in order
+        for w in record["stages"][n].get("warnings") or []
+    ]
     by_stage: dict[str, list[Figure]] = {}
     for fig in figures:
         by_stage.setdefault(fig.stage, []).append(fig)
@@ -298,23 +347,26 @@ def run_page(session, record: dict, figures: list[Figure]) -> str:
     for name in order:
         if name in by_stage:
             entry = record["stages"][name]
-            sections.append(f"<h3 id='stage-{html.escape(name)}'>{html.escape(name)} "
-                            f"<span class='muted'>{html.escape(entry['uses'])}</span></h3>"
-                            + "".join(_media_html(f) for f in by_stage[name]))
+            sections.append(
+                f"<h3 id='stage-{html.escape(name)}'>{html.escape(name)} "
+                f"<span class='muted'>{html.escape(entry['uses'])}</span></h3>"
+                + "".join(_media_html(f) for f in by_stage[name])
+            )
     legend = "".join(f"<span>{_state_badge(s)}</span>" for s in ("ran", "cached", "failed", "skipped"))
     versions = ", ".join(f"{k} {v}" for k, v in sorted(record.get("versions", {}).items()))
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>msflow report: {html.escape(pipeline.path.name)}</title>
 <style>{CSS}</style></head><body>
 <h1>{html.escape(pipeline.path.name)}</h1>
-<p class="muted">run {html.escape(record['id'])} · started {html.escape(record.get('started', ''))} ·
-{record.get('seconds', 0):.2f}s · {html.escape(counts)} · executor {html.escape(str(record.get('executor')))}</p>
-{'<h2>Failures</h2><ul>' + ''.join(errors) + '</ul>' if errors else ''}
+<p class="muted">run {html.escape(record["id"])} · started {html.escape(record.get("started", ""))} ·
+{record.get("seconds", 0):.2f}s · {html.escape(counts)} · executor {html.escape(str(record.get("executor")))}</p>
+{"<h2>Failures</h2><ul>" + "".join(errors) + "</ul>" if errors else ""}
+{'<h2>Warnings</h2><ul class="warn">' + "".join(warnings) + "</ul>" if warnings else ""}
 <h2>Stage graph</h2><p class="legend">{legend}</p>{dag_svg(pipeline, record)}
 <h2>Stages, params and keys</h2>
-<table><tr><th>stage</th><th>state</th><th>time</th><th>key</th><th>params</th></tr>{''.join(rows)}</table>
-<h2>Metrics</h2><table><tr><th>stage</th><th>metric</th><th>value</th></tr>{''.join(metric_rows)}</table>
-<h2>Figures</h2>{''.join(sections) or '<p class="muted">no figures</p>'}
+<table><tr><th>stage</th><th>state</th><th>time</th><th>key</th><th>params</th></tr>{"".join(rows)}</table>
+<h2>Metrics</h2><table><tr><th>stage</th><th>metric</th><th>value</th></tr>{"".join(metric_rows)}</table>
+<h2>Figures</h2>{"".join(sections) or '<p class="muted">no figures</p>'}
 <h2>Environment</h2><p class="muted">{html.escape(versions)}</p>
 </body></html>
 """
@@ -324,8 +376,14 @@ def sweep_page(pipeline_name: str, sweep: dict, metric: str | None) -> str:
     """Results table of a sweep and a plot of a chosen metric against each swept parameter."""
     from msflow.sweep import SweepResult, VariantOutcome, format_table, metric_columns, results_rows
 
-    result = SweepResult(sweep["id"], sweep["pipeline"], [VariantOutcome(**v) for v in sweep["variants"]],
-                         sweep["seconds"], sweep["executed"], sweep["unique_keys"])
+    result = SweepResult(
+        sweep["id"],
+        sweep["pipeline"],
+        [VariantOutcome(**v) for v in sweep["variants"]],
+        sweep["seconds"],
+        sweep["executed"],
+        sweep["unique_keys"],
+    )
     columns = metric_columns(result, None)
     metric = metric or (columns[0] if columns else None)
     header, rows = results_rows(result, columns)
@@ -336,16 +394,18 @@ def sweep_page(pipeline_name: str, sweep: dict, metric: str | None) -> str:
     body.append("</table>")
     plots = ""
     if metric:
-        plots = "".join(_media_html(Figure("sweep", f"{metric} vs {p}", "image/png", png, False, 0.0))
-                        for p, png in metric_plots(result, metric).items())
+        plots = "".join(
+            _media_html(Figure("sweep", f"{metric} vs {p}", "image/png", png, False, 0.0))
+            for p, png in metric_plots(result, metric).items()
+        )
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>msflow sweep report: {html.escape(pipeline_name)}</title>
 <style>{CSS}</style></head><body>
 <h1>Sweep of {html.escape(pipeline_name)}</h1>
-<p class="muted">sweep {html.escape(sweep['id'])} · {len(result.variants)} variants · {result.executed} stage
+<p class="muted">sweep {html.escape(sweep["id"])} · {len(result.variants)} variants · {result.executed} stage
 executions for {result.unique_keys} distinct keys · {result.seconds:.2f}s</p>
-<h2>Results</h2>{''.join(body)}
-<h2>{html.escape(metric or 'no metric')} against each swept parameter</h2>{plots}
+<h2>Results</h2>{"".join(body)}
+<h2>{html.escape(metric or "no metric")} against each swept parameter</h2>{plots}
 <details><summary>Markdown</summary><pre>{html.escape(table)}</pre></details>
 </body></html>
 """
@@ -395,8 +455,9 @@ def find_record(session, run: str | None) -> dict:
     raise UserError("no run of this pipeline yet: run it first (msflow run)", file=str(session.pipeline.path))
 
 
-def build_report(path: str | Path, out: str | Path, run: str | None = None, *, jobs: int = 2,
-                 metric: str | None = None) -> dict:
+def build_report(
+    path: str | Path, out: str | Path, run: str | None = None, *, jobs: int = 2, metric: str | None = None
+) -> dict:
     """Write the report of a run (default: the newest) or, if ``run`` names a sweep, of that sweep."""
     from msflow.api import open_session
 
@@ -418,7 +479,11 @@ def build_report(path: str | Path, out: str | Path, run: str | None = None, *, j
     tmp.write_text(page, encoding="utf-8")
     tmp.replace(out)
     session.save_memo()
-    return {"path": str(out), "bytes": out.stat().st_size, "figures": len(figures),
-            "rendered": sum(1 for f in figures if not f.cached and not f.error),
-            "failed": [f"{f.stage}.{f.name}: {f.error}" for f in figures if f.error],
-            "seconds": time.perf_counter() - started}
+    return {
+        "path": str(out),
+        "bytes": out.stat().st_size,
+        "figures": len(figures),
+        "rendered": sum(1 for f in figures if not f.cached and not f.error),
+        "failed": [f"{f.stage}.{f.name}: {f.error}" for f in figures if f.error],
+        "seconds": time.perf_counter() - started,
+    }

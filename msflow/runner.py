@@ -4,12 +4,14 @@ A stage's key is computed when its upstream stages are settled, from the content
 So a stage that reruns but produces identical content leaves its dependents' keys unchanged: early cutoff needs no
 special case. Keys never contain paths or times.
 """
+
 from __future__ import annotations
 
 import json
 import uuid
-from concurrent.futures import Future, wait, FIRST_COMPLETED
+from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass, field
+from datetime import UTC
 from typing import Any
 
 from msflow.errors import UserError
@@ -24,7 +26,7 @@ DONE = ("cached", "ran")
 @dataclass
 class StageState:
     name: str
-    state: str = "pending"     # pending, cached, running, ran, failed, skipped
+    state: str = "pending"  # pending, cached, running, ran, failed, skipped
     key: str | None = None
     parts: dict | None = None
     manifest: dict | None = None
@@ -43,8 +45,11 @@ def select_stages(pipeline: Pipeline, until: str | None) -> list[str]:
     if until not in pipeline.stages:
         from msflow.spec import _suggest
 
-        raise UserError(f"--until: unknown stage '{until}'{_suggest(until, pipeline.stages)}",
-                        file=str(pipeline.path), field="--until")
+        raise UserError(
+            f"--until: unknown stage '{until}'{_suggest(until, pipeline.stages)}",
+            file=str(pipeline.path),
+            field="--until",
+        )
     needed: set[str] = set()
     stack = [until]
     while stack:
@@ -55,8 +60,9 @@ def select_stages(pipeline: Pipeline, until: str | None) -> list[str]:
     return [n for n in order if n in needed]
 
 
-def input_parts(pipeline: Pipeline, name: str, states: dict[str, StageState], file_memo: FileHashMemo,
-                interface: dict) -> tuple[dict, dict, dict]:
+def input_parts(
+    pipeline: Pipeline, name: str, states: dict[str, StageState], file_memo: FileHashMemo, interface: dict
+) -> tuple[dict, dict, dict]:
     """(key part, job spec, provenance) of a stage's inputs; upstream stages must be settled."""
     parts: dict[str, Any] = {}
     job: dict[str, Any] = {}
@@ -73,12 +79,21 @@ def input_parts(pipeline: Pipeline, name: str, states: dict[str, StageState], fi
                 try:
                     hashes[label] = file_memo.hash(path)
                 except OSError as exc:
-                    raise UserError(f"cannot read data file: {exc}", file=str(pipeline.path), stage=name,
-                                    field=f"inputs.{input_name}.{label}") from None
+                    raise UserError(
+                        f"cannot read data file: {exc}",
+                        file=str(pipeline.path),
+                        stage=name,
+                        field=f"inputs.{input_name}.{label}",
+                    ) from None
             parts[input_name] = {"files": hashes}
             job[input_name] = {"kind": "files", "files": [list(f) for f in ref.files]}
-            provenance[input_name] = {"files": {label: rel_to(path, pipeline.root) for label, path in ref.files},
-                                      "hashes": hashes}
+            fields = ref.fields_by_label()
+            if fields:  # only when some label has fields: keys of plain file inputs stay as they were
+                parts[input_name]["fields"] = job[input_name]["fields"] = fields
+            provenance[input_name] = {
+                "files": {label: rel_to(path, pipeline.root) for label, path in ref.files},
+                "hashes": hashes,
+            }
             continue
         upstream = states[ref.stage]
         manifest = upstream.manifest or {}
@@ -88,11 +103,19 @@ def input_parts(pipeline: Pipeline, name: str, states: dict[str, StageState], fi
         else:
             entry = manifest["outputs"].get(ref.output)
             if entry is None:  # an optional output the upstream run did not produce
-                raise UserError(f"stage '{ref.stage}' produced no output '{ref.output}' (it is optional)",
-                                file=str(pipeline.path), stage=name, field=f"inputs.{input_name}")
+                raise UserError(
+                    f"stage '{ref.stage}' produced no output '{ref.output}' (it is optional)",
+                    file=str(pipeline.path),
+                    stage=name,
+                    field=f"inputs.{input_name}",
+                )
             digest = entry["hash"]
-            job[input_name] = {"kind": "array", "key": upstream.key, "output": ref.output,
-                               "lazy": bool(decl.get("lazy"))}
+            job[input_name] = {
+                "kind": "array",
+                "key": upstream.key,
+                "output": ref.output,
+                "lazy": bool(decl.get("lazy")),
+            }
         parts[input_name] = {"hash": digest}
         provenance[input_name] = {"from": ref.describe(), "hash": digest}
     return parts, job, provenance
@@ -110,8 +133,9 @@ def key_parts(plan: StagePlan, inputs: dict, resources: dict | None = None) -> d
     return parts
 
 
-def stage_key(pipeline: Pipeline, plan: StagePlan, name: str, states: dict[str, StageState],
-              file_memo: FileHashMemo) -> tuple[dict, str, dict, dict]:
+def stage_key(
+    pipeline: Pipeline, plan: StagePlan, name: str, states: dict[str, StageState], file_memo: FileHashMemo
+) -> tuple[dict, str, dict, dict]:
     """(key parts, key, job inputs, input provenance) of a stage whose upstream stages are settled."""
     inputs, job_inputs, provenance = input_parts(pipeline, name, states, file_memo, plan.interface)
     parts = key_parts(plan, inputs, resource_hashes(plan, pipeline.root, file_memo))
@@ -121,8 +145,18 @@ def stage_key(pipeline: Pipeline, plan: StagePlan, name: str, states: dict[str, 
 class Runner:
     """Runs the selected stages of a resolved pipeline on an executor, reporting state changes."""
 
-    def __init__(self, pipeline: Pipeline, plans: dict[str, StagePlan], store, memo: dict, *, executor,
-                 until: str | None = None, force: tuple[str, ...] = (), reporter=None):
+    def __init__(
+        self,
+        pipeline: Pipeline,
+        plans: dict[str, StagePlan],
+        store,
+        memo: dict,
+        *,
+        executor,
+        until: str | None = None,
+        force: tuple[str, ...] = (),
+        reporter=None,
+    ):
         self.pipeline = pipeline
         self.plans = plans
         self.store = store
@@ -146,8 +180,9 @@ class Runner:
         """Compute the key; return a job when the stage must run, None when it is cached."""
         state = self.states[name]
         plan = self.plans[name]
-        state.parts, state.key, job_inputs, state.inputs = stage_key(self.pipeline, plan, name, self.states,
-                                                                     self.file_memo)
+        state.parts, state.key, job_inputs, state.inputs = stage_key(
+            self.pipeline, plan, name, self.states, self.file_memo
+        )
         if name not in self.force and self.store.has(state.key):
             state.manifest = self.store.manifest(state.key)
             state.state = "cached"
@@ -155,9 +190,18 @@ class Runner:
             return None
         state.state = "running"
         self._report(state)
-        return {"store": self.store.url, "store_options": self.store.options,
-                "project_root": str(self.pipeline.root), "key": state.key, "stage": name, "uses": plan.uses, "params": plan.params, "inputs": job_inputs,
-                "force": name in self.force, "key_parts": state.parts}
+        return {
+            "store": self.store.url,
+            "store_options": self.store.options,
+            "project_root": str(self.pipeline.root),
+            "key": state.key,
+            "stage": name,
+            "uses": plan.uses,
+            "params": plan.params,
+            "inputs": job_inputs,
+            "force": name in self.force,
+            "key_parts": state.parts,
+        }
 
     def settle(self, name: str, outcome: dict) -> None:
         state = self.states[name]
@@ -232,8 +276,10 @@ def schedule(runners: list[Runner], executor) -> None:
                     try:
                         job = runner.prepare(name)
                     except UserError as exc:
-                        runner.settle(name, {"state": "failed", "user_error": exc.located(stage=name).to_json(),
-                                             "error": str(exc)})
+                        runner.settle(
+                            name,
+                            {"state": "failed", "user_error": exc.located(stage=name).to_json(), "error": str(exc)},
+                        )
                         continue
                     if job is None:
                         continue
@@ -262,6 +308,6 @@ def _outcome(future: Future) -> dict:
 
 def new_run_id() -> str:
     """Sortable by start time to the microsecond (records of one second must still order newest last)."""
-    from datetime import datetime, timezone
+    from datetime import datetime
 
-    return datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%f") + "-" + uuid.uuid4().hex[:6]
+    return datetime.now(UTC).strftime("%Y%m%dT%H%M%S.%f") + "-" + uuid.uuid4().hex[:6]

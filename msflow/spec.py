@@ -3,6 +3,7 @@
 Everything the user can get wrong here raises UserError naming the file, the stage and the field. Nothing in this
 module imports numpy, zarr or stage code: a no-op run goes through it on every invocation.
 """
+
 from __future__ import annotations
 
 import difflib
@@ -20,7 +21,9 @@ from msflow.errors import UserError
 FORMAT_VERSION = 1
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
 REF_RE = re.compile(r"^(?P<stage>[A-Za-z_][A-Za-z0-9_\-]*)(?:\.(?P<output>[A-Za-z_][A-Za-z0-9_]*))?$")
-USES_RE = re.compile(r"^(?P<module>[A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*):(?P<cls>[A-Za-z_][A-Za-z0-9_]*)$")
+USES_RE = re.compile(
+    r"^(?P<module>[A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*):(?P<cls>[A-Za-z_][A-Za-z0-9_]*)$"
+)
 VAR_RE = re.compile(r"\$\{([^}]*)\}")
 GLOB_CHARS = set("*?[")
 
@@ -67,13 +70,18 @@ class StageRef:
 
 @dataclass(frozen=True)
 class FilesRef:
-    """Data files: label -> path relative to the pipeline file (``form`` says how they were written)."""
+    """Data files: label -> absolute path (``form`` says how they were written), and each label's fields
+    (parsed from the file name by a ``pattern``, or written beside the path)."""
 
     files: tuple[tuple[str, str], ...]
     form: str  # "path" | "glob" | "mapping"
+    fields: tuple[tuple[str, tuple[tuple[str, str], ...]], ...] = ()
 
     def describe(self) -> str:
         return ", ".join(p for _, p in self.files)
+
+    def fields_by_label(self) -> dict[str, dict[str, str]]:
+        return {label: dict(values) for label, values in self.fields if values}
 
 
 @dataclass
@@ -91,9 +99,9 @@ class StageNode:
 
 @dataclass
 class Pipeline:
-    path: Path                 # the pipeline file (absolute)
-    root: Path                 # the project root: paths in keys are relative to it
-    store: str                 # store location (absolute path or URL)
+    path: Path  # the pipeline file (absolute)
+    root: Path  # the project root: paths in keys are relative to it
+    store: str  # store location (absolute path or URL)
     stages: dict[str, StageNode]
     publish: dict[str, str] = field(default_factory=dict)
     overrides: tuple[str, ...] = ()
@@ -126,11 +134,11 @@ def _construct_mapping(loader, node, deep=False):
     for key_node, _ in node.value:
         key = loader.construct_object(key_node, deep=deep)
         if isinstance(key, (list, dict)):
-            raise yaml.constructor.ConstructorError(None, None, "a mapping key must be a scalar",
-                                                    key_node.start_mark)
+            raise yaml.constructor.ConstructorError(None, None, "a mapping key must be a scalar", key_node.start_mark)
         if key in seen:
             raise yaml.constructor.ConstructorError(
-                None, None, f"duplicate key '{key}' (first at line {seen[key].line + 1})", key_node.start_mark)
+                None, None, f"duplicate key '{key}' (first at line {seen[key].line + 1})", key_node.start_mark
+            )
         seen[key] = key_node.start_mark
     return loader.construct_mapping_plain(node, deep=deep)
 
@@ -141,7 +149,7 @@ _UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG,
 
 def parse_yaml(text: str, file: str) -> Any:
     try:
-        return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - safe loader subclass
+        return yaml.load(text, Loader=_UniqueKeyLoader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
@@ -164,9 +172,13 @@ def substitute_vars(value: Any, variables: dict[str, Any], file: str, where: str
         def repl(m: re.Match) -> str:
             got = _lookup_var(m.group(1), variables, file, where)
             if isinstance(got, (dict, list)):
-                raise UserError(f"variable '${{{m.group(1)}}}' holds a {type(got).__name__} and cannot be "
-                                "spliced into a string", file=file, field=where)
+                raise UserError(
+                    f"variable '${{{m.group(1)}}}' holds a {type(got).__name__} and cannot be spliced into a string",
+                    file=file,
+                    field=where,
+                )
             return str(got)
+
         return VAR_RE.sub(repl, value)
     if isinstance(value, dict):
         return {k: substitute_vars(v, variables, file, f"{where}.{k}") for k, v in value.items()}
@@ -178,8 +190,9 @@ def substitute_vars(value: Any, variables: dict[str, Any], file: str, where: str
 def _lookup_var(name: str, variables: dict[str, Any], file: str, where: str) -> Any:
     if name not in variables:
         hint = _suggest(name, variables)
-        raise UserError(f"unknown variable '${{{name}}}'{hint}; defined: {sorted(variables) or 'none'}",
-                        file=file, field=where)
+        raise UserError(
+            f"unknown variable '${{{name}}}'{hint}; defined: {sorted(variables) or 'none'}", file=file, field=where
+        )
     return variables[name]
 
 
@@ -219,8 +232,11 @@ def apply_overrides(raw: dict, overrides: tuple[str, ...], file: str) -> None:
             _set_path(raw["vars"], rest, value)
             continue
         if head not in stages:
-            raise UserError(f"override '{text}': unknown stage '{head}'{_suggest(head, stages)}; "
-                            f"stages: {sorted(stages)}", file=file, field="-S")
+            raise UserError(
+                f"override '{text}': unknown stage '{head}'{_suggest(head, stages)}; stages: {sorted(stages)}",
+                file=file,
+                field="-S",
+            )
         stage = stages[head]
         if not isinstance(stage, dict):
             continue  # reported by validation
@@ -291,8 +307,11 @@ def load_pipeline(path: str | Path, overrides: tuple[str, ...] | list[str] = ())
     nodes: dict[str, StageNode] = {}
     for name, stage in spec.stages.items():
         if not NAME_RE.match(name):
-            raise UserError(f"stage name '{name}' must start with a letter and hold only letters, digits, _ and -",
-                            file=file, stage=name)
+            raise UserError(
+                f"stage name '{name}' must start with a letter and hold only letters, digits, _ and -",
+                file=file,
+                stage=name,
+            )
         inputs = {}
         for input_name, ref in stage.inputs.items():
             inputs[input_name] = parse_ref(ref, pipeline_dir, root, file, name, f"inputs.{input_name}")
@@ -300,8 +319,12 @@ def load_pipeline(path: str | Path, overrides: tuple[str, ...] | list[str] = ())
     for name, node in nodes.items():
         for input_name, ref in node.inputs.items():
             if isinstance(ref, StageRef) and ref.stage not in nodes:
-                raise UserError(f"refers to unknown stage '{ref.stage}'{_suggest(ref.stage, nodes)}; stages: "
-                                f"{sorted(nodes)}", file=file, stage=name, field=f"inputs.{input_name}")
+                raise UserError(
+                    f"refers to unknown stage '{ref.stage}'{_suggest(ref.stage, nodes)}; stages: {sorted(nodes)}",
+                    file=file,
+                    stage=name,
+                    field=f"inputs.{input_name}",
+                )
     for target in spec.publish:
         m = REF_RE.match(target)
         if not m or not m.group("output") or m.group("stage") not in nodes:
@@ -319,32 +342,144 @@ def parse_ref(ref: Any, base: Path, root: Path, file: str, stage: str, where: st
             return StageRef(m.group("stage"), m.group("output"))
         looks_like_path = "/" in ref or GLOB_CHARS & set(ref) or Path(ref).suffix
         hint = f"; data files are written {{path: {ref}}}" if looks_like_path else ""
-        raise UserError(f"'{ref}' is not a stage reference (stage or stage.output){hint}", file=file,
-                        stage=stage, field=where)
+        raise UserError(
+            f"'{ref}' is not a stage reference (stage or stage.output){hint}", file=file, stage=stage, field=where
+        )
     if isinstance(ref, dict):
         if not ref:
-            raise UserError("empty mapping: expected {path: file}, {glob: pattern} or {label: file, ...}",
-                            file=file, stage=stage, field=where)
-        if set(ref) == {"path"} or set(ref) == {"glob"}:
-            pattern = ref.get("path", ref.get("glob"))
-            if not isinstance(pattern, str) or not pattern:
-                raise UserError("the path must be a non-empty string", file=file, stage=stage, field=where)
-            if "glob" in ref or GLOB_CHARS & set(pattern):
-                matches = sorted(globlib.glob(str(base / pattern), recursive=True))
-                matches = [m for m in matches if Path(m).is_file() or Path(m).is_dir()]
-                if not matches:
-                    raise UserError(f"the glob '{pattern}' matches no files", file=file, stage=stage, field=where)
-                return FilesRef(tuple((rel_to(Path(m), root), m) for m in matches), "glob")
-            return FilesRef(((pattern, _existing_file(base, pattern, file, stage, where)),), "path")
-        files = []
-        for label, value in ref.items():
-            if not isinstance(label, str) or not isinstance(value, str):
-                raise UserError("a labelled file mapping needs label: path strings", file=file, stage=stage,
-                                field=f"{where}.{label}")
-            files.append((label, _existing_file(base, value, file, stage, f"{where}.{label}")))
-        return FilesRef(tuple(files), "mapping")
-    raise UserError(f"expected a stage reference or a file mapping, got {type(ref).__name__}", file=file,
-                    stage=stage, field=where)
+            raise UserError(
+                "empty mapping: expected {path: file}, {glob: pattern} or {label: file, ...}",
+                file=file,
+                stage=stage,
+                field=where,
+            )
+        if len({"path", "glob"} & set(ref)) == 1 and set(ref) <= FILE_FORM_KEYS:
+            return _file_form(ref, base, root, file, stage, where)
+        return _labelled_mapping(ref, base, file, stage, where)
+    raise UserError(
+        f"expected a stage reference or a file mapping, got {type(ref).__name__}", file=file, stage=stage, field=where
+    )
+
+
+FILE_FORM_KEYS = {"path", "glob", "pattern", "label"}
+FIELD_RE = re.compile(r"\{([A-Za-z_][A-Za-z0-9_]*)\}")
+FIELD_CHARS = r"[^_\-.\s/]+"
+
+
+def _file_form(ref: dict, base: Path, root: Path, file: str, stage: str, where: str) -> FilesRef:
+    """``{path: file}`` or ``{glob: pattern}``, optionally with ``pattern`` (fields from file names) and
+    ``label`` (a template of those fields naming each file; default: the file name without its suffix)."""
+    spec = ref.get("path", ref.get("glob"))
+    if not isinstance(spec, str) or not spec:
+        raise UserError("the path must be a non-empty string", file=file, stage=stage, field=where)
+    if "glob" in ref or GLOB_CHARS & set(spec):
+        matches = sorted(globlib.glob(str(base / spec), recursive=True))
+        matches = [m for m in matches if Path(m).is_file() or Path(m).is_dir()]
+        if not matches:
+            raise UserError(f"the glob '{spec}' matches no files", file=file, stage=stage, field=where)
+        files, form = [(rel_to(Path(m), root), m) for m in matches], "glob"
+    else:
+        files, form = [(spec, _existing_file(base, spec, file, stage, where))], "path"
+    if "pattern" not in ref:
+        if "label" in ref:
+            raise UserError(
+                "'label' needs a 'pattern' whose fields it uses", file=file, stage=stage, field=f"{where}.label"
+            )
+        return FilesRef(tuple(files), form)
+    return _labelled_by_pattern(files, ref, form, file, stage, where)
+
+
+def compile_label_pattern(pattern: str) -> re.Pattern[str]:
+    """``{field}`` captures a non-empty part of a file name without separators (``_ - .``, spaces), ``*`` skips
+    any text, the rest is literal: ``{speaker}_{sentence}_{expression}_*`` reads 1001_DFA_ANG_XX."""
+    parts, names, pos = [], set(), 0
+    for m in FIELD_RE.finditer(pattern):
+        parts.append(".*?".join(re.escape(t) for t in pattern[pos : m.start()].split("*")))
+        name = m.group(1)
+        parts.append(f"(?P={name})" if name in names else f"(?P<{name}>{FIELD_CHARS})")
+        names.add(name)
+        pos = m.end()
+    parts.append(".*?".join(re.escape(t) for t in pattern[pos:].split("*")))
+    return re.compile("".join(parts))
+
+
+def _labelled_by_pattern(
+    files: list[tuple[str, str]], ref: dict, form: str, file: str, stage: str, where: str
+) -> FilesRef:
+    pattern, template = ref["pattern"], ref.get("label")
+    if not isinstance(pattern, str) or not FIELD_RE.search(pattern):
+        raise UserError(
+            f"pattern {pattern!r} has no {{field}}; e.g. '{{speaker}}_{{sentence}}_{{expression}}'",
+            file=file,
+            stage=stage,
+            field=f"{where}.pattern",
+        )
+    regex = compile_label_pattern(pattern)
+    if template is not None:
+        unknown = set(FIELD_RE.findall(str(template))) - set(regex.groupindex)
+        if not isinstance(template, str) or unknown or not FIELD_RE.search(template):
+            raise UserError(
+                f"label {template!r} must be a template of the pattern's fields "
+                f"({', '.join(sorted(regex.groupindex))})",
+                file=file,
+                stage=stage,
+                field=f"{where}.label",
+            )
+    labelled: dict[str, tuple[str, str]] = {}
+    fields = []
+    for _, path in files:
+        name = Path(path).name
+        stem = Path(name).stem
+        m = regex.fullmatch(stem) or regex.fullmatch(name)
+        if m is None:
+            raise UserError(
+                f"'{name}' does not match the label pattern '{pattern}'",
+                file=file,
+                stage=stage,
+                field=f"{where}.pattern",
+            )
+        values = m.groupdict()
+        label = FIELD_RE.sub(lambda g: values[g.group(1)], template) if template else stem
+        if label in labelled:
+            raise UserError(
+                f"label '{label}' names two files: {Path(labelled[label][1]).name} and {name}; "
+                "make 'label' use more fields",
+                file=file,
+                stage=stage,
+                field=f"{where}.label",
+            )
+        labelled[label] = (label, path)
+        fields.append((label, tuple(sorted(values.items()))))
+    return FilesRef(tuple(labelled.values()), form, tuple(fields))
+
+
+def _labelled_mapping(ref: dict, base: Path, file: str, stage: str, where: str) -> FilesRef:
+    """``{label: path}`` or ``{label: {path: file, field: value, ...}}``."""
+    files, fields = [], []
+    for label, value in ref.items():
+        at = f"{where}.{label}"
+        values: dict[str, str] = {}
+        if isinstance(value, dict):
+            values = {k: v for k, v in value.items() if k != "path"}
+            bad = [
+                k
+                for k, v in values.items()
+                if not isinstance(k, str) or not FIELD_RE.fullmatch(f"{{{k}}}") or isinstance(v, (dict, list))
+            ]
+            if "path" not in value or bad:
+                raise UserError(
+                    "a labelled file entry is a path or {path: file, field: value, ...} with scalar "
+                    f"fields{f'; bad fields: {bad}' if bad else ''}",
+                    file=file,
+                    stage=stage,
+                    field=at,
+                )
+            value = value["path"]
+        if not isinstance(label, str) or not isinstance(value, str):
+            raise UserError("a labelled file mapping needs label: path strings", file=file, stage=stage, field=at)
+        files.append((label, _existing_file(base, value, file, stage, at)))
+        fields.append((label, tuple(sorted((k, str(v)) for k, v in values.items()))))
+    return FilesRef(tuple(files), "mapping", tuple(f for f in fields if f[1]))
 
 
 def _existing_file(base: Path, value: str, file: str, stage: str, where: str) -> str:
@@ -365,7 +500,7 @@ def check_cycles(nodes: dict[str, StageNode], file: str) -> None:
         stack.append(name)
         for dep in nodes[name].deps:
             if state.get(dep) == 1:
-                cycle = stack[stack.index(dep):] + [dep]
+                cycle = stack[stack.index(dep) :] + [dep]
                 raise UserError(f"dependency cycle: {' -> '.join(cycle)}", file=file, stage=dep, field="inputs")
             if dep not in state:
                 visit(dep)

@@ -19,11 +19,13 @@ Inputs arrive as:
   read-only zarr array that loads on slicing);
 - ``Input.artifact``: a whole upstream artifact (``stage``), an ``ArtifactView`` (``view["name"]`` loads numpy,
   ``view.lazy("name")``, ``view.meta``, ``view.metrics``);
-- ``Input.files``: data files, an ordered ``dict`` label -> absolute ``Path``.
+- ``Input.files``: data files, ``Files``: an ordered ``dict`` label -> absolute ``Path`` whose ``fields``
+  attribute holds each label's fields (speaker, expression, ...), parsed from file names or written in YAML.
 
 Two implementations of one pipeline step share one ``outputs`` mapping (define it once, assign it in both),
 so ``uses:`` swaps them. This module stays import-light: it is part of every stage's code fingerprint.
 """
+
 from __future__ import annotations
 
 import math
@@ -55,8 +57,16 @@ class Output:
     doc: str = ""
 
     @classmethod
-    def array(cls, kind: str = "f", *, ndim: int | None = None, shape: tuple | None = None,
-              dtype: str | None = None, optional: bool = False, doc: str = "") -> "Output":
+    def array(
+        cls,
+        kind: str = "f",
+        *,
+        ndim: int | None = None,
+        shape: tuple | None = None,
+        dtype: str | None = None,
+        optional: bool = False,
+        doc: str = "",
+    ) -> Output:
         if shape is not None:
             shape = tuple(shape)
             if ndim is not None and ndim != len(shape):
@@ -65,12 +75,18 @@ class Output:
         return cls(kind=kind, ndim=ndim, shape=shape, dtype=dtype, optional=optional, doc=doc)
 
     @classmethod
-    def file(cls, suffix: str, *, optional: bool = False, doc: str = "") -> "Output":
+    def file(cls, suffix: str, *, optional: bool = False, doc: str = "") -> Output:
         return cls(kind="u", ndim=1, dtype="uint8", optional=optional, file_suffix=suffix, doc=doc)
 
     def describe(self) -> dict:
-        return {"kind": self.kind, "ndim": self.ndim, "shape": list(self.shape) if self.shape else None,
-                "dtype": self.dtype, "optional": self.optional, "file_suffix": self.file_suffix}
+        return {
+            "kind": self.kind,
+            "ndim": self.ndim,
+            "shape": list(self.shape) if self.shape else None,
+            "dtype": self.dtype,
+            "optional": self.optional,
+            "file_suffix": self.file_suffix,
+        }
 
 
 @dataclass(frozen=True)
@@ -86,30 +102,60 @@ class Input:
     doc: str = ""
 
     @classmethod
-    def array(cls, kind: str | None = None, *, ndim: int | None = None, optional: bool = False,
-              lazy: bool = False, doc: str = "") -> "Input":
+    def array(
+        cls,
+        kind: str | None = None,
+        *,
+        ndim: int | None = None,
+        optional: bool = False,
+        lazy: bool = False,
+        doc: str = "",
+    ) -> Input:
         return cls("array", optional=optional, lazy=lazy, array_kind=kind, ndim=ndim, doc=doc)
 
     @classmethod
-    def artifact(cls, *requires: str, optional: bool = False, doc: str = "") -> "Input":
+    def artifact(cls, *requires: str, optional: bool = False, doc: str = "") -> Input:
         return cls("artifact", optional=optional, requires=tuple(requires), doc=doc)
 
     @classmethod
-    def files(cls, *, optional: bool = False, doc: str = "") -> "Input":
+    def files(cls, *, optional: bool = False, doc: str = "") -> Input:
         return cls("files", optional=optional, doc=doc)
 
     def describe(self) -> dict:
-        return {"kind": self.kind, "optional": self.optional, "requires": list(self.requires),
-                "array_kind": self.array_kind, "ndim": self.ndim}
+        return {
+            "kind": self.kind,
+            "optional": self.optional,
+            "requires": list(self.requires),
+            "array_kind": self.array_kind,
+            "ndim": self.ndim,
+        }
+
+
+class Files(dict):
+    """What an ``Input.files`` input receives: label -> absolute ``Path`` in the order written, and ``fields``:
+    label -> {field: value}, the labels' fields (parsed from file names by a ``pattern``, or written beside each
+    path in pipeline.yaml). Fields enter the cache key with the files' content."""
+
+    def __init__(self, paths: Mapping[str, Any] = (), fields: Mapping[str, Mapping[str, str]] | None = None):
+        super().__init__(paths)
+        self.fields: dict[str, dict[str, str]] = {label: dict((fields or {}).get(label, {})) for label in self}
+
+    def field(self, label: str, name: str, default: str | None = None) -> str | None:
+        """One field of one label, or ``default``."""
+        return self.fields.get(label, {}).get(name, default)
 
 
 @dataclass
 class Result:
-    """What ``Stage.run`` returns: named arrays (or bytes for file outputs), JSON metadata, scalar metrics."""
+    """What ``Stage.run`` returns: named arrays (or bytes for file outputs), JSON metadata, scalar metrics, and
+    warnings: things the user should know about a result that is still usable (an analysis that stopped before
+    converging, a channel with nothing to drive it). ``warnings.warn(..., UserWarning)`` inside ``run`` lands
+    here too. The CLI prints them with the stage's name; the artifact, run record and report keep them."""
 
     arrays: dict[str, Any]
     meta: dict[str, Any] = field(default_factory=dict)
     metrics: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
 
 
 class Params(BaseModel):
@@ -142,10 +188,12 @@ class Stage:
         """JSON description of inputs and outputs, used to check a pipeline without importing the stage."""
         from pathlib import Path
 
-        return {"inputs": {k: v.describe() for k, v in cls.inputs.items()},
-                "outputs": {k: v.describe() for k, v in cls.outputs.items()},
-                "resources": {k: str(Path(v).resolve()) for k, v in cls.resources.items()},
-                "figures": list(cls.figures)}
+        return {
+            "inputs": {k: v.describe() for k, v in cls.inputs.items()},
+            "outputs": {k: v.describe() for k, v in cls.outputs.items()},
+            "resources": {k: str(Path(v).resolve()) for k, v in cls.resources.items()},
+            "figures": list(cls.figures),
+        }
 
 
 def to_strict_json(value: Any, where: str) -> Any:
@@ -186,8 +234,9 @@ def validate_result(stage: str, cls: type[Stage], result: Any) -> dict[str, Any]
     arrays: dict[str, np.ndarray] = {}
     unknown = set(result.arrays) - set(cls.outputs)
     if unknown:
-        raise ValueError(f"stage '{stage}': run() returned undeclared outputs {sorted(unknown)}; "
-                         f"declared: {sorted(cls.outputs)}")
+        raise ValueError(
+            f"stage '{stage}': run() returned undeclared outputs {sorted(unknown)}; declared: {sorted(cls.outputs)}"
+        )
     dims: dict[str, tuple[int, str]] = {}
     for name, spec in cls.outputs.items():
         where = f"stage '{stage}', output '{name}'"
@@ -203,8 +252,9 @@ def validate_result(stage: str, cls: type[Stage], result: Any) -> dict[str, Any]
             continue
         arr = np.asarray(value)
         if arr.dtype.kind not in spec.kind:
-            raise TypeError(f"{where}: dtype {arr.dtype} is not of kind "
-                            f"{'/'.join(DTYPE_KINDS.get(k, k) for k in spec.kind)}")
+            raise TypeError(
+                f"{where}: dtype {arr.dtype} is not of kind {'/'.join(DTYPE_KINDS.get(k, k) for k in spec.kind)}"
+            )
         if spec.dtype is not None and arr.dtype != np.dtype(spec.dtype):
             raise TypeError(f"{where}: dtype {arr.dtype}, expected {spec.dtype}")
         if spec.ndim is not None and arr.ndim != spec.ndim:
@@ -215,11 +265,12 @@ def validate_result(stage: str, cls: type[Stage], result: Any) -> dict[str, Any]
                 raise ValueError(f"{where}: axis {axis} has size {got}, expected {want} (shape {arr.shape})")
             if isinstance(want, str):
                 if want in dims and dims[want][0] != got:
-                    raise ValueError(f"{where}: dimension '{want}' is {got} here but {dims[want][0]} in output "
-                                     f"'{dims[want][1]}'")
+                    raise ValueError(
+                        f"{where}: dimension '{want}' is {got} here but {dims[want][0]} in output '{dims[want][1]}'"
+                    )
                 dims.setdefault(want, (got, name))
         arrays[name] = np.asarray(arr, order="C")
     return arrays
 
 
-__all__ = ["Stage", "Params", "Input", "Output", "Result", "UserError", "to_strict_json", "validate_result"]
+__all__ = ["Stage", "Params", "Input", "Output", "Result", "Files", "UserError", "to_strict_json", "validate_result"]

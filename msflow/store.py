@@ -12,6 +12,7 @@ Publishing is one ``rename`` of a complete temporary directory onto a fresh path
 whole or not at all, and a run killed at any moment leaves at most a directory under tmp/ that the next run
 removes. Nothing is created until something is written: validation errors leave the store untouched.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -35,7 +36,7 @@ def open_store(location: str, options: dict | None = None, cache_dir: str | Path
     in msflow.remote. ``options`` are fsspec storage options; ``cache_dir`` holds machine-local memos of
     remote stores (file stat signatures mean nothing on another machine)."""
     if location.startswith("file://"):
-        return LocalStore(location[len("file://"):])
+        return LocalStore(location[len("file://") :])
     if "://" in location:
         from msflow.remote import open_remote_store
 
@@ -88,8 +89,9 @@ class LocalStore:
                 for entry in sorted(prefix.iterdir()):
                     yield entry.name
 
-    def write(self, key: str, arrays: dict, extra: dict, file_suffixes: dict | None = None,
-              replace: bool = False) -> dict:
+    def write(
+        self, key: str, arrays: dict, extra: dict, file_suffixes: dict | None = None, replace: bool = False
+    ) -> dict:
         """Write arrays and manifest under tmp/, then publish atomically; returns the manifest."""
         from msflow.artifact import write_artifact
 

@@ -16,6 +16,7 @@ A grid file::
 Every variant is a normal run with its own record (``variant`` holds its parameters, ``sweep`` the sweep id). All
 variants are scheduled together on one executor: a stage with the same cache key in several variants runs once.
 """
+
 from __future__ import annotations
 
 import fnmatch
@@ -45,7 +46,7 @@ def parse_values(text: str) -> tuple[str, list[Any]]:
     if target.count(".") < 1 or not all(target.split(".")):
         raise UserError(f"bad sweep parameter '{text}': the target must be stage.param", field="-S")
     try:
-        values = yaml.load(f"[{raw}]", Loader=_UniqueKeyLoader)  # noqa: S506 - safe loader subclass
+        values = yaml.load(f"[{raw}]", Loader=_UniqueKeyLoader)
     except yaml.YAMLError:
         values = [v.strip() for v in raw.split(",")]
     if not values:
@@ -71,8 +72,9 @@ def load_grid_file(path: Path) -> list[dict[str, Any]]:
         raise UserError("a grid file is a mapping with 'grid', 'zip' and/or 'variants'", file=file)
     unknown = set(doc) - GRID_KEYS
     if unknown:
-        raise UserError(f"unknown key(s) {sorted(unknown)}; allowed: grid, zip, variants", file=file,
-                        field=sorted(unknown)[0])
+        raise UserError(
+            f"unknown key(s) {sorted(unknown)}; allowed: grid, zip, variants", file=file, field=sorted(unknown)[0]
+        )
     grids = doc.get("grid") or {}
     grids = grids if isinstance(grids, list) else [grids]
     base: list[dict[str, Any]] = []
@@ -91,8 +93,7 @@ def load_grid_file(path: Path) -> list[dict[str, Any]]:
             raise UserError("zip is a mapping stage.param: [values]", file=file, field="zip")
         lengths = {n: len(v) if isinstance(v, list) else -1 for n, v in zipped.items()}
         if len(set(lengths.values())) != 1 or -1 in lengths.values() or 0 in lengths.values():
-            raise UserError(f"zipped lists must be non-empty and of one length, got {lengths}", file=file,
-                            field="zip")
+            raise UserError(f"zipped lists must be non-empty and of one length, got {lengths}", file=file, field="zip")
         rows = [dict(zip(zipped, row)) for row in zip(*zipped.values())]
         base = [{**b, **r} for b in base for r in rows]
     explicit = doc.get("variants") or []
@@ -142,17 +143,30 @@ class SweepResult:
     pipeline: str
     variants: list[VariantOutcome]
     seconds: float
-    executed: int            # stage executions across all variants
-    unique_keys: int         # distinct cache keys across all variants
+    executed: int  # stage executions across all variants
+    unique_keys: int  # distinct cache keys across all variants
 
     def to_json(self) -> dict:
-        return {"id": self.sweep_id, "pipeline": self.pipeline, "seconds": self.seconds, "executed": self.executed,
-                "unique_keys": self.unique_keys,
-                "variants": [vars(v) for v in self.variants]}
+        return {
+            "id": self.sweep_id,
+            "pipeline": self.pipeline,
+            "seconds": self.seconds,
+            "executed": self.executed,
+            "unique_keys": self.unique_keys,
+            "variants": [vars(v) for v in self.variants],
+        }
 
 
-def run_sweep(path: str | Path, variants: list[dict[str, Any]], *, base_overrides=(), jobs: int = 1,
-              executor: str = "local", scheduler: str | None = None, reporter=None) -> SweepResult:
+def run_sweep(
+    path: str | Path,
+    variants: list[dict[str, Any]],
+    *,
+    base_overrides=(),
+    jobs: int = 1,
+    executor: str = "local",
+    scheduler: str | None = None,
+    reporter=None,
+) -> SweepResult:
     """Validate every variant (nothing runs if one is invalid), then run them together on one executor."""
     from msflow.api import open_session
     from msflow.executors import make_executor
@@ -167,8 +181,9 @@ def run_sweep(path: str | Path, variants: list[dict[str, Any]], *, base_override
         try:
             session = open_session(path, [*base_overrides, *variant_overrides(variant)], memo=memo)
         except UserError as exc:
-            raise UserError(f"variant {index + 1} {variant}: {exc.message}", file=exc.file, stage=exc.stage,
-                            field=exc.field) from None
+            raise UserError(
+                f"variant {index + 1} {variant}: {exc.message}", file=exc.file, stage=exc.stage, field=exc.field
+            ) from None
         memo = session.memo
         sessions.append(session)
     pin_blas_threads()
@@ -176,8 +191,9 @@ def run_sweep(path: str | Path, variants: list[dict[str, Any]], *, base_override
     runners = []
     for index, session in enumerate(sessions):
         proxy = reporter.for_variant(index, variants[index]) if reporter is not None else None
-        runners.append(Runner(session.pipeline, session.plans, session.store, session.memo, executor=pool,
-                              reporter=proxy))
+        runners.append(
+            Runner(session.pipeline, session.plans, session.store, session.memo, executor=pool, reporter=proxy)
+        )
     try:
         schedule(runners, pool)
     finally:
@@ -186,19 +202,34 @@ def run_sweep(path: str | Path, variants: list[dict[str, Any]], *, base_override
     sweep_id = new_run_id()
     outcomes = []
     for index, (session, runner) in enumerate(zip(sessions, runners)):
-        record = build_record(new_run_id(), session.pipeline, session.plans, runner.states, started=started,
-                              finished=time.time(), executor=pool.name, jobs=jobs, label=variants[index])
+        record = build_record(
+            new_run_id(),
+            session.pipeline,
+            session.plans,
+            runner.states,
+            started=started,
+            finished=time.time(),
+            executor=pool.name,
+            jobs=jobs,
+            label=variants[index],
+        )
         record["sweep"] = sweep_id
         session.store.write_run(record)
         failed = [s for s in runner.states.values() if s.state == "failed"]
-        outcomes.append(VariantOutcome(index, variants[index], record["id"], not failed,
-                                       failed[0].error if failed else None,
-                                       {n: s["metrics"] for n, s in record["stages"].items() if s["metrics"]},
-                                       record["counts"]))
+        outcomes.append(
+            VariantOutcome(
+                index,
+                variants[index],
+                record["id"],
+                not failed,
+                failed[0].error if failed else None,
+                {n: s["metrics"] for n, s in record["stages"].items() if s["metrics"]},
+                record["counts"],
+            )
+        )
     keys = {s.key for r in runners for s in r.states.values() if s.key}
     executed = sum(1 for r in runners for s in r.states.values() if s.state == "ran")
-    result = SweepResult(sweep_id, sessions[0].pipeline.rel_path, outcomes, time.time() - started, executed,
-                         len(keys))
+    result = SweepResult(sweep_id, sessions[0].pipeline.rel_path, outcomes, time.time() - started, executed, len(keys))
     _write_sweep_record(sessions[0].store, result)
     return result
 
@@ -234,14 +265,24 @@ def results_rows(result: SweepResult, metrics: list[str], sort: str | None = Non
         descending = sort.startswith("-")
         column = sort.lstrip("-")
         if column not in metrics and column not in params:
-            raise UserError(f"cannot sort by '{column}': not a column; columns: {', '.join(params + metrics)}",
-                            field="--sort")
+            raise UserError(
+                f"cannot sort by '{column}': not a column; columns: {', '.join(params + metrics)}", field="--sort"
+            )
+
         def sort_key(v):
             value = v.params.get(column) if column in params else _metric(v, column)
             return (value is None, -value if descending and isinstance(value, (int, float)) else value)
+
         variants.sort(key=sort_key)
-    rows = [[v.index + 1, *[v.params.get(p) for p in params], "ok" if v.ok else f"failed: {v.error}",
-             *[_metric(v, m) for m in metrics]] for v in variants]
+    rows = [
+        [
+            v.index + 1,
+            *[v.params.get(p) for p in params],
+            "ok" if v.ok else f"failed: {v.error}",
+            *[_metric(v, m) for m in metrics],
+        ]
+        for v in variants
+    ]
     return header, rows
 
 

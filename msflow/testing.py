@@ -7,6 +7,7 @@
 The same validation as the runner applies (params, inputs, output schema, strict JSON metadata); with
 ``store=path`` the result also round-trips through a real zarr artifact, so serialisation problems show up.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -14,7 +15,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from msflow.artifact import ArtifactView
-from msflow.stage import Result, Stage, to_strict_json, validate_result
+from msflow.stage import Files, Result, Stage, to_strict_json, validate_result
 
 
 def artifact(arrays: Mapping[str, Any], meta: dict | None = None, metrics: dict | None = None) -> ArtifactView:
@@ -34,6 +35,20 @@ class StageRun:
         return ArtifactView(self.arrays, self.meta, self.metrics)
 
 
+def files_input(value: Any) -> Files:
+    """A path, ``{label: path}``, ``{label: {path: ..., field: value}}`` or ``Files`` as the stage receives it."""
+    if isinstance(value, (str, Path)):
+        value = {str(value): value}
+    fields = dict(getattr(value, "fields", {}))
+    paths = {}
+    for label, entry in value.items():
+        if isinstance(entry, Mapping):
+            fields[str(label)] = {k: str(v) for k, v in entry.items() if k != "path"}
+            entry = entry["path"]
+        paths[str(label)] = Path(entry).resolve()
+    return Files(paths, fields)
+
+
 def prepare_inputs(cls: type[Stage], inputs: Mapping[str, Any]) -> dict[str, Any]:
     """Check names and kinds of directly supplied inputs the way the runner would."""
     unknown = set(inputs) - set(cls.inputs)
@@ -48,9 +63,7 @@ def prepare_inputs(cls: type[Stage], inputs: Mapping[str, Any]) -> dict[str, Any
             prepared[name] = None
             continue
         if spec.kind == "files":
-            if isinstance(value, (str, Path)):
-                value = {str(value): value}
-            prepared[name] = {str(k): Path(v).resolve() for k, v in value.items()}
+            prepared[name] = files_input(value)
         elif spec.kind == "artifact":
             if isinstance(value, StageRun):
                 value = value.view()
@@ -67,8 +80,14 @@ def prepare_inputs(cls: type[Stage], inputs: Mapping[str, Any]) -> dict[str, Any
     return prepared
 
 
-def run_stage(cls: type[Stage], params: Mapping[str, Any] | None = None, inputs: Mapping[str, Any] | None = None,
-              *, name: str | None = None, store: str | Path | None = None) -> StageRun:
+def run_stage(
+    cls: type[Stage],
+    params: Mapping[str, Any] | None = None,
+    inputs: Mapping[str, Any] | None = None,
+    *,
+    name: str | None = None,
+    store: str | Path | None = None,
+) -> StageRun:
     """Validate params and inputs, run the stage, validate its result; optionally round-trip through zarr."""
     stage_name = name or cls.__name__
     validated = cls.Params(**dict(params or {}))

@@ -4,16 +4,23 @@ A job and its outcome are JSON strings, so nothing but JSON crosses process or m
 takes the key's lock, re-checks the store (a concurrent run may have produced the artifact meanwhile), runs the
 stage, validates its result, and publishes the artifact atomically before releasing the lock.
 """
+
 from __future__ import annotations
 
 import json
 import os
 import time
 import traceback
+import warnings
 from pathlib import Path
 
-BLAS_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS",
-             "NUMEXPR_NUM_THREADS")
+BLAS_VARS = (
+    "OPENBLAS_NUM_THREADS",
+    "OMP_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+)
 
 
 def pin_blas_threads() -> None:
@@ -41,15 +48,14 @@ def run_job(job_json: str) -> str:
     started = time.perf_counter()
     try:
         outcome = _run(job)
-    except Exception as exc:  # noqa: BLE001 - every failure becomes an outcome
+    except Exception as exc:
         from msflow.errors import UserError
 
         if isinstance(exc, UserError):
             exc.located(stage=job["stage"])
             outcome = {"state": "failed", "user_error": exc.to_json(), "error": str(exc)}
         else:
-            outcome = {"state": "failed", "error": f"{type(exc).__name__}: {exc}",
-                       "traceback": traceback.format_exc()}
+            outcome = {"state": "failed", "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
     outcome["seconds"] = time.perf_counter() - started
     outcome["pid"] = os.getpid()
     return json.dumps(outcome, allow_nan=False)
@@ -79,7 +85,8 @@ def _execute(job: dict, store) -> dict:
     inputs = open_inputs(job["inputs"], store)
     compute_start = time.perf_counter()
     try:
-        with single_threaded_blas():  # same numbers whichever executor runs the stage
+        with single_threaded_blas(), warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", UserWarning)  # the stage's own warnings, each time
             result = cls(name).run(params, inputs)
     except UserError:
         raise
@@ -90,26 +97,47 @@ def _execute(job: dict, store) -> dict:
         arrays = validate_result(name, cls, result)
         meta = to_strict_json(result.meta, f"stage '{name}' meta")
         metrics = to_strict_json(result.metrics, f"stage '{name}' metrics")
+        stage_warnings = collect_warnings(result, caught)
     except (TypeError, ValueError) as exc:
         raise StageFailed(name, str(exc)) from exc
     bad = [k for k, v in metrics.items() if not isinstance(v, (int, float)) or isinstance(v, bool)]
     if bad:
         raise StageFailed(name, f"metrics must be scalar numbers; not: {bad}")
     suffixes = {k: spec.file_suffix for k, spec in cls.outputs.items() if spec.file_suffix}
-    extra = {"meta": meta, "metrics": metrics, "key": job["key"], "stage": name, "uses": job["uses"],
-             "key_parts": job.get("key_parts"), "created": time.time()}
+    extra = {
+        "meta": meta,
+        "metrics": metrics,
+        "key": job["key"],
+        "stage": name,
+        "uses": job["uses"],
+        "key_parts": job.get("key_parts"),
+        "created": time.time(),
+    }
+    if stage_warnings:
+        extra["warnings"] = stage_warnings
     manifest = store.write(job["key"], arrays, extra, suffixes, replace=bool(job.get("force")))
     return {"state": "ran", "manifest": manifest, "compute_seconds": compute_seconds}
 
 
+def collect_warnings(result, caught: list) -> list[str]:
+    """The stage's warnings: ``Result.warnings`` then ``UserWarning``s raised in ``run``, in order, each once."""
+    messages = list(getattr(result, "warnings", None) or [])
+    messages += [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
+    if not all(isinstance(m, str) for m in messages):
+        raise TypeError("Result.warnings must be a list of strings")
+    return list(dict.fromkeys(messages))
+
+
 def open_inputs(spec: dict, store) -> dict:
     """Materialise a job's inputs: artifacts as views, single outputs as numpy (or lazy), files as Paths."""
+    from msflow.stage import Files
+
     inputs: dict = {}
     for name, entry in spec.items():
         if entry is None:
             inputs[name] = None
         elif entry["kind"] == "files":
-            inputs[name] = {label: Path(path) for label, path in entry["files"]}
+            inputs[name] = Files({label: Path(path) for label, path in entry["files"]}, entry.get("fields"))
         elif entry["kind"] == "artifact":
             inputs[name] = store.open(entry["key"])
         else:

@@ -1,7 +1,12 @@
 """Test-wide settings: one BLAS thread per process (CI has 2 cores), the project root on sys.path."""
+
 import os
+import shutil
+import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(var, "1")
@@ -9,12 +14,6 @@ for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
-
-
-import shutil
-import subprocess
-
-import pytest
 
 NUMPROJECT = Path(__file__).resolve().parent / "numproject"
 
@@ -38,8 +37,14 @@ def cli_env(env=None):
 
 def run_cli(cwd, *args, env=None, timeout=120):
     """Run ``python -m msflow.cli`` in a subprocess; returns CompletedProcess with text output."""
-    return subprocess.run([sys.executable, "-m", "msflow.cli", *map(str, args)], cwd=cwd, env=cli_env(env),
-                          capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "msflow.cli", *map(str, args)],
+        cwd=cwd,
+        env=cli_env(env),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def executions(log_path):

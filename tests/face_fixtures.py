@@ -1,8 +1,9 @@
 """Shared data for the face-analysis tests (aam, bilinear, edit): a synthetic iBUG-68 face with known modes, and the
 CREMA-D takes tracked once per test session (FaceMesh) with the stages run on them, cached across test modules."""
+
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,7 @@ CLIPS = {"neutral": "NEU", "happy": "HAP", "angry": "ANG", "disgust": "DIS", "fe
 
 
 # ----------------------------------------------------------------------------------------------- synthetic
+
 
 def face_template() -> np.ndarray:
     """A frontal iBUG-68 face (y down), eye centres at (-0.4, -0.25) and (0.4, -0.25)."""
@@ -25,7 +27,7 @@ def face_template() -> np.ndarray:
     pts[31:36] = np.c_[np.linspace(-0.2, 0.2, 5), 0.25 + 0.03 * np.cos(np.linspace(-1.5, 1.5, 5))]
     eye = np.pi - np.arange(6) * np.pi / 3
     for start, cx in ((36, -0.4), (42, 0.4)):
-        pts[start:start + 6] = np.c_[cx + 0.15 * np.cos(eye), -0.25 - 0.06 * np.sin(eye)]
+        pts[start : start + 6] = np.c_[cx + 0.15 * np.cos(eye), -0.25 - 0.06 * np.sin(eye)]
     lip = np.pi - np.arange(12) * np.pi / 6
     pts[48:60] = np.c_[0.25 * np.cos(lip), 0.55 - 0.1 * np.sin(lip)]
     inner = np.pi - np.arange(8) * np.pi / 4
@@ -71,7 +73,8 @@ def face_texture(size: int = 128) -> np.ndarray:
 
 # ----------------------------------------------------------------------------------------------- real data
 
-@lru_cache(maxsize=None)
+
+@cache
 def tracked(*labels: str):
     """FaceMesh tracking of CREMA-D 1001 takes, as an artifact view (cached for the session)."""
     from msflow.testing import run_stage
@@ -85,7 +88,7 @@ def training_tracks():
     return tracked("neutral", "happy", "angry")
 
 
-@lru_cache(maxsize=None)
+@cache
 def aam_run():
     from msflow.testing import run_stage
     from stages.face.aam import AamPca
@@ -93,7 +96,7 @@ def aam_run():
     return run_stage(AamPca, {}, {"tracks": training_tracks()})
 
 
-@lru_cache(maxsize=None)
+@cache
 def bilinear_run(align: str = "audio"):
     from msflow.testing import run_stage
     from stages.face.bilinear import BilinearFit
@@ -101,7 +104,7 @@ def bilinear_run(align: str = "audio"):
     return run_stage(BilinearFit, {"align": align}, {"aam": aam_run(), "tracks": training_tracks()})
 
 
-@lru_cache(maxsize=None)
+@cache
 def edit_run():
     from msflow.testing import run_stage
     from stages.face.edit import ExpressionEdit

@@ -6,13 +6,14 @@ pitch: the head-pitch (nod) velocity follows the pitch above the speaker's base 
 rest, plus slow yaw and roll wander (smooth noise). Four speaking styles differ in pitch level and range, syllable rate and motion
 size, like the emotions of a real database. Ground truth kept per phrase: syllable onsets, sentence starts, f0.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
 
-CONTROL_RATE = 100.0   # Hz of the f0 / voicing / motion simulation
+CONTROL_RATE = 100.0  # Hz of the f0 / voicing / motion simulation
 
 STYLES = {
     #          base Hz, range st, syllable s,   gap s,         motion gain, wander time constant s
@@ -28,14 +29,14 @@ SPEAKER_BASE = 125.0
 class Phrase:
     label: str
     style: str
-    audio: np.ndarray                 # float32 mono
+    audio: np.ndarray  # float32 mono
     audio_rate: int
-    f0: np.ndarray                    # Hz at CONTROL_RATE, NaN unvoiced
-    onsets: np.ndarray                # syllable onset times (s)
-    voiced_ends: np.ndarray           # syllable voiced end times (s)
-    sentence_starts: np.ndarray       # onset times of each sentence's first syllable
-    angles: np.ndarray                # (frames, 3) yaw, pitch, roll radians at CONTROL_RATE
-    translation: np.ndarray           # (frames, 3) millimetres at CONTROL_RATE
+    f0: np.ndarray  # Hz at CONTROL_RATE, NaN unvoiced
+    onsets: np.ndarray  # syllable onset times (s)
+    voiced_ends: np.ndarray  # syllable voiced end times (s)
+    sentence_starts: np.ndarray  # onset times of each sentence's first syllable
+    angles: np.ndarray  # (frames, 3) yaw, pitch, roll radians at CONTROL_RATE
+    translation: np.ndarray  # (frames, 3) millimetres at CONTROL_RATE
     extra: dict = field(default_factory=dict)
 
     @property
@@ -60,12 +61,13 @@ def _wander(rng, n: int, tau: float, sigma: float, dt: float) -> np.ndarray:
     return path / max(path.std(), 1e-12) * sigma
 
 
-def synth_phrase(rng: np.random.Generator, style: str, label: str, *, sentences: int | None = None,
-                 audio_rate: int = 16000) -> Phrase:
+def synth_phrase(
+    rng: np.random.Generator, style: str, label: str, *, sentences: int | None = None, audio_rate: int = 16000
+) -> Phrase:
     s = STYLES[style]
     dt = 1.0 / CONTROL_RATE
     n_sent = sentences or int(rng.integers(2, 4))
-    pieces = []   # (start, voiced length, f0 contour in semitones re style base)
+    pieces = []  # (start, voiced length, f0 contour in semitones re style base)
     t = float(rng.uniform(0.25, 0.4))
     sentence_starts = []
     for k in range(n_sent):
@@ -137,8 +139,10 @@ def synth_database(n_phrases: int = 67, *, seed: int = 0, audio_rate: int = 1600
     """A paper-sized database by default: 67 phrases of two or three sentences, styles in turn."""
     rng = np.random.default_rng(seed)
     styles = list(STYLES)
-    return [synth_phrase(rng, styles[k % len(styles)], f"p{k:02d}_{styles[k % len(styles)]}",
-                         audio_rate=audio_rate) for k in range(n_phrases)]
+    return [
+        synth_phrase(rng, styles[k % len(styles)], f"p{k:02d}_{styles[k % len(styles)]}", audio_rate=audio_rate)
+        for k in range(n_phrases)
+    ]
 
 
 def tracking_artifact(phrases: list[Phrase], fps: float = 30.0, *, audio_offset: float = 0.0):
@@ -157,9 +161,22 @@ def tracking_artifact(phrases: list[Phrase], fps: float = 30.0, *, audio_offset:
         audio.append(p.audio)
         bounds.append((cursor, cursor + len(p.audio)))
         cursor += len(p.audio)
-    meta = {"labels": [p.label for p in phrases], "sources": [f"{p.label}.flv" for p in phrases],
-            "fps": [fps] * len(phrases), "audio_rate": phrases[0].audio_rate,
-            "audio_offset": [audio_offset] * len(phrases), "translation_units": "mm"}
-    return artifact({"rotation": np.concatenate(rot), "translation": np.concatenate(trans),
-                     "time": np.concatenate(time), "sequence": np.concatenate(seq),
-                     "audio": np.concatenate(audio), "audio_bounds": np.array(bounds, dtype=np.int64)}, meta)
+    meta = {
+        "labels": [p.label for p in phrases],
+        "sources": [f"{p.label}.flv" for p in phrases],
+        "fps": [fps] * len(phrases),
+        "audio_rate": phrases[0].audio_rate,
+        "audio_offset": [audio_offset] * len(phrases),
+        "translation_units": "mm",
+    }
+    return artifact(
+        {
+            "rotation": np.concatenate(rot),
+            "translation": np.concatenate(trans),
+            "time": np.concatenate(time),
+            "sequence": np.concatenate(seq),
+            "audio": np.concatenate(audio),
+            "audio_bounds": np.array(bounds, dtype=np.int64),
+        },
+        meta,
+    )

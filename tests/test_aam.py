@@ -1,14 +1,29 @@
 """Appearance model (stages.face.aam, paper Eq 1-3): Procrustes, PCA, texture sampling, project/reconstruct, stage."""
+
 import numpy as np
 import pytest
+from face_fixtures import aam_run, face_template, synthetic_faces, tracked, training_tracks
 from pydantic import ValidationError
 
-from face_fixtures import aam_run, face_template, synthetic_faces, tracked, training_tracks
 from msflow import UserError
 from msflow.testing import artifact, run_stage
-from stages.face.aam import (AamModel, AamPca, apply_similarity, canonical_pose, choose_modes, eye_centres, fit_aam,
-                        fit_pca, generalised_procrustes, heldout_pca_error, interocular_distance, project,
-                        reconstruct, similarity_align, temporal_folds)
+from stages.face.aam import (
+    AamModel,
+    AamPca,
+    apply_similarity,
+    canonical_pose,
+    choose_modes,
+    eye_centres,
+    fit_aam,
+    fit_pca,
+    generalised_procrustes,
+    heldout_pca_error,
+    interocular_distance,
+    project,
+    reconstruct,
+    similarity_align,
+    temporal_folds,
+)
 
 
 def subspace_angle(a, b):
@@ -18,6 +33,7 @@ def subspace_angle(a, b):
 
 
 # ----------------------------------------------------------------------------------------------- Procrustes
+
 
 def test_similarity_align_recovers_a_known_similarity():
     target = canonical_pose(face_template())
@@ -50,20 +66,20 @@ def test_generalised_procrustes_removes_pose_and_keeps_the_deformation():
     flat = aligned.reshape(60, -1)
     design = np.c_[coef, np.ones(60)]
     residual = flat - design @ np.linalg.lstsq(design, flat, rcond=None)[0]
-    assert np.sum(residual ** 2) < 0.03 * np.sum((flat - flat.mean(0)) ** 2)
+    assert np.sum(residual**2) < 0.03 * np.sum((flat - flat.mean(0)) ** 2)
     pca = fit_pca(flat)
     assert pca.eigenvalues[:3].sum() / pca.total_variance > 0.97
     # without the alignment the same regression explains little: pose dominates
     raw = (shapes - shapes.mean(1, keepdims=True)).reshape(60, -1)
     raw_residual = raw - design @ np.linalg.lstsq(design, raw, rcond=None)[0]
-    assert np.sum(raw_residual ** 2) > 0.5 * np.sum((raw - raw.mean(0)) ** 2)
+    assert np.sum(raw_residual**2) > 0.5 * np.sum((raw - raw.mean(0)) ** 2)
 
 
 def test_fit_pca_gram_trick_matches_svd():
     rng = np.random.default_rng(2)
     low = rng.normal(size=(12, 4)) @ rng.normal(size=(4, 300)) + rng.normal(0, 0.01, (12, 300))
-    gram = fit_pca(low, n_modes=4)                     # 12 frames < 300 dims: Gram matrix path
-    svd = fit_pca(np.vstack([low] * 30), n_modes=4)    # 360 rows >= 300: SVD path, same variance directions
+    gram = fit_pca(low, n_modes=4)  # 12 frames < 300 dims: Gram matrix path
+    svd = fit_pca(np.vstack([low] * 30), n_modes=4)  # 360 rows >= 300: SVD path, same variance directions
     assert subspace_angle(gram.basis, svd.basis) < 1e-6
     np.testing.assert_allclose(gram.basis @ gram.basis.T, np.eye(4), atol=1e-10)
     centred = low - low.mean(0)
@@ -101,6 +117,7 @@ def test_temporal_folds_hold_out_one_window_of_every_take():
 
 # ----------------------------------------------------------------------------------------------- model
 
+
 def painted_crops(shapes, model_points, texture_image, size=128):
     """Crops showing the same texture (in the model's texture frame) drawn onto each shape."""
     from stages.face.warp import PiecewiseAffineWarp, delaunay_triangles
@@ -119,21 +136,20 @@ def test_fit_aam_on_synthetic_faces_recovers_shape_modes_and_a_rigid_texture():
 
     shapes, coef, similarity, _ = synthetic_faces(40, seed=5)
     points, size = texture_reference(canonical_pose(face_template()), 64)
-    ys, xs = np.mgrid[0:size[1], 0:size[0]]
+    ys, xs = np.mgrid[0 : size[1], 0 : size[0]]
     texture = (110 + 50 * np.sin(xs / 6.0) * np.cos(ys / 7.0)).astype(np.float32)
     crops = painted_crops(shapes, points, texture)
     model, proj = fit_aam(shapes, crops, shapes, shape_variance=0.99)
-    assert model.n_shape == 3                          # three true modes; the rest is < 1% (Procrustes curvature)
+    assert model.n_shape == 3  # three true modes; the rest is < 1% (Procrustes curvature)
     # the texture never changes (only its shape does), so the shape-free textures are nearly identical
     assert model.texture_eigenvalues.sum() < 0.05 * len(model.texture_mean)
-    assert model.shape_weight == pytest.approx(np.sqrt(model.texture_eigenvalues.sum()
-                                                       / model.shape_eigenvalues.sum()))
-    np.testing.assert_allclose(proj.y[:, :model.n_shape], model.shape_weight * proj.b_s)
+    assert model.shape_weight == pytest.approx(np.sqrt(model.texture_eigenvalues.sum() / model.shape_eigenvalues.sum()))
+    np.testing.assert_allclose(proj.y[:, : model.n_shape], model.shape_weight * proj.b_s)
     # shape_balance scales r and nothing else
     lighter, proj_lighter = fit_aam(shapes, crops, shapes, shape_variance=0.99, shape_balance=0.25)
     assert lighter.shape_weight == pytest.approx(0.25 * model.shape_weight)
     np.testing.assert_allclose(proj_lighter.b_s, proj.b_s, atol=1e-10)
-    np.testing.assert_allclose(proj_lighter.y[:, :model.n_shape], 0.25 * proj.y[:, :model.n_shape], atol=1e-10)
+    np.testing.assert_allclose(proj_lighter.y[:, : model.n_shape], 0.25 * proj.y[:, : model.n_shape], atol=1e-10)
     np.testing.assert_allclose(lighter.split(proj_lighter.y)[0], proj.b_s, atol=1e-10)
     # b_s is a linear function of the true coefficients (first order in small deformations)
     design = np.c_[coef, np.ones(len(coef))]
@@ -151,7 +167,7 @@ def test_project_reconstruct_round_trip_and_test_take_is_projected_not_refitted(
     shapes, textures = reconstruct(model, again.y)
     assert shapes.shape == (len(again.y), 68, 2) and textures.shape == (len(again.y), len(model.texture_mean))
     rms = np.sqrt(np.mean(np.sum((shapes - again.aligned_shapes) ** 2, -1)))
-    assert rms < 0.02                                  # 98% shape variance kept: a few hundredths of an IOD
+    assert rms < 0.02  # 98% shape variance kept: a few hundredths of an IOD
     # a new take: projected through the same bases, nothing refitted
     sad = tracked("sad")
     before = {k: np.array(view[k]) for k in ("mean_shape", "shape_basis", "texture_basis")}

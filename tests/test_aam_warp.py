@@ -1,11 +1,18 @@
 """Piecewise-affine warp (stages.face.warp): identity, known affine maps, inverse warp, pixel coverage."""
+
 import numpy as np
 import pytest
-
 from face_fixtures import face_template
+
 from stages.face.aam import canonical_pose, texture_reference
-from stages.face.warp import (PiecewiseAffineWarp, barycentric, delaunay_triangles, nearest_inside_index,
-                         rasterise_triangles, triangle_signed_areas)
+from stages.face.warp import (
+    PiecewiseAffineWarp,
+    barycentric,
+    delaunay_triangles,
+    nearest_inside_index,
+    rasterise_triangles,
+    triangle_signed_areas,
+)
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +99,7 @@ def test_forward_then_inverse_warp_round_trips_inside_the_face(warp):
 
 def test_degenerate_and_folded_target_triangles_are_tolerated(warp):
     target = warp.reference.copy()
-    target[60:68] = target[60:68].mean(0)            # inner lips collapse to a point
+    target[60:68] = target[60:68].mean(0)  # inner lips collapse to a point
     image, mask = warp.draw_on_shape(np.ones(warp.size[::-1], np.float32), target, warp.size)
     assert np.isfinite(image).all() and mask.sum() > 0.9 * warp.pixels.mask.sum()
     index_map = rasterise_triangles(target, warp.triangles, warp.size)

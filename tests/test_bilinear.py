@@ -1,14 +1,24 @@
 """Symmetric bilinear model (stages.face.bilinear, paper Eq 4, Tenenbaum & Freeman 2000) and the BilinearFit stage."""
+
 import numpy as np
 import pytest
+from face_fixtures import aam_run, bilinear_run, training_tracks
 from pydantic import ValidationError
 
-from face_fixtures import aam_run, bilinear_run, training_tracks
 from msflow import UserError
 from msflow.testing import artifact, run_stage
-from stages.face.bilinear import (BilinearFit, BilinearModel, check_dimensions, fit_bilinear_model,
-                             fit_symmetric_bilinear, stack_observations, subspace_angles, synthesise,
-                             synthesise_grid, vector_transpose)
+from stages.face.bilinear import (
+    BilinearFit,
+    BilinearModel,
+    check_dimensions,
+    fit_bilinear_model,
+    fit_symmetric_bilinear,
+    stack_observations,
+    subspace_angles,
+    synthesise,
+    synthesise_grid,
+    vector_transpose,
+)
 
 
 def true_model(seed=0, s=5, c=40, k=30, i=3, j=4):
@@ -19,14 +29,15 @@ def true_model(seed=0, s=5, c=40, k=30, i=3, j=4):
 
 # ----------------------------------------------------------------------------------------------- algebra
 
+
 def test_vector_transpose_moves_blocks_and_keeps_vectors():
     k = 3
-    x = np.arange(2 * k * 4).reshape(2 * k, 4)        # 2 x 4 blocks of 3-vectors
+    x = np.arange(2 * k * 4).reshape(2 * k, 4)  # 2 x 4 blocks of 3-vectors
     xt = vector_transpose(x, k)
     assert xt.shape == (4 * k, 2)
     for p in range(2):
         for q in range(4):
-            np.testing.assert_array_equal(xt[q * k:(q + 1) * k, p], x[p * k:(p + 1) * k, q])
+            np.testing.assert_array_equal(xt[q * k : (q + 1) * k, p], x[p * k : (p + 1) * k, q])
     np.testing.assert_array_equal(vector_transpose(xt, k), x)
     with pytest.raises(ValueError):
         vector_transpose(np.zeros((7, 2)), 3)
@@ -36,7 +47,7 @@ def test_stacked_form_matches_eq4():
     """Y = [W^VT A]^VT B (NOTES.md) equals y_k(s, c) = e_s' W_k c_c."""
     style, content, w, y = true_model(1, s=4, c=6, k=5, i=2, j=3)
     i, j, k = w.shape
-    w_stacked = w.transpose(0, 2, 1).reshape(i * k, j)              # block row i, column j
+    w_stacked = w.transpose(0, 2, 1).reshape(i * k, j)  # block row i, column j
     stacked = vector_transpose(vector_transpose(w_stacked, k) @ style.T, k) @ content.T
     np.testing.assert_allclose(stacked, stack_observations(y), atol=1e-12)
     np.testing.assert_allclose(synthesise(w, style[2], content[4]), y[2, 4], atol=1e-12)
@@ -47,9 +58,9 @@ def test_noise_free_model_is_reproduced_exactly_with_the_true_subspaces():
     fit = fit_symmetric_bilinear(y, 3, 4)
     assert fit.converged and fit.error < 1e-8
     np.testing.assert_allclose(synthesise_grid(fit.w, fit.style, fit.content), y, atol=1e-8 * np.abs(y).max())
-    assert np.max(subspace_angles(fit.style.T, style.T)) < 1e-6      # column spaces over the S styles
+    assert np.max(subspace_angles(fit.style.T, style.T)) < 1e-6  # column spaces over the S styles
     assert np.max(subspace_angles(fit.content.T, content.T)) < 1e-6
-    np.testing.assert_allclose(fit.style.T @ fit.style, np.eye(3), atol=1e-10)     # orthonormal rows of A
+    np.testing.assert_allclose(fit.style.T @ fit.style, np.eye(3), atol=1e-10)  # orthonormal rows of A
     np.testing.assert_allclose(fit.content.T @ fit.content, np.eye(4), atol=1e-10)
 
 
@@ -60,10 +71,10 @@ def test_noise_degrades_the_fit_gracefully():
     for level in (1e-3, 1e-2, 1e-1):
         noisy = y + rng.normal(size=y.shape) * level * y.std()
         fit = fit_symmetric_bilinear(noisy, 3, 4)
-        clean_error = np.sum((synthesise_grid(fit.w, fit.style, fit.content) - y) ** 2) / np.sum(y ** 2)
+        clean_error = np.sum((synthesise_grid(fit.w, fit.style, fit.content) - y) ** 2) / np.sum(y**2)
         angle = max(np.max(subspace_angles(fit.style.T, style.T)), np.max(subspace_angles(fit.content.T, content.T)))
-        assert fit.error < 2 * level ** 2                # residual is about the noise energy
-        assert clean_error < level ** 2                  # and the model is closer to the truth than the data
+        assert fit.error < 2 * level**2  # residual is about the noise energy
+        assert clean_error < level**2  # and the model is closer to the truth than the data
         assert angle < 5 * level and angle > previous_angle
         previous_angle = angle
 
@@ -92,7 +103,7 @@ def test_mean_component_makes_the_model_uncentred():
     centred, _ = fit_bilinear_model(y, ["a", "b", "c"], content_dim=4, mean_weight=0.0)
     assert centred.w_mean is None and centred.w_full.shape == (3, 4, 12)
     model, fit = fit_bilinear_model(y, ["a", "b", "c"], content_dim=5, mean_weight=1.0)
-    kappa = np.sqrt(np.mean(np.sum(y ** 2, -1)))
+    kappa = np.sqrt(np.mean(np.sum(y**2, -1)))
     assert model.mean_component == pytest.approx(kappa)
     assert model.w_full.shape == (3, 5, 13)
     aug = model.augment(y[0, :2])
@@ -104,6 +115,7 @@ def test_mean_component_makes_the_model_uncentred():
 
 
 # ----------------------------------------------------------------------------------------------- stage
+
 
 def test_bilinear_stage_on_the_crema_d_takes(tmp_path):
     aam = aam_run()
@@ -128,13 +140,13 @@ def test_bilinear_stage_on_the_crema_d_takes(tmp_path):
     model = BilinearModel.from_view(run.view())
     y = aam.arrays["y"][a["aligned_frames"]]
     recon = model.synthesise(model.style[:, None], model.content[None])
-    assert np.sum((recon - y) ** 2) / np.sum(y ** 2) == pytest.approx(run.metrics["train_error"], rel=1e-6)
+    assert np.sum((recon - y) ** 2) / np.sum(y**2) == pytest.approx(run.metrics["train_error"], rel=1e-6)
 
 
 def test_audio_and_mouth_alignment_agree_roughly():
     audio = bilinear_run("audio").arrays["aligned_local"]
     mouth = bilinear_run("mouth").arrays["aligned_local"]
-    assert np.median(np.abs(audio - mouth)) <= 3        # frames, at 30 fps
+    assert np.median(np.abs(audio - mouth)) <= 3  # frames, at 30 fps
 
 
 def test_bilinear_stage_errors():
@@ -145,16 +157,18 @@ def test_bilinear_stage_errors():
     lengths = np.bincount(view["sequence"])
     shortest = int(np.argmin(lengths))
     too_many = int(lengths[shortest]) + 1
-    with pytest.raises(UserError, match=f"take '{view.meta['labels'][shortest]}' has {lengths[shortest]} frames.*"
-                                        f"at least {too_many}") as exc:
+    with pytest.raises(
+        UserError, match=f"take '{view.meta['labels'][shortest]}' has {lengths[shortest]} frames.*at least {too_many}"
+    ) as exc:
         run_stage(BilinearFit, {"content_dim": too_many}, {"aam": view, "tracks": training_tracks()})
     assert exc.value.field == "params.content_dim"
     with pytest.raises(UserError, match="style_dim 4"):
         run_stage(BilinearFit, {"style_dim": 4, "align": "mouth"}, {"aam": view})
     one = {k: view[k] for k in view.names}
     keep = one["sequence"] == 0
-    single = artifact({k: (v[keep] if v.shape[:1] == keep.shape else v) for k, v in one.items()},
-                      {**view.meta, "labels": ["neutral"]})
+    single = artifact(
+        {k: (v[keep] if v.shape[:1] == keep.shape else v) for k, v in one.items()}, {**view.meta, "labels": ["neutral"]}
+    )
     with pytest.raises(UserError, match="at least two"):
         run_stage(BilinearFit, {"align": "mouth"}, {"aam": single})
     with pytest.raises(UserError, match="reference take 'sad'"):

@@ -1,9 +1,16 @@
 """Content alignment (stages.face.alignment): DTW against a plain reference implementation, known warps, MFCC features."""
+
 import numpy as np
 import pytest
 
-from stages.face.alignment import (align_takes, aligned_index, dtw_cost_matrix, dtw_path, mfcc_at_frames,
-                              standardise_per_take)
+from stages.face.alignment import (
+    align_takes,
+    aligned_index,
+    dtw_cost_matrix,
+    dtw_path,
+    mfcc_at_frames,
+    standardise_per_take,
+)
 
 
 def reference_dtw(cost):
@@ -43,15 +50,21 @@ def test_alignment_recovers_a_known_time_warp():
     rng = np.random.default_rng(1)
     reference = np.cumsum(rng.normal(size=(50, 4)), axis=0)
     # the other take: same content, slower in the middle and faster at the end, plus a constant offset
-    warp = np.clip(np.round(np.concatenate([np.linspace(0, 20, 21), np.linspace(20.5, 35, 30),
-                                            np.linspace(36, 49, 8)])).astype(int), 0, 49)
+    warp = np.clip(
+        np.round(np.concatenate([np.linspace(0, 20, 21), np.linspace(20.5, 35, 30), np.linspace(36, 49, 8)])).astype(
+            int
+        ),
+        0,
+        49,
+    )
     other = reference[warp] + 3.0
     features = [standardise_per_take(reference), standardise_per_take(other)]
     alignment = align_takes(features, 0, band=0.5)
-    found = alignment.aligned_local[1]                       # frame of 'other' at each reference frame
+    found = alignment.aligned_local[1]  # frame of 'other' at each reference frame
     assert found.shape == (50,) and np.all(np.diff(found) >= 0)
-    truth = np.array([np.flatnonzero(warp == r)[len(np.flatnonzero(warp == r)) // 2]
-                      if np.any(warp == r) else -1 for r in range(50)])
+    truth = np.array(
+        [np.flatnonzero(warp == r)[len(np.flatnonzero(warp == r)) // 2] if np.any(warp == r) else -1 for r in range(50)]
+    )
     ok = truth >= 0
     assert np.mean(np.abs(found[ok] - truth[ok]) <= 1) > 0.9
     np.testing.assert_array_equal(alignment.aligned_local[0], np.arange(50))
@@ -67,8 +80,10 @@ def test_aligned_index_takes_the_middle_match():
 def tone_sequence(durations, rate=16000):
     """Concatenated tones of distinct pitch (one per 'phone'), each lasting the given seconds."""
     freqs = [220, 440, 330, 660, 250, 520]
-    parts = [np.sin(2 * np.pi * f * np.arange(int(d * rate)) / rate) * (0.3 + 0.1 * i)
-             for i, (f, d) in enumerate(zip(freqs, durations))]
+    parts = [
+        np.sin(2 * np.pi * f * np.arange(int(d * rate)) / rate) * (0.3 + 0.1 * i)
+        for i, (f, d) in enumerate(zip(freqs, durations))
+    ]
     return np.concatenate(parts).astype(np.float32), np.cumsum([0] + list(durations))
 
 

@@ -1,5 +1,6 @@
 """Character loading: OBJ blendshape folders, glTF morph targets (round trip through our writer, foreign layouts),
 identity mix, landmark ids, the embedded ICT FaceKit GLB and its builder."""
+
 import gzip
 import json
 from pathlib import Path
@@ -9,15 +10,22 @@ import pytest
 
 from msflow import UserError
 from msflow.testing import run_stage
-from stages.retarget.character import (GltfCharacter, ObjBlendshapes, build_ict_character, mix_identity, parse_obj_faces,
-                              parse_obj_vertices)
 from stages.formats.gltf import MaterialGroup, MorphMesh, read_morph_mesh, validate_glb, write_morph_glb
+from stages.retarget.character import (
+    GltfCharacter,
+    ObjBlendshapes,
+    build_ict_character,
+    mix_identity,
+    parse_obj_faces,
+    parse_obj_vertices,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 ICT_GLB = ROOT / "data" / "characters" / "ict-facekit.glb"
 
 
 # ------------------------------------------------------------------------------------------------ synthetic data
+
 
 def grid(nx=12, ny=10):
     """A wavy quad grid (x right, y up, facing +z): vertices (V, 3) and quads (Q, 4), counter-clockwise."""
@@ -72,20 +80,46 @@ def obj_folder(tmp_path):
     ids = rng.choice(len(v), 68, replace=False)
     (tmp_path / "landmarks.json").write_text(json.dumps({"idx_to_landmark_verts": ids.tolist()}))
     (tmp_path / "test.mtl").write_text("newmtl M_Skin\nKd 0.9 0.7 0.6\nnewmtl M_Lips\nKd 0.7 0.2 0.2\nd 1.0\n")
-    return {"dir": tmp_path, "v": v, "quads": quads, "deltas": deltas, "identities": identities, "ids": ids,
-            "groups": groups}
+    return {
+        "dir": tmp_path,
+        "v": v,
+        "quads": quads,
+        "deltas": deltas,
+        "identities": identities,
+        "ids": ids,
+        "groups": groups,
+    }
 
 
 def shape_files(folder: Path, *, exclude=()):
-    return {p.name: p for p in sorted(folder.iterdir())
-            if (p.name.endswith((".obj", ".obj.gz", ".mtl"))) and p.name not in exclude}
+    return {
+        p.name: p
+        for p in sorted(folder.iterdir())
+        if (p.name.endswith((".obj", ".obj.gz", ".mtl"))) and p.name not in exclude
+    }
 
 
 # ------------------------------------------------------------------------------------------------ OBJ parsing
 
+
 def test_obj_faces_are_fan_triangulated_keeping_winding_and_groups():
-    text = "\n".join(["v 0 0 0", "v 1 0 0", "v 1 1 0", "v 0 1 0", "v 2 0 0", "usemtl A", "f 1 2 3 4",
-                      "usemtl B", "f 2/5/1 5/6/2 3/7/3", "f -4 -3 -1"]) + "\n"
+    text = (
+        "\n".join(
+            [
+                "v 0 0 0",
+                "v 1 0 0",
+                "v 1 1 0",
+                "v 0 1 0",
+                "v 2 0 0",
+                "usemtl A",
+                "f 1 2 3 4",
+                "usemtl B",
+                "f 2/5/1 5/6/2 3/7/3",
+                "f -4 -3 -1",
+            ]
+        )
+        + "\n"
+    )
     v = parse_obj_vertices(text, Path("x.obj"))
     tris, groups, names = parse_obj_faces(text, len(v), Path("x.obj"))
     assert names == ["A", "B"]
@@ -103,10 +137,15 @@ def test_obj_face_index_out_of_range_is_a_user_error():
 
 # ------------------------------------------------------------------------------------------------ ObjBlendshapes
 
+
 def test_obj_blendshapes_reads_names_deltas_groups_and_landmarks(obj_folder):
     f = obj_folder
-    out = run_stage(ObjBlendshapes, {"neutral": "neutral"},
-                    {"shapes": shape_files(f["dir"]), "landmarks": f["dir"] / "landmarks.json"}, store=f["dir"] / "s")
+    out = run_stage(
+        ObjBlendshapes,
+        {"neutral": "neutral"},
+        {"shapes": shape_files(f["dir"]), "landmarks": f["dir"] / "landmarks.json"},
+        store=f["dir"] / "s",
+    )
     names = out.meta["target_names"]
     assert sorted(names) == ["jawOpen", "mouthSmile_L", "mouthSmile_R"]
     assert out.arrays["neutral"].shape == f["v"].shape
@@ -124,13 +163,17 @@ def test_identity_mix_moves_the_neutral_and_keeps_expression_deltas(obj_folder):
     f = obj_folder
     inputs = {"shapes": shape_files(f["dir"]), "landmarks": f["dir"] / "landmarks.json"}
     base = run_stage(ObjBlendshapes, {"neutral": "neutral"}, inputs)
-    mixed = run_stage(ObjBlendshapes, {"neutral": "neutral", "identity": {"identity000": 0.7, "identity001": -1.5}},
-                      inputs)
+    mixed = run_stage(
+        ObjBlendshapes, {"neutral": "neutral", "identity": {"identity000": 0.7, "identity001": -1.5}}, inputs
+    )
     expected = f["v"] + 0.7 * f["identities"]["identity000"] - 1.5 * f["identities"]["identity001"]
     assert np.allclose(mixed.arrays["neutral"], expected, atol=1e-5)
     assert np.array_equal(mixed.arrays["deltas"], base.arrays["deltas"])
-    assert np.allclose(mix_identity(f["v"], np.stack([f["identities"]["identity000"]]), [2.0]),
-                       f["v"] + 2 * f["identities"]["identity000"], atol=1e-6)
+    assert np.allclose(
+        mix_identity(f["v"], np.stack([f["identities"]["identity000"]]), [2.0]),
+        f["v"] + 2 * f["identities"]["identity000"],
+        atol=1e-6,
+    )
     with pytest.raises(UserError, match="identity999"):
         run_stage(ObjBlendshapes, {"neutral": "neutral", "identity": {"identity999": 1.0}}, inputs)
 
@@ -152,8 +195,9 @@ def test_obj_blendshapes_scale_and_dropped_groups_remap_landmarks(obj_folder):
         ids = base.arrays["landmark_ids"]
     dropped = run_stage(ObjBlendshapes, {"neutral": "neutral", "drop_groups": ["M_Lips"], "scale": 0.01}, inputs)
     assert len(dropped.arrays["neutral"]) == len(skin_vertices)
-    assert np.allclose(dropped.arrays["neutral"][dropped.arrays["landmark_ids"]],
-                       0.01 * base.arrays["neutral"][ids], atol=1e-7)
+    assert np.allclose(
+        dropped.arrays["neutral"][dropped.arrays["landmark_ids"]], 0.01 * base.arrays["neutral"][ids], atol=1e-7
+    )
     kept_deltas = base.arrays["deltas"][:, skin_vertices]
     assert np.allclose(np.abs(dropped.arrays["deltas"]).max(), 0.01 * np.abs(kept_deltas).max(), rtol=1e-5)
     assert [g["name"] for g in dropped.meta["groups"]] == ["M_Skin"]
@@ -166,8 +210,11 @@ def test_blendshape_with_another_vertex_count_is_a_user_error(obj_folder):
     v, quads = grid(11, 10)
     write(f["dir"] / "browDown_L.obj", obj_text(v, quads))
     with pytest.raises(UserError, match="browDown_L.*vertices"):
-        run_stage(ObjBlendshapes, {"neutral": "neutral"},
-                  {"shapes": shape_files(f["dir"]), "landmarks": f["dir"] / "landmarks.json"})
+        run_stage(
+            ObjBlendshapes,
+            {"neutral": "neutral"},
+            {"shapes": shape_files(f["dir"]), "landmarks": f["dir"] / "landmarks.json"},
+        )
 
 
 def test_no_blendshapes_is_a_user_error(obj_folder):
@@ -177,15 +224,24 @@ def test_no_blendshapes_is_a_user_error(obj_folder):
         run_stage(ObjBlendshapes, {}, {"shapes": only, "landmarks": f["dir"] / "landmarks.json"})
 
 
-@pytest.mark.parametrize("ids, message", [(list(range(67)), "expected 68"),
-                                          (list(range(67)) + [10_000], "out of range"),
-                                          (list(range(67)) + [-1], "out of range"), ([0.5] * 68, "integers")])
+@pytest.mark.parametrize(
+    "ids, message",
+    [
+        (list(range(67)), "expected 68"),
+        (list(range(67)) + [10_000], "out of range"),
+        (list(range(67)) + [-1], "out of range"),
+        ([0.5] * 68, "integers"),
+    ],
+)
 def test_bad_landmark_ids_are_user_errors(obj_folder, ids, message):
     f = obj_folder
     (f["dir"] / "landmarks.json").write_text(json.dumps(ids))
     with pytest.raises(UserError, match=message):
-        run_stage(ObjBlendshapes, {"neutral": "neutral"},
-                  {"shapes": shape_files(f["dir"]), "landmarks": f["dir"] / "landmarks.json"})
+        run_stage(
+            ObjBlendshapes,
+            {"neutral": "neutral"},
+            {"shapes": shape_files(f["dir"]), "landmarks": f["dir"] / "landmarks.json"},
+        )
 
 
 def test_neutral_is_found_by_name_or_must_be_named(obj_folder):
@@ -199,6 +255,7 @@ def test_neutral_is_found_by_name_or_must_be_named(obj_folder):
 
 # ------------------------------------------------------------------------------------------------ glTF
 
+
 def synthetic_mesh(n_targets=3, seed=1) -> MorphMesh:
     v, quads = grid(9, 9)
     tris = np.r_[quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]].astype(np.int32)
@@ -208,9 +265,15 @@ def synthetic_mesh(n_targets=3, seed=1) -> MorphMesh:
         sel = rng.choice(len(v), 12, replace=False)
         deltas[t, sel] = rng.normal(0, 0.05, (12, 3))
     groups = (np.arange(len(tris)) % 2).astype(np.int32)
-    return MorphMesh(v.astype(np.float32), tris, [f"shape{t}" for t in range(n_targets)], deltas, groups,
-                     [MaterialGroup("A", (0.8, 0.6, 0.5, 1.0)), MaterialGroup("B", (0.3, 0.3, 0.3, 1.0))],
-                     extras={"landmarkVertexIds": list(range(68))})
+    return MorphMesh(
+        v.astype(np.float32),
+        tris,
+        [f"shape{t}" for t in range(n_targets)],
+        deltas,
+        groups,
+        [MaterialGroup("A", (0.8, 0.6, 0.5, 1.0)), MaterialGroup("B", (0.3, 0.3, 0.3, 1.0))],
+        extras={"landmarkVertexIds": list(range(68))},
+    )
 
 
 def test_glb_round_trip_keeps_geometry_targets_and_landmarks(tmp_path):
@@ -223,11 +286,13 @@ def test_glb_round_trip_keeps_geometry_targets_and_landmarks(tmp_path):
     assert out.meta["target_names"] == mesh.target_names
     assert np.array_equal(out.arrays["neutral"], mesh.positions)
     assert np.allclose(out.arrays["deltas"], mesh.deltas, atol=1e-7)
+
     # triangles come back grouped by material; compare as sets of (sorted-rotation) triangles
     def canon(t):
         t = np.asarray(t)
         k = np.argmin(t, axis=1)
         return sorted(map(tuple, np.stack([t[np.arange(len(t)), (k + j) % 3] for j in range(3)], 1)))
+
     assert canon(out.arrays["triangles"]) == canon(mesh.triangles)
     assert out.arrays["landmark_ids"].tolist() == list(range(68))
     assert [g["name"] for g in out.meta["groups"]] == ["A", "B"]
@@ -235,8 +300,8 @@ def test_glb_round_trip_keeps_geometry_targets_and_landmarks(tmp_path):
 
 def test_sparse_tolerance_drops_only_tiny_deltas(tmp_path):
     mesh = synthetic_mesh(1)
-    mesh.deltas[0, 0] = [3e-6, 0, 0]     # below 1e-5: not stored
-    mesh.deltas[0, 1] = [0, 2e-5, 0]     # above: stored
+    mesh.deltas[0, 0] = [3e-6, 0, 0]  # below 1e-5: not stored
+    mesh.deltas[0, 1] = [0, 2e-5, 0]  # above: stored
     back = read_back(tmp_path, write_morph_glb(mesh))
     assert back.deltas[0, 0].tolist() == [0, 0, 0]
     assert np.allclose(back.deltas[0, 1], [0, 2e-5, 0])
@@ -258,8 +323,11 @@ def gltf_without_targets(tmp_path) -> Path:
     blob = v.tobytes()
     gltf.buffers = [pygltflib.Buffer(byteLength=len(blob))]
     gltf.bufferViews = [pygltflib.BufferView(buffer=0, byteOffset=0, byteLength=len(blob), target=34962)]
-    gltf.accessors = [pygltflib.Accessor(bufferView=0, componentType=5126, count=3, type="VEC3",
-                                         min=[0.0, 0.0, 0.0], max=[1.0, 1.0, 0.0])]
+    gltf.accessors = [
+        pygltflib.Accessor(
+            bufferView=0, componentType=5126, count=3, type="VEC3", min=[0.0, 0.0, 0.0], max=[1.0, 1.0, 0.0]
+        )
+    ]
     gltf.meshes = [pygltflib.Mesh(primitives=[pygltflib.Primitive(attributes=pygltflib.Attributes(POSITION=0))])]
     gltf.nodes = [pygltflib.Node(mesh=0)]
     gltf.scenes = [pygltflib.Scene(nodes=[0])]
@@ -308,24 +376,43 @@ def test_gltf_with_data_uri_strided_positions_and_node_transform(tmp_path):
     delta = np.array([[0, 0, 0], [0, 0, 0], [0.1, 0.2, 0.3], [0, 0, 0]], np.float32).tobytes()
     blob = interleaved + idx + b"\0\0\0\0" + delta
     gltf = pygltflib.GLTF2()
-    gltf.buffers = [pygltflib.Buffer(byteLength=len(blob),
-                                     uri="data:application/octet-stream;base64," + base64.b64encode(blob).decode())]
+    gltf.buffers = [
+        pygltflib.Buffer(
+            byteLength=len(blob), uri="data:application/octet-stream;base64," + base64.b64encode(blob).decode()
+        )
+    ]
     gltf.bufferViews = [
         pygltflib.BufferView(buffer=0, byteOffset=0, byteLength=len(interleaved), byteStride=24, target=34962),
         pygltflib.BufferView(buffer=0, byteOffset=len(interleaved), byteLength=len(idx), target=34963),
         pygltflib.BufferView(buffer=0, byteOffset=len(interleaved) + len(idx) + 4, byteLength=len(delta)),
     ]
     gltf.accessors = [
-        pygltflib.Accessor(bufferView=0, byteOffset=0, componentType=5126, count=4, type="VEC3",
-                           min=[0.0, 0.0, 0.0], max=[1.0, 1.0, 0.0]),
+        pygltflib.Accessor(
+            bufferView=0,
+            byteOffset=0,
+            componentType=5126,
+            count=4,
+            type="VEC3",
+            min=[0.0, 0.0, 0.0],
+            max=[1.0, 1.0, 0.0],
+        ),
         pygltflib.Accessor(bufferView=0, byteOffset=12, componentType=5126, count=4, type="VEC3"),
         pygltflib.Accessor(bufferView=1, componentType=5123, count=6, type="SCALAR"),
-        pygltflib.Accessor(bufferView=2, componentType=5126, count=4, type="VEC3",
-                           min=[0.0, 0.0, 0.0], max=[0.1, 0.2, 0.3]),
+        pygltflib.Accessor(
+            bufferView=2, componentType=5126, count=4, type="VEC3", min=[0.0, 0.0, 0.0], max=[0.1, 0.2, 0.3]
+        ),
     ]
-    gltf.meshes = [pygltflib.Mesh(primitives=[pygltflib.Primitive(
-        attributes=pygltflib.Attributes(POSITION=0, NORMAL=1), indices=2,
-        targets=[pygltflib.Attributes(POSITION=3)])])]
+    gltf.meshes = [
+        pygltflib.Mesh(
+            primitives=[
+                pygltflib.Primitive(
+                    attributes=pygltflib.Attributes(POSITION=0, NORMAL=1),
+                    indices=2,
+                    targets=[pygltflib.Attributes(POSITION=3)],
+                )
+            ]
+        )
+    ]
     gltf.nodes = [pygltflib.Node(mesh=0, scale=[2.0, 2.0, 2.0], translation=[0.0, 5.0, 0.0])]
     gltf.scenes = [pygltflib.Scene(nodes=[0])]
     path = tmp_path / "foreign.gltf"
@@ -344,21 +431,71 @@ def test_gltf_with_data_uri_strided_positions_and_node_transform(tmp_path):
 
 # ------------------------------------------------------------------------------------------------ embedded ICT
 
+
 @pytest.fixture(scope="module")
 def ict():
     return run_stage(GltfCharacter, {}, {"mesh": ICT_GLB})
 
 
 ICT_EXPRESSIONS = {
-    "browDown_L", "browDown_R", "browInnerUp_L", "browInnerUp_R", "browOuterUp_L", "browOuterUp_R", "cheekPuff_L",
-    "cheekPuff_R", "cheekSquint_L", "cheekSquint_R", "eyeBlink_L", "eyeBlink_R", "eyeLookDown_L", "eyeLookDown_R",
-    "eyeLookIn_L", "eyeLookIn_R", "eyeLookOut_L", "eyeLookOut_R", "eyeLookUp_L", "eyeLookUp_R", "eyeSquint_L",
-    "eyeSquint_R", "eyeWide_L", "eyeWide_R", "jawForward", "jawLeft", "jawOpen", "jawRight", "mouthClose",
-    "mouthDimple_L", "mouthDimple_R", "mouthFrown_L", "mouthFrown_R", "mouthFunnel", "mouthLeft",
-    "mouthLowerDown_L", "mouthLowerDown_R", "mouthPress_L", "mouthPress_R", "mouthPucker", "mouthRight",
-    "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper", "mouthSmile_L", "mouthSmile_R",
-    "mouthStretch_L", "mouthStretch_R", "mouthUpperUp_L", "mouthUpperUp_R", "noseSneer_L", "noseSneer_R",
-    "cheekRaiser_L", "cheekRaiser_R", "PupilDilate_L", "PupilDilate_R"}
+    "browDown_L",
+    "browDown_R",
+    "browInnerUp_L",
+    "browInnerUp_R",
+    "browOuterUp_L",
+    "browOuterUp_R",
+    "cheekPuff_L",
+    "cheekPuff_R",
+    "cheekSquint_L",
+    "cheekSquint_R",
+    "eyeBlink_L",
+    "eyeBlink_R",
+    "eyeLookDown_L",
+    "eyeLookDown_R",
+    "eyeLookIn_L",
+    "eyeLookIn_R",
+    "eyeLookOut_L",
+    "eyeLookOut_R",
+    "eyeLookUp_L",
+    "eyeLookUp_R",
+    "eyeSquint_L",
+    "eyeSquint_R",
+    "eyeWide_L",
+    "eyeWide_R",
+    "jawForward",
+    "jawLeft",
+    "jawOpen",
+    "jawRight",
+    "mouthClose",
+    "mouthDimple_L",
+    "mouthDimple_R",
+    "mouthFrown_L",
+    "mouthFrown_R",
+    "mouthFunnel",
+    "mouthLeft",
+    "mouthLowerDown_L",
+    "mouthLowerDown_R",
+    "mouthPress_L",
+    "mouthPress_R",
+    "mouthPucker",
+    "mouthRight",
+    "mouthRollLower",
+    "mouthRollUpper",
+    "mouthShrugLower",
+    "mouthShrugUpper",
+    "mouthSmile_L",
+    "mouthSmile_R",
+    "mouthStretch_L",
+    "mouthStretch_R",
+    "mouthUpperUp_L",
+    "mouthUpperUp_R",
+    "noseSneer_L",
+    "noseSneer_R",
+    "cheekRaiser_L",
+    "cheekRaiser_R",
+    "PupilDilate_L",
+    "PupilDilate_R",
+}
 
 
 def test_embedded_character_files_size_and_validity():
@@ -382,15 +519,15 @@ def test_embedded_character_has_all_57_targets_and_sane_landmarks(ict):
     lm = v[ids]
     width = np.ptp(v[:, 0])
     assert 0.12 < width < 0.4  # metres: a human head
-    assert lm[36, 0] < 0 < lm[45, 0]        # iBUG 36 (right eye outer corner) on the character's right (-x)
-    assert lm[30, 2] == lm[:, 2].max()      # nose tip nearest the viewer
-    assert lm[8, 1] == lm[:, 1].min()       # chin lowest
+    assert lm[36, 0] < 0 < lm[45, 0]  # iBUG 36 (right eye outer corner) on the character's right (-x)
+    assert lm[30, 2] == lm[:, 2].max()  # nose tip nearest the viewer
+    assert lm[8, 1] == lm[:, 1].min()  # chin lowest
     assert lm[19, 1] > lm[37, 1] > lm[30, 1] > lm[51, 1] > lm[57, 1]  # brow, eye, nose, lips top to bottom
     d = ict.arrays["deltas"]
     blink_l = np.abs(d[names.index("eyeBlink_L")]).max(axis=1) > 1e-3
-    assert v[blink_l, 0].mean() > 0.01      # _L is the character's left (+x)
+    assert v[blink_l, 0].mean() > 0.01  # _L is the character's left (+x)
     jaw = d[names.index("jawOpen")]
-    assert jaw[ids[8], 1] < -0.005          # the chin goes down
+    assert jaw[ids[8], 1] < -0.005  # the chin goes down
 
 
 def test_embedded_character_is_the_default(ict):
@@ -423,8 +560,12 @@ def test_builder_on_an_ict_like_folder(tmp_path):
     ball_v, ball_q = sphere_quads(6, 8, centre=(0.5, 0.2, 0.3), radius=0.15)
     shell_v, shell_q = sphere_quads(6, 8, centre=(0.5, 0.2, 0.3), radius=0.17)
     lash_v, lash_q = grid(3, 2)
-    parts = [(face_v, face_q, "M_Face"), (shell_v, shell_q, "M_ScleraLeft"), (ball_v, ball_q, "M_IrisLeft"),
-             (lash_v * 0.1 + [0.5, 0.4, 0.4], lash_q, "M_EyeLashes")]
+    parts = [
+        (face_v, face_q, "M_Face"),
+        (shell_v, shell_q, "M_ScleraLeft"),
+        (ball_v, ball_q, "M_IrisLeft"),
+        (lash_v * 0.1 + [0.5, 0.4, 0.4], lash_q, "M_EyeLashes"),
+    ]
     vertices, faces, groups, offset = [], [], [], 0
     for g, (v, q, name) in enumerate(parts):
         vertices.append(v)
@@ -443,8 +584,9 @@ def test_builder_on_an_ict_like_folder(tmp_path):
     d_id = rng.normal(0, 0.1, v.shape)
     write(src / "identity000.obj.gz", obj_text(v + d_id, q))
     ids = rng.choice(len(face_v), 68, replace=False)
-    (src / "vertex_indices.json").write_text(json.dumps({"expressions": ["jawOpen", "eyeBlink_L"],
-                                                         "idx_to_landmark_verts": ids.tolist()}))
+    (src / "vertex_indices.json").write_text(
+        json.dumps({"expressions": ["jawOpen", "eyeBlink_L"], "idx_to_landmark_verts": ids.tolist()})
+    )
     (src / "ICTFaceModelMaterial.mtl").write_text("newmtl M_Face\nKd 0.6 0.6 0.6\nnewmtl M_IrisLeft\nKd 0.2 0.2 0.2\n")
     (src / "LICENSE").write_text("MIT License\n")
     (src / "CREDITS.md").write_text("credits\n")
@@ -467,8 +609,10 @@ def test_builder_on_an_ict_like_folder(tmp_path):
     # the pupil is at the front of the eyeball (towards +z), the sclera part behind
     tg = out.arrays["triangle_groups"]
     centroid = out.arrays["neutral"][out.arrays["triangles"]].mean(axis=1)
-    assert centroid[tg == group_names.index("M_EyePupilLeft"), 2].mean() > \
-        centroid[tg == group_names.index("M_EyeScleraLeft"), 2].mean()
+    assert (
+        centroid[tg == group_names.index("M_EyePupilLeft"), 2].mean()
+        > centroid[tg == group_names.index("M_EyeScleraLeft"), 2].mean()
+    )
 
 
 def sphere_quads(n_lat, n_lon, centre, radius):
@@ -497,8 +641,11 @@ def test_figures_render_pngs(obj_folder):
     from stages.retarget.character import figure_landmarks, figure_targets
 
     f = obj_folder
-    out = run_stage(ObjBlendshapes, {"neutral": "neutral"},
-                    {"shapes": shape_files(f["dir"]), "landmarks": f["dir"] / "landmarks.json"})
+    out = run_stage(
+        ObjBlendshapes,
+        {"neutral": "neutral"},
+        {"shapes": shape_files(f["dir"]), "landmarks": f["dir"] / "landmarks.json"},
+    )
     assert set(ObjBlendshapes.figures) == {"landmarks", "targets"}
     image = cv2.imdecode(np.frombuffer(figure_landmarks(out.view()), np.uint8), cv2.IMREAD_COLOR)
     assert image.shape == (512, 512, 3)

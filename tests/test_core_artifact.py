@@ -1,4 +1,5 @@
 """The artifact format: zarr v3 written by msflow, read by zarr, hashed by content."""
+
 import json
 
 import numpy as np
@@ -56,8 +57,11 @@ def test_write_refuses_existing_path(tmp_path):
 
 
 def test_strict_json_converts_numpy_and_rejects_nan():
-    assert to_strict_json({"a": np.float32(1.5), "b": np.arange(3), "c": (1, np.int64(2))}, "m") == \
-        {"a": 1.5, "b": [0, 1, 2], "c": [1, 2]}
+    assert to_strict_json({"a": np.float32(1.5), "b": np.arange(3), "c": (1, np.int64(2))}, "m") == {
+        "a": 1.5,
+        "b": [0, 1, 2],
+        "c": [1, 2],
+    }
     for bad in (float("nan"), float("inf"), np.float64("nan"), {"x": [1.0, float("-inf")]}):
         with pytest.raises(ValueError, match="not allowed in strict JSON"):
             to_strict_json(bad, "meta")

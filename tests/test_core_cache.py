@@ -1,12 +1,13 @@
 """Incremental runs on the numeric test project: what reruns after which change (msflow core, issue 2)."""
+
 import os
 import shutil
 
 import numpy as np
 import pytest
+from conftest import executions
 
 import msflow
-from conftest import executions
 
 ALL = ["src", "scaled", "sign", "csv", "total"]
 
@@ -60,10 +61,14 @@ def test_comment_docstring_and_formatting_edit_reruns_nothing(numproject, log):
     run(numproject)
     module = numproject / "numstages" / "scaling.py"
     source = module.read_text()
-    edited = source.replace('"""Scaling: the only stage module importing numstages.helpers."""',
-                            '"""A different docstring."""\n# a comment\n')
-    edited = edited.replace("return Result({\"y\": double(inputs[\"x\"]) * params.factor / 2})",
-                            "return Result( { \"y\" : double( inputs[ \"x\" ] )*params.factor/2 } )  # spaced")
+    edited = source.replace(
+        '"""Scaling: the only stage module importing numstages.helpers."""',
+        '"""A different docstring."""\n# a comment\n',
+    )
+    edited = edited.replace(
+        'return Result({"y": double(inputs["x"]) * params.factor / 2})',
+        'return Result( { "y" : double( inputs[ "x" ] )*params.factor/2 } )  # spaced',
+    )
     assert edited != source
     module.write_text(edited)
     assert run(numproject).executed == []
@@ -145,7 +150,7 @@ def test_parallel_run_gives_same_keys_and_content(numproject, tmp_path, log):
     assert sorted(parallel.executed) == sorted(ALL)
     for name in ALL:
         assert parallel.key(name) == serial.key(name)
-    worker_pids = {line.split()[1] for line in log.read_text().splitlines()[len(ALL):]}
+    worker_pids = {line.split()[1] for line in log.read_text().splitlines()[len(ALL) :]}
     assert worker_pids and str(os.getpid()) not in worker_pids  # executed in pool processes
 
 
@@ -174,8 +179,10 @@ def test_stage_resource_files_are_part_of_the_key(numproject, log):
     ref.write_text("1 2\n")
     from conftest import run_cli
 
-    assert "data file of the stage's code changed: resource ref" in run_cli(numproject, "why", "ref", "-f",
-                                                                          "resources.yaml").stdout
+    assert (
+        "data file of the stage's code changed: resource ref"
+        in run_cli(numproject, "why", "ref", "-f", "resources.yaml").stdout
+    )
     again = msflow.run(pipeline)
     assert again.executed == ["ref"] and list(again.load("ref.v")) == [1.0, 2.0]
 
@@ -199,7 +206,8 @@ def test_development_package_outside_the_project_is_fingerprinted(tmp_path):
     (pkg / "mod.py").write_text(
         "import numpy as np\nfrom msflow import Stage, Output, Result\n\n"
         "class Const(Stage):\n    outputs = {'x': Output.array('f')}\n\n"
-        "    def run(self, params, inputs):\n        return Result({'x': np.array([1.0])})\n")
+        "    def run(self, params, inputs):\n        return Result({'x': np.array([1.0])})\n"
+    )
     project = tmp_path / "elsewhere"
     project.mkdir()
     (project / "pipeline.yaml").write_text("version: 1\nstages:\n  c:\n    uses: devstages.mod:Const\n")

@@ -1,17 +1,22 @@
 """The inspection commands: status, why, dag, show, export, gc; publish; the Python API."""
+
 import json
 
 import numpy as np
 import pytest
+from conftest import run_cli
 
 import msflow
-from conftest import run_cli
 
 
 def test_status_lists_what_would_run_and_why(numproject):
     fresh = run_cli(numproject, "status")
     assert fresh.returncode == 0
-    assert "src" in fresh.stdout and "never run" in fresh.stdout and "0 cached, 2 to run, 3 waiting on them" in fresh.stdout
+    assert (
+        "src" in fresh.stdout
+        and "never run" in fresh.stdout
+        and "0 cached, 2 to run, 3 waiting on them" in fresh.stdout
+    )
     assert run_cli(numproject, "run", "-q").returncode == 0
     assert "5 cached, 0 to run" in run_cli(numproject, "status").stdout
     changed = run_cli(numproject, "status", "-S", "src.n=4")

@@ -1,12 +1,13 @@
 """Every error a user can cause: exit 2, a message naming file, stage and field, no traceback, nothing written."""
+
 import textwrap
 
 import pytest
 import yaml
+from conftest import run_cli
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import run_cli
 from msflow.cli import main
 from msflow.errors import UserError
 from msflow.plan import resolve
@@ -22,62 +23,130 @@ GOOD_STAGES = """
 
 CASES = {
     "invalid_yaml": ("version: 1\nstages: [\n", [], ["invalid YAML", "line"]),
-    "unknown_top_level_key": ("version: 1\nstagez: {}\nstages:" + GOOD_STAGES, [],
-                              ["unknown key 'stagez'", "field 'stagez'"]),
-    "unknown_stage_class": ("version: 1\nstages:\n  src:\n    uses: numstages.basic:Sauce\n", [],
-                            ["stage 'src'", "field 'uses'", "no class 'Sauce'", "did you mean 'Source'"]),
-    "unknown_stage_module": ("version: 1\nstages:\n  src:\n    uses: numstages.nothere:Source\n", [],
-                             ["stage 'src'", "field 'uses'", "unknown stage module 'numstages.nothere'"]),
-    "not_a_stage": ("version: 1\nstages:\n  src:\n    uses: numstages.basic:NotAStage\n", [],
-                    ["stage 'src'", "field 'uses'", "not a msflow Stage"]),
-    "malformed_uses": ("version: 1\nstages:\n  src:\n    uses: numstages.basic.Source\n", [],
-                       ["stage 'src'", "field 'uses'", "package.module:Class"]),
-    "unknown_param": ("version: 1\nstages:\n  src:\n    uses: numstages.basic:Source\n    params: {nn: 3}\n", [],
-                      ["stage 'src'", "field 'params.nn'", "unknown parameter 'nn'", "did you mean 'n'"]),
-    "wrongly_typed_param": ("version: 1\nstages:\n  src:\n    uses: numstages.basic:Source\n    params: {n: many}\n",
-                            [], ["stage 'src'", "field 'params.n'", "integer"]),
-    "missing_required_input": ("version: 1\nstages:\n  scaled:\n    uses: numstages.scaling:Scale\n", [],
-                               ["stage 'scaled'", "field 'inputs.x'", "missing required input 'x'"]),
-    "unknown_input_name": ("version: 1\nstages:" + GOOD_STAGES.replace("{x: src.x}", "{x: src.x, y: src.x}"), [],
-                           ["stage 'scaled'", "field 'inputs.y'", "unknown input 'y'"]),
-    "ref_to_unknown_stage": ("version: 1\nstages:" + GOOD_STAGES.replace("src.x}", "srcc.x}"), [],
-                             ["stage 'scaled'", "field 'inputs.x'", "unknown stage 'srcc'", "did you mean 'src'"]),
-    "ref_to_unknown_output": ("version: 1\nstages:" + GOOD_STAGES.replace("src.x}", "src.y}"), [],
-                              ["stage 'scaled'", "field 'inputs.x'", "has no output 'y'", "outputs: x"]),
-    "artifact_where_array_expected": ("version: 1\nstages:" + GOOD_STAGES.replace("src.x}", "src}"), [],
-                                      ["stage 'scaled'", "field 'inputs.x'", "expects one array", "src.<output>"]),
-    "files_where_array_expected": ("version: 1\nstages:" + GOOD_STAGES.replace("src.x}", "{path: data/table.csv}}"),
-                                   [], ["stage 'scaled'", "field 'inputs.x'", "expects a stage reference"]),
-    "path_written_as_ref": ("version: 1\nstages:\n  csv:\n    uses: numstages.basic:LoadCsv\n"
-                            "    inputs: {table: data/table.csv}\n", [],
-                            ["stage 'csv'", "field 'inputs.table'", "{path: data/table.csv}"]),
-    "dependency_cycle": ("version: 1\nstages:\n  a:\n    uses: numstages.scaling:Scale\n    inputs: {x: b.y}\n"
-                         "  b:\n    uses: numstages.scaling:Scale\n    inputs: {x: a.y}\n", [],
-                         ["dependency cycle", "a -> b -> a", "field 'inputs'"]),
-    "duplicate_stage_name": ("version: 1\nstages:\n  src:\n    uses: numstages.basic:Source\n"
-                             "  src:\n    uses: numstages.basic:Source\n", [],
-                             ["invalid YAML", "duplicate key 'src'", "line 5"]),
-    "missing_data_file": ("version: 1\nstages:\n  csv:\n    uses: numstages.basic:LoadCsv\n"
-                          "    inputs: {table: {path: data/nothere.csv}}\n", [],
-                          ["stage 'csv'", "field 'inputs.table'", "data file not found: data/nothere.csv"]),
-    "glob_matching_nothing": ("version: 1\nstages:\n  csv:\n    uses: numstages.basic:LoadCsv\n"
-                              "    inputs: {table: {glob: 'data/*.tsv'}}\n", [],
-                              ["stage 'csv'", "field 'inputs.table'", "matches no files"]),
-    "missing_labelled_file": ("version: 1\nstages:\n  csv:\n    uses: numstages.basic:LoadCsv\n"
-                              "    inputs: {table: {first: data/table.csv, second: data/gone.csv}}\n", [],
-                              ["stage 'csv'", "field 'inputs.table.second'", "data/gone.csv"]),
-    "unknown_var": ("version: 1\nvars: {n: 3}\nstages:\n  src:\n    uses: numstages.basic:Source\n"
-                    "    params: {n: '${m}'}\n", [], ["field 'stages.src.params.n'", "unknown variable '${m}'"]),
-    "bad_override_syntax": ("version: 1\nstages:" + GOOD_STAGES, ["-S", "src.n"],
-                            ["field '-S'", "bad override 'src.n'", "stage.param=value"]),
-    "override_without_param": ("version: 1\nstages:" + GOOD_STAGES, ["-S", "src=3"],
-                               ["field '-S'", "stage.param"]),
-    "override_unknown_stage": ("version: 1\nstages:" + GOOD_STAGES, ["-S", "srx.n=3"],
-                               ["field '-S'", "unknown stage 'srx'", "did you mean 'src'"]),
-    "override_unknown_param": ("version: 1\nstages:" + GOOD_STAGES, ["-S", "src.m=3"],
-                               ["stage 'src'", "field 'params.m'", "unknown parameter 'm'"]),
-    "override_wrong_type": ("version: 1\nstages:" + GOOD_STAGES, ["-S", "src.n=[1,2]"],
-                            ["stage 'src'", "field 'params.n'"]),
+    "unknown_top_level_key": (
+        "version: 1\nstagez: {}\nstages:" + GOOD_STAGES,
+        [],
+        ["unknown key 'stagez'", "field 'stagez'"],
+    ),
+    "unknown_stage_class": (
+        "version: 1\nstages:\n  src:\n    uses: numstages.basic:Sauce\n",
+        [],
+        ["stage 'src'", "field 'uses'", "no class 'Sauce'", "did you mean 'Source'"],
+    ),
+    "unknown_stage_module": (
+        "version: 1\nstages:\n  src:\n    uses: numstages.nothere:Source\n",
+        [],
+        ["stage 'src'", "field 'uses'", "unknown stage module 'numstages.nothere'"],
+    ),
+    "not_a_stage": (
+        "version: 1\nstages:\n  src:\n    uses: numstages.basic:NotAStage\n",
+        [],
+        ["stage 'src'", "field 'uses'", "not a msflow Stage"],
+    ),
+    "malformed_uses": (
+        "version: 1\nstages:\n  src:\n    uses: numstages.basic.Source\n",
+        [],
+        ["stage 'src'", "field 'uses'", "package.module:Class"],
+    ),
+    "unknown_param": (
+        "version: 1\nstages:\n  src:\n    uses: numstages.basic:Source\n    params: {nn: 3}\n",
+        [],
+        ["stage 'src'", "field 'params.nn'", "unknown parameter 'nn'", "did you mean 'n'"],
+    ),
+    "wrongly_typed_param": (
+        "version: 1\nstages:\n  src:\n    uses: numstages.basic:Source\n    params: {n: many}\n",
+        [],
+        ["stage 'src'", "field 'params.n'", "integer"],
+    ),
+    "missing_required_input": (
+        "version: 1\nstages:\n  scaled:\n    uses: numstages.scaling:Scale\n",
+        [],
+        ["stage 'scaled'", "field 'inputs.x'", "missing required input 'x'"],
+    ),
+    "unknown_input_name": (
+        "version: 1\nstages:" + GOOD_STAGES.replace("{x: src.x}", "{x: src.x, y: src.x}"),
+        [],
+        ["stage 'scaled'", "field 'inputs.y'", "unknown input 'y'"],
+    ),
+    "ref_to_unknown_stage": (
+        "version: 1\nstages:" + GOOD_STAGES.replace("src.x}", "srcc.x}"),
+        [],
+        ["stage 'scaled'", "field 'inputs.x'", "unknown stage 'srcc'", "did you mean 'src'"],
+    ),
+    "ref_to_unknown_output": (
+        "version: 1\nstages:" + GOOD_STAGES.replace("src.x}", "src.y}"),
+        [],
+        ["stage 'scaled'", "field 'inputs.x'", "has no output 'y'", "outputs: x"],
+    ),
+    "artifact_where_array_expected": (
+        "version: 1\nstages:" + GOOD_STAGES.replace("src.x}", "src}"),
+        [],
+        ["stage 'scaled'", "field 'inputs.x'", "expects one array", "src.<output>"],
+    ),
+    "files_where_array_expected": (
+        "version: 1\nstages:" + GOOD_STAGES.replace("src.x}", "{path: data/table.csv}}"),
+        [],
+        ["stage 'scaled'", "field 'inputs.x'", "expects a stage reference"],
+    ),
+    "path_written_as_ref": (
+        "version: 1\nstages:\n  csv:\n    uses: numstages.basic:LoadCsv\n    inputs: {table: data/table.csv}\n",
+        [],
+        ["stage 'csv'", "field 'inputs.table'", "{path: data/table.csv}"],
+    ),
+    "dependency_cycle": (
+        "version: 1\nstages:\n  a:\n    uses: numstages.scaling:Scale\n    inputs: {x: b.y}\n"
+        "  b:\n    uses: numstages.scaling:Scale\n    inputs: {x: a.y}\n",
+        [],
+        ["dependency cycle", "a -> b -> a", "field 'inputs'"],
+    ),
+    "duplicate_stage_name": (
+        "version: 1\nstages:\n  src:\n    uses: numstages.basic:Source\n  src:\n    uses: numstages.basic:Source\n",
+        [],
+        ["invalid YAML", "duplicate key 'src'", "line 5"],
+    ),
+    "missing_data_file": (
+        "version: 1\nstages:\n  csv:\n    uses: numstages.basic:LoadCsv\n"
+        "    inputs: {table: {path: data/nothere.csv}}\n",
+        [],
+        ["stage 'csv'", "field 'inputs.table'", "data file not found: data/nothere.csv"],
+    ),
+    "glob_matching_nothing": (
+        "version: 1\nstages:\n  csv:\n    uses: numstages.basic:LoadCsv\n    inputs: {table: {glob: 'data/*.tsv'}}\n",
+        [],
+        ["stage 'csv'", "field 'inputs.table'", "matches no files"],
+    ),
+    "missing_labelled_file": (
+        "version: 1\nstages:\n  csv:\n    uses: numstages.basic:LoadCsv\n"
+        "    inputs: {table: {first: data/table.csv, second: data/gone.csv}}\n",
+        [],
+        ["stage 'csv'", "field 'inputs.table.second'", "data/gone.csv"],
+    ),
+    "unknown_var": (
+        "version: 1\nvars: {n: 3}\nstages:\n  src:\n    uses: numstages.basic:Source\n    params: {n: '${m}'}\n",
+        [],
+        ["field 'stages.src.params.n'", "unknown variable '${m}'"],
+    ),
+    "bad_override_syntax": (
+        "version: 1\nstages:" + GOOD_STAGES,
+        ["-S", "src.n"],
+        ["field '-S'", "bad override 'src.n'", "stage.param=value"],
+    ),
+    "override_without_param": ("version: 1\nstages:" + GOOD_STAGES, ["-S", "src=3"], ["field '-S'", "stage.param"]),
+    "override_unknown_stage": (
+        "version: 1\nstages:" + GOOD_STAGES,
+        ["-S", "srx.n=3"],
+        ["field '-S'", "unknown stage 'srx'", "did you mean 'src'"],
+    ),
+    "override_unknown_param": (
+        "version: 1\nstages:" + GOOD_STAGES,
+        ["-S", "src.m=3"],
+        ["stage 'src'", "field 'params.m'", "unknown parameter 'm'"],
+    ),
+    "override_wrong_type": (
+        "version: 1\nstages:" + GOOD_STAGES,
+        ["-S", "src.n=[1,2]"],
+        ["stage 'src'", "field 'params.n'"],
+    ),
     "unsupported_version": ("version: 7\nstages:" + GOOD_STAGES, [], ["field 'version'", "format version 7"]),
     "top_level_not_mapping": ("- a\n- b\n", [], ["top level must be a mapping"]),
     "empty_file": ("", [], ["empty"]),
@@ -119,14 +188,18 @@ def test_stage_user_error_exits_2_and_keeps_earlier_results(numproject):
     assert again.returncode == 0
 
 
-@pytest.mark.parametrize("mode, code, fragments", [
-    ("schema", 1, ["stage 'broken'", "output 'y'", "axis 0 has size 4, expected 3"]),
-    ("nan_meta", 1, ["stage 'broken' meta.bad", "nan", "not allowed in strict JSON"]),
-    ("crash", 1, ["stage 'broken' failed: RuntimeError: boom", "Traceback"]),
-    ("user", 2, ["stage 'broken'", "field 'inputs.x'", "the data is unusable"]),
-])
+@pytest.mark.parametrize(
+    "mode, code, fragments",
+    [
+        ("schema", 1, ["stage 'broken'", "output 'y'", "axis 0 has size 4, expected 3"]),
+        ("nan_meta", 1, ["stage 'broken' meta.bad", "nan", "not allowed in strict JSON"]),
+        ("crash", 1, ["stage 'broken' failed: RuntimeError: boom", "Traceback"]),
+        ("user", 2, ["stage 'broken'", "field 'inputs.x'", "the data is unusable"]),
+    ],
+)
 def test_failing_stage_reports_stage_and_output(numproject, mode, code, fragments):
-    (numproject / "broken.yaml").write_text(textwrap.dedent(f"""
+    (numproject / "broken.yaml").write_text(
+        textwrap.dedent(f"""
         version: 1
         stages:
           ok:
@@ -134,7 +207,8 @@ def test_failing_stage_reports_stage_and_output(numproject, mode, code, fragment
           broken:
             uses: numstages.basic:Broken
             params: {{mode: {mode}}}
-    """))
+    """)
+    )
     result = run_cli(numproject, "run", "broken.yaml")
     assert result.returncode == code, result.stderr
     for fragment in fragments:
@@ -148,13 +222,39 @@ def test_failing_stage_reports_stage_and_output(numproject, mode, code, fragment
 
 
 # ------------------------------------------------------------------------------------------------ fuzzing
-KEYS = ["version", "store", "vars", "stages", "publish", "uses", "inputs", "params", "src", "scaled", "x", "n",
-        "path", "glob", "description", "numstages.basic:Source", "src.x", "${n}", "${x}", "data/table.csv"]
-scalars = st.none() | st.booleans() | st.integers() | st.floats(allow_nan=True) | st.text(max_size=12) | \
-    st.sampled_from(KEYS)
-structures = st.recursive(scalars, lambda children: st.lists(children, max_size=4) |
-                          st.dictionaries(st.sampled_from(KEYS) | st.text(max_size=6), children, max_size=5),
-                          max_leaves=25)
+KEYS = [
+    "version",
+    "store",
+    "vars",
+    "stages",
+    "publish",
+    "uses",
+    "inputs",
+    "params",
+    "src",
+    "scaled",
+    "x",
+    "n",
+    "path",
+    "glob",
+    "description",
+    "numstages.basic:Source",
+    "src.x",
+    "${n}",
+    "${x}",
+    "data/table.csv",
+]
+scalars = (
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=True) | st.text(max_size=12) | st.sampled_from(KEYS)
+)
+structures = st.recursive(
+    scalars,
+    lambda children: (
+        st.lists(children, max_size=4)
+        | st.dictionaries(st.sampled_from(KEYS) | st.text(max_size=6), children, max_size=5)
+    ),
+    max_leaves=25,
+)
 
 
 def _load_and_resolve(path, overrides=()):
@@ -174,8 +274,10 @@ def test_fuzz_structured_documents_never_raise_anything_but_user_error(numprojec
 
 
 @settings(max_examples=250, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(text=st.text(alphabet=st.sampled_from(list("ab:-[]{}\n '\"&*!|>%@`#,?${}.1")), max_size=80),
-       overrides=st.lists(st.text(max_size=10), max_size=2))
+@given(
+    text=st.text(alphabet=st.sampled_from(list("ab:-[]{}\n '\"&*!|>%@`#,?${}.1")), max_size=80),
+    overrides=st.lists(st.text(max_size=10), max_size=2),
+)
 def test_fuzz_raw_text_and_overrides_never_raise_anything_but_user_error(numproject, text, overrides):
     path = numproject / "fuzz.yaml"
     path.write_text("version: 1\nstages:" + GOOD_STAGES + text)
@@ -192,14 +294,17 @@ def test_cli_main_in_process_returns_2_for_user_errors(numproject, capsys, monke
     assert "'stages' is empty" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("args, fragment", [
-    (["frobnicate"], "No such command 'frobnicate'"),
-    (["run", "--jobs", "x"], "Invalid value for '-j'"),
-    (["show", "--nope", "src"], "No such option: --nope"),
-    (["run", "-j", "0"], "-j must be at least 1"),
-    (["run", "--until", "nope"], "unknown stage 'nope'"),
-    (["run", "--force", "nope"], "unknown stage(s) ['nope']"),
-])
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["frobnicate"], "No such command 'frobnicate'"),
+        (["run", "--jobs", "x"], "Invalid value for '-j'"),
+        (["show", "--nope", "src"], "No such option: --nope"),
+        (["run", "-j", "0"], "-j must be at least 1"),
+        (["run", "--until", "nope"], "unknown stage 'nope'"),
+        (["run", "--force", "nope"], "unknown stage(s) ['nope']"),
+    ],
+)
 def test_cli_usage_errors_exit_2_without_traceback(numproject, args, fragment):
     result = run_cli(numproject, *args)
     assert result.returncode == 2, result.stderr

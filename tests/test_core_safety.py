@@ -1,4 +1,5 @@
 """Crash and concurrency safety: SIGKILL at any moment, concurrent runs, dead lock holders, corruption."""
+
 import json
 import random
 import signal
@@ -7,14 +8,20 @@ import sys
 import time
 
 import numpy as np
-
 from conftest import cli_env, executions, run_cli
+
 from msflow.artifact import read_manifest
 
 
 def start_run(proj, *args, env):
-    return subprocess.Popen([sys.executable, "-m", "msflow.cli", "run", *args, "-q"], cwd=proj, env=cli_env(env),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "msflow.cli", "run", *args, "-q"],
+        cwd=proj,
+        env=cli_env(env),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def visible_artifacts(proj):
@@ -74,8 +81,7 @@ def test_lock_held_by_a_killed_run_is_broken(numproject, tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     started = time.time()
-    result = run_cli(numproject, "run", "crash.yaml", "--until", "slow", "-q", env={"NUMSTAGES_SLEEP": "0"},
-                     timeout=60)
+    result = run_cli(numproject, "run", "crash.yaml", "--until", "slow", "-q", env={"NUMSTAGES_SLEEP": "0"}, timeout=60)
     assert result.returncode == 0, result.stderr
     assert time.time() - started < 30
 

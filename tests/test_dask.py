@@ -1,10 +1,11 @@
 """The Dask executor: same keys and results as local runs, a worker dying mid-stage is retried."""
+
 import shutil
 
 import numpy as np
+from conftest import executions, run_cli
 
 import msflow
-from conftest import executions, run_cli
 
 
 def test_dask_gives_the_same_keys_and_content_as_local(numproject, tmp_path, monkeypatch):
@@ -50,8 +51,9 @@ def test_sweep_on_dask_matches_local(numproject, tmp_path):
 
 
 def test_unreachable_scheduler_is_a_clear_error(numproject):
-    result = run_cli(numproject, "run", "--scheduler", "tcp://127.0.0.1:9", "--connect-timeout", "1.5",
-                     "--force", "src")
+    result = run_cli(
+        numproject, "run", "--scheduler", "tcp://127.0.0.1:9", "--connect-timeout", "1.5", "--force", "src"
+    )
     assert result.returncode == 2
     assert "cannot reach the Dask scheduler at tcp://127.0.0.1:9 within 1.5s" in result.stderr
     assert "Traceback" not in result.stderr

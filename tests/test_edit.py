@@ -1,18 +1,32 @@
 """Expression analysis and editing (stages.face.edit, paper Eq 5-7) and the ExpressionEdit stage."""
+
 import io
 import warnings
 
 import numpy as np
 import pytest
+from face_fixtures import aam_run, bilinear_run, edit_run, tracked
 from pydantic import ValidationError
 
-from face_fixtures import aam_run, bilinear_run, edit_run, tracked
 from msflow import UserError
 from msflow.testing import artifact, run_stage
 from stages.face.bilinear import fit_symmetric_bilinear, synthesise, synthesise_grid
-from stages.face.edit import (BilinearAnalyser, ExpressionEdit, Keyframe, analyse_style_content, check_extrapolation,
-                         classify_styles, edit_configuration, initial_content, interpolation_path, jitter,
-                         keyframed_weights, solve_temporal, style_barycentric, weight_vector)
+from stages.face.edit import (
+    BilinearAnalyser,
+    ExpressionEdit,
+    Keyframe,
+    analyse_style_content,
+    check_extrapolation,
+    classify_styles,
+    edit_configuration,
+    initial_content,
+    interpolation_path,
+    jitter,
+    keyframed_weights,
+    solve_temporal,
+    style_barycentric,
+    weight_vector,
+)
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +45,7 @@ def test_analysis_recovers_training_styles_and_content_exactly(synthetic):
     y = synthesise(fit.w, fit.style[s_idx.ravel()], fit.content[c_idx.ravel()])
     result = analyse_style_content(fit.w, fit.style, fit.content.mean(0), y, tol=1e-14, max_iter=500)
     assert result.converged
-    assert np.max(result.residual / np.sum(y ** 2, -1)) < 1e-10
+    assert np.max(result.residual / np.sum(y**2, -1)) < 1e-10
     np.testing.assert_allclose(style_barycentric(result.style, fit.style), np.eye(3)[s_idx.ravel()], atol=1e-5)
     np.testing.assert_array_equal(classify_styles(result.style, fit.style)[0], s_idx.ravel())
 
@@ -42,10 +56,11 @@ def test_analysis_recovers_barycentric_mixtures_and_fixes_the_gauge(synthetic):
     alpha = rng.dirichlet(np.ones(3), 200)
     content = fit.content[rng.integers(0, 30, 200)] * rng.uniform(0.8, 1.2, (200, 1))
     y = synthesise(fit.w, alpha @ fit.style, content)
-    result = analyse_style_content(fit.w, fit.style, initial_content(y, _model(fit), "nearest"), y,
-                                   tol=1e-14, max_iter=1000)
-    ok = result.residual / np.sum(y ** 2, -1) < 1e-10
-    assert ok.mean() > 0.97                                # rare local minima are allowed, not common
+    result = analyse_style_content(
+        fit.w, fit.style, initial_content(y, _model(fit), "nearest"), y, tol=1e-14, max_iter=1000
+    )
+    ok = result.residual / np.sum(y**2, -1) < 1e-10
+    assert ok.mean() > 0.97  # rare local minima are allowed, not common
     np.testing.assert_allclose(style_barycentric(result.style, fit.style)[ok], alpha[ok], atol=1e-5)
     mean_style = fit.style.mean(0)
     np.testing.assert_allclose(result.style @ mean_style, mean_style @ mean_style, rtol=1e-10)
@@ -64,7 +79,7 @@ def test_batched_analysis_equals_frame_by_frame(synthetic):
     y = synthesise(fit.w, rng.dirichlet(np.ones(3), 12) @ fit.style, fit.content[:12]) + rng.normal(0, 0.1, (12, 40))
     batch = analyse_style_content(fit.w, fit.style, fit.content.mean(0), y, tol=1e-13)
     for f in range(12):
-        single = analyse_style_content(fit.w, fit.style, fit.content.mean(0), y[f:f + 1], tol=1e-13)
+        single = analyse_style_content(fit.w, fit.style, fit.content.mean(0), y[f : f + 1], tol=1e-13)
         np.testing.assert_allclose(single.style[0], batch.style[f], atol=1e-6)
 
 
@@ -78,7 +93,7 @@ def test_solve_temporal_equals_the_dense_normal_equations():
     pair = p @ p.transpose(0, 2, 1)
     dense = np.zeros((f * d, f * d))
     for t in range(f):
-        dense[t * d:(t + 1) * d, t * d:(t + 1) * d] += gram[t]
+        dense[t * d : (t + 1) * d, t * d : (t + 1) * d] += gram[t]
     for t in range(f - 1):
         sl, sr = slice(t * d, (t + 1) * d), slice((t + 1) * d, (t + 2) * d)
         dense[sl, sl] += pair[t]
@@ -103,7 +118,7 @@ def test_temporal_prior_trades_jitter_for_residual(synthetic):
     y = clean + rng.normal(size=clean.shape) * 0.2 * clean.std()
     start = initial_content(y, _model(fit), "nearest")
     paper = analyse_style_content(fit.w, fit.style, start, y)
-    plain = BilinearAnalyser(fit.w, fit.style).analyse(y, start)        # same thing through the class
+    plain = BilinearAnalyser(fit.w, fit.style).analyse(y, start)  # same thing through the class
     np.testing.assert_allclose(plain.style, paper.style)
     jitters, residuals, errors = [], [], []
     for lam in (0.0, 0.1, 1.0, 10.0):
@@ -111,10 +126,10 @@ def test_temporal_prior_trades_jitter_for_residual(synthetic):
         jitters.append(jitter(r.style))
         residuals.append(float(np.sum(r.residual)))
         errors.append(float(np.mean(np.abs(style_barycentric(r.style, fit.style) - alpha))))
-    assert all(a > b for a, b in zip(jitters, jitters[1:]))             # smoother with every step of lambda
-    assert all(a <= b * (1 + 1e-9) for a, b in zip(residuals, residuals[1:]))   # fit to the noisy data worsens
-    assert residuals[-1] < 1.2 * residuals[0]                           # but only a little
-    assert min(errors[1:]) < 0.5 * errors[0]                            # and the style is closer to the truth
+    assert all(a > b for a, b in zip(jitters, jitters[1:]))  # smoother with every step of lambda
+    assert all(a <= b * (1 + 1e-9) for a, b in zip(residuals, residuals[1:]))  # fit to the noisy data worsens
+    assert residuals[-1] < 1.2 * residuals[0]  # but only a little
+    assert min(errors[1:]) < 0.5 * errors[0]  # and the style is closer to the truth
 
 
 def test_classify_and_barycentric_agree_for_orthonormal_styles(synthetic):
@@ -131,9 +146,12 @@ def test_edit_configuration_is_eq7(synthetic):
     fit = synthetic
     c = fit.content[:4]
     half = edit_configuration(fit.w, fit.style, np.array([0.5, 0.5, 0.0]), c)
-    np.testing.assert_allclose(half, 0.5 * synthesise(fit.w, fit.style[[0]], c) + 0.5 * synthesise(fit.w, fit.style[[1]], c))
-    np.testing.assert_allclose(edit_configuration(fit.w, fit.style, np.eye(3)[[2] * 4], c),
-                               synthesise_grid(fit.w, fit.style, c)[2])
+    np.testing.assert_allclose(
+        half, 0.5 * synthesise(fit.w, fit.style[[0]], c) + 0.5 * synthesise(fit.w, fit.style[[1]], c)
+    )
+    np.testing.assert_allclose(
+        edit_configuration(fit.w, fit.style, np.eye(3)[[2] * 4], c), synthesise_grid(fit.w, fit.style, c)[2]
+    )
 
 
 def test_weights_validation_and_keyframes():
@@ -167,6 +185,7 @@ def test_interpolation_path_visits_every_expression_once():
 
 # ----------------------------------------------------------------------------------------------- stage
 
+
 def test_edit_stage_outputs_follow_the_contract(tmp_path):
     run = edit_run()
     a, meta = run.arrays, run.meta
@@ -190,8 +209,12 @@ def test_edit_stage_outputs_follow_the_contract(tmp_path):
     assert np.all(np.abs(interocular_distance(a["shapes"]) - 1) < 0.2)
     assert run.metrics["mean_residual"] < 0.5
     # store round trip keeps the file outputs
-    stored = run_stage(ExpressionEdit, {"video": False}, {"model": bilinear_run(), "aam": aam_run(),
-                                                          "tracks": tracked("sad")}, store=tmp_path)
+    stored = run_stage(
+        ExpressionEdit,
+        {"video": False},
+        {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")},
+        store=tmp_path,
+    )
     assert "video" not in stored.arrays and stored.arrays["strip"].dtype == np.uint8
 
 
@@ -230,9 +253,12 @@ def test_edited_frames_change_the_face_and_keep_the_background():
 
 def test_edit_stage_mix_and_keyframes():
     times = tracked("sad")["time"]
-    params = {"targets": ["happy"], "mix": {"happy": 0.5, "angry": 0.5}, "video": False,
-              "keyframes": [{"time": 0.0, "weights": {"happy": 1.0}}, {"time": float(times[-1]), "weights":
-                                                                       {"angry": 1.0}}]}
+    params = {
+        "targets": ["happy"],
+        "mix": {"happy": 0.5, "angry": 0.5},
+        "video": False,
+        "keyframes": [{"time": 0.0, "weights": {"happy": 1.0}}, {"time": float(times[-1]), "weights": {"angry": 1.0}}],
+    }
     run = run_stage(ExpressionEdit, params, {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")})
     assert run.meta["targets"] == ["happy"] and run.meta["mixes"] == ["mix", "keyframed"]
     assert run.arrays["shapes"].shape[0] == 1 and run.arrays["mixed_shapes"].shape[0] == 2
@@ -242,17 +268,26 @@ def test_edit_stage_mix_and_keyframes():
     np.testing.assert_allclose(run.arrays["mixed_weights"][0], np.broadcast_to([0, 0.5, 0.5], keyed.shape))
     # the keyframed edit starts as the pure happy edit, the constant mix is the average of happy and angry
     np.testing.assert_allclose(run.arrays["mixed_y"][1][0], run.arrays["y"][0][0], atol=1e-8)
-    both = run_stage(ExpressionEdit, {"targets": ["happy", "angry"], "video": False},
-                     {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")})
+    both = run_stage(
+        ExpressionEdit,
+        {"targets": ["happy", "angry"], "video": False},
+        {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")},
+    )
     np.testing.assert_allclose(run.arrays["mixed_y"][0], both.arrays["y"].mean(0), atol=1e-8)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = run_stage(ExpressionEdit, {"mix": {"happy": 1.2, "neutral": -0.2}, "video": False},
-                        {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")})
+        out = run_stage(
+            ExpressionEdit,
+            {"mix": {"happy": 1.2, "neutral": -0.2}, "video": False},
+            {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")},
+        )
     assert out.meta["extrapolated"] and any("extrapolate" in str(w.message) for w in caught)
     with pytest.raises(UserError, match="max_extrapolation"):
-        run_stage(ExpressionEdit, {"mix": {"happy": 2.0, "neutral": -1.0}, "video": False},
-                  {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")})
+        run_stage(
+            ExpressionEdit,
+            {"mix": {"happy": 2.0, "neutral": -1.0}, "video": False},
+            {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")},
+        )
 
 
 def test_edit_stage_errors():
@@ -272,8 +307,11 @@ def test_edit_stage_errors():
     wrong = {k: model_view[k] for k in model_view.names}
     wrong["W"] = wrong["W"][..., :-1]
     with pytest.raises(UserError, match="same aam artifact"):
-        run_stage(ExpressionEdit, {"video": False},
-                  {"model": artifact(wrong, dict(model_view.meta)), "aam": aam_run(), "tracks": sad})
+        run_stage(
+            ExpressionEdit,
+            {"video": False},
+            {"model": artifact(wrong, dict(model_view.meta)), "aam": aam_run(), "tracks": sad},
+        )
     with pytest.raises(UserError, match="not a training expression"):
         run_stage(ExpressionEdit, {"targets": ["sad"], "video": False}, {**inputs, "tracks": sad})
     with pytest.raises(ValidationError):
@@ -300,14 +338,21 @@ def test_smoothing_in_the_stage_treats_each_take_as_its_own_sequence():
 
 # ----------------------------------------------------------------------------------------------- weighted analysis
 
+
 def test_component_weights_and_the_weighted_model():
     from stages.face.bilinear import BilinearModel
     from stages.face.edit import component_weights
 
     np.testing.assert_array_equal(component_weights(2, 5, 0.25), [0.25, 0.25, 1, 1, 1])
     rng = np.random.default_rng(7)
-    model = BilinearModel(rng.normal(size=(3, 4, 6)), rng.normal(size=(3, 3)), rng.normal(size=(10, 4)),
-                          ["a", "b", "c"], rng.normal(size=(3, 4)), 2.5)
+    model = BilinearModel(
+        rng.normal(size=(3, 4, 6)),
+        rng.normal(size=(3, 3)),
+        rng.normal(size=(10, 4)),
+        ["a", "b", "c"],
+        rng.normal(size=(3, 4)),
+        2.5,
+    )
     d = component_weights(2, 7, 0.3)
     weighted = model.weighted(d)
     y = rng.normal(size=(5, 6))
@@ -329,18 +374,19 @@ def test_weighted_analysis_reads_the_style_from_the_weighted_rows_and_the_conten
     d = component_weights(8, 40, 0.0)
     seq = np.zeros(20, dtype=int)
     exact = analyse_takes(model, clean, seq, init="nearest", weights=d, tol=1e-14, max_iter=500)
-    np.testing.assert_allclose(exact.style, alpha @ fit.style, atol=1e-6)       # noise-free: still exact
-    np.testing.assert_allclose(exact.residual, 0, atol=1e-8 * np.sum(clean ** 2, -1).max())
+    np.testing.assert_allclose(exact.style, alpha @ fit.style, atol=1e-6)  # noise-free: still exact
+    np.testing.assert_allclose(exact.residual, 0, atol=1e-8 * np.sum(clean**2, -1).max())
     disturbed = clean.copy()
     disturbed[:, :8] += rng.normal(size=(20, 8)) * clean.std()
     moved = analyse_takes(model, disturbed, seq, init="nearest", weights=d, tol=1e-14, max_iter=500)
-    np.testing.assert_allclose(moved.style, exact.style, atol=1e-6)              # the weighted-out rows do not count
+    np.testing.assert_allclose(moved.style, exact.style, atol=1e-6)  # the weighted-out rows do not count
     # ... but the content solves Eq 6 with every row, given that style
     expected = BilinearAnalyser(fit.w, fit.style).content_given_style(disturbed, moved.style)
     np.testing.assert_allclose(moved.content, expected, atol=1e-10)
     assert not np.allclose(moved.content, exact.content, atol=1e-3)
-    np.testing.assert_allclose(moved.residual, np.sum((disturbed - synthesise(fit.w, moved.style, moved.content)) ** 2,
-                                                      -1))
+    np.testing.assert_allclose(
+        moved.residual, np.sum((disturbed - synthesise(fit.w, moved.style, moved.content)) ** 2, -1)
+    )
     # unit weights are the paper's analysis
     paper = analyse_takes(model, disturbed, seq, init="nearest")
     unit = analyse_takes(model, disturbed, seq, init="nearest", weights=np.ones(40))
@@ -358,7 +404,7 @@ def test_classification_by_fit_is_the_maximum_likelihood_style(synthetic):
     c = rng.normal(size=(40, 5))
     clean = synthesise(fit.w, fit.style[labels], c)
     res = style_fit_residuals(model, clean)
-    np.testing.assert_allclose(res[np.arange(40), labels], 0, atol=1e-8 * np.sum(clean ** 2, -1).max())
+    np.testing.assert_allclose(res[np.arange(40), labels], 0, atol=1e-8 * np.sum(clean**2, -1).max())
     noisy = clean + rng.normal(size=clean.shape) * 0.05 * clean.std()
     classes, res = classify_by_fit(model, noisy)
     np.testing.assert_array_equal(classes, labels)

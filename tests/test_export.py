@@ -1,5 +1,6 @@
 """Export: GLB animation (validated by the Khronos glTF Validator), Live Link Face CSV, preview MP4 with audio, BVH;
 stream alignment (frame rates, lengths, audio offset) and the user errors around them."""
+
 import csv
 import io
 from pathlib import Path
@@ -9,12 +10,20 @@ import pytest
 
 from msflow import UserError
 from msflow.testing import artifact, run_stage
+from stages.export.animation import (
+    ANGLE_COLUMNS,
+    ARKIT_NAMES,
+    Export,
+    align_head_motion,
+    arkit_key,
+    arkit_weights,
+    format_timecode,
+    live_link_csv,
+)
 from stages.formats.audio import decode_audio
-from stages.retarget.character import GltfCharacter
-from stages.export.animation import (ANGLE_COLUMNS, ARKIT_NAMES, Export, align_head_motion, arkit_key, arkit_weights,
-                           format_timecode, live_link_csv)
 from stages.formats.gltf import read_morph_mesh, validate_glb
 from stages.geometry.rotations import euler_to_quat, quat_to_euler
+from stages.retarget.character import GltfCharacter
 
 ROOT = Path(__file__).resolve().parents[1]
 ICT_GLB = ROOT / "data" / "characters" / "ict-facekit.glb"
@@ -25,6 +34,7 @@ DRIVEN = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L", "browInner
 
 
 # ------------------------------------------------------------------------------------------------ Live Link Face
+
 
 def test_arkit_names_and_keys():
     assert len(ARKIT_NAMES) == 52 and len(set(ARKIT_NAMES)) == 52
@@ -37,14 +47,22 @@ def test_arkit_names_and_keys():
 
 
 def test_arkit_weights_map_split_and_missing_targets():
-    names = ["eyeBlink_L", "jawOpen", "browInnerUp_L", "browInnerUp_R", "cheekPuff_L", "cheekPuff_R",
-             "cheekRaiser_L", "tongueOut"]
+    names = [
+        "eyeBlink_L",
+        "jawOpen",
+        "browInnerUp_L",
+        "browInnerUp_R",
+        "cheekPuff_L",
+        "cheekPuff_R",
+        "cheekRaiser_L",
+        "tongueOut",
+    ]
     w = np.array([[0.2, 0.5, 0.8, 0.4, 1.0, 0.0, 0.9, 0.3]])
     out, sources = arkit_weights(w, names)
     col = {n: out[0, i] for i, n in enumerate(ARKIT_NAMES)}
     assert col["EyeBlinkLeft"] == pytest.approx(0.2)
     assert col["JawOpen"] == pytest.approx(0.5)
-    assert col["BrowInnerUp"] == pytest.approx(0.6)   # mean of the halves
+    assert col["BrowInnerUp"] == pytest.approx(0.6)  # mean of the halves
     assert col["CheekPuff"] == pytest.approx(0.5)
     assert col["TongueOut"] == pytest.approx(0.3)
     assert col["EyeBlinkRight"] == 0.0 and col["MouthSmileLeft"] == 0.0
@@ -54,8 +72,13 @@ def test_arkit_weights_map_split_and_missing_targets():
 
 def test_timecodes():
     assert format_timecode(np.array([0, 1, 29, 30, 61, 30 * 3600 + 45]), 30.0) == [
-        "00:00:00:00.000", "00:00:00:01.000", "00:00:00:29.000", "00:00:01:00.000", "00:00:02:01.000",
-        "01:00:01:15.000"]
+        "00:00:00:00.000",
+        "00:00:00:01.000",
+        "00:00:00:29.000",
+        "00:00:01:00.000",
+        "00:00:02:01.000",
+        "01:00:01:15.000",
+    ]
     # 29.97 fps: frames are counted at the nominal 30 per second (non-drop-frame), one label per frame
     codes = format_timecode(np.arange(1000), 29.97)
     assert codes[1] == "00:00:00:01.000" and codes[30] == "00:00:01:00.000" and codes[999] == "00:00:33:09.000"
@@ -80,6 +103,7 @@ def test_live_link_csv_layout():
 
 # ------------------------------------------------------------------------------------------------ alignment
 
+
 def test_head_motion_alignment_resamples_holds_and_refuses():
     yaw = np.linspace(0, 0.5, 26)  # 25 fps, constant angular velocity
     rot = euler_to_quat(yaw, 0 * yaw, 0 * yaw)
@@ -102,6 +126,7 @@ def test_head_motion_alignment_resamples_holds_and_refuses():
 
 # ------------------------------------------------------------------------------------------------ the stage
 
+
 @pytest.fixture(scope="module")
 def character():
     return run_stage(GltfCharacter, {}, {"mesh": ICT_GLB})
@@ -110,7 +135,7 @@ def character():
 def make_blend(frames=FRAMES, fps=FPS):
     t = np.arange(frames) / fps
     w = np.zeros((frames, len(DRIVEN)), np.float32)
-    w[:, 0] = np.where((t > 0.5) & (t < 1.0), 1.0, 0.0)           # jaw open between 0.5 s and 1 s
+    w[:, 0] = np.where((t > 0.5) & (t < 1.0), 1.0, 0.0)  # jaw open between 0.5 s and 1 s
     w[:, 1] = w[:, 2] = np.linspace(0, 1, frames)
     w[:, 3], w[:, 4] = 0.8, 0.4
     w[:, 5] = 0.3
@@ -130,19 +155,27 @@ def make_audio(offset: float, rate=16000, beep_at=0.6, beep_len=0.2):
     real = decode_audio(CLIP, rate)
     beep = np.zeros(int(2.0 * rate), np.float32)
     k = np.arange(int(beep_len * rate))
-    beep[int(beep_at * rate):int(beep_at * rate) + len(k)] = 0.5 * np.sin(2 * np.pi * 1000 * k / rate)
+    beep[int(beep_at * rate) : int(beep_at * rate) + len(k)] = 0.5 * np.sin(2 * np.pi * 1000 * k / rate)
     audio = np.concatenate([real.samples, beep])
     bounds = np.array([[0, len(real.samples)], [len(real.samples), len(audio)]])
-    return artifact({"audio": audio, "audio_bounds": bounds},
-                    {"labels": ["happy", "beep"], "audio_rate": rate, "fps": [FPS, FPS],
-                     "audio_offset": [real.offset_to_video, offset]})
+    return artifact(
+        {"audio": audio, "audio_bounds": bounds},
+        {
+            "labels": ["happy", "beep"],
+            "audio_rate": rate,
+            "fps": [FPS, FPS],
+            "audio_offset": [real.offset_to_video, offset],
+        },
+    )
 
 
 @pytest.fixture(scope="module")
 def exported(character):
-    out = run_stage(Export, {"sequence": "beep", "video_size": 256},
-                    {"character": character.view(), "blend": make_blend(), "head": make_head(),
-                     "audio": make_audio(offset=0.1)})
+    out = run_stage(
+        Export,
+        {"sequence": "beep", "video_size": 256},
+        {"character": character.view(), "blend": make_blend(), "head": make_head(), "audio": make_audio(offset=0.1)},
+    )
     return out
 
 
@@ -187,7 +220,7 @@ def test_glb_animation_holds_the_weights_and_head_motion(exported, character, tm
     pivot = np.array(head_node.translation)
     trans = accessor(anim.samplers[paths["translation"].sampler].output) - pivot
     cm = make_head()["translation"] * 0.01
-    assert np.allclose(trans, cm - cm.mean(axis=0), atol=1e-6)   # relative, in metres
+    assert np.allclose(trans, cm - cm.mean(axis=0), atol=1e-6)  # relative, in metres
     assert gltf.nodes[paths["weights"].target.node].mesh == 0
     # the GLB is itself a character again: same neutral and (up to the sparse tolerance) the same deltas
     mesh = read_morph_mesh(path)
@@ -266,8 +299,11 @@ def test_export_errors(character):
     view = character.view()
     with pytest.raises(UserError, match="frame-rate mismatch"):
         run_stage(Export, {"preview": False}, {"character": view, "blend": make_blend(), "head": make_head(fps=25.0)})
-    out = run_stage(Export, {"preview": False, "resample_head": True},
-                    {"character": view, "blend": make_blend(), "head": make_head(frames=38, fps=25.0)})
+    out = run_stage(
+        Export,
+        {"preview": False, "resample_head": True},
+        {"character": view, "blend": make_blend(), "head": make_head(frames=38, fps=25.0)},
+    )
     assert out.meta["head"]["resampled"]
     with pytest.raises(UserError, match="lasts"):
         run_stage(Export, {"preview": False}, {"character": view, "blend": make_blend(), "head": make_head(frames=20)})
@@ -278,60 +314,87 @@ def test_export_errors(character):
     with pytest.raises(UserError, match="fps"):
         run_stage(Export, {"preview": False}, {"character": view, "blend": no_fps})
     with pytest.raises(UserError, match="no take labelled 'sad'"):
-        run_stage(Export, {"sequence": "sad", "video_size": 64},
-                  {"character": view, "blend": make_blend(6), "audio": make_audio(0.0)})
+        run_stage(
+            Export,
+            {"sequence": "sad", "video_size": 64},
+            {"character": view, "blend": make_blend(6), "audio": make_audio(0.0)},
+        )
     with pytest.raises(UserError, match="several takes"):
         run_stage(Export, {"video_size": 64}, {"character": view, "blend": make_blend(6), "audio": make_audio(0.0)})
     with pytest.raises(UserError, match="translation_scale"):
         run_stage(Export, {"preview": False}, {"character": view, "blend": make_blend(), "head": make_head(units="px")})
-    out = run_stage(Export, {"preview": False, "head_translation": "none"},
-                    {"character": view, "blend": make_blend(), "head": make_head(units="px")})
+    out = run_stage(
+        Export,
+        {"preview": False, "head_translation": "none"},
+        {"character": view, "blend": make_blend(), "head": make_head(units="px")},
+    )
     assert np.all(out.arrays["head_translation"] == 0)
-    out = run_stage(Export, {"preview": False}, {"character": view, "blend": make_blend(),
-                                                 "head": make_head(units="unknown")})
+    out = run_stage(
+        Export, {"preview": False}, {"character": view, "blend": make_blend(), "head": make_head(units="unknown")}
+    )
     assert np.all(out.arrays["head_translation"] == 0) and out.metrics["head_translation_exported"] == 0
     assert "unknown" in out.meta["head"]["translation_units"]
-    out = run_stage(Export, {"preview": False, "translation_scale": 0.5},
-                    {"character": view, "blend": make_blend(), "head": make_head(units="unknown")})
+    out = run_stage(
+        Export,
+        {"preview": False, "translation_scale": 0.5},
+        {"character": view, "blend": make_blend(), "head": make_head(units="unknown")},
+    )
     tr = make_head()["translation"] * 0.5
     assert np.allclose(out.arrays["head_translation"], tr - tr.mean(axis=0))
     mismatched = make_audio(0.0)
     mismatched.meta["fps"] = [25.0, 25.0]
     with pytest.raises(UserError, match="frame-rate mismatch"):
-        run_stage(Export, {"video_size": 64, "sequence": "beep"},
-                  {"character": view, "blend": make_blend(6), "audio": mismatched})
+        run_stage(
+            Export,
+            {"video_size": 64, "sequence": "beep"},
+            {"character": view, "blend": make_blend(6), "audio": mismatched},
+        )
 
 
 def test_head_motion_of_several_takes_is_cut_to_the_chosen_one(character):
     """motion_blend holds every test utterance back to back (sequence + meta labels)."""
     a, b = make_head(FRAMES), make_head(FRAMES + 10)
     other = euler_to_quat(np.full(FRAMES + 10, -0.4), np.zeros(FRAMES + 10), np.zeros(FRAMES + 10))
-    both = artifact({"rotation": np.r_[other, a["rotation"]], "translation": np.r_[b["translation"], a["translation"]],
-                     "sequence": np.r_[np.zeros(FRAMES + 10, np.int32), np.ones(FRAMES, np.int32)]},
-                    {"fps": FPS, "labels": ["first", "second"], "translation_units": "cm"})
-    out = run_stage(Export, {"preview": False, "sequence": "second"},
-                    {"character": character.view(), "blend": make_blend(), "head": both})
+    both = artifact(
+        {
+            "rotation": np.r_[other, a["rotation"]],
+            "translation": np.r_[b["translation"], a["translation"]],
+            "sequence": np.r_[np.zeros(FRAMES + 10, np.int32), np.ones(FRAMES, np.int32)],
+        },
+        {"fps": FPS, "labels": ["first", "second"], "translation_units": "cm"},
+    )
+    out = run_stage(
+        Export,
+        {"preview": False, "sequence": "second"},
+        {"character": character.view(), "blend": make_blend(), "head": both},
+    )
     assert out.meta["head"]["take"] == "second"
     assert np.allclose(np.abs((out.arrays["head_rotation"] * a["rotation"]).sum(axis=1)), 1.0)
     with pytest.raises(UserError, match="no take labelled 'third'"):
-        run_stage(Export, {"preview": False, "sequence": "third"},
-                  {"character": character.view(), "blend": make_blend(), "head": both})
+        run_stage(
+            Export,
+            {"preview": False, "sequence": "third"},
+            {"character": character.view(), "blend": make_blend(), "head": both},
+        )
 
 
 def test_the_blends_take_picks_the_audio_and_head_takes(character):
     """A blend over two test takes (sequence + labels): params.sequence picks its frames, and the take's name
     picks the matching audio and head motion; a single-take blend's label does the same without the param."""
     w = make_blend()["weights"]
-    two = artifact({"weights": np.r_[w[:20] * 0, w], "sequence": np.r_[np.zeros(20, np.int32),
-                                                                      np.ones(FRAMES, np.int32)]},
-                   {"target_names": DRIVEN, "fps": FPS, "labels": ["happy", "beep"]})
-    out = run_stage(Export, {"sequence": "beep", "video_size": 64},
-                    {"character": character.view(), "blend": two, "audio": make_audio(0.1)})
+    two = artifact(
+        {"weights": np.r_[w[:20] * 0, w], "sequence": np.r_[np.zeros(20, np.int32), np.ones(FRAMES, np.int32)]},
+        {"target_names": DRIVEN, "fps": FPS, "labels": ["happy", "beep"]},
+    )
+    out = run_stage(
+        Export,
+        {"sequence": "beep", "video_size": 64},
+        {"character": character.view(), "blend": two, "audio": make_audio(0.1)},
+    )
     assert out.meta["take"] == "beep" and out.meta["audio"]["audio_label"] == "beep"
     assert len(out.arrays["weights"]) == FRAMES
     one = artifact({"weights": w}, {"target_names": DRIVEN, "fps": FPS, "labels": ["beep"]})
-    out = run_stage(Export, {"video_size": 64}, {"character": character.view(), "blend": one,
-                                                 "audio": make_audio(0.1)})
+    out = run_stage(Export, {"video_size": 64}, {"character": character.view(), "blend": one, "audio": make_audio(0.1)})
     assert out.meta["audio"]["audio_label"] == "beep"
 
 
@@ -348,17 +411,20 @@ def test_real_take_audio_is_muxed(character):
     """The CREMA-D take's own audio (decoded from the FLV) rides along in the preview."""
     real = decode_audio(CLIP)
     frames = int(real.duration * FPS)
-    out = run_stage(Export, {"sequence": "happy", "video_size": 256},
-                    {"character": character.view(), "blend": make_blend(frames), "audio": make_audio(0.0)})
+    out = run_stage(
+        Export,
+        {"sequence": "happy", "video_size": 256},
+        {"character": character.view(), "blend": make_blend(frames), "audio": make_audio(0.0)},
+    )
     _, video, audio, audio_rate, _ = decode_mp4(out.arrays["preview"].tobytes())
     assert len(video) == frames
     n = min(len(audio), len(real.samples)) - 4096
     shift = int(round(real.offset_to_video * audio_rate))
-    ref = real.samples[max(0, -shift):][:n] if shift <= 0 else np.r_[np.zeros(shift), real.samples][:n]
+    ref = real.samples[max(0, -shift) :][:n] if shift <= 0 else np.r_[np.zeros(shift), real.samples][:n]
     lags = list(range(-64, 65, 4))
-    scores = [np.dot(audio[64 + d:64 + d + n - 2048], ref[64:64 + n - 2048]) for d in lags]
+    scores = [np.dot(audio[64 + d : 64 + d + n - 2048], ref[64 : 64 + n - 2048]) for d in lags]
     assert abs(lags[int(np.argmax(scores))]) <= 4  # in sync
-    corr = np.corrcoef(audio[64:64 + n - 2048], ref[64:64 + n - 2048])[0, 1]
+    corr = np.corrcoef(audio[64 : 64 + n - 2048], ref[64 : 64 + n - 2048])[0, 1]
     assert corr > 0.9
 
 
@@ -373,8 +439,12 @@ def test_figures(exported):
 
 def test_exports_are_byte_identical_from_run_to_run(character):
     """Same inputs, same bytes (GLB, CSV, MP4, BVH): content-addressed caching and diffing rely on it."""
-    inputs = {"character": character.view(), "blend": make_blend(12), "head": make_head(12),
-              "audio": make_audio(offset=0.1)}
+    inputs = {
+        "character": character.view(),
+        "blend": make_blend(12),
+        "head": make_head(12),
+        "audio": make_audio(offset=0.1),
+    }
     first, second = (run_stage(Export, {"sequence": "beep", "video_size": 128}, inputs) for _ in range(2))
     for name in ("animation", "live_link", "preview", "head_bvh"):
         assert np.array_equal(first.arrays[name], second.arrays[name]), name

@@ -1,17 +1,18 @@
 """The head-motion database stages: tracking, BVH and CSV ingest, resampling, centring, mirroring, errors."""
+
 from pathlib import Path
 
 import numpy as np
 import pydantic
 import pytest
-
 from head_synthetic import synth_database, synth_phrase, tracking_artifact
+
 from msflow import UserError
 from msflow.testing import artifact, run_stage
 from stages.formats.bvh import head_bvh
+from stages.geometry.rotations import euler_to_quat, quat_mean
 from stages.head.database import BvhHeadDb, CsvHeadDb, TrackedHeadDb
 from stages.head.pitch import Pitch, wav_bytes
-from stages.geometry.rotations import euler_to_quat, quat_mean
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -31,8 +32,11 @@ def tracks60(phrases):
 def crema_tracks():
     from stages.tracking import FaceMesh
 
-    files = {p.name.split("_")[2]: p for p in sorted((ROOT / "data" / "crema-d").glob("*.flv"))
-             if p.name.split("_")[2] in ("NEU", "HAP", "ANG")}
+    files = {
+        p.name.split("_")[2]: p
+        for p in sorted((ROOT / "data" / "crema-d").glob("*.flv"))
+        if p.name.split("_")[2] in ("NEU", "HAP", "ANG")
+    }
     return run_stage(FaceMesh, {}, {"videos": files})
 
 
@@ -58,8 +62,9 @@ def test_resampling_between_frames_slerps(tracks60, phrases):
     run = run_stage(TrackedHeadDb, {"fps": 40.0, "mirror": False, "center": False}, {"tracks": tracks60})
     rows = sequence_rows(run, "take0")
     t = run.arrays["time"][rows]
-    truth = np.stack([np.interp(t, np.arange(len(phrases[0].angles)) / 100.0, phrases[0].angles[:, c])
-                      for c in range(3)], axis=1)
+    truth = np.stack(
+        [np.interp(t, np.arange(len(phrases[0].angles)) / 100.0, phrases[0].angles[:, c]) for c in range(3)], axis=1
+    )
     assert np.abs(run.arrays["angles"][rows] - truth).max() < np.radians(0.2)
 
 
@@ -78,7 +83,7 @@ def test_mirror_negates_yaw_roll_and_sideways_translation(tracks60):
         t_mirr = both.arrays["translation"][sequence_rows(both, f"{label}~mirror")]
         np.testing.assert_allclose(t_mirr, t_orig * np.array([-1, 1, 1]), atol=1e-9)
     bounds = both.arrays["audio_bounds"]
-    np.testing.assert_array_equal(bounds[0], bounds[1])          # a mirror shares its original's audio
+    np.testing.assert_array_equal(bounds[0], bounds[1])  # a mirror shares its original's audio
     assert len(both.arrays["audio"]) == len(plain.arrays["audio"])
 
 
@@ -88,8 +93,9 @@ def test_centring_removes_the_resting_pose(phrases):
     offset = euler_to_quat(0.5, -0.2, 0.1)
     from stages.geometry.rotations import quat_multiply
 
-    shifted = artifact({**{k: turned[k] for k in turned.names}, "rotation": quat_multiply(offset, rotation)},
-                       turned.meta)
+    shifted = artifact(
+        {**{k: turned[k] for k in turned.names}, "rotation": quat_multiply(offset, rotation)}, turned.meta
+    )
     run = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": shifted})
     assert abs(quat_mean(run.arrays["rotation"])[0]) > 1 - 1e-6
     np.testing.assert_allclose(run.arrays["translation"].mean(axis=0), 0.0, atol=1e-9)
@@ -113,8 +119,7 @@ def test_audio_and_motion_lengths_must_agree(tracks60):
     bounds = tracks60["audio_bounds"].copy()
     longer = np.concatenate([audio, np.zeros(16000, np.float32)])
     bounds[-1, 1] += 16000
-    bad = artifact({**{k: tracks60[k] for k in tracks60.names}, "audio": longer, "audio_bounds": bounds},
-                   tracks60.meta)
+    bad = artifact({**{k: tracks60[k] for k in tracks60.names}, "audio": longer, "audio_bounds": bounds}, tracks60.meta)
     with pytest.raises(UserError) as err:
         run_stage(TrackedHeadDb, {}, {"tracks": bad})
     assert "take2" in str(err.value) and "max_length_mismatch" in str(err.value)
@@ -171,13 +176,21 @@ def test_motion_and_audio_labels_must_pair(phrases, tmp_path):
         run_stage(BvhHeadDb, {"joint": "head_jnt"}, {"motion": motion, "audio": audio})
 
 
-def write_csv(path: Path, phrase, degrees: bool, fps: float = 50.0, columns=("time", "rx", "ry", "rz", "tx", "ty",
-                                                                             "tz")):
+def write_csv(
+    path: Path, phrase, degrees: bool, fps: float = 50.0, columns=("time", "rx", "ry", "rz", "tx", "ty", "tz")
+):
     t, angles, translation = phrase.motion_at(fps)
     yaw, pitch, roll = angles.T
     scale = 180 / np.pi if degrees else 1.0
-    values = {"time": t, "rx": pitch * scale, "ry": yaw * scale, "rz": roll * scale,
-              "tx": translation[:, 0], "ty": translation[:, 1], "tz": translation[:, 2]}
+    values = {
+        "time": t,
+        "rx": pitch * scale,
+        "ry": yaw * scale,
+        "rz": roll * scale,
+        "tx": translation[:, 0],
+        "ty": translation[:, 1],
+        "tz": translation[:, 2],
+    }
     lines = [",".join(columns)] + [",".join(f"{values[c][i]:.10f}" for c in columns) for i in range(len(t))]
     path.write_text("\n".join(lines) + "\n")
 
@@ -189,10 +202,16 @@ def test_csv_degrees_and_radians_agree_with_the_truth(phrases, tmp_path):
         audio[p.label] = tmp_path / f"{p.label}.wav"
         write_csv(tmp_path / f"{p.label}_deg.csv", p, True)
         write_csv(tmp_path / f"{p.label}_rad.csv", p, False, columns=("rz", "time", "tx", "ty", "tz", "rx", "ry"))
-    deg = run_stage(CsvHeadDb, {"angle_unit": "degrees", "center": False, "mirror": False},
-                    {"motion": {p.label: tmp_path / f"{p.label}_deg.csv" for p in phrases[:2]}, "audio": audio})
-    rad = run_stage(CsvHeadDb, {"angle_unit": "radians", "center": False, "mirror": False},
-                    {"motion": {p.label: tmp_path / f"{p.label}_rad.csv" for p in phrases[:2]}, "audio": audio})
+    deg = run_stage(
+        CsvHeadDb,
+        {"angle_unit": "degrees", "center": False, "mirror": False},
+        {"motion": {p.label: tmp_path / f"{p.label}_deg.csv" for p in phrases[:2]}, "audio": audio},
+    )
+    rad = run_stage(
+        CsvHeadDb,
+        {"angle_unit": "radians", "center": False, "mirror": False},
+        {"motion": {p.label: tmp_path / f"{p.label}_rad.csv" for p in phrases[:2]}, "audio": audio},
+    )
     assert deg.meta["fps"] == pytest.approx(50.0)
     np.testing.assert_allclose(deg.arrays["angles"], rad.arrays["angles"], atol=1e-8)
     _, truth, _ = phrases[0].motion_at(50.0)
@@ -204,14 +223,20 @@ def test_csv_errors(phrases, tmp_path):
     (tmp_path / "a.wav").write_bytes(wav_bytes(p.audio, p.audio_rate))
     write_csv(tmp_path / "a.csv", p, True, columns=("time", "rx", "ry", "rz", "tx", "ty"))
     with pytest.raises(UserError, match="tz"):
-        run_stage(CsvHeadDb, {"angle_unit": "degrees"}, {"motion": {"a": tmp_path / "a.csv"},
-                                                         "audio": {"a": tmp_path / "a.wav"}})
-    with pytest.raises(pydantic.ValidationError):     # the angle unit must be declared
+        run_stage(
+            CsvHeadDb,
+            {"angle_unit": "degrees"},
+            {"motion": {"a": tmp_path / "a.csv"}, "audio": {"a": tmp_path / "a.wav"}},
+        )
+    with pytest.raises(pydantic.ValidationError):  # the angle unit must be declared
         run_stage(CsvHeadDb, {}, {"motion": {"a": tmp_path / "a.csv"}, "audio": {"a": tmp_path / "a.wav"}})
     (tmp_path / "b.csv").write_text("time,rx,ry,rz,tx,ty,tz\n0,1,2,3,4,5,x\n")
     with pytest.raises(UserError, match="non-numeric"):
-        run_stage(CsvHeadDb, {"angle_unit": "degrees"}, {"motion": {"a": tmp_path / "b.csv"},
-                                                         "audio": {"a": tmp_path / "a.wav"}})
+        run_stage(
+            CsvHeadDb,
+            {"angle_unit": "degrees"},
+            {"motion": {"a": tmp_path / "b.csv"}, "audio": {"a": tmp_path / "a.wav"}},
+        )
 
 
 def test_paper_sized_database():
@@ -221,7 +246,7 @@ def test_paper_sized_database():
     assert len(run.meta["labels"]) == 134 and run.metrics["recordings"] == 67
     pitch = run_stage(Pitch, {}, {"source": run})
     counts = np.bincount(pitch.arrays["segment_utterance"], minlength=134)
-    np.testing.assert_array_equal(counts[0::2], counts[1::2])   # a mirror has its original's segments
+    np.testing.assert_array_equal(counts[0::2], counts[1::2])  # a mirror has its original's segments
     expected = [len(p.onsets) for p in phrases]
     assert np.mean(counts[0::2] == expected) > 0.95
     sentences = [len(p.sentence_starts) for p in phrases]
@@ -237,8 +262,8 @@ def test_crema_d_tracked_database(crema_tracks):
     counts = np.bincount(crema_tracks.arrays["sequence"])
     assert run.meta["frames"][0::2] == list(counts)
     degrees = np.degrees(np.abs(run.arrays["angles"]))
-    assert degrees.max() < 30                    # small head motion of a seated actor
-    assert np.abs(run.arrays["translation"]).max() < 10    # cm around the mean position
+    assert degrees.max() < 30  # small head motion of a seated actor
+    assert np.abs(run.arrays["translation"]).max() < 10  # cm around the mean position
     pitch = run_stage(Pitch, {}, {"source": run})
     assert pitch.metrics["segments"] >= 10
     np.testing.assert_allclose(pitch.meta["audio_offset"], crema_tracks.meta["audio_offset"][0])

@@ -1,4 +1,5 @@
 """Keymorphs (Sec 4.3): the automatic KeymorphFit draft, the artist's KeymorphFile YAML, the contact sheet."""
+
 import cv2
 import numpy as np
 import pytest
@@ -6,15 +7,26 @@ import pytest
 from msflow import UserError
 from msflow.testing import artifact, run_stage
 from stages.retarget.character import GltfCharacter
-from stages.retarget.keymorphs import (KeymorphFile, KeymorphFit, LandmarkRig, fit_similarity, format_keymorph_yaml,
-                              parse_keymorph_yaml, project_front, symmetric_pairs, antagonist_pairs)
+from stages.retarget.keymorphs import (
+    KeymorphFile,
+    KeymorphFit,
+    LandmarkRig,
+    antagonist_pairs,
+    fit_similarity,
+    format_keymorph_yaml,
+    parse_keymorph_yaml,
+    project_front,
+    symmetric_pairs,
+)
 from stages.retarget.keyshapes import inter_ocular_distance
 
 ICT = "data/characters/ict-facekit.glb"
 
 #: keyshapes made from known ICT weights: (expression, {target: weight})
 POSES = [
-    ("neutral", {}), ("neutral", {"jawOpen": 0.5}), ("neutral", {"eyeBlink_L": 0.9, "eyeBlink_R": 0.9}),
+    ("neutral", {}),
+    ("neutral", {"jawOpen": 0.5}),
+    ("neutral", {"eyeBlink_L": 0.9, "eyeBlink_R": 0.9}),
     ("happy", {"mouthSmile_L": 0.8, "mouthSmile_R": 0.8}),
     ("happy", {"mouthSmile_L": 0.5, "mouthSmile_R": 0.5, "jawOpen": 0.3}),
     ("happy", {"mouthUpperUp_L": 0.5, "mouthUpperUp_R": 0.5, "mouthSmile_L": 0.6, "mouthSmile_R": 0.6}),
@@ -57,12 +69,19 @@ def keyshapes_from_weights(character, poses, noise=0.0, seed=0, rotations=None):
     shapes += noise * np.random.default_rng(seed).normal(size=shapes.shape) * inter_ocular_distance(shapes[0])
     expression = np.array([LABELS.index(e) for e, _ in poses], np.int32)
     index = np.concatenate([np.arange((expression == s).sum()) for s in range(len(LABELS))]).astype(np.int32)
-    view = artifact({
-        "keyshapes": shapes.astype(np.float32), "keyshape_expression": expression, "keyshape_index": index,
-        "keyshape_frame": np.arange(len(poses), dtype=np.int32) * 3,
-        "keyshape_axis": (index // 2).astype(np.int32), "keyshape_extreme": np.where(index % 2, -1, 1).astype(np.int8),
-        "rest_shape": actor_frame(rest).astype(np.float32), "rest_frames": np.array([0], np.int32),
-    }, meta={"labels": LABELS})
+    view = artifact(
+        {
+            "keyshapes": shapes.astype(np.float32),
+            "keyshape_expression": expression,
+            "keyshape_index": index,
+            "keyshape_frame": np.arange(len(poses), dtype=np.int32) * 3,
+            "keyshape_axis": (index // 2).astype(np.int32),
+            "keyshape_extreme": np.where(index % 2, -1, 1).astype(np.int8),
+            "rest_shape": actor_frame(rest).astype(np.float32),
+            "rest_frames": np.array([0], np.int32),
+        },
+        meta={"labels": LABELS},
+    )
     return view, truth
 
 
@@ -87,6 +106,7 @@ def tracks_for(keyshapes, frames=30, size=96, rotations=None):
 
 # ------------------------------------------------------------------------------------------------- geometry
 
+
 def test_similarity_recovers_a_known_transform():
     rng = np.random.default_rng(0)
     src = rng.normal(size=(20, 2))
@@ -105,23 +125,35 @@ def test_symmetric_pairs_in_ict_and_arkit_naming():
 def test_antagonists_pair_on_the_same_side():
     names = ["browDown_L", "browDown_R", "browInnerUp_L", "browInnerUp_R", "browInnerUp", "browDownLeft", "jawOpen"]
     pairs = {(names[i], names[j]) for i, j in antagonist_pairs(names, [("browDown", "browInnerUp")])}
-    assert pairs == {("browDown_L", "browInnerUp_L"), ("browDown_R", "browInnerUp_R"), ("browDown_L", "browInnerUp"),
-                     ("browDown_R", "browInnerUp"), ("browDownLeft", "browInnerUp_L"), ("browDownLeft", "browInnerUp")}
+    assert pairs == {
+        ("browDown_L", "browInnerUp_L"),
+        ("browDown_R", "browInnerUp_R"),
+        ("browDown_L", "browInnerUp"),
+        ("browDown_R", "browInnerUp"),
+        ("browDownLeft", "browInnerUp_L"),
+        ("browDownLeft", "browInnerUp"),
+    }
 
 
 def test_antagonism_keeps_opposing_targets_apart(character):
     names = character.meta["target_names"]
     both = {"browInnerUp_L": 0.6, "browInnerUp_R": 0.6, "browDown_L": 0.35, "browDown_R": 0.35}
     keyshapes, _ = keyshapes_from_weights(character, [("neutral", {}), ("happy", both), ("angry", {})])
-    weights = {a: run_stage(KeymorphFit, {"contact_sheet": False, "antagonism": a, "l1": 0.0, "l2": 0.0},
-                            {"keyshapes": keyshapes, "character": character}).arrays["keymorph_weights"][1]
-               for a in (0.0, 5.0)}
+    weights = {
+        a: run_stage(
+            KeymorphFit,
+            {"contact_sheet": False, "antagonism": a, "l1": 0.0, "l2": 0.0},
+            {"keyshapes": keyshapes, "character": character},
+        ).arrays["keymorph_weights"][1]
+        for a in (0.0, 5.0)
+    }
     co = {a: w[names.index("browDown_L")] * w[names.index("browInnerUp_L")] for a, w in weights.items()}
     assert co[0.0] > 0.05  # without the penalty the fit finds the co-activation that made the keyshape
     assert co[5.0] < 0.3 * co[0.0]
 
 
 # ---------------------------------------------------------------------------------------------- KeymorphFit
+
 
 @pytest.fixture(scope="module")
 def fitted(character):
@@ -141,8 +173,10 @@ def test_fit_recovers_the_weights_that_made_the_keyshapes(fitted, character):
             # regularisation shrinks a little; the right targets carry the weight
             assert value * 0.6 <= w[k, names.index(name)] <= value + 0.05, (k, name)
         others = [m for m in range(len(names)) if names[m] not in pose]
-        assert w[k, others].sum() < 0.35 * max(sum(pose.values()), 0.3), (k, {names[m]: w[k, m] for m in others
-                                                                             if w[k, m] > 0})
+        assert w[k, others].sum() < 0.35 * max(sum(pose.values()), 0.3), (
+            k,
+            {names[m]: w[k, m] for m in others if w[k, m] > 0},
+        )
     assert not w[0].any()  # the rest pose is the neutral face
     # landmarks follow: keymorphs reproduce the keyshapes to a small fraction of the inter-ocular distance
     assert out.arrays["landmark_error"].max() < 0.01
@@ -151,19 +185,30 @@ def test_fit_recovers_the_weights_that_made_the_keyshapes(fitted, character):
 
 def test_fit_is_unbiased_without_regularisation(character):
     keyshapes, truth = keyshapes_from_weights(character, POSES)
-    out = run_stage(KeymorphFit, {"contact_sheet": False, "l2": 0, "l1": 0, "symmetry": 0, "decimals": 6},
-                    {"keyshapes": keyshapes, "character": character})
+    out = run_stage(
+        KeymorphFit,
+        {"contact_sheet": False, "l2": 0, "l1": 0, "symmetry": 0, "decimals": 6},
+        {"keyshapes": keyshapes, "character": character},
+    )
     assert out.arrays["landmark_error"].max() < 1e-3
 
 
 def test_weights_stay_in_bounds_for_exaggerated_keyshapes(character):
-    poses = [("neutral", {}), ("neutral", {"jawOpen": 1.0}), ("happy", {"mouthSmile_L": 1, "mouthSmile_R": 1}),
-             ("angry", {"browDown_L": 1, "browDown_R": 1})]
+    poses = [
+        ("neutral", {}),
+        ("neutral", {"jawOpen": 1.0}),
+        ("happy", {"mouthSmile_L": 1, "mouthSmile_R": 1}),
+        ("angry", {"browDown_L": 1, "browDown_R": 1}),
+    ]
     keyshapes, _ = keyshapes_from_weights(character, poses)
     rest = keyshapes["rest_shape"]
-    exaggerated = artifact(dict({n: keyshapes[n] for n in keyshapes.names},
-                                keyshapes=(rest + 2.5 * (keyshapes["keyshapes"] - rest)).astype(np.float32)),
-                           meta=keyshapes.meta)
+    exaggerated = artifact(
+        dict(
+            {n: keyshapes[n] for n in keyshapes.names},
+            keyshapes=(rest + 2.5 * (keyshapes["keyshapes"] - rest)).astype(np.float32),
+        ),
+        meta=keyshapes.meta,
+    )
     out = run_stage(KeymorphFit, {"contact_sheet": False}, {"keyshapes": exaggerated, "character": character})
     w = out.arrays["keymorph_weights"]
     names = character.meta["target_names"]
@@ -175,24 +220,28 @@ def test_symmetry_coupling_and_exclusions(character):
     names = character.meta["target_names"]
     poses = [("neutral", {}), ("happy", {"mouthSmile_L": 0.8}), ("angry", {"eyeLookDown_L": 1.0, "jawOpen": 0.3})]
     keyshapes, _ = keyshapes_from_weights(character, poses)
-    loose = run_stage(KeymorphFit, {"contact_sheet": False, "symmetry": 0.0},
-                      {"keyshapes": keyshapes, "character": character}).arrays["keymorph_weights"]
-    tight = run_stage(KeymorphFit, {"contact_sheet": False, "symmetry": 50.0},
-                      {"keyshapes": keyshapes, "character": character}).arrays["keymorph_weights"]
+    loose = run_stage(
+        KeymorphFit, {"contact_sheet": False, "symmetry": 0.0}, {"keyshapes": keyshapes, "character": character}
+    ).arrays["keymorph_weights"]
+    tight = run_stage(
+        KeymorphFit, {"contact_sheet": False, "symmetry": 50.0}, {"keyshapes": keyshapes, "character": character}
+    ).arrays["keymorph_weights"]
     L, R = names.index("mouthSmile_L"), names.index("mouthSmile_R")
     assert abs(tight[1, L] - tight[1, R]) < 0.3 * abs(loose[1, L] - loose[1, R])
     # gaze is excluded by default: eyeLook* stay 0 even when the keyshape was made with one
     gaze = [m for m, n in enumerate(names) if n.startswith("eyeLook") or n.startswith("PupilDilate")]
     assert not tight[:, gaze].any()
-    allowed = run_stage(KeymorphFit, {"contact_sheet": False, "exclude": []},
-                        {"keyshapes": keyshapes, "character": character}).arrays["keymorph_weights"]
+    allowed = run_stage(
+        KeymorphFit, {"contact_sheet": False, "exclude": []}, {"keyshapes": keyshapes, "character": character}
+    ).arrays["keymorph_weights"]
     assert allowed[2, names.index("eyeLookDown_L")] > 0.3
 
 
 def test_fit_is_robust_to_landmark_noise(character):
     keyshapes, truth = keyshapes_from_weights(character, POSES, noise=0.01)
-    w = run_stage(KeymorphFit, {"contact_sheet": False}, {"keyshapes": keyshapes,
-                                                          "character": character}).arrays["keymorph_weights"]
+    w = run_stage(KeymorphFit, {"contact_sheet": False}, {"keyshapes": keyshapes, "character": character}).arrays[
+        "keymorph_weights"
+    ]
     names = character.meta["target_names"]
     for k, target in ((1, "jawOpen"), (3, "mouthSmile_L"), (6, "browDown_R")):
         assert w[k, names.index(target)] > 0.5 * truth[k, names.index(target)]
@@ -201,14 +250,18 @@ def test_fit_is_robust_to_landmark_noise(character):
 
 # ------------------------------------------------------------------------------------------ YAML, KeymorphFile
 
+
 def test_fit_yaml_round_trips_through_keymorph_file(fitted, character, tmp_path):
     keyshapes, _, out = fitted
     yaml_path = tmp_path / "keymorphs.yaml"
     yaml_path.write_bytes(out.arrays["keymorphs"].tobytes())
     text = yaml_path.read_text()
     assert text.startswith("# Keymorphs") and "neutral:" in text and "frame 3" in text
-    reread = run_stage(KeymorphFile, {"contact_sheet": False},
-                       {"keyshapes": keyshapes, "character": character, "keymorphs": {"yaml": yaml_path}})
+    reread = run_stage(
+        KeymorphFile,
+        {"contact_sheet": False},
+        {"keyshapes": keyshapes, "character": character, "keymorphs": {"yaml": yaml_path}},
+    )
     np.testing.assert_array_equal(reread.arrays["keymorph_weights"], out.arrays["keymorph_weights"])
     np.testing.assert_allclose(reread.arrays["landmark_error"], out.arrays["landmark_error"])
 
@@ -220,8 +273,11 @@ def test_artist_edits_take_effect(fitted, character, tmp_path):
     assert edited != text
     path = tmp_path / "edited.yaml"
     path.write_text(edited)
-    w = run_stage(KeymorphFile, {"contact_sheet": False}, {"keyshapes": keyshapes, "character": character,
-                                                           "keymorphs": {"yaml": path}}).arrays["keymorph_weights"]
+    w = run_stage(
+        KeymorphFile,
+        {"contact_sheet": False},
+        {"keyshapes": keyshapes, "character": character, "keymorphs": {"yaml": path}},
+    ).arrays["keymorph_weights"]
     names = character.meta["target_names"]
     assert w[0, names.index("mouthSmile_L")] == pytest.approx(0.25)
     np.testing.assert_array_equal(w[1:], out.arrays["keymorph_weights"][1:])
@@ -231,8 +287,7 @@ NAMES = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "browDown_L"]
 
 
 def parse(text, allow_missing=False):
-    return parse_keymorph_yaml(text, ["neutral", "happy"], [2, 1], NAMES, file="k.yaml",
-                               allow_missing=allow_missing)
+    return parse_keymorph_yaml(text, ["neutral", "happy"], [2, 1], NAMES, file="k.yaml", allow_missing=allow_missing)
 
 
 def test_parse_maps_ids_and_names():
@@ -242,23 +297,28 @@ def test_parse_maps_ids_and_names():
     np.testing.assert_array_equal(parse(text), w)
 
 
-@pytest.mark.parametrize("text, message", [
-    ("sad:\n  0: {}\n", r"unknown expression 'sad'.*neutral, happy"),
-    ("happi:\n  0: {}\n", r"did you mean 'happy'"),
-    ("neutral:\n  0: {}\n  2: {}\nhappy:\n  0: {}\n", r"unknown keyshape id '2'.*0\.\.1"),
-    ("neutral:\n  x: {}\n", r"unknown keyshape id 'x'"),
-    ("neutral:\n  0: {mouthSmileLeft: 0.2}\n  1: {}\nhappy:\n  0: {}\n",
-     r"unknown morph target 'mouthSmileLeft'.*did you mean 'mouthSmile_L'.*jawOpen, mouthSmile_L, mouthSmile_R"),
-    ("neutral:\n  0: {jawOpen: 1.5}\n", r"outside \[0, 1\]"),
-    ("neutral:\n  0: {jawOpen: -0.1}\n", r"outside \[0, 1\]"),
-    ("neutral:\n  0: {jawOpen: lots}\n", r"must be a number"),
-    ("neutral:\n  0: {jawOpen: .nan}\n", r"must be a number"),
-    ("neutral:\n  0: [jawOpen]\n", r"expected \{morph target: weight\}"),
-    ("- neutral\n", r"top level"),
-    ("neutral: {0: {}, '0': {}}\n", r"given twice"),
-    ("neutral:\n  0: {jawOpen: 0.1\n", r"not valid YAML"),
-    ("neutral:\n  0: {}\nhappy:\n  0: {}\n", r"no entry for keyshapes \{'neutral': \[1\]\}"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("sad:\n  0: {}\n", r"unknown expression 'sad'.*neutral, happy"),
+        ("happi:\n  0: {}\n", r"did you mean 'happy'"),
+        ("neutral:\n  0: {}\n  2: {}\nhappy:\n  0: {}\n", r"unknown keyshape id '2'.*0\.\.1"),
+        ("neutral:\n  x: {}\n", r"unknown keyshape id 'x'"),
+        (
+            "neutral:\n  0: {mouthSmileLeft: 0.2}\n  1: {}\nhappy:\n  0: {}\n",
+            r"unknown morph target 'mouthSmileLeft'.*did you mean 'mouthSmile_L'.*jawOpen, mouthSmile_L, mouthSmile_R",
+        ),
+        ("neutral:\n  0: {jawOpen: 1.5}\n", r"outside \[0, 1\]"),
+        ("neutral:\n  0: {jawOpen: -0.1}\n", r"outside \[0, 1\]"),
+        ("neutral:\n  0: {jawOpen: lots}\n", r"must be a number"),
+        ("neutral:\n  0: {jawOpen: .nan}\n", r"must be a number"),
+        ("neutral:\n  0: [jawOpen]\n", r"expected \{morph target: weight\}"),
+        ("- neutral\n", r"top level"),
+        ("neutral: {0: {}, '0': {}}\n", r"given twice"),
+        ("neutral:\n  0: {jawOpen: 0.1\n", r"not valid YAML"),
+        ("neutral:\n  0: {}\nhappy:\n  0: {}\n", r"no entry for keyshapes \{'neutral': \[1\]\}"),
+    ],
+)
 def test_parse_errors_name_the_valid_choices(text, message):
     with pytest.raises(UserError, match=message) as err:
         parse(text)
@@ -275,12 +335,14 @@ def test_keymorph_file_stage_errors(fitted, character, tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("angry:\n  7: {}\n")
     with pytest.raises(UserError, match=r"unknown keyshape id '7'.*0\.\.2") as err:
-        run_stage(KeymorphFile, {"contact_sheet": False, "allow_missing": True},
-                  {"keyshapes": keyshapes, "character": character, "keymorphs": {"yaml": bad}})
+        run_stage(
+            KeymorphFile,
+            {"contact_sheet": False, "allow_missing": True},
+            {"keyshapes": keyshapes, "character": character, "keymorphs": {"yaml": bad}},
+        )
     assert err.value.file.endswith("bad.yaml")
     with pytest.raises(UserError, match="exactly one"):
-        run_stage(KeymorphFile, {}, {"keyshapes": keyshapes, "character": character,
-                                     "keymorphs": {"a": bad, "b": bad}})
+        run_stage(KeymorphFile, {}, {"keyshapes": keyshapes, "character": character, "keymorphs": {"a": bad, "b": bad}})
 
 
 def test_character_problems_are_user_errors(fitted, character):
@@ -288,22 +350,32 @@ def test_character_problems_are_user_errors(fitted, character):
     arrays = {n: character[n] for n in character.names}
     broken = dict(arrays, landmark_ids=np.full(68, len(arrays["neutral"]) + 5, np.int32))
     with pytest.raises(UserError, match="landmark ids"):
-        run_stage(KeymorphFit, {"contact_sheet": False},
-                  {"keyshapes": keyshapes, "character": artifact(broken, meta=character.meta)})
+        run_stage(
+            KeymorphFit,
+            {"contact_sheet": False},
+            {"keyshapes": keyshapes, "character": artifact(broken, meta=character.meta)},
+        )
     no_targets = dict(arrays, deltas=np.zeros((0,) + arrays["neutral"].shape, np.float32))
     with pytest.raises(UserError, match="no morph targets"):
-        run_stage(KeymorphFit, {"contact_sheet": False},
-                  {"keyshapes": keyshapes, "character": artifact(no_targets, meta=dict(character.meta,
-                                                                                       target_names=[]))})
+        run_stage(
+            KeymorphFit,
+            {"contact_sheet": False},
+            {"keyshapes": keyshapes, "character": artifact(no_targets, meta=dict(character.meta, target_names=[]))},
+        )
 
 
 # ------------------------------------------------------------------------------------------- contact sheet
 
+
 def test_contact_sheet_shows_crops_beside_renders(character, tmp_path):
     keyshapes, _ = keyshapes_from_weights(character, POSES)
     tracks = tracks_for(keyshapes)
-    out = run_stage(KeymorphFit, {"tile_size": 64}, {"keyshapes": keyshapes, "character": character,
-                                                     "tracks": tracks}, store=tmp_path)
+    out = run_stage(
+        KeymorphFit,
+        {"tile_size": 64},
+        {"keyshapes": keyshapes, "character": character, "tracks": tracks},
+        store=tmp_path,
+    )
     sheet = cv2.imdecode(out.arrays["contact_sheet"], cv2.IMREAD_COLOR)
     assert sheet is not None
     cols, rows = 3, len(LABELS)  # three keyshapes per expression
@@ -311,11 +383,11 @@ def test_contact_sheet_shows_crops_beside_renders(character, tmp_path):
     # keymorph tiles differ where the weights differ: jawOpen (neutral/1) vs rest (neutral/0)
     header, caption = 22, 14
     render_top = header + 64 + caption
-    rest_tile = sheet[render_top:render_top + 64, 0:64].astype(int)
-    jaw_tile = sheet[render_top:render_top + 64, 64:128].astype(int)
+    rest_tile = sheet[render_top : render_top + 64, 0:64].astype(int)
+    jaw_tile = sheet[render_top : render_top + 64, 64:128].astype(int)
     assert np.abs(rest_tile - jaw_tile).mean() > 1.0
     # the crop row shows the tracking crop: bright landmark dots and green drawn landmarks
-    crop_tile = sheet[header:header + 64, 0:64]
+    crop_tile = sheet[header : header + 64, 0:64]
     assert (crop_tile[..., 1] > crop_tile[..., 0] + 60).any()
     fig = KeymorphFit.figures["landmark_fit"](out.view(), {"keyshapes": keyshapes})
     assert fig is not None
@@ -333,15 +405,19 @@ def test_tracking_that_does_not_match_the_keyshapes_is_a_user_error(character):
     keyshapes, _ = keyshapes_from_weights(character, POSES)
     short = artifact({"crops": np.zeros((4, 32, 32), np.uint8), "crop_landmarks": np.zeros((4, 68, 2), np.float32)})
     with pytest.raises(UserError, match="beyond the 4 frames"):
-        run_stage(KeymorphFit, {"tile_size": 32}, {"keyshapes": keyshapes, "character": character,
-                                                   "tracks": short})
+        run_stage(KeymorphFit, {"tile_size": 32}, {"keyshapes": keyshapes, "character": character, "tracks": short})
 
 
 def test_pose_correction_discounts_head_rotation(character):
     from stages.geometry.rotations import euler_to_quat, quat_to_matrix
 
-    poses = [("neutral", {}), ("neutral", {}), ("neutral", {}), ("happy", {"mouthSmile_L": 0.6, "mouthSmile_R": 0.6}),
-             ("angry", {"browDown_L": 0.6, "browDown_R": 0.6})]
+    poses = [
+        ("neutral", {}),
+        ("neutral", {}),
+        ("neutral", {}),
+        ("happy", {"mouthSmile_L": 0.6, "mouthSmile_R": 0.6}),
+        ("angry", {"browDown_L": 0.6, "browDown_R": 0.6}),
+    ]
     # nods and turns of 8-12 degrees: the 2D landmarks move as if brows and mouth moved
     euler = np.radians([[0, 0, 0], [0, 10, 0], [12, -8, 0], [8, 8, 3], [-10, 9, 0]])
     rotations = quat_to_matrix(euler_to_quat(euler[:, 0], euler[:, 1], euler[:, 2]))
@@ -365,21 +441,24 @@ def test_pose_correction_discounts_head_rotation(character):
 
 def test_rig_maps_keyshapes_into_character_units(character):
     keyshapes, truth = keyshapes_from_weights(character, POSES)
-    rig = LandmarkRig.build(character["neutral"], character["deltas"], character["landmark_ids"],
-                            keyshapes["rest_shape"])
+    rig = LandmarkRig.build(
+        character["neutral"], character["deltas"], character["landmark_ids"], keyshapes["rest_shape"]
+    )
     assert rig.to_character.scale == pytest.approx(1 / 11.0, rel=1e-5)
     np.testing.assert_allclose(rig.keymorph_landmarks(truth), keyshapes["keyshapes"], atol=1e-4)
 
 
 # ------------------------------------------------------------------------------------------- real data (CREMA-D)
 
+
 @pytest.fixture(scope="module")
 def crema_keymorphs(character):
     from test_keyshapes import crema_face_branch
 
     branch = crema_face_branch()
-    out = run_stage(KeymorphFit, {"tile_size": 48},
-                    {"keyshapes": branch.keyshapes, "character": character, "tracks": branch.train})
+    out = run_stage(
+        KeymorphFit, {"tile_size": 48}, {"keyshapes": branch.keyshapes, "character": character, "tracks": branch.train}
+    )
     return branch, out
 
 

@@ -1,16 +1,23 @@
 """Keyshape selection (Sec 4.1) and the NNLS decomposition of edited sequences (Eq 8), stage stages.retarget.keyshapes."""
+
 import functools
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
-
 from face_fixtures import face_modes as fixture_modes
 from face_fixtures import face_template
+
 from msflow import UserError
 from msflow.testing import artifact, run_stage
-from stages.retarget.keyshapes import (Keyshapes, decompose_into_keyshapes, inter_ocular_distance, mouth_opening,
-                              rest_shape, select_keyshapes)
+from stages.retarget.keyshapes import (
+    Keyshapes,
+    decompose_into_keyshapes,
+    inter_ocular_distance,
+    mouth_opening,
+    rest_shape,
+    select_keyshapes,
+)
 
 
 def face_modes():
@@ -34,16 +41,19 @@ def training_takes(seed=0, frames=(60, 50, 55), labels=("neutral", "happy", "ang
 
 
 def aam_view(shapes, sequence, labels):
-    return artifact({"aligned_shapes": shapes.astype(np.float32), "sequence": sequence},
-                    meta={"labels": labels, "fps": 30.0})
+    return artifact(
+        {"aligned_shapes": shapes.astype(np.float32), "sequence": sequence}, meta={"labels": labels, "fps": 30.0}
+    )
 
 
 def edit_view(shapes, targets, fps=30.0):
-    return artifact({"shapes": np.asarray(shapes, np.float32)}, meta={"targets": targets, "labels": targets,
-                                                                       "fps": fps})
+    return artifact(
+        {"shapes": np.asarray(shapes, np.float32)}, meta={"targets": targets, "labels": targets, "fps": fps}
+    )
 
 
 # ------------------------------------------------------------------------------------------------ selection
+
 
 def test_template_measures():
     t = face_template()
@@ -63,7 +73,7 @@ def test_keyshapes_are_the_pca_extremes_in_axis_order():
         expected += [int(np.argmax(coeff[:, axis])), int(np.argmin(coeff[:, axis]))]
     # the PCA axis sign is arbitrary: compare each axis's pair as a set
     for axis in range(3):
-        assert set(selection.frames[2 * axis:2 * axis + 2]) == set(expected[2 * axis:2 * axis + 2])
+        assert set(selection.frames[2 * axis : 2 * axis + 2]) == set(expected[2 * axis : 2 * axis + 2])
     np.testing.assert_array_equal(selection.axes, [0, 0, 1, 1, 2, 2])
     assert set(selection.extremes) == {1, -1}
     assert np.all(np.diff(selection.explained_variance) <= 1e-12)
@@ -140,6 +150,7 @@ def test_rest_shape_has_the_mouth_closed():
 
 # ----------------------------------------------------------------------------------------------------- stage
 
+
 def edited_from_training(shapes, sequence, labels, frames=40, seed=9):
     """Edited sequences that the keyshapes can represent: convex mixes of each expression's own frames."""
     rng = np.random.default_rng(seed)
@@ -155,9 +166,12 @@ def edited_from_training(shapes, sequence, labels, frames=40, seed=9):
 def synthetic_run(tmp_path_factory):
     shapes, sequence, labels = training_takes()
     edited = edited_from_training(shapes, sequence, labels)
-    out = run_stage(Keyshapes, {"k": {"neutral": 6, "happy": 8, "angry": 8}},
-                    {"aam": aam_view(shapes, sequence, labels), "edit": edit_view(edited, labels)},
-                    store=tmp_path_factory.mktemp("keyshapes"))
+    out = run_stage(
+        Keyshapes,
+        {"k": {"neutral": 6, "happy": 8, "angry": 8}},
+        {"aam": aam_view(shapes, sequence, labels), "edit": edit_view(edited, labels)},
+        store=tmp_path_factory.mktemp("keyshapes"),
+    )
     return shapes, sequence, labels, edited, out
 
 
@@ -207,8 +221,9 @@ def test_more_keyshapes_never_fit_worse():
     shapes, sequence, labels = training_takes(noise=5e-3)
     edited = edited_from_training(shapes, sequence, labels)
     inputs = {"aam": aam_view(shapes, sequence, labels), "edit": edit_view(edited, labels)}
-    residuals = [run_stage(Keyshapes, {"k": k, "refill": True}, inputs).metrics["train_residual_rms_iod"]
-                 for k in (2, 6, 20)]
+    residuals = [
+        run_stage(Keyshapes, {"k": k, "refill": True}, inputs).metrics["train_residual_rms_iod"] for k in (2, 6, 20)
+    ]
     assert residuals[0] >= residuals[1] >= residuals[2]
     assert residuals[2] < residuals[0]
 
@@ -256,8 +271,9 @@ def test_invalid_training_frames_are_never_keyshapes():
     valid = np.ones(len(shapes), bool)
     valid[5] = False
     edited = edited_from_training(shapes[valid], sequence[valid], labels, frames=5)
-    aam = artifact({"aligned_shapes": shapes.astype(np.float32), "sequence": sequence, "valid": valid},
-                   meta={"labels": labels})
+    aam = artifact(
+        {"aligned_shapes": shapes.astype(np.float32), "sequence": sequence, "valid": valid}, meta={"labels": labels}
+    )
     out = run_stage(Keyshapes, {"k": 4}, {"aam": aam, "edit": edit_view(edited, labels)})
     assert 5 not in out.arrays["keyshape_frame"]
 
@@ -272,6 +288,7 @@ def test_figures_render(synthetic_run):
 
 # ------------------------------------------------------------------------------------------- real data (CREMA-D)
 
+
 @functools.lru_cache(maxsize=1)
 def crema_face_branch():
     """CREMA-D actor 1001 through the face branch (FaceMesh tracking, aam, bilinear, edit of the SAD take towards
@@ -283,8 +300,11 @@ def crema_face_branch():
     from stages.tracking import FaceMesh
 
     clip = "data/crema-d/1001_DFA_{}_XX.flv"
-    train = run_stage(FaceMesh, {}, {"videos": {"neutral": clip.format("NEU"), "happy": clip.format("HAP"),
-                                                "angry": clip.format("ANG")}}).view()
+    train = run_stage(
+        FaceMesh,
+        {},
+        {"videos": {"neutral": clip.format("NEU"), "happy": clip.format("HAP"), "angry": clip.format("ANG")}},
+    ).view()
     test = run_stage(FaceMesh, {}, {"videos": {"sad": clip.format("SAD")}}).view()
     aam = run_stage(AamPca, {}, {"tracks": train}).view()
     bilinear = run_stage(BilinearFit, {}, {"aam": aam, "tracks": train}).view()

@@ -1,20 +1,30 @@
 """Motion blending (paper Sec. 5.4): resampling, chaining, drift correction, crossfaded joins, outputs."""
+
 from pathlib import Path
 
 import numpy as np
 import pytest
-
 from head_synthetic import synth_database, tracking_artifact
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
 from msflow import UserError
 from msflow.testing import artifact, run_stage
 from stages.formats.bvh import joint_rotation, joint_translation, parse_bvh
 from stages.head.database import TrackedHeadDb
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
-from stages.head.motion_blend import (DatabaseMotion, MotionBlend, _reference_angles, angular_acceleration,
-                                 angular_speed, join_acceleration, join_windows, pitch_velocity_correlation,
-                                 segment_weights, stitch_segments, wasserstein_speed)
+from stages.head.motion_blend import (
+    DatabaseMotion,
+    MotionBlend,
+    _reference_angles,
+    angular_acceleration,
+    angular_speed,
+    join_acceleration,
+    join_windows,
+    pitch_velocity_correlation,
+    segment_weights,
+    stitch_segments,
+    wasserstein_speed,
+)
 from stages.head.pitch import Pitch
 from stages.head.trellis import Trellis
 
@@ -43,8 +53,9 @@ def test_pitch(tracks):
 
 
 def trellis(database, test_pitch, **params):
-    return run_stage(Trellis, params, {"database": database[0], "database_pitch": database[1],
-                                       "test_pitch": test_pitch})
+    return run_stage(
+        Trellis, params, {"database": database[0], "database_pitch": database[1], "test_pitch": test_pitch}
+    )
 
 
 @pytest.fixture(scope="module")
@@ -63,11 +74,19 @@ def line_database(slopes, seconds=4.0, fps=100.0):
 
 # ------------------------------------------------------------------------------------------ the maths
 
+
 def test_segments_are_resampled_to_the_test_length():
     db = line_database([1.0])
     times = np.arange(0, 1.0, 0.01)
-    out = stitch_segments(db, np.array([[0.0, 0.5, 1.0]]), np.array([True]), np.array([0]),
-                          np.array([[1.0, 1.5, 3.0]]), times, blend_window=0.0)
+    out = stitch_segments(
+        db,
+        np.array([[0.0, 0.5, 1.0]]),
+        np.array([True]),
+        np.array([0]),
+        np.array([[1.0, 1.5, 3.0]]),
+        times,
+        blend_window=0.0,
+    )
     # two database seconds play in one output second, from the recorded pose at 1.0
     np.testing.assert_allclose(out.channels[:, 0], 1.0 + 2.0 * times, atol=1e-9)
 
@@ -78,8 +97,9 @@ def test_each_segment_starts_where_the_previous_ended():
     test = np.array([[0.0, 0.3, 0.5], [0.5, 0.8, 1.2], [1.2, 1.5, 2.0]])
     chosen_seq = np.array([0, 1, 0])
     chosen = np.array([[0.0, 0.3, 0.5], [2.0, 2.2, 2.7], [1.0, 1.2, 1.8]])
-    out = stitch_segments(db, test, np.array([True, False, False]), chosen_seq, chosen, times,
-                          blend_window=0.0, drift_correction=False).channels[:, 0]
+    out = stitch_segments(
+        db, test, np.array([True, False, False]), chosen_seq, chosen, times, blend_window=0.0, drift_correction=False
+    ).channels[:, 0]
     # slopes 1, then -2 * (0.7 / 0.7), then 1 * (0.8 / 0.8): a continuous zig-zag
     expected = np.where(times < 0.5, times, np.where(times < 1.2, 0.5 - 2 * (times - 0.5), -0.9 + (times - 1.2)))
     np.testing.assert_allclose(out, expected, atol=1e-9)
@@ -108,8 +128,9 @@ def test_crossfade_weights_sum_to_one_even_for_short_segments():
     db = DatabaseMotion(np.full((n, 6), 0.3), np.array([0]), np.array([n]), 100.0)
     starts = np.cumsum(np.r_[0.0, np.full(9, 0.07)])
     test = np.stack([starts, starts + 0.03, np.r_[starts[1:], 1.0]], axis=1)
-    out = stitch_segments(db, test, np.zeros(10, bool), np.zeros(10, int), test + 0.5, np.arange(0, 1, 0.01),
-                          blend_window=0.2)
+    out = stitch_segments(
+        db, test, np.zeros(10, bool), np.zeros(10, int), test + 0.5, np.arange(0, 1, 0.01), blend_window=0.2
+    )
     np.testing.assert_allclose(out.channels, 0.3, atol=1e-12)
 
 
@@ -117,11 +138,10 @@ def test_crossfade_removes_the_velocity_step():
     db = line_database([1.0, -1.0])
     times = np.arange(0, 2.0, 0.01)
     test = np.array([[0.0, 0.5, 1.0], [1.0, 1.5, 2.0]])
-    args = (db, test, np.array([True, False]), np.array([0, 1]), np.array([[1.0, 1.5, 2.0], [1.0, 1.5, 2.0]]),
-            times)
+    args = (db, test, np.array([True, False]), np.array([0, 1]), np.array([[1.0, 1.5, 2.0], [1.0, 1.5, 2.0]]), times)
     hard = stitch_segments(*args, blend_window=0.0).channels[:, 0]
     soft = stitch_segments(*args, blend_window=0.2).channels[:, 0]
-    accel = lambda x: np.abs(np.diff(x, 2)).max() / 0.01 ** 2
+    accel = lambda x: np.abs(np.diff(x, 2)).max() / 0.01**2
     assert accel(hard) > 150 and accel(soft) < 0.1 * accel(hard)
     # away from the join the motion is untouched
     far = np.abs(times - 1.0) > 0.25
@@ -132,8 +152,9 @@ def curve_database(functions, seconds=6.0, fps=100.0):
     """One sequence per function of time; rotation channels (yaw, pitch, roll) follow it, translation is zero."""
     n = int(seconds * fps)
     t = np.arange(n) / fps
-    channels = np.concatenate([np.concatenate([np.stack([f(t)] * 3, axis=1), np.zeros((n, 3))], axis=1)
-                               for f in functions])
+    channels = np.concatenate(
+        [np.concatenate([np.stack([f(t)] * 3, axis=1), np.zeros((n, 3))], axis=1) for f in functions]
+    )
     return DatabaseMotion(channels, np.arange(len(functions)) * n, np.full(len(functions), n), fps)
 
 
@@ -154,16 +175,17 @@ def test_velocity_blend_is_continuous_in_position_and_velocity_across_a_velocity
     out = stitch_segments(db, test, np.array([True, False]), np.array([0, 1]), chosen, times, blend_window=0.2)
     x = out.channels[:, 0]
     velocity, acceleration = steps(x, fps)
-    assert np.abs(np.diff(x)).max() <= 1.0 / fps + 1e-9                      # no position jump
-    assert np.abs(np.diff(velocity)).max() < 0.025 * 2.0                     # no velocity jump (a 2 rad/s step)
-    assert velocity.max() <= 1.0 + 1e-9 and velocity.min() >= -1.0 - 1e-9   # never faster than either segment
-    assert np.all(np.diff(velocity) <= 1e-9)                                 # 1 -> -1 monotonically
+    assert np.abs(np.diff(x)).max() <= 1.0 / fps + 1e-9  # no position jump
+    assert np.abs(np.diff(velocity)).max() < 0.025 * 2.0  # no velocity jump (a 2 rad/s step)
+    assert velocity.max() <= 1.0 + 1e-9 and velocity.min() >= -1.0 - 1e-9  # never faster than either segment
+    assert np.all(np.diff(velocity) <= 1e-9)  # 1 -> -1 monotonically
     assert np.abs(acceleration).max() <= 1.5 * 2.0 / 0.4 * 1.02
     np.testing.assert_allclose(out.windows, [[0.8, 1.2]])
     assert out.velocity_mismatch[0] == pytest.approx(np.degrees(2.0 * np.sqrt(3)), rel=1e-6)
     # the position crossfade over the same window overshoots the velocity and accelerates far harder
-    fade = stitch_segments(db, test, np.array([True, False]), np.array([0, 1]), chosen, times, blend_window=0.2,
-                           smoothing="crossfade").channels[:, 0]
+    fade = stitch_segments(
+        db, test, np.array([True, False]), np.array([0, 1]), chosen, times, blend_window=0.2, smoothing="crossfade"
+    ).channels[:, 0]
     fade_velocity, fade_acceleration = steps(fade, fps)
     assert fade_velocity.max() > 1.2 and np.abs(fade_acceleration).max() > 2 * np.abs(acceleration).max()
 
@@ -192,34 +214,36 @@ def test_a_segment_continued_by_its_database_successor_is_reproduced_exactly():
     db = curve_database([lambda t: 0.3 * np.sin(2 * t) + 0.1 * np.sin(11 * t)], fps=fps)
     times = np.arange(0, 2.4, 1 / fps)
     test = np.array([[0.0, 0.3, 0.7], [0.7, 1.0, 1.3], [1.3, 1.9, 2.4]])
-    chosen = test + 1.1                                       # the recording from 1.1 s on, in three pieces
+    chosen = test + 1.1  # the recording from 1.1 s on, in three pieces
     truth = db.sample(0, times + 1.1)
-    for options in ({}, {"acceleration_budget": 1.0, "max_blend_window": 0.5}, {"preserve_speed": True},
-                    {"blend_window": 0.3, "preserve_speed": True, "acceleration_budget": 1.0}):
-        out = stitch_segments(db, test, np.array([True, False, False]), np.zeros(3, int), chosen, times,
-                              **options)
+    for options in (
+        {},
+        {"acceleration_budget": 1.0, "max_blend_window": 0.5},
+        {"preserve_speed": True},
+        {"blend_window": 0.3, "preserve_speed": True, "acceleration_budget": 1.0},
+    ):
+        out = stitch_segments(db, test, np.array([True, False, False]), np.zeros(3, int), chosen, times, **options)
         np.testing.assert_allclose(out.channels, truth, atol=1e-9, err_msg=str(options))
         np.testing.assert_allclose(out.velocity_mismatch, 0.0, atol=1e-6)
 
 
 def test_windows_widen_with_the_velocity_step_to_respect_the_acceleration_budget():
     joins = np.array([1.0, 2.0, 3.0])
-    mismatch = np.array([0.0, 60.0, 600.0])                  # deg/s
+    mismatch = np.array([0.0, 60.0, 600.0])  # deg/s
     left, right = join_windows(joins, np.full(3, 0.1), mismatch, acceleration_budget=100.0, max_half=0.5)
     half = (right - left) / 2
-    assert half[0] == pytest.approx(0.1)                     # no step: the minimum window
-    assert half[1] == pytest.approx(0.75 * 60 / 100)         # 1.5 dv / (2 W) = budget
-    assert half[2] == pytest.approx(0.5)                     # capped
-    fixed = join_windows(joins, np.full(3, 0.1), mismatch)   # no budget: fixed windows
+    assert half[0] == pytest.approx(0.1)  # no step: the minimum window
+    assert half[1] == pytest.approx(0.75 * 60 / 100)  # 1.5 dv / (2 W) = budget
+    assert half[2] == pytest.approx(0.5)  # capped
+    fixed = join_windows(joins, np.full(3, 0.1), mismatch)  # no budget: fixed windows
     np.testing.assert_allclose(fixed[1] - fixed[0], 0.2)
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.floats(0.02, 0.6), min_size=2, max_size=8), st.lists(st.floats(0.0, 0.5), min_size=7,
-                                                                          max_size=7))
+@given(st.lists(st.floats(0.02, 0.6), min_size=2, max_size=8), st.lists(st.floats(0.0, 0.5), min_size=7, max_size=7))
 def test_blend_weights_are_a_partition_of_unity_however_windows_overlap(lengths, halves):
     joins = np.cumsum(lengths)[:-1]
-    half = np.array(halves[:len(joins)])
+    half = np.array(halves[: len(joins)])
     left, right = join_windows(joins, half)
     assert np.all(left <= joins + 1e-12) and np.all(right >= joins - 1e-12)
     x = np.linspace(-1, joins[-1] + 1, 500)
@@ -242,11 +266,12 @@ def test_every_sub_sentence_starts_at_its_recorded_pose_with_blended_joins():
         at = np.array([np.interp(test[k, 0], times, out.channels[:, c]) for c in range(6)])
         np.testing.assert_allclose(at, recorded, atol=1e-9)
     velocity, _ = steps(out.channels[:, 0], fps)
-    assert np.abs(np.diff(velocity)).max() < 0.2                 # no kink where the drift warps meet
+    assert np.abs(np.diff(velocity)).max() < 0.2  # no kink where the drift warps meet
     # the drift warp is a constant velocity within each sub-sentence: away from every window, the output moves
     # like its segment plus that constant
-    drifting = stitch_segments(db, test, sub, seqs, chosen, times, blend_window=0.15, break_blend_window=0.25,
-                               drift_correction=False)
+    drifting = stitch_segments(
+        db, test, sub, seqs, chosen, times, blend_window=0.15, break_blend_window=0.25, drift_correction=False
+    )
     inside = (times[1:] > 0.3) & (times[:-1] < 0.6)
     difference = np.diff(out.channels[:, 0] - drifting.channels[:, 0])[inside]
     np.testing.assert_allclose(difference, difference[0], atol=1e-12)
@@ -268,8 +293,12 @@ def test_speed_preserving_gain_keeps_the_speed_of_unrelated_segments():
     chosen = np.array([[1.0, 1.5, 2.0], [1.0, 1.5, 2.0]])
     args = (db, test, np.array([True, False]), np.array([0, 1]), chosen, times)
     plain = np.linalg.norm(np.diff(stitch_segments(*args, blend_window=0.2).channels[:, :3], axis=0), axis=1) * fps
-    kept = np.linalg.norm(np.diff(stitch_segments(*args, blend_window=0.2, preserve_speed=True).channels[:, :3],
-                                  axis=0), axis=1) * fps
+    kept = (
+        np.linalg.norm(
+            np.diff(stitch_segments(*args, blend_window=0.2, preserve_speed=True).channels[:, :3], axis=0), axis=1
+        )
+        * fps
+    )
     assert plain.min() == pytest.approx(1 / np.sqrt(2), abs=0.01)
     np.testing.assert_allclose(kept, 1.0, atol=0.01)
 
@@ -286,12 +315,13 @@ def test_measures():
     f0_t = np.arange(0, 2, 0.01)
     assert pitch_velocity_correlation(nod, fps, f0_t, np.cos(2 * np.pi * f0_t)) > 0.95
     bumps = np.zeros((60, 3))
-    bumps[30:, 0] = 0.1 * (t[30:] - t[30])           # a velocity step at 1 s
+    bumps[30:, 0] = 0.1 * (t[30:] - t[30])  # a velocity step at 1 s
     assert join_acceleration(bumps, fps, np.array([1.0, 0.3]), 0.1)[0] > 100
     assert join_acceleration(bumps, fps, np.array([1.0, 0.3]), 0.1)[1] == 0.0
 
 
 # ---------------------------------------------------------------------------------------- the stage
+
 
 def test_an_utterance_found_in_the_database_gets_its_own_motion_back(phrases, tracks):
     headdb = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": tracks})
@@ -314,8 +344,9 @@ def test_outputs_frames_rate_and_bvh(leave_one_out, database, tracks):
     assert np.isfinite(run.arrays["translation"]).all()
     bvh = parse_bvh(run.arrays["bvh"].tobytes().decode())
     assert bvh.frames == len(run.arrays["rotation"]) and bvh.fps == pytest.approx(30.0)
-    np.testing.assert_allclose(np.abs(np.sum(joint_rotation(bvh, "Head") * run.arrays["rotation"], axis=1)), 1.0,
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        np.abs(np.sum(joint_rotation(bvh, "Head") * run.arrays["rotation"], axis=1)), 1.0, atol=1e-9
+    )
     np.testing.assert_allclose(joint_translation(bvh, "Head"), run.arrays["translation"], atol=1e-5)
     # joins sit at the test segments' starts
     seg = leave_one_out.arrays["segments"][leave_one_out.arrays["segment_utterance"] == 0]
@@ -325,8 +356,11 @@ def test_outputs_frames_rate_and_bvh(leave_one_out, database, tracks):
 
 def test_leave_one_out_motion_is_plausible_and_smooth_at_joins(leave_one_out, database, tracks):
     soft = run_stage(MotionBlend, {}, {"trellis": leave_one_out, "database": database[0]})
-    hard = run_stage(MotionBlend, {"blend_window": 0.0, "break_blend_window": 0.0, "join_acceleration": 0.0},
-                     {"trellis": leave_one_out, "database": database[0]})
+    hard = run_stage(
+        MotionBlend,
+        {"blend_window": 0.0, "break_blend_window": 0.0, "join_acceleration": 0.0},
+        {"trellis": leave_one_out, "database": database[0]},
+    )
     fade = run_stage(MotionBlend, {"join_smoothing": "crossfade"}, {"trellis": leave_one_out, "database": database[0]})
     assert soft.metrics["max_join_acceleration"] < 0.8 * hard.metrics["max_join_acceleration"]
     assert soft.metrics["max_join_acceleration"] < 0.8 * fade.metrics["max_join_acceleration"]
@@ -350,8 +384,10 @@ def test_output_rate_parameter(leave_one_out, database):
 
 def test_a_silent_test_take_gives_a_still_head(database):
     audio = (np.random.default_rng(0).standard_normal(24000) * 1e-4).astype(np.float32)
-    quiet = artifact({"audio": audio, "audio_bounds": np.array([[0, 24000]])},
-                     {"labels": ["quiet"], "sources": ["quiet.wav"], "audio_rate": 16000})
+    quiet = artifact(
+        {"audio": audio, "audio_bounds": np.array([[0, 24000]])},
+        {"labels": ["quiet"], "sources": ["quiet.wav"], "audio_rate": 16000},
+    )
     pitch = run_stage(Pitch, {"on_silence": "still"}, {"source": quiet})
     tr = run_stage(Trellis, {}, {"database": database[0], "database_pitch": database[1], "test_pitch": pitch})
     run = run_stage(MotionBlend, {}, {"trellis": tr, "database": database[0]})
@@ -360,9 +396,14 @@ def test_a_silent_test_take_gives_a_still_head(database):
     assert len(run.arrays["joins"]) == 0
 
 
-@pytest.mark.parametrize("params, field", [({"join_acceleration": -1.0}, "join_acceleration"),
-                                           ({"max_blend_window": -0.1}, "max_blend_window"),
-                                           ({"blend_window": -0.1}, "blend_window")])
+@pytest.mark.parametrize(
+    "params, field",
+    [
+        ({"join_acceleration": -1.0}, "join_acceleration"),
+        ({"max_blend_window": -0.1}, "max_blend_window"),
+        ({"blend_window": -0.1}, "blend_window"),
+    ],
+)
 def test_bad_blend_settings(leave_one_out, database, params, field):
     with pytest.raises(UserError, match=field):
         run_stage(MotionBlend, params, {"trellis": leave_one_out, "database": database[0]})
@@ -403,5 +444,8 @@ def test_crema_d_end_to_end(crema):
     angles = np.degrees(run.arrays["angles"])
     assert np.abs(angles).max() < 30
     # the synthesis moves, and not wildly faster than the real take
-    assert 0.2 * run.metrics["real_mean_angular_speed"] < run.metrics["mean_angular_speed"] < \
-        5 * run.metrics["real_mean_angular_speed"]
+    assert (
+        0.2 * run.metrics["real_mean_angular_speed"]
+        < run.metrics["mean_angular_speed"]
+        < 5 * run.metrics["real_mean_angular_speed"]
+    )

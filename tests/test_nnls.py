@@ -1,4 +1,5 @@
 """Batched NNLS (stages.geometry.nnls): agreement with scipy.optimize.nnls, the KKT conditions, options, bounded QP."""
+
 import numpy as np
 import pytest
 from hypothesis import example, given, settings
@@ -31,8 +32,9 @@ def kkt_by_hand(A, x, w, tol):
 @pytest.mark.parametrize("method", ["active_set", "fista"])
 def test_matches_scipy_nnls_and_satisfies_kkt(offset, method):
     A, X = problem(1, offset=offset)
-    result = batched_nnls(A, X, method=method, rtol=1e-12 if method == "fista" else None,
-                          max_iter=200000 if method == "fista" else None)
+    result = batched_nnls(
+        A, X, method=method, rtol=1e-12 if method == "fista" else None, max_iter=200000 if method == "fista" else None
+    )
     reference = np.array([scipy_nnls(A, x)[0] for x in X])
     ref_residual = np.linalg.norm(reference @ A.T - X, axis=1)
     # the optimum value is unique even where the minimiser is not: compare residuals first
@@ -49,8 +51,13 @@ def test_matches_scipy_nnls_and_satisfies_kkt(offset, method):
 
 
 @settings(max_examples=25, deadline=None)
-@given(seed=st.integers(0, 10_000), k=st.integers(1, 15), n=st.integers(1, 30), d=st.integers(2, 60),
-       offset=st.sampled_from([0.0, 3.0]))
+@given(
+    seed=st.integers(0, 10_000),
+    k=st.integers(1, 15),
+    n=st.integers(1, 30),
+    d=st.integers(2, 60),
+    offset=st.sampled_from([0.0, 3.0]),
+)
 @example(seed=0, k=5, n=12, d=2, offset=3.0)  # more keyshapes than dimensions: rank-deficient, no warm start
 def test_random_shapes_agree_with_scipy(seed, k, n, d, offset):
     A, X = problem(seed, d=d, k=k, n=n, offset=offset)

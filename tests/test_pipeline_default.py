@@ -1,5 +1,7 @@
 """The default pipeline.yaml on the embedded data: runs end to end, reruns nothing, exports what animators open."""
+
 import csv
+
 import numpy as np
 
 import msflow
@@ -10,8 +12,23 @@ def test_default_pipeline_runs_every_stage(default_run):
     spec = (proj / "pipeline.yaml").read_text()
     assert result.ok
     assert set(result.executed) == set(result.states)
-    for stage in ("track_train", "track_test", "aam", "bilinear", "edit", "character", "keyshapes", "keymorphs",
-                  "blend", "headdb", "pitch_db", "pitch_test", "trellis", "motion_blend", "export"):
+    for stage in (
+        "track_train",
+        "track_test",
+        "aam",
+        "bilinear",
+        "edit",
+        "character",
+        "keyshapes",
+        "keymorphs",
+        "blend",
+        "headdb",
+        "pitch_db",
+        "pitch_test",
+        "trellis",
+        "motion_blend",
+        "export",
+    ):
         assert f"  {stage}:" in spec and result.states[stage].state == "ran"
 
 

@@ -1,15 +1,24 @@
 """Pitch extraction, cleaning, segmentation and Praat exports (paper Sec. 5.1)."""
+
 import wave
 from pathlib import Path
 
 import numpy as np
 import pytest
-
 from head_synthetic import synth_phrase, tracking_artifact
+
 from msflow import UserError
 from msflow.testing import artifact, run_stage
-from stages.head.pitch import (PHRASE_FEATURES, Pitch, clean_pitch, phrase_features, segment_pitch, semitones,
-                          voiced_runs, wav_bytes)
+from stages.head.pitch import (
+    PHRASE_FEATURES,
+    Pitch,
+    clean_pitch,
+    phrase_features,
+    segment_pitch,
+    semitones,
+    voiced_runs,
+    wav_bytes,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 CREMA = ROOT / "data" / "crema-d"
@@ -57,10 +66,11 @@ def test_cleaned_f0_follows_the_synthetic_contour(phrases, phrase_pitch):
         control = np.arange(len(phrase.f0)) / 100.0
         truth = np.interp(t, control, np.nan_to_num(phrase.f0, nan=0.0))
         # frames 20 ms or more inside a synthetic syllable (the analysis window straddles its edges)
-        inside = np.all([np.interp(t + d, control, np.isfinite(phrase.f0).astype(float)) == 1.0
-                         for d in (-0.02, 0.0, 0.02)], axis=0)
+        inside = np.all(
+            [np.interp(t + d, control, np.isfinite(phrase.f0).astype(float)) == 1.0 for d in (-0.02, 0.0, 0.02)], axis=0
+        )
         both = np.isfinite(f0) & inside
-        assert np.isfinite(f0[inside]).mean() > 0.95     # voicing found inside every syllable
+        assert np.isfinite(f0[inside]).mean() > 0.95  # voicing found inside every syllable
         error = np.abs(semitones(f0[both], truth[both]))
         assert np.median(error) < 0.1 and np.percentile(error, 95) < 0.5
 
@@ -81,10 +91,10 @@ def test_phrase_features_rank_the_styles(phrases, phrase_pitch):
 
 def test_clean_pitch_range_gaps_islands_and_octave_errors():
     f0 = np.full(40, 120.0)
-    f0[5:7] = np.nan          # 20 ms gap: filled (< max_gap 30 ms)
-    f0[15:19] = np.nan        # 40 ms gap: kept
-    f0[25] = 30.0             # below the human range: dropped, then the 10 ms hole is filled
-    f0[30] = 480.0            # two octaves up (an octave error): dropped, then filled
+    f0[5:7] = np.nan  # 20 ms gap: filled (< max_gap 30 ms)
+    f0[15:19] = np.nan  # 40 ms gap: kept
+    f0[25] = 30.0  # below the human range: dropped, then the 10 ms hole is filled
+    f0[30] = 480.0  # two octaves up (an octave error): dropped, then filled
     clean = clean_pitch(f0, 0.01, human_range=(50, 800), max_deviation=10, max_gap=0.03, min_voiced=0.05)
     assert np.isfinite(clean[5:7]).all()
     assert np.isnan(clean[15:19]).all()
@@ -92,8 +102,8 @@ def test_clean_pitch_range_gaps_islands_and_octave_errors():
     no_octave_check = clean_pitch(f0, 0.01, max_deviation=None, max_gap=0.03, min_voiced=0.05)
     assert no_octave_check[30] == pytest.approx(480.0)
     islands = np.full(30, np.nan)
-    islands[3:6] = 150.0       # 30 ms island: dropped
-    islands[10:25] = 150.0     # 150 ms: kept
+    islands[3:6] = 150.0  # 30 ms island: dropped
+    islands[10:25] = 150.0  # 150 ms: kept
     out = clean_pitch(islands, 0.01, max_gap=0.03, min_voiced=0.05)
     assert np.isnan(out[3:6]).all() and np.isfinite(out[10:25]).all()
 
@@ -107,10 +117,9 @@ def test_gap_fill_interpolates_in_log_frequency():
 def test_segment_pitch_breaks_and_bounds():
     times = np.arange(100) * 0.01 + 0.005
     f0 = np.full(100, np.nan)
-    f0[10:20] = f0[25:35] = f0[70:80] = 100.0   # pause 35 -> 70 is 0.35 s: a breath
+    f0[10:20] = f0[25:35] = f0[70:80] = 100.0  # pause 35 -> 70 is 0.35 s: a breath
     seg = segment_pitch(times, f0, 1.2, time_step=0.01, breath_pause=0.3)
-    np.testing.assert_allclose(seg.segments, [[0.10, 0.20, 0.25], [0.25, 0.35, 0.70], [0.70, 0.80, 1.2]],
-                               atol=1e-9)
+    np.testing.assert_allclose(seg.segments, [[0.10, 0.20, 0.25], [0.25, 0.35, 0.70], [0.70, 0.80, 1.2]], atol=1e-9)
     np.testing.assert_array_equal(seg.subsentence_start, [True, False, True])
     empty = segment_pitch(times, np.full(100, np.nan), 1.0, time_step=0.01)
     assert empty.segments.shape == (0, 3)
@@ -154,17 +163,19 @@ def test_praat_exports_open_in_praat_and_line_up(phrases, phrase_pitch, tmp_path
     assert tg.xmax == pytest.approx(sound.duration, abs=1e-3)
     assert parselmouth.praat.call(tg, "Get number of tiers") == 4
     assert parselmouth.praat.call(tg, "Get tier name...", 2) == "segment"
-    labelled = [parselmouth.praat.call(tg, "Get label of interval...", 2, i)
-                for i in range(1, parselmouth.praat.call(tg, "Get number of intervals...", 2) + 1)]
+    labelled = [
+        parselmouth.praat.call(tg, "Get label of interval...", 2, i)
+        for i in range(1, parselmouth.praat.call(tg, "Get number of intervals...", 2) + 1)
+    ]
     assert sum(1 for x in labelled if x) == len(phrase_pitch.arrays["segments"])
     # the second phrase's first segment sits after the first phrase's audio
     second_onset = phrases[1].onsets[0] + phrases[0].duration
     k = labelled.index("1", labelled.index("1") + 1) + 1
-    assert parselmouth.praat.call(tg, "Get start time of interval...", 2, k) == pytest.approx(second_onset,
-                                                                                            abs=0.03)
+    assert parselmouth.praat.call(tg, "Get start time of interval...", 2, k) == pytest.approx(second_onset, abs=0.03)
     pitch_tier = parselmouth.read(str(tier_file))
-    assert parselmouth.praat.call(pitch_tier, "Get number of points") == int(np.isfinite(
-        phrase_pitch.arrays["f0"]).sum())
+    assert parselmouth.praat.call(pitch_tier, "Get number of points") == int(
+        np.isfinite(phrase_pitch.arrays["f0"]).sum()
+    )
 
 
 def test_artifact_and_files_share_one_code_path(phrases, tmp_path):
@@ -173,8 +184,7 @@ def test_artifact_and_files_share_one_code_path(phrases, tmp_path):
     path.write_bytes(wav_bytes(phrase.audio, phrase.audio_rate))
     from_file = run_stage(Pitch, {}, {"audio": {"take": path}})
     from_artifact = run_stage(Pitch, {}, {"source": tracking_artifact([phrase])})
-    np.testing.assert_allclose(from_file.arrays["segments"][:, 0], from_artifact.arrays["segments"][:, 0],
-                               atol=0.011)
+    np.testing.assert_allclose(from_file.arrays["segments"][:, 0], from_artifact.arrays["segments"][:, 0], atol=0.011)
     assert from_file.meta["sources"] == ["take.wav"]
 
 
@@ -182,8 +192,7 @@ def test_audio_offset_moves_segments_onto_the_video_clock(phrases):
     phrase = phrases[0]
     base = run_stage(Pitch, {}, {"source": tracking_artifact([phrase])})
     shifted = run_stage(Pitch, {}, {"source": tracking_artifact([phrase], audio_offset=0.2)})
-    np.testing.assert_allclose(shifted.arrays["segments"][:-1, :2], base.arrays["segments"][:-1, :2] + 0.2,
-                               atol=1e-9)
+    np.testing.assert_allclose(shifted.arrays["segments"][:-1, :2], base.arrays["segments"][:-1, :2] + 0.2, atol=1e-9)
 
 
 def test_motion_frame_count_sets_the_utterance_length(phrases):
@@ -197,7 +206,7 @@ def test_crema_d_pitch_and_segments(crema_pitch):
     run = crema_pitch
     assert run.meta["labels"] == ["ANG", "DIS", "FEA", "HAP", "NEU", "SAD"]
     median = run.arrays["speaker_median"][0]
-    assert 80 < median < 200      # a male voice
+    assert 80 < median < 200  # a male voice
     durations = run.arrays["utterance_duration"]
     for u in range(6):
         segments, sub = rows_of(run, u)
@@ -215,7 +224,7 @@ def test_crema_d_pitch_and_segments(crema_pitch):
         f0 = run.arrays["f0"][mask]
         assert np.nanmax(np.abs(semitones(f0, reference))) <= 10 + 1e-4
         raw_outliers += int(np.sum(np.abs(semitones(raw, reference)) > 10))
-    assert raw_outliers > 0      # Praat's raw tracks of these clips do jump octaves (about 2x and 4x f0)
+    assert raw_outliers > 0  # Praat's raw tracks of these clips do jump octaves (about 2x and 4x f0)
     raw = run.arrays["f0_raw"]
     assert np.isfinite(raw).sum() >= voiced.sum() - 20
 
@@ -229,8 +238,10 @@ def test_cc_method_agrees_with_ac(phrases):
 
 def silent_artifact(seconds=1.0):
     audio = (np.random.default_rng(0).standard_normal(int(16000 * seconds)) * 1e-4).astype(np.float32)
-    return artifact({"audio": audio, "audio_bounds": np.array([[0, len(audio)]])},
-                    {"labels": ["quiet"], "sources": ["quiet.flv"], "audio_rate": 16000})
+    return artifact(
+        {"audio": audio, "audio_bounds": np.array([[0, len(audio)]])},
+        {"labels": ["quiet"], "sources": ["quiet.flv"], "audio_rate": 16000},
+    )
 
 
 def test_silence_is_an_error_naming_the_file():

@@ -3,6 +3,7 @@
 Every test talks to a moto S3 server on 127.0.0.1 that this module starts; credentials are dummies. Instance
 metadata lookups are disabled (AWS_EC2_METADATA_DISABLED) so botocore never leaves the loopback.
 """
+
 import json
 import logging
 import os
@@ -18,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import cli_env, executions, run_cli
+
 from msflow.artifact import check_contents, encode_artifact, prepare_manifest
 from msflow.errors import UserError
 from msflow.remote import RemoteStore, open_remote_store
@@ -35,8 +36,13 @@ class MotoS3:
 
         self.endpoint = endpoint
         self.options = {"endpoint_url": endpoint, "key": "testing", "secret": "testing"}
-        self.client = boto3.client("s3", endpoint_url=endpoint, aws_access_key_id="testing",
-                                   aws_secret_access_key="testing", region_name="us-east-1")
+        self.client = boto3.client(
+            "s3",
+            endpoint_url=endpoint,
+            aws_access_key_id="testing",
+            aws_secret_access_key="testing",
+            region_name="us-east-1",
+        )
 
     def bucket(self) -> str:
         name = f"b-{uuid.uuid4().hex[:12]}"
@@ -70,8 +76,7 @@ def s3():
     server.stop()
 
 
-def on_s3(proj: Path, s3: MotoS3, bucket: str, files=("pipeline.yaml", "crash.yaml"), options=None,
-          url=None) -> str:
+def on_s3(proj: Path, s3: MotoS3, bucket: str, files=("pipeline.yaml", "crash.yaml"), options=None, url=None) -> str:
     """Point the project's pipeline files at ``s3://bucket/num``; returns the store URL."""
     url = url or f"s3://{bucket}/num"
     header = f"store: {url}\nstore_options: {json.dumps(s3.options if options is None else options)}\n"
@@ -82,8 +87,14 @@ def on_s3(proj: Path, s3: MotoS3, bucket: str, files=("pipeline.yaml", "crash.ya
 
 
 def start_run(proj, *args, env):
-    return subprocess.Popen([sys.executable, "-m", "msflow.cli", "run", *args, "-q"], cwd=proj,
-                            env=cli_env(env), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "msflow.cli", "run", *args, "-q"],
+        cwd=proj,
+        env=cli_env(env),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def stage_keys(record: dict) -> dict:
@@ -207,8 +218,10 @@ def test_sigkilled_runs_leave_nothing_visible_and_the_next_run_recovers(numproje
             time.sleep(rng.uniform(0.5, 2.0))
         proc.send_signal(signal.SIGKILL)
         proc.wait()
-        killed_mid_write += bool(writes_of(store, proc.pid) - {store.data_path(k, json.loads(
-            store.objects.get(store.marker_path(k)))["data"]) for k in store.keys()})
+        killed_mid_write += bool(
+            writes_of(store, proc.pid)
+            - {store.data_path(k, json.loads(store.objects.get(store.marker_path(k)))["data"]) for k in store.keys()}
+        )
         for key in store.keys():  # whatever is visible is complete
             assert store.verify(key) == [], key
     assert killed_mid_write >= 2
@@ -245,8 +258,13 @@ def artifact_objects(arrays, meta):
 def test_store_contract_write_read_lazy_verify_remove(any_store):
     store = any_store
     rng = np.random.default_rng(0)
-    arrays = {"big": rng.standard_normal((700_000, 2)), "scalar": np.array(3, dtype=np.int32),
-              "empty": np.zeros((0, 4)), "flags": rng.random(17) > 0.5, "wave": rng.random(9).astype(">f4")}
+    arrays = {
+        "big": rng.standard_normal((700_000, 2)),
+        "scalar": np.array(3, dtype=np.int32),
+        "empty": np.zeros((0, 4)),
+        "flags": rng.random(17) > 0.5,
+        "wave": rng.random(9).astype(">f4"),
+    }
     key = "ab" + "0" * 30
     assert not store.has(key) and list(store.keys()) == []
     manifest = store.write(key, arrays, {"meta": {"note": "x"}, "metrics": {"m": 1.5}})
@@ -279,21 +297,31 @@ def test_uncommitted_objects_are_invisible_and_cleaned_by_age_or_dead_writer(s3)
     store = s3.store(s3.bucket())
     done = "cd" + "1" * 30
     store.write(done, {"x": np.arange(5.0)}, {})
-    dead_pid = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
-                              text=True).stdout.strip()
-    writers = {"ee" + "2" * 30: {"host": HOST, "pid": int(dead_pid)},            # killed on this host
-               "ef" + "3" * 30: {"host": "elsewhere", "pid": 1},                  # another host, no lease
-               "f0" + "4" * 30: {"host": "elsewhere", "pid": 1}}                  # another host, live lease
+    dead_pid = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    ).stdout.strip()
+    writers = {
+        "ee" + "2" * 30: {"host": HOST, "pid": int(dead_pid)},  # killed on this host
+        "ef" + "3" * 30: {"host": "elsewhere", "pid": 1},  # another host, no lease
+        "f0" + "4" * 30: {"host": "elsewhere", "pid": 1},
+    }  # another host, live lease
     for key, writer in writers.items():
         wid = f"0-{key[:4]}"
-        store.objects.put(store.journal_path(key, wid),
-                          json.dumps({"key": key, "data": wid, "action": "write", "started": time.time(),
-                                      **writer}).encode())
-        store.objects.put_many({f"{store.data_path(key, wid)}/{rel}": data
-                                for rel, data in artifact_objects({"x": np.ones(3)}, {}).items()})
+        store.objects.put(
+            store.journal_path(key, wid),
+            json.dumps({"key": key, "data": wid, "action": "write", "started": time.time(), **writer}).encode(),
+        )
+        store.objects.put_many(
+            {
+                f"{store.data_path(key, wid)}/{rel}": data
+                for rel, data in artifact_objects({"x": np.ones(3)}, {}).items()
+            }
+        )
     live = "f0" + "4" * 30
-    store.objects.put(store.lease_path(live), json.dumps({"owner": "o", "host": "elsewhere", "pid": 1,
-                                                          "ttl": 60, "renewed": time.time()}).encode())
+    store.objects.put(
+        store.lease_path(live),
+        json.dumps({"owner": "o", "host": "elsewhere", "pid": 1, "ttl": 60, "renewed": time.time()}).encode(),
+    )
     for key in writers:
         assert not store.has(key)
         with pytest.raises(FileNotFoundError):
@@ -373,8 +401,10 @@ def test_leases_exclude_each_other_renew_and_break_when_stale(s3):
     beat.start()
 
     # ... while one whose holder stopped renewing is broken once older than its ttl (server clock)
-    store.objects.put(store.lease_path("k-expired"), json.dumps(
-        {"owner": "gone", "host": "elsewhere", "pid": 1, "ttl": 1, "renewed": time.time()}).encode())
+    store.objects.put(
+        store.lease_path("k-expired"),
+        json.dumps({"owner": "gone", "host": "elsewhere", "pid": 1, "ttl": 1, "renewed": time.time()}).encode(),
+    )
     waits = []
     started = time.monotonic()
     with store.lock("k-expired", on_wait=waits.append):
@@ -383,15 +413,20 @@ def test_leases_exclude_each_other_renew_and_break_when_stale(s3):
     assert 2.0 < broke_after < 8.0
 
     # a dead holder on this host is broken at once, a live one elsewhere is waited for
-    dead = int(subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
-                              text=True).stdout)
-    store.objects.put(store.lease_path("k-dead"), json.dumps(
-        {"owner": "gone", "host": HOST, "pid": dead, "ttl": 60, "renewed": time.time()}).encode())
+    dead = int(
+        subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True).stdout
+    )
+    store.objects.put(
+        store.lease_path("k-dead"),
+        json.dumps({"owner": "gone", "host": HOST, "pid": dead, "ttl": 60, "renewed": time.time()}).encode(),
+    )
     started = time.monotonic()
     with store.lock("k-dead"):
         assert time.monotonic() - started < 1.0
-    store.objects.put(store.lease_path("k-live"), json.dumps(
-        {"owner": "busy", "host": "elsewhere", "pid": 1, "ttl": 60, "renewed": time.time()}).encode())
+    store.objects.put(
+        store.lease_path("k-live"),
+        json.dumps({"owner": "busy", "host": "elsewhere", "pid": 1, "ttl": 60, "renewed": time.time()}).encode(),
+    )
     with pytest.raises(TimeoutError):
         Lease(store.objects, store.lease_path("k-live")).acquire(timeout=0.5)
 
@@ -408,10 +443,17 @@ def test_leases_exclude_each_other_renew_and_break_when_stale(s3):
 # ------------------------------------------------------------------------------------------- errors
 def cli_without_aws_env(proj, *args, extra=None, timeout=60):
     env = {k: v for k, v in cli_env().items() if not k.startswith("AWS_")}
-    env.update({"AWS_EC2_METADATA_DISABLED": "true", "AWS_SHARED_CREDENTIALS_FILE": "/nonexistent",
-                "AWS_CONFIG_FILE": "/nonexistent"}, **(extra or {}))
-    return subprocess.run([sys.executable, "-m", "msflow.cli", *args], cwd=proj, env=env, capture_output=True,
-                          text=True, timeout=timeout)
+    env.update(
+        {
+            "AWS_EC2_METADATA_DISABLED": "true",
+            "AWS_SHARED_CREDENTIALS_FILE": "/nonexistent",
+            "AWS_CONFIG_FILE": "/nonexistent",
+        },
+        **(extra or {}),
+    )
+    return subprocess.run(
+        [sys.executable, "-m", "msflow.cli", *args], cwd=proj, env=env, capture_output=True, text=True, timeout=timeout
+    )
 
 
 def test_store_errors_are_user_errors_naming_the_store(numproject, s3):
@@ -444,8 +486,9 @@ def test_store_errors_are_user_errors_naming_the_store(numproject, s3):
         silent.bind(("127.0.0.1", 0))
         silent.listen(8)
         url = f"http://127.0.0.1:{silent.getsockname()[1]}"
-        message, seconds = attempt(f"s3://{s3.bucket()}/p", dict(s3.options, endpoint_url=url),
-                                   extra={"MSFLOW_STORE_TIMEOUT": "1.5"})
+        message, seconds = attempt(
+            f"s3://{s3.bucket()}/p", dict(s3.options, endpoint_url=url), extra={"MSFLOW_STORE_TIMEOUT": "1.5"}
+        )
     assert "cannot reach" in message and seconds < 10
     assert not (numproject / ".msflow" / "runs").exists()
 

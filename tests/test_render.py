@@ -1,4 +1,5 @@
 """The software rasteriser: coverage, depth order, culling, shading, projection; against a brute-force reference."""
+
 from pathlib import Path
 
 import numpy as np
@@ -73,8 +74,13 @@ def test_square_pixel_count_and_position():
     # square from x 8..20, y 4..12 (world, y up): 12 x 8 pixel centres inside
     v = np.array([[8, 4, 0], [20, 4, 0], [20, 12, 0], [8, 12, 0]], float)
     t = np.array([[0, 1, 2], [0, 2, 3]])
-    img = render(v, t, size, flat_view(size, background=(0, 0, 0), ambient=1.0, diffuse=0.0, specular=0.0),
-                 colors=np.array([1.0, 1.0, 1.0]))
+    img = render(
+        v,
+        t,
+        size,
+        flat_view(size, background=(0, 0, 0), ambient=1.0, diffuse=0.0, specular=0.0),
+        colors=np.array([1.0, 1.0, 1.0]),
+    )
     lit = img[..., 0] > 0
     assert lit.sum() == 12 * 8
     rows, cols = np.nonzero(lit)
@@ -93,8 +99,8 @@ def test_nearer_surface_wins_whatever_the_triangle_order():
     for order in ([0, 1, 2, 3], [3, 2, 1, 0], [2, 0, 3, 1]):
         tris = np.r_[quads[0], quads[1]][order]
         img = render(v, tris, size, view, colors=colors[order])
-        assert img[10, 10, 2] > 200 and img[10, 10, 0] < 50   # blue square in front
-        assert img[3, 3, 0] > 200 and img[3, 3, 2] < 50       # red behind, visible at the border
+        assert img[10, 10, 2] > 200 and img[10, 10, 0] < 50  # blue square in front
+        assert img[3, 3, 0] > 200 and img[3, 3, 2] < 50  # red behind, visible at the border
 
 
 def test_back_faces_are_culled_unless_asked():
@@ -152,7 +158,7 @@ def test_named_views_and_supersampling():
     colors = np.where((v[t].mean(axis=1)[:, 0] > 0.3)[:, None], [[1.0, 0, 0]], [[0, 0, 1.0]])
     from_left = render(v, t, 48, "left", colors=colors)  # the +x side (character's left) faces the eye
     front = render(v, t, 48, "front", colors=colors)
-    red = lambda img: ((img[..., 0] > 60) & (img[..., 2] < 30)).sum()  # noqa: E731
+    red = lambda img: ((img[..., 0] > 60) & (img[..., 2] < 30)).sum()
     assert red(from_left) > 2 * red(front)
     with pytest.raises(ValueError):
         render(v, t, 48, "upside-down")

@@ -1,17 +1,34 @@
 """The run report: one self-contained HTML page, checked in headless Chromium (Debian's, via Playwright)."""
+
 import re
 
 import pytest
-
 from conftest import run_cli
 
 CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+ARGS = [
+    "--headless=new",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 REQUIRED_FIGURES = [  # issue 8: one per paper figure or pipeline step
-    "track_train · contact_sheet", "aam · shape_modes", "edit · interpolation_strip", "edit · style_over_time",
-    "keymorphs · contact_sheet", "keyshapes · weights", "blend · weights", "pitch_test · pitch_segments",
-    "trellis · trellis", "motion_blend · head_angles", "export · preview"]
+    "track_train · contact_sheet",
+    "aam · shape_modes",
+    "edit · interpolation_strip",
+    "edit · style_over_time",
+    "keymorphs · contact_sheet",
+    "keyshapes · weights",
+    "blend · weights",
+    "pitch_test · pitch_segments",
+    "trellis · trellis",
+    "motion_blend · head_angles",
+    "export · preview",
+]
 
 
 def open_in_chromium(path, screenshot):
@@ -27,8 +44,9 @@ def open_in_chromium(path, screenshot):
         page.on("request", lambda r: requests.append(r.url) if not r.url.startswith(("file:", "data:")) else None)
         page.goto(path.as_uri())
         page.wait_for_load_state("load")
-        images = page.evaluate("Array.from(document.images).map(i => [i.alt, i.complete, i.naturalWidth, "
-                               "i.naturalHeight])")
+        images = page.evaluate(
+            "Array.from(document.images).map(i => [i.alt, i.complete, i.naturalWidth, i.naturalHeight])"
+        )
         durations = page.evaluate("""async () => Promise.all(Array.from(document.querySelectorAll('video')).map(v =>
             new Promise(done => { if (v.readyState >= 1) done(v.duration);
               v.addEventListener('loadedmetadata', () => done(v.duration)); v.addEventListener('error', () => done(-1));
@@ -59,8 +77,8 @@ def test_report_is_self_contained_and_renders_in_chromium(report, tmp_path):
     assert len(images) >= len(REQUIRED_FIGURES) - 1
     assert all(complete and w > 0 and h > 0 for _, complete, w, h in images), images
     assert durations and all(d > 0.5 for d in durations), durations
-    from PIL import Image
     import numpy as np
+    from PIL import Image
 
     shot = np.asarray(Image.open(tmp_path / "shot.png").convert("L"), dtype=float)
     assert shot.shape[0] > 3000 and shot.std() > 20  # a long page with content, not a blank one
@@ -84,8 +102,10 @@ def test_second_report_renders_nothing(report, tmp_path):
 
 
 def test_report_of_a_failed_run_colours_the_failure(numproject, tmp_path):
-    (numproject / "broken.yaml").write_text("version: 1\nstages:\n  ok:\n    uses: numstages.basic:Source\n"
-                                            "  broken:\n    uses: numstages.basic:Broken\n    params: {mode: crash}\n")
+    (numproject / "broken.yaml").write_text(
+        "version: 1\nstages:\n  ok:\n    uses: numstages.basic:Source\n"
+        "  broken:\n    uses: numstages.basic:Broken\n    params: {mode: crash}\n"
+    )
     assert run_cli(numproject, "run", "broken.yaml", "-q").returncode == 1
     out = tmp_path / "failed.html"
     assert run_cli(numproject, "report", "-f", "broken.yaml", "-o", out).returncode == 0

@@ -1,9 +1,10 @@
 """Sweeps: grids, zips, explicit variants, shared work computed once, resumable, failures isolated; runs, compare."""
+
 import json
 
 import pytest
-
 from conftest import executions, run_cli
+
 from msflow.sweep import expand_variants, run_sweep
 
 STAGES = ["src", "scaled", "sign", "csv", "total"]
@@ -11,11 +12,16 @@ STAGES = ["src", "scaled", "sign", "csv", "total"]
 
 def test_grid_from_cli_values_and_file(numproject):
     assert expand_variants(["src.n=3,4", "scaled.factor=1,2,3"], None) == [
-        {"src.n": n, "scaled.factor": f} for n in (3, 4) for f in (1, 2, 3)]
+        {"src.n": n, "scaled.factor": f} for n in (3, 4) for f in (1, 2, 3)
+    ]
     from_file = expand_variants([], numproject / "sweep.yaml")
-    assert from_file == [{"src.n": 3, "scaled.factor": 1}, {"src.n": 3, "scaled.factor": 2},
-                         {"src.n": 4, "scaled.factor": 1}, {"src.n": 4, "scaled.factor": 2},
-                         {"src.n": 9, "scaled.factor": 5}]
+    assert from_file == [
+        {"src.n": 3, "scaled.factor": 1},
+        {"src.n": 3, "scaled.factor": 2},
+        {"src.n": 4, "scaled.factor": 1},
+        {"src.n": 4, "scaled.factor": 2},
+        {"src.n": 9, "scaled.factor": 5},
+    ]
     assert expand_variants(["src.offset=[1],[2]"], None) == [{"src.offset": [1]}, {"src.offset": [2]}]
 
 
@@ -46,8 +52,7 @@ def test_failing_variant_does_not_stop_the_others(numproject):
 
 
 def test_sweep_cli_table_formats_and_sort(numproject):
-    result = run_cli(numproject, "sweep", "--grid", "sweep.yaml", "--format", "csv", "--sort", "-total.total",
-                     "-q")
+    result = run_cli(numproject, "sweep", "--grid", "sweep.yaml", "--format", "csv", "--sort", "-total.total", "-q")
     assert result.returncode == 0, result.stderr
     lines = result.stdout.strip().splitlines()
     assert lines[0] == "#,src.n,scaled.factor,status,total.total"
@@ -61,13 +66,16 @@ def test_sweep_cli_table_formats_and_sort(numproject):
     assert [r["src.n"] for r in rows] == [3, 4] and "0 stage executions" in again.stderr
 
 
-@pytest.mark.parametrize("args, fragment", [
-    (["-S", "src.nn=3,4"], "unknown parameter 'nn'"),
-    (["-S", "nope.n=3,4"], "unknown stage 'nope'"),
-    (["-S", "src.n="], "the grid is empty"),
-    ([], "the grid is empty"),
-    (["-S", "src.n=3,x"], "params.n"),
-])
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["-S", "src.nn=3,4"], "unknown parameter 'nn'"),
+        (["-S", "nope.n=3,4"], "unknown stage 'nope'"),
+        (["-S", "src.n="], "the grid is empty"),
+        ([], "the grid is empty"),
+        (["-S", "src.n=3,x"], "params.n"),
+    ],
+)
 def test_sweep_user_errors(numproject, args, fragment):
     result = run_cli(numproject, "sweep", *args)
     assert result.returncode == 2, result.stderr

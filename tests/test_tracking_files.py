@@ -1,5 +1,6 @@
 """Track files: OpenFace 2.0 CSV (with success = 0 rows), plain CSV, .npz and iBUG .pts, read, written and
 rejected with clear errors; the TrackFile stage on synthetic tracks without video."""
+
 import io
 
 import numpy as np
@@ -8,8 +9,7 @@ import pytest
 from msflow import UserError
 from msflow.testing import run_stage
 from stages.tracking import TrackFile
-from stages.tracking.trackfile import (format_pts, parse_pts, read_track, write_npz, write_openface_csv,
-                                       write_plain_csv)
+from stages.tracking.trackfile import format_pts, parse_pts, read_track, write_npz, write_openface_csv, write_plain_csv
 
 
 def synthetic_shapes(n=40, seed=0):
@@ -143,7 +143,7 @@ def test_plain_csv_npz_and_pts_round_trips(tmp_path):
     seq = tmp_path / "pts"
     seq.mkdir()
     for i, s in enumerate(shapes):
-        (seq / f"frame_{i}.pts").write_text(format_pts(s))    # natural order: frame_10 after frame_9
+        (seq / f"frame_{i}.pts").write_text(format_pts(s))  # natural order: frame_10 after frame_9
     t = read_track(seq)
     np.testing.assert_allclose(t.landmarks, shapes, atol=1e-3)
     single = read_track(seq / "frame_3.pts")
@@ -225,8 +225,9 @@ def test_a_custom_3d_face_scales_the_head_distance(tmp_path):
     big.write_text(json.dumps(data))
     scaled = run_stage(TrackFile, params, {"tracks": {"t": path}, "face3d": {"face": big}})
     np.testing.assert_allclose(scaled.arrays["translation"], 2 * base.arrays["translation"], rtol=1e-5)
-    np.testing.assert_allclose(np.abs(np.sum(scaled.arrays["rotation"] * base.arrays["rotation"], axis=1)), 1,
-                               atol=1e-8)
+    np.testing.assert_allclose(
+        np.abs(np.sum(scaled.arrays["rotation"] * base.arrays["rotation"], axis=1)), 1, atol=1e-8
+    )
     assert scaled.meta["pose_model"] == "big_face.json"
     bad = tmp_path / "bad_face.json"
     bad.write_text(json.dumps({"neutral": [[0, 0, 0]] * 5}))

@@ -1,5 +1,6 @@
 """The tracking stages on the six real CREMA-D clips (FaceMesh run once per module, round-tripped through zarr)
 and on synthetic videos made from them (blanked frames, no audio, truncated files)."""
+
 from pathlib import Path
 
 import numpy as np
@@ -57,8 +58,9 @@ def write_video(path, frames, fps=30, audio=None, rate=16000):
             out.mux(packet)
         if sound is not None:
             for k in range(0, len(audio), 1024):
-                chunk = av.AudioFrame.from_ndarray(audio[None, k:k + 1024].astype(np.float32), format="flt",
-                                                   layout="mono")
+                chunk = av.AudioFrame.from_ndarray(
+                    audio[None, k : k + 1024].astype(np.float32), format="flt", layout="mono"
+                )
                 chunk.sample_rate = rate
                 for packet in sound.encode(chunk):
                     out.mux(packet)
@@ -69,6 +71,7 @@ def write_video(path, frames, fps=30, audio=None, rate=16000):
 
 # ---------------------------------------------------------------- FaceMesh on CREMA-D
 
+
 def test_every_frame_of_every_clip_has_a_face(facemesh):
     arrays, meta = facemesh.arrays, facemesh.meta
     assert meta["labels"] == list(CLIPS)
@@ -77,7 +80,7 @@ def test_every_frame_of_every_clip_has_a_face(facemesh):
     assert meta["frames"] == counts
     assert arrays["valid"].all() and len(arrays["valid"]) == sum(counts)
     assert (arrays["confidence"] > 0.5).all()
-    assert meta["detector_runs"] == [1] * 6           # tracking mode: detected once, followed from then on
+    assert meta["detector_runs"] == [1] * 6  # tracking mode: detected once, followed from then on
     assert facemesh.metrics["valid_fraction"] == 1.0
 
 
@@ -118,7 +121,7 @@ def test_head_pose_is_plausible_and_smooth(facemesh):
     for s in range(6):
         rows = a["sequence"] == s
         assert rotation_steps_deg(a["rotation"][rows]).max() < 3.0
-        distance = -a["translation"][rows, 2]          # glTF camera axes: the head is at negative z
+        distance = -a["translation"][rows, 2]  # glTF camera axes: the head is at negative z
         assert (distance > 30).all() and (distance < 200).all()
     assert (a["pose_rms"] < 6).all()
 
@@ -132,8 +135,9 @@ def test_crops_are_the_frames_warped_eyes_level(facemesh, neutral_frames):
     np.testing.assert_allclose(a["time"][rows], times)
     for i in (0, 30, 60):
         gray = cv2.cvtColor(frames[i], cv2.COLOR_BGR2GRAY)
-        expect = cv2.warpAffine(gray, a["crop_transforms"][rows[i]], (128, 128), flags=cv2.INTER_LINEAR,
-                                borderMode=cv2.BORDER_REPLICATE)
+        expect = cv2.warpAffine(
+            gray, a["crop_transforms"][rows[i]], (128, 128), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
         assert np.abs(expect.astype(int) - a["crops"][rows[i]]).max() <= 1
     right, left = eye_centres(a["crop_landmarks"].astype(np.float64))
     np.testing.assert_allclose(right, np.tile([128 * 0.35, 128 * 0.33], (len(right), 1)), atol=0.01)
@@ -155,8 +159,8 @@ def test_audio_is_resampled_and_placed(facemesh):
         seconds = (stop - start) / 16000
         video_seconds = meta["frames"][s] / meta["fps"][s]
         assert abs(seconds - video_seconds) < 0.1
-        assert np.abs(a["audio"][start:stop]).max() > 0.05          # speech, not silence
-    assert all(abs(o + 0.027) < 1e-6 for o in meta["audio_offset"])   # FLV: audio 27 ms before the first frame
+        assert np.abs(a["audio"][start:stop]).max() > 0.05  # speech, not silence
+    assert all(abs(o + 0.027) < 1e-6 for o in meta["audio_offset"])  # FLV: audio 27 ms before the first frame
 
 
 def test_mapping_table_is_symmetric_and_evenly_spaced_on_real_faces(facemesh):
@@ -168,10 +172,20 @@ def test_mapping_table_is_symmetric_and_evenly_spaced_on_real_faces(facemesh):
         t = similarity_fit(mirrored, shape)
         residuals.append(np.linalg.norm(mirrored @ t[:, :2].T + t[:, 2] - shape, axis=1) / d)
     per_point = np.mean(residuals, axis=0)
-    assert per_point.max() < 0.06 and per_point.mean() < 0.03     # a face is nearly symmetric; a wrong pair is not
+    assert per_point.max() < 0.06 and per_point.mean() < 0.03  # a face is nearly symmetric; a wrong pair is not
     # in-between points of each contour sit at roughly equal spacing (the iBUG annotation rule)
-    contours = [range(0, 17), range(17, 22), range(22, 27), range(27, 31), range(48, 55), [54, 55, 56, 57, 58, 59, 48],
-                [36, 37, 38, 39], [39, 40, 41, 36], [42, 43, 44, 45], [45, 46, 47, 42]]
+    contours = [
+        range(0, 17),
+        range(17, 22),
+        range(22, 27),
+        range(27, 31),
+        range(48, 55),
+        [54, 55, 56, 57, 58, 59, 48],
+        [36, 37, 38, 39],
+        [39, 40, 41, 36],
+        [42, 43, 44, 45],
+        [45, 46, 47, 42],
+    ]
     for contour in contours:
         seg = np.linalg.norm(np.diff(lm[:, list(contour)], axis=1), axis=2).mean(axis=0)
         assert seg.max() < 2.2 * seg.min(), list(contour)
@@ -183,7 +197,7 @@ def test_contact_sheet_and_figures(facemesh):
     view = facemesh.view()
     png = contact_sheet_png(view, {"videos": CLIPS})
     image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
-    per_clip = [-(-n // 10) for n in facemesh.meta["frames"]]         # every 10th frame
+    per_clip = [-(-n // 10) for n in facemesh.meta["frames"]]  # every 10th frame
     assert image.shape == (6 * 200, max(per_clip) * 200, 3)
     from_crops = cv2.imdecode(np.frombuffer(contact_sheet_png(view, {}), np.uint8), cv2.IMREAD_COLOR)
     assert from_crops.shape == image.shape
@@ -195,6 +209,7 @@ def test_contact_sheet_and_figures(facemesh):
 
 # ---------------------------------------------------------------- OpticalFlow
 
+
 def test_optical_flow_stays_within_five_percent_of_facemesh(flow, facemesh):
     assert flow.meta["init"] == ["facemesh"] * 6 and flow.arrays["valid"].all()
     for label in CLIPS:
@@ -202,7 +217,7 @@ def test_optical_flow_stays_within_five_percent_of_facemesh(flow, facemesh):
         ref = facemesh.arrays["landmarks"][rows]
         dist = np.linalg.norm(flow.arrays["landmarks"][rows] - ref, axis=2).mean(axis=1) / inter_ocular(ref)
         assert dist.mean() < 0.05, label
-        assert dist[0] < 1e-6        # starts exactly on FaceMesh's first frame
+        assert dist[0] < 1e-6  # starts exactly on FaceMesh's first frame
     assert set(flow.arrays) >= {"crops", "rotation", "audio", "crop_landmarks"}
 
 
@@ -211,8 +226,9 @@ def test_optical_flow_from_a_pts_file(tmp_path, facemesh):
     start = facemesh.arrays["landmarks"][rows[0]]
     pts = tmp_path / "sad.pts"
     pts.write_text(format_pts(start))
-    out = run_stage(OpticalFlow, {"audio": "none", "shape_model": False},
-                    {"videos": {"SAD": CLIPS["SAD"]}, "init": {"SAD": pts}})
+    out = run_stage(
+        OpticalFlow, {"audio": "none", "shape_model": False}, {"videos": {"SAD": CLIPS["SAD"]}, "init": {"SAD": pts}}
+    )
     assert out.meta["init"] == ["file"] and "audio" not in out.arrays
     ref = facemesh.arrays["landmarks"][rows]
     dist = np.linalg.norm(out.arrays["landmarks"] - ref, axis=2).mean(axis=1) / inter_ocular(ref)
@@ -222,6 +238,7 @@ def test_optical_flow_from_a_pts_file(tmp_path, facemesh):
 
 
 # ---------------------------------------------------------------- TrackFile with video
+
 
 def test_trackfile_with_video_matches_facemesh(tmp_path, facemesh):
     rows = rows_of(facemesh, "NEU")
@@ -238,7 +255,7 @@ def test_trackfile_with_video_matches_facemesh(tmp_path, facemesh):
     assert diff.max() <= 2
     np.testing.assert_allclose(out.arrays["time"], facemesh.arrays["time"][rows])
     bounds = facemesh.arrays["audio_bounds"][0]
-    np.testing.assert_array_equal(out.arrays["audio"], facemesh.arrays["audio"][bounds[0]:bounds[1]])
+    np.testing.assert_array_equal(out.arrays["audio"], facemesh.arrays["audio"][bounds[0] : bounds[1]])
     long_track = tmp_path / "long.csv"
     long_track.write_text(write_openface_csv(np.concatenate([lm, lm[:5]])))
     with pytest.raises(UserError, match="video has 61 frames"):
@@ -246,6 +263,7 @@ def test_trackfile_with_video_matches_facemesh(tmp_path, facemesh):
 
 
 # ---------------------------------------------------------------- errors and gaps on synthetic videos
+
 
 @pytest.fixture(scope="module")
 def gap_video(tmp_path_factory, neutral_frames):
@@ -266,7 +284,7 @@ def test_short_gaps_are_flagged_and_interpolated(gap_video):
     expected = lm[19] + (lm[30] - lm[19]) * (np.arange(1, 11) / 11)[:, None, None]
     np.testing.assert_allclose(lm[20:30], expected, atol=1e-3)
     assert out.arrays["crops"].shape[0] == len(valid)
-    assert out.meta["detector_runs"][0] > 10       # the detector searched every blank frame
+    assert out.meta["detector_runs"][0] > 10  # the detector searched every blank frame
     assert out.metrics["interpolated_frames"] == 10
 
 
@@ -296,7 +314,7 @@ def test_missing_audio_track(tmp_path, neutral_frames):
 def test_truncated_and_unreadable_videos_name_the_file(tmp_path):
     data = CLIPS["ANG"].read_bytes()
     cut = tmp_path / "cut.flv"
-    cut.write_bytes(data[:len(data) * 2 // 3])
+    cut.write_bytes(data[: len(data) * 2 // 3])
     with pytest.raises(UserError, match="truncated") as err:
         run_stage(FaceMesh, {}, {"videos": {"ang": cut}})
     assert err.value.file == str(cut) and "cut.flv" in str(err.value)

@@ -1,12 +1,19 @@
 """Tracking maths on synthetic data with known answers: BlazeFace anchors/decoding/NMS, ROI geometry, gap
 filling, crops, head pose conventions, the shape model."""
+
 import numpy as np
 import pytest
 
 from msflow import UserError
 from stages.geometry.rotations import euler_to_quat, quat_to_euler, quat_to_matrix
-from stages.tracking.blazeface import (ANCHORS, box_iou, decode_boxes, letterbox_transform, ssd_anchor_centres,
-                                       weighted_nms)
+from stages.tracking.blazeface import (
+    ANCHORS,
+    box_iou,
+    decode_boxes,
+    letterbox_transform,
+    ssd_anchor_centres,
+    weighted_nms,
+)
 from stages.tracking.crops import apply_transforms, eye_centres, similarity_transform, similarity_transforms
 from stages.tracking.face3d import DEFAULT_FACE3D, load_face3d
 from stages.tracking.facemesh import Roi, invert_affine, roi_from_mesh, square_roi
@@ -23,6 +30,7 @@ def face3d():
 
 # ---------------------------------------------------------------- BlazeFace
 
+
 def test_anchor_layout_matches_the_model_output_order():
     assert ANCHORS.shape == (896, 2)
     # 16x16 map, 2 anchors per cell, row-major from the top-left cell
@@ -38,8 +46,8 @@ def test_anchor_layout_matches_the_model_output_order():
 
 def test_decoding_is_anchor_relative_in_input_pixels():
     reg = np.zeros((896, 16))
-    reg[100, :4] = [12.8, -6.4, 32.0, 16.0]          # centre offset and size in 128-pixel units
-    reg[100, 4:6] = [-12.8, 0.0]                        # first keypoint
+    reg[100, :4] = [12.8, -6.4, 32.0, 16.0]  # centre offset and size in 128-pixel units
+    reg[100, 4:6] = [-12.8, 0.0]  # first keypoint
     boxes, kps = decode_boxes(reg)
     cx, cy = ANCHORS[100] + [0.1, -0.05]
     np.testing.assert_allclose(boxes[100], [cx - 0.125, cy - 0.0625, cx + 0.125, cy + 0.0625])
@@ -68,6 +76,7 @@ def test_letterbox_keeps_aspect_and_centres():
 
 # ---------------------------------------------------------------- ROI geometry
 
+
 def test_roi_affine_round_trip_and_orientation():
     roi = Roi(200.0, 150.0, 120.0, np.radians(20))
     to_image = roi.input_to_image(192)
@@ -94,6 +103,7 @@ def test_roi_from_points_is_square_scaled_and_rotated_by_the_eye_line():
 
 # ---------------------------------------------------------------- gaps
 
+
 def test_gap_filling_interpolates_linearly_and_holds_the_ends():
     valid = np.array([False, True, True, False, False, True, False])
     values = np.where(valid, np.arange(7.0) * 3, np.nan)[:, None, None] * np.ones((1, 2, 2))
@@ -117,6 +127,7 @@ def test_gap_errors_name_the_frames():
 
 # ---------------------------------------------------------------- crops
 
+
 def test_crop_transform_puts_the_eyes_level_at_fixed_positions():
     rng = np.random.default_rng(1)
     lm = rng.uniform(50, 300, (5, 68, 2))
@@ -133,6 +144,7 @@ def test_crop_transform_puts_the_eyes_level_at_fixed_positions():
 
 # ---------------------------------------------------------------- landmarks table
 
+
 def test_mapping_table_is_68_points_of_one_or_two_mesh_vertices():
     assert len(MESH_TO_IBUG68) == 68
     assert all(1 <= len(v) <= 2 and all(0 <= i < 468 for i in v) for v in MESH_TO_IBUG68)
@@ -147,12 +159,13 @@ def test_mapping_table_is_68_points_of_one_or_two_mesh_vertices():
 
 # ---------------------------------------------------------------- head pose
 
+
 def test_face3d_is_in_the_gltf_head_frame(face3d):
     n = face3d.neutral
     assert n.shape == (68, 3)
-    assert n[36, 0] < n[45, 0]            # subject's right eye on the viewer's left (-x)
-    assert n[19, 1] > n[57, 1]            # brows above the mouth (+y up)
-    assert n[30, 2] > n[0, 2]             # nose tip out of the face (+z)
+    assert n[36, 0] < n[45, 0]  # subject's right eye on the viewer's left (-x)
+    assert n[19, 1] > n[57, 1]  # brows above the mouth (+y up)
+    assert n[30, 2] > n[0, 2]  # nose tip out of the face (+z)
 
 
 def test_pose_round_trip_and_sign_conventions(face3d):
@@ -191,7 +204,7 @@ def test_openface_pose_conversion_agrees_with_solvepnp(face3d):
     euler_of = np.radians([[10, -20, 5], [-8, 15, -3]])
     t_mm = np.array([[20.0, -10.0, 700.0], [-30, 15, 650.0]])
     cv_flip = np.diag([1.0, -1.0, -1.0])
-    head_of = face3d.neutral @ cv_flip * 10.0            # OpenFace head model: x right, y down, z away; mm
+    head_of = face3d.neutral @ cv_flip * 10.0  # OpenFace head model: x right, y down, z away; mm
     images = []
     for e, t in zip(euler_of, t_mm):
         a, b, c = e
@@ -209,6 +222,7 @@ def test_openface_pose_conversion_agrees_with_solvepnp(face3d):
 
 
 # ---------------------------------------------------------------- shape model
+
 
 def test_shape_model_reproduces_model_shapes_and_predicts_lost_points(face3d):
     model = build_shape_model(face3d, variance=0.995, samples=1500, expressions_per_sample=8)

@@ -1,18 +1,28 @@
 """Pitch matching and Viterbi path search (paper Sec. 5.2-5.3, Eq. 10-15)."""
+
 import itertools
 
 import numpy as np
 import pytest
+from head_synthetic import synth_database, tracking_artifact
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from head_synthetic import synth_database, tracking_artifact
 from msflow import UserError
 from msflow.testing import artifact, run_stage
 from stages.head.database import TrackedHeadDb
 from stages.head.pitch import Pitch
-from stages.head.trellis import (Database, SegmentTable, Trellis, contour_geometry, references_of_test,
-                            segment_distances, smoothness_weights, transition_costs, viterbi)
+from stages.head.trellis import (
+    Database,
+    SegmentTable,
+    Trellis,
+    contour_geometry,
+    references_of_test,
+    segment_distances,
+    smoothness_weights,
+    transition_costs,
+    viterbi,
+)
 
 
 @pytest.fixture(scope="module")
@@ -43,6 +53,7 @@ def search(db, test, **params):
 
 # ------------------------------------------------------------------------------------------- pure maths
 
+
 @settings(max_examples=60, deadline=None)
 @given(st.integers(1, 5), st.integers(1, 4), st.integers(0, 10_000))
 def test_viterbi_finds_the_cheapest_path(n, k, seed):
@@ -63,8 +74,9 @@ def test_repeat_cost_values():
     utterance = np.array([0, 0, 0, 1, 1])
     position = np.array([0, 1, 2, 0, 1])
     kin = np.zeros((5, 3, 3))
-    h, r = transition_costs(np.array([1]), np.array([2, 1, 3, 0, 4]), kin, kin, utterance, position,
-                            np.ones(3), 1.0, 1.0)
+    h, r = transition_costs(
+        np.array([1]), np.array([2, 1, 3, 0, 4]), kin, kin, utterance, position, np.ones(3), 1.0, 1.0
+    )
     # from take 0's segment 1: its successor (R 0), itself (R 2), segments of the other take or earlier (R 1)
     np.testing.assert_array_equal(r[0], [0.0, 2.0, 1.0, 1.0, 1.0])
     assert h.shape == (1, 5)
@@ -80,14 +92,16 @@ def test_boundary_terms_on_the_common_clock_of_the_pair():
     weights = np.array([0.5, 0.3, 0.2])
     plain, _ = transition_costs(prev, nxt, kin, kin, utterance, position, weights, 1.0, 1.0)
     for rate in (0.5, 1.0, 1.7):
-        same, _ = transition_costs(prev, nxt, kin, kin, utterance, position, weights, 1.0, 1.0,
-                                   np.full((1, 3), rate), np.full((1, 3), rate))
+        same, _ = transition_costs(
+            prev, nxt, kin, kin, utterance, position, weights, 1.0, 1.0, np.full((1, 3), rate), np.full((1, 3), rate)
+        )
         np.testing.assert_allclose(same, plain, rtol=1e-12)
     # the same motion on both sides, the second played twice as fast: no position step, the velocity step V
     # (V - 2V over sqrt(1 * 2) squared: V^2 / 2) and the acceleration step (A - 4A over 2, squared: 9 A^2 / 4)
     both = np.array([[0]])
-    h, _ = transition_costs(both, both, kin, kin, utterance, position, weights, 1.0, 1.0, np.array([[1.0]]),
-                            np.array([[2.0]]))
+    h, _ = transition_costs(
+        both, both, kin, kin, utterance, position, weights, 1.0, 1.0, np.array([[1.0]]), np.array([[2.0]])
+    )
     expected = weights[1] * (kin[0, 1] ** 2).sum() / 2 + weights[2] * 9 * (kin[0, 2] ** 2).sum() / 4
     assert h[0, 0, 0] == pytest.approx(expected)
 
@@ -117,25 +131,25 @@ def table(contours, lengths, voiced=None):
     lengths = np.asarray(lengths, dtype=float)
     voiced = lengths * 0.6 if voiced is None else np.asarray(voiced, dtype=float)
     times = np.stack([np.zeros(n), voiced, lengths], axis=1)
-    return SegmentTable(times, np.arange(n), np.zeros(n, int), np.ones(n, bool), contours,
-                        contour_geometry(contours, voiced))
+    return SegmentTable(
+        times, np.arange(n), np.zeros(n, int), np.ones(n, bool), contours, contour_geometry(contours, voiced)
+    )
 
 
 def test_segment_distance_terms():
     base = np.sin(np.linspace(0, 3, 20)) * 2
     test = table([base], [0.4])
     db = table([base, base + 1.5, base], [0.4, 0.4, 0.6])
-    d = segment_distances(test, db, np.arange(3), b=0.05, c=0.3, geometry_mean=np.zeros(6),
-                          geometry_sd=np.ones(6))
+    d = segment_distances(test, db, np.arange(3), b=0.05, c=0.3, geometry_mean=np.zeros(6), geometry_sd=np.ones(6))
     assert d.total[0, 0] == pytest.approx(0.0, abs=1e-9)
-    assert d.pitch[0, 1] == pytest.approx(1.5)             # Eq. 10: RMS of a constant offset
-    assert d.length[0, 2] == pytest.approx(0.5)            # Eq. 11: |0.6 - 0.4| / 0.4
+    assert d.pitch[0, 1] == pytest.approx(1.5)  # Eq. 10: RMS of a constant offset
+    assert d.length[0, 2] == pytest.approx(0.5)  # Eq. 11: |0.6 - 0.4| / 0.4
     assert d.pitch[0, 2] == pytest.approx(0.0, abs=1e-9)
     # Eq. 12 weights
     expected = 0.05 * d.geometry[0, 1] + 0.3 * 1.5 + 0.65 * 0.0
     assert d.total[0, 1] == pytest.approx(expected)
     # G_d sees the offset in min and max
-    assert d.geometry[0, 1] == pytest.approx(np.sqrt((1.5 ** 2 * 2) / 6))
+    assert d.geometry[0, 1] == pytest.approx(np.sqrt((1.5**2 * 2) / 6))
 
 
 def test_contour_geometry_of_lines_and_parabolas():
@@ -158,6 +172,7 @@ def test_test_speaker_reference():
 
 
 # ---------------------------------------------------------------------------------------- the stage
+
 
 def test_an_utterance_in_the_database_finds_itself(phrases, plain_database, test_pitch):
     run = search(plain_database, test_pitch)
@@ -193,32 +208,39 @@ def test_phrase_stage_prefers_the_same_speaking_style(phrases, database, test_pi
     for u, phrase in enumerate(phrases[:8]):
         order = np.argsort(np.nan_to_num(run.arrays["phrase_distance"][u], nan=np.inf))[:6]
         hits.append(np.mean([styles[i] == phrase.style for i in order]))
-    assert np.mean(hits) > 0.6      # chance is 0.25 with four styles
+    assert np.mean(hits) > 0.6  # chance is 0.25 with four styles
 
 
 def test_candidates_are_the_k_best_and_sorted(database, test_pitch):
     run = search(database, test_pitch, k=7, exclude_source=True)
     cost = run.arrays["candidate_cost"]
     assert cost.shape[1] == 7 and np.all(np.diff(cost, axis=1) >= 0)
-    np.testing.assert_array_equal(run.arrays["candidates"][np.arange(len(cost)), run.arrays["chosen_rank"]],
-                                  run.arrays["chosen"])
+    np.testing.assert_array_equal(
+        run.arrays["candidates"][np.arange(len(cost)), run.arrays["chosen_rank"]], run.arrays["chosen"]
+    )
     np.testing.assert_allclose(run.arrays["node_cost"], cost[np.arange(len(cost)), run.arrays["chosen_rank"]])
 
 
 def test_sub_sentences_are_searched_separately(database, test_pitch):
     run = search(database, test_pitch, exclude_source=True)
     sub = run.arrays["subsentence_start"]
-    assert sub.sum() >= 16       # two or three sentences per phrase
+    assert sub.sum() >= 16  # two or three sentences per phrase
     np.testing.assert_array_equal(run.arrays["transition_cost"][sub], 0.0)
     joins = ~sub
-    np.testing.assert_allclose(run.arrays["transition_cost"][joins],
-                               run.arrays["transition_smoothness"][joins] + run.arrays["transition_repeat"][joins])
+    np.testing.assert_allclose(
+        run.arrays["transition_cost"][joins],
+        run.arrays["transition_smoothness"][joins] + run.arrays["transition_repeat"][joins],
+    )
     # the search beats taking every segment's best match, in total cost per sub-sentence
-    greedy = run_stage(Trellis, {"exclude_source": True, "w1": 0.0, "w2": 0.0},
-                       {"database": database[0], "database_pitch": database[1], "test_pitch": test_pitch})
+    greedy = run_stage(
+        Trellis,
+        {"exclude_source": True, "w1": 0.0, "w2": 0.0},
+        {"database": database[0], "database_pitch": database[1], "test_pitch": test_pitch},
+    )
     assert greedy.arrays["chosen_rank"].max() == 0
     assert run.metrics["mean_transition_cost"] < 0.8 * np.mean(
-        _transition_costs_of(run, greedy.arrays["chosen"], database))
+        _transition_costs_of(run, greedy.arrays["chosen"], database)
+    )
 
 
 def _transition_costs_of(run, chosen, database):
@@ -229,8 +251,19 @@ def _transition_costs_of(run, chosen, database):
     sub = run.arrays["subsentence_start"]
     seg = run.arrays["segments"]
     scale = (db.segments.length[chosen] / (seg[:, 2] - seg[:, 0]))[None]
-    h, r = transition_costs(chosen[:-1][None], chosen[1:][None], db.end, db.start, db.segments.utterance,
-                            db.segments.position, db.weights, 1.0, 1.0, scale[:, :-1], scale[:, 1:])
+    h, r = transition_costs(
+        chosen[:-1][None],
+        chosen[1:][None],
+        db.end,
+        db.start,
+        db.segments.utterance,
+        db.segments.position,
+        db.weights,
+        1.0,
+        1.0,
+        scale[:, :-1],
+        scale[:, 1:],
+    )
     steps = np.arange(len(chosen) - 1)
     total = h[0][steps, steps] + r[0][steps, steps]
     return total[~sub[1:]]
@@ -264,8 +297,7 @@ def test_exclusions_by_label(database, test_pitch):
 
 def test_database_pitch_must_match_the_database(database, plain_database, test_pitch):
     with pytest.raises(UserError, match="database_pitch"):
-        run_stage(Trellis, {}, {"database": database[0], "database_pitch": plain_database[1],
-                                "test_pitch": test_pitch})
+        run_stage(Trellis, {}, {"database": database[0], "database_pitch": plain_database[1], "test_pitch": test_pitch})
 
 
 def test_bad_weights(database, test_pitch):

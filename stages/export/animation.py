@@ -14,6 +14,7 @@ error unless ``resample_head`` is set (then it is resampled: slerp for rotation,
 motion shorter or longer than the face animation by at most ``max_length_mismatch`` seconds is held at its last
 frame or cut, more is an error.
 """
+
 from __future__ import annotations
 
 import io
@@ -26,29 +27,88 @@ from stages.geometry.rotations import quat_continuous, quat_normalize, quat_sler
 
 #: the 52 ARKit blendshapes in the column order of Live Link Face CSV files
 ARKIT_NAMES = [
-    "EyeBlinkLeft", "EyeLookDownLeft", "EyeLookInLeft", "EyeLookOutLeft", "EyeLookUpLeft", "EyeSquintLeft",
-    "EyeWideLeft", "EyeBlinkRight", "EyeLookDownRight", "EyeLookInRight", "EyeLookOutRight", "EyeLookUpRight",
-    "EyeSquintRight", "EyeWideRight", "JawForward", "JawRight", "JawLeft", "JawOpen", "MouthClose", "MouthFunnel",
-    "MouthPucker", "MouthRight", "MouthLeft", "MouthSmileLeft", "MouthSmileRight", "MouthFrownLeft",
-    "MouthFrownRight", "MouthDimpleLeft", "MouthDimpleRight", "MouthStretchLeft", "MouthStretchRight",
-    "MouthRollLower", "MouthRollUpper", "MouthShrugLower", "MouthShrugUpper", "MouthPressLeft", "MouthPressRight",
-    "MouthLowerDownLeft", "MouthLowerDownRight", "MouthUpperUpLeft", "MouthUpperUpRight", "BrowDownLeft",
-    "BrowDownRight", "BrowInnerUp", "BrowOuterUpLeft", "BrowOuterUpRight", "CheekPuff", "CheekSquintLeft",
-    "CheekSquintRight", "NoseSneerLeft", "NoseSneerRight", "TongueOut",
+    "EyeBlinkLeft",
+    "EyeLookDownLeft",
+    "EyeLookInLeft",
+    "EyeLookOutLeft",
+    "EyeLookUpLeft",
+    "EyeSquintLeft",
+    "EyeWideLeft",
+    "EyeBlinkRight",
+    "EyeLookDownRight",
+    "EyeLookInRight",
+    "EyeLookOutRight",
+    "EyeLookUpRight",
+    "EyeSquintRight",
+    "EyeWideRight",
+    "JawForward",
+    "JawRight",
+    "JawLeft",
+    "JawOpen",
+    "MouthClose",
+    "MouthFunnel",
+    "MouthPucker",
+    "MouthRight",
+    "MouthLeft",
+    "MouthSmileLeft",
+    "MouthSmileRight",
+    "MouthFrownLeft",
+    "MouthFrownRight",
+    "MouthDimpleLeft",
+    "MouthDimpleRight",
+    "MouthStretchLeft",
+    "MouthStretchRight",
+    "MouthRollLower",
+    "MouthRollUpper",
+    "MouthShrugLower",
+    "MouthShrugUpper",
+    "MouthPressLeft",
+    "MouthPressRight",
+    "MouthLowerDownLeft",
+    "MouthLowerDownRight",
+    "MouthUpperUpLeft",
+    "MouthUpperUpRight",
+    "BrowDownLeft",
+    "BrowDownRight",
+    "BrowInnerUp",
+    "BrowOuterUpLeft",
+    "BrowOuterUpRight",
+    "CheekPuff",
+    "CheekSquintLeft",
+    "CheekSquintRight",
+    "NoseSneerLeft",
+    "NoseSneerRight",
+    "TongueOut",
 ]
-ANGLE_COLUMNS = ["HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll", "RightEyeYaw",
-                 "RightEyePitch", "RightEyeRoll"]
+ANGLE_COLUMNS = [
+    "HeadYaw",
+    "HeadPitch",
+    "HeadRoll",
+    "LeftEyeYaw",
+    "LeftEyePitch",
+    "LeftEyeRoll",
+    "RightEyeYaw",
+    "RightEyePitch",
+    "RightEyeRoll",
+]
 LIVE_LINK_COUNT = len(ARKIT_NAMES) + len(ANGLE_COLUMNS)  # 61
 UNITS_TO_METRES = {"m": 1.0, "metre": 1.0, "meter": 1.0, "metres": 1.0, "meters": 1.0, "cm": 0.01, "mm": 0.001}
 
 
 # ------------------------------------------------------------------------------------------------ Live Link Face
 
+
 def arkit_key(name: str) -> str:
     """A target name in Live Link Face spelling: ICT/ARKit ``eyeBlink_L`` or ``eyeBlinkLeft`` -> ``EyeBlinkLeft``."""
     key = name.strip()
-    for suffix, side in (("_L", "Left"), ("_R", "Right"), (".L", "Left"), (".R", "Right"), ("_l", "Left"),
-                         ("_r", "Right")):
+    for suffix, side in (
+        ("_L", "Left"),
+        ("_R", "Right"),
+        (".L", "Left"),
+        (".R", "Right"),
+        ("_l", "Left"),
+        ("_r", "Right"),
+    ):
         if key.endswith(suffix):
             key = key[: -len(suffix)] + side
             break
@@ -93,8 +153,9 @@ def format_timecode(frame: np.ndarray, fps: float) -> list[str]:
     return [f"{h:02d}:{m:02d}:{s:02d}:{f:02d}.000" for h, m, s, f in zip(hh, mm, ss, ff)]
 
 
-def live_link_csv(arkit: np.ndarray, fps: float, head_angles: np.ndarray | None = None,
-                  eye_angles: np.ndarray | None = None) -> bytes:
+def live_link_csv(
+    arkit: np.ndarray, fps: float, head_angles: np.ndarray | None = None, eye_angles: np.ndarray | None = None
+) -> bytes:
     """The CSV text: header, then one row per frame with 61 values (angles in radians, 0 where unknown)."""
     frames = arkit.shape[0]
     angles = np.zeros((frames, len(ANGLE_COLUMNS)))
@@ -113,8 +174,10 @@ def live_link_csv(arkit: np.ndarray, fps: float, head_angles: np.ndarray | None 
 
 # ------------------------------------------------------------------------------------------------ timelines
 
-def resample_head_motion(rotation: np.ndarray, translation: np.ndarray, source_fps: float, target_fps: float,
-                         frames: int) -> tuple[np.ndarray, np.ndarray]:
+
+def resample_head_motion(
+    rotation: np.ndarray, translation: np.ndarray, source_fps: float, target_fps: float, frames: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Head motion sampled at ``frames`` instants i / target_fps: slerp between the neighbouring source frames
     for rotation, linear for translation; past the last source frame the last pose holds."""
     rotation = quat_continuous(quat_normalize(rotation))
@@ -128,23 +191,36 @@ def resample_head_motion(rotation: np.ndarray, translation: np.ndarray, source_f
     return rot, trans
 
 
-def align_head_motion(rotation: np.ndarray, translation: np.ndarray, head_fps: float, fps: float, frames: int, *,
-                      resample: bool, max_mismatch: float, fps_tolerance: float = 1e-3) -> tuple[np.ndarray,
-                                                                                              np.ndarray, dict]:
+def align_head_motion(
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    head_fps: float,
+    fps: float,
+    frames: int,
+    *,
+    resample: bool,
+    max_mismatch: float,
+    fps_tolerance: float = 1e-3,
+) -> tuple[np.ndarray, np.ndarray, dict]:
     """The head motion on the face animation's timeline (``frames`` at ``fps``): see the module docstring."""
     info: dict = {"head_fps": float(head_fps), "head_frames": int(len(rotation))}
     if abs(head_fps - fps) > fps_tolerance * fps:
         if not resample:
-            raise UserError(f"frame-rate mismatch: head motion at {head_fps:g} fps, blend weights at {fps:g} fps; "
-                            f"resample the head motion (params.resample_head: true) or make the streams agree",
-                            field="inputs.head")
+            raise UserError(
+                f"frame-rate mismatch: head motion at {head_fps:g} fps, blend weights at {fps:g} fps; "
+                f"resample the head motion (params.resample_head: true) or make the streams agree",
+                field="inputs.head",
+            )
         info["resampled"] = True
     head_duration = len(rotation) / head_fps
     duration = frames / fps
     shortfall = duration - head_duration
     if shortfall > max_mismatch or -shortfall > max_mismatch:
-        raise UserError(f"head motion lasts {head_duration:.3f} s but the face animation {duration:.3f} s "
-                        f"(difference above params.max_length_mismatch = {max_mismatch:g} s)", field="inputs.head")
+        raise UserError(
+            f"head motion lasts {head_duration:.3f} s but the face animation {duration:.3f} s "
+            f"(difference above params.max_length_mismatch = {max_mismatch:g} s)",
+            field="inputs.head",
+        )
     rot, trans = resample_head_motion(rotation, translation, head_fps, fps, frames)
     info["held_frames"] = int(max(0, frames - int(np.floor(head_duration * fps + 1e-9))))
     return rot, trans, info
@@ -160,13 +236,15 @@ def choose_take(labels: list[str], explicit: str | None, preferred: str | None, 
     if preferred is not None and preferred in labels:
         return labels.index(preferred)
     if len(labels) > 1:
-        raise UserError(f"{field} holds several takes {labels}; choose one with params.sequence",
-                        field="params.sequence")
+        raise UserError(
+            f"{field} holds several takes {labels}; choose one with params.sequence", field="params.sequence"
+        )
     return 0
 
 
-def take_audio(audio_view, explicit: str | None, preferred: str | None, fps: float,
-               frames: int) -> tuple[np.ndarray, int, dict]:
+def take_audio(
+    audio_view, explicit: str | None, preferred: str | None, fps: float, frames: int
+) -> tuple[np.ndarray, int, dict]:
     """The chosen take's audio on the animation timeline: shifted by its audio_offset (leading silence or
     dropped samples) and cut or padded to ``frames / fps`` seconds."""
     meta = audio_view.meta
@@ -185,8 +263,11 @@ def take_audio(audio_view, explicit: str | None, preferred: str | None, fps: flo
     rate = int(rate)
     take_fps = per_take("fps")
     if take_fps and abs(float(take_fps) - fps) > 1e-3 * fps:
-        raise UserError(f"frame-rate mismatch: the take '{labels[index] if labels else index}' was tracked at "
-                        f"{float(take_fps):g} fps but the blend weights are at {fps:g} fps", field="inputs.audio")
+        raise UserError(
+            f"frame-rate mismatch: the take '{labels[index] if labels else index}' was tracked at "
+            f"{float(take_fps):g} fps but the blend weights are at {fps:g} fps",
+            field="inputs.audio",
+        )
     bounds = np.asarray(audio_view["audio_bounds"])
     start, stop = (int(v) for v in bounds[index])
     samples = np.asarray(audio_view["audio"][start:stop], dtype=np.float32)
@@ -197,14 +278,19 @@ def take_audio(audio_view, explicit: str | None, preferred: str | None, fps: flo
     elif shift < 0:
         samples = samples[-shift:]
     length = int(round(frames / fps * rate))
-    info = {"audio_label": labels[index] if labels else None, "audio_rate": rate, "audio_offset": offset,
-            "audio_seconds_source": float((stop - start) / rate)}
+    info = {
+        "audio_label": labels[index] if labels else None,
+        "audio_rate": rate,
+        "audio_offset": offset,
+        "audio_seconds_source": float((stop - start) / rate),
+    }
     if len(samples) < length:
         samples = np.concatenate([samples, np.zeros(length - len(samples), np.float32)])
     return samples[:length], rate, info
 
 
 # ------------------------------------------------------------------------------------------------ video
+
 
 def video_codec_name(requested: str = "auto") -> str:
     """libx264 when PyAV's FFmpeg has it, else the built-in MPEG-4 Part 2 encoder."""
@@ -218,8 +304,16 @@ def video_codec_name(requested: str = "auto") -> str:
     return "libx264" if "libx264" in available else "mpeg4"
 
 
-def encode_mp4(frames, fps: float, size: tuple[int, int], *, audio: np.ndarray | None = None,
-               audio_rate: int | None = None, codec: str = "auto", crf: int = 20) -> tuple[bytes, str]:
+def encode_mp4(
+    frames,
+    fps: float,
+    size: tuple[int, int],
+    *,
+    audio: np.ndarray | None = None,
+    audio_rate: int | None = None,
+    codec: str = "auto",
+    crf: int = 20,
+) -> tuple[bytes, str]:
     """Encode RGB uint8 frames (an iterable of (H, W, 3)) and optional mono float audio into MP4 bytes."""
     import av
 
@@ -257,8 +351,9 @@ def encode_mp4(frames, fps: float, size: tuple[int, int], *, audio: np.ndarray |
             step = astream.codec_context.frame_size or 1024
             samples = np.asarray(audio, np.float32).reshape(1, -1)
             for start in range(0, samples.shape[1], step):
-                chunk = av.AudioFrame.from_ndarray(np.ascontiguousarray(samples[:, start:start + step]),
-                                                   format="flt", layout="mono")
+                chunk = av.AudioFrame.from_ndarray(
+                    np.ascontiguousarray(samples[:, start : start + step]), format="flt", layout="mono"
+                )
                 chunk.sample_rate = int(audio_rate)
                 chunk.pts = start
                 chunk.time_base = Fraction(1, int(audio_rate))
@@ -270,6 +365,7 @@ def encode_mp4(frames, fps: float, size: tuple[int, int], *, audio: np.ndarray |
 
 
 # ------------------------------------------------------------------------------------------------ the stage
+
 
 def _select_frames(blend, explicit: str | None) -> tuple[np.ndarray, str | None]:
     """Rows of the blend weights for one take when the blend holds several (``sequence`` + meta labels), and
@@ -290,8 +386,9 @@ def character_weights(blend_weights: np.ndarray, blend_names: list[str], charact
     """Blend weights re-ordered to the character's targets; targets the blend does not drive stay 0."""
     unknown = [n for n in blend_names if n not in character_names]
     if unknown:
-        raise UserError(f"the blend drives morph targets the character does not have: {unknown[:10]}",
-                        field="inputs.blend")
+        raise UserError(
+            f"the blend drives morph targets the character does not have: {unknown[:10]}", field="inputs.blend"
+        )
     out = np.zeros((blend_weights.shape[0], len(character_names)))
     out[:, [character_names.index(n) for n in blend_names]] = blend_weights
     return out
@@ -307,14 +404,17 @@ def translation_scale(meta: dict, override: float | None) -> tuple[float | None,
     if units is None or str(units).lower() in ("", "unknown"):
         return None, "unknown: head translation left out (set params.translation_scale, metres per unit)"
     if str(units).lower() not in UNITS_TO_METRES:
-        raise UserError(f"head translation is in '{units}', which has no known size in metres; set "
-                        f"params.translation_scale (metres per unit) or params.head_translation: none",
-                        field="params.translation_scale")
+        raise UserError(
+            f"head translation is in '{units}', which has no known size in metres; set "
+            f"params.translation_scale (metres per unit) or params.head_translation: none",
+            field="params.translation_scale",
+        )
     return UNITS_TO_METRES[str(units).lower()], str(units)
 
 
-def select_take(view, names: tuple[str, ...], explicit: str | None, preferred: str | None,
-                field: str) -> tuple[list[np.ndarray], str | None]:
+def select_take(
+    view, names: tuple[str, ...], explicit: str | None, preferred: str | None, field: str
+) -> tuple[list[np.ndarray], str | None]:
     """Rows of ``names`` for one take of an artifact holding several back to back (``sequence`` output + meta
     labels, e.g. motion_blend over several test utterances); an artifact with one take is used whole."""
     arrays = [np.asarray(view[n]) for n in names]
@@ -363,23 +463,35 @@ class Export(Stage):
         "live_link": Output.file(".csv", doc="Live Link Face CSV, 61 values per frame"),
         "preview": Output.file(".mp4", optional=True, doc="rendered preview with the take's audio"),
         "head_bvh": Output.file(".bvh", optional=True, doc="the head joint's motion"),
-        "weights": Output.array("f", shape=("frames", "targets"), dtype="float32",
-                                doc="morph weights in the character's target order, as exported"),
-        "arkit": Output.array("f", shape=("frames", len(ARKIT_NAMES)), dtype="float32",
-                              doc="the 52 Live Link Face blendshape columns"),
+        "weights": Output.array(
+            "f",
+            shape=("frames", "targets"),
+            dtype="float32",
+            doc="morph weights in the character's target order, as exported",
+        ),
+        "arkit": Output.array(
+            "f", shape=("frames", len(ARKIT_NAMES)), dtype="float32", doc="the 52 Live Link Face blendshape columns"
+        ),
         "time": Output.array("f", shape=("frames",), dtype="float64", doc="seconds"),
-        "head_rotation": Output.array("f", shape=("frames", 4), dtype="float64", optional=True,
-                                      doc="head rotation on the animation timeline (w, x, y, z)"),
-        "head_translation": Output.array("f", shape=("frames", 3), dtype="float64", optional=True,
-                                         doc="head translation as exported, metres"),
+        "head_rotation": Output.array(
+            "f",
+            shape=("frames", 4),
+            dtype="float64",
+            optional=True,
+            doc="head rotation on the animation timeline (w, x, y, z)",
+        ),
+        "head_translation": Output.array(
+            "f", shape=("frames", 3), dtype="float64", optional=True, doc="head translation as exported, metres"
+        ),
     }
 
     def run(self, params, inputs):
         from stages.formats.gltf import Animation, MaterialGroup, MorphMesh, write_morph_glb
 
         if params.head_translation not in ("relative", "absolute", "none"):
-            raise UserError("head_translation must be 'relative', 'absolute' or 'none'",
-                            field="params.head_translation")
+            raise UserError(
+                "head_translation must be 'relative', 'absolute' or 'none'", field="params.head_translation"
+            )
         if params.angle_units not in ("radians", "degrees"):
             raise UserError("angle_units must be 'radians' or 'degrees'", field="params.angle_units")
         if params.video_size < 16:
@@ -388,8 +500,10 @@ class Export(Stage):
         char_names = list(character.meta.get("target_names") or [])
         deltas = np.asarray(character["deltas"], dtype=np.float32)
         if len(char_names) != len(deltas):
-            raise UserError(f"character meta lists {len(char_names)} target names for {len(deltas)} morph targets",
-                            field="inputs.character")
+            raise UserError(
+                f"character meta lists {len(char_names)} target names for {len(deltas)} morph targets",
+                field="inputs.character",
+            )
         fps = blend.meta.get("fps")
         if not fps or fps <= 0:
             raise UserError("the blend has no meta fps", field="inputs.blend")
@@ -397,8 +511,10 @@ class Export(Stage):
         blend_weights, label = _select_frames(blend, params.sequence)
         blend_names = list(blend.meta.get("target_names") or [])
         if blend_weights.ndim != 2 or blend_weights.shape[1] != len(blend_names):
-            raise UserError(f"blend weights {blend_weights.shape} do not match its {len(blend_names)} target names",
-                            field="inputs.blend")
+            raise UserError(
+                f"blend weights {blend_weights.shape} do not match its {len(blend_names)} target names",
+                field="inputs.blend",
+            )
         frames = blend_weights.shape[0]
         if frames == 0:
             raise UserError("the blend has no frames", field="inputs.blend")
@@ -413,11 +529,18 @@ class Export(Stage):
             head_fps = head.meta.get("fps")
             if not head_fps:
                 raise UserError("the head motion has no meta fps", field="inputs.head")
-            (head_rot, head_trans), head_label = select_take(head, ("rotation", "translation"), params.sequence,
-                                                             label, "the head motion")
+            (head_rot, head_trans), head_label = select_take(
+                head, ("rotation", "translation"), params.sequence, label, "the head motion"
+            )
             rotation, translation, info = align_head_motion(
-                head_rot.astype(np.float64), head_trans.astype(np.float64), float(head_fps), fps, frames,
-                resample=params.resample_head, max_mismatch=params.max_length_mismatch)
+                head_rot.astype(np.float64),
+                head_trans.astype(np.float64),
+                float(head_fps),
+                fps,
+                frames,
+                resample=params.resample_head,
+                max_mismatch=params.max_length_mismatch,
+            )
             rotation = quat_continuous(quat_normalize(rotation))
             info["take"] = head_label
             scale = None
@@ -434,32 +557,49 @@ class Export(Stage):
             metrics["head_translation_exported"] = int(scale is not None)
 
         groups_meta = character.meta.get("groups") or []
-        groups = [MaterialGroup(g.get("name", f"group{i}"), tuple(g.get("color", (0.8, 0.8, 0.8, 1.0))))
-                  for i, g in enumerate(groups_meta)]
+        groups = [
+            MaterialGroup(g.get("name", f"group{i}"), tuple(g.get("color", (0.8, 0.8, 0.8, 1.0))))
+            for i, g in enumerate(groups_meta)
+        ]
         tri_groups = character["triangle_groups"] if "triangle_groups" in character else None
         pivot = tuple(float(v) for v in character.meta.get("pivot", (0.0, 0.0, 0.0)))
-        mesh = MorphMesh(positions=np.asarray(character["neutral"], np.float32),
-                         triangles=np.asarray(character["triangles"], np.int32), target_names=char_names,
-                         deltas=deltas, triangle_groups=tri_groups, groups=groups,
-                         extras={"landmarkVertexIds": [int(i) for i in character["landmark_ids"]],
-                                 "headPivot": list(pivot)}, name="Character")
-        animation = Animation(times=times, weights=weights, rotation=rotation, translation=translation,
-                              pivot=pivot)
-        glb = write_morph_glb(mesh, animation=animation, generator="msflow stages.export.animation",
-                              scene_extras={"fps": fps, "take": label})
+        mesh = MorphMesh(
+            positions=np.asarray(character["neutral"], np.float32),
+            triangles=np.asarray(character["triangles"], np.int32),
+            target_names=char_names,
+            deltas=deltas,
+            triangle_groups=tri_groups,
+            groups=groups,
+            extras={"landmarkVertexIds": [int(i) for i in character["landmark_ids"]], "headPivot": list(pivot)},
+            name="Character",
+        )
+        animation = Animation(times=times, weights=weights, rotation=rotation, translation=translation, pivot=pivot)
+        glb = write_morph_glb(
+            mesh,
+            animation=animation,
+            generator="msflow stages.export.animation",
+            scene_extras={"fps": fps, "take": label},
+        )
 
         arkit, sources = arkit_weights(weights, char_names)
         head_angles = quat_to_euler(rotation) if rotation is not None else None
         if head_angles is not None and params.angle_units == "degrees":
             head_angles = np.degrees(head_angles)
         csv = live_link_csv(arkit, fps, head_angles)
-        meta["live_link"] = {"columns_from": sources,
-                             "empty_columns": [c for c in ARKIT_NAMES if c not in sources],
-                             "angle_units": params.angle_units}
+        meta["live_link"] = {
+            "columns_from": sources,
+            "empty_columns": [c for c in ARKIT_NAMES if c not in sources],
+            "angle_units": params.angle_units,
+        }
         metrics["live_link_columns_filled"] = len(sources)
 
-        arrays = {"animation": glb, "live_link": csv, "weights": weights.astype(np.float32),
-                  "arkit": arkit.astype(np.float32), "time": times}
+        arrays = {
+            "animation": glb,
+            "live_link": csv,
+            "weights": weights.astype(np.float32),
+            "arkit": arkit.astype(np.float32),
+            "time": times,
+        }
         if rotation is not None:
             from stages.formats.bvh import head_bvh
 
@@ -475,22 +615,30 @@ class Export(Stage):
                 meta["audio"] = audio_info
             video, codec = render_preview(character, weights, rotation, translation, fps, params, samples, rate)
             arrays["preview"] = video
-            meta["video"] = {"codec": codec, "size": params.video_size // 2 * 2, "framing": params.framing,
-                             "audio": samples is not None}
+            meta["video"] = {
+                "codec": codec,
+                "size": params.video_size // 2 * 2,
+                "framing": params.framing,
+                "audio": samples is not None,
+            }
         metrics["glb_bytes"] = len(glb)
         return Result(arrays, meta=meta, metrics=metrics)
 
 
-def render_preview(character, weights: np.ndarray, rotation, translation, fps: float, params, audio=None,
-                   audio_rate=None) -> tuple[bytes, str]:
+def render_preview(
+    character, weights: np.ndarray, rotation, translation, fps: float, params, audio=None, audio_rate=None
+) -> tuple[bytes, str]:
     """Render every frame (stages.geometry.render) and encode the MP4 (frames stream into the encoder one by one)."""
     from stages.geometry.render import CharacterRenderer
 
     size = int(params.video_size) // 2 * 2  # yuv420p needs even sides
-    renderer = CharacterRenderer.from_artifact(character, size=size, framing=params.framing, yaw=params.view_yaw,
-                                               supersample=params.supersample)
-    frames = (renderer(weights[i], None if rotation is None else rotation[i],
-                       None if translation is None else translation[i]) for i in range(len(weights)))
+    renderer = CharacterRenderer.from_artifact(
+        character, size=size, framing=params.framing, yaw=params.view_yaw, supersample=params.supersample
+    )
+    frames = (
+        renderer(weights[i], None if rotation is None else rotation[i], None if translation is None else translation[i])
+        for i in range(len(weights))
+    )
     return encode_mp4(frames, fps, (size, size), audio=audio, audio_rate=audio_rate, codec=params.video_codec)
 
 
@@ -506,8 +654,7 @@ def plot_curves(view, inputs=None):
     names = view.meta["target_names"]
     top = np.argsort(-weights.mean(axis=0))[:10]
     has_head = "head_rotation" in view
-    fig, axes = plt.subplots(2 if has_head else 1, 1, figsize=(9, 5 if has_head else 3), sharex=True,
-                             squeeze=False)
+    fig, axes = plt.subplots(2 if has_head else 1, 1, figsize=(9, 5 if has_head else 3), sharex=True, squeeze=False)
     for i in top:
         axes[0, 0].plot(time, weights[:, i], label=names[i], lw=1)
     axes[0, 0].set_ylabel("morph weight")

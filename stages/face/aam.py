@@ -10,6 +10,7 @@ the origin, its eye centres are level and one unit apart (inter-ocular distance 
 with image orientation kept (x right, y down). Landmark errors in this frame are therefore already normalised
 by the inter-ocular distance.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -27,6 +28,7 @@ IBUG68_MOUTH = np.arange(48, 68)
 
 
 # ----------------------------------------------------------------------------------------------- Procrustes
+
 
 def eye_centres(shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Centres of the image-left and image-right eye (..., 2) of iBUG-68 shapes (..., 68, 2)."""
@@ -46,7 +48,7 @@ def canonical_pose(shape: np.ndarray) -> np.ndarray:
     left, right = eye_centres(centred)
     axis = right - left
     z = complex(axis[0], axis[1])
-    rot = np.conj(z) / abs(z) ** 2          # rotates the eye axis onto +x and scales it to length 1
+    rot = np.conj(z) / abs(z) ** 2  # rotates the eye axis onto +x and scales it to length 1
     zs = (centred[:, 0] + 1j * centred[:, 1]) * rot
     return np.stack([zs.real, zs.imag], axis=-1)
 
@@ -79,8 +81,9 @@ def apply_similarity(shapes: np.ndarray, similarity: np.ndarray) -> np.ndarray:
     return np.stack([c * x - si * y + tx, si * x + c * y + ty], axis=-1)
 
 
-def generalised_procrustes(shapes: np.ndarray, tol: float = 1e-10, max_iter: int = 100
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def generalised_procrustes(
+    shapes: np.ndarray, tol: float = 1e-10, max_iter: int = 100
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Generalised Procrustes analysis (Cootes et al.): align all shapes to their iteratively refined mean.
 
     Returns (aligned (F, N, 2), mean shape (N, 2) in the canonical gauge, similarity (F, 4) aligned -> input).
@@ -100,16 +103,18 @@ def generalised_procrustes(shapes: np.ndarray, tol: float = 1e-10, max_iter: int
 
 # ----------------------------------------------------------------------------------------------- PCA
 
+
 @dataclass
 class Pca:
-    mean: np.ndarray          # (D,)
-    basis: np.ndarray         # (n, D) orthonormal rows
-    eigenvalues: np.ndarray   # (n,) variance along each row
-    total_variance: float     # of the data, all modes
+    mean: np.ndarray  # (D,)
+    basis: np.ndarray  # (n, D) orthonormal rows
+    eigenvalues: np.ndarray  # (n,) variance along each row
+    total_variance: float  # of the data, all modes
 
 
-def fit_pca(data: np.ndarray, variance: float | None = None, n_modes: int | None = None,
-            max_modes: int | None = None) -> Pca:
+def fit_pca(
+    data: np.ndarray, variance: float | None = None, n_modes: int | None = None, max_modes: int | None = None
+) -> Pca:
     """PCA of rows of ``data`` (F, D), keeping ``n_modes`` or the fewest modes explaining ``variance``.
 
     Uses the F x F Gram matrix when F < D (the texture case: fewer frames than pixels).
@@ -128,7 +133,7 @@ def fit_pca(data: np.ndarray, variance: float | None = None, n_modes: int | None
         basis = (evecs.T @ centred) / np.sqrt(evals)[:, None]
     else:
         _, sing, vt = np.linalg.svd(centred, full_matrices=False)
-        evals = sing ** 2
+        evals = sing**2
         keep_rank = evals > evals[0] * 1e-12 if evals.size and evals[0] > 0 else np.zeros_like(evals, dtype=bool)
         evals, basis = evals[keep_rank], vt[keep_rank]
     denom = max(f - 1, 1)
@@ -167,9 +172,9 @@ def heldout_pca_error(data: np.ndarray, folds: list[np.ndarray], max_modes: int)
         pca = fit_pca(data[train], n_modes=max_modes)
         centred = data[held] - pca.mean
         coef = centred @ pca.basis.T
-        total = float(np.sum(centred ** 2))
+        total = float(np.sum(centred**2))
         # the basis is orthonormal: the residual with m modes is the total minus m squared coefficients
-        residual = np.maximum(total - np.concatenate([[0.0], np.cumsum(np.sum(coef ** 2, 0))]), 0.0)
+        residual = np.maximum(total - np.concatenate([[0.0], np.cumsum(np.sum(coef**2, 0))]), 0.0)
         residual = np.concatenate([residual, np.full(max_modes + 1 - len(residual), residual[-1])])
         residual_sum += residual
         total_sum += total
@@ -188,6 +193,7 @@ def temporal_folds(sequence: np.ndarray, k: int) -> list[np.ndarray]:
 
 
 # ----------------------------------------------------------------------------------------------- texture frame
+
 
 def texture_reference(mean_shape: np.ndarray, width: int, margin: float = 1.0) -> tuple[np.ndarray, tuple[int, int]]:
     """The mean shape drawn in a texture image ``width`` pixels wide: (points (N, 2), size (w, h))."""
@@ -209,38 +215,47 @@ def photometric_normalise(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
 
 # ----------------------------------------------------------------------------------------------- model
 
+
 @dataclass
 class AamProjection:
     """A sequence in model coordinates (what ``AamModel.project`` returns)."""
 
-    aligned_shapes: np.ndarray     # (F, 68, 2) in the mean-shape frame
-    similarity: np.ndarray         # (F, 4) aligned -> image (landmarks)
-    crop_similarity: np.ndarray    # (F, 4) aligned -> crop (crop_landmarks)
-    b_s: np.ndarray                # (F, n_s)
-    b_g: np.ndarray                # (F, n_g)
-    y: np.ndarray                  # (F, n_s + n_g) = [r b_s; b_g]
-    texture_offset: np.ndarray     # (F,) grey-level mean of the shape-free texture
-    texture_scale: np.ndarray      # (F,) grey-level standard deviation
-    textures: np.ndarray           # (F, P) photometrically normalised shape-free textures
+    aligned_shapes: np.ndarray  # (F, 68, 2) in the mean-shape frame
+    similarity: np.ndarray  # (F, 4) aligned -> image (landmarks)
+    crop_similarity: np.ndarray  # (F, 4) aligned -> crop (crop_landmarks)
+    b_s: np.ndarray  # (F, n_s)
+    b_g: np.ndarray  # (F, n_g)
+    y: np.ndarray  # (F, n_s + n_g) = [r b_s; b_g]
+    texture_offset: np.ndarray  # (F,) grey-level mean of the shape-free texture
+    texture_scale: np.ndarray  # (F,) grey-level standard deviation
+    textures: np.ndarray  # (F, P) photometrically normalised shape-free textures
 
 
 @dataclass
 class AamModel:
     """A fitted appearance model: Eq 1 (shape), Eq 2 (texture), Eq 3 (combined vector y)."""
 
-    mean_shape: np.ndarray            # (68, 2)
-    shape_basis: np.ndarray           # (n_s, 136), rows orthonormal, interleaved x, y
-    shape_eigenvalues: np.ndarray     # (n_s,)
-    texture_mean: np.ndarray          # (P,)
-    texture_basis: np.ndarray         # (n_g, P)
-    texture_eigenvalues: np.ndarray   # (n_g,)
-    shape_weight: float               # r in B_s = r I
-    texture_points: np.ndarray        # (68, 2) mean shape in texture pixels
-    triangles: np.ndarray             # (T, 3)
-    texture_size: tuple[int, int]     # (w, h)
+    mean_shape: np.ndarray  # (68, 2)
+    shape_basis: np.ndarray  # (n_s, 136), rows orthonormal, interleaved x, y
+    shape_eigenvalues: np.ndarray  # (n_s,)
+    texture_mean: np.ndarray  # (P,)
+    texture_basis: np.ndarray  # (n_g, P)
+    texture_eigenvalues: np.ndarray  # (n_g,)
+    shape_weight: float  # r in B_s = r I
+    texture_points: np.ndarray  # (68, 2) mean shape in texture pixels
+    triangles: np.ndarray  # (T, 3)
+    texture_size: tuple[int, int]  # (w, h)
 
-    ARRAYS = ("mean_shape", "shape_basis", "shape_eigenvalues", "texture_mean", "texture_basis",
-              "texture_eigenvalues", "texture_points", "triangles")
+    ARRAYS = (
+        "mean_shape",
+        "shape_basis",
+        "shape_eigenvalues",
+        "texture_mean",
+        "texture_basis",
+        "texture_eigenvalues",
+        "texture_points",
+        "triangles",
+    )
 
     @property
     def n_shape(self) -> int:
@@ -259,12 +274,19 @@ class AamModel:
         return cached
 
     @classmethod
-    def from_view(cls, view) -> "AamModel":
+    def from_view(cls, view) -> AamModel:
         """The model stored in an ``aam`` artifact (ArtifactView or dict of arrays with ``meta``)."""
         meta = view.meta
-        return cls(**{name: np.asarray(view[name], dtype=np.float64) if name != "triangles"
-                      else np.asarray(view[name], dtype=np.int32) for name in cls.ARRAYS},
-                   shape_weight=float(meta["shape_weight"]), texture_size=tuple(meta["texture_size"]))
+        return cls(
+            **{
+                name: np.asarray(view[name], dtype=np.float64)
+                if name != "triangles"
+                else np.asarray(view[name], dtype=np.int32)
+                for name in cls.ARRAYS
+            },
+            shape_weight=float(meta["shape_weight"]),
+            texture_size=tuple(meta["texture_size"]),
+        )
 
     # --- Eq 1-3 forward
     def shape_params(self, aligned: np.ndarray) -> np.ndarray:
@@ -283,20 +305,22 @@ class AamModel:
     def split(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Inverse of Eq 3: (b_s, b_g) from y (..., K)."""
         y = np.asarray(y, dtype=np.float64)
-        return y[..., :self.n_shape] / self.shape_weight, y[..., self.n_shape:]
+        return y[..., : self.n_shape] / self.shape_weight, y[..., self.n_shape :]
 
     def project(self, landmarks: np.ndarray, crops: np.ndarray, crop_landmarks: np.ndarray) -> AamProjection:
         """Project a (new) sequence into this model: align its shapes to the mean, sample its shape-free texture."""
         landmarks = np.asarray(landmarks, dtype=np.float64)
         aligned, similarity = similarity_align(landmarks, self.mean_shape - self.mean_shape.mean(0))
-        _, crop_similarity = similarity_align(np.asarray(crop_landmarks, dtype=np.float64),
-                                              self.mean_shape - self.mean_shape.mean(0))
+        _, crop_similarity = similarity_align(
+            np.asarray(crop_landmarks, dtype=np.float64), self.mean_shape - self.mean_shape.mean(0)
+        )
         raw = self.warp.warp(crops, crop_landmarks)
         textures, offset, scale = photometric_normalise(raw)
         b_s = self.shape_params(aligned)
         b_g = self.texture_params(textures)
-        return AamProjection(aligned, similarity, crop_similarity, b_s, b_g, self.combine(b_s, b_g),
-                             offset, scale, textures)
+        return AamProjection(
+            aligned, similarity, crop_similarity, b_s, b_g, self.combine(b_s, b_g), offset, scale, textures
+        )
 
     # --- Eq 1-3 inverse
     def reconstruct_shapes(self, b_s: np.ndarray) -> np.ndarray:
@@ -313,8 +337,9 @@ class AamModel:
         b_s, b_g = self.split(y)
         return self.reconstruct_shapes(b_s), self.reconstruct_textures(b_g)
 
-    def texture_images(self, textures: np.ndarray, offset: np.ndarray | float = 0.0,
-                       scale: np.ndarray | float = 1.0) -> np.ndarray:
+    def texture_images(
+        self, textures: np.ndarray, offset: np.ndarray | float = 0.0, scale: np.ndarray | float = 1.0
+    ) -> np.ndarray:
         """Normalised textures (F, P) back to grey-level images (F, h, w) of the texture frame (0 outside)."""
         offset = np.asarray(offset, dtype=np.float64)
         scale = np.asarray(scale, dtype=np.float64)
@@ -337,10 +362,18 @@ def balanced_shape_weight(shape_eigenvalues: np.ndarray, texture_eigenvalues: np
     return float(np.sqrt(np.sum(texture_eigenvalues) / max(float(np.sum(shape_eigenvalues)), 1e-300)))
 
 
-def fit_aam(landmarks: np.ndarray, crops: np.ndarray, crop_landmarks: np.ndarray, *,
-            shape_variance: float = 0.98, n_shape: int | None = None, texture_variance: float = 0.95,
-            n_texture: int | None = None, texture_width: int = 64, shape_balance: float = 1.0
-            ) -> tuple[AamModel, AamProjection]:
+def fit_aam(
+    landmarks: np.ndarray,
+    crops: np.ndarray,
+    crop_landmarks: np.ndarray,
+    *,
+    shape_variance: float = 0.98,
+    n_shape: int | None = None,
+    texture_variance: float = 0.95,
+    n_texture: int | None = None,
+    texture_width: int = 64,
+    shape_balance: float = 1.0,
+) -> tuple[AamModel, AamProjection]:
     """Fit Eq 1-3 on training frames; returns the model and the training frames projected into it.
 
     B_s = r I with r = shape_balance * sqrt(sum lambda_g / sum lambda_s): ``shape_balance`` 1 is Cootes' balance
@@ -356,13 +389,24 @@ def fit_aam(landmarks: np.ndarray, crops: np.ndarray, crop_landmarks: np.ndarray
     textures, _, _ = photometric_normalise(raw)
     texture_pca = fit_pca(textures, texture_variance, n_texture)
     shape_weight = float(shape_balance) * balanced_shape_weight(shape_pca.eigenvalues, texture_pca.eigenvalues)
-    model = AamModel(mean_shape, shape_pca.basis, shape_pca.eigenvalues, texture_pca.mean, texture_pca.basis,
-                     texture_pca.eigenvalues, shape_weight, points, triangles, size)
+    model = AamModel(
+        mean_shape,
+        shape_pca.basis,
+        shape_pca.eigenvalues,
+        texture_pca.mean,
+        texture_pca.basis,
+        texture_pca.eigenvalues,
+        shape_weight,
+        points,
+        triangles,
+        size,
+    )
     model.__dict__["_warp"] = warp
     return model, model.project(landmarks, crops, crop_landmarks)
 
 
 # ----------------------------------------------------------------------------------------------- input checks
+
 
 def check_landmarks(landmarks: np.ndarray, sequence: np.ndarray, labels: list[str], field: str) -> None:
     """UserError when NaN/Inf landmarks would reach the model (tracking should interpolate gaps)."""
@@ -370,9 +414,11 @@ def check_landmarks(landmarks: np.ndarray, sequence: np.ndarray, labels: list[st
     if bad.any():
         frames = np.flatnonzero(bad)
         takes = sorted({labels[int(s)] if int(s) < len(labels) else str(int(s)) for s in np.asarray(sequence)[frames]})
-        raise UserError(f"{bad.sum()} frame(s) have NaN or missing landmarks (takes {takes}, first frames "
-                        f"{frames[:5].tolist()}); re-run tracking with gap interpolation or drop those frames",
-                        field=field)
+        raise UserError(
+            f"{bad.sum()} frame(s) have NaN or missing landmarks (takes {takes}, first frames "
+            f"{frames[:5].tolist()}); re-run tracking with gap interpolation or drop those frames",
+            field=field,
+        )
 
 
 def check_landmark_scheme(landmarks: np.ndarray, meta: dict, field: str, expected: str | None = None) -> str:
@@ -380,14 +426,16 @@ def check_landmark_scheme(landmarks: np.ndarray, meta: dict, field: str, expecte
     scheme = str(meta.get("landmark_scheme", "ibug68"))
     n_points = np.asarray(landmarks).shape[1] if np.ndim(landmarks) == 3 else None
     if n_points != 68:
-        raise UserError(f"landmarks have {n_points} points per frame; the face model needs the 68-point iBUG "
-                        f"scheme", field=field)
+        raise UserError(
+            f"landmarks have {n_points} points per frame; the face model needs the 68-point iBUG scheme", field=field
+        )
     if expected is not None and scheme != expected:
         raise UserError(f"landmark scheme '{scheme}' differs from the training data's '{expected}'", field=field)
     return scheme
 
 
 # ----------------------------------------------------------------------------------------------- figures
+
 
 def figure_shape_modes(view, inputs=None):
     """Mean shape with its triangulation and the first shape modes at +-2 standard deviations."""
@@ -427,10 +475,12 @@ def figure_heldout_error(view, inputs=None):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5, 3.2))
-    for name, kept, label in (("heldout_shape_error", "n_shape", "shape"),
-                              ("heldout_texture_error", "n_texture", "texture")):
+    for name, kept, label in (
+        ("heldout_shape_error", "n_shape", "shape"),
+        ("heldout_texture_error", "n_texture", "texture"),
+    ):
         err = np.asarray(view[name])
-        line, = ax.plot(np.arange(len(err)), err, marker=".", label=label)
+        (line,) = ax.plot(np.arange(len(err)), err, marker=".", label=label)
         k = view.meta.get(kept)
         if k is not None and k < len(err):
             ax.plot([k], [err[k]], "o", mfc="none", color=line.get_color(), ms=9)
@@ -457,8 +507,9 @@ AAM_OUTPUTS = {
     "texture_eigenvalues": Output.array("f", shape=("n_texture",)),
     "texture_points": Output.array("f", shape=(68, 2), doc="mean shape in texture-image pixels"),
     "triangles": Output.array("i", shape=(None, 3), doc="Delaunay triangles of the mean shape"),
-    "texture_mask": Output.array("b", ndim=2, doc="texture-image pixels inside the face hull (sample order: "
-                                                  "row-major over True pixels)"),
+    "texture_mask": Output.array(
+        "b", ndim=2, doc="texture-image pixels inside the face hull (sample order: row-major over True pixels)"
+    ),
     "texture_offset": Output.array("f", shape=("frames",), doc="grey-level mean before normalisation"),
     "texture_scale": Output.array("f", shape=("frames",), doc="grey-level std before normalisation"),
     "b_g": Output.array("f", shape=("frames", "n_texture")),
@@ -481,8 +532,11 @@ class AamPca(Stage):
         shape_balance: float = Field(1.0, gt=0)
         heldout_folds: int = Field(5, ge=2)
 
-    inputs = {"tracks": Input.artifact("landmarks", "crops", "crop_landmarks", "sequence",
-                                       doc="tracking artifact of the training takes")}
+    inputs = {
+        "tracks": Input.artifact(
+            "landmarks", "crops", "crop_landmarks", "sequence", doc="tracking artifact of the training takes"
+        )
+    }
     outputs = AAM_OUTPUTS
 
     def run(self, params, inputs):
@@ -494,12 +548,20 @@ class AamPca(Stage):
         check_landmarks(landmarks, sequence, labels, "inputs.tracks.landmarks")
         check_landmarks(view["crop_landmarks"], sequence, labels, "inputs.tracks.crop_landmarks")
         if len(landmarks) < 3:
-            raise UserError(f"only {len(landmarks)} training frames; the appearance model needs at least 3",
-                            field="inputs.tracks")
-        model, proj = fit_aam(landmarks, view["crops"], view["crop_landmarks"],
-                              shape_variance=params.shape_variance, n_shape=params.n_shape,
-                              texture_variance=params.texture_variance, n_texture=params.n_texture,
-                              texture_width=params.texture_width, shape_balance=params.shape_balance)
+            raise UserError(
+                f"only {len(landmarks)} training frames; the appearance model needs at least 3", field="inputs.tracks"
+            )
+        model, proj = fit_aam(
+            landmarks,
+            view["crops"],
+            view["crop_landmarks"],
+            shape_variance=params.shape_variance,
+            n_shape=params.n_shape,
+            texture_variance=params.texture_variance,
+            n_texture=params.n_texture,
+            texture_width=params.texture_width,
+            shape_balance=params.shape_balance,
+        )
         folds = temporal_folds(sequence, min(params.heldout_folds, int(np.bincount(sequence).max())))
         folds = [f for f in folds if 0 < len(f) < len(sequence)]
         shape_err = heldout_pca_error(proj.aligned_shapes.reshape(len(sequence), -1), folds, model.n_shape + 5)
@@ -507,21 +569,39 @@ class AamPca(Stage):
         arrays = {name: getattr(model, name) for name in AamModel.ARRAYS}
         arrays["triangles"] = model.triangles.astype(np.int32)
         arrays.update(
-            texture_mask=model.warp.pixels.mask, b_s=proj.b_s, b_g=proj.b_g, y=proj.y,
-            aligned_shapes=proj.aligned_shapes, similarity=proj.similarity, crop_similarity=proj.crop_similarity,
-            texture_offset=proj.texture_offset, texture_scale=proj.texture_scale, sequence=sequence,
-            heldout_shape_error=shape_err, heldout_texture_error=texture_err)
+            texture_mask=model.warp.pixels.mask,
+            b_s=proj.b_s,
+            b_g=proj.b_g,
+            y=proj.y,
+            aligned_shapes=proj.aligned_shapes,
+            similarity=proj.similarity,
+            crop_similarity=proj.crop_similarity,
+            texture_offset=proj.texture_offset,
+            texture_scale=proj.texture_scale,
+            sequence=sequence,
+            heldout_shape_error=shape_err,
+            heldout_texture_error=texture_err,
+        )
         shape_resid = proj.aligned_shapes - model.reconstruct_shapes(proj.b_s)
-        meta = {"labels": labels, "fps": view.meta.get("fps"), "landmark_scheme": scheme,
-                "shape_weight": model.shape_weight, "shape_balance": params.shape_balance,
-                "texture_width": params.texture_width,
-                "texture_size": list(model.texture_size), "n_shape": model.n_shape, "n_texture": model.n_texture,
-                "shape_frame": "mean-shape frame: centroid 0, eyes level, inter-ocular distance 1, y down"}
+        meta = {
+            "labels": labels,
+            "fps": view.meta.get("fps"),
+            "landmark_scheme": scheme,
+            "shape_weight": model.shape_weight,
+            "shape_balance": params.shape_balance,
+            "texture_width": params.texture_width,
+            "texture_size": list(model.texture_size),
+            "n_shape": model.n_shape,
+            "n_texture": model.n_texture,
+            "shape_frame": "mean-shape frame: centroid 0, eyes level, inter-ocular distance 1, y down",
+        }
         shape_total = shape_pca_total(proj.aligned_shapes)
         metrics = {
-            "n_shape": model.n_shape, "n_texture": model.n_texture, "shape_weight": model.shape_weight,
+            "n_shape": model.n_shape,
+            "n_texture": model.n_texture,
+            "shape_weight": model.shape_weight,
             "shape_variance_kept": float(model.shape_eigenvalues.sum() / max(shape_total, 1e-300)),
-            "train_shape_rms_iod": float(np.sqrt(np.mean(np.sum(shape_resid ** 2, -1)))),
+            "train_shape_rms_iod": float(np.sqrt(np.mean(np.sum(shape_resid**2, -1)))),
             "heldout_shape_error": float(shape_err[min(model.n_shape, len(shape_err) - 1)]),
             "heldout_texture_error": float(texture_err[min(model.n_texture, len(texture_err) - 1)]),
         }
@@ -535,6 +615,21 @@ def shape_pca_total(aligned: np.ndarray) -> float:
     return float(np.sum((flat - flat.mean(0)) ** 2) / max(len(flat) - 1, 1))
 
 
-__all__ = ["AamModel", "AamPca", "AamProjection", "fit_aam", "project", "reconstruct", "generalised_procrustes",
-           "similarity_align", "apply_similarity", "fit_pca", "canonical_pose", "interocular_distance",
-           "temporal_folds", "heldout_pca_error", "check_landmarks", "check_landmark_scheme"]
+__all__ = [
+    "AamModel",
+    "AamPca",
+    "AamProjection",
+    "fit_aam",
+    "project",
+    "reconstruct",
+    "generalised_procrustes",
+    "similarity_align",
+    "apply_similarity",
+    "fit_pca",
+    "canonical_pose",
+    "interocular_distance",
+    "temporal_folds",
+    "heldout_pca_error",
+    "check_landmarks",
+    "check_landmark_scheme",
+]

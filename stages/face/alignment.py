@@ -9,6 +9,7 @@ take is time-aligned to a reference take by dynamic time warping on per-frame fe
 Features are normalised per take (mean and variance), so a constant expression offset (a smile, a louder voice)
 does not pull the alignment.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -17,8 +18,8 @@ import numpy as np
 
 from msflow import UserError
 
-
 # ----------------------------------------------------------------------------------------------- DTW
+
 
 def dtw_cost_matrix(reference: np.ndarray, other: np.ndarray) -> np.ndarray:
     """Euclidean frame distances (n_ref, n_other) between two feature sequences."""
@@ -82,10 +83,10 @@ def aligned_index(path: np.ndarray, n_reference: int) -> np.ndarray:
 class ContentAlignment:
     """Every take time-aligned to the reference take's frames, which form the content axis."""
 
-    reference: int                  # index of the reference take
-    aligned_local: np.ndarray       # (S, C) frame of take s (within the take) at content position c
-    paths: list[np.ndarray]         # per take (L_s, 2) pairs (reference frame, take frame)
-    costs: np.ndarray               # (S,) mean cost per path step
+    reference: int  # index of the reference take
+    aligned_local: np.ndarray  # (S, C) frame of take s (within the take) at content position c
+    paths: list[np.ndarray]  # per take (L_s, 2) pairs (reference frame, take frame)
+    costs: np.ndarray  # (S,) mean cost per path step
 
     def paths_table(self) -> np.ndarray:
         """All warping paths as one (L, 3) int32 table of (take, reference frame, take frame)."""
@@ -118,8 +119,16 @@ def standardise_per_take(features: np.ndarray) -> np.ndarray:
 
 # ----------------------------------------------------------------------------------------------- features
 
-def mfcc_at_frames(samples: np.ndarray, rate: float, frame_times: np.ndarray, *, n_coefficients: int = 12,
-                   window_length: float = 0.025, time_step: float = 0.005) -> np.ndarray:
+
+def mfcc_at_frames(
+    samples: np.ndarray,
+    rate: float,
+    frame_times: np.ndarray,
+    *,
+    n_coefficients: int = 12,
+    window_length: float = 0.025,
+    time_step: float = 0.005,
+) -> np.ndarray:
     """MFCCs c1..cN of an audio signal, interpolated at the given times (seconds from the first sample).
 
     parselmouth's Praat MFCC (mel filter bank, DCT); c0 (overall level) is dropped so loudness, which differs
@@ -133,14 +142,20 @@ def mfcc_at_frames(samples: np.ndarray, rate: float, frame_times: np.ndarray, *,
         samples = np.pad(samples, (0, min_samples - len(samples)))
     sound = parselmouth.Sound(samples, sampling_frequency=float(rate))
     mfcc = sound.to_mfcc(number_of_coefficients=n_coefficients, window_length=window_length, time_step=time_step)
-    values = mfcc.to_array()[1:n_coefficients + 1]              # (N, frames); row 0 is c0
+    values = mfcc.to_array()[1 : n_coefficients + 1]  # (N, frames); row 0 is c0
     times = np.asarray(mfcc.xs())
     t = np.asarray(frame_times, dtype=np.float64)
     return np.stack([np.interp(t, times, row) for row in values], axis=-1)
 
 
-def audio_features(audio: np.ndarray, audio_bounds: np.ndarray, rate: float, frame_times: list[np.ndarray],
-                   audio_offsets: list[float], **mfcc_options) -> list[np.ndarray]:
+def audio_features(
+    audio: np.ndarray,
+    audio_bounds: np.ndarray,
+    rate: float,
+    frame_times: list[np.ndarray],
+    audio_offsets: list[float],
+    **mfcc_options,
+) -> list[np.ndarray]:
     """Per take: standardised MFCCs at its video frame times (frame time t -> audio time t - audio_offset)."""
     out = []
     for s, (start, stop) in enumerate(np.asarray(audio_bounds)):
@@ -149,8 +164,9 @@ def audio_features(audio: np.ndarray, audio_bounds: np.ndarray, rate: float, fra
     return out
 
 
-def mouth_features(aligned_shapes: np.ndarray, sequence: np.ndarray, n_takes: int, variance: float = 0.95,
-                   max_modes: int = 8) -> list[np.ndarray]:
+def mouth_features(
+    aligned_shapes: np.ndarray, sequence: np.ndarray, n_takes: int, variance: float = 0.95, max_modes: int = 8
+) -> list[np.ndarray]:
     """Per take: mouth-region shape parameters (PCA of the aligned mouth points over all takes), take mean removed."""
     from stages.face.aam import IBUG68_MOUTH, fit_pca
 
@@ -166,6 +182,8 @@ def check_takes(sequence: np.ndarray, labels: list[str], min_frames: int, why: s
     takes = [np.flatnonzero(sequence == s) for s in range(len(labels))]
     for label, frames in zip(labels, takes):
         if len(frames) < min_frames:
-            raise UserError(f"take '{label}' has {len(frames)} frames; {why} needs at least {min_frames} frames "
-                            f"per take", field=field)
+            raise UserError(
+                f"take '{label}' has {len(frames)} frames; {why} needs at least {min_frames} frames per take",
+                field=field,
+            )
     return takes

@@ -1,6 +1,6 @@
 """Symmetric bilinear model of expression (style) and speech (content), paper Sec 3.2 Eq 4:
 y_k(s, c) = e_s' W_k c_c, fitted with Tenenbaum & Freeman's (2000) SVD-based alternating algorithm
-(see /work/shared/paper/NOTES.md for the stacked notation and the vector transpose).
+(see docs/bilinear.md for the stacked notation and the vector transpose).
 
 Arrays here use a 3-D layout instead of the stacked matrices: observations Y[s, c, k], basis W[i, j, k],
 style vectors as rows style[s] (= a^s), content vectors as rows content[c] (= b^c). ``vector_transpose``
@@ -12,6 +12,7 @@ PCA coordinates, so the model also sees the mean face as a constant extra compon
 ``mean_weight``); without it, frames near the mean face have no defined style and the out-of-sample analysis
 collapses (bench/eval_face.py --mean-weight 0 shows it).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -23,8 +24,8 @@ from pydantic import Field
 from msflow import Input, Output, Result, Stage, UserError
 from stages.face.alignment import align_takes, audio_features, check_takes, mouth_features
 
-
 # ----------------------------------------------------------------------------------------------- algebra
+
 
 def vector_transpose(x: np.ndarray, k: int) -> np.ndarray:
     """Vector transpose X^VT: X is (P*K, Q), P x Q blocks that are K-vectors; returns (Q*K, P) with the blocks
@@ -58,10 +59,10 @@ def synthesise_grid(w: np.ndarray, style: np.ndarray, content: np.ndarray) -> np
 
 @dataclass
 class BilinearSolution:
-    w: np.ndarray            # (I, J, K)
-    style: np.ndarray        # (S, I), rows of an orthonormal I x S matrix
-    content: np.ndarray      # (C, J), rows of an orthonormal J x C matrix
-    errors: np.ndarray       # relative squared training error per iteration
+    w: np.ndarray  # (I, J, K)
+    style: np.ndarray  # (S, I), rows of an orthonormal I x S matrix
+    content: np.ndarray  # (C, J), rows of an orthonormal J x C matrix
+    errors: np.ndarray  # relative squared training error per iteration
     converged: bool
 
     @property
@@ -69,8 +70,9 @@ class BilinearSolution:
         return float(self.errors[-1])
 
 
-def fit_symmetric_bilinear(y: np.ndarray, style_dim: int, content_dim: int, *, tol: float = 1e-10,
-                           max_iter: int = 500) -> BilinearSolution:
+def fit_symmetric_bilinear(
+    y: np.ndarray, style_dim: int, content_dim: int, *, tol: float = 1e-10, max_iter: int = 500
+) -> BilinearSolution:
     """Tenenbaum & Freeman's symmetric bilinear fit of observations y (S, C, K).
 
     B starts from the leading right singular vectors of the stacked Y; then alternately
@@ -81,28 +83,28 @@ def fit_symmetric_bilinear(y: np.ndarray, style_dim: int, content_dim: int, *, t
     y = np.asarray(y, dtype=np.float64)
     n_style, n_content, k = y.shape
     i_dim, j_dim = int(style_dim), int(content_dim)
-    stacked = stack_observations(y)                                 # SK x C
-    stacked_vt = vector_transpose(stacked, k)                       # CK x S
-    norm = max(float(np.sum(stacked ** 2)), 1e-300)
-    b = np.linalg.svd(stacked, full_matrices=False)[2][:j_dim]      # J x C
+    stacked = stack_observations(y)  # SK x C
+    stacked_vt = vector_transpose(stacked, k)  # CK x S
+    norm = max(float(np.sum(stacked**2)), 1e-300)
+    b = np.linalg.svd(stacked, full_matrices=False)[2][:j_dim]  # J x C
     errors: list[float] = []
     converged = False
     for _ in range(max_iter):
-        yb_vt = vector_transpose(stacked @ b.T, k)                  # JK x S
-        a = np.linalg.svd(yb_vt, full_matrices=False)[2][:i_dim]    # I x S
-        ya_vt = vector_transpose(stacked_vt @ a.T, k)               # IK x C
-        b = np.linalg.svd(ya_vt, full_matrices=False)[2][:j_dim]    # J x C
+        yb_vt = vector_transpose(stacked @ b.T, k)  # JK x S
+        a = np.linalg.svd(yb_vt, full_matrices=False)[2][:i_dim]  # I x S
+        ya_vt = vector_transpose(stacked_vt @ a.T, k)  # IK x C
+        b = np.linalg.svd(ya_vt, full_matrices=False)[2][:j_dim]  # J x C
         # with orthonormal A, B the fitted Y is the projection of Y onto both row spaces: error = 1 - captured
-        core = vector_transpose(stacked_vt @ a.T, k) @ b.T          # IK x J = W
-        errors.append(max(1.0 - float(np.sum(core ** 2)) / norm, 0.0))
+        core = vector_transpose(stacked_vt @ a.T, k) @ b.T  # IK x J = W
+        errors.append(max(1.0 - float(np.sum(core**2)) / norm, 0.0))
         if len(errors) > 1 and abs(errors[-2] - errors[-1]) < tol:
             converged = True
             break
-    w_stacked = vector_transpose(vector_transpose(stacked @ b.T, k) @ a.T, k)   # IK x J
-    w = w_stacked.reshape(i_dim, k, j_dim).transpose(0, 2, 1)                    # (I, J, K)
+    w_stacked = vector_transpose(vector_transpose(stacked @ b.T, k) @ a.T, k)  # IK x J
+    w = w_stacked.reshape(i_dim, k, j_dim).transpose(0, 2, 1)  # (I, J, K)
     # the error from the captured energy loses precision near zero: report the direct residual
     residual = y - synthesise_grid(w, a.T, b.T)
-    errors[-1] = float(np.sum(residual ** 2)) / norm
+    errors[-1] = float(np.sum(residual**2)) / norm
     return BilinearSolution(w, a.T.copy(), b.T.copy(), np.asarray(errors), converged)
 
 
@@ -113,31 +115,39 @@ def subspace_angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return angles(np.asarray(a).T, np.asarray(b).T)
 
 
-def check_dimensions(n_style: int, n_content: int, k: int, style_dim: int, content_dim: int,
-                     field_prefix: str = "params") -> None:
+def check_dimensions(
+    n_style: int, n_content: int, k: int, style_dim: int, content_dim: int, field_prefix: str = "params"
+) -> None:
     """UserError when I or J exceed what the data allows: I <= S, J <= C, I <= J K, J <= I K."""
     if n_style < 2:
-        raise UserError(f"the bilinear model needs at least two expressions, got {n_style}",
-                        field="inputs.aam")
+        raise UserError(f"the bilinear model needs at least two expressions, got {n_style}", field="inputs.aam")
     if not 1 <= style_dim <= n_style:
-        raise UserError(f"style_dim {style_dim} must be between 1 and the number of expressions ({n_style})",
-                        field=f"{field_prefix}.style_dim")
+        raise UserError(
+            f"style_dim {style_dim} must be between 1 and the number of expressions ({n_style})",
+            field=f"{field_prefix}.style_dim",
+        )
     if not 1 <= content_dim <= n_content:
-        raise UserError(f"content_dim {content_dim} must be between 1 and the number of aligned content frames "
-                        f"({n_content})", field=f"{field_prefix}.content_dim")
+        raise UserError(
+            f"content_dim {content_dim} must be between 1 and the number of aligned content frames ({n_content})",
+            field=f"{field_prefix}.content_dim",
+        )
     if content_dim > style_dim * k or style_dim > content_dim * k:
-        raise UserError(f"style_dim {style_dim} and content_dim {content_dim} are inconsistent with K={k} "
-                        f"components (need I <= J*K and J <= I*K)", field=f"{field_prefix}.content_dim")
+        raise UserError(
+            f"style_dim {style_dim} and content_dim {content_dim} are inconsistent with K={k} "
+            f"components (need I <= J*K and J <= I*K)",
+            field=f"{field_prefix}.content_dim",
+        )
 
 
 def choose_content_dim(y: np.ndarray, variance: float, maximum: int) -> int:
     """Fewest content dimensions whose singular values capture ``variance`` of the stacked observations."""
     sing = np.linalg.svd(stack_observations(np.asarray(y, dtype=np.float64)), compute_uv=False)
-    frac = np.cumsum(sing ** 2) / max(float(np.sum(sing ** 2)), 1e-300)
+    frac = np.cumsum(sing**2) / max(float(np.sum(sing**2)), 1e-300)
     return int(min(np.searchsorted(frac, variance - 1e-12) + 1, maximum))
 
 
 # ----------------------------------------------------------------------------------------------- model
+
 
 @dataclass
 class BilinearModel:
@@ -149,12 +159,12 @@ class BilinearModel:
     one constant extra component ``mean_component`` (kappa), with basis ``w_mean``. kappa = 0 is the centred fit.
     """
 
-    w: np.ndarray                  # (I, J, K) basis of the y components
-    style: np.ndarray              # (S, I), one row per training expression
-    content: np.ndarray            # (C, J), aligned training content
+    w: np.ndarray  # (I, J, K) basis of the y components
+    style: np.ndarray  # (S, I), one row per training expression
+    content: np.ndarray  # (C, J), aligned training content
     labels: list[str]
-    w_mean: np.ndarray | None = None   # (I, J) basis of the constant mean-face component
-    mean_component: float = 0.0        # kappa: the mean-face component's value in every observation
+    w_mean: np.ndarray | None = None  # (I, J) basis of the constant mean-face component
+    mean_component: float = 0.0  # kappa: the mean-face component's value in every observation
 
     @property
     def mean_content(self) -> np.ndarray:
@@ -178,7 +188,7 @@ class BilinearModel:
         """Eq 4: y (..., K) for paired style (..., I) and content (..., J)."""
         return synthesise(self.w, style, content)
 
-    def weighted(self, weights: np.ndarray) -> "BilinearModel":
+    def weighted(self, weights: np.ndarray) -> BilinearModel:
         """The same model seen through component weights (K,) or (K+1,) (mean-face component last):
         ``weighted(d).augment(y * d[:K]) == augment(y) * d`` and ``weighted(d).w_full == w_full * d``. Styles and
         content vectors are unchanged, so an analysis of weighted vectors is a weighted least squares."""
@@ -187,22 +197,39 @@ class BilinearModel:
         if weights.shape not in ((k,), (self.w_full.shape[2],)):
             raise ValueError(f"weights {weights.shape} do not match the model's {self.w_full.shape[2]} components")
         mean_weight = float(weights[k]) if len(weights) > k else 1.0
-        return BilinearModel(self.w * weights[:k], self.style, self.content, list(self.labels),
-                             None if self.w_mean is None else self.w_mean * mean_weight,
-                             self.mean_component * mean_weight)
+        return BilinearModel(
+            self.w * weights[:k],
+            self.style,
+            self.content,
+            list(self.labels),
+            None if self.w_mean is None else self.w_mean * mean_weight,
+            self.mean_component * mean_weight,
+        )
 
     @classmethod
-    def from_view(cls, view) -> "BilinearModel":
+    def from_view(cls, view) -> BilinearModel:
         w_mean = view.get("W_mean")
-        return cls(np.asarray(view["W"], dtype=np.float64), np.asarray(view["style"], dtype=np.float64),
-                   np.asarray(view["content"], dtype=np.float64), list(view.meta["labels"]),
-                   None if w_mean is None else np.asarray(w_mean, dtype=np.float64),
-                   float(view.meta.get("mean_component", 0.0)))
+        return cls(
+            np.asarray(view["W"], dtype=np.float64),
+            np.asarray(view["style"], dtype=np.float64),
+            np.asarray(view["content"], dtype=np.float64),
+            list(view.meta["labels"]),
+            None if w_mean is None else np.asarray(w_mean, dtype=np.float64),
+            float(view.meta.get("mean_component", 0.0)),
+        )
 
 
-def fit_bilinear_model(y: np.ndarray, labels: list[str], *, style_dim: int | None = None,
-                       content_dim: int | None = None, content_variance: float = 0.98, mean_weight: float = 1.0,
-                       tol: float = 1e-10, max_iter: int = 500) -> tuple[BilinearModel, BilinearSolution]:
+def fit_bilinear_model(
+    y: np.ndarray,
+    labels: list[str],
+    *,
+    style_dim: int | None = None,
+    content_dim: int | None = None,
+    content_variance: float = 0.98,
+    mean_weight: float = 1.0,
+    tol: float = 1e-10,
+    max_iter: int = 500,
+) -> tuple[BilinearModel, BilinearSolution]:
     """Fit Eq 4 to aligned observations y (S, C, K) (one row of content positions per expression).
 
     ``mean_weight`` sets kappa = mean_weight * RMS |y| (see ``BilinearModel``); ``content_dim`` None picks the
@@ -211,9 +238,15 @@ def fit_bilinear_model(y: np.ndarray, labels: list[str], *, style_dim: int | Non
     y = np.asarray(y, dtype=np.float64)
     n_style, n_content, k = y.shape
     style_dim = n_style if style_dim is None else int(style_dim)
-    kappa = float(mean_weight) * float(np.sqrt(np.mean(np.sum(y ** 2, -1))))
-    model = BilinearModel(np.zeros((0, 0, k)), np.zeros((n_style, 0)), np.zeros((n_content, 0)), list(labels),
-                          np.zeros((0, 0)) if kappa > 0 else None, kappa)
+    kappa = float(mean_weight) * float(np.sqrt(np.mean(np.sum(y**2, -1))))
+    model = BilinearModel(
+        np.zeros((0, 0, k)),
+        np.zeros((n_style, 0)),
+        np.zeros((n_content, 0)),
+        list(labels),
+        np.zeros((0, 0)) if kappa > 0 else None,
+        kappa,
+    )
     augmented = model.augment(y)
     k_full = augmented.shape[2]
     if content_dim is None:
@@ -233,15 +266,18 @@ BILINEAR_OUTPUTS = {
     "W": Output.array("f", ndim=3, doc="(I, J, K) bilinear basis, Eq 4"),
     "style": Output.array("f", ndim=2, doc="(S, I) style vector per training expression (meta labels order)"),
     "content": Output.array("f", shape=("content", None), doc="(C, J) content vectors of the aligned frames"),
-    "aligned_frames": Output.array("i", shape=(None, "content"),
-                                   doc="(S, C) frame index into the aam/tracking frame axis, per take and content "
-                                       "position"),
+    "aligned_frames": Output.array(
+        "i",
+        shape=(None, "content"),
+        doc="(S, C) frame index into the aam/tracking frame axis, per take and content position",
+    ),
     "aligned_local": Output.array("i", shape=(None, "content"), doc="(S, C) frame index within each take"),
     "dtw_paths": Output.array("i", shape=(None, 3), doc="(take, reference frame, take frame) warping path steps"),
     "fit_errors": Output.array("f", ndim=1, doc="relative squared training error per iteration"),
     "residual_per_take": Output.array("f", ndim=1, doc="(S,) relative squared training error of each take"),
-    "W_mean": Output.array("f", ndim=2, optional=True,
-                           doc="(I, J) basis of the constant mean-face component (meta mean_component)"),
+    "W_mean": Output.array(
+        "f", ndim=2, optional=True, doc="(I, J) basis of the constant mean-face component (meta mean_component)"
+    ),
 }
 
 
@@ -301,36 +337,64 @@ class BilinearFit(Stage):
         y_all = np.asarray(aam["y"], dtype=np.float64)
         sequence = np.asarray(aam["sequence"])
         if len(labels) < 2:
-            raise UserError(f"the bilinear model needs at least two training expressions, got {labels}",
-                            field="inputs.aam")
-        features = content_features(params.align, labels, sequence, aligned_shapes=aam["aligned_shapes"],
-                                    tracks=inputs.get("tracks"))
+            raise UserError(
+                f"the bilinear model needs at least two training expressions, got {labels}", field="inputs.aam"
+            )
+        features = content_features(
+            params.align, labels, sequence, aligned_shapes=aam["aligned_shapes"], tracks=inputs.get("tracks")
+        )
         reference = reference_index(params.reference, labels)
         style_dim = params.style_dim if params.style_dim is not None else len(labels)
         min_frames = max(params.content_dim or 2, 2)
         why = f"content_dim {params.content_dim}" if params.content_dim else "content alignment"
-        takes = check_takes(sequence, labels, min_frames, why,
-                            "params.content_dim" if params.content_dim else "inputs.aam")
+        takes = check_takes(
+            sequence, labels, min_frames, why, "params.content_dim" if params.content_dim else "inputs.aam"
+        )
         alignment = align_takes(features, reference, params.dtw_band)
         aligned_frames = np.stack([takes[s][alignment.aligned_local[s]] for s in range(len(labels))])
-        y = y_all[aligned_frames]                                   # (S, C, K)
-        model, fit = fit_bilinear_model(y, labels, style_dim=style_dim, content_dim=params.content_dim,
-                                        content_variance=params.content_variance, mean_weight=params.mean_weight,
-                                        tol=params.tol, max_iter=params.max_iter)
+        y = y_all[aligned_frames]  # (S, C, K)
+        model, fit = fit_bilinear_model(
+            y,
+            labels,
+            style_dim=style_dim,
+            content_dim=params.content_dim,
+            content_variance=params.content_variance,
+            mean_weight=params.mean_weight,
+            tol=params.tol,
+            max_iter=params.max_iter,
+        )
         residual = y - model.synthesise(model.style[:, None, :], model.content[None, :, :])
-        per_take = np.sum(residual ** 2, axis=(1, 2)) / np.maximum(np.sum(y ** 2, axis=(1, 2)), 1e-300)
+        per_take = np.sum(residual**2, axis=(1, 2)) / np.maximum(np.sum(y**2, axis=(1, 2)), 1e-300)
         content_dim = model.content.shape[1]
-        meta = {"labels": labels, "reference": labels[reference], "align": params.align,
-                "style_dim": style_dim, "content_dim": content_dim, "K": y.shape[2], "converged": fit.converged,
-                "iterations": len(fit.errors), "mean_component": model.mean_component,
-                "mean_weight": params.mean_weight}
-        metrics = {"train_error": float(np.sum(residual ** 2) / max(float(np.sum(y ** 2)), 1e-300)),
-                   "iterations": len(fit.errors), "content_dim": content_dim, "style_dim": style_dim,
-                   **{f"dtw_cost_{labels[s]}": float(alignment.costs[s]) for s in range(len(labels))}}
-        arrays = {"W": model.w, "style": model.style, "content": model.content,
-                  "aligned_frames": aligned_frames.astype(np.int64),
-                  "aligned_local": alignment.aligned_local.astype(np.int64),
-                  "dtw_paths": alignment.paths_table(), "fit_errors": fit.errors, "residual_per_take": per_take}
+        meta = {
+            "labels": labels,
+            "reference": labels[reference],
+            "align": params.align,
+            "style_dim": style_dim,
+            "content_dim": content_dim,
+            "K": y.shape[2],
+            "converged": fit.converged,
+            "iterations": len(fit.errors),
+            "mean_component": model.mean_component,
+            "mean_weight": params.mean_weight,
+        }
+        metrics = {
+            "train_error": float(np.sum(residual**2) / max(float(np.sum(y**2)), 1e-300)),
+            "iterations": len(fit.errors),
+            "content_dim": content_dim,
+            "style_dim": style_dim,
+            **{f"dtw_cost_{labels[s]}": float(alignment.costs[s]) for s in range(len(labels))},
+        }
+        arrays = {
+            "W": model.w,
+            "style": model.style,
+            "content": model.content,
+            "aligned_frames": aligned_frames.astype(np.int64),
+            "aligned_local": alignment.aligned_local.astype(np.int64),
+            "dtw_paths": alignment.paths_table(),
+            "fit_errors": fit.errors,
+            "residual_per_take": per_take,
+        }
         if model.w_mean is not None:
             arrays["W_mean"] = model.w_mean
         return Result(arrays, meta=meta, metrics=metrics)
@@ -341,13 +405,15 @@ def reference_index(reference: str | None, labels: list[str]) -> int:
     if reference is None:
         return labels.index("neutral") if "neutral" in labels else 0
     if reference not in labels:
-        raise UserError(f"reference take '{reference}' is not one of the training takes {labels}",
-                        field="params.reference")
+        raise UserError(
+            f"reference take '{reference}' is not one of the training takes {labels}", field="params.reference"
+        )
     return labels.index(reference)
 
 
-def content_features(align: str, labels: list[str], sequence: np.ndarray, *, aligned_shapes: np.ndarray | None = None,
-                     tracks=None) -> list[np.ndarray]:
+def content_features(
+    align: str, labels: list[str], sequence: np.ndarray, *, aligned_shapes: np.ndarray | None = None, tracks=None
+) -> list[np.ndarray]:
     """Per-take features for DTW: 'audio' (MFCCs of the tracking artifact's audio at the video frame times) or
     'mouth' (mouth-region shape parameters of the Procrustes-aligned shapes)."""
     if align == "mouth":
@@ -355,15 +421,21 @@ def content_features(align: str, labels: list[str], sequence: np.ndarray, *, ali
     if align != "audio":
         raise UserError(f"align must be 'audio' or 'mouth', got '{align}'", field="params.align")
     if tracks is None or "audio" not in tracks or "audio_bounds" not in tracks:
-        raise UserError("align: audio needs the tracking artifact with audio (input 'tracks'); use align: mouth "
-                        "for takes without audio", field="inputs.tracks")
+        raise UserError(
+            "align: audio needs the tracking artifact with audio (input 'tracks'); use align: mouth "
+            "for takes without audio",
+            field="inputs.tracks",
+        )
     meta = tracks.meta
     if list(meta.get("labels", [])) != list(labels):
-        raise UserError(f"tracking labels {meta.get('labels')} differ from the appearance model's {labels}",
-                        field="inputs.tracks")
+        raise UserError(
+            f"tracking labels {meta.get('labels')} differ from the appearance model's {labels}", field="inputs.tracks"
+        )
     if not np.array_equal(np.asarray(tracks["sequence"]), sequence):
-        raise UserError("the tracking artifact's frames differ from the appearance model's (different takes?)",
-                        field="inputs.tracks")
+        raise UserError(
+            "the tracking artifact's frames differ from the appearance model's (different takes?)",
+            field="inputs.tracks",
+        )
     has_audio = meta.get("has_audio", [True] * len(labels))
     silent = [label for label, flag in zip(labels, has_audio) if not flag]
     if silent:
@@ -375,6 +447,8 @@ def content_features(align: str, labels: list[str], sequence: np.ndarray, *, ali
     frame_times = [times[sequence == s] for s in range(len(labels))]
     for s, (start, stop) in enumerate(bounds):
         if stop - start < rate * 0.1:
-            raise UserError(f"take '{labels[s]}' has {stop - start} audio samples (< 0.1 s); use align: mouth",
-                            field="inputs.tracks.audio")
+            raise UserError(
+                f"take '{labels[s]}' has {stop - start} audio samples (< 0.1 s); use align: mouth",
+                field="inputs.tracks.audio",
+            )
     return audio_features(tracks["audio"], bounds, rate, frame_times, list(offsets))

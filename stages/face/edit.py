@@ -34,6 +34,7 @@ Editing replaces e by a training expression's style vector or a barycentric mix 
 the edited y goes back through Eq 3-1 to shapes and textures, and the texture is warped onto the shape and pasted
 into the test take's face crops.
 """
+
 from __future__ import annotations
 
 import io
@@ -55,11 +56,11 @@ from stages.face.bilinear import BilinearModel, synthesise, synthesise_grid
 class StyleContent:
     """Per-frame factors of a sequence under a bilinear model."""
 
-    style: np.ndarray        # (F, I) e(t), normalised so e . m = m . m (m: mean training style)
-    content: np.ndarray      # (F, J) c(t)
+    style: np.ndarray  # (F, I) e(t), normalised so e . m = m . m (m: mean training style)
+    content: np.ndarray  # (F, J) c(t)
     iterations: int
     converged: bool
-    residual: np.ndarray     # (F,) squared reconstruction error |y - e' W c|^2 per frame
+    residual: np.ndarray  # (F,) squared reconstruction error |y - e' W c|^2 per frame
 
 
 class BilinearAnalyser:
@@ -72,13 +73,13 @@ class BilinearAnalyser:
         self.i_dim, self.j_dim = i_dim, j_dim
         # G[i, j, l, m] = sum_k W[i,j,k] W[l,m,k]: |[W c]^VT e|^2 = e' (c' G c) e, no K-sized products per frame
         g = np.einsum("ijk,lmk->ijlm", self.w, self.w)
-        self.gram_for_style = g.transpose(1, 3, 0, 2).reshape(j_dim * j_dim, i_dim * i_dim)   # (jm, il)
+        self.gram_for_style = g.transpose(1, 3, 0, 2).reshape(j_dim * j_dim, i_dim * i_dim)  # (jm, il)
         self.gram_for_content = g.transpose(0, 2, 1, 3).reshape(i_dim * i_dim, j_dim * j_dim)  # (il, jm)
         self.mean_style = np.asarray(training_styles, dtype=np.float64).mean(0)
         self.gauge = float(self.mean_style @ self.mean_style)
         # orthonormal complement of the mean style: e = mean_style + N z satisfies the gauge for every z
         _, _, vt = np.linalg.svd(self.mean_style[None, :])
-        self.complement = vt[1:].T                                                          # (I, I-1)
+        self.complement = vt[1:].T  # (I, I-1)
 
     # --- quadratic forms of one factor given the other (normal equations of Eq 5 and Eq 6)
     def style_system(self, content: np.ndarray, wy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -97,8 +98,11 @@ class BilinearAnalyser:
         """Fix the scale ambiguity: e . m = m . m (and c scaled inversely, y unchanged)."""
         proj = style @ self.mean_style
         tiny = np.abs(proj) < 1e-12 * np.linalg.norm(style, axis=-1) * np.sqrt(self.gauge) + 1e-300
-        factor = np.where(tiny, np.sqrt(self.gauge) / np.maximum(np.linalg.norm(style, axis=-1), 1e-300),
-                          self.gauge / np.where(tiny, 1.0, proj))
+        factor = np.where(
+            tiny,
+            np.sqrt(self.gauge) / np.maximum(np.linalg.norm(style, axis=-1), 1e-300),
+            self.gauge / np.where(tiny, 1.0, proj),
+        )
         return style * factor[:, None], content / factor[:, None]
 
     def objective(self, y_sq: np.ndarray, style: np.ndarray, content: np.ndarray, wy: np.ndarray) -> np.ndarray:
@@ -106,8 +110,16 @@ class BilinearAnalyser:
         gram, rhs = self.style_system(content, wy)
         return np.maximum(y_sq - 2 * np.sum(rhs * style, -1) + np.einsum("fi,fil,fl->f", style, gram, style), 0.0)
 
-    def analyse(self, y: np.ndarray, initial_content: np.ndarray, *, smooth: float = 0.0,
-                smooth_content: float = 0.0, tol: float = 1e-9, max_iter: int = 200) -> StyleContent:
+    def analyse(
+        self,
+        y: np.ndarray,
+        initial_content: np.ndarray,
+        *,
+        smooth: float = 0.0,
+        smooth_content: float = 0.0,
+        tol: float = 1e-9,
+        max_iter: int = 200,
+    ) -> StyleContent:
         """Alternate Eq 5 and Eq 6 from the initial content ((J,) for all frames, as the paper's mean training
         content, or (F, J)), each frame until its squared error changes by less than ``tol`` times |y|^2.
 
@@ -115,8 +127,8 @@ class BilinearAnalyser:
         """
         y = np.asarray(y, dtype=np.float64)
         f = len(y)
-        wy = np.einsum("ijk,fk->fij", self.w, y)                     # y is fixed: its only K-sized product
-        y_sq = np.sum(y ** 2, -1)
+        wy = np.einsum("ijk,fk->fij", self.w, y)  # y is fixed: its only K-sized product
+        y_sq = np.sum(y**2, -1)
         content = np.broadcast_to(np.asarray(initial_content, dtype=np.float64), (f, self.j_dim)).copy()
         style = np.zeros((f, self.i_dim))
         error = np.full(f, np.inf)
@@ -137,8 +149,9 @@ class BilinearAnalyser:
             active = active[~done]
         converged = len(active) == 0
         if (smooth > 0 or smooth_content > 0) and f > 1:
-            style, content, extra, converged = self._smooth(y_sq, wy, style, content, smooth, smooth_content, tol,
-                                                            max_iter)
+            style, content, extra, converged = self._smooth(
+                y_sq, wy, style, content, smooth, smooth_content, tol, max_iter
+            )
             iterations += extra
         residual = np.sum((y - synthesise(self.w, style, content)) ** 2, -1)
         return StyleContent(style, content, iterations, converged, residual)
@@ -182,8 +195,11 @@ class BilinearAnalyser:
             pair_c = smooth_content * 0.5 * (gram[1:] + gram[:-1])
             content = solve_temporal(gram, rhs, pair_c)
             dc, de = np.diff(content, axis=0), np.diff(style, axis=0)
-            total = float(np.sum(self.objective(y_sq, style, content, wy))
-                          + np.einsum("fj,fjm,fm->", dc, pair_c, dc) + lam_e * np.sum(de ** 2))
+            total = float(
+                np.sum(self.objective(y_sq, style, content, wy))
+                + np.einsum("fj,fjm,fm->", dc, pair_c, dc)
+                + lam_e * np.sum(de**2)
+            )
             if abs(previous - total) <= tol * max(float(np.sum(y_sq)), 1e-300):
                 converged = True
                 break
@@ -219,7 +235,7 @@ def solve_temporal(gram: np.ndarray, rhs: np.ndarray, pair: np.ndarray | float) 
     diag += 1e-12 * max(scale, 1e-300) * np.eye(d)
     u = 2 * d - 1
     n = f * d
-    bands = np.zeros((u + 1, n))                     # upper form: bands[u + row - col, col] = M[row, col]
+    bands = np.zeros((u + 1, n))  # upper form: bands[u + row - col, col] = M[row, col]
     a_idx, b_idx = np.triu_indices(d)
     rows = (np.arange(f)[:, None] * d + a_idx).reshape(-1)
     cols = (np.arange(f)[:, None] * d + b_idx).reshape(-1)
@@ -242,17 +258,26 @@ def initial_content(y: np.ndarray, model: BilinearModel, init: str = "mean") -> 
         raise UserError(f"init must be 'mean' or 'nearest', got '{init}'", field="params.init")
     from scipy.spatial.distance import cdist
 
-    grid = synthesise_grid(model.w_full, model.style, model.content)     # (S, C, K)
+    grid = synthesise_grid(model.w_full, model.style, model.content)  # (S, C, K)
     nearest = np.argmin(cdist(np.asarray(y, dtype=np.float64), grid.reshape(-1, grid.shape[-1])), axis=1)
     return model.content[nearest % len(model.content)]
 
 
-def analyse_style_content(w: np.ndarray, training_styles: np.ndarray, initial_content: np.ndarray,
-                          y: np.ndarray, *, smooth: float = 0.0, smooth_content: float = 0.0, tol: float = 1e-9,
-                          max_iter: int = 200) -> StyleContent:
+def analyse_style_content(
+    w: np.ndarray,
+    training_styles: np.ndarray,
+    initial_content: np.ndarray,
+    y: np.ndarray,
+    *,
+    smooth: float = 0.0,
+    smooth_content: float = 0.0,
+    tol: float = 1e-9,
+    max_iter: int = 200,
+) -> StyleContent:
     """Eq 5-6 for every frame of y (F, K): style e(t) and content c(t); see ``BilinearAnalyser``."""
-    return BilinearAnalyser(w, training_styles).analyse(y, initial_content, smooth=smooth,
-                                                        smooth_content=smooth_content, tol=tol, max_iter=max_iter)
+    return BilinearAnalyser(w, training_styles).analyse(
+        y, initial_content, smooth=smooth, smooth_content=smooth_content, tol=tol, max_iter=max_iter
+    )
 
 
 def component_weights(n_shape: int, k_model: int, shape_weight: float) -> np.ndarray:
@@ -260,13 +285,22 @@ def component_weights(n_shape: int, k_model: int, shape_weight: float) -> np.nda
     ``n_shape`` (the r b_s rows of Eq 3), 1 on the texture rows and the mean-face component. 1 everywhere is the
     paper's analysis of y as Eq 3 defines it."""
     weights = np.ones(int(k_model))
-    weights[:int(n_shape)] = float(shape_weight)
+    weights[: int(n_shape)] = float(shape_weight)
     return weights
 
 
-def analyse_takes(model: BilinearModel, y_model: np.ndarray, sequence: np.ndarray, *, init: str = "mean",
-                  smooth: float = 0.0, smooth_content: float = 0.0, tol: float = 1e-9, max_iter: int = 200,
-                  weights: np.ndarray | None = None) -> StyleContent:
+def analyse_takes(
+    model: BilinearModel,
+    y_model: np.ndarray,
+    sequence: np.ndarray,
+    *,
+    init: str = "mean",
+    smooth: float = 0.0,
+    smooth_content: float = 0.0,
+    tol: float = 1e-9,
+    max_iter: int = 200,
+    weights: np.ndarray | None = None,
+) -> StyleContent:
     """Eq 5-6 for model-space vectors (F, K(+1)) of one or more takes (``sequence`` labels each frame's take).
 
     Without a temporal prior all frames are one batch; with it, each take is its own sequence (the prior must not
@@ -275,8 +309,16 @@ def analyse_takes(model: BilinearModel, y_model: np.ndarray, sequence: np.ndarra
     """
     if weights is not None:
         weights = np.asarray(weights, dtype=np.float64)
-        result = analyse_takes(model.weighted(weights), y_model * weights, sequence, init=init, smooth=smooth,
-                               smooth_content=smooth_content, tol=tol, max_iter=max_iter)
+        result = analyse_takes(
+            model.weighted(weights),
+            y_model * weights,
+            sequence,
+            init=init,
+            smooth=smooth,
+            smooth_content=smooth_content,
+            tol=tol,
+            max_iter=max_iter,
+        )
         # the style is what the weighted rows say; the content (speech) is then solved from every component
         analyser = BilinearAnalyser(model.w_full, model.style)
         sequence = np.asarray(sequence)
@@ -294,15 +336,24 @@ def analyse_takes(model: BilinearModel, y_model: np.ndarray, sequence: np.ndarra
     parts = {}
     for take in np.unique(sequence):
         idx = np.flatnonzero(sequence == take)
-        parts[int(take)] = (idx, analyser.analyse(y_model[idx], start[idx], smooth=smooth,
-                                                  smooth_content=smooth_content, tol=tol, max_iter=max_iter))
+        parts[int(take)] = (
+            idx,
+            analyser.analyse(
+                y_model[idx], start[idx], smooth=smooth, smooth_content=smooth_content, tol=tol, max_iter=max_iter
+            ),
+        )
     style = np.zeros((len(y_model), model.style.shape[1]))
     content = np.zeros((len(y_model), model.content.shape[1]))
     residual = np.zeros(len(y_model))
     for idx, part in parts.values():
         style[idx], content[idx], residual[idx] = part.style, part.content, part.residual
-    return StyleContent(style, content, max(p.iterations for _, p in parts.values()),
-                        all(p.converged for _, p in parts.values()), residual)
+    return StyleContent(
+        style,
+        content,
+        max(p.iterations for _, p in parts.values()),
+        all(p.converged for _, p in parts.values()),
+        residual,
+    )
 
 
 def style_barycentric(style: np.ndarray, training_styles: np.ndarray) -> np.ndarray:
@@ -337,15 +388,16 @@ def style_fit_residuals(model: BilinearModel, y_model: np.ndarray, weights: np.n
     y = np.asarray(y_model, dtype=np.float64)
     out = np.empty((len(y), len(model.style)))
     for s, e in enumerate(model.style):
-        basis = np.einsum("i,ijk->kj", e, model.w_full)          # (K, J): content -> y in style s
+        basis = np.einsum("i,ijk->kj", e, model.w_full)  # (K, J): content -> y in style s
         u, sing, _ = np.linalg.svd(basis, full_matrices=False)
         q = u[:, sing > sing[0] * 1e-10] if sing.size and sing[0] > 0 else u[:, :0]
-        out[:, s] = np.sum(y ** 2, -1) - np.sum((y @ q) ** 2, -1)
+        out[:, s] = np.sum(y**2, -1) - np.sum((y @ q) ** 2, -1)
     return np.maximum(out, 0.0)
 
 
-def classify_by_fit(model: BilinearModel, y_model: np.ndarray, weights: np.ndarray | None = None
-                    ) -> tuple[np.ndarray, np.ndarray]:
+def classify_by_fit(
+    model: BilinearModel, y_model: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Training style that explains each frame best (``style_fit_residuals``): (F,) index, (F, S) residuals."""
     residuals = style_fit_residuals(model, y_model, weights)
     return np.argmin(residuals, axis=-1), residuals
@@ -360,6 +412,7 @@ def jitter(style: np.ndarray) -> float:
 
 
 # ----------------------------------------------------------------------------------------------- edit (Eq 7)
+
 
 class Keyframe(BaseModel):
     """Barycentric weights over the training expressions at a time (seconds from the take's first frame)."""
@@ -378,8 +431,10 @@ def weight_vector(weights: dict[str, float], labels: list[str], field: str) -> n
     if not np.all(np.isfinite(vec)):
         raise UserError("weights must be finite numbers", field=field)
     if abs(vec.sum() - 1.0) > 1e-6:
-        raise UserError(f"barycentric weights must sum to 1 (got {vec.sum():g}); e.g. {{{labels[0]}: 0.5, "
-                        f"{labels[-1]}: 0.5}}", field=field)
+        raise UserError(
+            f"barycentric weights must sum to 1 (got {vec.sum():g}); e.g. {{{labels[0]}: 0.5, {labels[-1]}: 0.5}}",
+            field=field,
+        )
     return vec
 
 
@@ -403,17 +458,24 @@ def check_extrapolation(weights: np.ndarray, max_extrapolation: float, field: st
     """
     lowest = float(np.min(weights))
     if lowest < -max_extrapolation - 1e-12:
-        raise UserError(f"weights extrapolate beyond the training expressions by {-lowest:g} (a weight of "
-                        f"{lowest:g}); max_extrapolation is {max_extrapolation:g}", field=field)
+        raise UserError(
+            f"weights extrapolate beyond the training expressions by {-lowest:g} (a weight of "
+            f"{lowest:g}); max_extrapolation is {max_extrapolation:g}",
+            field=field,
+        )
     if lowest < -1e-12:
-        warnings.warn(f"{field}: weights extrapolate beyond the training expressions (lowest weight {lowest:g}); "
-                      f"extreme extrapolation can produce invalid faces", stacklevel=2)
+        warnings.warn(
+            f"{field}: weights extrapolate beyond the training expressions (lowest weight {lowest:g}); "
+            f"extreme extrapolation can produce invalid faces",
+            stacklevel=2,
+        )
         return True
     return False
 
 
-def edit_configuration(w: np.ndarray, training_styles: np.ndarray, weights: np.ndarray,
-                       content: np.ndarray) -> np.ndarray:
+def edit_configuration(
+    w: np.ndarray, training_styles: np.ndarray, weights: np.ndarray, content: np.ndarray
+) -> np.ndarray:
     """Eq 7: y(t) = (sum_s alpha_s(t) e_s)' W c(t) for weights (F, S) (or (S,), constant) and content (F, J)."""
     weights = np.broadcast_to(np.asarray(weights, dtype=np.float64), (len(content), len(training_styles)))
     return synthesise(w, weights @ training_styles, content)
@@ -421,9 +483,16 @@ def edit_configuration(w: np.ndarray, training_styles: np.ndarray, weights: np.n
 
 # ----------------------------------------------------------------------------------------------- images
 
-def edited_crops(model: AamModel, y: np.ndarray, crops: np.ndarray, crop_similarity: np.ndarray,
-                 texture_offset: np.ndarray, texture_scale: np.ndarray, feather: float = 1.5
-                 ) -> tuple[np.ndarray, np.ndarray]:
+
+def edited_crops(
+    model: AamModel,
+    y: np.ndarray,
+    crops: np.ndarray,
+    crop_similarity: np.ndarray,
+    texture_offset: np.ndarray,
+    texture_scale: np.ndarray,
+    feather: float = 1.5,
+) -> tuple[np.ndarray, np.ndarray]:
     """Invert Eq 3-1 for y (F, K), warp each texture onto its shape in the frame's crop, paste over the crop.
 
     The frame's own similarity (mean frame -> crop) and photometric offset/scale place the synthesised face
@@ -462,14 +531,15 @@ def side_by_side(panels: list[np.ndarray], names: list[str]) -> np.ndarray:
     out = np.zeros((f, h, len(panels) * (w + gap) - gap), dtype=np.uint8)
     for i, (panel, name) in enumerate(zip(panels, names)):
         for t in range(f):
-            out[t, :, i * (w + gap): i * (w + gap) + w] = label_panel(panel[t], name)
+            out[t, :, i * (w + gap) : i * (w + gap) + w] = label_panel(panel[t], name)
     return out
 
 
 def encode_mp4(frames: np.ndarray, fps: float, crf: int = 18) -> bytes:
     """Grey frames (F, H, W) uint8 to H.264 MP4 bytes with PyAV (sizes padded to even numbers)."""
-    import av
     from fractions import Fraction
+
+    import av
 
     f, h, w = frames.shape
     frames = np.pad(frames, ((0, 0), (0, h % 2), (0, w % 2)), mode="edge")
@@ -516,27 +586,41 @@ def interpolation_path(path: list[str], labels: list[str], steps: int) -> tuple[
 EDIT_OUTPUTS = {
     "style": Output.array("f", shape=("frames", None), doc="analysed e(t) (Eq 5)"),
     "content": Output.array("f", shape=("frames", None), doc="analysed c(t) (Eq 6)"),
-    "style_weights": Output.array("f", shape=("frames", "labels"),
-                                  doc="e(t) as barycentric weights over the training expressions"),
+    "style_weights": Output.array(
+        "f", shape=("frames", "labels"), doc="e(t) as barycentric weights over the training expressions"
+    ),
     "style_cosine": Output.array("f", shape=("frames", "labels"), doc="cosine of e(t) to each training style"),
-    "classification": Output.array("i", shape=("frames",),
-                                   doc="nearest training style: by cosine of e(t), or by style_fit_residual "
-                                       "(params.classify)"),
-    "style_fit_residual": Output.array("f", shape=("frames", "labels"),
-                                       doc="relative squared error of each frame explained with each training style "
-                                           "fixed, content re-solved (analysis weights)"),
+    "classification": Output.array(
+        "i",
+        shape=("frames",),
+        doc="nearest training style: by cosine of e(t), or by style_fit_residual (params.classify)",
+    ),
+    "style_fit_residual": Output.array(
+        "f",
+        shape=("frames", "labels"),
+        doc="relative squared error of each frame explained with each training style "
+        "fixed, content re-solved (analysis weights)",
+    ),
     "residual": Output.array("f", shape=("frames",), doc="relative squared error of the analysed y per frame"),
     "weights": Output.array("f", shape=("targets", "frames", "labels"), doc="Eq 7 weights used per target"),
     "y": Output.array("f", shape=("targets", "frames", None), doc="edited configuration vectors"),
-    "shapes": Output.array("f", shape=("targets", "frames", 68, 2), dtype="float32",
-                           doc="edited shapes in the aam mean-shape frame, one set per meta['targets'] (training "
-                               "expressions only; mixes are in mixed_shapes)"),
-    "crop_shapes": Output.array("f", shape=("targets", "frames", 68, 2), dtype="float32",
-                                doc="edited shapes in the test take's crop pixels"),
-    "frames": Output.array("u", shape=("targets", "frames", None, None), dtype="uint8",
-                           doc="edited face crops (grey)"),
-    "mixed_weights": Output.array("f", shape=("mixes", "frames", "labels"), optional=True,
-                                  doc="Eq 7 weights of the mix / keyframed edits (meta['mixes'])"),
+    "shapes": Output.array(
+        "f",
+        shape=("targets", "frames", 68, 2),
+        dtype="float32",
+        doc="edited shapes in the aam mean-shape frame, one set per meta['targets'] (training "
+        "expressions only; mixes are in mixed_shapes)",
+    ),
+    "crop_shapes": Output.array(
+        "f", shape=("targets", "frames", 68, 2), dtype="float32", doc="edited shapes in the test take's crop pixels"
+    ),
+    "frames": Output.array("u", shape=("targets", "frames", None, None), dtype="uint8", doc="edited face crops (grey)"),
+    "mixed_weights": Output.array(
+        "f",
+        shape=("mixes", "frames", "labels"),
+        optional=True,
+        doc="Eq 7 weights of the mix / keyframed edits (meta['mixes'])",
+    ),
     "mixed_y": Output.array("f", shape=("mixes", "frames", None), optional=True),
     "mixed_shapes": Output.array("f", shape=("mixes", "frames", 68, 2), dtype="float32", optional=True),
     "mixed_crop_shapes": Output.array("f", shape=("mixes", "frames", 68, 2), dtype="float32", optional=True),
@@ -583,51 +667,81 @@ class ExpressionEdit(Stage):
         labels = bilinear.labels
         k = bilinear.w.shape[2]
         if model.n_shape + model.n_texture != k or len(bilinear.style) != len(labels):
-            raise UserError(f"the bilinear model has K={k} components but the appearance model has "
-                            f"{model.n_shape}+{model.n_texture}; fit both from the same aam artifact",
-                            field="inputs.model")
+            raise UserError(
+                f"the bilinear model has K={k} components but the appearance model has "
+                f"{model.n_shape}+{model.n_texture}; fit both from the same aam artifact",
+                field="inputs.model",
+            )
         landmarks = np.asarray(tracks["landmarks"])
         test_labels = list(tracks.meta.get("labels", ["test"]))
         sequence = np.asarray(tracks.get("sequence", np.zeros(len(landmarks), dtype=np.int32)))
-        check_landmark_scheme(landmarks, tracks.meta, "inputs.tracks.landmarks",
-                              expected=str(aam_view.meta.get("landmark_scheme", "ibug68")))
+        check_landmark_scheme(
+            landmarks,
+            tracks.meta,
+            "inputs.tracks.landmarks",
+            expected=str(aam_view.meta.get("landmark_scheme", "ibug68")),
+        )
         check_landmarks(landmarks, sequence, test_labels, "inputs.tracks.landmarks")
         check_landmarks(tracks["crop_landmarks"], sequence, test_labels, "inputs.tracks.crop_landmarks")
         crops = np.asarray(tracks["crops"])
         proj = model.project(landmarks, crops, tracks["crop_landmarks"])
 
         y_model = bilinear.augment(proj.y)
-        rows = None if params.analysis_shape_weight == 1 else \
-            component_weights(model.n_shape, y_model.shape[1], params.analysis_shape_weight)
-        analysis = analyse_takes(bilinear, y_model, sequence, init=params.init, smooth=params.smooth,
-                                 smooth_content=params.smooth_content, tol=params.tol, max_iter=params.max_iter,
-                                 weights=rows)
+        rows = (
+            None
+            if params.analysis_shape_weight == 1
+            else component_weights(model.n_shape, y_model.shape[1], params.analysis_shape_weight)
+        )
+        analysis = analyse_takes(
+            bilinear,
+            y_model,
+            sequence,
+            init=params.init,
+            smooth=params.smooth,
+            smooth_content=params.smooth_content,
+            tol=params.tol,
+            max_iter=params.max_iter,
+            weights=rows,
+        )
         classes, cosine = classify_styles(analysis.style, bilinear.style)
         by_fit, fit_residual = classify_by_fit(bilinear, y_model, rows)
-        fit_residual = fit_residual / np.maximum(np.sum((y_model if rows is None else y_model * rows) ** 2, -1),
-                                                 1e-300)[:, None]
+        fit_residual = (
+            fit_residual / np.maximum(np.sum((y_model if rows is None else y_model * rows) ** 2, -1), 1e-300)[:, None]
+        )
         if params.classify == "fit":
             classes = by_fit
         bary = style_barycentric(analysis.style, bilinear.style)
         y_fit = bilinear.synthesise(analysis.style, analysis.content)
-        residual = np.sum((proj.y - y_fit) ** 2, -1) / np.maximum(np.sum(proj.y ** 2, -1), 1e-300)
+        residual = np.sum((proj.y - y_fit) ** 2, -1) / np.maximum(np.sum(proj.y**2, -1), 1e-300)
 
         fps = first_number(tracks.meta.get("fps"), 30.0)
         times = np.asarray(tracks.get("time", np.arange(len(landmarks)) / fps), dtype=np.float64)
         (target_names, weights), (mix_names, mix_weights), extrapolated = self.target_weights(params, labels, times)
         arrays = {
-            "style": analysis.style, "content": analysis.content, "style_weights": bary, "style_cosine": cosine,
-            "classification": classes.astype(np.int32), "residual": residual,
+            "style": analysis.style,
+            "content": analysis.content,
+            "style_weights": bary,
+            "style_cosine": cosine,
+            "classification": classes.astype(np.int32),
+            "residual": residual,
             "style_fit_residual": fit_residual,
-            "sequence": sequence.astype(np.int32), "time": times,
+            "sequence": sequence.astype(np.int32),
+            "time": times,
         }
         panels, panel_names = [crops], ["input"]
         for prefix, names, wts in (("", target_names, weights), ("mixed_", mix_names, mix_weights)):
             if prefix and not names:
                 continue
             y_edit, shapes, crop_shapes, frames = self.render(wts, bilinear, model, proj, analysis, crops)
-            arrays.update({f"{prefix}weights": wts, f"{prefix}y": y_edit, f"{prefix}shapes": shapes,
-                           f"{prefix}crop_shapes": crop_shapes, f"{prefix}frames": frames})
+            arrays.update(
+                {
+                    f"{prefix}weights": wts,
+                    f"{prefix}y": y_edit,
+                    f"{prefix}shapes": shapes,
+                    f"{prefix}crop_shapes": crop_shapes,
+                    f"{prefix}frames": frames,
+                }
+            )
             panels += list(frames)
             panel_names += names
         if params.video:
@@ -635,14 +749,27 @@ class ExpressionEdit(Stage):
         strip_path = params.strip_path if params.strip_path is not None else default_strip_path(labels)
         arrays["strip"] = self.strip(params, strip_path, labels, bilinear, model, proj, analysis, crops)
         counts = np.bincount(classes, minlength=len(labels))
-        meta = {"labels": labels, "targets": target_names, "mixes": mix_names, "fps": fps, "test_labels": test_labels,
-                "smooth": params.smooth, "analysis_shape_weight": params.analysis_shape_weight,
-                "classify": params.classify, "iterations": analysis.iterations, "converged": analysis.converged,
-                "extrapolated": extrapolated, "strip_path": strip_path,
-                "classified_as": {labels[s]: int(counts[s]) for s in range(len(labels))}}
-        metrics = {"mean_residual": float(np.mean(arrays["residual"])), "jitter": jitter(analysis.style),
-                   "iterations": analysis.iterations,
-                   **{f"fraction_{labels[s]}": float(counts[s] / len(classes)) for s in range(len(labels))}}
+        meta = {
+            "labels": labels,
+            "targets": target_names,
+            "mixes": mix_names,
+            "fps": fps,
+            "test_labels": test_labels,
+            "smooth": params.smooth,
+            "analysis_shape_weight": params.analysis_shape_weight,
+            "classify": params.classify,
+            "iterations": analysis.iterations,
+            "converged": analysis.converged,
+            "extrapolated": extrapolated,
+            "strip_path": strip_path,
+            "classified_as": {labels[s]: int(counts[s]) for s in range(len(labels))},
+        }
+        metrics = {
+            "mean_residual": float(np.mean(arrays["residual"])),
+            "jitter": jitter(analysis.style),
+            "iterations": analysis.iterations,
+            **{f"fraction_{labels[s]}": float(counts[s] / len(classes)) for s in range(len(labels))},
+        }
         return Result(arrays, meta=meta, metrics=metrics)
 
     @staticmethod
@@ -671,13 +798,17 @@ class ExpressionEdit(Stage):
 
         def stack(r):
             return np.stack(r).astype(np.float64) if r else np.zeros((0, len(times), len(labels)))
+
         return (names, stack(rows)), (mix_names, stack(mix_rows)), extrapolated
 
     @staticmethod
     def render(weights, bilinear, model, proj, analysis, crops):
         """Eq 7 for each row of weights (T, F, S), back to shapes and face crops: (y, shapes, crop shapes, crops)."""
-        y_edit = np.stack([edit_configuration(bilinear.w, bilinear.style, wt, analysis.content) for wt in weights]) \
-            if len(weights) else np.zeros((0, len(crops), bilinear.w.shape[2]))
+        y_edit = (
+            np.stack([edit_configuration(bilinear.w, bilinear.style, wt, analysis.content) for wt in weights])
+            if len(weights)
+            else np.zeros((0, len(crops), bilinear.w.shape[2]))
+        )
         shapes = model.reconstruct_shapes(model.split(y_edit)[0]).astype(np.float32)
         frames, crop_shapes = [], []
         for y_t in y_edit:
@@ -692,8 +823,9 @@ class ExpressionEdit(Stage):
     def strip(params, path, labels, bilinear, model, proj, analysis, crops) -> bytes:
         missing = [p for p in path if p not in labels]
         if missing or len(path) < 2:
-            raise UserError(f"strip_path {path} must name at least two training expressions {labels}",
-                            field="params.strip_path")
+            raise UserError(
+                f"strip_path {path} must name at least two training expressions {labels}", field="params.strip_path"
+            )
         if params.strip_steps < 2:
             raise UserError("strip_steps must be at least 2", field="params.strip_steps")
         n = len(crops)
@@ -701,13 +833,17 @@ class ExpressionEdit(Stage):
         if not 0 <= frame < n:
             raise UserError(f"strip_frame {frame} is outside the take's {n} frames", field="params.strip_frame")
         wts, names = interpolation_path(path, labels, params.strip_steps)
-        content = np.repeat(analysis.content[frame:frame + 1], len(wts), axis=0)
+        content = np.repeat(analysis.content[frame : frame + 1], len(wts), axis=0)
         y = edit_configuration(bilinear.w, bilinear.style, wts, content)
         rep = np.repeat
-        images, _ = edited_crops(model, y, rep(crops[frame:frame + 1], len(wts), 0),
-                                 rep(proj.crop_similarity[frame:frame + 1], len(wts), 0),
-                                 rep(proj.texture_offset[frame:frame + 1], len(wts)),
-                                 rep(proj.texture_scale[frame:frame + 1], len(wts)))
+        images, _ = edited_crops(
+            model,
+            y,
+            rep(crops[frame : frame + 1], len(wts), 0),
+            rep(proj.crop_similarity[frame : frame + 1], len(wts), 0),
+            rep(proj.texture_offset[frame : frame + 1], len(wts)),
+            rep(proj.texture_scale[frame : frame + 1], len(wts)),
+        )
         strip = side_by_side([img[None] for img in images], names)[0]
         return encode_png(strip)
 

@@ -12,6 +12,7 @@ and each covered pixel is mapped into the texture through its triangle's affine 
 
 Pixel convention: integer coordinates are pixel centres (OpenCV's ``remap`` convention); x right, y down.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -58,8 +59,9 @@ def barycentric(points: np.ndarray, corners: np.ndarray) -> np.ndarray:
     return np.stack([1.0 - l1 - l2, l1, l2], axis=-1)
 
 
-def rasterise_triangles(points: np.ndarray, triangles: np.ndarray, size: tuple[int, int],
-                        min_area: float = 1e-3) -> np.ndarray:
+def rasterise_triangles(
+    points: np.ndarray, triangles: np.ndarray, size: tuple[int, int], min_area: float = 1e-3
+) -> np.ndarray:
     """Triangle index map (h, w) int32 of a triangulated shape, -1 outside; later triangles win overlaps.
 
     Triangles of (near) zero area are skipped: they cover no pixels and their affine map is singular.
@@ -86,12 +88,12 @@ class PixelTriangles:
     many shapes at once are one matrix product.
     """
 
-    size: tuple[int, int]          # (w, h) of the image
+    size: tuple[int, int]  # (w, h) of the image
     n_points: int
-    pixel_index: np.ndarray        # (P,) flat indices (row-major) of covered pixels
-    triangle: np.ndarray           # (P,) triangle of each covered pixel
-    vertices: np.ndarray           # (P, 3) point indices of that triangle
-    bary: np.ndarray               # (P, 3) barycentric coordinates
+    pixel_index: np.ndarray  # (P,) flat indices (row-major) of covered pixels
+    triangle: np.ndarray  # (P,) triangle of each covered pixel
+    vertices: np.ndarray  # (P, 3) point indices of that triangle
+    bary: np.ndarray  # (P, 3) barycentric coordinates
 
     @property
     def mask(self) -> np.ndarray:
@@ -113,7 +115,7 @@ class PixelTriangles:
         return np.einsum("pk,pkd->pd", self.bary, np.asarray(shape, dtype=np.float64)[self.vertices])
 
     @classmethod
-    def from_index_map(cls, points: np.ndarray, triangles: np.ndarray, index_map: np.ndarray) -> "PixelTriangles":
+    def from_index_map(cls, points: np.ndarray, triangles: np.ndarray, index_map: np.ndarray) -> PixelTriangles:
         h, w = index_map.shape
         flat = index_map.reshape(-1)
         pixel_index = np.flatnonzero(flat >= 0)
@@ -131,9 +133,9 @@ def pixels_of_reference(points: np.ndarray, triangles: np.ndarray, size: tuple[i
     """
     w, h = size
     pts = np.asarray(points, dtype=np.float64)
-    corners = pts[triangles]                                        # (T, 3, 2)
+    corners = pts[triangles]  # (T, 3, 2)
     a = corners[:, 0]
-    m = np.stack([corners[:, 1] - a, corners[:, 2] - a], axis=-1)   # (T, 2, 2)
+    m = np.stack([corners[:, 1] - a, corners[:, 2] - a], axis=-1)  # (T, 2, 2)
     det = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
     usable = np.abs(det) > 1e-12
     inv = np.zeros_like(m)
@@ -143,11 +145,11 @@ def pixels_of_reference(points: np.ndarray, triangles: np.ndarray, size: tuple[i
     index_map = np.full(h * w, -1, dtype=np.int32)
     eps = 1e-9
     for start in range(0, len(xy), 4096):
-        d = xy[start:start + 4096, None, :] - a[None]               # (p, T, 2)
+        d = xy[start : start + 4096, None, :] - a[None]  # (p, T, 2)
         l12 = np.einsum("tij,ptj->pti", inv, d)
         inside = (l12 >= -eps).all(-1) & (l12.sum(-1) <= 1 + eps) & usable[None]
         hit = inside.any(-1)
-        index_map[start:start + 4096][hit] = np.argmax(inside[hit], axis=-1)
+        index_map[start : start + 4096][hit] = np.argmax(inside[hit], axis=-1)
     return PixelTriangles.from_index_map(pts, triangles, index_map.reshape(h, w))
 
 
@@ -174,8 +176,8 @@ class PiecewiseAffineWarp:
         """(frames, P, 2) float32 position in each source image of every covered reference pixel."""
         shapes = np.asarray(shapes, dtype=np.float32)
         n, k, _ = shapes.shape
-        flat = shapes.transpose(1, 0, 2).reshape(k, n * 2)          # (points, frames*2)
-        pos = self._weights @ flat                                   # (P, frames*2)
+        flat = shapes.transpose(1, 0, 2).reshape(k, n * 2)  # (points, frames*2)
+        pos = self._weights @ flat  # (P, frames*2)
         return pos.reshape(-1, n, 2).transpose(1, 0, 2)
 
     def warp(self, images: np.ndarray, shapes: np.ndarray, chunk: int = 256) -> np.ndarray:
@@ -194,12 +196,17 @@ class PiecewiseAffineWarp:
         map_y = np.full(h * w, -1.0, dtype=np.float32)
         idx = self.pixels.pixel_index
         for start in range(0, n, chunk):
-            pos = self.source_positions(shapes[start:start + chunk])
+            pos = self.source_positions(shapes[start : start + chunk])
             for i in range(len(pos)):
                 map_x[idx] = pos[i, :, 0]
                 map_y[idx] = pos[i, :, 1]
-                warped = cv2.remap(images[start + i], map_x.reshape(h, w), map_y.reshape(h, w),
-                                   interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                warped = cv2.remap(
+                    images[start + i],
+                    map_x.reshape(h, w),
+                    map_y.reshape(h, w),
+                    interpolation=cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE,
+                )
                 out[start + i] = warped.reshape(-1)[idx]
         return out
 
@@ -212,8 +219,9 @@ class PiecewiseAffineWarp:
         out[..., self.pixels.pixel_index] = samples
         return out.reshape(lead + (h, w))
 
-    def draw_on_shape(self, texture_image: np.ndarray, shape: np.ndarray, size: tuple[int, int]
-                      ) -> tuple[np.ndarray, np.ndarray]:
+    def draw_on_shape(
+        self, texture_image: np.ndarray, shape: np.ndarray, size: tuple[int, int]
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Inverse warp: draw a reference-frame texture image onto ``shape`` in an image of ``size`` (w, h).
 
         Returns (image float32 (h, w), mask bool (h, w) of the pixels drawn). Folded target triangles are
@@ -225,13 +233,18 @@ class PiecewiseAffineWarp:
         shape = np.asarray(shape, dtype=np.float64)
         index_map = rasterise_triangles(shape, self.triangles, (w, h))
         target = PixelTriangles.from_index_map(shape, self.triangles, index_map)
-        pos = target.positions(self.reference)                      # (P, 2) positions in the texture image
+        pos = target.positions(self.reference)  # (P, 2) positions in the texture image
         map_x = np.full(h * w, -1.0, dtype=np.float32)
         map_y = np.full(h * w, -1.0, dtype=np.float32)
         map_x[target.pixel_index] = pos[:, 0]
         map_y[target.pixel_index] = pos[:, 1]
-        image = cv2.remap(np.asarray(texture_image, dtype=np.float32), map_x.reshape(h, w), map_y.reshape(h, w),
-                          interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        image = cv2.remap(
+            np.asarray(texture_image, dtype=np.float32),
+            map_x.reshape(h, w),
+            map_y.reshape(h, w),
+            interpolation=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
         return image, target.mask
 
     def fill_outside(self, images: np.ndarray) -> np.ndarray:

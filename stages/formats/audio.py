@@ -3,6 +3,7 @@
 parselmouth reads WAV/FLAC/MP3/AIFF only, so audio inside video containers (FLV, MP4, MOV) and OGG files is
 decoded here to mono float32 at a chosen rate, and handed to parselmouth as a numpy array.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -15,9 +16,9 @@ from msflow import UserError
 
 @dataclass
 class DecodedAudio:
-    samples: np.ndarray   # (n,) float32 mono in [-1, 1]
-    rate: int             # samples per second
-    start: float          # time of the first sample, seconds, on the container's clock
+    samples: np.ndarray  # (n,) float32 mono in [-1, 1]
+    rate: int  # samples per second
+    start: float  # time of the first sample, seconds, on the container's clock
     video_start: float | None  # time of the first video frame on the same clock (None: no video stream)
 
     @property
@@ -44,8 +45,9 @@ def decode_audio(path: str | Path, rate: int = 16000, *, field: str | None = Non
         raise UserError(f"cannot open media file ({exc})", file=str(path), field=field) from None
     with container:
         if not container.streams.audio:
-            raise UserError("has no audio track (set the stage's audio param to 'none' to go without)",
-                            file=str(path), field=field)
+            raise UserError(
+                "has no audio track (set the stage's audio param to 'none' to go without)", file=str(path), field=field
+            )
         stream = container.streams.audio[0]
         video_start = None
         if container.streams.video:
@@ -64,8 +66,7 @@ def decode_audio(path: str | Path, rate: int = 16000, *, field: str | None = Non
             for out in resampler.resample(None):
                 chunks.append(out.to_ndarray().reshape(-1))
         except av.error.FFmpegError as exc:
-            raise UserError(f"audio stream is unreadable or truncated ({exc})", file=str(path),
-                            field=field) from None
+            raise UserError(f"audio stream is unreadable or truncated ({exc})", file=str(path), field=field) from None
     if not chunks:
         raise UserError("audio track holds no samples", file=str(path), field=field)
     samples = np.concatenate(chunks).astype(np.float32, copy=False)

@@ -4,6 +4,7 @@ BVH rotations are intrinsic Euler angles in degrees, composed in the order the c
 ("Zrotation Xrotation Yrotation" is R = R_Z R_X R_Y). BVH's usual axes (y up, the character facing +z, its left
 towards +x) are the glTF axes of stages.geometry.rotations, so a joint's local rotation maps to a quaternion unchanged.
 """
+
 from __future__ import annotations
 
 import re
@@ -21,10 +22,10 @@ ROTATION_CHANNELS = ("Xrotation", "Yrotation", "Zrotation")
 @dataclass
 class BvhJoint:
     name: str
-    parent: int                      # index into Bvh.joints, -1 for a root
-    offset: np.ndarray               # (3,) rest offset from the parent
-    channels: list[str]              # e.g. ["Xposition", "Yposition", "Zposition", "Zrotation", "Xrotation", ...]
-    channel_start: int = 0           # first column of this joint in Bvh.motion
+    parent: int  # index into Bvh.joints, -1 for a root
+    offset: np.ndarray  # (3,) rest offset from the parent
+    channels: list[str]  # e.g. ["Xposition", "Yposition", "Zposition", "Zrotation", "Xrotation", ...]
+    channel_start: int = 0  # first column of this joint in Bvh.motion
     end_site: np.ndarray | None = None  # (3,) offset of an "End Site" child, if any
 
     @property
@@ -36,9 +37,9 @@ class BvhJoint:
 @dataclass
 class Bvh:
     joints: list[BvhJoint]
-    frame_time: float                # seconds per frame
-    motion: np.ndarray               # (frames, total channels) float64
-    source: str | None = None        # file name, for error messages
+    frame_time: float  # seconds per frame
+    motion: np.ndarray  # (frames, total channels) float64
+    source: str | None = None  # file name, for error messages
     _by_name: dict[str, int] = field(default_factory=dict, repr=False)
 
     def __post_init__(self):
@@ -54,8 +55,11 @@ class Bvh:
 
     def joint(self, name: str, *, field: str | None = None) -> BvhJoint:
         if name not in self._by_name:
-            raise UserError(f"BVH has no joint named {name!r}; joints: {', '.join(j.name for j in self.joints)}",
-                            file=self.source, field=field)
+            raise UserError(
+                f"BVH has no joint named {name!r}; joints: {', '.join(j.name for j in self.joints)}",
+                file=self.source,
+                field=field,
+            )
         return self.joints[self._by_name[name]]
 
     def channel(self, joint: BvhJoint, channel: str) -> np.ndarray | None:
@@ -66,6 +70,7 @@ class Bvh:
 
 def parse_bvh(text: str, *, source: str | None = None) -> Bvh:
     """Parse BVH text; malformed files raise UserError naming ``source``."""
+
     def fail(message: str):
         raise UserError(f"not a valid BVH file: {message}", file=source)
 
@@ -76,7 +81,7 @@ def parse_bvh(text: str, *, source: str | None = None) -> Bvh:
     if not tokens or tokens[0] != "HIERARCHY":
         fail("does not start with HIERARCHY")
     joints: list[BvhJoint] = []
-    stack: list[int] = []           # joint index per open brace; -2 marks an End Site block
+    stack: list[int] = []  # joint index per open brace; -2 marks an End Site block
     pending: BvhJoint | None = None
     channel_count = 0
     i = 1
@@ -90,7 +95,7 @@ def parse_bvh(text: str, *, source: str | None = None) -> Bvh:
                     fail(f"JOINT {name} outside any ROOT")
                 pending = BvhJoint(name, parent, np.zeros(3), [])
                 i += 2
-            elif tok == "End":          # "End Site"
+            elif tok == "End":  # "End Site"
                 pending = None
                 stack_marker = -2
                 if tokens[i + 2] != "{":
@@ -110,7 +115,7 @@ def parse_bvh(text: str, *, source: str | None = None) -> Bvh:
                 stack.pop()
                 i += 1
             elif tok == "OFFSET":
-                values = np.array([float(v) for v in tokens[i + 1:i + 4]])
+                values = np.array([float(v) for v in tokens[i + 1 : i + 4]])
                 if stack and stack[-1] == -2:
                     owner = next((s for s in reversed(stack) if s >= 0), None)
                     if owner is not None:
@@ -120,7 +125,7 @@ def parse_bvh(text: str, *, source: str | None = None) -> Bvh:
                 i += 4
             elif tok == "CHANNELS":
                 n = int(tokens[i + 1])
-                names = tokens[i + 2:i + 2 + n]
+                names = tokens[i + 2 : i + 2 + n]
                 bad = [c for c in names if c not in POSITION_CHANNELS + ROTATION_CHANNELS]
                 if bad or len(names) != n:
                     fail(f"unknown channels {bad}")
@@ -146,7 +151,7 @@ def parse_bvh(text: str, *, source: str | None = None) -> Bvh:
     frame_time = float(time_match.group(1))
     if not frame_time > 0:
         fail(f"Frame Time must be positive, got {frame_time}")
-    body = motion_text[time_match.end():]
+    body = motion_text[time_match.end() :]
     try:
         values = np.array(body.split(), dtype=np.float64)
     except ValueError:
@@ -173,8 +178,9 @@ def joint_rotation(bvh: Bvh, name: str, *, field: str | None = None) -> np.ndarr
         q[:, 0] = 1.0
         return q
     if len(order) != 3:
-        raise UserError(f"joint {name!r} has {len(order)} rotation channels; 3 are needed", file=bvh.source,
-                        field=field)
+        raise UserError(
+            f"joint {name!r} has {len(order)} rotation channels; 3 are needed", file=bvh.source, field=field
+        )
     degrees = np.stack([bvh.channel(joint, f"{axis}rotation") for axis in order], axis=-1)
     return euler_order_to_quat(np.radians(degrees), order)
 
@@ -185,8 +191,9 @@ def joint_translation(bvh: Bvh, name: str, *, field: str | None = None) -> np.nd
     columns = [bvh.channel(joint, c) for c in POSITION_CHANNELS]
     if all(c is None for c in columns):
         return np.repeat(joint.offset[None, :], bvh.frames, axis=0)
-    return np.stack([c if c is not None else np.full(bvh.frames, joint.offset[k])
-                     for k, c in enumerate(columns)], axis=-1)
+    return np.stack(
+        [c if c is not None else np.full(bvh.frames, joint.offset[k]) for k, c in enumerate(columns)], axis=-1
+    )
 
 
 def format_bvh(joints: list[BvhJoint], motion: np.ndarray, frame_time: float, *, precision: int = 6) -> str:
@@ -231,8 +238,15 @@ def format_bvh(joints: list[BvhJoint], motion: np.ndarray, frame_time: float, *,
     return "\n".join(lines) + "\n" + body + ("\n" if body else "")
 
 
-def head_bvh(rotation: np.ndarray, translation: np.ndarray | None, fps: float, *, joint: str = "Head",
-             order: str = "ZXY", end_site: tuple[float, float, float] = (0.0, 10.0, 0.0)) -> str:
+def head_bvh(
+    rotation: np.ndarray,
+    translation: np.ndarray | None,
+    fps: float,
+    *,
+    joint: str = "Head",
+    order: str = "ZXY",
+    end_site: tuple[float, float, float] = (0.0, 10.0, 0.0),
+) -> str:
     """BVH text of one root joint carrying the head's rotation (unit quaternions) and translation per frame."""
     rotation = np.asarray(rotation, dtype=np.float64)
     frames = rotation.shape[0]

@@ -10,6 +10,7 @@ silently writes an empty file when handed numpy scalars).
 glTF conventions used: metres, +y up, the character faces +z; quaternions in glTF are (x, y, z, w) while
 ``stages.geometry.rotations`` uses (w, x, y, z): conversion happens here and nowhere else.
 """
+
 from __future__ import annotations
 
 import base64
@@ -21,8 +22,7 @@ import numpy as np
 
 from msflow import UserError
 
-COMPONENT_DTYPES = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32,
-                    5126: np.float32}
+COMPONENT_DTYPES = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
 TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
 MODE_TRIANGLES, MODE_TRIANGLE_STRIP, MODE_TRIANGLE_FAN = 4, 5, 6
@@ -45,11 +45,11 @@ class MaterialGroup:
 class MorphMesh:
     """A triangle mesh with morph targets, flattened from one glTF mesh (or built from OBJ files)."""
 
-    positions: np.ndarray                 # (V, 3) float32
-    triangles: np.ndarray                 # (T, 3) int32
+    positions: np.ndarray  # (V, 3) float32
+    triangles: np.ndarray  # (T, 3) int32
     target_names: list[str]
-    deltas: np.ndarray                    # (M, V, 3) float32
-    triangle_groups: np.ndarray | None = None   # (T,) int32 index into groups
+    deltas: np.ndarray  # (M, V, 3) float32
+    triangle_groups: np.ndarray | None = None  # (T,) int32 index into groups
     groups: list[MaterialGroup] = field(default_factory=list)
     extras: dict[str, Any] = field(default_factory=dict)  # mesh.extras (targetNames, landmark ids, ...)
     name: str = "Character"
@@ -80,6 +80,7 @@ class Animation:
 
 # ----------------------------------------------------------------------------------------------------- reading
 
+
 def _load_gltf(path: Path):
     import pygltflib
 
@@ -104,8 +105,7 @@ def _buffer_bytes(gltf, path: Path) -> list[bytes]:
         else:
             target = path.parent / uri
             if not target.is_file():
-                raise UserError(f"buffer {i} refers to '{uri}', which does not exist next to the file",
-                                file=str(path))
+                raise UserError(f"buffer {i} refers to '{uri}', which does not exist next to the file", file=str(path))
             data = target.read_bytes()
         if data is None or len(data) < (buffer.byteLength or 0):
             raise UserError(f"buffer {i} is shorter than its declared byteLength", file=str(path))
@@ -113,8 +113,9 @@ def _buffer_bytes(gltf, path: Path) -> list[bytes]:
     return blobs
 
 
-def _read_view(gltf, blobs: list[bytes], view_index: int, byte_offset: int, dtype, count: int, ncomp: int,
-               path: Path) -> np.ndarray:
+def _read_view(
+    gltf, blobs: list[bytes], view_index: int, byte_offset: int, dtype, count: int, ncomp: int, path: Path
+) -> np.ndarray:
     view = gltf.bufferViews[view_index]
     blob = blobs[view.buffer]
     itemsize = np.dtype(dtype).itemsize
@@ -134,7 +135,7 @@ def _strided(blob: bytes, start: int, stride: int, dtype, count: int, ncomp: int
     """Interleaved vertex data: gather ``count`` records of ``ncomp`` values ``stride`` bytes apart."""
     itemsize = np.dtype(dtype).itemsize
     rows = np.frombuffer(blob, dtype=np.uint8, count=stride * (count - 1) + itemsize * ncomp, offset=start)
-    index = (np.arange(count)[:, None] * stride + np.arange(itemsize * ncomp)[None, :])
+    index = np.arange(count)[:, None] * stride + np.arange(itemsize * ncomp)[None, :]
     return rows[index].copy().view(dtype).reshape(count, ncomp)
 
 
@@ -146,8 +147,9 @@ def read_accessor(gltf, blobs: list[bytes], index: int, path: Path) -> np.ndarra
     acc = gltf.accessors[index]
     dtype = COMPONENT_DTYPES.get(acc.componentType)
     if dtype is None or acc.type not in TYPE_SIZES:
-        raise UserError(f"accessor {index} has unsupported componentType {acc.componentType} / type {acc.type}",
-                        file=str(path))
+        raise UserError(
+            f"accessor {index} has unsupported componentType {acc.componentType} / type {acc.type}", file=str(path)
+        )
     ncomp = TYPE_SIZES[acc.type]
     if acc.bufferView is None:
         data = np.zeros((acc.count, ncomp), dtype=dtype)
@@ -156,10 +158,12 @@ def read_accessor(gltf, blobs: list[bytes], index: int, path: Path) -> np.ndarra
     if acc.sparse is not None and acc.sparse.count:
         sparse = acc.sparse
         idx_dtype = COMPONENT_DTYPES[sparse.indices.componentType]
-        ids = _read_view(gltf, blobs, sparse.indices.bufferView, sparse.indices.byteOffset, idx_dtype,
-                         sparse.count, 1, path)[:, 0].astype(np.int64)
-        values = _read_view(gltf, blobs, sparse.values.bufferView, sparse.values.byteOffset, dtype,
-                            sparse.count, ncomp, path)
+        ids = _read_view(
+            gltf, blobs, sparse.indices.bufferView, sparse.indices.byteOffset, idx_dtype, sparse.count, 1, path
+        )[:, 0].astype(np.int64)
+        values = _read_view(
+            gltf, blobs, sparse.values.bufferView, sparse.values.byteOffset, dtype, sparse.count, ncomp, path
+        )
         if ids.size and (ids.min() < 0 or ids.max() >= acc.count):
             raise UserError(f"accessor {index}: sparse indices out of range", file=str(path))
         data[ids] = values
@@ -173,6 +177,7 @@ def read_accessor(gltf, blobs: list[bytes], index: int, path: Path) -> np.ndarra
 
 def _node_world_matrices(gltf) -> dict[int, np.ndarray]:
     """World matrix of every node reachable from the scenes (or every root node when there is no scene)."""
+
     def local(node) -> np.ndarray:
         if node.matrix:
             return np.asarray(node.matrix, dtype=np.float64).reshape(4, 4).T  # glTF stores column-major
@@ -222,8 +227,7 @@ def _target_names(mesh, count: int) -> tuple[list[str], str]:
         names = (extras or {}).get("targetNames")
         if names is not None:
             if len(names) != count or not all(isinstance(n, str) for n in names):
-                raise UserError(f"{where}.targetNames lists {len(names)} names but the mesh has {count} morph "
-                                f"targets")
+                raise UserError(f"{where}.targetNames lists {len(names)} names but the mesh has {count} morph targets")
             return list(names), where
     return [f"target_{i:03d}" for i in range(count)], "generated"
 
@@ -239,21 +243,30 @@ def read_morph_mesh(path: str | Path, mesh_name: str | None = None) -> MorphMesh
     gltf = _load_gltf(path)
     unsupported = sorted(set(gltf.extensionsRequired or []) - SUPPORTED_REQUIRED_EXTENSIONS)
     if unsupported:
-        raise UserError(f"the file requires glTF extensions this reader does not decode: {unsupported} (e.g. "
-                        f"Draco or meshopt compression); export it again without them", file=str(path))
+        raise UserError(
+            f"the file requires glTF extensions this reader does not decode: {unsupported} (e.g. "
+            f"Draco or meshopt compression); export it again without them",
+            file=str(path),
+        )
     meshes = gltf.meshes or []
     with_targets = [i for i, m in enumerate(meshes) if any(p.targets for p in m.primitives)]
     if mesh_name is not None:
         matches = [i for i, m in enumerate(meshes) if m.name == mesh_name]
         if not matches:
-            raise UserError(f"no mesh named '{mesh_name}'; meshes: {[m.name for m in meshes]}", file=str(path),
-                            field="params.mesh_name")
+            raise UserError(
+                f"no mesh named '{mesh_name}'; meshes: {[m.name for m in meshes]}",
+                file=str(path),
+                field="params.mesh_name",
+            )
         mesh_index = matches[0]
         if mesh_index not in with_targets:
             raise UserError(f"mesh '{mesh_name}' has no morph targets", file=str(path), field="params.mesh_name")
     elif not with_targets:
-        raise UserError("the character has no morph targets (no mesh primitive lists 'targets'); export the "
-                        "blendshapes/shape keys with the mesh", file=str(path))
+        raise UserError(
+            "the character has no morph targets (no mesh primitive lists 'targets'); export the "
+            "blendshapes/shape keys with the mesh",
+            file=str(path),
+        )
     else:
         mesh_index = with_targets[0]
     mesh = meshes[mesh_index]
@@ -261,8 +274,9 @@ def read_morph_mesh(path: str | Path, mesh_name: str | None = None) -> MorphMesh
 
     counts = {len(p.targets or []) for p in mesh.primitives if p.targets}
     if len(counts) != 1:
-        raise UserError(f"mesh '{mesh.name}': primitives disagree on the number of morph targets {sorted(counts)}",
-                        file=str(path))
+        raise UserError(
+            f"mesh '{mesh.name}': primitives disagree on the number of morph targets {sorted(counts)}", file=str(path)
+        )
     n_targets = counts.pop()
     names, names_from = _target_names(mesh, n_targets)
 
@@ -295,8 +309,11 @@ def read_morph_mesh(path: str | Path, mesh_name: str | None = None) -> MorphMesh
         else:
             idx = read_accessor(gltf, blobs, prim.indices, path)[:, 0].astype(np.int64)
             if idx.size and idx.max() >= count:
-                raise UserError(f"mesh '{mesh.name}' primitive {p_index}: vertex index {int(idx.max())} out of "
-                                f"range ({count} vertices)", file=str(path))
+                raise UserError(
+                    f"mesh '{mesh.name}' primitive {p_index}: vertex index {int(idx.max())} out of "
+                    f"range ({count} vertices)",
+                    file=str(path),
+                )
         tris = _triangulate(idx, mode) + base
         key = prim.material
         if key not in group_of_material:
@@ -307,10 +324,16 @@ def read_morph_mesh(path: str | Path, mesh_name: str | None = None) -> MorphMesh
     if not positions:
         raise UserError(f"mesh '{mesh.name}' has no triangle primitives", file=str(path))
 
-    out = MorphMesh(positions=np.concatenate(positions), triangles=np.concatenate(triangles).astype(np.int32),
-                    target_names=names, deltas=np.concatenate(deltas, axis=1),
-                    triangle_groups=np.concatenate(tri_groups), groups=groups,
-                    extras=dict(mesh.extras or {}), name=mesh.name or f"mesh{mesh_index}")
+    out = MorphMesh(
+        positions=np.concatenate(positions),
+        triangles=np.concatenate(triangles).astype(np.int32),
+        target_names=names,
+        deltas=np.concatenate(deltas, axis=1),
+        triangle_groups=np.concatenate(tri_groups),
+        groups=groups,
+        extras=dict(mesh.extras or {}),
+        name=mesh.name or f"mesh{mesh_index}",
+    )
     out.extras["_target_names_from"] = names_from
     _apply_world_transform(out, gltf, mesh_index)
     return out
@@ -341,6 +364,7 @@ def _apply_world_transform(mesh: MorphMesh, gltf, mesh_index: int) -> None:
 
 
 # ----------------------------------------------------------------------------------------------------- writing
+
 
 def vertex_normals(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Unit area-weighted vertex normals (float32); vertices without a proper triangle get +z."""
@@ -374,23 +398,35 @@ class _BinaryBuilder:
         if pad:
             self.chunks.append(b"\0" * pad)
             self.length += pad
-        self.gltf.bufferViews.append(pygltflib.BufferView(buffer=0, byteOffset=int(self.length),
-                                                          byteLength=len(raw), target=target))
+        self.gltf.bufferViews.append(
+            pygltflib.BufferView(buffer=0, byteOffset=int(self.length), byteLength=len(raw), target=target)
+        )
         self.chunks.append(raw)
         self.length += len(raw)
         return len(self.gltf.bufferViews) - 1
 
-    def accessor(self, data: np.ndarray, kind: str, *, target: int | None = None, min_max: bool = False,
-                 name: str | None = None) -> int:
+    def accessor(
+        self, data: np.ndarray, kind: str, *, target: int | None = None, min_max: bool = False, name: str | None = None
+    ) -> int:
         import pygltflib
 
         data = np.asarray(data)
         ncomp = TYPE_SIZES[kind]
         flat = data.reshape(-1, ncomp) if ncomp > 1 else data.reshape(-1)
-        component = {np.dtype(np.float32): 5126, np.dtype(np.uint16): 5123, np.dtype(np.uint32): 5125,
-                     np.dtype(np.uint8): 5121}[flat.dtype]
-        acc = pygltflib.Accessor(bufferView=self.view(flat, target), byteOffset=0, componentType=component,
-                                 count=int(len(flat)), type=kind, name=name)
+        component = {
+            np.dtype(np.float32): 5126,
+            np.dtype(np.uint16): 5123,
+            np.dtype(np.uint32): 5125,
+            np.dtype(np.uint8): 5121,
+        }[flat.dtype]
+        acc = pygltflib.Accessor(
+            bufferView=self.view(flat, target),
+            byteOffset=0,
+            componentType=component,
+            count=int(len(flat)),
+            type=kind,
+            name=name,
+        )
         if min_max:
             acc.min, acc.max = _min_max(flat.reshape(len(flat), -1))
         self.gltf.accessors.append(acc)
@@ -405,8 +441,9 @@ class _BinaryBuilder:
         index_size = 2 if len(values) <= 65535 else 4
         if len(keep) * (12 + index_size) >= 12 * len(values):  # a dense target (identity shape) is smaller as is
             return self.accessor(values, "VEC3", target=ARRAY_BUFFER, min_max=True, name=name)
-        acc = pygltflib.Accessor(bufferView=None, byteOffset=None, componentType=5126, count=int(len(values)),
-                                 type="VEC3", name=name)
+        acc = pygltflib.Accessor(
+            bufferView=None, byteOffset=None, componentType=5126, count=int(len(values)), type="VEC3", name=name
+        )
         stored = np.zeros_like(values)
         stored[keep] = values[keep]
         acc.min, acc.max = _min_max(stored)
@@ -414,10 +451,13 @@ class _BinaryBuilder:
             index_dtype = np.uint16 if index_size == 2 else np.uint32
             acc.sparse = pygltflib.Sparse(
                 count=int(len(keep)),
-                indices=pygltflib.AccessorSparseIndices(bufferView=self.view(keep.astype(index_dtype)),
-                                                        byteOffset=0,
-                                                        componentType=5123 if index_dtype is np.uint16 else 5125),
-                values=pygltflib.AccessorSparseValues(bufferView=self.view(values[keep]), byteOffset=0))
+                indices=pygltflib.AccessorSparseIndices(
+                    bufferView=self.view(keep.astype(index_dtype)),
+                    byteOffset=0,
+                    componentType=5123 if index_dtype is np.uint16 else 5125,
+                ),
+                values=pygltflib.AccessorSparseValues(bufferView=self.view(values[keep]), byteOffset=0),
+            )
         self.gltf.accessors.append(acc)
         return len(self.gltf.accessors) - 1
 
@@ -445,9 +485,16 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def write_morph_glb(mesh: MorphMesh, *, animation: Animation | None = None, sparse_tolerance: float =
-                    DEFAULT_SPARSE_TOLERANCE, generator: str = "msflow", copyright: str | None = None,
-                    normals: bool = True, scene_extras: dict | None = None) -> bytes:
+def write_morph_glb(
+    mesh: MorphMesh,
+    *,
+    animation: Animation | None = None,
+    sparse_tolerance: float = DEFAULT_SPARSE_TOLERANCE,
+    generator: str = "msflow",
+    copyright: str | None = None,
+    normals: bool = True,
+    scene_extras: dict | None = None,
+) -> bytes:
     """The character as a GLB: one mesh (a primitive per material group, all sharing the vertex and morph
     accessors), morph targets as sparse accessors, names in ``mesh.extras.targetNames``.
 
@@ -469,14 +516,15 @@ def write_morph_glb(mesh: MorphMesh, *, animation: Animation | None = None, spar
     gltf = pygltflib.GLTF2(asset=pygltflib.Asset(generator=generator, copyright=copyright))
     gltf.bufferViews, gltf.accessors = [], []
     bin_ = _BinaryBuilder(gltf)
-    attributes = {"POSITION": bin_.accessor(positions, "VEC3", target=ARRAY_BUFFER, min_max=True,
-                                            name="positions")}
+    attributes = {"POSITION": bin_.accessor(positions, "VEC3", target=ARRAY_BUFFER, min_max=True, name="positions")}
     if normals:
-        attributes["NORMAL"] = bin_.accessor(vertex_normals(positions, triangles), "VEC3", target=ARRAY_BUFFER,
-                                             name="normals")
-    targets = [pygltflib.Attributes(POSITION=bin_.sparse_accessor(deltas[i], sparse_tolerance,
-                                                                  name=mesh.target_names[i]))
-               for i in range(n_targets)]
+        attributes["NORMAL"] = bin_.accessor(
+            vertex_normals(positions, triangles), "VEC3", target=ARRAY_BUFFER, name="normals"
+        )
+    targets = [
+        pygltflib.Attributes(POSITION=bin_.sparse_accessor(deltas[i], sparse_tolerance, name=mesh.target_names[i]))
+        for i in range(n_targets)
+    ]
 
     index_dtype = np.uint16 if n_vertices < 65535 else np.uint32  # 65535 is the primitive-restart value
     groups = np.asarray(mesh.triangle_groups)
@@ -486,20 +534,35 @@ def write_morph_glb(mesh: MorphMesh, *, animation: Animation | None = None, spar
         tris = triangles[groups == g]
         if len(tris) == 0:
             continue
-        gltf.materials.append(pygltflib.Material(
-            name=group.name, doubleSided=bool(group.double_sided),
-            alphaMode="BLEND" if group.color[3] < 1.0 else "OPAQUE",
-            pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
-                baseColorFactor=[float(c) for c in group.color], metallicFactor=0.0, roughnessFactor=0.6)))
-        primitives.append(pygltflib.Primitive(
-            attributes=pygltflib.Attributes(**attributes), mode=MODE_TRIANGLES,
-            indices=bin_.accessor(tris.reshape(-1).astype(index_dtype), "SCALAR", target=ELEMENT_ARRAY_BUFFER,
-                                  name=f"{group.name} triangles"),
-            material=len(gltf.materials) - 1, targets=targets))
+        gltf.materials.append(
+            pygltflib.Material(
+                name=group.name,
+                doubleSided=bool(group.double_sided),
+                alphaMode="BLEND" if group.color[3] < 1.0 else "OPAQUE",
+                pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
+                    baseColorFactor=[float(c) for c in group.color], metallicFactor=0.0, roughnessFactor=0.6
+                ),
+            )
+        )
+        primitives.append(
+            pygltflib.Primitive(
+                attributes=pygltflib.Attributes(**attributes),
+                mode=MODE_TRIANGLES,
+                indices=bin_.accessor(
+                    tris.reshape(-1).astype(index_dtype),
+                    "SCALAR",
+                    target=ELEMENT_ARRAY_BUFFER,
+                    name=f"{group.name} triangles",
+                ),
+                material=len(gltf.materials) - 1,
+                targets=targets,
+            )
+        )
     extras = {k: v for k, v in mesh.extras.items() if not k.startswith("_")}
     extras["targetNames"] = list(mesh.target_names)
-    gltf.meshes = [pygltflib.Mesh(name=mesh.name, primitives=primitives, weights=[0.0] * n_targets,
-                                  extras=_plain(extras))]
+    gltf.meshes = [
+        pygltflib.Mesh(name=mesh.name, primitives=primitives, weights=[0.0] * n_targets, extras=_plain(extras))
+    ]
 
     pivot = [float(v) for v in (animation.pivot if animation is not None else (0.0, 0.0, 0.0))]
     head = pygltflib.Node(name="Head", children=[1], translation=pivot if any(pivot) else None)
@@ -528,10 +591,16 @@ def _animation(bin_: _BinaryBuilder, anim: Animation, n_targets: int, pivot: lis
     time_acc = bin_.accessor(times, "SCALAR", min_max=True, name="time")
 
     def channel(values: np.ndarray, kind: str, node: int, path: str, name: str) -> None:
-        out.samplers.append(pygltflib.AnimationSampler(input=time_acc, output=bin_.accessor(values, kind, name=name),
-                                                       interpolation="LINEAR"))
-        out.channels.append(pygltflib.AnimationChannel(sampler=len(out.samplers) - 1,
-                                                       target=pygltflib.AnimationChannelTarget(node=node, path=path)))
+        out.samplers.append(
+            pygltflib.AnimationSampler(
+                input=time_acc, output=bin_.accessor(values, kind, name=name), interpolation="LINEAR"
+            )
+        )
+        out.channels.append(
+            pygltflib.AnimationChannel(
+                sampler=len(out.samplers) - 1, target=pygltflib.AnimationChannelTarget(node=node, path=path)
+            )
+        )
 
     if anim.weights is not None:
         w = np.asarray(anim.weights, dtype=np.float32)
@@ -586,11 +655,13 @@ def validate_glb(data: bytes, *, project_root: Path | None = None, timeout: floa
     if node is None:
         raise RuntimeError("node (Node.js) is not installed; the glTF validator needs it")
     if not (root / "node_modules" / "gltf-validator").is_dir():
-        raise RuntimeError(f"gltf-validator is not installed in {root / 'node_modules'}; run in {root}: "
-                           f"{VALIDATOR_INSTALL}")
+        raise RuntimeError(
+            f"gltf-validator is not installed in {root / 'node_modules'}; run in {root}: {VALIDATOR_INSTALL}"
+        )
     env = dict(os.environ, NODE_PATH=str(root / "node_modules"))
-    proc = subprocess.run([node, "-e", _VALIDATOR_JS], input=bytes(data), capture_output=True, cwd=root, env=env,
-                          timeout=timeout)
+    proc = subprocess.run(
+        [node, "-e", _VALIDATOR_JS], input=bytes(data), capture_output=True, cwd=root, env=env, timeout=timeout
+    )
     if proc.returncode != 0:
         raise RuntimeError(f"glTF validator failed: {proc.stderr.decode(errors='replace')[:2000]}")
     return json.loads(proc.stdout)

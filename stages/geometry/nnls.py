@@ -15,6 +15,7 @@ their matrix: ``min_w ||A w - x_t||^2, w >= 0`` for all frames t at once. Both s
 ``batched_nnls`` is the entry point: optional (off by default) soft sum-to-one constraint and temporal smoothing.
 ``kkt_violation`` measures how far a solution is from optimal (0 at the optimum).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -26,11 +27,11 @@ EPS = np.finfo(np.float64).eps
 
 @dataclass
 class NnlsResult:
-    weights: np.ndarray       # (frames, k) >= 0
+    weights: np.ndarray  # (frames, k) >= 0
     residual_norm: np.ndarray  # (frames,) ||A w - x||
-    iterations: np.ndarray     # (frames,) solver iterations spent on each frame
-    kkt: np.ndarray           # (frames,) relative KKT violation (see kkt_violation)
-    converged: np.ndarray     # (frames,) bool
+    iterations: np.ndarray  # (frames,) solver iterations spent on each frame
+    kkt: np.ndarray  # (frames,) relative KKT violation (see kkt_violation)
+    converged: np.ndarray  # (frames,) bool
 
 
 def projected_gradient(gradient: np.ndarray, weights: np.ndarray, lower=0.0, upper=np.inf) -> np.ndarray:
@@ -82,9 +83,15 @@ def solve_restricted(Q: np.ndarray, C: np.ndarray, passive: np.ndarray, ridge: f
     return S
 
 
-def nnls_active_set(Q: np.ndarray, C: np.ndarray, x_norms: np.ndarray, *, rtol: float = 1e-10,
-                    max_iter: int | None = None, initial_passive: np.ndarray | None = None
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def nnls_active_set(
+    Q: np.ndarray,
+    C: np.ndarray,
+    x_norms: np.ndarray,
+    *,
+    rtol: float = 1e-10,
+    max_iter: int | None = None,
+    initial_passive: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Lawson-Hanson NNLS in Gram form for many right-hand sides at once.
 
     Q (k, k) = A'A, C (n, k) rows A'x_t, x_norms (n,) = ||x_t|| (sets the per-frame gradient tolerance
@@ -107,7 +114,7 @@ def nnls_active_set(Q: np.ndarray, C: np.ndarray, x_norms: np.ndarray, *, rtol: 
     iterations = np.zeros(n, dtype=np.int64)
     OUTER, INNER, DONE = 1, 2, 0
     state = np.full(n, OUTER, dtype=np.int8)
-    added = np.full(n, -1, dtype=np.int64)      # variable added by the last outer step
+    added = np.full(n, -1, dtype=np.int64)  # variable added by the last outer step
     first_inner = np.zeros(n, dtype=bool)
     if initial_passive is not None:
         passive = np.asarray(initial_passive, dtype=bool).copy()
@@ -173,9 +180,17 @@ def nnls_active_set(Q: np.ndarray, C: np.ndarray, x_norms: np.ndarray, *, rtol: 
     return W, iterations, converged
 
 
-def solve_box_qp(H: np.ndarray, F: np.ndarray, *, lower: float = 0.0, upper: float = np.inf,
-                 smoothing: float = 0.0, W0: np.ndarray | None = None, rtol: float = 1e-7,
-                 max_iter: int = 20000) -> tuple[np.ndarray, int, np.ndarray]:
+def solve_box_qp(
+    H: np.ndarray,
+    F: np.ndarray,
+    *,
+    lower: float = 0.0,
+    upper: float = np.inf,
+    smoothing: float = 0.0,
+    W0: np.ndarray | None = None,
+    rtol: float = 1e-7,
+    max_iter: int = 20000,
+) -> tuple[np.ndarray, int, np.ndarray]:
     """Minimise ``sum_t 1/2 w_t'H w_t - f_t'w_t + smoothing/2 sum_t ||w_t - w_(t-1)||^2`` over a box.
 
     FISTA (Beck & Teboulle 2009) with gradient-based adaptive restart (O'Donoghue & Candes 2015); rows (frames)
@@ -235,8 +250,16 @@ def support_guess(Q: np.ndarray, C: np.ndarray) -> np.ndarray | None:
     return C @ np.linalg.inv(Q) > 0
 
 
-def batched_nnls(A: np.ndarray, X: np.ndarray, *, method: str = "active_set", sum_to_one: float = 0.0,
-                 smoothing: float = 0.0, rtol: float | None = None, max_iter: int | None = None) -> NnlsResult:
+def batched_nnls(
+    A: np.ndarray,
+    X: np.ndarray,
+    *,
+    method: str = "active_set",
+    sum_to_one: float = 0.0,
+    smoothing: float = 0.0,
+    rtol: float | None = None,
+    max_iter: int | None = None,
+) -> NnlsResult:
     """Non-negative weights w_t minimising ``||A w_t - x_t||^2`` for every row x_t of X (paper Eq 8).
 
     A (d, k): one dictionary column per keyshape; X (n, d): one frame per row.
@@ -265,22 +288,37 @@ def batched_nnls(A: np.ndarray, X: np.ndarray, *, method: str = "active_set", su
     x_norms = np.linalg.norm(X_fit, axis=1)
     guess = support_guess(Q, C)
     if method == "active_set" and smoothing <= 0:
-        W, iterations, converged = nnls_active_set(Q, C, x_norms, rtol=rtol or 1e-10, max_iter=max_iter,
-                                                   initial_passive=guess)
+        W, iterations, converged = nnls_active_set(
+            Q, C, x_norms, rtol=rtol or 1e-10, max_iter=max_iter, initial_passive=guess
+        )
         if guess is not None:
             # a warm start is only a shortcut: frames it left short of optimal start again from scratch
             retry = ~converged | (kkt_violation(A_fit, X_fit, W) > 1e-6)
             if retry.any():
                 W[retry], iterations[retry], converged[retry] = nnls_active_set(
-                    Q, C[retry], x_norms[retry], rtol=rtol or 1e-10, max_iter=max_iter)
+                    Q, C[retry], x_norms[retry], rtol=rtol or 1e-10, max_iter=max_iter
+                )
     else:
         W0 = None
         if smoothing > 0 or method == "active_set":
             W0, _, _ = nnls_active_set(Q, C, x_norms, rtol=1e-10, initial_passive=guess)
-        W, it, res = solve_box_qp(Q, C, lower=0.0, upper=np.inf, smoothing=smoothing * energy, W0=W0,
-                                  rtol=rtol or 1e-8, max_iter=max_iter or 50000)
+        W, it, res = solve_box_qp(
+            Q,
+            C,
+            lower=0.0,
+            upper=np.inf,
+            smoothing=smoothing * energy,
+            W0=W0,
+            rtol=rtol or 1e-8,
+            max_iter=max_iter or 50000,
+        )
         iterations = np.full(n, it, dtype=np.int64)
         converged = res <= (rtol or 1e-8)
     residual = np.linalg.norm(W @ A.T - X, axis=1)
-    return NnlsResult(weights=W, residual_norm=residual, iterations=iterations,
-                      kkt=kkt_violation(A_fit, X_fit, W), converged=converged)
+    return NnlsResult(
+        weights=W,
+        residual_norm=residual,
+        iterations=iterations,
+        kkt=kkt_violation(A_fit, X_fit, W),
+        converged=converged,
+    )

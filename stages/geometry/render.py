@@ -9,6 +9,7 @@ Blinn-Phong highlight, interpolated with the barycentrics) times a per-triangle 
 
 Camera convention (glTF): the view looks along -z at ``View.center``; image x is camera +x, image y is camera -y.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -37,8 +38,7 @@ class View:
     background: tuple[float, float, float] = (0.12, 0.13, 0.15)
 
     @classmethod
-    def fit(cls, points: np.ndarray, *, yaw: float = 0.0, pitch: float = 0.0, margin: float = 1.1,
-            **kwargs) -> "View":
+    def fit(cls, points: np.ndarray, *, yaw: float = 0.0, pitch: float = 0.0, margin: float = 1.1, **kwargs) -> View:
         """Frame ``points`` (e.g. the neutral mesh, or its face landmarks) seen from ``yaw``/``pitch`` radians
         (stages.geometry.rotations convention: yaw about +y, pitch about +x)."""
         from stages.geometry.rotations import euler_to_quat, quat_to_matrix
@@ -54,10 +54,14 @@ class View:
             distance = perspective * extent
             factor = distance / np.maximum(distance - q[:, 2], 1e-9 * distance)
             extent = float(max(2 * np.abs(q[:, :2] * factor[:, None]).max(), 1e-9))
-        return cls(center=tuple(float(v) for v in center), extent=extent * margin,
-                   rotation=tuple(tuple(float(v) for v in row) for row in rot), **kwargs)
+        return cls(
+            center=tuple(float(v) for v in center),
+            extent=extent * margin,
+            rotation=tuple(tuple(float(v) for v in row) for row in rot),
+            **kwargs,
+        )
 
-    def with_(self, **changes) -> "View":
+    def with_(self, **changes) -> View:
         from dataclasses import replace
 
         return replace(self, **changes)
@@ -209,8 +213,16 @@ def shade_vertices(normals_cam: np.ndarray, view: View) -> tuple[np.ndarray, np.
     return diffuse.astype(np.float32), spec.astype(np.float32)
 
 
-def render(vertices: np.ndarray, triangles: np.ndarray, size=256, view: View | str | None = None, *,
-           colors: np.ndarray | None = None, cull: bool = True, supersample: int = 1) -> np.ndarray:
+def render(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    size=256,
+    view: View | str | None = None,
+    *,
+    colors: np.ndarray | None = None,
+    cull: bool = True,
+    supersample: int = 1,
+) -> np.ndarray:
     """Render a triangle mesh: (H, W, 3) uint8 RGB.
 
     ``size``: an int (square) or (width, height). ``view``: a View, or a name from NAMED_VIEWS ("front",
@@ -249,8 +261,7 @@ def render(vertices: np.ndarray, triangles: np.ndarray, size=256, view: View | s
 
 def triangle_colors(triangle_groups: np.ndarray, groups: list[dict], *, srgb: bool = True) -> np.ndarray:
     """(T, 3) albedo from a character's material groups (meta['groups'] colours are linear, as in glTF)."""
-    table = np.array([g.get("color", [0.8, 0.8, 0.8, 1.0])[:3] for g in groups] or [[0.8, 0.8, 0.8]],
-                     dtype=np.float32)
+    table = np.array([g.get("color", [0.8, 0.8, 0.8, 1.0])[:3] for g in groups] or [[0.8, 0.8, 0.8]], dtype=np.float32)
     if srgb:  # the rasteriser works in display space
         table = np.where(table <= 0.0031308, 12.92 * table, 1.055 * np.power(table, 1 / 2.4) - 0.055)
     return table[np.clip(np.asarray(triangle_groups), 0, len(table) - 1)]
@@ -262,18 +273,30 @@ class CharacterRenderer:
     ``framing``: "face" frames the 68 landmark vertices with room around them, "head" the whole mesh.
     """
 
-    def __init__(self, neutral: np.ndarray, triangles: np.ndarray, deltas: np.ndarray, *,
-                 landmark_ids: np.ndarray | None = None, triangle_groups: np.ndarray | None = None,
-                 groups: list[dict] | None = None, size=256, framing: str = "face", yaw: float = 0.0,
-                 pitch: float = 0.0, pivot: np.ndarray | None = None, view: View | None = None,
-                 supersample: int = 1):
+    def __init__(
+        self,
+        neutral: np.ndarray,
+        triangles: np.ndarray,
+        deltas: np.ndarray,
+        *,
+        landmark_ids: np.ndarray | None = None,
+        triangle_groups: np.ndarray | None = None,
+        groups: list[dict] | None = None,
+        size=256,
+        framing: str = "face",
+        yaw: float = 0.0,
+        pitch: float = 0.0,
+        pivot: np.ndarray | None = None,
+        view: View | None = None,
+        supersample: int = 1,
+    ):
         self.neutral = np.asarray(neutral, dtype=np.float32)
         self.triangles = np.asarray(triangles, dtype=np.int64)
         self.deltas = np.asarray(deltas, dtype=np.float32).reshape(len(deltas), -1)
         self.size = size
         self.supersample = supersample
         self.pivot = np.zeros(3) if pivot is None else np.asarray(pivot, dtype=np.float64)
-        self.colors = (triangle_colors(triangle_groups, groups or []) if triangle_groups is not None else None)
+        self.colors = triangle_colors(triangle_groups, groups or []) if triangle_groups is not None else None
         if view is None:
             if framing == "face" and landmark_ids is not None:
                 pts = self.neutral[np.asarray(landmark_ids)]
@@ -286,17 +309,27 @@ class CharacterRenderer:
         self.view = view
 
     @classmethod
-    def from_artifact(cls, character, **kwargs) -> "CharacterRenderer":
+    def from_artifact(cls, character, **kwargs) -> CharacterRenderer:
         """From a character artifact (ArtifactView of stages.retarget.character)."""
         meta = character.meta
         groups = character["triangle_groups"] if "triangle_groups" in character else None
         kwargs.setdefault("pivot", meta.get("pivot"))
-        return cls(character["neutral"], character["triangles"], character["deltas"],
-                   landmark_ids=character["landmark_ids"], triangle_groups=groups, groups=meta.get("groups"),
-                   **kwargs)
+        return cls(
+            character["neutral"],
+            character["triangles"],
+            character["deltas"],
+            landmark_ids=character["landmark_ids"],
+            triangle_groups=groups,
+            groups=meta.get("groups"),
+            **kwargs,
+        )
 
-    def vertices(self, weights: np.ndarray | None = None, rotation: np.ndarray | None = None,
-                 translation: np.ndarray | None = None) -> np.ndarray:
+    def vertices(
+        self,
+        weights: np.ndarray | None = None,
+        rotation: np.ndarray | None = None,
+        translation: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Posed vertices: neutral + weights . deltas, then turned by ``rotation`` (w, x, y, z) about the pivot
         and moved by ``translation``."""
         v = self.neutral
@@ -314,7 +347,17 @@ class CharacterRenderer:
             v = v + np.asarray(translation, dtype=np.float32)
         return v
 
-    def __call__(self, weights: np.ndarray | None = None, rotation: np.ndarray | None = None,
-                 translation: np.ndarray | None = None) -> np.ndarray:
-        return render(self.vertices(weights, rotation, translation), self.triangles, self.size, self.view,
-                      colors=self.colors, supersample=self.supersample)
+    def __call__(
+        self,
+        weights: np.ndarray | None = None,
+        rotation: np.ndarray | None = None,
+        translation: np.ndarray | None = None,
+    ) -> np.ndarray:
+        return render(
+            self.vertices(weights, rotation, translation),
+            self.triangles,
+            self.size,
+            self.view,
+            colors=self.colors,
+            supersample=self.supersample,
+        )

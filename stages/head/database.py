@@ -10,6 +10,7 @@ The artifact follows the tracking artifact's audio conventions (``audio``, ``aud
 code path; pitch is a separate stage so that retuning it never re-ingests motion. Mirrored copies (the paper's
 "mirror imaging the head motion") are extra sequences that share their original's audio range.
 """
+
 from __future__ import annotations
 
 import csv
@@ -19,20 +20,38 @@ from typing import Literal
 import numpy as np
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.geometry.rotations import (euler_order_to_quat, mirror_quat, quat_conjugate, quat_continuous, quat_mean,
-                              quat_multiply, quat_normalize, quat_resample, quat_to_euler, quat_to_matrix)
+from stages.geometry.rotations import (
+    euler_order_to_quat,
+    mirror_quat,
+    quat_conjugate,
+    quat_continuous,
+    quat_mean,
+    quat_multiply,
+    quat_normalize,
+    quat_resample,
+    quat_to_euler,
+    quat_to_matrix,
+)
 
 HEADDB_OUTPUTS = {
-    "rotation": Output.array("f", shape=("frames", 4), dtype="float64",
-                             doc="unit quaternions (stages.geometry.rotations), relative to each sequence's mean pose "
-                                 "when meta center is true"),
+    "rotation": Output.array(
+        "f",
+        shape=("frames", 4),
+        dtype="float64",
+        doc="unit quaternions (stages.geometry.rotations), relative to each sequence's mean pose "
+        "when meta center is true",
+    ),
     "translation": Output.array("f", shape=("frames", 3), dtype="float64", doc="glTF axes, meta translation_units"),
     "angles": Output.array("f", shape=("frames", 3), dtype="float64", doc="yaw, pitch, roll in radians"),
     "time": Output.array("f", shape=("frames",), dtype="float64", doc="seconds since the sequence's first frame"),
     "sequence": Output.array("i", shape=("frames",), dtype="int32", doc="index into meta labels"),
     "audio": Output.array("f", shape=("samples",), dtype="float32", doc="mono audio, meta audio_rate Hz"),
-    "audio_bounds": Output.array("i", shape=("sequences", 2), dtype="int64",
-                                 doc="per sequence [start, stop) into audio; a mirrored copy shares its original's"),
+    "audio_bounds": Output.array(
+        "i",
+        shape=("sequences", 2),
+        dtype="int64",
+        doc="per sequence [start, stop) into audio; a mirrored copy shares its original's",
+    ),
 }
 
 
@@ -42,12 +61,12 @@ class Recording:
 
     label: str
     source: str
-    time: np.ndarray          # (n,) seconds, increasing; the first frame is the sequence's time 0
-    rotation: np.ndarray      # (n, 4)
-    translation: np.ndarray   # (n, 3)
-    samples: np.ndarray       # (m,) float32 audio
+    time: np.ndarray  # (n,) seconds, increasing; the first frame is the sequence's time 0
+    rotation: np.ndarray  # (n, 4)
+    translation: np.ndarray  # (n, 3)
+    samples: np.ndarray  # (m,) float32 audio
     audio_rate: int
-    audio_offset: float       # time of the first audio sample relative to the first motion frame
+    audio_offset: float  # time of the first audio sample relative to the first motion frame
     field: str
 
 
@@ -55,11 +74,16 @@ def check_motion_finite(rec: Recording) -> None:
     bad = ~(np.isfinite(rec.rotation).all(axis=1) & np.isfinite(rec.translation).all(axis=1))
     if bad.any():
         first = int(np.argmax(bad))
-        raise UserError(f"NaN or Inf in the head motion of '{rec.label}' ({int(bad.sum())} frames, first at "
-                        f"{rec.time[first] - rec.time[0]:.3f} s, frame {first})", file=rec.source, field=rec.field)
+        raise UserError(
+            f"NaN or Inf in the head motion of '{rec.label}' ({int(bad.sum())} frames, first at "
+            f"{rec.time[first] - rec.time[0]:.3f} s, frame {first})",
+            file=rec.source,
+            field=rec.field,
+        )
     if len(rec.time) < 2 or not np.all(np.diff(rec.time) > 0):
-        raise UserError(f"motion of '{rec.label}' needs at least two frames with increasing times",
-                        file=rec.source, field=rec.field)
+        raise UserError(
+            f"motion of '{rec.label}' needs at least two frames with increasing times", file=rec.source, field=rec.field
+        )
 
 
 def check_lengths(rec: Recording, max_mismatch: float) -> None:
@@ -68,13 +92,17 @@ def check_lengths(rec: Recording, max_mismatch: float) -> None:
     motion_length = rec.time[-1] - rec.time[0] + frame
     audio_length = len(rec.samples) / rec.audio_rate
     if abs(audio_length - motion_length) > max_mismatch:
-        raise UserError(f"audio of '{rec.label}' lasts {audio_length:.3f} s but its motion {motion_length:.3f} s "
-                        f"(more than max_length_mismatch {max_mismatch} s apart: wrong pairing?)",
-                        file=rec.source, field=rec.field)
+        raise UserError(
+            f"audio of '{rec.label}' lasts {audio_length:.3f} s but its motion {motion_length:.3f} s "
+            f"(more than max_length_mismatch {max_mismatch} s apart: wrong pairing?)",
+            file=rec.source,
+            field=rec.field,
+        )
 
 
-def resample_motion(time: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
-                    fps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def resample_motion(
+    time: np.ndarray, rotation: np.ndarray, translation: np.ndarray, fps: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Slerp rotations and interpolate translations onto k / fps, k = 0 .. the last frame's time, give or take a
     tenth of a frame: container timestamps are rounded (to milliseconds in FLV), and the same rate must keep every
     frame."""
@@ -101,8 +129,16 @@ def mirror_motion(rotation: np.ndarray, translation: np.ndarray) -> tuple[np.nda
     return mirror_quat(rotation), translation * np.array([-1.0, 1.0, 1.0])
 
 
-def build_database(recordings: list[Recording], *, fps: float, mirror: bool, center: bool,
-                   max_length_mismatch: float, speaker: str, translation_units: str) -> Result:
+def build_database(
+    recordings: list[Recording],
+    *,
+    fps: float,
+    mirror: bool,
+    center: bool,
+    max_length_mismatch: float,
+    speaker: str,
+    translation_units: str,
+) -> Result:
     """Resample every recording to ``fps``, optionally centre it and add its mirror image; one artifact."""
     if not recordings:
         raise UserError("the database has no recordings", field="inputs")
@@ -138,34 +174,50 @@ def build_database(recordings: list[Recording], *, fps: float, mirror: bool, cen
     }
     frames = [len(s[2]) for s in sequences]
     meta = {
-        "labels": [s[0] for s in sequences], "sources": [s[1].source for s in sequences],
-        "recordings": [s[1].label for s in sequences], "mirrored": [s[6] for s in sequences],
-        "fps": float(fps), "frames": frames, "audio_rate": int(rates.pop()),
+        "labels": [s[0] for s in sequences],
+        "sources": [s[1].source for s in sequences],
+        "recordings": [s[1].label for s in sequences],
+        "mirrored": [s[6] for s in sequences],
+        "fps": float(fps),
+        "frames": frames,
+        "audio_rate": int(rates.pop()),
         "audio_offset": [float(s[1].audio_offset) for s in sequences],
-        "speakers": [speaker] * len(sequences), "center": center, "translation_units": translation_units,
+        "speakers": [speaker] * len(sequences),
+        "center": center,
+        "translation_units": translation_units,
     }
-    metrics = {"recordings": len(recordings), "sequences": len(sequences),
-               "motion_seconds": float(sum(frames) / fps),
-               "audio_seconds": float(audio_cursor / meta["audio_rate"])}
+    metrics = {
+        "recordings": len(recordings),
+        "sequences": len(sequences),
+        "motion_seconds": float(sum(frames) / fps),
+        "audio_seconds": float(audio_cursor / meta["audio_rate"]),
+    }
     return Result(arrays, meta, metrics)
 
 
 class HeadDbParams(Stage.Params):
-    fps: float | None = None          # motion rate of the database; None: the first recording's own rate
-    mirror: bool = True               # add each take's mirror image (paper Sec. 6)
-    center: bool = True               # motion relative to each take's mean pose
+    fps: float | None = None  # motion rate of the database; None: the first recording's own rate
+    mirror: bool = True  # add each take's mirror image (paper Sec. 6)
+    center: bool = True  # motion relative to each take's mean pose
     max_length_mismatch: float = 0.5  # seconds allowed between the audio and motion lengths of a take
-    speaker: str = "speaker"          # speaker label (pitch normalises semitones per speaker)
+    speaker: str = "speaker"  # speaker label (pitch normalises semitones per speaker)
 
 
 class TrackedHeadDb(Stage):
     """Database from tracking outputs: video head pose (rotation, translation) and each video's audio."""
 
     class Params(HeadDbParams):
-        labels: list[str] | None = None   # use only these sequences of the tracking artifact
+        labels: list[str] | None = None  # use only these sequences of the tracking artifact
 
-    inputs = {"tracks": Input.artifact("rotation", "translation", "time", "sequence",
-                                       doc="tracking artifact (stages/tracking/schema.py) with audio")}
+    inputs = {
+        "tracks": Input.artifact(
+            "rotation",
+            "translation",
+            "time",
+            "sequence",
+            doc="tracking artifact (stages/tracking/schema.py) with audio",
+        )
+    }
     outputs = HEADDB_OUTPUTS
 
     def run(self, params, inputs):
@@ -174,9 +226,15 @@ class TrackedHeadDb(Stage):
         fps = params.fps or _first(view.meta.get("fps"))
         if not fps:
             fps = 1.0 / float(np.median(np.diff(recordings[0].time)))
-        return build_database(recordings, fps=float(fps), mirror=params.mirror, center=params.center,
-                              max_length_mismatch=params.max_length_mismatch, speaker=params.speaker,
-                              translation_units=str(view.meta.get("translation_units", "unknown")))
+        return build_database(
+            recordings,
+            fps=float(fps),
+            mirror=params.mirror,
+            center=params.center,
+            max_length_mismatch=params.max_length_mismatch,
+            speaker=params.speaker,
+            translation_units=str(view.meta.get("translation_units", "unknown")),
+        )
 
 
 def _first(value):
@@ -189,8 +247,11 @@ def recordings_from_tracking(view, labels: list[str] | None, field: str = "input
     meta = view.meta
     all_labels = list(meta.get("labels") or [])
     if "audio" not in view or "audio_bounds" not in view:
-        raise UserError("the tracking artifact has no audio; the head-motion database pairs motion with speech "
-                        "(track the videos with audio)", field=field)
+        raise UserError(
+            "the tracking artifact has no audio; the head-motion database pairs motion with speech "
+            "(track the videos with audio)",
+            field=field,
+        )
     sequence = np.asarray(view["sequence"])
     n = max(len(all_labels), int(sequence.max()) + 1 if len(sequence) else 0)
     all_labels += [f"sequence{k}" for k in range(len(all_labels), n)]
@@ -217,17 +278,29 @@ def recordings_from_tracking(view, labels: list[str] | None, field: str = "input
         if not mask.any():
             raise UserError(f"sequence '{label}' has no frames", field=field)
         a, b = bounds[k]
-        out.append(Recording(label, str(sources[k] or label), np.asarray(time[mask], dtype=np.float64),
-                             rotation[mask], translation[mask], np.asarray(audio[a:b], dtype=np.float32), rate,
-                             float(offsets[k] or 0.0), f"{field}[{label}]"))
+        out.append(
+            Recording(
+                label,
+                str(sources[k] or label),
+                np.asarray(time[mask], dtype=np.float64),
+                rotation[mask],
+                translation[mask],
+                np.asarray(audio[a:b], dtype=np.float32),
+                rate,
+                float(offsets[k] or 0.0),
+                f"{field}[{label}]",
+            )
+        )
     return out
 
 
 def _paired(motion: dict, audio: dict, kind: str) -> list[tuple[str, object, object]]:
     if set(motion) != set(audio):
-        raise UserError(f"{kind} and audio files must have the same labels; {kind} only: "
-                        f"{sorted(set(motion) - set(audio))}, audio only: {sorted(set(audio) - set(motion))}",
-                        field="inputs")
+        raise UserError(
+            f"{kind} and audio files must have the same labels; {kind} only: "
+            f"{sorted(set(motion) - set(audio))}, audio only: {sorted(set(audio) - set(motion))}",
+            field="inputs",
+        )
     return [(label, motion[label], audio[label]) for label in motion]
 
 
@@ -239,9 +312,9 @@ def _decode(path, rate: int, label: str):
 
 class FileHeadDbParams(HeadDbParams):
     audio_rate: int = 16000
-    translation_scale: float = 1.0              # multiplies positions (e.g. 10 for cm -> mm)
+    translation_scale: float = 1.0  # multiplies positions (e.g. 10 for cm -> mm)
     translation_units: str = "unknown"
-    audio_offset: dict[str, float] = {}          # per label: start of the audio relative to the first motion frame
+    audio_offset: dict[str, float] = {}  # per label: start of the audio relative to the first motion frame
 
 
 class BvhHeadDb(Stage):
@@ -250,8 +323,10 @@ class BvhHeadDb(Stage):
     class Params(FileHeadDbParams):
         joint: str = "Head"
 
-    inputs = {"motion": Input.files(doc="labelled BVH files"),
-              "audio": Input.files(doc="audio per label (WAV, FLAC, MP3 or any container PyAV decodes)")}
+    inputs = {
+        "motion": Input.files(doc="labelled BVH files"),
+        "audio": Input.files(doc="audio per label (WAV, FLAC, MP3 or any container PyAV decodes)"),
+    }
     outputs = HEADDB_OUTPUTS
 
     def run(self, params, inputs):
@@ -264,12 +339,28 @@ class BvhHeadDb(Stage):
             rotation = joint_rotation(bvh, params.joint, field="params.joint")
             translation = joint_translation(bvh, params.joint, field="params.joint") * params.translation_scale
             rates.append(bvh.fps)
-            recordings.append(Recording(label, motion_path.name, np.arange(bvh.frames) * bvh.frame_time, rotation,
-                                        translation, _decode(audio_path, params.audio_rate, label),
-                                        params.audio_rate, params.audio_offset.get(label, 0.0), field))
-        return build_database(recordings, fps=params.fps or rates[0], mirror=params.mirror, center=params.center,
-                              max_length_mismatch=params.max_length_mismatch, speaker=params.speaker,
-                              translation_units=params.translation_units)
+            recordings.append(
+                Recording(
+                    label,
+                    motion_path.name,
+                    np.arange(bvh.frames) * bvh.frame_time,
+                    rotation,
+                    translation,
+                    _decode(audio_path, params.audio_rate, label),
+                    params.audio_rate,
+                    params.audio_offset.get(label, 0.0),
+                    field,
+                )
+            )
+        return build_database(
+            recordings,
+            fps=params.fps or rates[0],
+            mirror=params.mirror,
+            center=params.center,
+            max_length_mismatch=params.max_length_mismatch,
+            speaker=params.speaker,
+            translation_units=params.translation_units,
+        )
 
 
 CSV_COLUMNS = ("time", "rx", "ry", "rz", "tx", "ty", "tz")
@@ -291,12 +382,16 @@ def read_motion_csv(path, *, angle_unit: str, rotation_order: str, field: str):
     header = [h.strip().lower() for h in rows[0]]
     missing = [c for c in CSV_COLUMNS if c not in header]
     if missing:
-        raise UserError(f"CSV lacks columns {missing}; needs {', '.join(CSV_COLUMNS)} (header row first)",
-                        file=str(path), field=field)
+        raise UserError(
+            f"CSV lacks columns {missing}; needs {', '.join(CSV_COLUMNS)} (header row first)",
+            file=str(path),
+            field=field,
+        )
     columns = [header.index(c) for c in CSV_COLUMNS]
     try:
-        data = np.array([[float(row[c]) for c in columns] for row in rows[1:] if any(x.strip() for x in row)],
-                        dtype=np.float64).reshape(-1, len(CSV_COLUMNS))
+        data = np.array(
+            [[float(row[c]) for c in columns] for row in rows[1:] if any(x.strip() for x in row)], dtype=np.float64
+        ).reshape(-1, len(CSV_COLUMNS))
     except (ValueError, IndexError) as exc:
         raise UserError(f"non-numeric or missing value in CSV ({exc})", file=str(path), field=field) from None
     angles = {"x": data[:, 1], "y": data[:, 2], "z": data[:, 3]}
@@ -313,28 +408,45 @@ class CsvHeadDb(Stage):
         angle_unit: Literal["degrees", "radians"]
         rotation_order: Literal["XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX"] = "YXZ"
 
-    inputs = {"motion": Input.files(doc="labelled CSV files"),
-              "audio": Input.files(doc="audio per label (WAV, FLAC, MP3 or any container PyAV decodes)")}
+    inputs = {
+        "motion": Input.files(doc="labelled CSV files"),
+        "audio": Input.files(doc="audio per label (WAV, FLAC, MP3 or any container PyAV decodes)"),
+    }
     outputs = HEADDB_OUTPUTS
 
     def run(self, params, inputs):
         recordings, rates = [], []
         for label, motion_path, audio_path in _paired(inputs["motion"], inputs["audio"], "motion"):
             field = f"inputs.motion.{label}"
-            time, rotation, translation = read_motion_csv(motion_path, angle_unit=params.angle_unit,
-                                                          rotation_order=params.rotation_order, field=field)
+            time, rotation, translation = read_motion_csv(
+                motion_path, angle_unit=params.angle_unit, rotation_order=params.rotation_order, field=field
+            )
             if len(time) >= 2:
                 rates.append(1.0 / float(np.median(np.diff(time))))
             # CSV times are on the audio's clock unless an offset is given: audio starts time[0] before frame 0
             offset = params.audio_offset.get(label, -float(time[0]) if len(time) else 0.0)
-            recordings.append(Recording(label, motion_path.name, time, rotation,
-                                        translation * params.translation_scale,
-                                        _decode(audio_path, params.audio_rate, label), params.audio_rate, offset,
-                                        field))
+            recordings.append(
+                Recording(
+                    label,
+                    motion_path.name,
+                    time,
+                    rotation,
+                    translation * params.translation_scale,
+                    _decode(audio_path, params.audio_rate, label),
+                    params.audio_rate,
+                    offset,
+                    field,
+                )
+            )
         fps = params.fps or (rates[0] if rates else None)
         if not fps:
-            raise UserError("cannot tell the motion rate (CSV with fewer than two rows); set fps",
-                            field="params.fps")
-        return build_database(recordings, fps=fps, mirror=params.mirror, center=params.center,
-                              max_length_mismatch=params.max_length_mismatch, speaker=params.speaker,
-                              translation_units=params.translation_units)
+            raise UserError("cannot tell the motion rate (CSV with fewer than two rows); set fps", field="params.fps")
+        return build_database(
+            recordings,
+            fps=fps,
+            mirror=params.mirror,
+            center=params.center,
+            max_length_mismatch=params.max_length_mismatch,
+            speaker=params.speaker,
+            translation_units=params.translation_units,
+        )

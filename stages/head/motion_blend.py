@@ -24,6 +24,7 @@ velocity" -- the paper does not say how; here (``join_smoothing="velocity"``, th
 Motion is blended as (yaw, pitch, roll) angles and translation: the database is centred on each take's mean pose,
 so angles stay small and far from the Euler singularity, where angle rates are close to the angular velocity.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -37,9 +38,9 @@ from stages.geometry.rotations import euler_to_quat, quat_to_euler
 
 @dataclass
 class DatabaseMotion:
-    channels: np.ndarray    # (frames, 6): yaw, pitch, roll (radians), translation x, y, z
-    first: np.ndarray       # (sequences,) first frame of each sequence
-    frames: np.ndarray      # (sequences,) frame count
+    channels: np.ndarray  # (frames, 6): yaw, pitch, roll (radians), translation x, y, z
+    first: np.ndarray  # (sequences,) first frame of each sequence
+    frames: np.ndarray  # (sequences,) frame count
     fps: float
 
     def sample(self, sequence: int, times: np.ndarray) -> np.ndarray:
@@ -57,11 +58,11 @@ class DatabaseMotion:
         values = []
         for first, n in zip(self.first, self.frames):
             if n >= 3:
-                values.append(angular_acceleration(self.channels[first:first + n, :3], self.fps))
+                values.append(angular_acceleration(self.channels[first : first + n, :3], self.fps))
         return float(np.median(np.concatenate(values))) if values else 0.0
 
 
-JOIN_BUDGET_OF_MEDIAN = 0.5   # default acceleration a join's velocity step may add, as a fraction of the
+JOIN_BUDGET_OF_MEDIAN = 0.5  # default acceleration a join's velocity step may add, as a fraction of the
 #                               database's median angular acceleration (bench/eval_head.py: with it the largest
 #                               join acceleration stays below the held-out real motion's 99th percentile)
 
@@ -80,15 +81,22 @@ def smootherstep(u: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Stitched:
-    channels: np.ndarray            # (frames, 6)
-    joins: np.ndarray               # times where two chosen segments meet (all boundaries after the first segment)
-    windows: np.ndarray             # (joins, 2) start and end of each join's blend (seconds)
-    velocity_mismatch: np.ndarray   # (joins,) angular velocity step the join had to absorb (deg/s, output clock)
+    channels: np.ndarray  # (frames, 6)
+    joins: np.ndarray  # times where two chosen segments meet (all boundaries after the first segment)
+    windows: np.ndarray  # (joins, 2) start and end of each join's blend (seconds)
+    velocity_mismatch: np.ndarray  # (joins,) angular velocity step the join had to absorb (deg/s, output clock)
 
 
-def join_velocity_mismatch(db: DatabaseMotion, prev_sequence: np.ndarray, prev_time: np.ndarray,
-                           prev_scale: np.ndarray, next_sequence: np.ndarray, next_time: np.ndarray,
-                           next_scale: np.ndarray, window: float = 0.1) -> np.ndarray:
+def join_velocity_mismatch(
+    db: DatabaseMotion,
+    prev_sequence: np.ndarray,
+    prev_time: np.ndarray,
+    prev_scale: np.ndarray,
+    next_sequence: np.ndarray,
+    next_time: np.ndarray,
+    next_scale: np.ndarray,
+    window: float = 0.1,
+) -> np.ndarray:
     """Velocity step (joins, channels) per output second between the outgoing segment's continuation (database
     ``prev_time``) and the incoming segment's start (``next_time``), each time-warped by its ``scale`` (database
     seconds per output second). Velocities are the same least-squares parabola fits over +-``window`` database
@@ -97,14 +105,23 @@ def join_velocity_mismatch(db: DatabaseMotion, prev_sequence: np.ndarray, prev_t
 
     if len(prev_time) == 0:
         return np.zeros((0, db.channels.shape[1]))
-    kin = lambda seq, t: boundary_kinematics(db.channels, db.first, db.frames, db.fps, np.asarray(seq, np.int64),
-                                             np.asarray(t, np.float64), window)[:, 1, :]
-    return kin(next_sequence, next_time) * np.asarray(next_scale)[:, None] - \
-        kin(prev_sequence, prev_time) * np.asarray(prev_scale)[:, None]
+    kin = lambda seq, t: boundary_kinematics(
+        db.channels, db.first, db.frames, db.fps, np.asarray(seq, np.int64), np.asarray(t, np.float64), window
+    )[:, 1, :]
+    return (
+        kin(next_sequence, next_time) * np.asarray(next_scale)[:, None]
+        - kin(prev_sequence, prev_time) * np.asarray(prev_scale)[:, None]
+    )
 
 
-def join_windows(join_times: np.ndarray, half: np.ndarray, mismatch_deg: np.ndarray | None = None, *,
-                 acceleration_budget: float | None = None, max_half: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+def join_windows(
+    join_times: np.ndarray,
+    half: np.ndarray,
+    mismatch_deg: np.ndarray | None = None,
+    *,
+    acceleration_budget: float | None = None,
+    max_half: float = 0.5,
+) -> tuple[np.ndarray, np.ndarray]:
     """Start and end of each join's velocity blend.
 
     A smoothstep velocity blend over a window of length 2W passes a velocity step dv with an added acceleration of
@@ -125,6 +142,7 @@ def join_windows(join_times: np.ndarray, half: np.ndarray, mismatch_deg: np.ndar
 def segment_weights(x: np.ndarray, k: int, left: np.ndarray, right: np.ndarray, join_times: np.ndarray) -> np.ndarray:
     """Blend weight of segment k at times x: ramp_k - ramp_k+1, where ramp_j rises over join j's window (a step at
     join j when the window is empty). Weights of all segments sum to one."""
+
     def ramp(j: int) -> np.ndarray:
         if j == 0:
             return np.ones(len(x))
@@ -138,12 +156,23 @@ def segment_weights(x: np.ndarray, k: int, left: np.ndarray, right: np.ndarray, 
     return np.clip(ramp(k) - ramp(k + 1), 0.0, 1.0)
 
 
-def stitch_segments(db: DatabaseMotion, test_segments: np.ndarray, subsentence_start: np.ndarray,
-                    db_sequence: np.ndarray, db_segments: np.ndarray, times: np.ndarray, *,
-                    blend_window: float = 0.15, break_blend_window: float = 0.25,
-                    drift_correction: bool = True, smoothing: str = "velocity",
-                    acceleration_budget: float | None = None, max_blend_window: float = 0.5,
-                    preserve_speed: bool = False, boundary_window: float = 0.1) -> Stitched:
+def stitch_segments(
+    db: DatabaseMotion,
+    test_segments: np.ndarray,
+    subsentence_start: np.ndarray,
+    db_sequence: np.ndarray,
+    db_segments: np.ndarray,
+    times: np.ndarray,
+    *,
+    blend_window: float = 0.15,
+    break_blend_window: float = 0.25,
+    drift_correction: bool = True,
+    smoothing: str = "velocity",
+    acceleration_budget: float | None = None,
+    max_blend_window: float = 0.5,
+    preserve_speed: bool = False,
+    boundary_window: float = 0.1,
+) -> Stitched:
     """Sec. 5.4 for one utterance. ``test_segments`` (N, 3) and the chosen database segments' sequence (N,) and
     times (N, 3); ``times`` the output frame times (increasing). Returns the blended channels on ``times``.
 
@@ -164,9 +193,17 @@ def stitch_segments(db: DatabaseMotion, test_segments: np.ndarray, subsentence_s
     ``smoothing="crossfade"`` is the earlier position crossfade (kept for comparison): it matches position at the
     join but overshoots the velocity inside the window, adding about 2 * 1.875 dv / (2 W) of acceleration."""
     if smoothing == "crossfade":
-        return crossfade_segments(db, test_segments, subsentence_start, db_sequence, db_segments, times,
-                                  blend_window=blend_window, break_blend_window=break_blend_window,
-                                  drift_correction=drift_correction)
+        return crossfade_segments(
+            db,
+            test_segments,
+            subsentence_start,
+            db_sequence,
+            db_segments,
+            times,
+            blend_window=blend_window,
+            break_blend_window=break_blend_window,
+            drift_correction=drift_correction,
+        )
     if smoothing != "velocity":
         raise ValueError(f"unknown join smoothing {smoothing!r}")
     times = np.asarray(times, dtype=np.float64)
@@ -177,7 +214,7 @@ def stitch_segments(db: DatabaseMotion, test_segments: np.ndarray, subsentence_s
         return Stitched(out, np.zeros(0), np.zeros((0, 2)), np.zeros(0))
     a, e = test_segments[:, 0], test_segments[:, 2]
     da, de = db_segments[:, 0], db_segments[:, 2]
-    scale = (de - da) / np.maximum(e - a, 1e-9)          # database seconds per output second
+    scale = (de - da) / np.maximum(e - a, 1e-9)  # database seconds per output second
     sequence = np.asarray(db_sequence, dtype=np.int64)
 
     def raw(k: int, t: np.ndarray) -> np.ndarray:
@@ -186,12 +223,12 @@ def stitch_segments(db: DatabaseMotion, test_segments: np.ndarray, subsentence_s
     starts = np.asarray(subsentence_start, dtype=bool).copy()
     starts[0] = True
     joins = a[1:].copy()
-    dv = join_velocity_mismatch(db, sequence[:-1], de[:-1], scale[:-1], sequence[1:], da[1:], scale[1:],
-                                boundary_window)
+    dv = join_velocity_mismatch(
+        db, sequence[:-1], de[:-1], scale[:-1], sequence[1:], da[1:], scale[1:], boundary_window
+    )
     dv_deg = np.degrees(np.linalg.norm(dv[:, :3], axis=1))
     half = np.where(starts[1:], break_blend_window, blend_window)
-    left, right = join_windows(joins, half, dv_deg, acceleration_budget=acceleration_budget,
-                               max_half=max_blend_window)
+    left, right = join_windows(joins, half, dv_deg, acceleration_budget=acceleration_budget, max_half=max_blend_window)
     windows = np.stack([left, right], axis=1)
     if len(times) == 0:
         return Stitched(out, joins, windows, dv_deg)
@@ -204,10 +241,10 @@ def stitch_segments(db: DatabaseMotion, test_segments: np.ndarray, subsentence_s
     group = np.cumsum(starts) - 1
     n_groups = int(group[-1]) + 1
     increments = np.zeros((len(mid), channels))
-    group_weight = np.zeros((len(mid), n_groups))          # time each group's drift velocity acts in each step
+    group_weight = np.zeros((len(mid), n_groups))  # time each group's drift velocity acts in each step
     bounds_lo = np.concatenate([[-np.inf], left])
     bounds_hi = np.concatenate([right, [np.inf]])
-    parts = []                                             # (first step, weights, increments) per segment
+    parts = []  # (first step, weights, increments) per segment
     for k in range(n):
         idx = np.flatnonzero((mid >= bounds_lo[k]) & (mid <= bounds_hi[k]))
         if len(idx) == 0:
@@ -224,15 +261,15 @@ def stitch_segments(db: DatabaseMotion, test_segments: np.ndarray, subsentence_s
     drift = np.concatenate([np.zeros((1, n_groups)), np.cumsum(group_weight, axis=0)])
     first_of = np.flatnonzero(starts)
     anchor_t = a[first_of]
-    target = np.stack([raw(k, a[k:k + 1])[0] for k in first_of])          # recorded pose at each sub-sentence start
+    target = np.stack([raw(k, a[k : k + 1])[0] for k in first_of])  # recorded pose at each sub-sentence start
     at = lambda curve: np.stack([np.interp(anchor_t, times, curve[:, c]) for c in range(curve.shape[1])], axis=1)
     base_at = at(base)
     if drift_correction:
         # x = c + base + sum_g d_g drift_g: one constant, one drift velocity per sub-sentence but the last,
         # such that every sub-sentence starts at its recorded pose
-        system = np.concatenate([np.ones((n_groups, 1)), at(drift)[:, :n_groups - 1]], axis=1)
-        solution = np.linalg.lstsq(system, target - base_at, rcond=None)[0]        # (groups, channels)
-        out = solution[0][None, :] + base + drift[:, :n_groups - 1] @ solution[1:]
+        system = np.concatenate([np.ones((n_groups, 1)), at(drift)[:, : n_groups - 1]], axis=1)
+        solution = np.linalg.lstsq(system, target - base_at, rcond=None)[0]  # (groups, channels)
+        out = solution[0][None, :] + base + drift[:, : n_groups - 1] @ solution[1:]
     else:
         # each sub-sentence starts at its recorded pose and is not warped: the head jumps between sub-sentences
         frame_group = np.clip(np.searchsorted(anchor_t, times, side="right") - 1, 0, n_groups - 1)
@@ -251,19 +288,20 @@ def speed_preserving_gain(parts: list[tuple[int, np.ndarray, np.ndarray]], steps
     1 / sqrt(sum_kl w_k w_l rho_kl): 1 wherever one segment has all the weight or the joined segments move alike
     (a segment continued by its database successor is reproduced exactly), at most sqrt(2) for two unrelated
     ones. It is smooth wherever the weights are, so it keeps the blend C1."""
+
     def span(k):
         first, w, _ = parts[k]
         return first, first + len(w)
 
-    rho = np.ones(len(parts))                         # rho[k]: segment k-1 with segment k
+    rho = np.ones(len(parts))  # rho[k]: segment k-1 with segment k
     for k in range(1, len(parts)):
         lo = max(span(k - 1)[0], span(k)[0])
         hi = min(span(k - 1)[1], span(k)[1])
         if hi - lo < 2:
             rho[k] = 1.0
             continue
-        a = parts[k - 1][2][lo - span(k - 1)[0]:hi - span(k - 1)[0], :3]
-        b = parts[k][2][lo - span(k)[0]:hi - span(k)[0], :3]
+        a = parts[k - 1][2][lo - span(k - 1)[0] : hi - span(k - 1)[0], :3]
+        b = parts[k][2][lo - span(k)[0] : hi - span(k)[0], :3]
         norm = np.sqrt((a * a).sum() * (b * b).sum())
         rho[k] = float(np.clip((a * b).sum() / norm, 0.0, 1.0)) if norm > 1e-300 else 1.0
     energy = np.zeros(steps)
@@ -271,7 +309,7 @@ def speed_preserving_gain(parts: list[tuple[int, np.ndarray, np.ndarray]], steps
         first, w, _ = parts[k]
         if len(w) == 0:
             continue
-        energy[first:first + len(w)] += w * w
+        energy[first : first + len(w)] += w * w
         chain = 1.0
         for m in range(k - 1, -1, -1):
             chain *= rho[m + 1]
@@ -280,14 +318,22 @@ def speed_preserving_gain(parts: list[tuple[int, np.ndarray, np.ndarray]], steps
                 if span(m)[1] <= first:
                     break
                 continue
-            energy[lo:hi] += 2 * chain * parts[m][1][lo - span(m)[0]:hi - span(m)[0]] * w[lo - first:hi - first]
+            energy[lo:hi] += 2 * chain * parts[m][1][lo - span(m)[0] : hi - span(m)[0]] * w[lo - first : hi - first]
     return 1.0 / np.sqrt(np.clip(energy, 0.5, 1.0))
 
 
-def crossfade_segments(db: DatabaseMotion, test_segments: np.ndarray, subsentence_start: np.ndarray,
-                       db_sequence: np.ndarray, db_segments: np.ndarray, times: np.ndarray, *,
-                       blend_window: float = 0.15, break_blend_window: float = 0.25,
-                       drift_correction: bool = True) -> Stitched:
+def crossfade_segments(
+    db: DatabaseMotion,
+    test_segments: np.ndarray,
+    subsentence_start: np.ndarray,
+    db_sequence: np.ndarray,
+    db_segments: np.ndarray,
+    times: np.ndarray,
+    *,
+    blend_window: float = 0.15,
+    break_blend_window: float = 0.25,
+    drift_correction: bool = True,
+) -> Stitched:
     """The position crossfade (smoothing="crossfade" of ``stitch_segments``): each segment's chained, drift-warped
     curve, weighted by a smootherstep partition of unity over +-window of each join."""
     n = len(test_segments)
@@ -296,7 +342,7 @@ def crossfade_segments(db: DatabaseMotion, test_segments: np.ndarray, subsentenc
         return Stitched(out, np.zeros(0), np.zeros((0, 2)), np.zeros(0))
     a, e = test_segments[:, 0], test_segments[:, 2]
     da, de = db_segments[:, 0], db_segments[:, 2]
-    scale = (de - da) / np.maximum(e - a, 1e-9)          # database seconds per output second
+    scale = (de - da) / np.maximum(e - a, 1e-9)  # database seconds per output second
 
     def raw(k: int, t: np.ndarray) -> np.ndarray:
         return db.sample(int(db_sequence[k]), da[k] + (t - a[k]) * scale[k])
@@ -305,8 +351,8 @@ def crossfade_segments(db: DatabaseMotion, test_segments: np.ndarray, subsentenc
     starts[0] = True
     # chain: each segment starts where the previous one ends; a sub-sentence starts at its recorded pose
     offset = np.zeros((n, out.shape[1]))
-    start_value = np.stack([raw(k, a[k:k + 1])[0] for k in range(n)])
-    end_value = np.stack([raw(k, e[k:k + 1])[0] for k in range(n)])
+    start_value = np.stack([raw(k, a[k : k + 1])[0] for k in range(n)])
+    end_value = np.stack([raw(k, e[k : k + 1])[0] for k in range(n)])
     for k in range(1, n):
         if not starts[k]:
             offset[k] = end_value[k - 1] + offset[k - 1] - start_value[k]
@@ -356,8 +402,9 @@ def crossfade_segments(db: DatabaseMotion, test_segments: np.ndarray, subsentenc
 
 # ---------------------------------------------------------------------------------- evaluation measures
 
-JOIN_MEASURE_WINDOW = 0.15   # seconds either side of a join over which join acceleration is measured (fixed, so
+JOIN_MEASURE_WINDOW = 0.15  # seconds either side of a join over which join acceleration is measured (fixed, so
 #                              that every smoothing method and parameter is measured alike)
+
 
 def angular_speed(angles: np.ndarray, fps: float) -> np.ndarray:
     """Angular speed (frames - 1,) in degrees per second from (yaw, pitch, roll) angles in radians."""
@@ -411,18 +458,24 @@ def pitch_velocity_correlation(angles: np.ndarray, fps: float, f0_time: np.ndarr
 # ---------------------------------------------------------------------------------------------- the stage
 
 MOTION_BLEND_OUTPUTS = {
-    "rotation": Output.array("f", shape=("frames", 4), dtype="float64", doc="unit quaternions (stages.geometry.rotations)"),
+    "rotation": Output.array(
+        "f", shape=("frames", 4), dtype="float64", doc="unit quaternions (stages.geometry.rotations)"
+    ),
     "translation": Output.array("f", shape=("frames", 3), dtype="float64", doc="offset from the rest position"),
     "angles": Output.array("f", shape=("frames", 3), dtype="float64", doc="yaw, pitch, roll in radians"),
     "time": Output.array("f", shape=("frames",), dtype="float64", doc="seconds since the utterance's start"),
     "sequence": Output.array("i", shape=("frames",), dtype="int32", doc="test utterance (meta labels)"),
     "joins": Output.array("f", shape=("joins",), dtype="float64", doc="join times on each utterance's clock"),
     "join_utterance": Output.array("i", shape=("joins",), dtype="int32"),
-    "join_window": Output.array("f", shape=("joins", 2), dtype="float64",
-                                doc="start and end of each join's blend (seconds, utterance clock)"),
-    "join_velocity_step": Output.array("f", shape=("joins",), dtype="float64",
-                                       doc="angular velocity step between the joined segments (deg/s; NaN for the "
-                                           "crossfade)"),
+    "join_window": Output.array(
+        "f", shape=("joins", 2), dtype="float64", doc="start and end of each join's blend (seconds, utterance clock)"
+    ),
+    "join_velocity_step": Output.array(
+        "f",
+        shape=("joins",),
+        dtype="float64",
+        doc="angular velocity step between the joined segments (deg/s; NaN for the crossfade)",
+    ),
     "bvh": Output.file(".bvh", doc="the head joint's motion, utterances back to back"),
 }
 
@@ -484,8 +537,9 @@ def _plot_head_angles(view, inputs=None):
             ax.plot(np.arange(len(reference)) / fps, reference[:, c], color="0.25", lw=1.2, label="real")
         ax.set_ylabel(f"{name} (deg)")
     axes[0].legend(loc="upper right", fontsize=8)
-    axes[0].set_title(f"head angles: {labels[0] if labels else ''} (grey lines: segment joins, shaded: their "
-                      f"blend windows)")
+    axes[0].set_title(
+        f"head angles: {labels[0] if labels else ''} (grey lines: segment joins, shaded: their blend windows)"
+    )
     axes[-1].set_xlabel("time (s)")
     return fig
 
@@ -495,26 +549,29 @@ class MotionBlend(Stage):
     translation and a BVH of the head joint at the output rate."""
 
     class Params(Stage.Params):
-        fps: float | None = None          # output rate; None: the test take's video rate, else the database's
-        join_smoothing: Literal["velocity", "crossfade"] = "velocity"   # velocity-domain blend, or the earlier
+        fps: float | None = None  # output rate; None: the test take's video rate, else the database's
+        join_smoothing: Literal["velocity", "crossfade"] = "velocity"  # velocity-domain blend, or the earlier
         #                                   position crossfade (overshoots the velocity inside its window)
-        blend_window: float = 0.15        # seconds either side of a join to blend over (at least)
+        blend_window: float = 0.15  # seconds either side of a join to blend over (at least)
         break_blend_window: float = 0.25  # the same at joins between sub-sentences (breath pauses)
-        max_blend_window: float = 0.5     # widest half-window a large velocity step may get
-        join_acceleration: float | None = None   # deg/s^2 a join's velocity step may add (sets its window);
+        max_blend_window: float = 0.5  # widest half-window a large velocity step may get
+        join_acceleration: float | None = None  # deg/s^2 a join's velocity step may add (sets its window);
         #                                   None: half the database's median angular acceleration; 0: fixed windows
-        preserve_speed: bool = False      # keep the blended velocity as fast as the joined segments' own
-        drift_correction: bool = True     # warp each sub-sentence to meet the next
-        translation: bool = True          # False: rotation only (translation zero)
+        preserve_speed: bool = False  # keep the blended velocity as fast as the joined segments' own
+        drift_correction: bool = True  # warp each sub-sentence to meet the next
+        translation: bool = True  # False: rotation only (translation zero)
         bvh_joint: str = "Head"
-        bvh_order: str = "ZXY"            # Euler channel order written to the BVH
+        bvh_order: str = "ZXY"  # Euler channel order written to the BVH
 
     inputs = {
         "trellis": Input.artifact("segments", "chosen", "db_segments", "db_segment_sequence"),
         "database": Input.artifact("angles", "translation", "sequence", doc="the headdb artifact searched"),
-        "reference": Input.artifact("rotation", "sequence", optional=True,
-                                    doc="real motion of the test take (tracking artifact) for the figure and "
-                                        "metrics"),
+        "reference": Input.artifact(
+            "rotation",
+            "sequence",
+            optional=True,
+            doc="real motion of the test take (tracking artifact) for the figure and metrics",
+        ),
     }
     outputs = MOTION_BLEND_OUTPUTS
     figures = {"head_angles": _plot_head_angles}
@@ -525,8 +582,9 @@ class MotionBlend(Stage):
         trellis, database = inputs["trellis"], inputs["database"]
         db_labels = list(database.meta.get("labels") or [])
         if trellis.meta.get("db_labels") is not None and list(trellis.meta["db_labels"]) != db_labels:
-            raise UserError("the trellis was searched over a different database than the one given",
-                            field="inputs.database")
+            raise UserError(
+                "the trellis was searched over a different database than the one given", field="inputs.database"
+            )
         if params.blend_window < 0 or params.break_blend_window < 0:
             raise UserError("blend_window must be >= 0", field="params.blend_window")
         if params.max_blend_window < 0:
@@ -534,22 +592,35 @@ class MotionBlend(Stage):
         if params.join_acceleration is not None and params.join_acceleration < 0:
             raise UserError("join_acceleration must be >= 0 (0: fixed windows)", field="params.join_acceleration")
         db = database_motion(database, use_translation=params.translation)
-        budget = JOIN_BUDGET_OF_MEDIAN * db.typical_acceleration() if params.join_acceleration is None \
+        budget = (
+            JOIN_BUDGET_OF_MEDIAN * db.typical_acceleration()
+            if params.join_acceleration is None
             else params.join_acceleration
+        )
         labels = list(trellis.meta.get("labels") or [])
         test_fps = [f for f in (trellis.meta.get("fps") or []) if f]
         fps = float(params.fps or (test_fps[0] if test_fps else db.fps))
         if not fps > 0:
             raise UserError(f"fps must be positive, got {fps}", field="params.fps")
-        synth = synthesise(trellis, db, fps, smoothing=params.join_smoothing, blend_window=params.blend_window,
-                           break_blend_window=params.break_blend_window, max_blend_window=params.max_blend_window,
-                           acceleration_budget=budget or None, preserve_speed=params.preserve_speed,
-                           drift_correction=params.drift_correction)
+        synth = synthesise(
+            trellis,
+            db,
+            fps,
+            smoothing=params.join_smoothing,
+            blend_window=params.blend_window,
+            break_blend_window=params.break_blend_window,
+            max_blend_window=params.max_blend_window,
+            acceleration_budget=budget or None,
+            preserve_speed=params.preserve_speed,
+            drift_correction=params.drift_correction,
+        )
         angles = np.concatenate([s.channels[:, :3] for s in synth]) if synth else np.zeros((0, 3))
         translation = np.concatenate([s.channels[:, 3:] for s in synth]) if synth else np.zeros((0, 3))
         rotation = euler_to_quat(angles[:, 0], angles[:, 1], angles[:, 2])
         arrays = {
-            "rotation": rotation, "translation": translation, "angles": angles,
+            "rotation": rotation,
+            "translation": translation,
+            "angles": angles,
             "time": np.concatenate([np.arange(len(s.channels)) / fps for s in synth]),
             "sequence": np.concatenate([np.full(len(s.channels), u, np.int32) for u, s in enumerate(synth)]),
             "joins": np.concatenate([s.joins for s in synth]),
@@ -562,12 +633,17 @@ class MotionBlend(Stage):
         steps = arrays["join_velocity_step"][np.isfinite(arrays["join_velocity_step"])]
         if len(steps):
             widths = np.diff(arrays["join_window"], axis=1)[:, 0]
-            metrics.update({"mean_join_velocity_step": float(steps.mean()),
-                            "mean_join_window": float(widths.mean())})
-        meta = {"fps": fps, "labels": labels, "frames": [len(s.channels) for s in synth],
-                "join_smoothing": params.join_smoothing, "join_acceleration_budget": float(budget),
-                "translation_units": database.meta.get("translation_units", "unknown"),
-                "bvh_joint": params.bvh_joint, "db_labels": db_labels}
+            metrics.update({"mean_join_velocity_step": float(steps.mean()), "mean_join_window": float(widths.mean())})
+        meta = {
+            "fps": fps,
+            "labels": labels,
+            "frames": [len(s.channels) for s in synth],
+            "join_smoothing": params.join_smoothing,
+            "join_acceleration_budget": float(budget),
+            "translation_units": database.meta.get("translation_units", "unknown"),
+            "bvh_joint": params.bvh_joint,
+            "db_labels": db_labels,
+        }
         return Result(arrays, meta, metrics)
 
 
@@ -576,8 +652,10 @@ def database_motion(view, *, use_translation: bool = True) -> DatabaseMotion:
     n_seq = int(sequence.max()) + 1 if len(sequence) else 0
     frames = np.bincount(sequence, minlength=n_seq)
     translation = np.asarray(view["translation"], dtype=np.float64)
-    channels = np.concatenate([np.asarray(view["angles"], dtype=np.float64),
-                               translation if use_translation else np.zeros_like(translation)], axis=1)
+    channels = np.concatenate(
+        [np.asarray(view["angles"], dtype=np.float64), translation if use_translation else np.zeros_like(translation)],
+        axis=1,
+    )
     if not np.isfinite(channels).all():
         raise UserError("NaN in the database motion", field="inputs.database")
     return DatabaseMotion(channels, np.concatenate([[0], np.cumsum(frames)[:-1]]), frames, float(view.meta["fps"]))
@@ -605,9 +683,15 @@ def synthesise(trellis, db: DatabaseMotion, fps: float, **blend) -> list[Stitche
         else:
             n_frames = int(round(float(durations[u]) * fps))
         rows = np.flatnonzero(seg_utt == u)
-        stitched = stitch_segments(db, segments[rows], np.asarray(trellis["subsentence_start"])[rows],
-                                   db_seq[chosen[rows]], db_segments[chosen[rows]], np.arange(n_frames) / fps,
-                                   **blend)
+        stitched = stitch_segments(
+            db,
+            segments[rows],
+            np.asarray(trellis["subsentence_start"])[rows],
+            db_seq[chosen[rows]],
+            db_segments[chosen[rows]],
+            np.arange(n_frames) / fps,
+            **blend,
+        )
         out.append(stitched)
     return out
 
@@ -622,8 +706,9 @@ def motion_metrics(arrays: dict, fps: float, window: float, reference, labels: l
         if len(angles) < 3:
             continue
         speeds.append(angular_speed(angles, fps))
-        join_acc.append(join_acceleration(angles, fps, arrays["joins"][arrays["join_utterance"] == u],
-                                          max(window, 1.0 / fps)))
+        join_acc.append(
+            join_acceleration(angles, fps, arrays["joins"][arrays["join_utterance"] == u], max(window, 1.0 / fps))
+        )
         if reference is not None:
             real = _reference_angles(reference, labels[u], len(labels), fps)
             if real is not None and len(real) >= 3:

@@ -8,6 +8,7 @@ motion (video) frame, so segments slice the head motion directly.
 Segments run from one voiced onset to the next (the last one to the end of the utterance); a segment whose onset
 follows a pause of at least ``breath_pause`` starts a sub-sentence (paper Sec. 5.4: breaths bound the path search).
 """
+
 from __future__ import annotations
 
 import io
@@ -18,22 +19,41 @@ import numpy as np
 
 from msflow import Input, Output, Result, Stage, UserError
 
-PHRASE_FEATURES = ("speaking_rate", "voiced_mean", "voiced_std", "unvoiced_mean", "unvoiced_std",
-                   "voiced_fraction", "f0_min", "f0_max", "f0_mean", "f0_std")
+PHRASE_FEATURES = (
+    "speaking_rate",
+    "voiced_mean",
+    "voiced_std",
+    "unvoiced_mean",
+    "unvoiced_std",
+    "voiced_fraction",
+    "f0_min",
+    "f0_max",
+    "f0_mean",
+    "f0_std",
+)
 #: phrase features that move with the speaker's pitch level (semitones relative to a reference median)
 LEVEL_FEATURES = ("f0_min", "f0_max", "f0_mean")
 
 
 # ----------------------------------------------------------------------------------------------------- maths
 
+
 def semitones(f0_hz: np.ndarray, reference_hz: float | np.ndarray) -> np.ndarray:
     """12 log2(f0 / reference): pitch in semitones relative to a reference (a speaker's median)."""
     return 12.0 * np.log2(np.asarray(f0_hz, dtype=np.float64) / reference_hz)
 
 
-def praat_pitch(samples: np.ndarray, rate: int, *, method: str = "ac", time_step: float = 0.01,
-                floor: float = 60.0, ceiling: float = 500.0, voicing_threshold: float = 0.45,
-                silence_threshold: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+def praat_pitch(
+    samples: np.ndarray,
+    rate: int,
+    *,
+    method: str = "ac",
+    time_step: float = 0.01,
+    floor: float = 60.0,
+    ceiling: float = 500.0,
+    voicing_threshold: float = 0.45,
+    silence_threshold: float = 0.03,
+) -> tuple[np.ndarray, np.ndarray]:
     """Praat's pitch tracker (autocorrelation ``ac`` or cross-correlation ``cc``) on a mono signal.
 
     Returns frame centre times (seconds from the first sample) and f0 in Hz with NaN where unvoiced.
@@ -41,8 +61,13 @@ def praat_pitch(samples: np.ndarray, rate: int, *, method: str = "ac", time_step
     import parselmouth
 
     sound = parselmouth.Sound(np.asarray(samples, dtype=np.float64), sampling_frequency=float(rate))
-    kwargs = dict(time_step=time_step, pitch_floor=floor, pitch_ceiling=ceiling,
-                  voicing_threshold=voicing_threshold, silence_threshold=silence_threshold)
+    kwargs = dict(
+        time_step=time_step,
+        pitch_floor=floor,
+        pitch_ceiling=ceiling,
+        voicing_threshold=voicing_threshold,
+        silence_threshold=silence_threshold,
+    )
     pitch = sound.to_pitch_ac(**kwargs) if method == "ac" else sound.to_pitch_cc(**kwargs)
     f0 = pitch.selected_array["frequency"].astype(np.float64)
     times = pitch.x1 + pitch.dx * np.arange(pitch.n_frames)
@@ -55,8 +80,15 @@ def voiced_runs(voiced: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
 
 
-def clean_pitch(f0: np.ndarray, time_step: float, *, human_range: tuple[float, float] = (50.0, 800.0),
-                max_deviation: float | None = 10.0, max_gap: float = 0.03, min_voiced: float = 0.05) -> np.ndarray:
+def clean_pitch(
+    f0: np.ndarray,
+    time_step: float,
+    *,
+    human_range: tuple[float, float] = (50.0, 800.0),
+    max_deviation: float | None = 10.0,
+    max_gap: float = 0.03,
+    min_voiced: float = 0.05,
+) -> np.ndarray:
     """Sec. 5.1 cleaning of a raw contour (Hz, NaN unvoiced), in this order:
 
     1. drop values outside the human range, and (``max_deviation``) values farther than that many semitones from
@@ -85,12 +117,13 @@ def clean_pitch(f0: np.ndarray, time_step: float, *, human_range: tuple[float, f
 
 @dataclass
 class Segmentation:
-    segments: np.ndarray           # (n, 3) start (voiced onset), voiced end, end (next onset or utterance end)
+    segments: np.ndarray  # (n, 3) start (voiced onset), voiced end, end (next onset or utterance end)
     subsentence_start: np.ndarray  # (n,) bool: first segment, or onset after a pause >= breath_pause
 
 
-def segment_pitch(times: np.ndarray, f0: np.ndarray, duration: float, *, time_step: float,
-                  breath_pause: float = 0.3) -> Segmentation:
+def segment_pitch(
+    times: np.ndarray, f0: np.ndarray, duration: float, *, time_step: float, breath_pause: float = 0.3
+) -> Segmentation:
     """Segments from one voiced onset to the next (Sec. 5.1); a frame covers time_step centred on its time."""
     starts, stops = voiced_runs(np.isfinite(f0))
     if len(starts) == 0:
@@ -120,17 +153,24 @@ def phrase_features(times: np.ndarray, f0: np.ndarray, segments: np.ndarray, ref
     unvoiced_lengths = segments[1:, 0] - segments[:-1, 1]
     span = max(segments[-1, 1] - segments[0, 0], 1e-6)
     st = semitones(f0[voiced], reference_hz)
-    return np.array([
-        len(segments) / span,
-        voiced_lengths.mean(), voiced_lengths.std(),
-        unvoiced_lengths.mean() if len(unvoiced_lengths) else 0.0,
-        unvoiced_lengths.std() if len(unvoiced_lengths) else 0.0,
-        voiced_lengths.sum() / span,
-        np.percentile(st, 5), np.percentile(st, 95), st.mean(), st.std(),
-    ])
+    return np.array(
+        [
+            len(segments) / span,
+            voiced_lengths.mean(),
+            voiced_lengths.std(),
+            unvoiced_lengths.mean() if len(unvoiced_lengths) else 0.0,
+            unvoiced_lengths.std() if len(unvoiced_lengths) else 0.0,
+            voiced_lengths.sum() / span,
+            np.percentile(st, 5),
+            np.percentile(st, 95),
+            st.mean(),
+            st.std(),
+        ]
+    )
 
 
 # ------------------------------------------------------------------------------------------- Praat exports
+
 
 def _num(value) -> str:
     return repr(float(value))
@@ -150,18 +190,35 @@ def _interval_tier(name: str, xmax: float, intervals: list[tuple[float, float, s
         cursor = b
     if xmax - cursor > 1e-9 or not filled:
         filled.append((cursor, xmax, ""))
-    lines = ['        class = "IntervalTier"', f'        name = "{name}"', "        xmin = 0",
-             f"        xmax = {_num(xmax)}", f"        intervals: size = {len(filled)}"]
+    lines = [
+        '        class = "IntervalTier"',
+        f'        name = "{name}"',
+        "        xmin = 0",
+        f"        xmax = {_num(xmax)}",
+        f"        intervals: size = {len(filled)}",
+    ]
     for k, (a, b, label) in enumerate(filled, 1):
-        lines += [f"        intervals [{k}]:", f"            xmin = {_num(a)}", f"            xmax = {_num(b)}",
-                  f'            text = "{label}"']
+        lines += [
+            f"        intervals [{k}]:",
+            f"            xmin = {_num(a)}",
+            f"            xmax = {_num(b)}",
+            f'            text = "{label}"',
+        ]
     return lines
 
 
 def textgrid_text(xmax: float, tiers: list[tuple[str, list[tuple[float, float, str]]]]) -> str:
     """A Praat TextGrid (long text format) with one IntervalTier per (name, intervals)."""
-    lines = ['File type = "ooTextFile"', 'Object class = "TextGrid"', "", "xmin = 0", f"xmax = {_num(xmax)}",
-             "tiers? <exists>", f"size = {len(tiers)}", "item []:"]
+    lines = [
+        'File type = "ooTextFile"',
+        'Object class = "TextGrid"',
+        "",
+        "xmin = 0",
+        f"xmax = {_num(xmax)}",
+        "tiers? <exists>",
+        f"size = {len(tiers)}",
+        "item []:",
+    ]
     for k, (name, intervals) in enumerate(tiers, 1):
         lines.append(f"    item [{k}]:")
         lines += _interval_tier(name, xmax, intervals)
@@ -170,8 +227,14 @@ def textgrid_text(xmax: float, tiers: list[tuple[str, list[tuple[float, float, s
 
 def pitchtier_text(xmax: float, times: np.ndarray, values: np.ndarray) -> str:
     """A Praat PitchTier (long text format) with one point per (time, Hz)."""
-    lines = ['File type = "ooTextFile"', 'Object class = "PitchTier"', "", "xmin = 0", f"xmax = {_num(xmax)}",
-             f"points: size = {len(times)}"]
+    lines = [
+        'File type = "ooTextFile"',
+        'Object class = "PitchTier"',
+        "",
+        "xmin = 0",
+        f"xmax = {_num(xmax)}",
+        f"points: size = {len(times)}",
+    ]
     for k, (t, v) in enumerate(zip(times, values), 1):
         lines += [f"points [{k}]:", f"    number = {_num(t)}", f"    value = {_num(v)}"]
     return "\n".join(lines) + "\n"
@@ -193,6 +256,7 @@ def wav_bytes(samples: np.ndarray, rate: int) -> bytes:
 
 # ------------------------------------------------------------------------------------------------- the stage
 
+
 @dataclass
 class Utterance:
     """One sequence's audio and where it sits on the sequence clock."""
@@ -201,12 +265,12 @@ class Utterance:
     source: str
     samples: np.ndarray
     rate: int
-    offset: float          # time of the first audio sample on the sequence clock (first video frame = 0)
-    duration: float        # length of the sequence clock to cover (motion length if known, else audio end)
+    offset: float  # time of the first audio sample on the sequence clock (first video frame = 0)
+    duration: float  # length of the sequence clock to cover (motion length if known, else audio end)
     fps: float | None
     frames: int | None
     speaker: str
-    audio_key: tuple       # utterances sharing audio (mirrored database copies) share this key
+    audio_key: tuple  # utterances sharing audio (mirrored database copies) share this key
     field: str
 
 
@@ -224,8 +288,9 @@ def utterances_from_artifact(view, field: str = "inputs.source") -> list[Utteran
     """Audio per sequence of a tracking or headdb artifact (same conventions: audio, audio_bounds, meta)."""
     meta = view.meta
     if "audio" not in view or "audio_bounds" not in view:
-        raise UserError("the input artifact carries no audio (track the videos with audio, or give audio files)",
-                        field=field)
+        raise UserError(
+            "the input artifact carries no audio (track the videos with audio, or give audio files)", field=field
+        )
     audio = view["audio"]
     bounds = np.asarray(view["audio_bounds"], dtype=np.int64).reshape(-1, 2)
     labels = list(meta.get("labels") or [f"sequence{k}" for k in range(len(bounds))])
@@ -250,8 +315,21 @@ def utterances_from_artifact(view, field: str = "inputs.source") -> list[Utteran
         rate_k = float(fps[k]) if fps[k] else None
         n_frames = frames[k] if frames[k] else None
         duration = n_frames / rate_k if (rate_k and n_frames) else audio_end
-        out.append(Utterance(str(label), str(sources[k] or label), samples, rate, offset, duration, rate_k,
-                             n_frames, str(speakers[k]), (int(a), int(b), offset), f"{field}[{label}]"))
+        out.append(
+            Utterance(
+                str(label),
+                str(sources[k] or label),
+                samples,
+                rate,
+                offset,
+                duration,
+                rate_k,
+                n_frames,
+                str(speakers[k]),
+                (int(a), int(b), offset),
+                f"{field}[{label}]",
+            )
+        )
     return out
 
 
@@ -261,8 +339,21 @@ def utterances_from_files(files: dict, rate: int, field: str = "inputs.audio") -
     out = []
     for label, path in files.items():
         decoded = decode_audio(path, rate, field=f"{field}.{label}")
-        out.append(Utterance(label, path.name, decoded.samples, rate, 0.0, decoded.duration, None, None,
-                             "speaker", (str(path),), f"{field}.{label}"))
+        out.append(
+            Utterance(
+                label,
+                path.name,
+                decoded.samples,
+                rate,
+                0.0,
+                decoded.duration,
+                None,
+                None,
+                "speaker",
+                (str(path),),
+                f"{field}.{label}",
+            )
+        )
     return out
 
 
@@ -271,16 +362,25 @@ PITCH_OUTPUTS = {
     "f0_raw": Output.array("f", shape=("pitch_frames",), dtype="float32", doc="Praat's f0 in Hz, NaN unvoiced"),
     "pitch_time": Output.array("f", shape=("pitch_frames",), dtype="float64", doc="seconds on the sequence clock"),
     "pitch_utterance": Output.array("i", shape=("pitch_frames",), dtype="int32", doc="index into meta labels"),
-    "segments": Output.array("f", shape=("segments", 3), dtype="float64",
-                             doc="start (voiced onset), voiced end, end (next onset), sequence clock seconds"),
+    "segments": Output.array(
+        "f",
+        shape=("segments", 3),
+        dtype="float64",
+        doc="start (voiced onset), voiced end, end (next onset), sequence clock seconds",
+    ),
     "segment_utterance": Output.array("i", shape=("segments",), dtype="int32"),
     "subsentence_start": Output.array("b", shape=("segments",), doc="segment begins a sub-sentence"),
-    "phrase_features": Output.array("f", shape=("utterances", len(PHRASE_FEATURES)), dtype="float64",
-                                    doc="meta feature_names; NaN rows for utterances without voice"),
+    "phrase_features": Output.array(
+        "f",
+        shape=("utterances", len(PHRASE_FEATURES)),
+        dtype="float64",
+        doc="meta feature_names; NaN rows for utterances without voice",
+    ),
     "speaker_median": Output.array("f", shape=("utterances",), dtype="float64", doc="Hz, reference of semitones"),
     "utterance_duration": Output.array("f", shape=("utterances",), dtype="float64"),
-    "textgrid": Output.file(".TextGrid", doc="Praat TextGrid over the 'sound' file: utterance, segment, voiced, "
-                                              "subsentence tiers"),
+    "textgrid": Output.file(
+        ".TextGrid", doc="Praat TextGrid over the 'sound' file: utterance, segment, voiced, subsentence tiers"
+    ),
     "pitchtier": Output.file(".PitchTier", doc="cleaned f0 over the 'sound' file"),
     "sound": Output.file(".wav", doc="the distinct utterances' audio back to back, for opening with the TextGrid"),
 }
@@ -332,8 +432,8 @@ class Pitch(Stage):
         breath_pause: float = 0.3
         median_over: Literal["speaker", "utterance"] = "speaker"
         on_silence: Literal["error", "still"] = "error"
-        audio_rate: int = 16000           # decoding rate of audio files
-        analysis_rate: int = 8000         # audio above this rate is resampled to it for Praat (speed; f0 << 4 kHz)
+        audio_rate: int = 16000  # decoding rate of audio files
+        analysis_rate: int = 8000  # audio above this rate is resampled to it for Praat (speed; f0 << 4 kHz)
 
     inputs = {
         "source": Input.artifact(optional=True, doc="tracking or headdb artifact with audio per sequence"),
@@ -344,8 +444,7 @@ class Pitch(Stage):
 
     def run(self, params, inputs):
         if (inputs.get("source") is None) == (inputs.get("audio") is None):
-            raise UserError("give exactly one of 'source' (an artifact with audio) or 'audio' (files)",
-                            field="inputs")
+            raise UserError("give exactly one of 'source' (an artifact with audio) or 'audio' (files)", field="inputs")
         if inputs.get("source") is not None:
             utterances = utterances_from_artifact(inputs["source"])
         else:
@@ -353,8 +452,11 @@ class Pitch(Stage):
         if not utterances:
             raise UserError("no utterances to analyse", field="inputs")
         if params.analysis_rate < 4 * params.ceiling:
-            raise UserError(f"analysis_rate {params.analysis_rate} Hz is too low for a pitch ceiling of "
-                            f"{params.ceiling} Hz (needs at least 4x)", field="params.analysis_rate")
+            raise UserError(
+                f"analysis_rate {params.analysis_rate} Hz is too low for a pitch ceiling of "
+                f"{params.ceiling} Hz (needs at least 4x)",
+                field="params.analysis_rate",
+            )
         if not 0 < params.floor < params.ceiling:
             raise UserError(f"need 0 < floor < ceiling (got {params.floor}, {params.ceiling})", field="params.floor")
         return pitch_result(utterances, params)
@@ -379,27 +481,43 @@ def analyse_utterances(utterances: list[Utterance], params) -> list[dict]:
     for utt in utterances:
         if utt.audio_key not in cache:
             if len(utt.samples) < int(0.1 * utt.rate):
-                raise UserError(f"audio of '{utt.label}' is too short to analyse ({len(utt.samples)} samples)",
-                                file=utt.source, field=utt.field)
+                raise UserError(
+                    f"audio of '{utt.label}' is too short to analyse ({len(utt.samples)} samples)",
+                    file=utt.source,
+                    field=utt.field,
+                )
             samples, rate = analysis_signal(utt.samples, utt.rate, params.analysis_rate)
-            tau, raw = praat_pitch(samples, rate, method=params.method, time_step=params.time_step,
-                                   floor=params.floor, ceiling=params.ceiling,
-                                   voicing_threshold=params.voicing_threshold,
-                                   silence_threshold=params.silence_threshold)
+            tau, raw = praat_pitch(
+                samples,
+                rate,
+                method=params.method,
+                time_step=params.time_step,
+                floor=params.floor,
+                ceiling=params.ceiling,
+                voicing_threshold=params.voicing_threshold,
+                silence_threshold=params.silence_threshold,
+            )
             times = tau + utt.offset
             outside = (times < 0) | (times > utt.duration)
             raw = np.where(outside, np.nan, raw)
-            clean = clean_pitch(raw, params.time_step, human_range=params.human_range,
-                                max_deviation=params.max_deviation, max_gap=params.max_gap,
-                                min_voiced=params.min_voiced)
+            clean = clean_pitch(
+                raw,
+                params.time_step,
+                human_range=params.human_range,
+                max_deviation=params.max_deviation,
+                max_gap=params.max_gap,
+                min_voiced=params.min_voiced,
+            )
             cache[utt.audio_key] = (times, raw, clean)
         times, raw, clean = cache[utt.audio_key]
         if not np.isfinite(clean).any() and params.on_silence == "error":
-            raise UserError(f"no voiced speech found in '{utt.label}' (pitch floor {params.floor} Hz, ceiling "
-                            f"{params.ceiling} Hz); set on_silence: still for a still head", file=utt.source,
-                            field=utt.field)
-        seg = segment_pitch(times, clean, utt.duration, time_step=params.time_step,
-                            breath_pause=params.breath_pause)
+            raise UserError(
+                f"no voiced speech found in '{utt.label}' (pitch floor {params.floor} Hz, ceiling "
+                f"{params.ceiling} Hz); set on_silence: still for a still head",
+                file=utt.source,
+                field=utt.field,
+            )
+        seg = segment_pitch(times, clean, utt.duration, time_step=params.time_step, breath_pause=params.breath_pause)
         analyses.append({"times": times, "raw": raw, "clean": clean, "segmentation": seg})
     return analyses
 
@@ -418,8 +536,9 @@ def speaker_medians(utterances: list[Utterance], analyses: list[dict], median_ov
 def pitch_result(utterances: list[Utterance], params) -> Result:
     analyses = analyse_utterances(utterances, params)
     medians = speaker_medians(utterances, analyses, params.median_over)
-    features = np.stack([phrase_features(a["times"], a["clean"], a["segmentation"].segments, m)
-                         for a, m in zip(analyses, medians)])
+    features = np.stack(
+        [phrase_features(a["times"], a["clean"], a["segmentation"].segments, m) for a, m in zip(analyses, medians)]
+    )
     seg_counts = [len(a["segmentation"].segments) for a in analyses]
     arrays = {
         "f0": np.concatenate([a["clean"] for a in analyses]).astype(np.float32),
@@ -436,19 +555,29 @@ def pitch_result(utterances: list[Utterance], params) -> Result:
     arrays.update(praat_exports(utterances, analyses))
     voiced = np.concatenate([np.isfinite(a["clean"]) for a in analyses])
     meta = {
-        "labels": [u.label for u in utterances], "sources": [u.source for u in utterances],
-        "speakers": [u.speaker for u in utterances], "fps": [u.fps for u in utterances],
-        "frames": [u.frames for u in utterances], "audio_offset": [u.offset for u in utterances],
-        "feature_names": list(PHRASE_FEATURES), "level_features": list(LEVEL_FEATURES),
+        "labels": [u.label for u in utterances],
+        "sources": [u.source for u in utterances],
+        "speakers": [u.speaker for u in utterances],
+        "fps": [u.fps for u in utterances],
+        "frames": [u.frames for u in utterances],
+        "audio_offset": [u.offset for u in utterances],
+        "feature_names": list(PHRASE_FEATURES),
+        "level_features": list(LEVEL_FEATURES),
         "feature_unit": "semitones relative to speaker_median; seconds; voiced runs per second",
-        "time_step": params.time_step, "method": params.method, "breath_pause": params.breath_pause,
+        "time_step": params.time_step,
+        "method": params.method,
+        "breath_pause": params.breath_pause,
         "silent": [label for label, n in zip([u.label for u in utterances], seg_counts) if n == 0],
     }
-    metrics = {"segments": int(sum(seg_counts)), "utterances": len(utterances),
-               "voiced_fraction": float(voiced.mean()) if len(voiced) else 0.0,
-               "mean_segment_length": float(np.mean(np.diff(arrays["segments"][:, [0, 2]], axis=1)))
-               if sum(seg_counts) else 0.0,
-               "subsentences": int(arrays["subsentence_start"].sum())}
+    metrics = {
+        "segments": int(sum(seg_counts)),
+        "utterances": len(utterances),
+        "voiced_fraction": float(voiced.mean()) if len(voiced) else 0.0,
+        "mean_segment_length": float(np.mean(np.diff(arrays["segments"][:, [0, 2]], axis=1)))
+        if sum(seg_counts)
+        else 0.0,
+        "subsentences": int(arrays["subsentence_start"].sum()),
+    }
     return Result(arrays, meta, metrics)
 
 
@@ -467,7 +596,7 @@ def praat_exports(utterances: list[Utterance], analyses: list[dict]) -> dict[str
             samples = np.interp(np.arange(new_n) * utt.rate / rate, np.arange(len(samples)), samples)
         placed[utt.audio_key] = base
         length = len(samples) / rate
-        shift = base - utt.offset           # sequence clock -> wav time
+        shift = base - utt.offset  # sequence clock -> wav time
         names = "|".join(u.label for u in utterances if u.audio_key == utt.audio_key)
         utt_tier.append((base, base + length, names))
         seg = analysis["segmentation"]
@@ -491,8 +620,17 @@ def praat_exports(utterances: list[Utterance], analyses: list[dict]) -> dict[str
     times = np.concatenate(tier_times) if tier_times else np.zeros(0)
     values = np.concatenate(tier_values) if tier_values else np.zeros(0)
     inside = (times >= 0) & (times <= xmax)
-    textgrid = textgrid_text(xmax, [("utterance", utt_tier), ("segment", clip(seg_tier)),
-                                    ("voiced", clip(voiced_tier)), ("subsentence", clip(sub_tier))])
-    return {"textgrid": textgrid.encode("utf-8"),
-            "pitchtier": pitchtier_text(xmax, times[inside], values[inside]).encode("utf-8"),
-            "sound": wav_bytes(np.concatenate(chunks), rate)}
+    textgrid = textgrid_text(
+        xmax,
+        [
+            ("utterance", utt_tier),
+            ("segment", clip(seg_tier)),
+            ("voiced", clip(voiced_tier)),
+            ("subsentence", clip(sub_tier)),
+        ],
+    )
+    return {
+        "textgrid": textgrid.encode("utf-8"),
+        "pitchtier": pitchtier_text(xmax, times[inside], values[inside]).encode("utf-8"),
+        "sound": wav_bytes(np.concatenate(chunks), rate),
+    }

@@ -16,6 +16,7 @@ clock would reward slowing motion down (it shrinks V and A), which on CREMA-D pi
 Motion-blend measures its join velocity steps with the same parabola fits (``boundary_kinematics``, meta
 ``boundary_window``).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -31,16 +32,17 @@ GEOMETRY_FEATURES = ("min", "max", "range", "min_slope", "max_slope", "curvature
 
 # ------------------------------------------------------------------------------------------ segment features
 
+
 @dataclass
 class SegmentTable:
     """All pitch segments of a pitch artifact, with what the matching needs."""
 
-    times: np.ndarray              # (n, 3) start, voiced end, end (seconds, sequence clock)
-    utterance: np.ndarray          # (n,) index into the pitch artifact's utterances
-    position: np.ndarray           # (n,) index of the segment within its utterance
+    times: np.ndarray  # (n, 3) start, voiced end, end (seconds, sequence clock)
+    utterance: np.ndarray  # (n,) index into the pitch artifact's utterances
+    position: np.ndarray  # (n,) index of the segment within its utterance
     subsentence_start: np.ndarray  # (n,) bool
-    contour: np.ndarray            # (n, L) voiced pitch resampled to L points, in the matching unit
-    geometry: np.ndarray           # (n, 6) GEOMETRY_FEATURES of the contour
+    contour: np.ndarray  # (n, L) voiced pitch resampled to L points, in the matching unit
+    geometry: np.ndarray  # (n, 6) GEOMETRY_FEATURES of the contour
 
     def __len__(self) -> int:
         return len(self.times)
@@ -50,8 +52,14 @@ class SegmentTable:
         return self.times[:, 2] - self.times[:, 0]
 
 
-def voiced_contours(f0: np.ndarray, pitch_time: np.ndarray, pitch_utterance: np.ndarray, segments: np.ndarray,
-                    segment_utterance: np.ndarray, length: int) -> np.ndarray:
+def voiced_contours(
+    f0: np.ndarray,
+    pitch_time: np.ndarray,
+    pitch_utterance: np.ndarray,
+    segments: np.ndarray,
+    segment_utterance: np.ndarray,
+    length: int,
+) -> np.ndarray:
     """Each segment's voiced pitch (onset to voiced end) resampled to ``length`` points (Eq. 10's length
     normalisation); f0 in any unit, NaN unvoiced. Vectorised over segments."""
     n_utt = int(pitch_utterance.max()) + 1 if len(pitch_utterance) else 0
@@ -70,10 +78,11 @@ def voiced_contours(f0: np.ndarray, pitch_time: np.ndarray, pitch_utterance: np.
     above = np.minimum(below + 1, len(f0) - 1)
     w = index - below
     a, b = f0[below], f0[above]
-    b = np.where(np.isfinite(b), b, a)   # never blend in an unvoiced neighbour at the run's edge
+    b = np.where(np.isfinite(b), b, a)  # never blend in an unvoiced neighbour at the run's edge
     contour = (1 - w) * a + w * b
-    row_mean = np.nanmean(np.where(np.isfinite(contour), contour, np.nan), axis=1, keepdims=True) \
-        if contour.size else contour
+    row_mean = (
+        np.nanmean(np.where(np.isfinite(contour), contour, np.nan), axis=1, keepdims=True) if contour.size else contour
+    )
     return np.where(np.isfinite(contour), contour, np.nan_to_num(row_mean))
 
 
@@ -88,7 +97,7 @@ def contour_geometry(contour: np.ndarray, voiced_length: np.ndarray) -> np.ndarr
     slopes = np.diff(contour, axis=1) / dt[:, None] if length > 1 else np.zeros((n, 1))
     u = np.linspace(-1.0, 1.0, length)
     design = np.stack([u * u, u, np.ones_like(u)], axis=1)
-    coeffs = np.linalg.lstsq(design, contour.T, rcond=None)[0]          # (3, n)
+    coeffs = np.linalg.lstsq(design, contour.T, rcond=None)[0]  # (3, n)
     curvature = 2 * coeffs[0] * (2.0 / duration) ** 2
     lo, hi = contour.min(axis=1), contour.max(axis=1)
     return np.stack([lo, hi, hi - lo, slopes.min(axis=1), slopes.max(axis=1), curvature], axis=1)
@@ -108,11 +117,18 @@ def segment_table(view, reference_hz: np.ndarray, unit: str, length: int) -> Seg
     if len(segments):
         starts = np.flatnonzero(np.concatenate([[True], seg_utt[1:] != seg_utt[:-1]]))
         position = np.arange(len(segments)) - np.repeat(starts, np.diff(np.append(starts, len(segments))))
-    return SegmentTable(segments, seg_utt, position, np.asarray(view["subsentence_start"], dtype=bool),
-                        contour, contour_geometry(contour, segments[:, 1] - segments[:, 0]))
+    return SegmentTable(
+        segments,
+        seg_utt,
+        position,
+        np.asarray(view["subsentence_start"], dtype=bool),
+        contour,
+        contour_geometry(contour, segments[:, 1] - segments[:, 0]),
+    )
 
 
 # -------------------------------------------------------------------------------------------- distances
+
 
 def zscore_stats(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean and standard deviation per column over finite rows (std 1 where a column is constant)."""
@@ -123,22 +139,31 @@ def zscore_stats(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return finite.mean(axis=0), np.where(sd > 1e-12, sd, 1.0)
 
 
-def phrase_distances(test_features: np.ndarray, db_features: np.ndarray, mean: np.ndarray,
-                     sd: np.ndarray) -> np.ndarray:
+def phrase_distances(
+    test_features: np.ndarray, db_features: np.ndarray, mean: np.ndarray, sd: np.ndarray
+) -> np.ndarray:
     """Euclidean distance of z-normalised phrase feature vectors (Sec. 5.2, first stage); NaN rows stay NaN."""
     return np.linalg.norm((db_features - mean) / sd - (test_features - mean) / sd, axis=1)
 
 
 @dataclass
 class SegmentDistance:
-    total: np.ndarray      # (N, S) D of Eq. 12
-    geometry: np.ndarray   # G_d
-    pitch: np.ndarray      # P_d, Eq. 10
-    length: np.ndarray     # L_d, Eq. 11
+    total: np.ndarray  # (N, S) D of Eq. 12
+    geometry: np.ndarray  # G_d
+    pitch: np.ndarray  # P_d, Eq. 10
+    length: np.ndarray  # L_d, Eq. 11
 
 
-def segment_distances(test: SegmentTable, db: SegmentTable, candidates: np.ndarray, *, b: float, c: float,
-                      geometry_mean: np.ndarray, geometry_sd: np.ndarray) -> SegmentDistance:
+def segment_distances(
+    test: SegmentTable,
+    db: SegmentTable,
+    candidates: np.ndarray,
+    *,
+    b: float,
+    c: float,
+    geometry_mean: np.ndarray,
+    geometry_sd: np.ndarray,
+) -> SegmentDistance:
     """D = b G_d + c P_d + (1 - b - c) L_d between every test segment and the ``candidates`` database segments.
 
     G_d: RMS difference of the z-normalised geometric features; P_d = RMS(P_test - P_template) of the
@@ -150,7 +175,7 @@ def segment_distances(test: SegmentTable, db: SegmentTable, candidates: np.ndarr
     g = np.sqrt(np.mean((zt[:, None, :] - zd[None, :, :]) ** 2, axis=2))
     ct, cd = test.contour, db.contour[candidates]
     # RMS of the difference without the (N, S, L) temporary: |a - b|^2 = |a|^2 + |b|^2 - 2 a.b
-    sq = (ct ** 2).sum(1)[:, None] + (cd ** 2).sum(1)[None, :] - 2 * ct @ cd.T
+    sq = (ct**2).sum(1)[:, None] + (cd**2).sum(1)[None, :] - 2 * ct @ cd.T
     p = np.sqrt(np.maximum(sq, 0.0) / ct.shape[1])
     lt = test.length[:, None]
     ld = np.abs(db.length[candidates][None, :] - lt) / np.maximum(lt, 1e-6)
@@ -159,8 +184,16 @@ def segment_distances(test: SegmentTable, db: SegmentTable, candidates: np.ndarr
 
 # ----------------------------------------------------------------------------------- motion at boundaries
 
-def boundary_kinematics(angles: np.ndarray, sequence_first: np.ndarray, sequence_frames: np.ndarray, fps: float,
-                        sequence: np.ndarray, times: np.ndarray, window: float) -> np.ndarray:
+
+def boundary_kinematics(
+    angles: np.ndarray,
+    sequence_first: np.ndarray,
+    sequence_frames: np.ndarray,
+    fps: float,
+    sequence: np.ndarray,
+    times: np.ndarray,
+    window: float,
+) -> np.ndarray:
     """Position, velocity and acceleration (n, 3 [P, V, A], channels) of the motion at ``times`` of ``sequence``:
     a least-squares parabola over +-``window`` seconds of frames (robust to tracking noise), clamped to the take."""
     half = max(1, int(round(window * fps)))
@@ -172,8 +205,8 @@ def boundary_kinematics(angles: np.ndarray, sequence_first: np.ndarray, sequence
     above = np.minimum(below + 1, last[:, None].astype(np.int64))
     w = (frame - below)[..., None]
     base = sequence_first[sequence][:, None]
-    samples = (1 - w) * angles[base + below] + w * angles[base + above]      # (n, taps, channels)
-    design = np.stack([np.ones_like(offsets), offsets, 0.5 * offsets ** 2], axis=1)
+    samples = (1 - w) * angles[base + below] + w * angles[base + above]  # (n, taps, channels)
+    design = np.stack([np.ones_like(offsets), offsets, 0.5 * offsets**2], axis=1)
     return np.einsum("kt,ntc->nkc", np.linalg.pinv(design), samples)
 
 
@@ -183,7 +216,7 @@ def smoothness_weights(start: np.ndarray, end: np.ndarray) -> np.ndarray:
     weights = np.ones(3)
     for k in range(3):
         e, s = end[:, k, :], start[:, k, :]
-        mean_sq = (e ** 2).sum(1).mean() + (s ** 2).sum(1).mean() - 2 * e.mean(0) @ s.mean(0)
+        mean_sq = (e**2).sum(1).mean() + (s**2).sum(1).mean() - 2 * e.mean(0) @ s.mean(0)
         weights[k] = 1.0 / (3.0 * mean_sq) if mean_sq > 1e-20 else 0.0
     return weights
 
@@ -197,10 +230,19 @@ def warp_kinematics(kinematics: np.ndarray, scale: np.ndarray | None) -> np.ndar
     return kinematics * powers
 
 
-def transition_costs(prev: np.ndarray, nxt: np.ndarray, db_end: np.ndarray, db_start: np.ndarray,
-                     db_utterance: np.ndarray, db_position: np.ndarray, weights: np.ndarray, w1: float,
-                     w2: float, prev_scale: np.ndarray | None = None,
-                     next_scale: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def transition_costs(
+    prev: np.ndarray,
+    nxt: np.ndarray,
+    db_end: np.ndarray,
+    db_start: np.ndarray,
+    db_utterance: np.ndarray,
+    db_position: np.ndarray,
+    weights: np.ndarray,
+    w1: float,
+    w2: float,
+    prev_scale: np.ndarray | None = None,
+    next_scale: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """H (Eq. 13) and R (Eq. 14) between candidate sets ``prev`` (..., K) and ``nxt`` (..., K) of database
     segments: arrays (..., K, K). R = 0 when the database holds them consecutively, 2 for the same segment.
 
@@ -212,15 +254,16 @@ def transition_costs(prev: np.ndarray, nxt: np.ndarray, db_end: np.ndarray, db_s
     output clock it would be: slowing shrinks V and A, and the search then prefers slowed-down motion)."""
     end = warp_kinematics(db_end[prev], prev_scale)
     start = warp_kinematics(db_start[nxt], next_scale)
-    diff = end[..., :, None, :, :] - start[..., None, :, :, :]     # (..., K, K, 3, channels)
+    diff = end[..., :, None, :, :] - start[..., None, :, :, :]  # (..., K, K, 3, channels)
     if prev_scale is not None and next_scale is not None:
         rate = np.asarray(prev_scale, np.float64)[..., :, None] * np.asarray(next_scale, np.float64)[..., None, :]
-        common = rate[..., None, None] ** (np.arange(3)[:, None] / 2.0)          # (..., K, K, 3, 1)
+        common = rate[..., None, None] ** (np.arange(3)[:, None] / 2.0)  # (..., K, K, 3, 1)
         diff = diff / common
-    h = np.einsum("...kc,k->...", diff ** 2, weights)
+    h = np.einsum("...kc,k->...", diff**2, weights)
     same = prev[..., :, None] == nxt[..., None, :]
-    consecutive = (db_utterance[prev][..., :, None] == db_utterance[nxt][..., None, :]) & \
-                  (db_position[prev][..., :, None] + 1 == db_position[nxt][..., None, :])
+    consecutive = (db_utterance[prev][..., :, None] == db_utterance[nxt][..., None, :]) & (
+        db_position[prev][..., :, None] + 1 == db_position[nxt][..., None, :]
+    )
     r = np.where(consecutive, 0.0, np.where(same, 2.0, 1.0))
     return w1 * h, w2 * r
 
@@ -246,48 +289,63 @@ def viterbi(node_cost: np.ndarray, transition: np.ndarray) -> tuple[np.ndarray, 
 
 # -------------------------------------------------------------------------------------------- the search
 
+
 @dataclass
 class Database:
     """The motion database as the search sees it."""
 
     segments: SegmentTable
-    features: np.ndarray        # (U, F) phrase features per sequence
-    start: np.ndarray           # (S, 3, channels) P, V, A at each segment's start
-    end: np.ndarray             # (S, 3, channels) at its end
-    weights: np.ndarray         # omega_P, omega_V, omega_A
+    features: np.ndarray  # (U, F) phrase features per sequence
+    start: np.ndarray  # (S, 3, channels) P, V, A at each segment's start
+    end: np.ndarray  # (S, 3, channels) at its end
+    weights: np.ndarray  # omega_P, omega_V, omega_A
     labels: list[str]
     sources: list[str]
     recordings: list[str]
-    median_hz: float            # pooled speaker median (reference for test_speaker: database)
+    median_hz: float  # pooled speaker median (reference for test_speaker: database)
 
 
 @dataclass
 class SearchResult:
-    chosen: np.ndarray          # (N,) database segment index
-    rank: np.ndarray            # (N,) column of ``chosen`` among the candidates
-    candidates: np.ndarray      # (N, K) database segment indices, best first
+    chosen: np.ndarray  # (N,) database segment index
+    rank: np.ndarray  # (N,) column of ``chosen`` among the candidates
+    candidates: np.ndarray  # (N, K) database segment indices, best first
     candidate_cost: np.ndarray  # (N, K) D
-    node_cost: np.ndarray       # (N,) D of the chosen
-    smoothness: np.ndarray      # (N,) w1 H into each segment (0 at a sub-sentence start)
-    repeat: np.ndarray          # (N,) w2 R into each segment
+    node_cost: np.ndarray  # (N,) D of the chosen
+    smoothness: np.ndarray  # (N,) w1 H into each segment (0 at a sub-sentence start)
+    repeat: np.ndarray  # (N,) w2 R into each segment
     phrase_distance: np.ndarray  # (U,) NaN where excluded or unusable
     phrase_selected: np.ndarray  # (U,) bool
     distances: SegmentDistance | None = None
 
 
-def search_utterance(test: SegmentTable, test_features: np.ndarray, db: Database, *, allowed: np.ndarray,
-                     top_m: int, k: int, b: float, c: float, w1: float, w2: float, warp_boundaries: bool = True,
-                     geometry_stats: tuple[np.ndarray, np.ndarray],
-                     feature_stats: tuple[np.ndarray, np.ndarray]) -> SearchResult:
+def search_utterance(
+    test: SegmentTable,
+    test_features: np.ndarray,
+    db: Database,
+    *,
+    allowed: np.ndarray,
+    top_m: int,
+    k: int,
+    b: float,
+    c: float,
+    w1: float,
+    w2: float,
+    warp_boundaries: bool = True,
+    geometry_stats: tuple[np.ndarray, np.ndarray],
+    feature_stats: tuple[np.ndarray, np.ndarray],
+) -> SearchResult:
     """Phrase stage, segment stage and per-sub-sentence Viterbi for one test utterance's segments."""
     n_db = len(db.labels)
     seg_count = np.bincount(db.segments.utterance, minlength=n_db)
     usable = allowed & np.isfinite(db.features).all(axis=1) & (seg_count > 0)
     available = int(seg_count[usable].sum())
     if available < k:
-        raise UserError(f"the database has {available} segments ({int(usable.sum())} usable phrases) after "
-                        f"exclusions, fewer than k = {k} candidates per test segment: add takes or lower k",
-                        field="params.k")
+        raise UserError(
+            f"the database has {available} segments ({int(usable.sum())} usable phrases) after "
+            f"exclusions, fewer than k = {k} candidates per test segment: add takes or lower k",
+            field="params.k",
+        )
     distance = np.full(n_db, np.nan)
     distance[usable] = phrase_distances(test_features, db.features[usable], *feature_stats)
     order = np.flatnonzero(usable)[np.argsort(distance[usable], kind="stable")]
@@ -300,26 +358,45 @@ def search_utterance(test: SegmentTable, test_features: np.ndarray, db: Database
     n = len(test)
     if n == 0:
         empty = np.zeros(0)
-        return SearchResult(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, k), np.int64),
-                            np.zeros((0, k)), empty, empty, empty, distance, selected)
-    dist = segment_distances(test, db.segments, pool, b=b, c=c, geometry_mean=geometry_stats[0],
-                             geometry_sd=geometry_stats[1])
-    top = np.argpartition(dist.total, k - 1, axis=1)[:, :k] if pool.size > k else \
-        np.tile(np.arange(pool.size), (n, 1))
+        return SearchResult(
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int64),
+            np.zeros((0, k), np.int64),
+            np.zeros((0, k)),
+            empty,
+            empty,
+            empty,
+            distance,
+            selected,
+        )
+    dist = segment_distances(
+        test, db.segments, pool, b=b, c=c, geometry_mean=geometry_stats[0], geometry_sd=geometry_stats[1]
+    )
+    top = np.argpartition(dist.total, k - 1, axis=1)[:, :k] if pool.size > k else np.tile(np.arange(pool.size), (n, 1))
     top = np.take_along_axis(top, np.argsort(np.take_along_axis(dist.total, top, 1), axis=1, kind="stable"), 1)
     candidates = pool[top]
     candidate_cost = np.take_along_axis(dist.total, top, 1)
     # each candidate plays at its own speed once resampled to its test segment's length (Sec. 5.4)
     scale = db.segments.length[candidates] / np.maximum(test.length, 1e-6)[:, None] if warp_boundaries else None
-    h, r = transition_costs(candidates[:-1], candidates[1:], db.end, db.start, db.segments.utterance,
-                            db.segments.position, db.weights, w1, w2,
-                            None if scale is None else scale[:-1], None if scale is None else scale[1:])
+    h, r = transition_costs(
+        candidates[:-1],
+        candidates[1:],
+        db.end,
+        db.start,
+        db.segments.utterance,
+        db.segments.position,
+        db.weights,
+        w1,
+        w2,
+        None if scale is None else scale[:-1],
+        None if scale is None else scale[1:],
+    )
     rank = np.zeros(n, dtype=np.int64)
     starts = np.flatnonzero(test.subsentence_start)
     if len(starts) == 0 or starts[0] != 0:
         starts = np.concatenate([[0], starts])
     for a, z in zip(starts, np.append(starts[1:], n)):
-        rank[a:z], _ = viterbi(candidate_cost[a:z], h[a:z - 1] + r[a:z - 1])
+        rank[a:z], _ = viterbi(candidate_cost[a:z], h[a : z - 1] + r[a : z - 1])
     chosen = candidates[np.arange(n), rank]
     smooth, repeat = np.zeros(n), np.zeros(n)
     steps = np.arange(1, n)
@@ -327,8 +404,18 @@ def search_utterance(test: SegmentTable, test_features: np.ndarray, db: Database
     repeat[1:] = r[steps - 1, rank[:-1], rank[1:]]
     smooth[starts] = 0.0
     repeat[starts] = 0.0
-    return SearchResult(chosen, rank, candidates, candidate_cost, candidate_cost[np.arange(n), rank], smooth,
-                        repeat, distance, selected, dist)
+    return SearchResult(
+        chosen,
+        rank,
+        candidates,
+        candidate_cost,
+        candidate_cost[np.arange(n), rank],
+        smooth,
+        repeat,
+        distance,
+        selected,
+        dist,
+    )
 
 
 def reference_medians(view, fallback: float | None = None) -> np.ndarray:
@@ -346,9 +433,11 @@ def build_database(db_view, db_pitch, *, unit: str, length: int | None, window: 
     labels = list(db_view.meta.get("labels") or [])
     pitch_labels = list(db_pitch.meta.get("labels") or [])
     if labels != pitch_labels:
-        raise UserError("database_pitch was not computed from this database (its labels differ: "
-                        f"{pitch_labels[:4]}... vs {labels[:4]}...); run pitch on the headdb artifact",
-                        field="inputs.database_pitch")
+        raise UserError(
+            "database_pitch was not computed from this database (its labels differ: "
+            f"{pitch_labels[:4]}... vs {labels[:4]}...); run pitch on the headdb artifact",
+            field="inputs.database_pitch",
+        )
     medians = reference_medians(db_pitch)
     step = float(db_pitch.meta.get("time_step", 0.01))
     segs = np.asarray(db_pitch["segments"]).reshape(-1, 3)
@@ -369,8 +458,17 @@ def build_database(db_view, db_pitch, *, unit: str, length: int | None, window: 
     weights = smoothness_weights(start, end) if len(table) else np.ones(3)
     meta = db_view.meta
     pooled = float(np.median(medians))
-    return Database(table, np.asarray(db_pitch["phrase_features"], dtype=np.float64), start, end, weights, labels,
-                    list(meta.get("sources") or labels), list(meta.get("recordings") or labels), pooled), length
+    return Database(
+        table,
+        np.asarray(db_pitch["phrase_features"], dtype=np.float64),
+        start,
+        end,
+        weights,
+        labels,
+        list(meta.get("sources") or labels),
+        list(meta.get("recordings") or labels),
+        pooled,
+    ), length
 
 
 TRELLIS_OUTPUTS = {
@@ -382,16 +480,19 @@ TRELLIS_OUTPUTS = {
     "candidates": Output.array("i", shape=("segments", None), dtype="int32", doc="top K database segments"),
     "candidate_cost": Output.array("f", shape=("segments", None), dtype="float64", doc="their D (Eq. 12)"),
     "node_cost": Output.array("f", shape=("segments",), dtype="float64", doc="D of the chosen segment"),
-    "transition_cost": Output.array("f", shape=("segments",), dtype="float64",
-                                    doc="C (Eq. 15) from the previous segment; 0 at sub-sentence starts"),
+    "transition_cost": Output.array(
+        "f", shape=("segments",), dtype="float64", doc="C (Eq. 15) from the previous segment; 0 at sub-sentence starts"
+    ),
     "transition_smoothness": Output.array("f", shape=("segments",), dtype="float64", doc="w1 H part"),
     "transition_repeat": Output.array("f", shape=("segments",), dtype="float64", doc="w2 R part"),
     "db_segments": Output.array("f", shape=("db_segments", 3), dtype="float64", doc="database segment times"),
-    "db_segment_sequence": Output.array("i", shape=("db_segments",), dtype="int32",
-                                        doc="database (headdb) sequence of each segment"),
+    "db_segment_sequence": Output.array(
+        "i", shape=("db_segments",), dtype="int32", doc="database (headdb) sequence of each segment"
+    ),
     "db_segment_position": Output.array("i", shape=("db_segments",), dtype="int32"),
-    "phrase_distance": Output.array("f", shape=("utterances", "db_sequences"), dtype="float64",
-                                    doc="phrase-stage distance, NaN where excluded"),
+    "phrase_distance": Output.array(
+        "f", shape=("utterances", "db_sequences"), dtype="float64", doc="phrase-stage distance, NaN where excluded"
+    ),
     "phrase_selected": Output.array("b", shape=("utterances", "db_sequences"), doc="phrases searched"),
 }
 
@@ -426,24 +527,38 @@ def _plot_trellis(view, inputs=None, utterance: int = 0, max_segments: int = 40)
         for a in range(n):
             if a + 1 < n and not sub[a + 1]:
                 consecutive = seq[a] == seq[a + 1] and pos[a] + 1 == pos[a + 1]
-                ax.plot([a, a + 1], [rank[a], rank[a + 1]], color="crimson" if not consecutive else "orange",
-                        lw=2.5 if consecutive else 1.8, zorder=3)
+                ax.plot(
+                    [a, a + 1],
+                    [rank[a], rank[a + 1]],
+                    color="crimson" if not consecutive else "orange",
+                    lw=2.5 if consecutive else 1.8,
+                    zorder=3,
+                )
         ax.scatter(np.arange(n), rank, facecolors="none", edgecolors="crimson", s=120, lw=1.5, zorder=4)
         for t in range(n):
             name = db_labels[seq[t]] if seq[t] < len(db_labels) else str(seq[t])
-            ax.annotate(f"{name}:{pos[t]}", (t, rank[t]), textcoords="offset points", xytext=(0, 9), fontsize=6,
-                        ha="center", rotation=60)
+            ax.annotate(
+                f"{name}:{pos[t]}",
+                (t, rank[t]),
+                textcoords="offset points",
+                xytext=(0, 9),
+                fontsize=6,
+                ha="center",
+                rotation=60,
+            )
     from matplotlib.ticker import MaxNLocator
 
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("test segment")
     ax.set_ylabel("candidate rank (0 = best D)")
-    ax.set_ylim(k - 0.5 if k else 1, -2.2)   # rank 0 on top, room for the database labels above it
+    ax.set_ylim(k - 0.5 if k else 1, -2.2)  # rank 0 on top, room for the database labels above it
     ax.set_yticks(range(k))
     labels = view.meta.get("labels", [])
-    ax.set_title(f"trellis of {labels[utterance] if labels else 'the test'}: chosen path in red, orange where "
-                 f"database-consecutive;\nlabels: database take:segment; dashed lines: sub-sentence starts",
-                 fontsize=10)
+    ax.set_title(
+        f"trellis of {labels[utterance] if labels else 'the test'}: chosen path in red, orange where "
+        f"database-consecutive;\nlabels: database take:segment; dashed lines: sub-sentence starts",
+        fontsize=10,
+    )
     return fig
 
 
@@ -451,22 +566,22 @@ class Trellis(Stage):
     """Two-stage pitch matching and Viterbi path search (Sec. 5.2-5.3) from test pitch to database segments."""
 
     class Params(Stage.Params):
-        top_m: int = 20                                   # phrases (database sequences, mirrors included)
-        k: int = 10                                       # candidates per test segment
-        b: float = 0.05                                   # weight of G_d (Eq. 12)
-        c: float = 0.3                                    # weight of P_d; L_d gets 1 - b - c
-        w1: float = 1.0                                   # weight of H (Eq. 15)
-        w2: float = 1.0                                   # weight of R
-        unit: Literal["semitones", "hz"] = "semitones"    # contours for P_d and G_d
+        top_m: int = 20  # phrases (database sequences, mirrors included)
+        k: int = 10  # candidates per test segment
+        b: float = 0.05  # weight of G_d (Eq. 12)
+        c: float = 0.3  # weight of P_d; L_d gets 1 - b - c
+        w1: float = 1.0  # weight of H (Eq. 15)
+        w2: float = 1.0  # weight of R
+        unit: Literal["semitones", "hz"] = "semitones"  # contours for P_d and G_d
         test_speaker: Literal["own", "database"] = "database"  # semitone reference of the test: its own median or the
         #                                                   database speaker's (same speaker in test and database)
-        contour_length: int | None = None                 # None: the database's mean voiced length in frames
-        boundary_window: float = 0.1                      # seconds either side for P, V, A at segment boundaries
-        warp_boundaries: bool = True                      # H on the output clock: V, A of each candidate scaled by
+        contour_length: int | None = None  # None: the database's mean voiced length in frames
+        boundary_window: float = 0.1  # seconds either side for P, V, A at segment boundaries
+        warp_boundaries: bool = True  # H on the output clock: V, A of each candidate scaled by
         #                                                   its resampling to the test segment's length (False: on
         #                                                   the recordings' own clocks)
-        exclude_source: bool = False                      # leave the test's own recording out of the database
-        exclude_labels: list[str] = []                    # database recordings (labels) to leave out
+        exclude_source: bool = False  # leave the test's own recording out of the database
+        exclude_labels: list[str] = []  # database recordings (labels) to leave out
 
     inputs = {
         "database": Input.artifact("angles", "sequence", doc="headdb artifact (motion)"),
@@ -481,8 +596,13 @@ class Trellis(Stage):
             raise UserError("k and top_m must be at least 1", field="params.k")
         if not (0 <= params.b and 0 <= params.c and params.b + params.c <= 1):
             raise UserError(f"need b, c >= 0 and b + c <= 1 (got b={params.b}, c={params.c})", field="params.b")
-        db, length = build_database(inputs["database"], inputs["database_pitch"], unit=params.unit,
-                                    length=params.contour_length, window=params.boundary_window)
+        db, length = build_database(
+            inputs["database"],
+            inputs["database_pitch"],
+            unit=params.unit,
+            length=params.contour_length,
+            window=params.boundary_window,
+        )
         return search(db, inputs["test_pitch"], params, length, inputs["database"].meta)
 
 
@@ -506,8 +626,12 @@ def search(db: Database, test_view, params, length: int, db_meta: dict) -> Resul
     unknown = [x for x in params.exclude_labels if x not in db.labels and x not in db.recordings]
     if unknown:
         raise UserError(f"exclude_labels {unknown} are not database labels", field="params.exclude_labels")
-    base_allowed = np.array([lab not in params.exclude_labels and rec not in params.exclude_labels
-                             for lab, rec in zip(db.labels, db.recordings)])
+    base_allowed = np.array(
+        [
+            lab not in params.exclude_labels and rec not in params.exclude_labels
+            for lab, rec in zip(db.labels, db.recordings)
+        ]
+    )
     test_sources = list(test_view.meta.get("sources") or test_labels)
     geometry_stats = zscore_stats(db.segments.geometry) if len(db.segments) else (np.zeros(6), np.ones(6))
     results, excluded = [], []
@@ -518,12 +642,31 @@ def search(db: Database, test_view, params, length: int, db_meta: dict) -> Resul
         excluded.append([db.labels[i] for i in np.flatnonzero(~allowed)])
         feature_stats = zscore_stats(db.features[allowed])
         rows = np.flatnonzero(test.utterance == u)
-        sub = SegmentTable(test.times[rows], test.utterance[rows], test.position[rows],
-                           test.subsentence_start[rows], test.contour[rows], test.geometry[rows])
-        results.append(search_utterance(sub, features[u], db, allowed=allowed, top_m=params.top_m, k=params.k,
-                                        b=params.b, c=params.c, w1=params.w1, w2=params.w2,
-                                        warp_boundaries=params.warp_boundaries,
-                                        geometry_stats=geometry_stats, feature_stats=feature_stats))
+        sub = SegmentTable(
+            test.times[rows],
+            test.utterance[rows],
+            test.position[rows],
+            test.subsentence_start[rows],
+            test.contour[rows],
+            test.geometry[rows],
+        )
+        results.append(
+            search_utterance(
+                sub,
+                features[u],
+                db,
+                allowed=allowed,
+                top_m=params.top_m,
+                k=params.k,
+                b=params.b,
+                c=params.c,
+                w1=params.w1,
+                w2=params.w2,
+                warp_boundaries=params.warp_boundaries,
+                geometry_stats=geometry_stats,
+                feature_stats=feature_stats,
+            )
+        )
     cat = lambda name: np.concatenate([getattr(r, name) for r in results]) if results else np.zeros(0)
     k = params.k
     candidates = np.concatenate([r.candidates for r in results]) if results else np.zeros((0, k))
@@ -531,14 +674,19 @@ def search(db: Database, test_view, params, length: int, db_meta: dict) -> Resul
     smooth, repeat = cat("smoothness"), cat("repeat")
     seg = db.segments
     arrays = {
-        "segments": test.times, "segment_utterance": test.utterance.astype(np.int32),
+        "segments": test.times,
+        "segment_utterance": test.utterance.astype(np.int32),
         "subsentence_start": test.subsentence_start.astype(bool),
-        "chosen": cat("chosen").astype(np.int32), "chosen_rank": cat("rank").astype(np.int32),
-        "candidates": candidates.astype(np.int32), "candidate_cost": candidate_cost.astype(np.float64),
+        "chosen": cat("chosen").astype(np.int32),
+        "chosen_rank": cat("rank").astype(np.int32),
+        "candidates": candidates.astype(np.int32),
+        "candidate_cost": candidate_cost.astype(np.float64),
         "node_cost": cat("node_cost").astype(np.float64),
         "transition_cost": (smooth + repeat).astype(np.float64),
-        "transition_smoothness": smooth.astype(np.float64), "transition_repeat": repeat.astype(np.float64),
-        "db_segments": seg.times, "db_segment_sequence": seg.utterance.astype(np.int32),
+        "transition_smoothness": smooth.astype(np.float64),
+        "transition_repeat": repeat.astype(np.float64),
+        "db_segments": seg.times,
+        "db_segment_sequence": seg.utterance.astype(np.int32),
         "db_segment_position": seg.position.astype(np.int32),
         "phrase_distance": np.stack([r.phrase_distance for r in results]) if results else np.zeros((0, n_db)),
         "phrase_selected": np.stack([r.phrase_selected for r in results]) if results else np.zeros((0, n_db), bool),
@@ -548,26 +696,37 @@ def search(db: Database, test_view, params, length: int, db_meta: dict) -> Resul
     joins = ~test.subsentence_start
     consecutive = np.zeros(n, dtype=bool)
     if n > 1:
-        consecutive[1:] = (seg.utterance[chosen[1:]] == seg.utterance[chosen[:-1]]) & \
-                          (seg.position[chosen[1:]] == seg.position[chosen[:-1]] + 1)
+        consecutive[1:] = (seg.utterance[chosen[1:]] == seg.utterance[chosen[:-1]]) & (
+            seg.position[chosen[1:]] == seg.position[chosen[:-1]] + 1
+        )
     consecutive &= joins
     meta = {
-        "labels": test_labels, "sources": test_sources,
+        "labels": test_labels,
+        "sources": test_sources,
         "durations": [float(x) for x in np.asarray(test_view["utterance_duration"])],
         "fps": list(test_view.meta.get("fps") or [None] * len(test_labels)),
         "frames": list(test_view.meta.get("frames") or [None] * len(test_labels)),
-        "db_labels": db.labels, "db_fps": float(db_meta["fps"]), "k": k, "contour_length": length,
-        "boundary_window": float(params.boundary_window), "warp_boundaries": bool(params.warp_boundaries),
-        "unit": params.unit, "test_speaker": params.test_speaker, "smoothness_weights": db.weights.tolist(),
-        "phrases_searched": [int(r.phrase_selected.sum()) for r in results], "excluded": excluded,
+        "db_labels": db.labels,
+        "db_fps": float(db_meta["fps"]),
+        "k": k,
+        "contour_length": length,
+        "boundary_window": float(params.boundary_window),
+        "warp_boundaries": bool(params.warp_boundaries),
+        "unit": params.unit,
+        "test_speaker": params.test_speaker,
+        "smoothness_weights": db.weights.tolist(),
+        "phrases_searched": [int(r.phrase_selected.sum()) for r in results],
+        "excluded": excluded,
     }
     metrics = {
-        "segments": n, "db_segments": len(seg),
+        "segments": n,
+        "db_segments": len(seg),
         "total_cost": float(arrays["node_cost"].sum() + arrays["transition_cost"].sum()),
         "mean_node_cost": float(arrays["node_cost"].mean()) if n else 0.0,
         "mean_transition_cost": float(arrays["transition_cost"][joins].mean()) if joins.any() else 0.0,
         "consecutive_fraction": float(consecutive[joins].mean()) if joins.any() else 0.0,
         "repeat_fraction": float((arrays["transition_repeat"][joins] == 2 * params.w2).mean())
-        if joins.any() and params.w2 > 0 else 0.0,
+        if joins.any() and params.w2 > 0
+        else 0.0,
     }
     return Result(arrays, meta, metrics)

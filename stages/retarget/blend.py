@@ -16,6 +16,7 @@ alpha(t): barycentric coordinates over the expressions, from the params:
 
 The result is clipped to [0, 1] (the range of a morph-target slider); how much was clipped is a metric.
 """
+
 from __future__ import annotations
 
 from typing import Literal, Union
@@ -25,9 +26,10 @@ from pydantic import BaseModel, ConfigDict, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
 
-
-ALPHA_FORMS = ("alpha is 'from_analysis', constant weights such as {happy: 0.5, neutral: 0.5}, or "
-               "{keyframes: {seconds: {expression: weight}}, interpolation: linear|step|smooth}")
+ALPHA_FORMS = (
+    "alpha is 'from_analysis', constant weights such as {happy: 0.5, neutral: 0.5}, or "
+    "{keyframes: {seconds: {expression: weight}}, interpolation: linear|step|smooth}"
+)
 
 
 class AlphaKeyframes(BaseModel):
@@ -39,6 +41,7 @@ class AlphaKeyframes(BaseModel):
 
 
 # ------------------------------------------------------------------------------------------------------ maths
+
 
 def project_to_simplex(points: np.ndarray) -> np.ndarray:
     """Euclidean projection of each row onto the probability simplex (Duchi et al. 2008), vectorised."""
@@ -63,8 +66,8 @@ def barycentric_coordinates(points: np.ndarray, vertices: np.ndarray) -> np.ndar
         return np.ones((len(points), 1))
     # a = v_0 + (differences) beta: minimise ||(V_rest - v_0)' beta - (p - v_0)||
     base = vertices[0]
-    edges = vertices[1:] - base                      # (S-1, d)
-    beta = (points - base) @ np.linalg.pinv(edges)   # (n, S-1)
+    edges = vertices[1:] - base  # (S-1, d)
+    beta = (points - base) @ np.linalg.pinv(edges)  # (n, S-1)
     return np.hstack([1.0 - beta.sum(axis=1, keepdims=True), beta])
 
 
@@ -73,8 +76,9 @@ def alpha_from_analysis(style: np.ndarray, training_styles: np.ndarray) -> np.nd
     return project_to_simplex(barycentric_coordinates(style, training_styles))
 
 
-def interpolate_keyframes(times: np.ndarray, key_times: np.ndarray, key_values: np.ndarray,
-                          interpolation: str = "linear") -> np.ndarray:
+def interpolate_keyframes(
+    times: np.ndarray, key_times: np.ndarray, key_values: np.ndarray, interpolation: str = "linear"
+) -> np.ndarray:
     """Values (n, S) at ``times`` from keyframes (K,) -> (K, S); held constant outside the keyed range.
 
     Linear and smoothstep interpolation of simplex points stay on the simplex (convex combinations).
@@ -115,8 +119,7 @@ def smooth_in_time(values: np.ndarray, sigma_frames: float) -> np.ndarray:
 
 def retarget_expressions(keyshape_weights: np.ndarray, keymorph_weights: np.ndarray) -> np.ndarray:
     """sum_i w_i^(j)(t) G_i^(j) for every target expression j: (targets, frames, total_k) x (total_k, M)."""
-    return np.einsum("tfk,km->tfm", np.asarray(keyshape_weights, np.float64),
-                     np.asarray(keymorph_weights, np.float64))
+    return np.einsum("tfk,km->tfm", np.asarray(keyshape_weights, np.float64), np.asarray(keymorph_weights, np.float64))
 
 
 def blend_expressions(per_expression: np.ndarray, alpha: np.ndarray) -> np.ndarray:
@@ -125,6 +128,7 @@ def blend_expressions(per_expression: np.ndarray, alpha: np.ndarray) -> np.ndarr
 
 
 # ---------------------------------------------------------------------------------------------------- figures
+
 
 def figure_weights(view, inputs):
     """Morph-target weights over time (the targets that move)."""
@@ -140,8 +144,9 @@ def figure_weights(view, inputs):
     order = active[np.argsort(-weights[:, active].max(axis=0))]
     fig, ax = plt.subplots(figsize=(9, 0.18 * max(len(order), 8) + 1.2))
     extent = (time[0], time[-1] if len(time) > 1 else 1.0, len(order) - 0.5, -0.5)
-    ax.imshow(weights[:, order].T, aspect="auto", interpolation="nearest", cmap="viridis", vmin=0, vmax=1,
-              extent=extent)
+    ax.imshow(
+        weights[:, order].T, aspect="auto", interpolation="nearest", cmap="viridis", vmin=0, vmax=1, extent=extent
+    )
     ax.set_yticks(range(len(order)))
     ax.set_yticklabels([names[i] for i in order], fontsize=6)
     ax.set_xlabel("time (s)")
@@ -172,18 +177,38 @@ def figure_alpha(view, inputs):
 # ------------------------------------------------------------------------------------------------------ stage
 
 BLEND_OUTPUTS = {
-    "weights": Output.array("f", shape=("frames", "morphs"), dtype="float32",
-                            doc="morph-target weights per frame in [0, 1] (meta['target_names'])"),
-    "alpha": Output.array("f", shape=("frames", "expressions"), dtype="float32",
-                          doc="expression weights alpha_j(t) (meta['expressions']), on the simplex"),
-    "expression_weights": Output.array("f", shape=("expressions", "frames", "morphs"), dtype="float32",
-                                       doc="the retargeted animation of each expression before blending "
-                                           "(unclipped)"),
+    "weights": Output.array(
+        "f",
+        shape=("frames", "morphs"),
+        dtype="float32",
+        doc="morph-target weights per frame in [0, 1] (meta['target_names'])",
+    ),
+    "alpha": Output.array(
+        "f",
+        shape=("frames", "expressions"),
+        dtype="float32",
+        doc="expression weights alpha_j(t) (meta['expressions']), on the simplex",
+    ),
+    "expression_weights": Output.array(
+        "f",
+        shape=("expressions", "frames", "morphs"),
+        dtype="float32",
+        doc="the retargeted animation of each expression before blending (unclipped)",
+    ),
     "time": Output.array("f", shape=("frames",), dtype="float64", doc="seconds from the first frame of the take"),
-    "sequence": Output.array("i", shape=("frames",), dtype="int32",
-                             doc="test take of each frame, index into meta['labels'] (several takes concatenated)"),
-    "vertices": Output.array("f", shape=("frames", None, 3), dtype="float32", optional=True,
-                             doc="posed character vertices per frame (params.vertices)"),
+    "sequence": Output.array(
+        "i",
+        shape=("frames",),
+        dtype="int32",
+        doc="test take of each frame, index into meta['labels'] (several takes concatenated)",
+    ),
+    "vertices": Output.array(
+        "f",
+        shape=("frames", None, 3),
+        dtype="float32",
+        optional=True,
+        doc="posed character vertices per frame (params.vertices)",
+    ),
 }
 
 
@@ -202,11 +227,11 @@ class Blend(Stage):
             if isinstance(value, str) and value != "from_analysis":
                 raise ValueError(ALPHA_FORMS)
             if isinstance(value, dict) and "keyframes" not in value:
-                bad = {k: v for k, v in value.items()
-                       if isinstance(v, bool) or not isinstance(v, (int, float))}
+                bad = {k: v for k, v in value.items() if isinstance(v, bool) or not isinstance(v, (int, float))}
                 if bad:
                     raise ValueError(f"{ALPHA_FORMS}; these weights are not numbers: {bad}")
             return value
+
         #: Gaussian smoothing of alpha over time, sigma in seconds (the analysed e(t) jitters, paper Sec 7)
         alpha_smoothing: float = 0.0
         #: allowed deviation of the alpha sum from 1
@@ -217,10 +242,12 @@ class Blend(Stage):
     inputs = {
         "keyshapes": Input.artifact("weights", "keyshape_expression", doc="keyshapes artifact (Eq 8 weights)"),
         "keymorphs": Input.artifact("keymorph_weights", doc="keymorphs artifact (G per keyshape)"),
-        "edit": Input.artifact("style", optional=True,
-                               doc="edit artifact: analysed style e(t) for alpha from_analysis, and fps"),
-        "bilinear": Input.artifact("style", optional=True,
-                                   doc="bilinear artifact: training style vectors for alpha from_analysis"),
+        "edit": Input.artifact(
+            "style", optional=True, doc="edit artifact: analysed style e(t) for alpha from_analysis, and fps"
+        ),
+        "bilinear": Input.artifact(
+            "style", optional=True, doc="bilinear artifact: training style vectors for alpha from_analysis"
+        ),
         "character": Input.artifact("neutral", "deltas", optional=True, doc="character, for params.vertices"),
     }
     outputs = BLEND_OUTPUTS
@@ -257,10 +284,12 @@ class Blend(Stage):
                 raise UserError("params.vertices needs the character input", field="inputs.character")
             deltas = np.asarray(character["deltas"], np.float32)
             if len(deltas) != len(names):
-                raise UserError(f"the character has {len(deltas)} morph targets but the keymorphs were made for "
-                                f"{len(names)}", field="inputs.character")
+                raise UserError(
+                    f"the character has {len(deltas)} morph targets but the keymorphs were made for {len(names)}",
+                    field="inputs.character",
+                )
             neutral = np.asarray(character["neutral"], np.float32)
-            arrays["vertices"] = (neutral[None] + np.tensordot(weights.astype(np.float32), deltas, axes=1))
+            arrays["vertices"] = neutral[None] + np.tensordot(weights.astype(np.float32), deltas, axes=1)
         metrics = {
             "clipped_fraction": float((excess > 1e-6).mean()) if excess.size else 0.0,
             "clipped_amount": float(excess.mean()) if excess.size else 0.0,
@@ -286,22 +315,33 @@ class Blend(Stage):
     @staticmethod
     def _check_consistency(keyshapes, keymorphs, w, G, names, targets):
         if w.ndim != 3:
-            raise UserError(f"keyshapes weights have shape {w.shape}, expected (targets, frames, total_k)",
-                            field="inputs.keyshapes")
+            raise UserError(
+                f"keyshapes weights have shape {w.shape}, expected (targets, frames, total_k)", field="inputs.keyshapes"
+            )
         if G.ndim != 2 or G.shape[0] != w.shape[2]:
-            raise UserError(f"the keymorphs have {G.shape[0] if G.ndim else 0} rows but the keyshapes artifact has "
-                            f"{w.shape[2]} keyshapes: the keymorphs were made for other keyshapes (re-run or "
-                            "re-author them)", field="inputs.keymorphs")
+            raise UserError(
+                f"the keymorphs have {G.shape[0] if G.ndim else 0} rows but the keyshapes artifact has "
+                f"{w.shape[2]} keyshapes: the keymorphs were made for other keyshapes (re-run or "
+                "re-author them)",
+                field="inputs.keymorphs",
+            )
         if len(names) != G.shape[1]:
-            raise UserError(f"keymorphs meta['target_names'] has {len(names)} names for {G.shape[1]} columns",
-                            field="inputs.keymorphs")
+            raise UserError(
+                f"keymorphs meta['target_names'] has {len(names)} names for {G.shape[1]} columns",
+                field="inputs.keymorphs",
+            )
         ids, morph_ids = keyshapes.meta.get("keyshape_ids"), keymorphs.meta.get("keyshape_ids")
         if ids is not None and morph_ids is not None and list(ids) != list(morph_ids):
-            raise UserError("the keymorphs were made for different keyshapes (keyshape ids differ): re-run the "
-                            "keymorph stage on these keyshapes", field="inputs.keymorphs")
+            raise UserError(
+                "the keymorphs were made for different keyshapes (keyshape ids differ): re-run the "
+                "keymorph stage on these keyshapes",
+                field="inputs.keymorphs",
+            )
         if len(targets) != w.shape[0]:
-            raise UserError(f"keyshapes meta['targets'] names {len(targets)} expressions for {w.shape[0]} weight "
-                            "sets", field="inputs.keyshapes")
+            raise UserError(
+                f"keyshapes meta['targets'] names {len(targets)} expressions for {w.shape[0]} weight sets",
+                field="inputs.keyshapes",
+            )
         if not np.isfinite(w).all() or not np.isfinite(G).all():
             raise UserError("keyshape or keymorph weights contain NaN/Inf", field="inputs.keyshapes")
 
@@ -311,16 +351,23 @@ class Blend(Stage):
         if edit is not None:
             edit_fps = edit.meta.get("fps")
             if fps is not None and edit_fps is not None and abs(float(fps) - float(edit_fps)) > 1e-6 * float(fps):
-                raise UserError(f"frame-rate mismatch: keyshapes at {fps} fps, edit at {edit_fps} fps (they must "
-                                "come from the same edited take)", field="inputs.edit")
+                raise UserError(
+                    f"frame-rate mismatch: keyshapes at {fps} fps, edit at {edit_fps} fps (they must "
+                    "come from the same edited take)",
+                    field="inputs.edit",
+                )
             fps = fps if fps is not None else edit_fps
             style = edit["style"]
             if len(style) != n_frames:
-                raise UserError(f"frame-count mismatch: the edit has {len(style)} frames, the keyshape weights "
-                                f"{n_frames} (they must come from the same edited take)", field="inputs.edit")
+                raise UserError(
+                    f"frame-count mismatch: the edit has {len(style)} frames, the keyshape weights "
+                    f"{n_frames} (they must come from the same edited take)",
+                    field="inputs.edit",
+                )
         if fps is None or not float(fps) > 0:
-            raise UserError("no frame rate: neither the keyshapes nor the edit artifact has meta['fps']",
-                            field="inputs.keyshapes")
+            raise UserError(
+                "no frame rate: neither the keyshapes nor the edit artifact has meta['fps']", field="inputs.keyshapes"
+            )
         return float(fps)
 
     # ----------------------------------------------------------------------------------------------- alpha
@@ -332,8 +379,12 @@ class Blend(Stage):
             if not spec.keyframes:
                 raise UserError("alpha keyframes are empty", field="params.alpha.keyframes")
             key_times = np.array(sorted(spec.keyframes), dtype=np.float64)
-            key_values = np.stack([self._weights_vector(spec.keyframes[t], targets, params.tolerance,
-                                                        f"params.alpha.keyframes.{t:g}") for t in key_times])
+            key_values = np.stack(
+                [
+                    self._weights_vector(spec.keyframes[t], targets, params.tolerance, f"params.alpha.keyframes.{t:g}")
+                    for t in key_times
+                ]
+            )
             alpha = interpolate_keyframes(time, key_times, key_values, spec.interpolation)
             meta = {"alpha_mode": "keyframes", "alpha_interpolation": spec.interpolation}
         else:
@@ -360,8 +411,7 @@ class Blend(Stage):
             raise UserError(f"alpha weights must be >= 0, got {negative}", field=field)
         total = float(vector.sum())
         if abs(total - 1.0) > tolerance:
-            raise UserError(f"alpha weights must sum to 1 (barycentric), they sum to {total:g}: {weights}",
-                            field=field)
+            raise UserError(f"alpha weights must sum to 1 (barycentric), they sum to {total:g}: {weights}", field=field)
         return vector / total
 
     @staticmethod
@@ -369,22 +419,32 @@ class Blend(Stage):
         edit, bilinear = inputs.get("edit"), inputs.get("bilinear")
         if edit is None or bilinear is None:
             missing = [n for n, v in (("edit", edit), ("bilinear", bilinear)) if v is None]
-            raise UserError(f"alpha 'from_analysis' needs the {' and '.join(missing)} input(s) (analysed style e(t) "
-                            "and the training style vectors); wire them, or give constant weights such as "
-                            f"alpha: {{{targets[0]}: 1.0}}", field="params.alpha")
+            raise UserError(
+                f"alpha 'from_analysis' needs the {' and '.join(missing)} input(s) (analysed style e(t) "
+                "and the training style vectors); wire them, or give constant weights such as "
+                f"alpha: {{{targets[0]}: 1.0}}",
+                field="params.alpha",
+            )
         style = np.asarray(edit["style"], np.float64)
         training = np.asarray(bilinear["style"], np.float64)
         training_labels = list(bilinear.meta.get("labels", edit.meta.get("labels", [])))
         if training.ndim != 2 or style.ndim != 2 or training.shape[1] != style.shape[1]:
-            raise UserError(f"style vectors do not match: edit style {style.shape}, bilinear style {training.shape}",
-                            field="inputs.bilinear")
+            raise UserError(
+                f"style vectors do not match: edit style {style.shape}, bilinear style {training.shape}",
+                field="inputs.bilinear",
+            )
         if len(training_labels) != len(training):
-            raise UserError(f"bilinear meta['labels'] names {len(training_labels)} expressions for "
-                            f"{len(training)} style vectors", field="inputs.bilinear")
+            raise UserError(
+                f"bilinear meta['labels'] names {len(training_labels)} expressions for {len(training)} style vectors",
+                field="inputs.bilinear",
+            )
         usable = [name for name in targets if name in training_labels]
         if not usable:
-            raise UserError(f"none of the edited expressions {targets} is a training expression of the bilinear "
-                            f"model ({training_labels})", field="inputs.bilinear")
+            raise UserError(
+                f"none of the edited expressions {targets} is a training expression of the bilinear "
+                f"model ({training_labels})",
+                field="inputs.bilinear",
+            )
         vertices = training[[training_labels.index(name) for name in usable]]
         coords = alpha_from_analysis(style, vertices)
         alpha = np.zeros((len(style), len(targets)))

@@ -11,6 +11,7 @@ Both can mix an identity: neutral + sum_i c_i (identity_i - neutral), the expres
 The embedded default character, data/characters/ict-facekit.glb, is built from the ICT FaceKit OBJs by this module:
 ``python -m stages.retarget.character build /path/to/ict-facekit data/characters/ict-facekit.glb``.
 """
+
 from __future__ import annotations
 
 import gzip
@@ -35,19 +36,30 @@ EXTRAS_IDENTITY = "identityTargetNames"
 EXTRAS_PIVOT = "headPivot"
 
 CHARACTER_OUTPUTS = {
-    "neutral": Output.array("f", shape=("vertices", 3), dtype="float32",
-                            doc="neutral vertex positions (identity mix applied), metres for glTF characters"),
+    "neutral": Output.array(
+        "f",
+        shape=("vertices", 3),
+        dtype="float32",
+        doc="neutral vertex positions (identity mix applied), metres for glTF characters",
+    ),
     "triangles": Output.array("i", shape=("triangles", 3), dtype="int32", doc="vertex ids, counter-clockwise"),
-    "deltas": Output.array("f", shape=("targets", "vertices", 3), dtype="float32",
-                           doc="morph target offsets from the neutral, in meta['target_names'] order"),
-    "landmark_ids": Output.array("i", shape=(N_LANDMARKS,), dtype="int32",
-                                 doc="vertex id of each of the 68 iBUG landmarks"),
-    "triangle_groups": Output.array("i", shape=("triangles",), dtype="int32",
-                                    doc="material group of each triangle, index into meta['groups']"),
+    "deltas": Output.array(
+        "f",
+        shape=("targets", "vertices", 3),
+        dtype="float32",
+        doc="morph target offsets from the neutral, in meta['target_names'] order",
+    ),
+    "landmark_ids": Output.array(
+        "i", shape=(N_LANDMARKS,), dtype="int32", doc="vertex id of each of the 68 iBUG landmarks"
+    ),
+    "triangle_groups": Output.array(
+        "i", shape=("triangles",), dtype="int32", doc="material group of each triangle, index into meta['groups']"
+    ),
 }
 
 
 # ------------------------------------------------------------------------------------------------ OBJ reading
+
 
 def read_obj_text(path: Path) -> str:
     try:
@@ -102,8 +114,9 @@ def parse_obj_faces(text: str, n_vertices: int, path: Path) -> tuple[np.ndarray,
         raise UserError("OBJ file has no faces ('f' lines) with three or more vertices", file=str(path))
     tris = np.array(triangles, dtype=np.int64)
     if tris.min() < 0 or tris.max() >= n_vertices:
-        raise UserError(f"a face refers to vertex {int(tris.max()) + 1} but the file has {n_vertices} vertices",
-                        file=str(path))
+        raise UserError(
+            f"a face refers to vertex {int(tris.max()) + 1} but the file has {n_vertices} vertices", file=str(path)
+        )
     group_ids = np.array(groups, dtype=np.int32)
     if (group_ids < 0).any():  # faces before any usemtl
         names = ["default"] + names
@@ -138,6 +151,7 @@ def shape_name(path: Path) -> str:
 
 # ------------------------------------------------------------------------------------------------ the maths
 
+
 def mix_identity(neutral: np.ndarray, identity_deltas: np.ndarray, coefficients: np.ndarray) -> np.ndarray:
     """neutral + sum_i c_i (identity_i - neutral); identity_deltas are (I, V, 3) = identity_i - neutral.
 
@@ -157,14 +171,19 @@ def check_landmark_ids(ids: Any, n_vertices: int, *, file: str | None = None, fi
     except (TypeError, ValueError):
         raise UserError("landmark ids must be a list of 68 integers", file=file, field=field) from None
     if arr.size != N_LANDMARKS:
-        raise UserError(f"expected {N_LANDMARKS} landmark vertex ids (iBUG 68-point order), got {arr.size}",
-                        file=file, field=field)
+        raise UserError(
+            f"expected {N_LANDMARKS} landmark vertex ids (iBUG 68-point order), got {arr.size}", file=file, field=field
+        )
     if not np.all(arr == np.round(arr)):
         raise UserError("landmark ids must be integers", file=file, field=field)
     bad = np.flatnonzero((arr < 0) | (arr >= n_vertices))
     if bad.size:
-        raise UserError(f"landmark ids out of range for a mesh of {n_vertices} vertices: "
-                        + ", ".join(f"#{i}={int(arr[i])}" for i in bad[:8]), file=file, field=field)
+        raise UserError(
+            f"landmark ids out of range for a mesh of {n_vertices} vertices: "
+            + ", ".join(f"#{i}={int(arr[i])}" for i in bad[:8]),
+            file=file,
+            field=field,
+        )
     return arr.astype(np.int32)
 
 
@@ -181,8 +200,11 @@ def read_landmark_json(path: Path, n_vertices: int, field: str) -> np.ndarray:
                 data = data[key]
                 break
         else:
-            raise UserError("landmark JSON object needs a key 'idx_to_landmark_verts' or 'landmark_ids'",
-                            file=str(path), field=field)
+            raise UserError(
+                "landmark JSON object needs a key 'idx_to_landmark_verts' or 'landmark_ids'",
+                file=str(path),
+                field=field,
+            )
     return check_landmark_ids(data, n_vertices, file=str(path), field=field)
 
 
@@ -199,8 +221,9 @@ def head_pivot(neutral: np.ndarray, landmark_ids: np.ndarray) -> np.ndarray:
     return np.array([0.5 * (p[0][0] + p[16][0]), ears[1] - 0.3 * down, ears[2] - 0.1 * back])
 
 
-def drop_triangles(mesh: MorphMesh, keep: np.ndarray, landmark_ids: np.ndarray,
-                   identity_deltas: np.ndarray | None = None):
+def drop_triangles(
+    mesh: MorphMesh, keep: np.ndarray, landmark_ids: np.ndarray, identity_deltas: np.ndarray | None = None
+):
     """Keep the triangles where ``keep`` is True and the vertices they use; renumber vertices, landmark ids and
     drop material groups left empty. A landmark on a removed vertex is an error."""
     used = np.zeros(len(mesh.positions), dtype=bool)
@@ -211,16 +234,23 @@ def drop_triangles(mesh: MorphMesh, keep: np.ndarray, landmark_ids: np.ndarray,
     groups_kept = np.unique(mesh.triangle_groups[keep])
     group_map = np.full(len(mesh.groups), -1)
     group_map[groups_kept] = np.arange(len(groups_kept))
-    reduced = MorphMesh(positions=mesh.positions[used], triangles=new_index[mesh.triangles[keep]].astype(np.int32),
-                        target_names=list(mesh.target_names), deltas=mesh.deltas[:, used],
-                        triangle_groups=group_map[mesh.triangle_groups[keep]].astype(np.int32),
-                        groups=[mesh.groups[i] for i in groups_kept], extras=dict(mesh.extras), name=mesh.name)
+    reduced = MorphMesh(
+        positions=mesh.positions[used],
+        triangles=new_index[mesh.triangles[keep]].astype(np.int32),
+        target_names=list(mesh.target_names),
+        deltas=mesh.deltas[:, used],
+        triangle_groups=group_map[mesh.triangle_groups[keep]].astype(np.int32),
+        groups=[mesh.groups[i] for i in groups_kept],
+        extras=dict(mesh.extras),
+        name=mesh.name,
+    )
     ids = new_index[landmark_ids].astype(np.int32)
     return reduced, ids, (identity_deltas[:, used] if identity_deltas is not None else None)
 
 
-def drop_triangle_groups(mesh: MorphMesh, landmark_ids: np.ndarray, drop: list[str],
-                         identity_deltas: np.ndarray | None = None):
+def drop_triangle_groups(
+    mesh: MorphMesh, landmark_ids: np.ndarray, drop: list[str], identity_deltas: np.ndarray | None = None
+):
     """Remove the triangles of the named material groups and every vertex no remaining triangle uses."""
     names = [g.name for g in mesh.groups]
     unknown = [d for d in drop if d not in names]
@@ -233,12 +263,19 @@ def drop_triangle_groups(mesh: MorphMesh, landmark_ids: np.ndarray, drop: list[s
 def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
     """Least-squares sphere through points: centre and radius."""
     p = np.asarray(points, dtype=np.float64)
-    sol = np.linalg.lstsq(np.c_[2 * p, np.ones(len(p))], (p ** 2).sum(axis=1), rcond=None)[0]
+    sol = np.linalg.lstsq(np.c_[2 * p, np.ones(len(p))], (p**2).sum(axis=1), rcond=None)[0]
     return sol[:3], float(np.sqrt(sol[3] + sol[:3] @ sol[:3]))
 
 
-def paint_eyeball(mesh: MorphMesh, shell: str, ball: str, *, iris_degrees: float = 22.0,
-                  pupil_degrees: float = 8.0, colors: dict[str, tuple] | None = None) -> np.ndarray:
+def paint_eyeball(
+    mesh: MorphMesh,
+    shell: str,
+    ball: str,
+    *,
+    iris_degrees: float = 22.0,
+    pupil_degrees: float = 8.0,
+    colors: dict[str, tuple] | None = None,
+) -> np.ndarray:
     """Give an untextured eyeball its iris and pupil: split the triangles of the inner ``ball`` by their angle
     from the eye axis into sclera / iris / pupil groups (triangles facing the ball's centre, the walls of the
     pupil's tunnel, are pupil too); return the mask of ``shell`` triangles (the outer cornea-and-sclera shell,
@@ -247,8 +284,11 @@ def paint_eyeball(mesh: MorphMesh, shell: str, ball: str, *, iris_degrees: float
     The axis runs from the ball's centre through the mean of its vertices (the ball is meshed densest around
     the iris, which pulls the mean forward).
     """
-    colors = colors or {"sclera": (0.72, 0.70, 0.66, 1.0), "iris": (0.10, 0.055, 0.03, 1.0),
-                        "pupil": (0.01, 0.01, 0.01, 1.0)}
+    colors = colors or {
+        "sclera": (0.72, 0.70, 0.66, 1.0),
+        "iris": (0.10, 0.055, 0.03, 1.0),
+        "pupil": (0.01, 0.01, 0.01, 1.0),
+    }
     names = [g.name for g in mesh.groups]
     ball_id = names.index(ball)
     ball_tri = np.flatnonzero(mesh.triangle_groups == ball_id)
@@ -277,8 +317,14 @@ def paint_eyeball(mesh: MorphMesh, shell: str, ball: str, *, iris_degrees: float
 
 # ------------------------------------------------------------------------------------------------ loading
 
-def load_obj_blendshapes(files: dict[str, Path], neutral: str | None, identity_prefix: str = "identity",
-                         mtl: Path | None = None, field: str = "inputs.shapes") -> tuple[MorphMesh, dict]:
+
+def load_obj_blendshapes(
+    files: dict[str, Path],
+    neutral: str | None,
+    identity_prefix: str = "identity",
+    mtl: Path | None = None,
+    field: str = "inputs.shapes",
+) -> tuple[MorphMesh, dict]:
     """Read a neutral OBJ and its blendshape OBJs: returns the mesh (deltas = shape - neutral) and the
     identity deltas by name (files whose name starts with ``identity_prefix``)."""
     paths = [Path(p) for p in files.values() if re.search(r"\.obj(\.gz)?$", Path(p).name, re.IGNORECASE)]
@@ -293,12 +339,17 @@ def load_obj_blendshapes(files: dict[str, Path], neutral: str | None, identity_p
     if neutral is None:
         candidates = [n for n in by_name if "neutral" in n.lower()]
         if len(candidates) != 1:
-            raise UserError(f"cannot tell which file is the neutral mesh (candidates {candidates}); set the "
-                            f"'neutral' param to its name", field="params.neutral")
+            raise UserError(
+                f"cannot tell which file is the neutral mesh (candidates {candidates}); set the "
+                f"'neutral' param to its name",
+                field="params.neutral",
+            )
         neutral = candidates[0]
     if neutral not in by_name:
-        raise UserError(f"no file named '{neutral}' (.obj/.obj.gz) for the neutral mesh; files: "
-                        f"{sorted(by_name)}", field="params.neutral")
+        raise UserError(
+            f"no file named '{neutral}' (.obj/.obj.gz) for the neutral mesh; files: {sorted(by_name)}",
+            field="params.neutral",
+        )
     neutral_path = by_name.pop(neutral)
     text = read_obj_text(neutral_path)
     base = parse_obj_vertices(text, neutral_path)
@@ -309,21 +360,33 @@ def load_obj_blendshapes(files: dict[str, Path], neutral: str | None, identity_p
     expression_names = [n for n in by_name if not (identity_prefix and n.startswith(identity_prefix))]
     identity_names = sorted(n for n in by_name if identity_prefix and n.startswith(identity_prefix))
     if not expression_names:
-        raise UserError("the character has no morph targets: only the neutral mesh (and identities) were given",
-                        field=field)
+        raise UserError(
+            "the character has no morph targets: only the neutral mesh (and identities) were given", field=field
+        )
 
     def delta(name: str) -> np.ndarray:
         path = by_name[name]
         verts = parse_obj_vertices(read_obj_text(path), path)
         if len(verts) != len(base):
-            raise UserError(f"blendshape '{name}' has {len(verts)} vertices but the neutral mesh has {len(base)}; "
-                            f"every blendshape must share the neutral's topology", file=str(path), field=field)
+            raise UserError(
+                f"blendshape '{name}' has {len(verts)} vertices but the neutral mesh has {len(base)}; "
+                f"every blendshape must share the neutral's topology",
+                file=str(path),
+                field=field,
+            )
         return (verts - base).astype(np.float32)
 
     deltas = np.stack([delta(n) for n in expression_names])
     identities = {n: delta(n) for n in identity_names}
-    mesh = MorphMesh(positions=base.astype(np.float32), triangles=triangles, target_names=expression_names,
-                     deltas=deltas, triangle_groups=tri_groups, groups=groups, name=neutral)
+    mesh = MorphMesh(
+        positions=base.astype(np.float32),
+        triangles=triangles,
+        target_names=expression_names,
+        deltas=deltas,
+        triangle_groups=tri_groups,
+        groups=groups,
+        name=neutral,
+    )
     return mesh, identities
 
 
@@ -331,26 +394,41 @@ def split_identity_targets(mesh: MorphMesh, identity_names: list[str]) -> tuple[
     """Separate identity morph targets (shape parameters, not animated) from the expression targets."""
     keep = [i for i, n in enumerate(mesh.target_names) if n not in identity_names]
     identities = {n: mesh.deltas[mesh.target_names.index(n)] for n in identity_names if n in mesh.target_names}
-    expr = MorphMesh(positions=mesh.positions, triangles=mesh.triangles,
-                     target_names=[mesh.target_names[i] for i in keep], deltas=mesh.deltas[keep],
-                     triangle_groups=mesh.triangle_groups, groups=mesh.groups, extras=mesh.extras, name=mesh.name)
+    expr = MorphMesh(
+        positions=mesh.positions,
+        triangles=mesh.triangles,
+        target_names=[mesh.target_names[i] for i in keep],
+        deltas=mesh.deltas[keep],
+        triangle_groups=mesh.triangle_groups,
+        groups=mesh.groups,
+        extras=mesh.extras,
+        name=mesh.name,
+    )
     return expr, identities
 
 
 def apply_identity(mesh: MorphMesh, identities: dict[str, np.ndarray], weights: dict[str, float]) -> MorphMesh:
     unknown = sorted(set(weights) - set(identities))
     if unknown:
-        raise UserError(f"unknown identity targets {unknown}; available: {sorted(identities) or 'none'}",
-                        field="params.identity")
+        raise UserError(
+            f"unknown identity targets {unknown}; available: {sorted(identities) or 'none'}", field="params.identity"
+        )
     if weights:
         names = sorted(weights)
-        mesh.positions = mix_identity(mesh.positions, np.stack([identities[n] for n in names]),
-                                      np.array([weights[n] for n in names]))
+        mesh.positions = mix_identity(
+            mesh.positions, np.stack([identities[n] for n in names]), np.array([weights[n] for n in names])
+        )
     return mesh
 
 
-def character_result(mesh: MorphMesh, landmark_ids: np.ndarray, source: dict, identity: dict[str, float],
-                     pivot: np.ndarray | None = None, units: str = "m") -> Result:
+def character_result(
+    mesh: MorphMesh,
+    landmark_ids: np.ndarray,
+    source: dict,
+    identity: dict[str, float],
+    pivot: np.ndarray | None = None,
+    units: str = "m",
+) -> Result:
     if not len(mesh.target_names):
         raise UserError("the character has no morph targets", field="inputs")
     if len(set(mesh.target_names)) != len(mesh.target_names):
@@ -370,12 +448,23 @@ def character_result(mesh: MorphMesh, landmark_ids: np.ndarray, source: dict, id
         "source": source,
         "axes": "glTF: +y up, the face looks along +z",
     }
-    metrics = {"vertices": int(len(mesh.positions)), "triangles": int(len(mesh.triangles)),
-               "targets": int(len(mesh.target_names)),
-               "max_delta": float(np.abs(mesh.deltas).max()) if mesh.deltas.size else 0.0}
-    return Result({"neutral": mesh.positions.astype(np.float32), "triangles": mesh.triangles.astype(np.int32),
-                   "deltas": mesh.deltas.astype(np.float32), "landmark_ids": landmark_ids.astype(np.int32),
-                   "triangle_groups": mesh.triangle_groups.astype(np.int32)}, meta=meta, metrics=metrics)
+    metrics = {
+        "vertices": int(len(mesh.positions)),
+        "triangles": int(len(mesh.triangles)),
+        "targets": int(len(mesh.target_names)),
+        "max_delta": float(np.abs(mesh.deltas).max()) if mesh.deltas.size else 0.0,
+    }
+    return Result(
+        {
+            "neutral": mesh.positions.astype(np.float32),
+            "triangles": mesh.triangles.astype(np.int32),
+            "deltas": mesh.deltas.astype(np.float32),
+            "landmark_ids": landmark_ids.astype(np.int32),
+            "triangle_groups": mesh.triangle_groups.astype(np.int32),
+        },
+        meta=meta,
+        metrics=metrics,
+    )
 
 
 def _single_file(files: dict[str, Path] | None, field: str, suffixes: tuple[str, ...]) -> Path | None:
@@ -399,10 +488,15 @@ class GltfCharacter(Stage):
         identity: dict[str, float] = {}
         identity_targets: list[str] | None = None
 
-    inputs = {"mesh": Input.files(optional=True, doc="one .glb/.gltf file; default: the embedded ICT FaceKit "
-                                                    "character (data/characters/ict-facekit.glb)"),
-              "landmarks": Input.files(optional=True, doc="JSON with the 68 landmark vertex ids (overrides the "
-                                                         "ids stored in the glTF)")}
+    inputs = {
+        "mesh": Input.files(
+            optional=True,
+            doc="one .glb/.gltf file; default: the embedded ICT FaceKit character (data/characters/ict-facekit.glb)",
+        ),
+        "landmarks": Input.files(
+            optional=True, doc="JSON with the 68 landmark vertex ids (overrides the ids stored in the glTF)"
+        ),
+    }
     outputs = CHARACTER_OUTPUTS
     resources = {"character": DEFAULT_CHARACTER}
 
@@ -414,26 +508,40 @@ class GltfCharacter(Stage):
             identity_names = list(mesh.extras.get(EXTRAS_IDENTITY, []))
         missing = sorted(set(identity_names) - set(mesh.target_names))
         if missing:
-            raise UserError(f"identity targets {missing} are not morph targets of the mesh", file=str(path),
-                            field="params.identity_targets")
+            raise UserError(
+                f"identity targets {missing} are not morph targets of the mesh",
+                file=str(path),
+                field="params.identity_targets",
+            )
         mesh, identities = split_identity_targets(mesh, identity_names)
         if not mesh.target_names:
-            raise UserError("the character has no expression morph targets (all are identity targets)",
-                            file=str(path))
+            raise UserError("the character has no expression morph targets (all are identity targets)", file=str(path))
         mesh = apply_identity(mesh, identities, dict(params.identity))
         landmark_file = _single_file(inputs.get("landmarks"), "inputs.landmarks", (".json",))
         if landmark_file is not None:
             ids = read_landmark_json(landmark_file, len(mesh.positions), "inputs.landmarks")
         elif EXTRAS_LANDMARKS in mesh.extras:
-            ids = check_landmark_ids(mesh.extras[EXTRAS_LANDMARKS], len(mesh.positions), file=str(path),
-                                     field=f"mesh.extras.{EXTRAS_LANDMARKS}")
+            ids = check_landmark_ids(
+                mesh.extras[EXTRAS_LANDMARKS],
+                len(mesh.positions),
+                file=str(path),
+                field=f"mesh.extras.{EXTRAS_LANDMARKS}",
+            )
         else:
-            raise UserError(f"the glTF has no '{EXTRAS_LANDMARKS}' in its mesh extras; give the 68 landmark vertex "
-                            f"ids as a JSON file input 'landmarks'", file=str(path), field="inputs.landmarks")
+            raise UserError(
+                f"the glTF has no '{EXTRAS_LANDMARKS}' in its mesh extras; give the 68 landmark vertex "
+                f"ids as a JSON file input 'landmarks'",
+                file=str(path),
+                field="inputs.landmarks",
+            )
         pivot = mesh.extras.get(EXTRAS_PIVOT)
         pivot = np.asarray(pivot, dtype=np.float64) if pivot is not None and not params.identity else None
-        source = {"file": path.name, "mesh": mesh.name, "target_names_from": mesh.extras.get("_target_names_from"),
-                  "identity_targets": sorted(identities)}
+        source = {
+            "file": path.name,
+            "mesh": mesh.name,
+            "target_names_from": mesh.extras.get("_target_names_from"),
+            "identity_targets": sorted(identities),
+        }
         return character_result(mesh, ids, source, dict(params.identity), pivot)
 
 
@@ -451,8 +559,10 @@ class ObjBlendshapes(Stage):
         #: material groups (OBJ usemtl names) to leave out, e.g. transparent overlay shells
         drop_groups: list[str] = []
 
-    inputs = {"shapes": Input.files(doc="neutral and blendshape OBJs (a glob or a mapping), plus an optional .mtl"),
-              "landmarks": Input.files(doc="JSON with the 68 landmark vertex ids (list, or ICT vertex_indices.json)")}
+    inputs = {
+        "shapes": Input.files(doc="neutral and blendshape OBJs (a glob or a mapping), plus an optional .mtl"),
+        "landmarks": Input.files(doc="JSON with the 68 landmark vertex ids (list, or ICT vertex_indices.json)"),
+    }
     outputs = CHARACTER_OUTPUTS
 
     def run(self, params, inputs):
@@ -497,8 +607,9 @@ def build_ict_character(source: Path, destination: Path, *, sparse_tolerance: fl
     order += sorted(n for n in mesh.target_names if n not in order)
     perm = [mesh.target_names.index(n) for n in order]
     mesh.target_names, mesh.deltas = order, mesh.deltas[perm]
-    ids = check_landmark_ids(indices["idx_to_landmark_verts"], len(mesh.positions),
-                             file=str(source / "vertex_indices.json"))
+    ids = check_landmark_ids(
+        indices["idx_to_landmark_verts"], len(mesh.positions), file=str(source / "vertex_indices.json")
+    )
     identity_names = sorted(identities)
     identity_deltas = np.stack([identities[n] for n in identity_names])
     drop = [g for g in ICT_OVERLAY_GROUPS if g in [x.name for x in mesh.groups]]
@@ -514,25 +625,45 @@ def build_ict_character(source: Path, destination: Path, *, sparse_tolerance: fl
     all_deltas = np.concatenate([mesh.deltas, identity_deltas]) * scale
     n_expr = len(mesh.target_names)
     pivot = head_pivot(mesh.positions, ids)
-    out = MorphMesh(positions=mesh.positions, triangles=mesh.triangles,
-                    target_names=list(mesh.target_names) + identity_names, deltas=all_deltas.astype(np.float32),
-                    triangle_groups=mesh.triangle_groups, groups=mesh.groups, name="ICTFaceKit",
-                    extras={EXTRAS_LANDMARKS: [int(i) for i in ids], "landmarkScheme": LANDMARK_SCHEME,
-                            EXTRAS_IDENTITY: identity_names, EXTRAS_PIVOT: [float(v) for v in pivot],
-                            "source": "ICT FaceKit light face model (generic neutral, 57 expressions, 10 identity "
-                                      "components), built by msflow stages.retarget.character"})
-    glb = write_morph_glb(out, sparse_tolerance=sparse_tolerance, generator="msflow stages.retarget.character build",
-                          copyright=ICT_COPYRIGHT)
+    out = MorphMesh(
+        positions=mesh.positions,
+        triangles=mesh.triangles,
+        target_names=list(mesh.target_names) + identity_names,
+        deltas=all_deltas.astype(np.float32),
+        triangle_groups=mesh.triangle_groups,
+        groups=mesh.groups,
+        name="ICTFaceKit",
+        extras={
+            EXTRAS_LANDMARKS: [int(i) for i in ids],
+            "landmarkScheme": LANDMARK_SCHEME,
+            EXTRAS_IDENTITY: identity_names,
+            EXTRAS_PIVOT: [float(v) for v in pivot],
+            "source": "ICT FaceKit light face model (generic neutral, 57 expressions, 10 identity "
+            "components), built by msflow stages.retarget.character",
+        },
+    )
+    glb = write_morph_glb(
+        out,
+        sparse_tolerance=sparse_tolerance,
+        generator="msflow stages.retarget.character build",
+        copyright=ICT_COPYRIGHT,
+    )
     destination.parent.mkdir(parents=True, exist_ok=True)
     destination.write_bytes(glb)
     for name in ("LICENSE", "CREDITS.md"):
         if (source / name).is_file():
             (destination.parent / name).write_bytes((source / name).read_bytes())
-    summary = {"file": destination.name, "bytes": len(glb), "vertices": int(len(out.positions)),
-               "triangles": int(len(out.triangles)), "expression_targets": n_expr,
-               "identity_targets": len(identity_names), "dropped_groups": drop,
-               "eye_shell_triangles_removed": int(shells.sum()),
-               "sparse_tolerance_m": sparse_tolerance}
+    summary = {
+        "file": destination.name,
+        "bytes": len(glb),
+        "vertices": int(len(out.positions)),
+        "triangles": int(len(out.triangles)),
+        "expression_targets": n_expr,
+        "identity_targets": len(identity_names),
+        "dropped_groups": drop,
+        "eye_shell_triangles_removed": int(shells.sum()),
+        "sparse_tolerance_m": sparse_tolerance,
+    }
     (destination.parent / "README.md").write_text(_readme(summary, order, identity_names))
     return summary
 
@@ -541,8 +672,9 @@ def _readme(summary: dict, expressions: list[str], identities: list[str]) -> str
     import textwrap
 
     def para(text: str, indent: str = "") -> str:
-        return textwrap.fill(" ".join(text.split()), width=110, initial_indent=indent,
-                             subsequent_indent=" " * len(indent))
+        return textwrap.fill(
+            " ".join(text.split()), width=110, initial_indent=indent, subsequent_indent=" " * len(indent)
+        )
 
     contents = [
         f"One mesh `ICTFaceKit`: {summary['vertices']} vertices, {summary['triangles']} triangles (ICT's quads split "
@@ -562,27 +694,40 @@ def _readme(summary: dict, expressions: list[str], identities: list[str]) -> str
         "remapped); `mesh.extras.headPivot`: the point the head turns about (metres).",
         f"Size: {summary['bytes']} bytes. Passes the Khronos glTF Validator without errors or warnings.",
     ]
-    return "\n".join([
-        "# Embedded default character: ICT FaceKit", "",
-        f"`{summary['file']}` is the default character of the retargeting stages (`stages.retarget.character:GltfCharacter`).",
-        "", "## Provenance",
-        para("Built from the ICT FaceKit light face model (USC Institute for Creative Technologies, MIT licence: "
-             "see `LICENSE` and `CREDITS.md` in this folder; https://github.com/ICT-VGL/ICT-FaceKit) with this "
-             "project's own code (OBJ reader, identity split, sparse glTF writer in `stages/`):"), "",
-        f"    python -m stages.retarget.character build /path/to/ict-facekit data/characters/{summary['file']}", "",
-        para("The source folder holds `generic_neutral_mesh.obj.gz`, one `.obj.gz` per blendshape, "
-             "`identity000..009.obj.gz`, `ICTFaceModelMaterial.mtl`, `vertex_indices.json`, `LICENSE` and "
-             "`CREDITS.md`. The build is deterministic (same input, same bytes)."),
-        "", "## Contents",
-        *[para(item, "- ") for item in contents], "",
-    ])
+    return "\n".join(
+        [
+            "# Embedded default character: ICT FaceKit",
+            "",
+            f"`{summary['file']}` is the default character of the retargeting stages (`stages.retarget.character:GltfCharacter`).",
+            "",
+            "## Provenance",
+            para(
+                "Built from the ICT FaceKit light face model (USC Institute for Creative Technologies, MIT licence: "
+                "see `LICENSE` and `CREDITS.md` in this folder; https://github.com/ICT-VGL/ICT-FaceKit) with this "
+                "project's own code (OBJ reader, identity split, sparse glTF writer in `stages/`):"
+            ),
+            "",
+            f"    python -m stages.retarget.character build /path/to/ict-facekit data/characters/{summary['file']}",
+            "",
+            para(
+                "The source folder holds `generic_neutral_mesh.obj.gz`, one `.obj.gz` per blendshape, "
+                "`identity000..009.obj.gz`, `ICTFaceModelMaterial.mtl`, `vertex_indices.json`, `LICENSE` and "
+                "`CREDITS.md`. The build is deterministic (same input, same bytes)."
+            ),
+            "",
+            "## Contents",
+            *[para(item, "- ") for item in contents],
+            "",
+        ]
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
-    parser = argparse.ArgumentParser(prog="python -m stages.retarget.character",
-                                     description="Build the embedded ICT FaceKit character GLB.")
+    parser = argparse.ArgumentParser(
+        prog="python -m stages.retarget.character", description="Build the embedded ICT FaceKit character GLB."
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     build = sub.add_parser("build", help="ICT FaceKit folder -> GLB (+ LICENSE, CREDITS.md, README.md)")
     build.add_argument("source", type=Path)
@@ -604,6 +749,7 @@ if __name__ == "__main__":
 
 # ------------------------------------------------------------------------------------------------ figures
 
+
 def figure_landmarks(view, inputs=None, size: int = 512) -> bytes:
     """PNG: the neutral character from the front with its 68 landmark vertices numbered (checks the map)."""
     import cv2
@@ -616,8 +762,16 @@ def figure_landmarks(view, inputs=None, size: int = 512) -> bytes:
     cam, xy = project(points, renderer.view, size)
     for i, (x, y) in enumerate(xy):
         cv2.circle(image, (int(round(x)), int(round(y))), 3, (0, 200, 255), -1, cv2.LINE_AA)
-        cv2.putText(image, str(i), (int(round(x)) + 3, int(round(y)) - 3), cv2.FONT_HERSHEY_SIMPLEX, 0.3,
-                    (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(
+            image,
+            str(i),
+            (int(round(x)) + 3, int(round(y)) - 3),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.3,
+            (255, 255, 255),
+            1,
+            cv2.LINE_AA,
+        )
     return cv2.imencode(".png", image)[1].tobytes()
 
 
@@ -638,7 +792,7 @@ def figure_targets(view, inputs=None, tile: int = 160, columns: int = 10) -> byt
         tiles.append(image)
     rows = -(-len(tiles) // columns)
     tiles += [np.zeros_like(tiles[0])] * (rows * columns - len(tiles))
-    sheet = np.vstack([np.hstack(tiles[r * columns:(r + 1) * columns]) for r in range(rows)])
+    sheet = np.vstack([np.hstack(tiles[r * columns : (r + 1) * columns]) for r in range(rows)])
     return cv2.imencode(".png", sheet)[1].tobytes()
 
 

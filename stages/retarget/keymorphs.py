@@ -15,6 +15,7 @@ one output schema (``keymorph_weights`` (total_k, M) in [0, 1], meta ``target_na
 Both write a contact sheet (the paper's Figs 3-4): per expression, each keyshape's face crop from tracking with
 its landmarks beside the character rendered with its keymorph.
 """
+
 from __future__ import annotations
 
 import difflib
@@ -27,8 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.retarget.keyshapes import IBUG68_CONTOURS, inter_ocular_distance
 from stages.geometry.nnls import solve_box_qp
+from stages.retarget.keyshapes import IBUG68_CONTOURS, inter_ocular_distance
 
 #: landmarks that fix the similarity between actor and character: eyes (36-47) and nose (27-35) barely move
 #: with expression, unlike the jaw line, brows and lips
@@ -37,6 +38,7 @@ JAW_CONTOUR = tuple(range(0, 17))
 
 
 # ------------------------------------------------------------------------------------------------- geometry
+
 
 def project_front(points: np.ndarray) -> np.ndarray:
     """Orthographic front view of glTF points (+y up, looking along -z at a face that looks along +z) in image
@@ -73,7 +75,7 @@ def fit_similarity(source: np.ndarray, target: np.ndarray) -> Similarity2D:
     d = np.ones(2)
     d[-1] = np.sign(np.linalg.det(u @ vt)) or 1.0
     rotation = u @ np.diag(d) @ vt
-    var = (s ** 2).sum()
+    var = (s**2).sum()
     scale = float((sigma * d).sum() / var) if var > 0 else 1.0
     return Similarity2D(scale, rotation, mu_t - scale * rotation @ mu_s)
 
@@ -86,8 +88,16 @@ def symmetric_pairs(names: list[str]) -> list[tuple[int, int]]:
     return [(i, index[(stem, "R")]) for (stem, side), i in index.items() if side == "L" and (stem, "R") in index]
 
 
-_SIDES = (("_L", "L"), ("_R", "R"), ("_l", "L"), ("_r", "R"), ("Left", "L"), ("Right", "R"), ("_left", "L"),
-          ("_right", "R"))
+_SIDES = (
+    ("_L", "L"),
+    ("_R", "R"),
+    ("_l", "L"),
+    ("_r", "R"),
+    ("Left", "L"),
+    ("Right", "R"),
+    ("_left", "L"),
+    ("_right", "R"),
+)
 
 
 def split_side(name: str) -> tuple[str, str]:
@@ -120,13 +130,13 @@ class LandmarkRig:
     """The character's landmark vertices as seen by the fit: projected rest pose, projected morph deltas, and
     the similarity that maps the actor's rest shape onto the character."""
 
-    rest: np.ndarray           # (68, 2) character landmarks, projected, in character units
-    deltas: np.ndarray         # (M, 68, 2) projected morph deltas of the landmark vertices
+    rest: np.ndarray  # (68, 2) character landmarks, projected, in character units
+    deltas: np.ndarray  # (M, 68, 2) projected morph deltas of the landmark vertices
     to_character: Similarity2D  # actor (keyshape frame) -> character projection
-    actor_rest: np.ndarray     # (68, 2) actor rest shape (keyshape frame)
+    actor_rest: np.ndarray  # (68, 2) actor rest shape (keyshape frame)
 
     @classmethod
-    def build(cls, neutral, deltas, landmark_ids, actor_rest) -> "LandmarkRig":
+    def build(cls, neutral, deltas, landmark_ids, actor_rest) -> LandmarkRig:
         ids = np.asarray(landmark_ids, dtype=np.int64)
         rest = project_front(np.asarray(neutral, np.float64)[ids])
         projected = project_front(np.asarray(deltas, np.float64)[:, ids])
@@ -163,10 +173,21 @@ class LandmarkRig:
         return effects
 
 
-def fit_keymorph_weights(rig: LandmarkRig, keyshapes: np.ndarray, names: list[str], *, l2: float, l1: float,
-                         symmetry: float, exclude: list[str], contour_weight: float,
-                         antagonists: list[tuple[str, str]] = (), antagonism: float = 0.0,
-                         pose: np.ndarray | None = None, rtol: float = 1e-7) -> tuple[np.ndarray, dict]:
+def fit_keymorph_weights(
+    rig: LandmarkRig,
+    keyshapes: np.ndarray,
+    names: list[str],
+    *,
+    l2: float,
+    l1: float,
+    symmetry: float,
+    exclude: list[str],
+    contour_weight: float,
+    antagonists: list[tuple[str, str]] = (),
+    antagonism: float = 0.0,
+    pose: np.ndarray | None = None,
+    rtol: float = 1e-7,
+) -> tuple[np.ndarray, dict]:
     """Morph weights u in [0, 1]^M per keyshape minimising (Sec 4.3 keymorphs, automated)
 
         1/2 sum_p c_p ||sum_m u_m d_mp - delta_p||^2 + e (l2/2 ||u||^2 + l1 sum_m u_m)
@@ -185,12 +206,12 @@ def fit_keymorph_weights(rig: LandmarkRig, keyshapes: np.ndarray, names: list[st
     landmark_weight = np.ones(68)
     landmark_weight[list(JAW_CONTOUR)] = contour_weight
     root = np.sqrt(landmark_weight)[None, :, None]
-    J = (rig.deltas * root).reshape(M, -1).T                      # (136, M)
+    J = (rig.deltas * root).reshape(M, -1).T  # (136, M)
     targets = (rig.target_deformation(keyshapes, pose) * root).reshape(len(keyshapes), -1)
     usable = ~matching_targets(names, exclude) & (np.abs(J).max(axis=0) > 0)
     energy = float((J[:, usable] ** 2).sum(axis=0).mean()) if usable.any() else 1.0
     H = J.T @ J + l2 * energy * np.eye(M)
-    column_energy = (J ** 2).sum(axis=0)
+    column_energy = (J**2).sum(axis=0)
     for i, j in symmetric_pairs(names):
         coupling = np.zeros(M)
         coupling[i], coupling[j] = 1.0, -1.0
@@ -208,15 +229,20 @@ def fit_keymorph_weights(rig: LandmarkRig, keyshapes: np.ndarray, names: list[st
         weights[:, idx] = sub
     else:
         iterations, kkt = 0, np.zeros(len(keyshapes))
-    return weights, {"iterations": int(iterations), "kkt_max": float(np.max(kkt, initial=0.0)),
-                     "usable_targets": [names[i] for i in idx], "energy": energy}
+    return weights, {
+        "iterations": int(iterations),
+        "kkt_max": float(np.max(kkt, initial=0.0)),
+        "usable_targets": [names[i] for i in idx],
+        "energy": energy,
+    }
 
 
-def landmark_errors(rig: LandmarkRig, keyshapes: np.ndarray, weights: np.ndarray, scale: float,
-                    pose: np.ndarray | None = None) -> np.ndarray:
+def landmark_errors(
+    rig: LandmarkRig, keyshapes: np.ndarray, weights: np.ndarray, scale: float, pose: np.ndarray | None = None
+) -> np.ndarray:
     """Per keyshape RMS landmark distance between keyshape and keymorph (keyshape frame) / ``scale``."""
     diff = rig.keymorph_landmarks(weights, pose) - np.asarray(keyshapes, np.float64)
-    return np.sqrt((diff ** 2).sum(-1).mean(-1)) / scale
+    return np.sqrt((diff**2).sum(-1).mean(-1)) / scale
 
 
 # ------------------------------------------------------------------------------------------------------ YAML
@@ -231,9 +257,17 @@ def _yaml_key(name: str) -> str:
     return "'" + name.replace("'", "''") + "'"
 
 
-def format_keymorph_yaml(labels: list[str], keyshape_expression: np.ndarray, keyshape_index: np.ndarray,
-                         weights: np.ndarray, names: list[str], *, comments: list[str] | None = None,
-                         header: str = "", decimals: int | None = 3) -> str:
+def format_keymorph_yaml(
+    labels: list[str],
+    keyshape_expression: np.ndarray,
+    keyshape_index: np.ndarray,
+    weights: np.ndarray,
+    names: list[str],
+    *,
+    comments: list[str] | None = None,
+    header: str = "",
+    decimals: int | None = 3,
+) -> str:
     """The keymorph YAML: ``expression -> keyshape id -> {morph target: weight}``, one keyshape per line.
 
     Weights are rounded to ``decimals`` (None: written exactly) and zeros left out, so the file stays short
@@ -269,8 +303,9 @@ def _suggest(name: str, valid: list[str]) -> str:
     return f" (did you mean '{close[0]}'?)" if close else ""
 
 
-def parse_keymorph_yaml(text: str, labels: list[str], counts: list[int], names: list[str], *, file: str,
-                        allow_missing: bool = False) -> np.ndarray:
+def parse_keymorph_yaml(
+    text: str, labels: list[str], counts: list[int], names: list[str], *, file: str, allow_missing: bool = False
+) -> np.ndarray:
     """Keymorph weights (total_k, M) from the YAML text; every mistake is a UserError naming the valid choices.
 
     Keyshape ids are each expression's own ids 0..k_s-1 (``keyshape_index`` of the keyshapes artifact), the
@@ -286,8 +321,12 @@ def parse_keymorph_yaml(text: str, labels: list[str], counts: list[int], names: 
     if data is None:
         data = {}
     if not isinstance(data, dict):
-        raise UserError("keymorph file must map expression names to keyshape ids to {morph target: weight}, "
-                        f"found a {type(data).__name__} at the top level", file=file, field=field)
+        raise UserError(
+            "keymorph file must map expression names to keyshape ids to {morph target: weight}, "
+            f"found a {type(data).__name__} at the top level",
+            file=file,
+            field=field,
+        )
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(int)
     weights = np.zeros((int(offsets[-1]), len(names)))
     seen = np.zeros(int(offsets[-1]), dtype=bool)
@@ -295,20 +334,35 @@ def parse_keymorph_yaml(text: str, labels: list[str], counts: list[int], names: 
     for expression, keymorphs in data.items():
         expression = str(expression)
         if expression not in labels:
-            raise UserError(f"unknown expression '{expression}'{_suggest(expression, labels)}; the keyshapes have "
-                            f"expressions: {', '.join(labels)}", file=file, field=field)
+            raise UserError(
+                f"unknown expression '{expression}'{_suggest(expression, labels)}; the keyshapes have "
+                f"expressions: {', '.join(labels)}",
+                file=file,
+                field=field,
+            )
         s = labels.index(expression)
         if keymorphs is None:
             keymorphs = {}
         if not isinstance(keymorphs, dict):
-            raise UserError(f"'{expression}' must map keyshape ids (0..{counts[s] - 1}) to {{morph target: weight}}",
-                            file=file, field=field)
+            raise UserError(
+                f"'{expression}' must map keyshape ids (0..{counts[s] - 1}) to {{morph target: weight}}",
+                file=file,
+                field=field,
+            )
         for key, morphs in keymorphs.items():
-            local = int(key) if isinstance(key, int) and not isinstance(key, bool) else \
-                int(key) if isinstance(key, str) and key.strip().isdigit() else -1
+            local = (
+                int(key)
+                if isinstance(key, int) and not isinstance(key, bool)
+                else int(key)
+                if isinstance(key, str) and key.strip().isdigit()
+                else -1
+            )
             if not 0 <= local < counts[s]:
-                raise UserError(f"{expression}: unknown keyshape id '{key}'; valid ids for '{expression}' are "
-                                f"0..{counts[s] - 1}", file=file, field=field)
+                raise UserError(
+                    f"{expression}: unknown keyshape id '{key}'; valid ids for '{expression}' are 0..{counts[s] - 1}",
+                    file=file,
+                    field=field,
+                )
             row = offsets[s] + local
             if seen[row]:
                 raise UserError(f"{expression}: keyshape id {local} is given twice", file=file, field=field)
@@ -316,19 +370,30 @@ def parse_keymorph_yaml(text: str, labels: list[str], counts: list[int], names: 
             if morphs is None:
                 morphs = {}
             if not isinstance(morphs, dict):
-                raise UserError(f"{expression}/{local}: expected {{morph target: weight}}, found "
-                                f"{type(morphs).__name__}", file=file, field=field)
+                raise UserError(
+                    f"{expression}/{local}: expected {{morph target: weight}}, found {type(morphs).__name__}",
+                    file=file,
+                    field=field,
+                )
             for name, value in morphs.items():
                 name = str(name)
                 if name not in index:
-                    raise UserError(f"{expression}/{local}: unknown morph target '{name}'{_suggest(name, names)}; "
-                                    f"the character's targets are: {', '.join(names)}", file=file, field=field)
+                    raise UserError(
+                        f"{expression}/{local}: unknown morph target '{name}'{_suggest(name, names)}; "
+                        f"the character's targets are: {', '.join(names)}",
+                        file=file,
+                        field=field,
+                    )
                 if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
-                    raise UserError(f"{expression}/{local}: weight of '{name}' must be a number, got {value!r}",
-                                    file=file, field=field)
+                    raise UserError(
+                        f"{expression}/{local}: weight of '{name}' must be a number, got {value!r}",
+                        file=file,
+                        field=field,
+                    )
                 if not 0.0 <= value <= 1.0:
-                    raise UserError(f"{expression}/{local}: weight of '{name}' is {value}, outside [0, 1]",
-                                    file=file, field=field)
+                    raise UserError(
+                        f"{expression}/{local}: weight of '{name}' is {value}, outside [0, 1]", file=file, field=field
+                    )
                 weights[row, index[name]] = float(value)
     if not allow_missing and not seen.all():
         missing = {}
@@ -336,12 +401,17 @@ def parse_keymorph_yaml(text: str, labels: list[str], counts: list[int], names: 
             ids = [i for i in range(counts[s]) if not seen[offsets[s] + i]]
             if ids:
                 missing[label] = ids
-        raise UserError(f"keymorph file has no entry for keyshapes {missing} (an empty {{}} means the neutral "
-                        "face; or set allow_missing to treat missing ones as neutral)", file=file, field=field)
+        raise UserError(
+            f"keymorph file has no entry for keyshapes {missing} (an empty {{}} means the neutral "
+            "face; or set allow_missing to treat missing ones as neutral)",
+            file=file,
+            field=field,
+        )
     return weights
 
 
 # ---------------------------------------------------------------------------------------------- contact sheet
+
 
 def draw_landmarks(image: np.ndarray, points: np.ndarray, color=(40, 200, 40)) -> np.ndarray:
     """RGB copy of a grayscale or RGB image with the iBUG-68 contours and points drawn."""
@@ -378,7 +448,7 @@ def face_crop_tile(crop: np.ndarray, landmarks: np.ndarray, size: int) -> np.nda
     x0, y0 = int(round(centre[0] - half)), int(round(centre[1] - half))
     side = max(int(round(2 * half)), 1)
     padded = cv2.copyMakeBorder(crop, side, side, side, side, cv2.BORDER_CONSTANT, value=0)
-    window = padded[y0 + side:y0 + 2 * side, x0 + side:x0 + 2 * side]
+    window = padded[y0 + side : y0 + 2 * side, x0 + side : x0 + 2 * side]
     tile = cv2.resize(window, (size, size), interpolation=cv2.INTER_AREA)
     return draw_landmarks(tile, (pts - [x0, y0]) * (size / side))
 
@@ -396,9 +466,16 @@ def render_keymorph_tiles(character, weights: np.ndarray, size: int, supersample
     return [np.ascontiguousarray(renderer(w)[..., :3]) for w in np.asarray(weights, np.float32)]
 
 
-def compose_contact_sheet(labels: list[str], keyshape_expression: np.ndarray, keyshape_index: np.ndarray,
-                          keyshape_frame: np.ndarray, keyshape_tiles: list[np.ndarray],
-                          keymorph_tiles: list[np.ndarray], size: int, notes: list[str] | None = None) -> np.ndarray:
+def compose_contact_sheet(
+    labels: list[str],
+    keyshape_expression: np.ndarray,
+    keyshape_index: np.ndarray,
+    keyshape_frame: np.ndarray,
+    keyshape_tiles: list[np.ndarray],
+    keymorph_tiles: list[np.ndarray],
+    size: int,
+    notes: list[str] | None = None,
+) -> np.ndarray:
     """Paper Figs 3-4 as one RGB image: per expression a header, a row of keyshapes, a row of keymorphs."""
     import cv2
 
@@ -410,17 +487,33 @@ def compose_contact_sheet(labels: list[str], keyshape_expression: np.ndarray, ke
     font = cv2.FONT_HERSHEY_SIMPLEX
     for s, label in enumerate(labels):
         top = s * block
-        sheet[top:top + header] = (225, 225, 235)
-        cv2.putText(sheet, f"{label}: keyshapes (top) and keymorphs (bottom)", (4, top + 16), font, 0.5,
-                    (20, 20, 20), 1, cv2.LINE_AA)
+        sheet[top : top + header] = (225, 225, 235)
+        cv2.putText(
+            sheet,
+            f"{label}: keyshapes (top) and keymorphs (bottom)",
+            (4, top + 16),
+            font,
+            0.5,
+            (20, 20, 20),
+            1,
+            cv2.LINE_AA,
+        )
         for c, k in enumerate(np.flatnonzero(expression == s)):
             x = c * size
             y = top + header
-            sheet[y:y + size, x:x + size] = keyshape_tiles[k]
-            cv2.putText(sheet, f"#{int(keyshape_index[k])} f{int(keyshape_frame[k])}", (x + 3, y + size + 11), font,
-                        0.35, (20, 20, 20), 1, cv2.LINE_AA)
+            sheet[y : y + size, x : x + size] = keyshape_tiles[k]
+            cv2.putText(
+                sheet,
+                f"#{int(keyshape_index[k])} f{int(keyshape_frame[k])}",
+                (x + 3, y + size + 11),
+                font,
+                0.35,
+                (20, 20, 20),
+                1,
+                cv2.LINE_AA,
+            )
             y += size + caption
-            sheet[y:y + size, x:x + size] = keymorph_tiles[k]
+            sheet[y : y + size, x : x + size] = keymorph_tiles[k]
             if notes:
                 cv2.putText(sheet, notes[k], (x + 3, y + size + 11), font, 0.35, (20, 20, 20), 1, cv2.LINE_AA)
     return sheet
@@ -435,25 +528,30 @@ def encode_png(image: np.ndarray) -> bytes:
     return data.tobytes()
 
 
-def build_contact_sheet(keyshapes, character, tracks, weights: np.ndarray, size: int,
-                        notes: list[str] | None = None) -> np.ndarray:
+def build_contact_sheet(
+    keyshapes, character, tracks, weights: np.ndarray, size: int, notes: list[str] | None = None
+) -> np.ndarray:
     labels = list(keyshapes.meta["labels"])
     frames = np.asarray(keyshapes["keyshape_frame"])
     if tracks is not None:
         crops, crop_landmarks = tracks["crops"], tracks["crop_landmarks"]
         if frames.max(initial=0) >= len(crops):
-            raise UserError(f"keyshape source frame {int(frames.max())} is beyond the {len(crops)} frames of the "
-                            "tracking input: wire the training tracking (the one the aam was built from)",
-                            field="inputs.tracks")
+            raise UserError(
+                f"keyshape source frame {int(frames.max())} is beyond the {len(crops)} frames of the "
+                "tracking input: wire the training tracking (the one the aam was built from)",
+                field="inputs.tracks",
+            )
         left = [face_crop_tile(crops[f], crop_landmarks[f], size) for f in frames]
     else:
         left = [landmark_tile(shape, size) for shape in keyshapes["keyshapes"]]
     right = render_keymorph_tiles(character, weights, size)
-    return compose_contact_sheet(labels, keyshapes["keyshape_expression"], keyshapes["keyshape_index"], frames,
-                                 left, right, size, notes)
+    return compose_contact_sheet(
+        labels, keyshapes["keyshape_expression"], keyshapes["keyshape_index"], frames, left, right, size, notes
+    )
 
 
 # ---------------------------------------------------------------------------------------------------- figures
+
 
 def figure_contact_sheet(view, inputs):
     """The contact sheet the stage wrote (keyshape crops above keymorph renders, per expression)."""
@@ -476,34 +574,53 @@ def figure_landmark_fit(view, inputs):
 
     keyshapes = inputs["keyshapes"]
     errors = view["landmark_error"]
-    return plot_keyshape_grid([(keyshapes["keyshapes"], {"color": "k", "lw": 0.7}),
-                               (view["keymorph_landmarks"], {"color": "r", "lw": 0.7})],
-                              keyshapes["keyshape_expression"], list(keyshapes.meta["labels"]),
-                              "Keyshape (black) vs keymorph landmarks (red), RMS error % inter-ocular",
-                              lambda i, c: f"{c}: {100 * errors[i]:.1f}%")
+    return plot_keyshape_grid(
+        [(keyshapes["keyshapes"], {"color": "k", "lw": 0.7}), (view["keymorph_landmarks"], {"color": "r", "lw": 0.7})],
+        keyshapes["keyshape_expression"],
+        list(keyshapes.meta["labels"]),
+        "Keyshape (black) vs keymorph landmarks (red), RMS error % inter-ocular",
+        lambda i, c: f"{c}: {100 * errors[i]:.1f}%",
+    )
 
 
 # ----------------------------------------------------------------------------------------------------- stages
 
 KEYMORPHS_OUTPUTS = {
-    "keymorph_weights": Output.array("f", shape=("total_k", "targets"), dtype="float32",
-                                     doc="morph target weights in [0, 1] per keyshape (meta['target_names'])"),
-    "keymorph_landmarks": Output.array("f", shape=("total_k", 68, 2), dtype="float32",
-                                       doc="the character's landmarks under each keymorph, in the keyshape frame"),
-    "landmark_error": Output.array("f", shape=("total_k",), dtype="float32",
-                                   doc="RMS landmark distance keyshape vs keymorph / inter-ocular distance"),
+    "keymorph_weights": Output.array(
+        "f",
+        shape=("total_k", "targets"),
+        dtype="float32",
+        doc="morph target weights in [0, 1] per keyshape (meta['target_names'])",
+    ),
+    "keymorph_landmarks": Output.array(
+        "f",
+        shape=("total_k", 68, 2),
+        dtype="float32",
+        doc="the character's landmarks under each keymorph, in the keyshape frame",
+    ),
+    "landmark_error": Output.array(
+        "f",
+        shape=("total_k",),
+        dtype="float32",
+        doc="RMS landmark distance keyshape vs keymorph / inter-ocular distance",
+    ),
     "keymorphs": Output.file(".yaml", doc="the keymorphs as an editable YAML (KeymorphFile reads it)"),
     "contact_sheet": Output.file(".png", optional=True, doc="keyshape crops beside keymorph renders (Figs 3-4)"),
 }
 
 _INPUTS = {
-    "keyshapes": Input.artifact("keyshapes", "keyshape_expression", "keyshape_index", "keyshape_frame",
-                                "rest_shape", doc="keyshapes artifact"),
+    "keyshapes": Input.artifact(
+        "keyshapes", "keyshape_expression", "keyshape_index", "keyshape_frame", "rest_shape", doc="keyshapes artifact"
+    ),
     "character": Input.artifact("neutral", "triangles", "deltas", "landmark_ids", doc="character artifact"),
-    "tracks": Input.artifact("crops", "crop_landmarks", optional=True,
-                             doc="training tracking artifact: face crops of the keyshapes' source frames for the "
-                                 "contact sheet (landmark drawings instead when absent) and head rotations for "
-                                 "the pose correction"),
+    "tracks": Input.artifact(
+        "crops",
+        "crop_landmarks",
+        optional=True,
+        doc="training tracking artifact: face crops of the keyshapes' source frames for the "
+        "contact sheet (landmark drawings instead when absent) and head rotations for "
+        "the pose correction",
+    ),
 }
 
 
@@ -520,7 +637,7 @@ class _KeymorphStage(Stage):
     outputs = KEYMORPHS_OUTPUTS
     figures = {"contact_sheet": figure_contact_sheet, "landmark_fit": figure_landmark_fit}
 
-    def _prepare(self, params, inputs) -> "_Prepared":
+    def _prepare(self, params, inputs) -> _Prepared:
         keyshapes, character = inputs["keyshapes"], inputs["character"]
         rig = self._rig(keyshapes, character)
         shapes = np.asarray(keyshapes["keyshapes"], np.float64)
@@ -543,16 +660,19 @@ class _KeymorphStage(Stage):
         rest = np.asarray(keyshapes["rest_frames"])
         rotation = np.asarray(rotation, np.float64)
         if max(frames.max(initial=0), rest.max(initial=0)) >= len(rotation):
-            raise UserError(f"keyshape source frames reach {int(max(frames.max(), rest.max()))} but the tracking "
-                            f"input has {len(rotation)} frames: wire the training tracking the aam was built from",
-                            field="inputs.tracks")
+            raise UserError(
+                f"keyshape source frames reach {int(max(frames.max(), rest.max()))} but the tracking "
+                f"input has {len(rotation)} frames: wire the training tracking the aam was built from",
+                field="inputs.tracks",
+            )
         # the head rotation of each keyshape's frame relative to the rest frames' mean rotation
         relative = quat_to_matrix(rotation[frames]) @ quat_to_matrix(quat_mean(rotation[rest])).T
         ids = np.asarray(character["landmark_ids"])
         return rig.pose_effects(np.asarray(character["neutral"], np.float64)[ids], relative)
 
-    def _common(self, params, inputs, prepared: "_Prepared", weights: np.ndarray, yaml_text: str, metrics: dict,
-                meta: dict) -> Result:
+    def _common(
+        self, params, inputs, prepared: _Prepared, weights: np.ndarray, yaml_text: str, metrics: dict, meta: dict
+    ) -> Result:
         keyshapes, character = inputs["keyshapes"], inputs["character"]
         names = list(character.meta["target_names"])
         rig, shapes, scale, pose = prepared.rig, prepared.shapes, prepared.scale, prepared.pose
@@ -571,15 +691,21 @@ class _KeymorphStage(Stage):
         labels = list(keyshapes.meta["labels"])
         expression = np.asarray(keyshapes["keyshape_expression"])
         metrics = dict(metrics)
-        metrics["landmark_error_rms_iod"] = float(np.sqrt(np.mean(errors ** 2)))
-        metrics["landmark_error_neutral_rms_iod"] = float(np.sqrt(np.mean(baseline ** 2)))
+        metrics["landmark_error_rms_iod"] = float(np.sqrt(np.mean(errors**2)))
+        metrics["landmark_error_neutral_rms_iod"] = float(np.sqrt(np.mean(baseline**2)))
         metrics["mean_active_targets"] = float((weights > 0).sum(axis=1).mean())
         if pose is not None:
-            metrics["pose_effect_rms_iod"] = float(np.sqrt(np.mean(
-                (rig.to_character.inverse_linear(pose) ** 2).sum(-1)) / scale ** 2))
-        meta = dict(meta, target_names=names, labels=labels, pose_correction=prepared.pose_note,
-                    keyshape_ids=[f"{labels[e]}/{int(i)}" for e, i in zip(expression, keyshapes["keyshape_index"])],
-                    similarity_scale=rig.to_character.scale)
+            metrics["pose_effect_rms_iod"] = float(
+                np.sqrt(np.mean((rig.to_character.inverse_linear(pose) ** 2).sum(-1)) / scale**2)
+            )
+        meta = dict(
+            meta,
+            target_names=names,
+            labels=labels,
+            pose_correction=prepared.pose_note,
+            keyshape_ids=[f"{labels[e]}/{int(i)}" for e, i in zip(expression, keyshapes["keyshape_index"])],
+            similarity_scale=rig.to_character.scale,
+        )
         return Result(arrays, meta=meta, metrics=metrics)
 
     @staticmethod
@@ -623,10 +749,16 @@ class KeymorphFit(_KeymorphStage):
         symmetry: float = 0.2
         #: penalty on using opposing targets together (product of their weights), per side of the face
         antagonism: float = 1.0
-        antagonists: list[tuple[str, str]] = [("browDown", "browInnerUp"), ("browDown", "browOuterUp"),
-                                              ("mouthSmile", "mouthFrown"), ("eyeWide", "eyeBlink"),
-                                              ("eyeWide", "eyeSquint"), ("jawLeft", "jawRight"),
-                                              ("mouthLeft", "mouthRight"), ("mouthPucker", "mouthStretch")]
+        antagonists: list[tuple[str, str]] = [
+            ("browDown", "browInnerUp"),
+            ("browDown", "browOuterUp"),
+            ("mouthSmile", "mouthFrown"),
+            ("eyeWide", "eyeBlink"),
+            ("eyeWide", "eyeSquint"),
+            ("jawLeft", "jawRight"),
+            ("mouthLeft", "mouthRight"),
+            ("mouthPucker", "mouthStretch"),
+        ]
         #: weight of the jaw-line landmarks (0-16) relative to the others
         contour_weight: float = 0.5
         #: targets the fit leaves at 0 (fnmatch patterns): gaze and pupils are not in 2D landmarks, and ARKit's
@@ -649,23 +781,44 @@ class KeymorphFit(_KeymorphStage):
                 raise UserError(f"{field} must be >= 0", field=f"params.{field}")
         unknown = [p for p in params.exclude if not matching_targets(names, [p]).any()]
         prepared = self._prepare(params, inputs)
-        weights, info = fit_keymorph_weights(prepared.rig, prepared.shapes, names, l2=params.l2, l1=params.l1,
-                                             symmetry=params.symmetry, exclude=list(params.exclude),
-                                             contour_weight=params.contour_weight,
-                                             antagonists=[tuple(p) for p in params.antagonists],
-                                             antagonism=params.antagonism, pose=prepared.pose)
+        weights, info = fit_keymorph_weights(
+            prepared.rig,
+            prepared.shapes,
+            names,
+            l2=params.l2,
+            l1=params.l1,
+            symmetry=params.symmetry,
+            exclude=list(params.exclude),
+            contour_weight=params.contour_weight,
+            antagonists=[tuple(p) for p in params.antagonists],
+            antagonism=params.antagonism,
+            pose=prepared.pose,
+        )
         weights = rounded_weights(weights, params.decimals)
         errors = landmark_errors(prepared.rig, prepared.shapes, weights, prepared.scale, prepared.pose)
-        header = ("Keymorphs: expression -> keyshape id -> {morph target: weight in [0, 1]} (paper Sec 4.3).\n"
-                  "First draft fitted by KeymorphFit to the keyshapes' landmarks: edit freely and load it with\n"
-                  "stages.retarget.keymorphs:KeymorphFile. Targets left out are 0; {} is the neutral face.\n"
-                  + textwrap.fill("Character targets: " + ", ".join(names), 110, subsequent_indent="  "))
-        yaml_text = format_keymorph_yaml(list(keyshapes.meta["labels"]), keyshapes["keyshape_expression"],
-                                         keyshapes["keyshape_index"], weights, names,
-                                         comments=self._yaml_comments(keyshapes, errors), header=header,
-                                         decimals=params.decimals)
-        meta = {"fit": {"usable_targets": info["usable_targets"], "iterations": info["iterations"],
-                        "unmatched_exclude_patterns": unknown}}
+        header = (
+            "Keymorphs: expression -> keyshape id -> {morph target: weight in [0, 1]} (paper Sec 4.3).\n"
+            "First draft fitted by KeymorphFit to the keyshapes' landmarks: edit freely and load it with\n"
+            "stages.retarget.keymorphs:KeymorphFile. Targets left out are 0; {} is the neutral face.\n"
+            + textwrap.fill("Character targets: " + ", ".join(names), 110, subsequent_indent="  ")
+        )
+        yaml_text = format_keymorph_yaml(
+            list(keyshapes.meta["labels"]),
+            keyshapes["keyshape_expression"],
+            keyshapes["keyshape_index"],
+            weights,
+            names,
+            comments=self._yaml_comments(keyshapes, errors),
+            header=header,
+            decimals=params.decimals,
+        )
+        meta = {
+            "fit": {
+                "usable_targets": info["usable_targets"],
+                "iterations": info["iterations"],
+                "unmatched_exclude_patterns": unknown,
+            }
+        }
         return self._common(params, inputs, prepared, weights, yaml_text, {"fit_kkt_max": info["kkt_max"]}, meta)
 
 
@@ -696,10 +849,17 @@ class KeymorphFile(_KeymorphStage):
         labels = list(keyshapes.meta["labels"])
         expression = np.asarray(keyshapes["keyshape_expression"])
         counts = [int((expression == s).sum()) for s in range(len(labels))]
-        weights = parse_keymorph_yaml(text, labels, counts, names, file=str(path),
-                                      allow_missing=params.allow_missing)
-        yaml_text = format_keymorph_yaml(labels, expression, keyshapes["keyshape_index"], weights, names,
-                                         comments=self._yaml_comments(keyshapes),
-                                         header=f"Keymorphs read from {path.name}", decimals=None)
-        return self._common(params, inputs, self._prepare(params, inputs), weights, yaml_text, {},
-                            {"source": path.name})
+        weights = parse_keymorph_yaml(text, labels, counts, names, file=str(path), allow_missing=params.allow_missing)
+        yaml_text = format_keymorph_yaml(
+            labels,
+            expression,
+            keyshapes["keyshape_index"],
+            weights,
+            names,
+            comments=self._yaml_comments(keyshapes),
+            header=f"Keymorphs read from {path.name}",
+            decimals=None,
+        )
+        return self._common(
+            params, inputs, self._prepare(params, inputs), weights, yaml_text, {}, {"source": path.name}
+        )

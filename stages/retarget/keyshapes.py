@@ -10,6 +10,7 @@ Distances are measured in the aam mean-shape frame relative to the inter-ocular 
 iBUG points 36 and 45, the 300-W convention) of the mean training shape, so thresholds and residuals do not
 depend on the aam's choice of units.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -22,9 +23,15 @@ from stages.geometry.nnls import batched_nnls
 
 #: iBUG-68 polylines (point ranges; closed ones repeat their first point) for drawing shapes
 IBUG68_CONTOURS: tuple[tuple[int, ...], ...] = (
-    tuple(range(0, 17)), tuple(range(17, 22)), tuple(range(22, 27)), tuple(range(27, 31)),
-    tuple(range(31, 36)), tuple(range(36, 42)) + (36,), tuple(range(42, 48)) + (42,),
-    tuple(range(48, 60)) + (48,), tuple(range(60, 68)) + (60,),
+    tuple(range(0, 17)),
+    tuple(range(17, 22)),
+    tuple(range(22, 27)),
+    tuple(range(27, 31)),
+    tuple(range(31, 36)),
+    tuple(range(36, 42)) + (36,),
+    tuple(range(42, 48)) + (42,),
+    tuple(range(48, 60)) + (48,),
+    tuple(range(60, 68)) + (60,),
 )
 OUTER_EYE_CORNERS = (36, 45)
 INNER_LIP_PAIRS = ((61, 67), (62, 66), (63, 65))
@@ -53,15 +60,16 @@ def mean_squared_landmark_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 class KeyshapeSelection:
     """Keyshapes of one expression: source frames (indices into the shapes given), their PCA axis and end."""
 
-    frames: np.ndarray          # (k,) int
-    axes: np.ndarray            # (k,) int, PCA axis the keyshape is an extreme of (0 = largest variance)
-    extremes: np.ndarray        # (k,) int, +1 maximum / -1 minimum projection
+    frames: np.ndarray  # (k,) int
+    axes: np.ndarray  # (k,) int, PCA axis the keyshape is an extreme of (0 = largest variance)
+    extremes: np.ndarray  # (k,) int, +1 maximum / -1 minimum projection
     explained_variance: np.ndarray  # (n_axes,) variance along each PCA axis
     dropped: list[dict] = field(default_factory=list)  # candidates removed as duplicates
 
 
-def select_keyshapes(shapes: np.ndarray, k: int, *, dedupe_threshold: float, scale: float = 1.0,
-                     refill: bool = False) -> KeyshapeSelection:
+def select_keyshapes(
+    shapes: np.ndarray, k: int, *, dedupe_threshold: float, scale: float = 1.0, refill: bool = False
+) -> KeyshapeSelection:
     """Pick up to ``k`` keyshapes among ``shapes`` (n, 68, 2) by PCA extremes (paper Sec 4.1).
 
     Candidates in order: axis 0 max, axis 0 min, axis 1 max, ... (the first ceil(k/2) axes, the k-th candidate
@@ -76,9 +84,9 @@ def select_keyshapes(shapes: np.ndarray, k: int, *, dedupe_threshold: float, sca
     flat = shapes.reshape(n, -1)
     centred = flat - flat.mean(axis=0)
     _, singular, axes_t = np.linalg.svd(centred, full_matrices=False)
-    variance = singular ** 2 / max(n - 1, 1)
+    variance = singular**2 / max(n - 1, 1)
     rank = int((singular > singular.max(initial=0.0) * 1e-9).sum()) if n > 1 else 0
-    projections = centred @ axes_t[:max(rank, 1)].T
+    projections = centred @ axes_t[: max(rank, 1)].T
 
     chosen: list[int] = []
     axes: list[int] = []
@@ -86,7 +94,7 @@ def select_keyshapes(shapes: np.ndarray, k: int, *, dedupe_threshold: float, sca
     dropped: list[dict] = []
     if rank == 0:  # every frame identical: the one shape is the only keyshape
         return KeyshapeSelection(np.array([0]), np.array([0]), np.array([1]), variance, dropped)
-    threshold = dedupe_threshold * scale ** 2
+    threshold = dedupe_threshold * scale**2
     candidates_tried = 0
     for axis in range(rank):
         for sign in (1, -1):
@@ -101,15 +109,26 @@ def select_keyshapes(shapes: np.ndarray, k: int, *, dedupe_threshold: float, sca
                 nearest = int(np.argmin(distance))
                 # the same frame again (an extreme of several axes) is always a duplicate
                 if distance[nearest] < threshold or frame in chosen:
-                    dropped.append({"frame": frame, "axis": axis, "extreme": sign,
-                                    "duplicate_of": chosen[nearest],
-                                    "distance": float(distance[nearest] / scale ** 2)})
+                    dropped.append(
+                        {
+                            "frame": frame,
+                            "axis": axis,
+                            "extreme": sign,
+                            "duplicate_of": chosen[nearest],
+                            "distance": float(distance[nearest] / scale**2),
+                        }
+                    )
                     continue
             chosen.append(frame)
             axes.append(axis)
             extremes.append(sign)
-    return KeyshapeSelection(np.array(chosen, dtype=np.int64), np.array(axes, dtype=np.int64),
-                             np.array(extremes, dtype=np.int64), variance, dropped)
+    return KeyshapeSelection(
+        np.array(chosen, dtype=np.int64),
+        np.array(axes, dtype=np.int64),
+        np.array(extremes, dtype=np.int64),
+        variance,
+        dropped,
+    )
 
 
 def decompose_into_keyshapes(shapes: np.ndarray, keyshapes: np.ndarray, **nnls_options):
@@ -149,6 +168,7 @@ def rest_shape(shapes: np.ndarray, quantile: float = 0.1) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------------- figures
+
 
 def plot_shape(ax, shape: np.ndarray, **style):
     """Draw one iBUG-68 shape as polylines on a matplotlib axis (image convention: y down)."""
@@ -193,9 +213,13 @@ def plot_keyshape_grid(layers, expression, labels, title, caption):
 
 def plot_keyshapes(keyshapes, expression, labels, frames):
     """Grid of keyshapes: one row per expression, with each keyshape's source frame."""
-    return plot_keyshape_grid([(keyshapes, {"color": "k", "lw": 0.8})], expression, labels,
-                              "Keyshapes per expression (PCA extremes, Sec 4.1)",
-                              lambda i, c: f"{c} (f{int(frames[i])})")
+    return plot_keyshape_grid(
+        [(keyshapes, {"color": "k", "lw": 0.8})],
+        expression,
+        labels,
+        "Keyshapes per expression (PCA extremes, Sec 4.1)",
+        lambda i, c: f"{c} (f{int(frames[i])})",
+    )
 
 
 def plot_residual(residual, targets, fps):
@@ -254,30 +278,61 @@ def figure_weights(view, inputs):
 # ----------------------------------------------------------------------------------------------------- stage
 
 KEYSHAPES_OUTPUTS = {
-    "keyshapes": Output.array("f", shape=("total_k", 68, 2), dtype="float32",
-                              doc="keyshape landmark shapes in the aam mean-shape frame, grouped by expression"),
-    "keyshape_expression": Output.array("i", shape=("total_k",), dtype="int32",
-                                        doc="index into meta['labels'] of each keyshape's expression"),
-    "keyshape_index": Output.array("i", shape=("total_k",), dtype="int32",
-                                   doc="keyshape id within its expression (0..k_s-1), the id keymorph files use"),
-    "keyshape_frame": Output.array("i", shape=("total_k",), dtype="int32",
-                                   doc="source frame in the aam/tracking frame axis"),
-    "keyshape_axis": Output.array("i", shape=("total_k",), dtype="int32",
-                                  doc="PCA axis (0 = largest variance) of which the keyshape is an extreme"),
+    "keyshapes": Output.array(
+        "f",
+        shape=("total_k", 68, 2),
+        dtype="float32",
+        doc="keyshape landmark shapes in the aam mean-shape frame, grouped by expression",
+    ),
+    "keyshape_expression": Output.array(
+        "i", shape=("total_k",), dtype="int32", doc="index into meta['labels'] of each keyshape's expression"
+    ),
+    "keyshape_index": Output.array(
+        "i",
+        shape=("total_k",),
+        dtype="int32",
+        doc="keyshape id within its expression (0..k_s-1), the id keymorph files use",
+    ),
+    "keyshape_frame": Output.array(
+        "i", shape=("total_k",), dtype="int32", doc="source frame in the aam/tracking frame axis"
+    ),
+    "keyshape_axis": Output.array(
+        "i",
+        shape=("total_k",),
+        dtype="int32",
+        doc="PCA axis (0 = largest variance) of which the keyshape is an extreme",
+    ),
     "keyshape_extreme": Output.array("i", shape=("total_k",), dtype="int8", doc="+1 maximum, -1 minimum projection"),
-    "weights": Output.array("f", shape=("targets", "frames", "total_k"), dtype="float32",
-                            doc="non-negative weights per edited frame (zero outside the target's own keyshapes)"),
-    "reconstruction": Output.array("f", shape=("targets", "frames", 68, 2), dtype="float32",
-                                   doc="sum_i w_i B_i: the edited shapes as the keyshapes represent them"),
-    "residual": Output.array("f", shape=("targets", "frames"), dtype="float32",
-                             doc="per-frame RMS landmark error of the decomposition / inter-ocular distance"),
-    "rest_shape": Output.array("f", shape=(68, 2), dtype="float32",
-                               doc="closed-mouth rest pose of meta['rest_expression'] (keymorph fits measure "
-                                   "deformation from it)"),
-    "rest_frames": Output.array("i", shape=("rest",), dtype="int32",
-                                doc="frames (aam/tracking axis) averaged into rest_shape"),
-    "expression_mean": Output.array("f", shape=("labels", 68, 2), dtype="float32",
-                                    doc="mean training shape per expression"),
+    "weights": Output.array(
+        "f",
+        shape=("targets", "frames", "total_k"),
+        dtype="float32",
+        doc="non-negative weights per edited frame (zero outside the target's own keyshapes)",
+    ),
+    "reconstruction": Output.array(
+        "f",
+        shape=("targets", "frames", 68, 2),
+        dtype="float32",
+        doc="sum_i w_i B_i: the edited shapes as the keyshapes represent them",
+    ),
+    "residual": Output.array(
+        "f",
+        shape=("targets", "frames"),
+        dtype="float32",
+        doc="per-frame RMS landmark error of the decomposition / inter-ocular distance",
+    ),
+    "rest_shape": Output.array(
+        "f",
+        shape=(68, 2),
+        dtype="float32",
+        doc="closed-mouth rest pose of meta['rest_expression'] (keymorph fits measure deformation from it)",
+    ),
+    "rest_frames": Output.array(
+        "i", shape=("rest",), dtype="int32", doc="frames (aam/tracking axis) averaged into rest_shape"
+    ),
+    "expression_mean": Output.array(
+        "f", shape=("labels", 68, 2), dtype="float32", doc="mean training shape per expression"
+    ),
 }
 
 
@@ -318,8 +373,7 @@ class Keyshapes(Stage):
         aligned = np.asarray(aam["aligned_shapes"], np.float64)
         sequence = np.asarray(aam["sequence"]).astype(np.int64)
         if aligned.ndim != 3 or aligned.shape[1:] != (68, 2):
-            raise UserError(f"aligned_shapes has shape {aligned.shape}, expected (frames, 68, 2)",
-                            field="inputs.aam")
+            raise UserError(f"aligned_shapes has shape {aligned.shape}, expected (frames, 68, 2)", field="inputs.aam")
         if not labels:
             raise UserError("the aam artifact has no meta['labels'] (expression names)", field="inputs.aam")
         usable = np.isfinite(aligned).all(axis=(1, 2))
@@ -339,15 +393,22 @@ class Keyshapes(Stage):
             if frames.size == 0:
                 raise UserError(f"expression '{label}' has no usable training frames", field="inputs.aam")
             expression_means.append(aligned[frames].mean(axis=0))
-            selection = select_keyshapes(aligned[frames], counts[label], dedupe_threshold=params.dedupe_threshold,
-                                         scale=scale, refill=params.refill)
+            selection = select_keyshapes(
+                aligned[frames],
+                counts[label],
+                dedupe_threshold=params.dedupe_threshold,
+                scale=scale,
+                refill=params.refill,
+            )
             keyshape_frames += frames[selection.frames].tolist()
             keyshape_expr += [s] * len(selection.frames)
             keyshape_idx += list(range(len(selection.frames)))
             keyshape_axis += selection.axes.tolist()
             keyshape_ext += selection.extremes.tolist()
-            dropped[label] = [dict(d, frame=int(frames[d["frame"]]), duplicate_of=int(frames[d["duplicate_of"]]))
-                              for d in selection.dropped]
+            dropped[label] = [
+                dict(d, frame=int(frames[d["frame"]]), duplicate_of=int(frames[d["duplicate_of"]]))
+                for d in selection.dropped
+            ]
             used_axes = int(selection.axes.max()) + 1
             total = selection.explained_variance.sum()
             variance_covered[label] = float(selection.explained_variance[:used_axes].sum() / total) if total else 1.0
@@ -362,8 +423,13 @@ class Keyshapes(Stage):
         kkt = 0.0
         for t, name in enumerate(targets):
             mine = np.flatnonzero(keyshape_expr == labels.index(name))
-            w, recon, result = decompose_into_keyshapes(edited[t], keyshapes[mine], method=params.solver,
-                                                        sum_to_one=params.sum_to_one, smoothing=params.smoothing)
+            w, recon, result = decompose_into_keyshapes(
+                edited[t],
+                keyshapes[mine],
+                method=params.solver,
+                sum_to_one=params.sum_to_one,
+                smoothing=params.smoothing,
+            )
             weights[t][:, mine] = w
             reconstruction[t] = recon
             kkt = max(kkt, float(result.kkt.max(initial=0.0)) if params.smoothing == 0 else 0.0)
@@ -383,9 +449,9 @@ class Keyshapes(Stage):
         rest = aligned[rest_idx].mean(axis=0)
 
         metrics = {
-            "residual_rms_iod": float(np.sqrt(np.mean(residual ** 2))) if residual.size else 0.0,
+            "residual_rms_iod": float(np.sqrt(np.mean(residual**2))) if residual.size else 0.0,
             "residual_max_iod": float(residual.max(initial=0.0)),
-            "train_residual_rms_iod": float(np.sqrt(np.mean(train_residual ** 2))),
+            "train_residual_rms_iod": float(np.sqrt(np.mean(train_residual**2))),
             "keyshapes": int(len(keyshapes)),
             "duplicates_dropped": int(sum(len(v) for v in dropped.values())),
             "kkt_max": kkt,
@@ -404,20 +470,24 @@ class Keyshapes(Stage):
             "rest_expression": rest_label,
             "fps": edit.meta.get("fps", aam.meta.get("fps")),
         }
-        return Result({
-            "keyshapes": keyshapes.astype(np.float32),
-            "keyshape_expression": keyshape_expr.astype(np.int32),
-            "keyshape_index": np.asarray(keyshape_idx, dtype=np.int32),
-            "keyshape_frame": keyshape_frames.astype(np.int32),
-            "keyshape_axis": np.asarray(keyshape_axis, dtype=np.int32),
-            "keyshape_extreme": np.asarray(keyshape_ext, dtype=np.int8),
-            "weights": weights.astype(np.float32),
-            "reconstruction": reconstruction.astype(np.float32),
-            "residual": residual.astype(np.float32),
-            "rest_shape": rest.astype(np.float32),
-            "rest_frames": rest_idx.astype(np.int32),
-            "expression_mean": np.asarray(expression_means, dtype=np.float32),
-        }, meta=meta, metrics=metrics)
+        return Result(
+            {
+                "keyshapes": keyshapes.astype(np.float32),
+                "keyshape_expression": keyshape_expr.astype(np.int32),
+                "keyshape_index": np.asarray(keyshape_idx, dtype=np.int32),
+                "keyshape_frame": keyshape_frames.astype(np.int32),
+                "keyshape_axis": np.asarray(keyshape_axis, dtype=np.int32),
+                "keyshape_extreme": np.asarray(keyshape_ext, dtype=np.int8),
+                "weights": weights.astype(np.float32),
+                "reconstruction": reconstruction.astype(np.float32),
+                "residual": residual.astype(np.float32),
+                "rest_shape": rest.astype(np.float32),
+                "rest_frames": rest_idx.astype(np.int32),
+                "expression_mean": np.asarray(expression_means, dtype=np.float32),
+            },
+            meta=meta,
+            metrics=metrics,
+        )
 
     @staticmethod
     def _counts(k, labels: list[str]) -> dict[str, int]:
@@ -426,12 +496,15 @@ class Keyshapes(Stage):
         else:
             unknown = sorted(set(k) - set(labels))
             if unknown:
-                raise UserError(f"k names unknown expressions {unknown}; the training expressions are {labels}",
-                                field="params.k")
+                raise UserError(
+                    f"k names unknown expressions {unknown}; the training expressions are {labels}", field="params.k"
+                )
             missing = [label for label in labels if label not in k]
             if missing:
-                raise UserError(f"k gives no count for {missing}; give every expression of {labels} a count "
-                                "or use one integer", field="params.k")
+                raise UserError(
+                    f"k gives no count for {missing}; give every expression of {labels} a count or use one integer",
+                    field="params.k",
+                )
             counts = {label: int(k[label]) for label in labels}
         bad = {label: c for label, c in counts.items() if c < 1}
         if bad:
@@ -442,16 +515,22 @@ class Keyshapes(Stage):
     def _edited(edit, labels: list[str]) -> tuple[list[str], np.ndarray]:
         shapes = np.asarray(edit["shapes"], np.float64)
         if shapes.ndim != 4 or shapes.shape[2:] != (68, 2):
-            raise UserError(f"edit shapes have shape {shapes.shape}, expected (targets, frames, 68, 2)",
-                            field="inputs.edit")
+            raise UserError(
+                f"edit shapes have shape {shapes.shape}, expected (targets, frames, 68, 2)", field="inputs.edit"
+            )
         targets = [str(x) for x in edit.meta.get("targets", edit.meta.get("labels", labels))]
         if len(targets) != shapes.shape[0]:
-            raise UserError(f"edit meta['targets'] names {len(targets)} expressions but shapes has "
-                            f"{shapes.shape[0]} targets", field="inputs.edit")
+            raise UserError(
+                f"edit meta['targets'] names {len(targets)} expressions but shapes has {shapes.shape[0]} targets",
+                field="inputs.edit",
+            )
         unknown = [name for name in targets if name not in labels]
         if unknown:
-            raise UserError(f"edited targets {unknown} are not training expressions of the aam ({labels}); "
-                            "keyshapes exist only for training expressions", field="inputs.edit")
+            raise UserError(
+                f"edited targets {unknown} are not training expressions of the aam ({labels}); "
+                "keyshapes exist only for training expressions",
+                field="inputs.edit",
+            )
         if not np.isfinite(shapes).all():
             raise UserError("edit shapes contain NaN or Inf", field="inputs.edit")
         return targets, shapes

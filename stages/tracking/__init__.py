@@ -5,6 +5,7 @@ head pose, face crops and audio out, in one schema (schema.TRACKING_OUTPUTS) for
 - ``OpticalFlow``: pyramidal Lucas-Kanade with a forward-backward check and a shape-model constraint;
 - ``TrackFile``: OpenFace 2.0 CSV, plain CSV, .npz or iBUG .pts tracks, no video analysis.
 """
+
 from stages.tracking.schema import TRACKING_OUTPUTS
 from stages.tracking.stages import FaceMesh, OpticalFlow, TrackFile
 

@@ -1,5 +1,6 @@
 """What every tracking implementation shares once it has 68 points per frame: gap filling, head pose, face
 crops, audio, and the concatenated TRACKING_OUTPUTS result with its metadata and quality metrics."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -11,7 +12,7 @@ from pydantic import Field
 
 from msflow import Result, UserError
 from msflow.stage import Params
-from stages.geometry.rotations import quat_multiply, quat_conjugate, quat_to_euler, quat_to_rotvec
+from stages.geometry.rotations import quat_conjugate, quat_multiply, quat_to_euler, quat_to_rotvec
 from stages.tracking.crops import apply_transforms, similarity_transform, similarity_transforms, warp_crop
 from stages.tracking.face3d import DEFAULT_FACE3D, Face3D, load_face3d
 from stages.tracking.landmarks68 import NOSE_BRIDGE_TOP
@@ -21,21 +22,35 @@ from stages.tracking.pose import camera_matrix, solve_head_pose
 class TrackingParams(Params):
     """Parameters every tracking implementation shares."""
 
-    max_gap_frames: int = Field(15, ge=0, description="longest run of frames without a face that is "
-                                "interpolated; longer runs are an error naming the frames")
-    focal_length: float | None = Field(None, gt=0, description="camera focal length in pixels for head pose; "
-                                       "None assumes the frame width (about 53 degrees horizontal field of view)")
+    max_gap_frames: int = Field(
+        15,
+        ge=0,
+        description="longest run of frames without a face that is "
+        "interpolated; longer runs are an error naming the frames",
+    )
+    focal_length: float | None = Field(
+        None,
+        gt=0,
+        description="camera focal length in pixels for head pose; "
+        "None assumes the frame width (about 53 degrees horizontal field of view)",
+    )
     pose_landmarks: Literal["rigid", "all"] = Field(
-        "rigid", description="landmarks solvePnP fits: 'rigid' = the ICT FaceKit rigid subset (jaw ends, eye "
-        "corners, nose; mouth and brows excluded so expressions do not tilt the head), 'all' = the 68 points")
+        "rigid",
+        description="landmarks solvePnP fits: 'rigid' = the ICT FaceKit rigid subset (jaw ends, eye "
+        "corners, nose; mouth and brows excluded so expressions do not tilt the head), 'all' = the 68 points",
+    )
     crop_size: int = Field(128, ge=16, le=1024, description="side of the square grayscale face crops (pixels)")
-    crop_eye_distance: float = Field(0.30, gt=0.05, lt=0.9, description="distance between the eye centres in "
-                                     "the crop, as a fraction of crop_size")
-    crop_eye_height: float = Field(0.33, gt=0.0, lt=1.0, description="height of the eye line in the crop, as a "
-                                   "fraction of crop_size from the top")
+    crop_eye_distance: float = Field(
+        0.30, gt=0.05, lt=0.9, description="distance between the eye centres in the crop, as a fraction of crop_size"
+    )
+    crop_eye_height: float = Field(
+        0.33, gt=0.0, lt=1.0, description="height of the eye line in the crop, as a fraction of crop_size from the top"
+    )
     audio: Literal["required", "optional", "none"] = Field(
-        "required", description="each video's audio track: 'required' fails on a video without one, "
-        "'optional' goes without, 'none' skips audio")
+        "required",
+        description="each video's audio track: 'required' fails on a video without one, "
+        "'optional' goes without, 'none' skips audio",
+    )
     audio_rate: int = Field(16000, ge=4000, le=192000, description="audio sample rate of the 'audio' output (Hz)")
 
 
@@ -45,18 +60,18 @@ class SequenceTrack:
 
     label: str
     source: str
-    landmarks: np.ndarray            # (n, 68, 2) float64, gaps filled
-    valid: np.ndarray                # (n,) bool: a face was found (False = interpolated)
-    confidence: np.ndarray           # (n,)
-    time: np.ndarray                 # (n,) seconds since the first frame
+    landmarks: np.ndarray  # (n, 68, 2) float64, gaps filled
+    valid: np.ndarray  # (n,) bool: a face was found (False = interpolated)
+    confidence: np.ndarray  # (n,)
+    time: np.ndarray  # (n,) seconds since the first frame
     fps: float
     frame_size: tuple[int, int]
     field: str
-    mesh: np.ndarray | None = None   # (n, 468, 3)
+    mesh: np.ndarray | None = None  # (n, 468, 3)
     crops: np.ndarray | None = None  # (n, c, c) uint8
     crop_transforms: np.ndarray | None = None
-    video: Path | None = None        # where the audio comes from
-    rotation: np.ndarray | None = None     # pose from the track file, when used
+    video: Path | None = None  # where the audio comes from
+    rotation: np.ndarray | None = None  # pose from the track file, when used
     translation: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
 
@@ -102,8 +117,10 @@ class CropCollector:
                 self.crops[i] = warp_crop(self.pending.pop(i), m, self.size)
                 self.transforms[i] = m
         n = len(self.crops)
-        return (np.array(self.crops, dtype=np.uint8).reshape(n, self.size, self.size),
-                np.array(self.transforms, dtype=np.float64).reshape(n, 2, 3))
+        return (
+            np.array(self.crops, dtype=np.uint8).reshape(n, self.size, self.size),
+            np.array(self.transforms, dtype=np.float64).reshape(n, 2, 3),
+        )
 
 
 def resolve_face3d(files: dict | None) -> tuple[Face3D, str]:
@@ -130,8 +147,10 @@ def load_audio(seq: SequenceTrack, params: TrackingParams):
         return None
     if seq.video is None:
         if params.audio == "required":
-            raise UserError("audio is required but no video was given for this sequence (set params.audio to "
-                            "'optional' or 'none')", field=seq.field)
+            raise UserError(
+                "audio is required but no video was given for this sequence (set params.audio to 'optional' or 'none')",
+                field=seq.field,
+            )
         return None
     if params.audio == "optional":
         import av
@@ -182,8 +201,15 @@ def sequence_stats(seq: SequenceTrack, rotation: np.ndarray, rms: np.ndarray) ->
     }
 
 
-def assemble(sequences: list[SequenceTrack], params: TrackingParams, face3d: Face3D, face3d_name: str,
-             implementation: str, extra_meta: dict | None = None, extra_metrics: dict | None = None) -> Result:
+def assemble(
+    sequences: list[SequenceTrack],
+    params: TrackingParams,
+    face3d: Face3D,
+    face3d_name: str,
+    implementation: str,
+    extra_meta: dict | None = None,
+    extra_metrics: dict | None = None,
+) -> Result:
     """Head pose and audio for every sequence, then the concatenated TRACKING_OUTPUTS result."""
     rotations, translations, rms_all, audio_chunks, bounds = [], [], [], [], []
     audio_offsets, has_audio, focal, stats = [], [], [], {}
@@ -225,14 +251,19 @@ def assemble(sequences: list[SequenceTrack], params: TrackingParams, face3d: Fac
         "translation": np.concatenate(translations).astype(np.float64),
         "pose_rms": np.concatenate(rms_all).astype(np.float32),
     }
-    transforms = [s.crop_transforms if s.crop_transforms is not None else
-                  similarity_transforms(s.landmarks, size, params.crop_eye_distance, params.crop_eye_height)
-                  for s in sequences]
+    transforms = [
+        s.crop_transforms
+        if s.crop_transforms is not None
+        else similarity_transforms(s.landmarks, size, params.crop_eye_distance, params.crop_eye_height)
+        for s in sequences
+    ]
     arrays["crop_transforms"] = np.concatenate(transforms).astype(np.float64)
-    arrays["crop_landmarks"] = apply_transforms(arrays["landmarks"].astype(np.float64),
-                                                arrays["crop_transforms"]).astype(np.float32)
-    arrays["crops"] = (np.concatenate([s.crops for s in sequences]) if crops_present
-                       else np.zeros((n_total, 0, 0), dtype=np.uint8))
+    arrays["crop_landmarks"] = apply_transforms(
+        arrays["landmarks"].astype(np.float64), arrays["crop_transforms"]
+    ).astype(np.float32)
+    arrays["crops"] = (
+        np.concatenate([s.crops for s in sequences]) if crops_present else np.zeros((n_total, 0, 0), dtype=np.uint8)
+    )
     if all(s.mesh is not None for s in sequences):
         arrays["mesh"] = np.concatenate([s.mesh for s in sequences]).astype(np.float32)
     if any(has_audio):

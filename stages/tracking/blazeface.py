@@ -6,6 +6,7 @@ and decoding follow MediaPipe's face_detection_short_range graph (SsdAnchorsCalc
 8, 16, 16, 16, fixed anchor size; TensorsToDetectionsCalculator with scale 128; weighted NMS at IoU 0.3).
 Bazarevsky et al., "BlazeFace: Sub-millisecond Neural Face Detection on Mobile GPUs", 2019.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -35,8 +36,9 @@ def ssd_anchor_centres(input_size: int = INPUT_SIZE, strides=STRIDES, anchor_off
             same += 1
             layer += 1
         cells = int(np.ceil(input_size / stride))
-        ys, xs = np.meshgrid((np.arange(cells) + anchor_offset) / cells,
-                             (np.arange(cells) + anchor_offset) / cells, indexing="ij")
+        ys, xs = np.meshgrid(
+            (np.arange(cells) + anchor_offset) / cells, (np.arange(cells) + anchor_offset) / cells, indexing="ij"
+        )
         grid = np.stack([xs.ravel(), ys.ravel()], axis=-1)
         centres.append(np.repeat(grid, 2 * same, axis=0))
     return np.concatenate(centres).astype(np.float64)
@@ -49,16 +51,17 @@ ANCHORS = ssd_anchor_centres()
 class Detections:
     """Faces found in one image, best first. Coordinates in the pixels of the image given to ``detect``."""
 
-    scores: np.ndarray      # (k,)
-    boxes: np.ndarray       # (k, 4) x_min, y_min, x_max, y_max
-    keypoints: np.ndarray   # (k, 6, 2) see KEYPOINTS
+    scores: np.ndarray  # (k,)
+    boxes: np.ndarray  # (k, 4) x_min, y_min, x_max, y_max
+    keypoints: np.ndarray  # (k, 6, 2) see KEYPOINTS
 
     def __len__(self) -> int:
         return len(self.scores)
 
 
-def decode_boxes(regressors: np.ndarray, anchors: np.ndarray = ANCHORS,
-                 scale: float = INPUT_SIZE) -> tuple[np.ndarray, np.ndarray]:
+def decode_boxes(
+    regressors: np.ndarray, anchors: np.ndarray = ANCHORS, scale: float = INPUT_SIZE
+) -> tuple[np.ndarray, np.ndarray]:
     """Anchor-relative regressors (n, 16) to boxes (n, 4: x_min, y_min, x_max, y_max) and keypoints (n, 6, 2),
     all in [0, 1] coordinates of the model input (MediaPipe's decoding with unit anchor size)."""
     reg = np.asarray(regressors, dtype=np.float64).reshape(len(anchors), -1)
@@ -79,8 +82,13 @@ def box_iou(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     return inter / np.maximum(area + areas - inter, 1e-12)
 
 
-def weighted_nms(scores: np.ndarray, boxes: np.ndarray, keypoints: np.ndarray, iou_threshold: float = 0.3,
-                 max_faces: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def weighted_nms(
+    scores: np.ndarray,
+    boxes: np.ndarray,
+    keypoints: np.ndarray,
+    iou_threshold: float = 0.3,
+    max_faces: int | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Weighted non-maximum suppression (MediaPipe's WEIGHTED algorithm, BlazeFace paper Sec. 2.3).
 
     Candidates are taken best first; every remaining candidate overlapping the best one by more than
@@ -110,8 +118,7 @@ def letterbox_transform(width: int, height: int, size: int = INPUT_SIZE) -> np.n
     """2x3 affine mapping image pixels into a ``size`` square, aspect kept, padded evenly (MediaPipe's
     ``keep_aspect_ratio`` letterbox)."""
     scale = size / max(width, height)
-    return np.array([[scale, 0.0, (size - width * scale) / 2],
-                     [0.0, scale, (size - height * scale) / 2]])
+    return np.array([[scale, 0.0, (size - width * scale) / 2], [0.0, scale, (size - height * scale) / 2]])
 
 
 def sigmoid(x: np.ndarray) -> np.ndarray:
@@ -133,8 +140,14 @@ class BlazeFaceDetector:
 
         height, width = bgr.shape[:2]
         to_input = letterbox_transform(width, height)
-        square = cv2.warpAffine(bgr, to_input, (INPUT_SIZE, INPUT_SIZE), flags=cv2.INTER_LINEAR,
-                                borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
+        square = cv2.warpAffine(
+            bgr,
+            to_input,
+            (INPUT_SIZE, INPUT_SIZE),
+            flags=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=(0, 0, 0),
+        )
         # the detector was trained on RGB in [-1, 1]
         blob = cv2.dnn.blobFromImage(square, 1 / 127.5, mean=(127.5, 127.5, 127.5), swapRB=True)
         logits, regressors = self.net.forward(blob)
@@ -144,8 +157,9 @@ class BlazeFaceDetector:
         if not keep.any():
             return Detections(np.zeros(0), np.zeros((0, 4)), np.zeros((0, 6, 2)))
         boxes, keypoints = decode_boxes(regressors.reshape(-1, 16))
-        scores, boxes, keypoints = weighted_nms(scores[keep], boxes[keep], keypoints[keep],
-                                                self.iou_threshold, max_faces)
+        scores, boxes, keypoints = weighted_nms(
+            scores[keep], boxes[keep], keypoints[keep], self.iou_threshold, max_faces
+        )
         # [0, 1] model coordinates -> image pixels (undo the letterbox)
         scale, ox, oy = to_input[0, 0], to_input[0, 2], to_input[1, 2]
         offset = np.array([ox, oy])

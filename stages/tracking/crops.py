@@ -5,6 +5,7 @@ during blinks) to fixed positions in a ``crop_size`` square: level, ``eye_distan
 ``eye_height`` x crop_size. Downstream texture models (the paper's AAM appearance, Sec. 3.1) sample these
 crops with ``crop_landmarks`` and never reread the video.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -20,8 +21,9 @@ def eye_centres(landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return right, left
 
 
-def similarity_transforms(landmarks: np.ndarray, crop_size: int = 128, eye_distance: float = 0.30,
-                          eye_height: float = 0.33) -> np.ndarray:
+def similarity_transforms(
+    landmarks: np.ndarray, crop_size: int = 128, eye_distance: float = 0.30, eye_height: float = 0.33
+) -> np.ndarray:
     """(frames, 2, 3) similarity transforms mapping image pixels to crop pixels (vectorised over frames).
 
     The subject's right eye (image left) lands at ((1 - eye_distance) / 2, eye_height) x crop_size and the left
@@ -40,8 +42,9 @@ def similarity_transforms(landmarks: np.ndarray, crop_size: int = 128, eye_dista
     return np.concatenate([a, offset[..., None]], axis=-1)
 
 
-def similarity_transform(landmarks: np.ndarray, crop_size: int = 128, eye_distance: float = 0.30,
-                         eye_height: float = 0.33) -> np.ndarray:
+def similarity_transform(
+    landmarks: np.ndarray, crop_size: int = 128, eye_distance: float = 0.30, eye_height: float = 0.33
+) -> np.ndarray:
     """One frame's (2, 3) transform; the same numbers as ``similarity_transforms`` with scalar arithmetic
     (the per-frame path while a video streams, where numpy's per-call overhead dominates)."""
     lm = landmarks
@@ -54,8 +57,7 @@ def similarity_transform(landmarks: np.ndarray, crop_size: int = 128, eye_distan
     scale = eye_distance * crop_size / dist
     c, s = dx / dist * scale, dy / dist * scale
     mx, my = float(rx + lx) / 2, float(ry + ly) / 2
-    return np.array([[c, s, crop_size / 2.0 - (c * mx + s * my)],
-                     [-s, c, eye_height * crop_size - (-s * mx + c * my)]])
+    return np.array([[c, s, crop_size / 2.0 - (c * mx + s * my)], [-s, c, eye_height * crop_size - (-s * mx + c * my)]])
 
 
 def apply_transforms(points: np.ndarray, transforms: np.ndarray) -> np.ndarray:
@@ -67,8 +69,9 @@ def warp_crop(gray: np.ndarray, transform: np.ndarray, crop_size: int) -> np.nda
     """One grayscale crop (crop_size, crop_size) uint8; outside the frame repeats the border."""
     import cv2
 
-    return cv2.warpAffine(gray, transform, (crop_size, crop_size), flags=cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_REPLICATE)
+    return cv2.warpAffine(
+        gray, transform, (crop_size, crop_size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
 
 
 def to_gray(frame: np.ndarray) -> np.ndarray:

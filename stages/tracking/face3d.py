@@ -6,6 +6,7 @@ the ICT FaceKit neutral mesh (plus their expression and identity offsets).
 JSON. Units are the FaceKit's centimetres; axes are glTF's head frame (x to the viewer's right when the face
 looks at the viewer, y up, z out of the face), the frame of stages.geometry.rotations.
 """
+
 from __future__ import annotations
 
 import gzip
@@ -95,8 +96,9 @@ def load_face3d(path: str | Path = DEFAULT_FACE3D, *, field: str | None = None) 
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise UserError(f"cannot read the 3D face landmarks ({exc})", file=str(path), field=field) from None
     if neutral.shape != (68, 3):
-        raise UserError(f"3D face must hold 68 points of (x, y, z), got shape {neutral.shape}", file=str(path),
-                        field=field)
+        raise UserError(
+            f"3D face must hold 68 points of (x, y, z), got shape {neutral.shape}", file=str(path), field=field
+        )
     expr = {k: np.asarray(v, dtype=np.float64) for k, v in data.get("expression_offsets", {}).items()}
     ident = {k: np.asarray(v, dtype=np.float64) for k, v in data.get("identity_offsets", {}).items()}
     return Face3D(neutral, expr, ident, tuple(data.get("rigid_landmarks", ())))

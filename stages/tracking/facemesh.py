@@ -7,6 +7,7 @@ the eye line: MediaPipe's face_landmark_landmarks_to_roi); BlazeFace runs only o
 the presence score falls below the threshold. Kartynnik et al., "Real-time Facial Surface Geometry from
 Monocular Video on Mobile GPUs", 2019.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -58,8 +59,7 @@ def roll_angle(start: np.ndarray, end: np.ndarray) -> float:
     return float(np.arctan2(d[1], d[0]))
 
 
-def square_roi(x_min: float, y_min: float, x_max: float, y_max: float, angle: float,
-               scale: float = ROI_SCALE) -> Roi:
+def square_roi(x_min: float, y_min: float, x_max: float, y_max: float, angle: float, scale: float = ROI_SCALE) -> Roi:
     """MediaPipe's RectTransformation with square_long: centre of the box, side = scale x the longer edge."""
     side = scale * max(x_max - x_min, y_max - y_min)
     return Roi((x_min + x_max) / 2, (y_min + y_max) / 2, side, angle)
@@ -92,8 +92,14 @@ class FaceMeshModel:
         import cv2
 
         to_input = roi.image_to_input()
-        patch = cv2.warpAffine(bgr, to_input, (MESH_INPUT, MESH_INPUT), flags=cv2.INTER_LINEAR,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
+        patch = cv2.warpAffine(
+            bgr,
+            to_input,
+            (MESH_INPUT, MESH_INPUT),
+            flags=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=(0, 0, 0),
+        )
         blob = cv2.dnn.blobFromImage(patch, 1 / 255.0, swapRB=True)
         raw, presence = self.net.forward(blob)
         local = raw.reshape(468, 3).astype(np.float64)
@@ -107,8 +113,15 @@ class FaceMeshModel:
 class FaceMeshTracker:
     """Detector + landmark model with MediaPipe's tracking logic for one face, one frame at a time."""
 
-    def __init__(self, detector_path: str | Path, landmark_path: str | Path, *, min_detection_score: float = 0.5,
-                 min_presence: float = 0.5, redetect_every: int = 0):
+    def __init__(
+        self,
+        detector_path: str | Path,
+        landmark_path: str | Path,
+        *,
+        min_detection_score: float = 0.5,
+        min_presence: float = 0.5,
+        redetect_every: int = 0,
+    ):
         self.detector = BlazeFaceDetector(detector_path, min_score=min_detection_score)
         self.mesh = FaceMeshModel(landmark_path)
         self.min_presence = min_presence

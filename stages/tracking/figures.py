@@ -1,4 +1,5 @@
 """Figures for inspecting a tracking artifact: a landmark contact sheet and head-pose curves."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,8 +7,13 @@ from pathlib import Path
 import numpy as np
 
 #: iBUG parts drawn in different colours (BGR)
-PART_COLOURS = ((range(0, 17), (255, 200, 0)), (range(17, 27), (0, 200, 255)), (range(27, 36), (0, 255, 0)),
-                (range(36, 48), (255, 0, 255)), (range(48, 68), (0, 0, 255)))
+PART_COLOURS = (
+    (range(0, 17), (255, 200, 0)),
+    (range(17, 27), (0, 200, 255)),
+    (range(27, 36), (0, 255, 0)),
+    (range(36, 48), (255, 0, 255)),
+    (range(48, 68), (0, 0, 255)),
+)
 
 
 def draw_landmarks(image: np.ndarray, points: np.ndarray, radius: int = 2) -> np.ndarray:
@@ -19,13 +25,13 @@ def draw_landmarks(image: np.ndarray, points: np.ndarray, radius: int = 2) -> np
         for i in part:
             x, y = points[i]
             if np.isfinite(x) and np.isfinite(y):
-                cv2.circle(out, (int(round(x * 4)), int(round(y * 4))), radius * 4, colour, -1, cv2.LINE_AA,
-                           shift=2)
+                cv2.circle(out, (int(round(x * 4)), int(round(y * 4))), radius * 4, colour, -1, cv2.LINE_AA, shift=2)
     return out
 
 
-def face_thumbnail(frame: np.ndarray, points: np.ndarray, size: int = 200, margin: float = 0.35,
-                   radius: int = 2) -> np.ndarray:
+def face_thumbnail(
+    frame: np.ndarray, points: np.ndarray, size: int = 200, margin: float = 0.35, radius: int = 2
+) -> np.ndarray:
     """Square close-up of the face (landmark box plus margin) scaled to ``size`` with the points drawn."""
     import cv2
 
@@ -39,8 +45,16 @@ def face_thumbnail(frame: np.ndarray, points: np.ndarray, size: int = 200, margi
     return draw_landmarks(thumb, points * scale + m[:, 2], radius)
 
 
-def contact_sheet(frames: list[np.ndarray], points: list[np.ndarray], captions: list[str], *, columns: int = 7,
-                  size: int = 200, valid: list[bool] | None = None, groups: list[int] | None = None) -> np.ndarray:
+def contact_sheet(
+    frames: list[np.ndarray],
+    points: list[np.ndarray],
+    captions: list[str],
+    *,
+    columns: int = 7,
+    size: int = 200,
+    valid: list[bool] | None = None,
+    groups: list[int] | None = None,
+) -> np.ndarray:
     """Grid of face thumbnails (BGR image); each group (sequence) starts a new row; interpolated frames
     (``valid`` False) get a red caption."""
     import cv2
@@ -61,10 +75,11 @@ def contact_sheet(frames: list[np.ndarray], points: list[np.ndarray], captions: 
         t = face_thumbnail(frame, pts, size)
         ok = valid is None or valid[i]
         cv2.rectangle(t, (0, 0), (size - 1, 18), (0, 0, 0), -1)
-        cv2.putText(t, caption, (4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255) if ok else (0, 0, 255),
-                    1, cv2.LINE_AA)
+        cv2.putText(
+            t, caption, (4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255) if ok else (0, 0, 255), 1, cv2.LINE_AA
+        )
         r, c = cells[i]
-        sheet[r * size:(r + 1) * size, c * size:(c + 1) * size] = t
+        sheet[r * size : (r + 1) * size, c * size : (c + 1) * size] = t
     return sheet
 
 
@@ -82,8 +97,7 @@ def _video_paths(inputs: dict | None) -> dict:
     return {str(k): Path(v) for k, v in videos.items()}
 
 
-def contact_sheet_png(view, inputs: dict | None = None, *, every: int = 10, columns: int = 7,
-                      size: int = 200) -> bytes:
+def contact_sheet_png(view, inputs: dict | None = None, *, every: int = 10, columns: int = 7, size: int = 200) -> bytes:
     """PNG contact sheet of a tracking artifact: every ``every``-th frame of each sequence with its 68 points,
     drawn on the video frame when the video is among ``inputs['videos']``, else on the stored face crop."""
     from stages.tracking.video import iter_frames
@@ -111,8 +125,7 @@ def contact_sheet_png(view, inputs: dict | None = None, *, every: int = 10, colu
                 captions.append(f"{label} #{i}")
                 flags.append(bool(valid[rows[i]]))
                 groups.append(s)
-    return png_bytes(contact_sheet(frames, points, captions, columns=columns, size=size, valid=flags,
-                                   groups=groups))
+    return png_bytes(contact_sheet(frames, points, captions, columns=columns, size=size, valid=flags, groups=groups))
 
 
 def head_pose_figure(view, inputs: dict | None = None):

@@ -1,4 +1,5 @@
 """Frames without a face: find the gaps, fill short ones by linear interpolation, refuse long ones."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -35,8 +36,16 @@ def interpolate_gaps(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return np.where(valid.reshape(w.shape), values, out)
 
 
-def fill_face_gaps(values: np.ndarray, valid: np.ndarray, max_gap: int, times: np.ndarray | None = None, *,
-                   what: str = "face", file: str | None = None, field: str | None = None) -> np.ndarray:
+def fill_face_gaps(
+    values: np.ndarray,
+    valid: np.ndarray,
+    max_gap: int,
+    times: np.ndarray | None = None,
+    *,
+    what: str = "face",
+    file: str | None = None,
+    field: str | None = None,
+) -> np.ndarray:
     """Interpolate over frames with no face; UserError when there is no face at all or a gap is longer than
     ``max_gap`` frames (the message lists every such frame range, 0-based, inclusive)."""
     valid = np.asarray(valid, dtype=bool)
@@ -45,13 +54,18 @@ def fill_face_gaps(values: np.ndarray, valid: np.ndarray, max_gap: int, times: n
         raise UserError(f"no {what} found in any of its {n} frames", file=file, field=field)
     long = [(a, b) for a, b in find_gaps(valid) if b - a > max_gap]
     if long:
+
         def describe(a: int, b: int) -> str:
             span = f"frames {a}-{b - 1} ({b - a} frames"
             if times is not None:
                 span += f", {times[a]:.2f}-{times[b - 1]:.2f} s"
             return span + ")"
 
-        raise UserError(f"no {what} in " + ", ".join(describe(a, b) for a, b in long)
-                        + f": longer than max_gap_frames = {max_gap}; raise it to interpolate, or trim the video",
-                        file=file, field=field)
+        raise UserError(
+            f"no {what} in "
+            + ", ".join(describe(a, b) for a, b in long)
+            + f": longer than max_gap_frames = {max_gap}; raise it to interpolate, or trim the video",
+            file=file,
+            field=field,
+        )
     return interpolate_gaps(values, valid)

@@ -20,6 +20,7 @@ symmetry of the table). "Right"/"left" are the subject's: iBUG point 0 is on the
 
 The brow middle points follow the brow's upper edge (mesh row 70-63-105-66-107), as iBUG annotates them.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -27,28 +28,92 @@ import numpy as np
 #: iBUG-68 point -> the one or two mesh vertices it is (the mean of)
 MESH_TO_IBUG68: tuple[tuple[int, ...], ...] = (
     # jaw 0-16
-    (127,), (234,), (93, 132), (132, 58), (58, 172), (136,), (150, 149), (176, 148), (152,),
-    (377, 400), (378, 379), (365,), (397, 288), (288, 361), (361, 323), (454,), (356,),
+    (127,),
+    (234,),
+    (93, 132),
+    (132, 58),
+    (58, 172),
+    (136,),
+    (150, 149),
+    (176, 148),
+    (152,),
+    (377, 400),
+    (378, 379),
+    (365,),
+    (397, 288),
+    (288, 361),
+    (361, 323),
+    (454,),
+    (356,),
     # right brow 17-21, left brow 22-26
-    (70, 46), (63,), (105,), (66,), (107, 55),
-    (336, 285), (296,), (334,), (293,), (300, 276),
+    (70, 46),
+    (63,),
+    (105,),
+    (66,),
+    (107, 55),
+    (336, 285),
+    (296,),
+    (334,),
+    (293,),
+    (300, 276),
     # nose bridge 27-30, nostrils 31-35
-    (168,), (197,), (195, 5), (4,),
-    (98,), (97,), (2,), (326,), (327,),
+    (168,),
+    (197,),
+    (195, 5),
+    (4,),
+    (98,),
+    (97,),
+    (2,),
+    (326,),
+    (327,),
     # right eye 36-41, left eye 42-47
-    (33,), (160, 159), (158, 157), (133,), (153,), (144,),
-    (362,), (385, 384), (387, 386), (263,), (373,), (380,),
+    (33,),
+    (160, 159),
+    (158, 157),
+    (133,),
+    (153,),
+    (144,),
+    (362,),
+    (385, 384),
+    (387, 386),
+    (263,),
+    (373,),
+    (380,),
     # outer lip 48-59
-    (61,), (40, 39), (37,), (0,), (267,), (270, 269), (291,), (321,), (405, 314), (17,), (181, 84), (91,),
+    (61,),
+    (40, 39),
+    (37,),
+    (0,),
+    (267,),
+    (270, 269),
+    (291,),
+    (321,),
+    (405, 314),
+    (17,),
+    (181, 84),
+    (91,),
     # inner lip 60-67
-    (78,), (81,), (13,), (311,), (308,), (402,), (14,), (178,),
+    (78,),
+    (81,),
+    (13,),
+    (311,),
+    (308,),
+    (402,),
+    (14,),
+    (178,),
 )
 
 #: iBUG-68 point -> its mirror image (left/right swapped), for symmetry checks and flipping
 IBUG68_MIRROR = np.array(
-    list(range(16, -1, -1)) + list(range(26, 16, -1)) + [27, 28, 29, 30] + [35, 34, 33, 32, 31]
-    + [45, 44, 43, 42, 47, 46] + [39, 38, 37, 36, 41, 40]
-    + [54, 53, 52, 51, 50, 49, 48, 59, 58, 57, 56, 55] + [64, 63, 62, 61, 60, 67, 66, 65])
+    list(range(16, -1, -1))
+    + list(range(26, 16, -1))
+    + [27, 28, 29, 30]
+    + [35, 34, 33, 32, 31]
+    + [45, 44, 43, 42, 47, 46]
+    + [39, 38, 37, 36, 41, 40]
+    + [54, 53, 52, 51, 50, 49, 48, 59, 58, 57, 56, 55]
+    + [64, 63, 62, 61, 60, 67, 66, 65]
+)
 
 #: iBUG index groups
 JAW = np.arange(0, 17)
@@ -73,7 +138,7 @@ def mesh_to_ibug68(mesh: np.ndarray) -> np.ndarray:
     mesh = np.asarray(mesh, dtype=np.float64)
     if mesh.shape[-2] != 468:
         raise ValueError(f"expected 468 mesh points, got {mesh.shape[-2]}")
-    return np.matmul(MAPPING_MATRIX, mesh)   # BLAS; einsum is ten times slower per frame
+    return np.matmul(MAPPING_MATRIX, mesh)  # BLAS; einsum is ten times slower per frame
 
 
 def contour_fractions(points: np.ndarray, path: list[int]) -> np.ndarray:

@@ -6,6 +6,7 @@ frame; tracking them back again and comparing with where they started (forward-b
 with the lost points weighing nothing, so they are predicted from the rest, and every point stays on a plausible
 face shape (the paper's eigen-tracking, Sec. 6). The projected shape seeds the next frame.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -16,8 +17,16 @@ from stages.tracking.shape_model import ShapeModel, fit_shape
 class LucasKanadeTracker:
     """Sequential 68-point tracker on grayscale frames."""
 
-    def __init__(self, *, window: int = 21, levels: int = 3, fb_threshold: float = 1.0,
-                 model: ShapeModel | None = None, model_noise: float = 0.02, min_good_fraction: float = 0.5):
+    def __init__(
+        self,
+        *,
+        window: int = 21,
+        levels: int = 3,
+        fb_threshold: float = 1.0,
+        model: ShapeModel | None = None,
+        model_noise: float = 0.02,
+        min_good_fraction: float = 0.5,
+    ):
         import cv2
 
         self.window = (int(window), int(window))
@@ -42,14 +51,16 @@ class LucasKanadeTracker:
         import cv2
 
         p0 = self.points.astype(np.float32).reshape(-1, 1, 2)
-        p1, st1, _ = cv2.calcOpticalFlowPyrLK(self.prev, gray, p0, None, winSize=self.window,
-                                              maxLevel=self.levels, criteria=self.criteria)
-        back, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self.prev, p1, None, winSize=self.window,
-                                                maxLevel=self.levels, criteria=self.criteria)
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(
+            self.prev, gray, p0, None, winSize=self.window, maxLevel=self.levels, criteria=self.criteria
+        )
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(
+            gray, self.prev, p1, None, winSize=self.window, maxLevel=self.levels, criteria=self.criteria
+        )
         fb = np.linalg.norm((back - p0).reshape(-1, 2), axis=1).astype(np.float64)
         good = (st1.reshape(-1) == 1) & (st2.reshape(-1) == 1) & (fb < self.fb_threshold)
         moved = p1.reshape(-1, 2).astype(np.float64)
-        moved = np.where(good[:, None], moved, self.points)      # lost points stay until the model places them
+        moved = np.where(good[:, None], moved, self.points)  # lost points stay until the model places them
         if self.model is not None:
             moved, _ = fit_shape(self.model, moved, good.astype(np.float64), noise=self.model_noise)
         self.prev = gray

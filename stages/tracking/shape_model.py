@@ -7,6 +7,7 @@ model only says how a face of that shape may deform, not what it looks like. Fit
 eigen-tracking constraint (Sec. 6, after Black & Jepson 1996): every tracked shape is replaced by its
 projection onto the plausible-shape subspace, points that the tracker lost weighing nothing.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -18,11 +19,11 @@ from stages.tracking.face3d import Face3D
 
 @dataclass(frozen=True)
 class ShapeModel:
-    mean: np.ndarray       # (68, 2) centred, RMS distance to the centroid 1
-    basis: np.ndarray      # (136, k) orthonormal columns, x/y interleaved per point
+    mean: np.ndarray  # (68, 2) centred, RMS distance to the centroid 1
+    basis: np.ndarray  # (136, k) orthonormal columns, x/y interleaved per point
     variances: np.ndarray  # (k,) in mean-shape units squared
 
-    def with_mean(self, shape: np.ndarray) -> "ShapeModel":
+    def with_mean(self, shape: np.ndarray) -> ShapeModel:
         """The same modes around another mean (e.g. the tracked person's first shape)."""
         return ShapeModel(normalise_shape(align_to(shape, self.mean)), self.basis, self.variances)
 
@@ -65,15 +66,21 @@ def align_to(shape: np.ndarray, reference: np.ndarray) -> np.ndarray:
 def rotation_yx(yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
     cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
     one, zero = np.ones_like(yaw), np.zeros_like(yaw)
-    ry = np.stack([np.stack([cy, zero, sy], -1), np.stack([zero, one, zero], -1),
-                   np.stack([-sy, zero, cy], -1)], -2)
-    rx = np.stack([np.stack([one, zero, zero], -1), np.stack([zero, cp, -sp], -1),
-                   np.stack([zero, sp, cp], -1)], -2)
+    ry = np.stack([np.stack([cy, zero, sy], -1), np.stack([zero, one, zero], -1), np.stack([-sy, zero, cy], -1)], -2)
+    rx = np.stack([np.stack([one, zero, zero], -1), np.stack([zero, cp, -sp], -1), np.stack([zero, sp, cp], -1)], -2)
     return ry @ rx
 
 
-def build_shape_model(face3d: Face3D, *, variance: float = 0.98, samples: int = 3000, max_yaw_deg: float = 30.0,
-                      max_pitch_deg: float = 20.0, expressions_per_sample: int = 4, seed: int = 0) -> ShapeModel:
+def build_shape_model(
+    face3d: Face3D,
+    *,
+    variance: float = 0.98,
+    samples: int = 3000,
+    max_yaw_deg: float = 30.0,
+    max_pitch_deg: float = 20.0,
+    expressions_per_sample: int = 4,
+    seed: int = 0,
+) -> ShapeModel:
     """PCA of projected, aligned 3D face shapes under random expressions and head turns (deterministic)."""
     rng = np.random.default_rng(seed)
     names = sorted(face3d.expression_offsets)
@@ -87,9 +94,9 @@ def build_shape_model(face3d: Face3D, *, variance: float = 0.98, samples: int = 
     yaw = np.radians(rng.uniform(-max_yaw_deg, max_yaw_deg, samples))
     pitch = np.radians(rng.uniform(-max_pitch_deg, max_pitch_deg, samples))
     turned = np.einsum("sij,spj->spi", rotation_yx(yaw, pitch), shapes3d)
-    image = turned[..., :2] * np.array([1.0, -1.0])           # orthographic, image y down
+    image = turned[..., :2] * np.array([1.0, -1.0])  # orthographic, image y down
     reference = normalise_shape(face3d.neutral[:, :2] * np.array([1.0, -1.0]))
-    for _ in range(3):                                          # generalised Procrustes
+    for _ in range(3):  # generalised Procrustes
         aligned = align_to(image, reference)
         reference = normalise_shape(aligned.mean(axis=0))
     # tangent-space projection (Cootes & Taylor): rescale each aligned shape so its offset from the mean is
@@ -98,14 +105,21 @@ def build_shape_model(face3d: Face3D, *, variance: float = 0.98, samples: int = 
     aligned_flat = aligned.reshape(samples, -1)
     aligned_flat = aligned_flat * (ref_flat @ ref_flat / (aligned_flat @ ref_flat))[:, None]
     flat = aligned_flat - ref_flat
-    var, vectors = np.linalg.eigh(flat.T @ flat / samples)     # 136 x 136: cheaper than an SVD of the samples
+    var, vectors = np.linalg.eigh(flat.T @ flat / samples)  # 136 x 136: cheaper than an SVD of the samples
     var, vectors = np.clip(var[::-1], 0, None), vectors[:, ::-1]
     k = int(np.searchsorted(np.cumsum(var) / var.sum(), variance) + 1)
     return ShapeModel(reference, np.ascontiguousarray(vectors[:, :k]), var[:k])
 
 
-def fit_shape(model: ShapeModel, points: np.ndarray, weights: np.ndarray | None = None, *,
-              noise: float = 0.02, iterations: int = 4, limit: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+def fit_shape(
+    model: ShapeModel,
+    points: np.ndarray,
+    weights: np.ndarray | None = None,
+    *,
+    noise: float = 0.02,
+    iterations: int = 4,
+    limit: float = 3.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Project a (68, 2) image shape onto the model: returns (fitted image shape, mode coefficients).
 
     Alternates a weighted similarity alignment with a regularised weighted least-squares solve for the mode
@@ -119,7 +133,7 @@ def fit_shape(model: ShapeModel, points: np.ndarray, weights: np.ndarray | None 
     phi, lam = model.basis, model.variances
     w2 = np.repeat(w, 2)
     b = np.zeros(len(lam))
-    precision = noise ** 2 / lam
+    precision = noise**2 / lam
     for _ in range(iterations):
         shape = model.mean + (phi @ b).reshape(-1, 2)
         to_image = similarity_fit(shape, points, w)

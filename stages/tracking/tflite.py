@@ -1,4 +1,5 @@
 """Loading TFLite models through OpenCV's DNN module, asking for several outputs in one forward pass."""
+
 from __future__ import annotations
 
 from pathlib import Path

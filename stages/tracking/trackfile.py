@@ -10,6 +10,7 @@
 - iBUG .pts: ``version: 1`` / ``n_points: 68`` / ``{`` x y lines ``}``; a sequence is a directory of .pts
   files in natural name order, or a single file (one frame).
 """
+
 from __future__ import annotations
 
 import io
@@ -29,14 +30,14 @@ OPENFACE_POSE = ("pose_Tx", "pose_Ty", "pose_Tz", "pose_Rx", "pose_Ry", "pose_Rz
 class FileTrack:
     """Landmarks as a file holds them. ``frame`` is the 0-based video frame of each row."""
 
-    landmarks: np.ndarray                 # (rows, 68, 2) float64, NaN where missing
-    valid: np.ndarray                     # (rows,) bool
-    confidence: np.ndarray                # (rows,) float64 in 0..1
-    frame: np.ndarray                     # (rows,) int64, strictly increasing
-    time: np.ndarray | None = None        # (rows,) seconds, as stored
+    landmarks: np.ndarray  # (rows, 68, 2) float64, NaN where missing
+    valid: np.ndarray  # (rows,) bool
+    confidence: np.ndarray  # (rows,) float64 in 0..1
+    frame: np.ndarray  # (rows,) int64, strictly increasing
+    time: np.ndarray | None = None  # (rows,) seconds, as stored
     fps: float | None = None
     frame_size: tuple[int, int] | None = None
-    openface_pose: np.ndarray | None = None   # (rows, 6) pose_Tx..pose_Rz as stored
+    openface_pose: np.ndarray | None = None  # (rows, 6) pose_Tx..pose_Rz as stored
     format: str = ""
     extra: dict = field(default_factory=dict)
 
@@ -52,12 +53,16 @@ def detect_format(path: Path) -> str:
     if suffix in (".csv", ".txt"):
         header = _read_header(path)
         return "openface" if {"success", "face_id"} & set(header) else "csv"
-    raise UserError(f"cannot tell the track format from the suffix '{suffix}' (use .csv, .npz, .pts or a "
-                    f"directory of .pts files, or set params.format)", file=str(path))
+    raise UserError(
+        f"cannot tell the track format from the suffix '{suffix}' (use .csv, .npz, .pts or a "
+        f"directory of .pts files, or set params.format)",
+        file=str(path),
+    )
 
 
-def read_track(path: str | Path, fmt: str = "auto", *, frame_base: int | None = None, face_id: int = 0,
-               field: str | None = None) -> FileTrack:
+def read_track(
+    path: str | Path, fmt: str = "auto", *, frame_base: int | None = None, face_id: int = 0, field: str | None = None
+) -> FileTrack:
     """Read one track file in the given (or detected) format; UserError naming the file on bad content."""
     path = Path(path)
     if not path.exists():
@@ -73,7 +78,7 @@ def read_track(path: str | Path, fmt: str = "auto", *, frame_base: int | None = 
         else:
             raise UserError(f"unknown track format '{fmt}'")
     except UserError as err:
-        raise err.located(file=str(path), field=field)
+        raise err.located(file=str(path), field=field) from None
     track.format = fmt
     _check_frames(track.frame, path, field)
     return track
@@ -83,18 +88,23 @@ def _check_frames(frame: np.ndarray, path: Path, field: str | None) -> None:
     if len(frame) == 0:
         raise UserError("track holds no frames", file=str(path), field=field)
     if (frame < 0).any():
-        raise UserError(f"negative frame number {int(frame.min())} (check params.frame_base)", file=str(path),
-                        field=field)
+        raise UserError(
+            f"negative frame number {int(frame.min())} (check params.frame_base)", file=str(path), field=field
+        )
     if (np.diff(frame) <= 0).any():
         bad = int(np.flatnonzero(np.diff(frame) <= 0)[0])
-        raise UserError(f"frame numbers must increase: row {bad + 2} has frame {int(frame[bad + 1])} after "
-                        f"{int(frame[bad])}", file=str(path), field=field)
+        raise UserError(
+            f"frame numbers must increase: row {bad + 2} has frame {int(frame[bad + 1])} after {int(frame[bad])}",
+            file=str(path),
+            field=field,
+        )
 
 
 # ---------------------------------------------------------------- CSV (OpenFace 2.0 and plain)
 
+
 def _read_header(path: Path) -> list[str]:
-    with open(path, "r", encoding="utf-8", errors="replace") as fh:
+    with open(path, encoding="utf-8", errors="replace") as fh:
         return [c.strip() for c in fh.readline().split(",")]
 
 
@@ -123,8 +133,10 @@ def read_csv_track(path: Path, *, openface: bool, frame_base: int | None = None,
     required = ["frame", "timestamp", "confidence", "success"] if openface else []
     missing = [c for c in required if c not in col]
     if missing:
-        raise UserError(f"not an OpenFace 2.0 CSV: missing columns {', '.join(missing)} (found "
-                        f"{', '.join(header[:6])}{' ...' if len(header) > 6 else ''})")
+        raise UserError(
+            f"not an OpenFace 2.0 CSV: missing columns {', '.join(missing)} (found "
+            f"{', '.join(header[:6])}{' ...' if len(header) > 6 else ''})"
+        )
     xcols, ycols = _landmark_columns(header)
     if len(lines) < 2:
         raise UserError("CSV has a header but no rows")
@@ -144,17 +156,23 @@ def read_csv_track(path: Path, *, openface: bool, frame_base: int | None = None,
     frame = (data[:, col["frame"]].astype(np.int64) - base) if "frame" in col else np.arange(len(data))
     valid = data[:, col["success"]] > 0.5 if "success" in col else np.ones(len(data), dtype=bool)
     valid &= np.isfinite(landmarks).all(axis=(1, 2))
-    confidence = (np.clip(data[:, col["confidence"]], 0, 1) if "confidence" in col
-                  else valid.astype(np.float64))
+    confidence = np.clip(data[:, col["confidence"]], 0, 1) if "confidence" in col else valid.astype(np.float64)
     time = data[:, col["timestamp"]] if "timestamp" in col else None
-    pose = (data[:, [col[c] for c in OPENFACE_POSE]] if all(c in col for c in OPENFACE_POSE) else None)
+    pose = data[:, [col[c] for c in OPENFACE_POSE]] if all(c in col for c in OPENFACE_POSE) else None
     landmarks = np.where(valid[:, None, None], landmarks, np.nan)
     return FileTrack(landmarks, valid, np.where(valid, confidence, 0.0), frame, time, None, None, pose)
 
 
-def write_openface_csv(landmarks: np.ndarray, *, time: np.ndarray | None = None, fps: float = 30.0,
-                       confidence: np.ndarray | None = None, success: np.ndarray | None = None,
-                       pose: np.ndarray | None = None, face_id: int = 0) -> str:
+def write_openface_csv(
+    landmarks: np.ndarray,
+    *,
+    time: np.ndarray | None = None,
+    fps: float = 30.0,
+    confidence: np.ndarray | None = None,
+    success: np.ndarray | None = None,
+    pose: np.ndarray | None = None,
+    face_id: int = 0,
+) -> str:
     """OpenFace 2.0-style CSV text (", " separators, frames from 1); rows with success 0 get zero landmarks,
     as OpenFace writes them. ``pose``: (frames, 6) pose_Tx..pose_Rz in OpenFace's convention."""
     lm = np.asarray(landmarks, dtype=np.float64)
@@ -185,12 +203,12 @@ def write_plain_csv(landmarks: np.ndarray, frames: np.ndarray | None = None) -> 
     header = ["frame"] + [f"x_{i}" for i in range(N_POINTS)] + [f"y_{i}" for i in range(N_POINTS)]
     out = io.StringIO()
     out.write(",".join(header) + "\n")
-    np.savetxt(out, np.column_stack([frames, lm[:, :, 0], lm[:, :, 1]]), fmt=["%d"] + ["%.6f"] * 136,
-               delimiter=",")
+    np.savetxt(out, np.column_stack([frames, lm[:, :, 0], lm[:, :, 1]]), fmt=["%d"] + ["%.6f"] * 136, delimiter=",")
     return out.getvalue()
 
 
 # ---------------------------------------------------------------- .npz
+
 
 def read_npz_track(path: Path, *, frame_base: int | None = None) -> FileTrack:
     try:
@@ -213,8 +231,9 @@ def read_npz_track(path: Path, *, frame_base: int | None = None) -> FileTrack:
         raise UserError(f"'valid' has {len(valid)} entries for {n} frames")
     valid &= np.isfinite(lm).all(axis=(1, 2))
     conf = np.asarray(data.get("confidence", valid.astype(np.float64)), dtype=np.float64).reshape(-1)
-    frame = (np.asarray(data["frame"], dtype=np.int64).reshape(-1) - (frame_base or 0) if "frame" in data
-             else np.arange(n))
+    frame = (
+        np.asarray(data["frame"], dtype=np.int64).reshape(-1) - (frame_base or 0) if "frame" in data else np.arange(n)
+    )
     time = np.asarray(data["time"], dtype=np.float64).reshape(-1) if "time" in data else None
     fps = float(data["fps"]) if "fps" in data else None
     size = tuple(int(v) for v in np.asarray(data["frame_size"]).reshape(-1)[:2]) if "frame_size" in data else None
@@ -234,6 +253,7 @@ def write_npz(landmarks: np.ndarray, **arrays) -> bytes:
 
 # ---------------------------------------------------------------- iBUG .pts
 
+
 def parse_pts(text: str) -> np.ndarray:
     """(n, 2) points of one iBUG .pts file's text; UserError when malformed or not 68 points."""
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
@@ -249,7 +269,7 @@ def parse_pts(text: str) -> np.ndarray:
     except ValueError:
         raise UserError("not an iBUG .pts file: no '{' ... '}' block") from None
     try:
-        pts = np.array([[float(v) for v in ln.split()[:2]] for ln in lines[start + 1:stop]], dtype=np.float64)
+        pts = np.array([[float(v) for v in ln.split()[:2]] for ln in lines[start + 1 : stop]], dtype=np.float64)
     except ValueError:
         raise UserError("point lines must hold two numbers") from None
     if n_declared is not None and n_declared != len(pts):
@@ -278,7 +298,7 @@ def read_pts_sequence(path: Path) -> FileTrack:
         try:
             shapes.append(parse_pts(f.read_text(encoding="utf-8", errors="replace")))
         except UserError as err:
-            raise err.located(file=str(f))
+            raise err.located(file=str(f)) from None
     lm = np.stack(shapes)
     n = len(lm)
     return FileTrack(lm, np.ones(n, dtype=bool), np.ones(n), np.arange(n), extra={"files": [f.name for f in files]})

@@ -3,6 +3,7 @@
 A file is reported as truncated when the demuxer meets a cut-off packet or when no stream reaches the
 duration the container declares (a copy that stopped early keeps its header's duration).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -23,8 +24,8 @@ class VideoInfo:
     width: int
     height: int
     fps: float
-    frames: int          # expected count (declared, or duration x fps); 0 when unknown
-    duration: float      # container duration in seconds; 0 when unknown
+    frames: int  # expected count (declared, or duration x fps); 0 when unknown
+    duration: float  # container duration in seconds; 0 when unknown
     has_audio: bool
 
 
@@ -36,8 +37,7 @@ def _open(path: Path, field: str | None):
     try:
         container = av.open(str(path))
     except (av.error.FFmpegError, OSError, ValueError) as exc:
-        raise UserError(f"cannot open video: not a readable media file ({exc})", file=str(path),
-                        field=field) from None
+        raise UserError(f"cannot open video: not a readable media file ({exc})", file=str(path), field=field) from None
     if not container.streams.video:
         container.close()
         raise UserError("has no video stream", file=str(path), field=field)
@@ -58,8 +58,9 @@ def probe_video(path: str | Path, *, field: str | None = None) -> VideoInfo:
         return VideoInfo(path, width, height, fps, frames, duration, bool(container.streams.audio))
 
 
-def iter_frames(path: str | Path, *, gray: bool = False, field: str | None = None
-                ) -> Iterator[tuple[float, np.ndarray]]:
+def iter_frames(
+    path: str | Path, *, gray: bool = False, field: str | None = None
+) -> Iterator[tuple[float, np.ndarray]]:
     """Yield (seconds since the first frame, frame) for every frame: BGR uint8 (h, w, 3) or gray (h, w).
 
     Gray frames are OpenCV's BGR-to-gray conversion of the BGR frames (not the raw luma plane), so every
@@ -90,11 +91,15 @@ def iter_frames(path: str | Path, *, gray: bool = False, field: str | None = Non
                 break
             except (av.error.FFmpegError, IndexError) as exc:
                 # IndexError: PyAV met a packet of a stream the header did not announce (a cut-off tag)
-                raise UserError(f"video is unreadable or truncated after {count} frames "
-                                f"({type(exc).__name__}: {exc})", file=str(path), field=field) from None
+                raise UserError(
+                    f"video is unreadable or truncated after {count} frames ({type(exc).__name__}: {exc})",
+                    file=str(path),
+                    field=field,
+                ) from None
             if corrupt:
-                raise UserError(f"video is truncated or corrupt: a damaged packet after {count} frames",
-                                file=str(path), field=field)
+                raise UserError(
+                    f"video is truncated or corrupt: a damaged packet after {count} frames", file=str(path), field=field
+                )
             for frame in decoded:
                 t = _frame_time(frame, count, fps)
                 if first_pts is None:
@@ -106,8 +111,12 @@ def iter_frames(path: str | Path, *, gray: bool = False, field: str | None = Non
             raise UserError("video holds no decodable frames", file=str(path), field=field)
         start = float(container.start_time) / 1e6 if container.start_time else 0.0
         if declared > 0 and stream_end - start < declared - DURATION_SLACK:
-            raise UserError(f"video is truncated: its streams end at {stream_end - start:.2f} s but the file "
-                            f"declares {declared:.2f} s ({count} frames decoded)", file=str(path), field=field)
+            raise UserError(
+                f"video is truncated: its streams end at {stream_end - start:.2f} s but the file "
+                f"declares {declared:.2f} s ({count} frames decoded)",
+                file=str(path),
+                field=field,
+            )
 
 
 def _bgr_to_gray(image: np.ndarray) -> np.ndarray:
@@ -122,8 +131,9 @@ def _frame_time(frame, index: int, fps: float) -> float:
     return index / fps if fps > 0 else float(index)
 
 
-def read_frames(path: str | Path, *, gray: bool = False, field: str | None = None
-                ) -> tuple[np.ndarray, list[np.ndarray]]:
+def read_frames(
+    path: str | Path, *, gray: bool = False, field: str | None = None
+) -> tuple[np.ndarray, list[np.ndarray]]:
     """All frames of a video in memory: (times (n,), frames)."""
     times, frames = [], []
     for t, frame in iter_frames(path, gray=gray, field=field):

@@ -1,5 +1,6 @@
 """Numeric test stages. NUMSTAGES_LOG (env) names a file that gets one line per execution: a side channel for
 counting executions that is not part of any cache key. NUMSTAGES_SLEEP delays Slow."""
+
 import os
 import time
 
@@ -24,8 +25,9 @@ class Source(Stage):
 
     def run(self, params, inputs):
         log_execution(self.name)
-        return Result({"x": np.arange(params.n, dtype=float) + params.offset}, meta={"n": params.n},
-                      metrics={"n": params.n})
+        return Result(
+            {"x": np.arange(params.n, dtype=float) + params.offset}, meta={"n": params.n}, metrics={"n": params.n}
+        )
 
 
 class Sign(Stage):
@@ -167,3 +169,34 @@ class Burn(Stage):
         for _ in range(params.rounds):
             v = np.tanh(m @ v + np.sin(v))
         return Result({"v": v})
+
+
+class Cautious(Stage):
+    """A usable result with warnings: one attached to the Result, one raised with warnings.warn."""
+
+    class Params(Stage.Params):
+        limit: int = 3
+
+    outputs = {"x": Output.array("f", ndim=1)}
+
+    def run(self, params, inputs):
+        import warnings
+
+        log_execution(self.name)
+        notes = [f"stopped at the iteration limit ({params.limit}) before converging"] if params.limit < 10 else []
+        warnings.warn("input looks constant", UserWarning)
+        warnings.warn("numeric detail", DeprecationWarning)  # not the user's business: not collected
+        return Result({"x": np.zeros(params.limit)}, warnings=notes)
+
+
+class Takes(Stage):
+    """Reports the labels and fields of its files (takes as data)."""
+
+    inputs = {"takes": Input.files()}
+    outputs = {"sizes": Output.array("i", ndim=1)}
+
+    def run(self, params, inputs):
+        log_execution(self.name)
+        takes = inputs["takes"]
+        sizes = np.array([path.stat().st_size for path in takes.values()], dtype=np.int64)
+        return Result({"sizes": sizes}, meta={"labels": list(takes), "fields": takes.fields})

@@ -1,4 +1,5 @@
 """A helper module imported by a stage: editing it must rerun that stage."""
+
 import numpy as np
 
 

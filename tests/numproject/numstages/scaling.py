@@ -1,4 +1,5 @@
 """Scaling: the only stage module importing numstages.helpers."""
+
 from msflow import Input, Output, Result, Stage
 from numstages.basic import log_execution
 from numstages.helpers import double
