@@ -135,21 +135,17 @@ class BlazeFaceDetector:
         self.min_score = min_score
         self.iou_threshold = iou_threshold
 
-    def detect(self, bgr: np.ndarray, max_faces: int | None = None) -> Detections:
-        import cv2
+    def detect(self, frame, max_faces: int | None = None) -> Detections:
+        """Faces in a frame: a BGR array, or anything with ``shape`` and ``warp_rgb`` (``planes.FramePlanes``)."""
+        if not hasattr(frame, "warp_rgb"):
+            from stages.tracking.planes import BgrImage
 
-        height, width = bgr.shape[:2]
+            frame = BgrImage(np.asarray(frame))
+        height, width = frame.shape[:2]
         to_input = letterbox_transform(width, height)
-        square = cv2.warpAffine(
-            bgr,
-            to_input,
-            (INPUT_SIZE, INPUT_SIZE),
-            flags=cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=(0, 0, 0),
-        )
+        square = frame.warp_rgb(to_input, INPUT_SIZE)  # RGB 0..1, black padding
         # the detector was trained on RGB in [-1, 1]
-        blob = cv2.dnn.blobFromImage(square, 1 / 127.5, mean=(127.5, 127.5, 127.5), swapRB=True)
+        blob = np.ascontiguousarray((square * 2.0 - 1.0).transpose(2, 0, 1)[None])
         logits, regressors = self.net.forward(blob)
         # MediaPipe clips logits to +-100 before the sigmoid
         scores = sigmoid(np.clip(logits.reshape(-1).astype(np.float64), -100, 100))

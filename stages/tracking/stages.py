@@ -3,6 +3,7 @@ schema (TRACKING_OUTPUTS), swappable with ``uses:``."""
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
@@ -12,18 +13,28 @@ from pydantic import Field
 
 from msflow import Input, Result, Stage, UserError
 from stages.data import DATA
-from stages.tracking.assemble import CropCollector, SequenceTrack, TrackingParams, assemble, resolve_face3d
-from stages.tracking.crops import to_gray
+from stages.tracking.assemble import (
+    CropCollector,
+    FrameOutputs,
+    SequenceTrack,
+    TakeTrack,
+    TrackingParams,
+    assemble,
+    pose_point_indices,
+    resolve_face3d,
+    write_sequence,
+)
 from stages.tracking.figures import FIGURES
-from stages.tracking.gaps import fill_face_gaps, interpolate_gaps
+from stages.tracking.gaps import apply_plan, fill_gaps, gap_plan
 from stages.tracking.landmarks68 import mesh_to_ibug68
 from stages.tracking.schema import TRACKING_OUTPUTS
 from stages.tracking.takes import AudioSource, audio_sources, labels_fields, preflight_audio
-from stages.tracking.video import iter_frames, probe_video
+from stages.tracking.video import iter_planes, probe_video
 
 MODELS = DATA / "models" / "mediapipe-face"
 DETECTOR_MODEL = MODELS / "face_detection_short_range.tflite"
 LANDMARK_MODEL = MODELS / "face_landmark.tflite"
+LANDMARKER_V2_MODEL = MODELS / "face_landmarks_detector.tflite"
 
 VIDEOS_DOC = "labelled videos (label -> file); any container/codec FFmpeg reads"
 FACE3D_DOC = "optional 3D face for head pose: a JSON file with 'neutral' (68, 3) like data/face3d"
@@ -35,17 +46,24 @@ AUDIO_DOC = (
 
 # default data files the stages read when no input overrides them: hashed into the cache key
 DEFAULT_FACE3D_FILE = DATA / "face3d" / "ict_landmarks68.json"
-MESH_RESOURCES = {"detector": DETECTOR_MODEL, "landmarks": LANDMARK_MODEL, "face3d": DEFAULT_FACE3D_FILE}
+MESH_RESOURCES = {
+    "detector": DETECTOR_MODEL,
+    "landmarks": LANDMARK_MODEL,
+    "landmarks_v2": LANDMARKER_V2_MODEL,
+    "face3d": DEFAULT_FACE3D_FILE,
+}
 
 
-def model_paths(models: dict | None) -> tuple[Path, Path]:
+def model_paths(models: dict | None, model: str = "face_mesh_v1") -> tuple[Path, Path]:
+    """(detector, landmark model) files: the ``models`` input's, or the project's for the chosen ``model``."""
     models = dict(models or {})
     unknown = set(models) - {"detector", "landmarks"}
     if unknown:
         raise UserError(
             f"unknown model labels {sorted(unknown)}; use 'detector' and 'landmarks'", field="inputs.models"
         )
-    return Path(models.get("detector", DETECTOR_MODEL)), Path(models.get("landmarks", LANDMARK_MODEL))
+    default = LANDMARKER_V2_MODEL if model == "face_landmarker_v2" else LANDMARK_MODEL
+    return Path(models.get("detector", DETECTOR_MODEL)), Path(models.get("landmarks", default))
 
 
 def _require_files(files: dict | None, name: str) -> dict:
@@ -71,58 +89,72 @@ class FaceMeshParams(TrackingParams):
         0, ge=0, description="also re-run the detector every this many frames (0: only when the face is lost)"
     )
     output_mesh: bool = Field(True, description="include the 468-point mesh output")
+    model: Literal["face_landmarker_v2", "face_mesh_v1"] = Field(
+        "face_landmarker_v2",
+        description="landmark model: MediaPipe Face Landmarker v2 (478 points: mesh plus iris; eyelids follow "
+        "blinks; eye_aperture, gaze and iris outputs) or the older 468-point face mesh (no eye outputs)",
+    )
 
 
 def new_tracker(params, models: dict | None):
     from stages.tracking.facemesh import FaceMeshTracker
 
-    detector, landmarks = model_paths(models)
+    model = getattr(params, "model", "face_mesh_v1")
+    detector, landmarks = model_paths(models, model)
     return FaceMeshTracker(
         detector,
         landmarks,
         min_detection_score=params.min_detection_score,
         min_presence=params.min_presence,
         redetect_every=getattr(params, "redetect_every", 0),
+        model=model,
     )
 
 
-def track_facemesh_video(
-    tracker, label: str, path: Path, params: FaceMeshParams, audio: AudioSource | None = None
-) -> SequenceTrack:
-    """Face mesh over one video, crops made while it streams; gaps filled (or refused) afterwards."""
+def stage_jobs(stage: Stage) -> int:
+    """The run's worker count (``-j``) as the stage sees it (1 until the runner sets ``jobs``)."""
+    return max(1, int(getattr(stage, "jobs", 1) or 1))
+
+
+@contextmanager
+def cv_threads(n: int):
+    """OpenCV's thread count set to ``n`` for the duration (its DNN layers and warps split work across threads
+    with the same results)."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(n)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
+
+
+def track_facemesh_take(
+    tracker, label: str, path: Path, params: FaceMeshParams, face3d, outputs: FrameOutputs, audio, jobs: int = 1
+) -> TakeTrack:
+    """One take streamed through the landmark model into ``outputs`` (stages/tracking/stream.py)."""
+    from stages.tracking.pose import PoseSolver, camera_matrix
+    from stages.tracking.stream import BlockWriter, CropSettings, check_gaps, stream_take
+    from stages.tracking.video import iter_planes
+
     field = f"inputs.videos.{label}"
     info = probe_video(path, field=field)
     tracker.reset()
-    collector = CropCollector(params, params.max_gap_frames)
-    times, meshes, scores, found = [], [], [], []
-    for t, frame in iter_frames(path, field=field):
-        points, score = tracker.step(frame)
-        collector.add(to_gray(frame), None if points is None else mesh_to_ibug68(points[:, :2]))
-        times.append(t)
-        meshes.append(np.full((468, 3), np.nan) if points is None else points)
-        scores.append(score)
-        found.append(points is not None)
-    times_arr, valid = np.array(times), np.array(found, dtype=bool)
-    mesh = fill_face_gaps(np.array(meshes), valid, params.max_gap_frames, times_arr, file=str(path), field=field)
-    landmarks = mesh_to_ibug68(mesh[:, :, :2])
-    crops, transforms = collector.finish(landmarks)
-    return SequenceTrack(
-        label,
-        path.name,
-        landmarks,
-        valid,
-        np.array(scores),
-        times_arr,
-        info.fps,
-        (info.width, info.height),
-        field,
-        mesh=mesh if params.output_mesh else None,
-        crops=crops,
-        crop_transforms=transforms,
-        video=path,
-        audio_source=audio,
-        meta={"detector_runs": tracker.detections},
-    )
+    crop = CropSettings(params.crop_size, params.crop_eye_distance, params.crop_eye_height)
+    camera = camera_matrix(info.width, info.height, params.focal_length)
+    solver = PoseSolver(face3d.neutral, camera, pose_point_indices(params, face3d))
+    writer = BlockWriter(tracker.mesh.spec.points, crop, solver, outputs.append, params.output_mesh)
+    frames = iter_planes(path, field=field, threads=jobs)
+    stream_take(frames, tracker, writer, crop, params.max_gap_frames, path, field)
+    s = writer.finish()
+    gaps = check_gaps(s, params.max_gap_frames, params.long_gaps, path, field)
+    size, focal = (info.width, info.height), float(camera[0, 0])
+    meta = {"detector_runs": tracker.detections}
+    return TakeTrack(
+        label, path.name, field, info.fps, size, focal, s.time, s.valid, s.landmarks, s.rotation, s.pose_rms, audio,
+        gaps, meta,
+    )  # fmt: skip
 
 
 class FaceMesh(Stage):
@@ -146,11 +178,15 @@ class FaceMesh(Stage):
         preflight_audio(audio, video_durations(videos), params)
         face3d, face3d_name = resolve_face3d(inputs.get("face3d"))
         tracker = new_tracker(params, inputs.get("models"))
-        sequences = [
-            track_facemesh_video(tracker, label, Path(path), params, audio[label]) for label, path in videos.items()
-        ]
+        outputs, jobs = FrameOutputs(), stage_jobs(self)
+        with cv_threads(jobs):
+            takes = [
+                track_facemesh_take(tracker, label, Path(path), params, face3d, outputs, audio[label], jobs)
+                for label, path in videos.items()
+            ]
         fields = labels_fields(videos, inputs.get("audio"))
-        return assemble(sequences, params, face3d, face3d_name, "FaceMesh", fields=fields)
+        extra = {"landmark_model": params.model}
+        return assemble(takes, outputs, params, face3d_name, "FaceMesh", extra_meta=extra, fields=fields)
 
 
 # ---------------------------------------------------------------------------------------------- OpticalFlow
@@ -178,6 +214,9 @@ class OpticalFlowParams(TrackingParams):
         "forward-backward check are flagged as not tracked (valid = False)",
     )
     min_detection_score: float = Field(0.5, gt=0, lt=1, description="BlazeFace score for the FaceMesh start")
+    model: Literal["face_landmarker_v2", "face_mesh_v1"] = Field(
+        "face_landmarker_v2", description="landmark model of the FaceMesh start (see FaceMesh)"
+    )
     min_presence: float = Field(0.5, gt=0, lt=1, description="face-mesh presence score for the FaceMesh start")
     init_frame_base: int | None = Field(
         None, description="first frame number in the init files (default: 1 for OpenFace CSV, 0 otherwise)"
@@ -231,15 +270,15 @@ def track_flow_video(
     mesh_tracker = None
     times, shapes, conf, valid, fb_errors = [], [], [], [], []
     started = False
-    for i, (t, frame) in enumerate(iter_frames(path, field=field)):
-        gray = to_gray(frame)
+    for i, (t, frame) in enumerate(iter_planes(path, field=field)):
+        gray = frame.gray()
         points, ok, c = None, False, 0.0
         if not started:
             if init is None:
                 mesh_tracker = mesh_tracker or tracker_factory()
                 mesh, score = mesh_tracker.step(frame)
                 if mesh is not None:
-                    points, c = mesh_to_ibug68(mesh[:, :2]), score
+                    points, c = mesh_to_ibug68(mesh[:468, :2]), score
             elif i == init[0]:
                 points, c = init[1], 1.0
             if points is not None:
@@ -250,7 +289,7 @@ def track_flow_video(
             ok = not flow.is_lost(good)
             c = float(good.mean())
             fb_errors.append(float(np.median(fb)))
-        collector.add(gray, points if ok else None)
+        collector.add(frame, points if ok else None)
         times.append(t)
         shapes.append(points if points is not None else np.full((68, 2), np.nan))
         conf.append(c)
@@ -262,10 +301,10 @@ def track_flow_video(
             field=f"inputs.init.{label}",
         )
     times_arr, valid_arr = np.array(times), np.array(valid, dtype=bool)
-    landmarks = fill_face_gaps(
-        np.array(shapes), valid_arr, params.max_gap_frames, times_arr, file=str(path), field=field
+    landmarks, sources, gaps = fill_gaps(
+        np.array(shapes), valid_arr, params.max_gap_frames, params.long_gaps, times_arr, file=str(path), field=field
     )
-    crops, transforms = collector.finish(landmarks)
+    crops, transforms = collector.finish(landmarks, sources)
     return SequenceTrack(
         label,
         path.name,
@@ -280,6 +319,7 @@ def track_flow_video(
         crop_transforms=transforms,
         video=path,
         audio_source=audio,
+        gaps=gaps,
         meta={
             "init": "file" if init is not None else "facemesh",
             "fb_error_px": float(np.mean(fb_errors)) if fb_errors else 0.0,
@@ -348,7 +388,9 @@ class OpticalFlow(Stage):
             sequences.append(track_flow_video(label, Path(path), params, init, factory, model, audio[label]))
         extra = {"shape_modes": int(model.basis.shape[1]) if model is not None else 0}
         fields = labels_fields(videos, inputs.get("init"), inputs.get("audio"))
-        return assemble(sequences, params, face3d, face3d_name, "OpticalFlow", extra_meta=extra, fields=fields)
+        outputs = FrameOutputs()
+        takes = [write_sequence(seq, params, face3d, outputs) for seq in sequences]
+        return assemble(takes, outputs, params, face3d_name, "OpticalFlow", extra_meta=extra, fields=fields)
 
 
 # ---------------------------------------------------------------------------------------------- TrackFile
@@ -455,8 +497,8 @@ class TrackFile(Stage):
                 row_of = {int(f): r for r, f in enumerate(track.frame) if track.valid[r]}
                 collector = CropCollector(params, params.max_gap_frames)
                 times = []
-                for i, (t, frame) in enumerate(iter_frames(video, field=vfield)):
-                    collector.add(to_gray(frame), track.landmarks[row_of[i]] if i in row_of else None)
+                for i, (t, frame) in enumerate(iter_planes(video, field=vfield)):
+                    collector.add(frame, track.landmarks[row_of[i]] if i in row_of else None)
                     times.append(t)
                 n = len(times)
                 times_arr, fps, size = np.array(times), info.fps, (info.width, info.height)
@@ -472,9 +514,11 @@ class TrackFile(Stage):
                         field=field,
                     )
             landmarks, valid, conf = dense_track(track, n, label, path)
-            landmarks = fill_face_gaps(landmarks, valid, params.max_gap_frames, times_arr, file=str(path), field=field)
+            landmarks, sources, gaps = fill_gaps(
+                landmarks, valid, params.max_gap_frames, params.long_gaps, times_arr, file=str(path), field=field
+            )
             if video is not None:
-                crops, transforms = collector.finish(landmarks)
+                crops, transforms = collector.finish(landmarks, sources)
             rotation = translation = None
             if params.pose_source == "file":
                 if track.openface_pose is None:
@@ -484,9 +528,10 @@ class TrackFile(Stage):
                 q, t = openface_pose_to_gltf(track.openface_pose[:, 3:], track.openface_pose[:, :3])
                 dense_q, dense_t = np.zeros((n, 4)), np.zeros((n, 3))
                 dense_q[track.frame], dense_t[track.frame] = q, t
-                rotation = interpolate_gaps(dense_q, valid)
+                plan = gap_plan(valid, params.max_gap_frames)[:3]
+                rotation = apply_plan(dense_q, *plan)
                 rotation /= np.linalg.norm(rotation, axis=1, keepdims=True)
-                translation = interpolate_gaps(dense_t, valid)
+                translation = apply_plan(dense_t, *plan)
             sequences.append(
                 SequenceTrack(
                     label,
@@ -504,11 +549,14 @@ class TrackFile(Stage):
                     audio_source=audio[label],
                     rotation=rotation,
                     translation=translation,
+                    gaps=gaps,
                     meta={"track_format": track.format},
                 )
             )
         fields = labels_fields(tracks, videos, inputs.get("audio"))
-        return assemble(sequences, params, face3d, face3d_name, "TrackFile", fields=fields)
+        outputs = FrameOutputs()
+        takes = [write_sequence(seq, params, face3d, outputs) for seq in sequences]
+        return assemble(takes, outputs, params, face3d_name, "TrackFile", fields=fields)
 
 
 __all__ = ["FaceMesh", "OpticalFlow", "TrackFile"]
