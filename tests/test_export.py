@@ -3,34 +3,65 @@ stream alignment (frame rates, lengths, audio offset) and the user errors around
 
 import csv
 import io
+import os
+import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from msflow import UserError
-from msflow.testing import artifact, run_stage
-from stages.export.animation import (
-    ANGLE_COLUMNS,
-    ARKIT_NAMES,
-    Export,
-    align_head_motion,
-    arkit_key,
-    arkit_weights,
-    format_timecode,
-    live_link_csv,
-)
+from msflow.testing import artifact, prepare_inputs, run_stage
+from stages.export.animation import Export, align_head_motion
 from stages.formats.audio import decode_audio
 from stages.formats.gltf import read_morph_mesh, validate_glb
+from stages.formats.live_link import (
+    ANGLE_COLUMNS,
+    ARKIT_NAMES,
+    ARKIT_TABLE,
+    arkit_key,
+    arkit_mapping,
+    arkit_weights,
+    fit_destination,
+    format_timecode,
+    live_link_csv,
+    timecode_seconds,
+)
 from stages.geometry.rotations import euler_to_quat, quat_to_euler
 from stages.retarget.character import GltfCharacter
 
 ROOT = Path(__file__).resolve().parents[1]
+NPM_PACKAGES = ("gltf-validator@2.0.0-dev.3.10", "three@0.170.0")
+NPM_INSTALL = f"npm install --no-save --no-package-lock {' '.join(NPM_PACKAGES)}"
 ICT_GLB = ROOT / "data" / "characters" / "ict-facekit.glb"
 CLIP = ROOT / "data" / "crema-d" / "1001_DFA_HAP_XX.flv"
 FPS = 30.0
 FRAMES = 45
 DRIVEN = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L", "browInnerUp_R", "eyeBlink_L"]
+
+
+def missing_tool(reason: str):
+    """Skip for a missing outside tool, with the install command; fail instead under CI."""
+    if os.environ.get("CI"):
+        pytest.fail(reason)
+    pytest.skip(reason)
+
+
+@pytest.fixture(scope="session")
+def node_modules():
+    """A node_modules folder with the Khronos glTF validator and three.js, installed once into a cache folder
+    (never into the project) when Node.js is present."""
+    if shutil.which("node") is None or shutil.which("npm") is None:
+        missing_tool("Node.js is not installed: apt-get install -y nodejs npm")
+    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "msflow-npm"
+    modules = cache / "node_modules"
+    if not all((modules / p.rsplit("@", 1)[0]).is_dir() for p in NPM_PACKAGES):
+        cache.mkdir(parents=True, exist_ok=True)
+        proc = subprocess.run(NPM_INSTALL.split() + ["--silent"], cwd=cache, capture_output=True, text=True)
+        if proc.returncode != 0:
+            missing_tool(f"npm could not install {NPM_PACKAGES} ({proc.stderr[-300:]}); run in {cache}: {NPM_INSTALL}")
+    return modules
 
 
 # ------------------------------------------------------------------------------------------------ Live Link Face
@@ -56,18 +87,80 @@ def test_arkit_weights_map_split_and_missing_targets():
         "cheekPuff_R",
         "cheekRaiser_L",
         "tongueOut",
+        "PupilDilate_L",
+        "mouthSmile",
     ]
-    w = np.array([[0.2, 0.5, 0.8, 0.4, 1.0, 0.0, 0.9, 0.3]])
-    out, sources = arkit_weights(w, names)
+    w = np.array([[0.2, 0.5, 0.8, 0.4, 1.0, 0.0, 0.5, 0.3, 0.7, 0.25]])
+    out, mapping = arkit_weights(w, names)
     col = {n: out[0, i] for i, n in enumerate(ARKIT_NAMES)}
     assert col["EyeBlinkLeft"] == pytest.approx(0.2)
     assert col["JawOpen"] == pytest.approx(0.5)
     assert col["BrowInnerUp"] == pytest.approx(0.6)  # mean of the halves
     assert col["CheekPuff"] == pytest.approx(0.5)
     assert col["TongueOut"] == pytest.approx(0.3)
-    assert col["EyeBlinkRight"] == 0.0 and col["MouthSmileLeft"] == 0.0
-    assert sources["BrowInnerUp"] == ["browInnerUp_L", "browInnerUp_R"]
-    assert "cheekRaiser_L" not in sum(sources.values(), [])  # no ARKit counterpart
+    assert col["MouthSmileLeft"] == col["MouthSmileRight"] == pytest.approx(0.25)  # a whole shape feeds both sides
+    # the raised cheek goes to the cheek and eye squint columns of its side
+    assert col["CheekSquintLeft"] == pytest.approx(0.5 * ARKIT_TABLE["cheekRaiser_L"]["CheekSquintLeft"])
+    assert col["EyeSquintLeft"] == pytest.approx(0.5 * ARKIT_TABLE["cheekRaiser_L"]["EyeSquintLeft"])
+    assert col["EyeBlinkRight"] == 0.0 and col["CheekSquintRight"] == 0.0
+    assert mapping.sources["BrowInnerUp"] == ["browInnerUp_L", "browInnerUp_R"]
+    assert mapping.rule["cheekRaiser_L"] == "table" and mapping.rule["jawOpen"] == "namesake"
+    assert mapping.unmapped == ["PupilDilate_L"] and mapping.dropped(w) == ["PupilDilate_L"]
+    assert mapping.dropped(w * 0) == []
+    assert "EyeBlinkRight" in mapping.missing_columns and "JawOpen" not in mapping.missing_columns
+
+
+def test_arkit_sums_are_clipped_and_aliases_take_precedence():
+    names = ["cheekSquint_L", "cheekRaiser_L", "smile_left"]
+    out, mapping = arkit_weights(np.array([[1.0, 1.0, 0.4]]), names, aliases={"smile_left": {"MouthSmileLeft": 2.0}})
+    col = dict(zip(ARKIT_NAMES, out[0]))
+    assert col["CheekSquintLeft"] == 1.0  # 1 + 0.92, clipped to ARKit's [0, 1]
+    assert col["MouthSmileLeft"] == pytest.approx(0.8) and mapping.rule["smile_left"] == "alias"
+    with pytest.raises(ValueError, match="did you mean 'MouthSmileLeft'"):
+        arkit_mapping(names, aliases={"smile_left": {"mouthSmile_L": 1.0}})
+
+
+def test_fitted_destination_recovers_a_known_mix():
+    """A morph built as 0.7 jawOpen + 0.4 mouthFunnel (plus noise far below) is placed in those columns."""
+    rng = np.random.default_rng(1)
+    basis = rng.normal(size=(4, 50, 3))
+    names = ["jawOpen", "mouthFunnel", "browDown_L", "browInnerUp_L", "ahVowel"]
+    mix = 0.7 * basis[0] + 0.4 * basis[1] + 0.01 * rng.normal(size=(50, 3))
+    mapping = arkit_mapping(names, deltas=np.r_[basis, mix[None]])
+    assert mapping.rule["ahVowel"] == "fitted"
+    assert mapping.destinations["ahVowel"] == pytest.approx({"JawOpen": 0.7, "MouthFunnel": 0.4}, abs=0.011)
+    assert mapping.explained["ahVowel"] > 0.95
+    # a half-shape (BrowInnerUp x 0.5) is used at its unit: a copy of browInnerUp_L maps to 0.5 of the column
+    half = arkit_mapping(names[:4] + ["browCopy"], deltas=np.r_[basis, basis[3:4]])
+    assert half.destinations["browCopy"] == pytest.approx({"BrowInnerUp": 0.5})
+    # unrelated displacement: no destination rather than a poor one
+    lone = arkit_mapping(names, deltas=np.r_[basis, rng.normal(size=(1, 50, 3))])
+    assert lone.rule["ahVowel"] == "none"
+
+
+def test_ict_table_is_the_fit_of_the_ict_displacements():
+    """ARKIT_TABLE's factors are fit_destination of each morph on the ICT head (documented derivation)."""
+    mesh = read_morph_mesh(ICT_GLB)
+    names = [n for n in mesh.target_names if not n.startswith("identity")]
+    mapping = arkit_mapping(names)
+    basis_names = [n for n in names if mapping.rule[n] == "namesake" and len(mapping.destinations[n]) == 1]
+    columns = [next(iter(mapping.destinations[n])) for n in basis_names]
+    basis = np.stack(
+        [mesh.deltas[mesh.target_names.index(n)] / mapping.destinations[n][c] for n, c in zip(basis_names, columns)]
+    )
+    for morph, table in ARKIT_TABLE.items():
+        fitted, explained = fit_destination(mesh.deltas[mesh.target_names.index(morph)], basis, columns)
+        assert fitted == pytest.approx(table, abs=0.011), morph
+        assert explained > 0.55
+
+
+def test_every_moving_ict_morph_has_a_destination():
+    mesh = read_morph_mesh(ICT_GLB)
+    names = [n for n in mesh.target_names if not n.startswith("identity")]
+    mapping = arkit_mapping(names, deltas=mesh.deltas[: len(names)])
+    assert mapping.unmapped == ["PupilDilate_L", "PupilDilate_R"]  # ARKit has no pupil
+    assert mapping.missing_columns == ["TongueOut"]  # ICT has no tongue shape
+    assert set(mapping.rule.values()) == {"namesake", "table", "none"}
 
 
 def test_timecodes():
@@ -79,10 +172,15 @@ def test_timecodes():
         "00:00:02:01.000",
         "01:00:01:15.000",
     ]
-    # 29.97 fps: frames are counted at the nominal 30 per second (non-drop-frame), one label per frame
-    codes = format_timecode(np.arange(1000), 29.97)
-    assert codes[1] == "00:00:00:01.000" and codes[30] == "00:00:01:00.000" and codes[999] == "00:00:33:09.000"
-    assert len(set(codes)) == 1000
+    # 29.97 fps (30000/1001): frames labelled at the nominal 30 with the exact sub-frame remainder
+    codes = format_timecode(np.arange(40000), 30000 / 1001)
+    assert codes[1] == "00:00:00:01.001" and codes[30] == "00:00:01:00.030"
+    assert codes == format_timecode(np.arange(40000), 29.97)
+    seconds = np.array([timecode_seconds(c, 29.97) for c in codes])
+    assert np.abs(seconds - np.arange(40000) * 1001 / 30000).max() < 0.5e-3 / 30 + 1e-9
+    assert len(set(codes)) == 40000
+    assert format_timecode(np.array([3]), 60.0) == ["00:00:00:03.000"]
+    assert format_timecode(np.array([24]), 24000 / 1001) == ["00:00:01:00.024"]
 
 
 def test_live_link_csv_layout():
@@ -179,8 +277,8 @@ def exported(character):
     return out
 
 
-def test_glb_passes_the_khronos_validator(exported):
-    report = validate_glb(exported.arrays["animation"].tobytes())
+def test_glb_passes_the_khronos_validator(exported, node_modules):
+    report = validate_glb(exported.arrays["animation"].tobytes(), node_modules=node_modules)
     assert report["numErrors"] == 0, report["messages"]
     assert report["numWarnings"] == 0, report["messages"]
 
@@ -286,10 +384,10 @@ def test_bvh_carries_the_head_rotation(exported):
     assert np.allclose(np.abs((q * make_head()["rotation"]).sum(axis=1)), 1.0, atol=1e-6)
 
 
-def test_export_without_head_or_audio(character):
+def test_export_without_head_or_audio(character, node_modules):
     out = run_stage(Export, {"preview": False}, {"character": character.view(), "blend": make_blend(12)})
     assert "head_bvh" not in out.arrays and "preview" not in out.arrays
-    report = validate_glb(out.arrays["animation"].tobytes())
+    report = validate_glb(out.arrays["animation"].tobytes(), node_modules=node_modules)
     assert report["numErrors"] == 0 and report["numWarnings"] == 0, report["messages"]
     rows = list(csv.reader(io.StringIO(out.arrays["live_link"].tobytes().decode())))
     assert all(float(x) == 0.0 for r in rows[1:] for x in r[54:])
@@ -426,6 +524,50 @@ def test_real_take_audio_is_muxed(character):
     assert abs(lags[int(np.argmax(scores))]) <= 4  # in sync
     corr = np.corrcoef(audio[64 : 64 + n - 2048], ref[64 : 64 + n - 2048])[0, 1]
     assert corr > 0.9
+
+
+def run_with_warnings(params, inputs):
+    """The stage's Result with its warnings (msflow.testing.run_stage keeps arrays, meta and metrics only)."""
+    return Export("export").run(Export.Params(**params), prepare_inputs(Export, inputs))
+
+
+def test_a_character_without_the_needed_morphs_is_warned_about():
+    """Missing ARKit columns and moving morphs without an ARKit column are named in stage warnings."""
+    rng = np.random.default_rng(2)
+    neutral = rng.normal(size=(30, 3)).astype(np.float32)
+    names = ["jawOpen", "wiggle", "PupilDilate_L", "smile_left"]
+    deltas = rng.normal(size=(4, 30, 3)).astype(np.float32)
+    toy = artifact(
+        {
+            "neutral": neutral,
+            "triangles": np.arange(30).reshape(10, 3),
+            "deltas": deltas,
+            "landmark_ids": np.arange(68) % 30,
+        },
+        {"target_names": names},
+    )
+    blend = artifact({"weights": np.full((4, 4), 0.5, np.float32)}, {"target_names": names, "fps": FPS})
+    result = run_with_warnings({"preview": False}, {"character": toy, "blend": blend})
+    missing, dropped = result.warnings
+    assert "EyeBlinkLeft" in missing and "JawOpen" not in missing and "TongueOut" not in missing
+    assert "['wiggle', 'PupilDilate_L', 'smile_left']" in dropped
+    assert result.meta["live_link"]["dropped_morphs"] == ["wiggle", "PupilDilate_L", "smile_left"]
+    # an alias gives smile_left its column: no longer dropped, and the column is filled
+    result = run_with_warnings(
+        {"preview": False, "arkit_aliases": {"smile_left": {"MouthSmileLeft": 1.0}}}, {"character": toy, "blend": blend}
+    )
+    assert "smile_left" not in result.warnings[1] and "MouthSmileLeft" not in result.warnings[0]
+    col = ARKIT_NAMES.index("MouthSmileLeft")
+    assert np.allclose(result.arrays["arkit"][:, col], 0.5)
+    # a bad alias is refused by Params, before anything runs
+    with pytest.raises(ValueError, match="not one of the 52 ARKit columns"):
+        Export.Params(arkit_aliases={"smile_left": {"Smile": 1.0}})
+
+
+def test_the_ict_export_warns_about_nothing(exported):
+    """ICT FaceKit: every ARKit column but TongueOut has a source, and no moving morph is dropped."""
+    assert exported.meta["live_link"]["empty_columns"] == ["TongueOut"]
+    assert exported.meta["live_link"]["dropped_morphs"] == []
 
 
 def test_figures(exported):

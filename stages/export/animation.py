@@ -21,155 +21,13 @@ import io
 from fractions import Fraction
 
 import numpy as np
+from pydantic import field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
+from stages.formats.live_link import ARKIT_NAMES, UNTRACKED_COLUMNS, arkit_mapping, check_aliases, live_link_csv
 from stages.geometry.rotations import quat_continuous, quat_normalize, quat_slerp, quat_to_euler
 
-#: the 52 ARKit blendshapes in the column order of Live Link Face CSV files
-ARKIT_NAMES = [
-    "EyeBlinkLeft",
-    "EyeLookDownLeft",
-    "EyeLookInLeft",
-    "EyeLookOutLeft",
-    "EyeLookUpLeft",
-    "EyeSquintLeft",
-    "EyeWideLeft",
-    "EyeBlinkRight",
-    "EyeLookDownRight",
-    "EyeLookInRight",
-    "EyeLookOutRight",
-    "EyeLookUpRight",
-    "EyeSquintRight",
-    "EyeWideRight",
-    "JawForward",
-    "JawRight",
-    "JawLeft",
-    "JawOpen",
-    "MouthClose",
-    "MouthFunnel",
-    "MouthPucker",
-    "MouthRight",
-    "MouthLeft",
-    "MouthSmileLeft",
-    "MouthSmileRight",
-    "MouthFrownLeft",
-    "MouthFrownRight",
-    "MouthDimpleLeft",
-    "MouthDimpleRight",
-    "MouthStretchLeft",
-    "MouthStretchRight",
-    "MouthRollLower",
-    "MouthRollUpper",
-    "MouthShrugLower",
-    "MouthShrugUpper",
-    "MouthPressLeft",
-    "MouthPressRight",
-    "MouthLowerDownLeft",
-    "MouthLowerDownRight",
-    "MouthUpperUpLeft",
-    "MouthUpperUpRight",
-    "BrowDownLeft",
-    "BrowDownRight",
-    "BrowInnerUp",
-    "BrowOuterUpLeft",
-    "BrowOuterUpRight",
-    "CheekPuff",
-    "CheekSquintLeft",
-    "CheekSquintRight",
-    "NoseSneerLeft",
-    "NoseSneerRight",
-    "TongueOut",
-]
-ANGLE_COLUMNS = [
-    "HeadYaw",
-    "HeadPitch",
-    "HeadRoll",
-    "LeftEyeYaw",
-    "LeftEyePitch",
-    "LeftEyeRoll",
-    "RightEyeYaw",
-    "RightEyePitch",
-    "RightEyeRoll",
-]
-LIVE_LINK_COUNT = len(ARKIT_NAMES) + len(ANGLE_COLUMNS)  # 61
 UNITS_TO_METRES = {"m": 1.0, "metre": 1.0, "meter": 1.0, "metres": 1.0, "meters": 1.0, "cm": 0.01, "mm": 0.001}
-
-
-# ------------------------------------------------------------------------------------------------ Live Link Face
-
-
-def arkit_key(name: str) -> str:
-    """A target name in Live Link Face spelling: ICT/ARKit ``eyeBlink_L`` or ``eyeBlinkLeft`` -> ``EyeBlinkLeft``."""
-    key = name.strip()
-    for suffix, side in (
-        ("_L", "Left"),
-        ("_R", "Right"),
-        (".L", "Left"),
-        (".R", "Right"),
-        ("_l", "Left"),
-        ("_r", "Right"),
-    ):
-        if key.endswith(suffix):
-            key = key[: -len(suffix)] + side
-            break
-    return key[:1].upper() + key[1:]
-
-
-def arkit_weights(weights: np.ndarray, target_names: list[str]) -> tuple[np.ndarray, dict[str, list[str]]]:
-    """(frames, 52) ARKit blendshape weights from a character's morph weights, in Live Link Face column order.
-
-    Names match after ``arkit_key`` (case-insensitive). ARKit's whole ``BrowInnerUp`` and ``CheekPuff`` are split
-    left/right in ICT FaceKit: the column gets the mean of the halves (the weight that, applied to both halves,
-    reproduces their total displacement when the halves are mirror images). Columns with no source stay 0.
-    Returns the weights and, per column, the target names it was made from.
-    """
-    weights = np.asarray(weights, dtype=np.float64)
-    by_key: dict[str, int] = {}
-    for i, name in enumerate(target_names):
-        by_key.setdefault(arkit_key(name).lower(), i)
-    out = np.zeros((weights.shape[0], len(ARKIT_NAMES)))
-    sources: dict[str, list[str]] = {}
-    for c, column in enumerate(ARKIT_NAMES):
-        key = column.lower()
-        if key in by_key:
-            ids = [by_key[key]]
-        else:
-            ids = [by_key[k] for k in (key + "left", key + "right") if k in by_key]
-        if ids:
-            out[:, c] = weights[:, ids].mean(axis=1)
-            sources[column] = [target_names[i] for i in ids]
-    return out, sources
-
-
-def format_timecode(frame: np.ndarray, fps: float) -> list[str]:
-    """Live Link Face timecodes ``HH:MM:SS:FF.fff`` counting frames at the nominal (rounded) rate, as video
-    timecode does: at 29.97 fps the labels run non-drop-frame at 30 per second, slightly slower than the clock,
-    so every frame gets its own label and the sub-frame field stays .000."""
-    nominal = max(int(round(fps)), 1)
-    whole = np.asarray(frame, dtype=np.int64)
-    seconds, ff = np.divmod(whole, nominal)
-    minutes, ss = np.divmod(seconds, 60)
-    hh, mm = np.divmod(minutes, 60)
-    return [f"{h:02d}:{m:02d}:{s:02d}:{f:02d}.000" for h, m, s, f in zip(hh, mm, ss, ff)]
-
-
-def live_link_csv(
-    arkit: np.ndarray, fps: float, head_angles: np.ndarray | None = None, eye_angles: np.ndarray | None = None
-) -> bytes:
-    """The CSV text: header, then one row per frame with 61 values (angles in radians, 0 where unknown)."""
-    frames = arkit.shape[0]
-    angles = np.zeros((frames, len(ANGLE_COLUMNS)))
-    if head_angles is not None:
-        angles[:, :3] = head_angles
-    if eye_angles is not None:
-        angles[:, 3:] = eye_angles
-    values = np.concatenate([arkit, angles], axis=1)
-    lines = [",".join(["Timecode", "BlendShapeCount"] + ARKIT_NAMES + ANGLE_COLUMNS)]
-    codes = format_timecode(np.arange(frames), fps)
-    text_values = np.char.mod("%.6f", np.round(values, 6) + 0.0)  # + 0.0 turns -0.0 into 0.0
-    for code, row in zip(codes, text_values):
-        lines.append(f"{code},{LIVE_LINK_COUNT}," + ",".join(row))
-    return ("\n".join(lines) + "\n").encode("utf-8")
 
 
 # ------------------------------------------------------------------------------------------------ timelines
@@ -444,6 +302,15 @@ class Export(Stage):
         translation_scale: float | None = None
         #: Live Link Face angle columns in "radians" or "degrees"
         angle_units: str = "radians"
+        #: extra ARKit destinations for the character's morphs, {morph: {ARKit column: factor}}, taking
+        #: precedence over the built-in rules (stages.formats.live_link); e.g. {smile_left: {MouthSmileLeft: 1}}
+        arkit_aliases: dict[str, dict[str, float]] = {}
+
+        @field_validator("arkit_aliases")
+        @classmethod
+        def _known_columns(cls, value):
+            return check_aliases(value)
+
         preview: bool = True
         video_size: int = 384
         video_codec: str = "auto"
@@ -522,6 +389,7 @@ class Export(Stage):
         clipped = float(np.mean((blend_weights < -1e-6) | (blend_weights > 1 + 1e-6)))  # of the blend's entries
         times = np.arange(frames) / fps
         meta: dict = {"fps": fps, "target_names": char_names, "take": label}
+        warnings: list[str] = []
         metrics: dict = {"frames": frames, "duration_s": frames / fps, "clipped_fraction": clipped}
 
         rotation = translation = None
@@ -581,17 +449,34 @@ class Export(Stage):
             scene_extras={"fps": fps, "take": label},
         )
 
-        arkit, sources = arkit_weights(weights, char_names)
+        mapping = arkit_mapping(char_names, deltas, params.arkit_aliases)
+        arkit = mapping.weights(weights)
         head_angles = quat_to_euler(rotation) if rotation is not None else None
         if head_angles is not None and params.angle_units == "degrees":
             head_angles = np.degrees(head_angles)
         csv = live_link_csv(arkit, fps, head_angles)
+        missing = [c for c in mapping.missing_columns if c not in UNTRACKED_COLUMNS]
+        dropped = mapping.dropped(weights)
         meta["live_link"] = {
-            "columns_from": sources,
-            "empty_columns": [c for c in ARKIT_NAMES if c not in sources],
+            "destinations": {n: d for n, d in mapping.destinations.items() if d},
+            "rules": mapping.rule,
+            "fitted_explained": mapping.explained,
+            "columns_from": mapping.sources,
+            "empty_columns": mapping.missing_columns,
+            "dropped_morphs": dropped,
             "angle_units": params.angle_units,
         }
-        metrics["live_link_columns_filled"] = len(sources)
+        metrics["live_link_columns_filled"] = len(mapping.sources)
+        if missing:
+            warnings.append(
+                f"Live Link CSV: the character has no morph for the ARKit columns {missing} (written as 0); "
+                f"name its equivalents in params.arkit_aliases"
+            )
+        if dropped:
+            warnings.append(
+                f"Live Link CSV: the morphs {dropped} move but have no ARKit column: dropped from the CSV "
+                f"(kept in the GLB); give them one in params.arkit_aliases"
+            )
 
         arrays = {
             "animation": glb,
@@ -622,7 +507,7 @@ class Export(Stage):
                 "audio": samples is not None,
             }
         metrics["glb_bytes"] = len(glb)
-        return Result(arrays, meta=meta, metrics=metrics)
+        return Result(arrays, meta=meta, metrics=metrics, warnings=warnings)
 
 
 def render_preview(

@@ -639,28 +639,45 @@ validator.validateBytes(new Uint8Array(data), {maxIssues: 100}).then((r) => {
 """
 
 
-def validate_glb(data: bytes, *, project_root: Path | None = None, timeout: float = 120.0) -> dict:
+def node_modules_folder(node_modules: str | Path | None = None, package: str = "gltf-validator") -> Path:
+    """The node_modules folder holding ``package``: the one given, else $MSFLOW_NODE_MODULES, else the project
+    root's. Raises RuntimeError with the install command when the package is in none of them."""
+    import os
+
+    from stages.data import PROJECT_ROOT
+
+    candidates = [Path(p) for p in (node_modules, os.environ.get("MSFLOW_NODE_MODULES")) if p]
+    candidates.append(PROJECT_ROOT / "node_modules")
+    for folder in candidates:
+        if (folder / package).is_dir():
+            return folder
+    raise RuntimeError(
+        f"{package} is not installed in {[str(c) for c in candidates]}; install it in a folder and point "
+        f"MSFLOW_NODE_MODULES at its node_modules, e.g. in the project root: {VALIDATOR_INSTALL}"
+    )
+
+
+def validate_glb(data: bytes, *, node_modules: str | Path | None = None, timeout: float = 120.0) -> dict:
     """Run the Khronos glTF Validator (npm ``gltf-validator``, via node) on GLB bytes; returns its issue summary
-    (numErrors, numWarnings, numInfos, numHints, messages). The package is looked up in ``node_modules`` of the
-    project root (install it there with VALIDATOR_INSTALL)."""
+    (numErrors, numWarnings, numInfos, numHints, messages, validatorVersion). The package is looked up by
+    ``node_modules_folder`` (install it with VALIDATOR_INSTALL)."""
     import json
     import os
     import shutil
     import subprocess
 
-    from stages.data import PROJECT_ROOT
-
-    root = Path(project_root) if project_root else PROJECT_ROOT
     node = shutil.which("node")
     if node is None:
         raise RuntimeError("node (Node.js) is not installed; the glTF validator needs it")
-    if not (root / "node_modules" / "gltf-validator").is_dir():
-        raise RuntimeError(
-            f"gltf-validator is not installed in {root / 'node_modules'}; run in {root}: {VALIDATOR_INSTALL}"
-        )
-    env = dict(os.environ, NODE_PATH=str(root / "node_modules"))
+    modules = node_modules_folder(node_modules)
+    env = dict(os.environ, NODE_PATH=str(modules))
     proc = subprocess.run(
-        [node, "-e", _VALIDATOR_JS], input=bytes(data), capture_output=True, cwd=root, env=env, timeout=timeout
+        [node, "-e", _VALIDATOR_JS],
+        input=bytes(data),
+        capture_output=True,
+        cwd=modules.parent,
+        env=env,
+        timeout=timeout,
     )
     if proc.returncode != 0:
         raise RuntimeError(f"glTF validator failed: {proc.stderr.decode(errors='replace')[:2000]}")
