@@ -10,6 +10,7 @@ The same validation as the runner applies (params, inputs, output schema, strict
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -96,13 +97,16 @@ def run_stage(
 
     The stage runs through the same function as in the runner's workers (``msflow.worker.compute``), so a
     result the runner rejects (a schema violation, non-JSON metadata, non-scalar metrics) raises here too.
-    Output sinks keep their blocks in memory; ``jobs`` is the stage's ``self.jobs``.
+    Output sinks keep their blocks in memory; ``jobs`` is the stage's ``self.jobs``; BLAS threading is the
+    caller's (workers pin it to one thread).
     """
     from msflow.worker import compute
 
     stage_name = name or cls.__name__
     validated = cls.Params(**dict(params or {}))
-    done = compute(cls, stage_name, validated, prepare_inputs(cls, inputs or {}), jobs=jobs)
+    done = compute(cls, stage_name, validated, prepare_inputs(cls, inputs or {}), jobs=jobs, pin_blas=False)
+    for caught in done.caught:  # as if the stage had run in the caller's own warning context
+        warnings.warn_explicit(caught.message, caught.category, caught.filename, caught.lineno)
     arrays = {k: settle_output(v) for k, v in done.arrays.items()}
     if store is not None:
         from msflow.artifact import read_artifact, write_artifact

@@ -7,12 +7,13 @@ stage, validates its result, and publishes the artifact atomically before releas
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
 import traceback
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -80,27 +81,40 @@ def _run(job: dict) -> dict:
 @dataclass
 class Computed:
     """A stage's validated result: outputs (numpy arrays or finished sinks), strict-JSON meta and metrics,
-    warnings, and the seconds ``run`` took."""
+    warnings (as messages), the seconds ``run`` took, and every warning ``run`` raised (``caught``, with its
+    category, for callers that re-emit them)."""
 
     arrays: dict[str, Any]
     meta: dict[str, Any]
     metrics: dict[str, float]
     warnings: list[str]
     seconds: float
+    caught: list[Any] = field(default_factory=list)
 
 
 def compute(
-    cls, name: str, params: Any, inputs: dict[str, Any], *, jobs: int = 1, chunk_target: Any = None
+    cls,
+    name: str,
+    params: Any,
+    inputs: dict[str, Any],
+    *,
+    jobs: int = 1,
+    chunk_target: Any = None,
+    pin_blas: bool = True,
 ) -> Computed:
     """Run a stage and validate what it returns: the one execution path of the runner's workers and of
     ``msflow.testing.run_stage``. Exceptions of ``run`` propagate unchanged; an invalid result raises
-    ``TypeError``/``ValueError`` naming the stage and output."""
+    ``TypeError``/``ValueError`` naming the stage and output. ``pin_blas``: one BLAS thread during ``run`` (the
+    runner's workers run stages side by side); ``run_stage`` leaves the caller's BLAS threading alone."""
     from msflow.errors import InvalidResult
     from msflow.stage import to_strict_json, validate_result
 
     stage = cls(name, jobs=jobs, chunk_target=chunk_target)
     started = time.perf_counter()
-    with single_threaded_blas(), warnings.catch_warnings(record=True) as caught:
+    with (
+        single_threaded_blas() if pin_blas else contextlib.nullcontext(),
+        warnings.catch_warnings(record=True) as caught,
+    ):
         warnings.simplefilter("always", UserWarning)  # the stage's own warnings, each time
         result = stage.run(params, inputs)
     seconds = time.perf_counter() - started
@@ -114,7 +128,7 @@ def compute(
     bad = [k for k, v in metrics.items() if not isinstance(v, (int, float)) or isinstance(v, bool)]
     if bad:
         raise InvalidResult(f"stage '{name}': metrics must be scalar numbers; not: {bad}")
-    return Computed(arrays, meta, metrics, stage_warnings, seconds)
+    return Computed(arrays, meta, metrics, stage_warnings, seconds, list(caught))
 
 
 def _execute(job: dict, store, writer) -> dict:
