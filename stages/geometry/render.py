@@ -351,7 +351,6 @@ class CharacterRenderer:
                 r = quat_to_matrix(q).astype(np.float32)
                 v[ids] = (v[ids] - center) @ r.T + center
         if rotation is not None:
-
             r = quat_to_matrix(np.asarray(rotation, dtype=np.float64)).astype(np.float32)
             v = (v - self.pivot.astype(np.float32)) @ r.T + self.pivot.astype(np.float32)
         if translation is not None:
