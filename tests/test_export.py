@@ -6,14 +6,17 @@ import io
 import os
 import shutil
 import subprocess
+import tempfile
 from pathlib import Path
 
+import av
 import numpy as np
 import pytest
 
 from msflow import UserError
 from msflow.testing import artifact, prepare_inputs, run_stage
-from stages.export.animation import Export, align_head_motion
+from stages.export.animation import Export
+from stages.export.timeline import align_head_motion
 from stages.formats.audio import decode_audio
 from stages.formats.gltf import read_morph_mesh, validate_glb
 from stages.formats.live_link import (
@@ -39,6 +42,77 @@ CLIP = ROOT / "data" / "crema-d" / "1001_DFA_HAP_XX.flv"
 FPS = 30.0
 FRAMES = 45
 DRIVEN = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L", "browInnerUp_R", "eyeBlink_L"]
+
+
+CHROMIUM = "/usr/bin/chromium"
+ORIGIN = "http://msflow.test"
+THREEJS_PAGE = """<!doctype html><html><body><canvas id=c width=128 height=128></canvas>
+<script type="importmap">{"imports": {"three": "/three/build/three.module.js", "three/addons/": "/three/examples/jsm/"}}
+</script>
+<script type="module">
+import * as THREE from 'three';
+import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+window.probe = async (times) => {
+  const gltf = await new GLTFLoader().parseAsync(await (await fetch('/take.glb')).arrayBuffer(), '/');
+  const scene = gltf.scene, meshes = [], bones = {};
+  scene.traverse(o => { if (o.isMesh) meshes.push(o); if (o.isBone) bones[o.name] = o; });
+  const mixer = new THREE.AnimationMixer(scene);
+  mixer.clipAction(gltf.animations[0]).play();
+  const canvas = document.getElementById('c');
+  const renderer = new THREE.WebGLRenderer({canvas, preserveDrawingBuffer: true});
+  const camera = new THREE.PerspectiveCamera(20, 1, 0.01, 10);
+  camera.position.set(0, 0.03, 0.8);
+  scene.add(new THREE.AmbientLight(0xffffff, 1.0));
+  const frames = [];
+  for (const t of times) {
+    mixer.setTime(t);
+    scene.updateMatrixWorld(true);
+    renderer.render(scene, camera);
+    const gl = renderer.getContext(), pixels = new Uint8Array(128 * 128 * 4);
+    gl.readPixels(0, 0, 128, 128, gl.RGBA, gl.UNSIGNED_BYTE, pixels);
+    let image = 0;
+    for (let i = 0; i < pixels.length; i += 4) image += pixels[i] + 3 * pixels[i + 1] + 7 * pixels[i + 2];
+    frames.push({t, image, influences: Array.from(meshes[0].morphTargetInfluences),
+      skinned: meshes.every(m => m.isSkinnedMesh), head: bones.Head.quaternion.toArray(),
+      left: bones.LeftEye.quaternion.toArray()});
+  }
+  return {bones: Object.keys(bones), webgl: renderer.getContext() !== null,
+          morphs: meshes[0].morphTargetDictionary, frames};
+};
+window.ready = true;
+</script></body></html>"""
+
+
+def probe_in_threejs(glb: bytes, node_modules: Path, times: list[float]) -> dict:
+    """Load the GLB with three.js in headless Chromium (software WebGL), play it at ``times``, report the state.
+
+    Files are served from a made-up origin through Playwright's routing (ES modules do not load from file:)."""
+    from playwright.sync_api import sync_playwright
+
+    def serve(route):
+        path = route.request.url[len(ORIGIN) :]
+        if path == "/":
+            return route.fulfill(body=THREEJS_PAGE, content_type="text/html")
+        if path == "/take.glb":
+            return route.fulfill(body=glb, content_type="model/gltf-binary")
+        file = node_modules / path.lstrip("/")
+        if path.startswith("/three/") and file.is_file():
+            return route.fulfill(body=file.read_bytes(), content_type="text/javascript")
+        return route.fulfill(status=404, body="")
+
+    args = ["--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=args)
+        page = browser.new_page()
+        errors: list[str] = []
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.route(ORIGIN + "/**", serve)
+        page.goto(ORIGIN + "/")
+        page.wait_for_function("window.ready === true")
+        report = page.evaluate("(t) => window.probe(t)", times)
+        browser.close()
+    return report | {"errors": errors}
 
 
 def missing_tool(reason: str):
@@ -230,14 +304,24 @@ def character():
     return run_stage(GltfCharacter, {}, {"mesh": ICT_GLB})
 
 
-def make_blend(frames=FRAMES, fps=FPS):
+def make_gaze(frames=FRAMES, fps=FPS):
+    """(frames, 2, 2) degrees: yaw 20 sin(2 pi t) (right eye 0.8 of it), pitch 10 cos(2 pi t) up."""
+    t = np.arange(frames) / fps
+    gaze = np.zeros((frames, 2, 2), np.float32)
+    gaze[:, 0, 0], gaze[:, 1, 0] = 20 * np.sin(2 * np.pi * t), 16 * np.sin(2 * np.pi * t)
+    gaze[:, :, 1] = 10 * np.cos(2 * np.pi * t)[:, None]
+    return gaze
+
+
+def make_blend(frames=FRAMES, fps=FPS, gaze=False):
     t = np.arange(frames) / fps
     w = np.zeros((frames, len(DRIVEN)), np.float32)
     w[:, 0] = np.where((t > 0.5) & (t < 1.0), 1.0, 0.0)  # jaw open between 0.5 s and 1 s
     w[:, 1] = w[:, 2] = np.linspace(0, 1, frames)
     w[:, 3], w[:, 4] = 0.8, 0.4
     w[:, 5] = 0.3
-    return artifact({"weights": w}, {"target_names": DRIVEN, "fps": fps})
+    arrays = {"weights": w, "gaze": make_gaze(frames, fps)} if gaze else {"weights": w}
+    return artifact(arrays, {"target_names": DRIVEN, "fps": fps})
 
 
 def make_head(frames=FRAMES, fps=FPS, units="cm"):
@@ -272,7 +356,12 @@ def exported(character):
     out = run_stage(
         Export,
         {"sequence": "beep", "video_size": 256},
-        {"character": character.view(), "blend": make_blend(), "head": make_head(), "audio": make_audio(offset=0.1)},
+        {
+            "character": character.view(),
+            "blend": make_blend(gaze=True),
+            "head": make_head(),
+            "audio": make_audio(offset=0.1),
+        },
     )
     return out
 
@@ -326,19 +415,159 @@ def test_glb_animation_holds_the_weights_and_head_motion(exported, character, tm
     assert np.abs(mesh.deltas - character.arrays["deltas"]).max() <= 1e-5
 
 
-def test_live_link_csv_from_the_stage(exported):
-    rows = list(csv.reader(io.StringIO(exported.arrays["live_link"].tobytes().decode())))
-    assert len(rows) == FRAMES + 1 and all(len(r) == 63 for r in rows)
-    col = {n: i for i, n in enumerate(rows[0])}
-    jaw = np.array([float(r[col["JawOpen"]]) for r in rows[1:]])
-    assert np.allclose(jaw, make_blend()["weights"][:, 0], atol=1e-6)
-    brow = np.array([float(r[col["BrowInnerUp"]]) for r in rows[1:]])
-    assert np.allclose(brow, 0.6, atol=1e-6)
-    assert all(float(r[col["EyeBlinkRight"]]) == 0.0 for r in rows[1:])
-    yaw = np.array([float(r[col["HeadYaw"]]) for r in rows[1:]])
+def csv_by_name(data: bytes) -> dict[str, np.ndarray]:
+    """Reader 1: Python's csv module, columns looked up by header name."""
+    rows = list(csv.DictReader(io.StringIO(bytes(data).decode())))
+    return {name: np.array([float(r[name]) for r in rows]) for name in ARKIT_NAMES + ANGLE_COLUMNS} | {
+        "Timecode": [r["Timecode"] for r in rows]
+    }
+
+
+def csv_by_position(data: bytes) -> np.ndarray:
+    """Reader 2: numpy's text parser, the 61 values by position (columns 2..62), header skipped unread."""
+    return np.loadtxt(io.StringIO(bytes(data).decode()), delimiter=",", skiprows=1, usecols=range(2, 63), ndmin=2)
+
+
+def test_live_link_csv_read_by_name_and_by_position(exported):
+    data = exported.arrays["live_link"].tobytes()
+    named, values = csv_by_name(data), csv_by_position(data)
+    assert values.shape == (FRAMES, 61)
+    assert np.allclose(values[:, :52], exported.arrays["arkit"], atol=1e-6)
+    for k, name in enumerate(ARKIT_NAMES + ANGLE_COLUMNS):  # both readers see the same numbers
+        assert np.array_equal(named[name], values[:, k]), name
     t = np.arange(FRAMES) / FPS
-    assert np.allclose(yaw, 0.3 * np.sin(2 * np.pi * t), atol=1e-5)
+    assert np.allclose(named["JawOpen"], make_blend()["weights"][:, 0], atol=1e-6)
+    assert np.allclose(named["BrowInnerUp"], 0.6, atol=1e-6)
+    assert np.all(named["EyeBlinkRight"] == 0.0)
+    assert np.allclose(named["HeadYaw"], 0.3 * np.sin(2 * np.pi * t), atol=1e-5)  # radians
+    # eye angles from the gaze: yaw as is, pitch in the head's convention (> 0 looks down), radians
+    gaze = np.radians(make_gaze())
+    assert np.allclose(named["LeftEyeYaw"], gaze[:, 0, 0], atol=1e-6)
+    assert np.allclose(named["RightEyeYaw"], gaze[:, 1, 0], atol=1e-6)
+    assert np.allclose(named["LeftEyePitch"], -gaze[:, 0, 1], atol=1e-6)
+    assert np.all(named["LeftEyeRoll"] == 0.0)
+    assert [timecode_seconds(c, FPS) for c in named["Timecode"]] == pytest.approx(t, abs=1e-9)
     assert exported.metrics["live_link_columns_filled"] == 51  # ICT has all ARKit shapes but TongueOut
+
+
+def glb_accessor(gltf, index: int) -> np.ndarray:
+    """A dense accessor of a pygltflib GLTF2 loaded from a GLB."""
+    acc = gltf.accessors[index]
+    view = gltf.bufferViews[acc.bufferView]
+    dtype = {5126: np.float32, 5121: np.uint8, 5123: np.uint16}[acc.componentType]
+    n = {"SCALAR": 1, "VEC3": 3, "VEC4": 4, "MAT4": 16}[acc.type]
+    offset = (view.byteOffset or 0) + (acc.byteOffset or 0)
+    return np.frombuffer(gltf.binary_blob(), dtype, acc.count * n, offset).reshape(acc.count, n)
+
+
+def load_glb(data: bytes, tmp_path):
+    import pygltflib
+
+    path = tmp_path / "take.glb"
+    path.write_bytes(data)
+    return pygltflib.GLTF2().load(str(path))
+
+
+def test_glb_is_skinned_to_root_head_and_eye_joints(exported, character, tmp_path):
+    """Root and Head joints, an eye joint at each eyeball's centre; every vertex follows the head with weight 1,
+    but the eyeballs', which follow their eye; head motion on the Head joint, gaze on the eye joints."""
+    from stages.export.rig import gaze_rotations
+
+    gltf = load_glb(exported.arrays["animation"].tobytes(), tmp_path)
+    skin = gltf.skins[0]
+    names = [gltf.nodes[j].name for j in skin.joints]
+    assert names == ["Root", "Head", "LeftEye", "RightEye"]
+    mesh_node = next(n for n in gltf.nodes if n.mesh is not None)
+    assert mesh_node.skin == 0 and gltf.nodes.index(mesh_node) in gltf.scenes[0].nodes  # a root node
+    attributes = gltf.meshes[0].primitives[0].attributes
+    joints, weights = glb_accessor(gltf, attributes.JOINTS_0), glb_accessor(gltf, attributes.WEIGHTS_0)
+    assert np.all(weights == [1, 0, 0, 0])
+    eyes = [e for e in exported.meta["eyes"]]
+    groups = [g["name"] for g in character.meta["groups"]]
+    tri_groups = character.arrays["triangle_groups"]
+    for side, joint in ((0, 2), (1, 3)):
+        eye_groups = [i for i, g in enumerate(groups) if "Eye" in g and ("Left" if side == 0 else "Right") in g]
+        ids = np.unique(character.arrays["triangles"][np.isin(tri_groups, eye_groups)])
+        assert np.all(joints[ids, 0] == joint)
+        assert np.allclose(eyes[side]["radius"], 0.0144, atol=5e-4)  # the ICT eyeball, 14.4 mm
+    assert (joints[:, 0] == 1).sum() == len(joints) - sum(np.sum(joints[:, 0] == j) for j in (2, 3))
+    assert np.all(joints[:, 1:] == 0)
+    # inverse bind matrices translate by minus each joint's position
+    ibm = glb_accessor(gltf, skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)
+    assert np.allclose(ibm[2, :3, 3], -np.array(eyes[0]["center"]), atol=1e-6)
+    assert np.allclose(ibm[1, :3, 3], -np.array(character.meta["pivot"]), atol=1e-6)
+    # the animation: weights on the mesh node, head on Head, gaze on the eyes
+    anim = gltf.animations[0]
+    target = {(gltf.nodes[c.target.node].name, c.target.path): anim.samplers[c.sampler].output for c in anim.channels}
+    assert set(target) == {
+        ("Character", "weights"),
+        ("Head", "rotation"),
+        ("Head", "translation"),
+        ("LeftEye", "rotation"),
+        ("RightEye", "rotation"),
+    }
+    head = glb_accessor(gltf, target["Head", "rotation"])[:, [3, 0, 1, 2]]
+    assert np.allclose(np.abs((head * make_head()["rotation"]).sum(axis=1)), 1.0, atol=1e-6)
+    left = glb_accessor(gltf, target["LeftEye", "rotation"])[:, [3, 0, 1, 2]]
+    assert np.allclose(np.abs((left * gaze_rotations(make_gaze())[:, 0]).sum(axis=1)), 1.0, atol=1e-6)
+
+
+def test_gaze_without_eyes_goes_to_the_csv_with_a_warning(character):
+    inputs = {"character": character.view(), "blend": make_blend(gaze=True)}
+    result = run_with_warnings({"preview": False, "skin": False}, inputs)
+    assert any("gaze goes to the Live Link CSV only" in w for w in result.warnings)
+    named = csv_by_name(result.arrays["live_link"])
+    assert np.allclose(named["LeftEyeYaw"], np.radians(make_gaze()[:, 0, 0]), atol=1e-6)
+    plain = load_glb(result.arrays["animation"], Path(tempfile.mkdtemp()))
+    assert not plain.skins and [n.name for n in plain.nodes] == ["Head", "Character"]
+
+
+def test_output_frame_rate(character):
+    """fps: 60 from a 30 fps take: twice the frames, same duration, integer timecodes, streams interpolated."""
+    inputs = {"character": character.view(), "blend": make_blend(gaze=True), "head": make_head()}
+    out = run_stage(Export, {"preview": False, "fps": 60}, inputs)
+    frames = 2 * FRAMES
+    assert len(out.arrays["weights"]) == frames and out.meta["fps"] == 60.0
+    assert np.allclose(out.arrays["time"], np.arange(frames) / 60)
+    names = out.meta["target_names"]
+    smile = out.arrays["weights"][:, names.index("mouthSmile_L")]
+    ramp = np.linspace(0, 1, FRAMES)  # the blend's ramp, sampled at half frames and held past its end
+    assert np.allclose(smile, np.interp(np.arange(frames) / 2, np.arange(FRAMES), ramp), atol=1e-6)
+    yaw = quat_to_euler(out.arrays["head_rotation"])[:, 0]
+    t = np.minimum(np.arange(frames) / 60, (FRAMES - 1) / FPS)
+    assert np.allclose(yaw[::2], 0.3 * np.sin(2 * np.pi * t[::2]), atol=1e-6)
+    codes = csv_by_name(out.arrays["live_link"])["Timecode"]
+    assert codes[61] == "00:00:01:01.000" and all(c.endswith(".000") for c in codes)
+    assert np.allclose(out.arrays["gaze"][::2], make_gaze(), atol=1e-5)
+    for bad in (0, -30, 241):
+        with pytest.raises(ValueError, match="fps"):
+            Export.Params(fps=bad)
+
+
+def test_threejs_plays_the_glb_in_headless_chromium(exported, node_modules):
+    """three.js (GLTFLoader + AnimationMixer) in Debian's Chromium: a skinned mesh whose morph influences,
+    head rotation and eye rotations follow the animation, and rendered frames that change over time."""
+    if not Path(CHROMIUM).exists():
+        missing_tool(f"Chromium is not installed: apt-get update && apt-get install -y chromium ({CHROMIUM})")
+    times = [k / FPS for k in (0, 8, 15, 22, 30, 42)]  # key frames: the jaw is open at 22 only
+    report = probe_in_threejs(exported.arrays["animation"].tobytes(), node_modules, times)
+    assert report["errors"] == []
+    assert report["bones"] == ["Root", "Head", "LeftEye", "RightEye"] and report["webgl"]
+    index = report["morphs"]["jawOpen"]
+    head, gaze = make_head(), make_gaze()
+    from stages.export.rig import gaze_rotations
+
+    for frame in report["frames"]:
+        k = int(round(frame["t"] * FPS))
+        assert frame["skinned"]
+        expected_jaw = make_blend()["weights"][k, 0]
+        assert frame["influences"][index] == pytest.approx(expected_jaw, abs=1e-6)
+        q = np.array(frame["head"])[[3, 0, 1, 2]]
+        assert abs(q @ head["rotation"][k]) == pytest.approx(1.0, abs=1e-5)
+        q = np.array(frame["left"])[[3, 0, 1, 2]]
+        assert abs(q @ gaze_rotations(gaze)[k, 0]) == pytest.approx(1.0, abs=1e-5)
+    images = [f["image"] for f in report["frames"]]
+    assert len(set(images)) == len(images) and min(images) > 0  # something is drawn, and it moves
 
 
 def decode_mp4(data: bytes):
@@ -568,6 +797,20 @@ def test_the_ict_export_warns_about_nothing(exported):
     """ICT FaceKit: every ARKit column but TongueOut has a source, and no moving morph is dropped."""
     assert exported.meta["live_link"]["empty_columns"] == ["TongueOut"]
     assert exported.meta["live_link"]["dropped_morphs"] == []
+
+
+def test_a_silent_take_gives_a_silent_preview_with_a_warning(character):
+    """Tracking contract: a take without audio has meta has_audio[label] false (or no audio output at all)."""
+    silent = make_audio(0.0)
+    silent.meta["has_audio"] = {"happy": True, "beep": False}
+    no_audio = artifact({"landmarks": np.zeros((3, 68, 2))}, {"labels": ["beep"], "fps": [FPS]})
+    for audio in (silent, no_audio):
+        inputs = {"character": character.view(), "blend": make_blend(6), "audio": audio}
+        result = run_with_warnings({"sequence": "beep", "video_size": 32}, inputs)
+        assert result.warnings == ["the take 'beep' has no audio: the preview is silent"]
+        assert result.meta["video"]["audio"] is False
+        with av.open(io.BytesIO(result.arrays["preview"])) as container:
+            assert not container.streams.audio and container.streams.video[0].frames == 6
 
 
 def test_figures(exported):
