@@ -8,12 +8,12 @@ from tracking_media import CLIPS, write_video
 from msflow import UserError
 from msflow.testing import run_stage
 from stages.geometry.rotations import quat_to_euler
+from stages.geometry.similarity import fit_similarity
 from stages.tracking import FaceMesh, OpticalFlow, TrackFile
 from stages.tracking.assemble import inter_ocular, rotation_steps_deg
 from stages.tracking.crops import eye_centres
 from stages.tracking.figures import FIGURES, contact_sheet_png
 from stages.tracking.landmarks68 import IBUG68_MIRROR
-from stages.tracking.shape_model import similarity_fit
 from stages.tracking.trackfile import format_pts, write_openface_csv
 from stages.tracking.video import read_frames
 
@@ -142,7 +142,7 @@ def test_mapping_table_is_symmetric_and_evenly_spaced_on_real_faces(facemesh):
     residuals = []
     for shape, d in zip(lm[::5], iod[::5]):
         mirrored = shape[IBUG68_MIRROR] * np.array([-1.0, 1.0])
-        t = similarity_fit(mirrored, shape)
+        t = fit_similarity(mirrored, shape)
         residuals.append(np.linalg.norm(mirrored @ t[:, :2].T + t[:, 2] - shape, axis=1) / d)
     per_point = np.mean(residuals, axis=0)
     assert per_point.max() < 0.06 and per_point.mean() < 0.03  # a face is nearly symmetric; a wrong pair is not

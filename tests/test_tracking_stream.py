@@ -8,7 +8,7 @@ from conftest import run_cli
 from tracking_media import CLIPS, first_frames, write_video
 
 from msflow import UserError
-from msflow.testing import prepare_inputs, run_stage, validate_result
+from msflow.testing import run_stage
 from stages.tracking import FaceMesh
 from stages.tracking.gaps import FILLED, HELD, TRACKED, apply_plan, fill_gaps, gap_plan
 from stages.tracking.planes import frame_planes, yuv_to_rgb_matrix
@@ -115,10 +115,7 @@ def test_planes_warp_to_the_same_picture_as_rgb(fmt):
 
 
 def run_with_jobs(params, videos, jobs):
-    stage = FaceMesh("t")
-    stage.jobs = jobs
-    result = stage.run(FaceMesh.Params(**params), prepare_inputs(FaceMesh, {"videos": videos}))
-    return validate_result("t", FaceMesh, result), result
+    return run_stage(FaceMesh, params, {"videos": videos}, jobs=jobs).arrays, None
 
 
 def test_results_do_not_depend_on_workers_or_blocks(monkeypatch):

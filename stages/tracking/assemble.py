@@ -225,21 +225,43 @@ def video_end(seq: TakeTrack) -> float:
 
 
 class FrameOutputs:
-    """The stage's per-frame outputs, appended take by take in blocks of frames, concatenated at the end.
+    """The stage's per-frame outputs, appended take by take in blocks of frames.
 
-    The one place that holds the big outputs (crops, mesh): switching them to the store's streaming sinks changes
-    this class only.
+    With ``sink`` (the stage's ``Stage.sink``) every output is an output sink: in a store run its chunks are
+    written as blocks come, so no whole-take array is held; without it, blocks are concatenated at the end.
     """
 
-    def __init__(self):
-        self.blocks: dict[str, list[np.ndarray]] = {}
+    def __init__(self, sink=None, schema: dict | None = None):
+        self.sink, self.schema = sink, schema or {}
+        self.outputs: dict = {}
 
     def append(self, arrays: dict) -> None:
-        for name, value in arrays.items():
-            self.blocks.setdefault(name, []).append(value)
+        for name, block in arrays.items():
+            if name not in self.outputs:
+                spec = self.schema.get(name)
+                dtype = spec.dtype if spec is not None and spec.dtype else block.dtype
+                self.outputs[name] = self._open(name, dtype, block.shape[1:])
+            self.outputs[name].append(block)
+
+    def _open(self, name: str, dtype, row_shape: tuple):
+        if self.sink is not None:
+            return self.sink(name, dtype=dtype, row_shape=row_shape)
+        return _Blocks(dtype)
 
     def arrays(self) -> dict:
-        return {name: np.concatenate(blocks) for name, blocks in self.blocks.items()}
+        """Output name -> sink (or array, when there is no sink)."""
+        return {name: out if self.sink is not None else out.array() for name, out in self.outputs.items()}
+
+
+class _Blocks:
+    def __init__(self, dtype):
+        self.dtype, self.blocks = np.dtype(dtype), []
+
+    def append(self, block: np.ndarray) -> None:
+        self.blocks.append(np.asarray(block, dtype=self.dtype))
+
+    def array(self) -> np.ndarray:
+        return np.concatenate(self.blocks)
 
 
 @dataclass
@@ -405,5 +427,6 @@ def assemble(
     stats = {take.label: sequence_stats(take) for take in takes}
     meta["sequence_stats"] = stats
     meta.update(extra_meta or {})
-    metrics = {**tracking_metrics(stats, arrays["valid"]), **(extra_metrics or {})}
+    valid = np.concatenate([t.valid for t in takes])
+    metrics = {**tracking_metrics(stats, valid), **(extra_metrics or {})}
     return Result(arrays, meta=meta, metrics=metrics, warnings=gap_warnings(takes, params.max_gap_frames))

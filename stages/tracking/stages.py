@@ -29,7 +29,7 @@ from stages.tracking.gaps import apply_plan, fill_gaps, gap_plan
 from stages.tracking.landmarks68 import mesh_to_ibug68
 from stages.tracking.schema import TRACKING_OUTPUTS
 from stages.tracking.takes import AudioSource, audio_sources, labels_fields, preflight_audio
-from stages.tracking.video import iter_planes, probe_video
+from stages.tracking.video import VideoInfo, iter_planes, probe_video
 
 MODELS = DATA / "models" / "mediapipe-face"
 DETECTOR_MODEL = MODELS / "face_detection_short_range.tflite"
@@ -112,8 +112,8 @@ def new_tracker(params, models: dict | None):
 
 
 def stage_jobs(stage: Stage) -> int:
-    """The run's worker count (``-j``) as the stage sees it (1 until the runner sets ``jobs``)."""
-    return max(1, int(getattr(stage, "jobs", 1) or 1))
+    """The run's worker count (``-j``) as the stage sees it."""
+    return max(1, int(stage.jobs))
 
 
 @contextmanager
@@ -178,7 +178,7 @@ class FaceMesh(Stage):
         preflight_audio(audio, video_durations(videos), params)
         face3d, face3d_name = resolve_face3d(inputs.get("face3d"))
         tracker = new_tracker(params, inputs.get("models"))
-        outputs, jobs = FrameOutputs(), stage_jobs(self)
+        outputs, jobs = FrameOutputs(self.sink, TRACKING_OUTPUTS), stage_jobs(self)
         with cv_threads(jobs):
             takes = [
                 track_facemesh_take(tracker, label, Path(path), params, face3d, outputs, audio[label], jobs)
@@ -245,6 +245,39 @@ def initial_shape(init_path: Path, label: str, params: OpticalFlowParams) -> tup
     return int(track.frame[rows[0]]), track.landmarks[rows[0]]
 
 
+class FlowStart:
+    """Where optical flow starts: the init file's shape at its frame, else FaceMesh's first face."""
+
+    def __init__(self, init: tuple[int, np.ndarray] | None, tracker_factory):
+        self.init, self.factory, self.mesh_tracker = init, tracker_factory, None
+
+    def shape(self, index: int, frame) -> tuple[np.ndarray | None, float]:
+        """(68 points, confidence) to start from at this frame, or (None, 0.0)."""
+        if self.init is not None:
+            return (self.init[1], 1.0) if index == self.init[0] else (None, 0.0)
+        self.mesh_tracker = self.mesh_tracker or self.factory()
+        mesh, score = self.mesh_tracker.step(frame)
+        return (None, 0.0) if mesh is None else (mesh_to_ibug68(mesh[:468, :2]), score)
+
+
+def flow_frames(path: Path, field: str, flow, start: FlowStart, collector: CropCollector):
+    """Per frame (time, 68 points or None, tracked, confidence, median forward-backward error or None)."""
+    started = False
+    for i, (t, frame) in enumerate(iter_planes(path, field=field)):
+        gray = frame.gray()
+        if not started:
+            points, c = start.shape(i, frame)
+            started = ok = points is not None
+            if started:
+                flow.start(gray, points)
+            fb = None
+        else:
+            points, good, errors = flow.step(gray)
+            ok, c, fb = not flow.is_lost(good), float(good.mean()), float(np.median(errors))
+        collector.add(frame, points if ok else None)
+        yield t, points, ok, c, fb
+
+
 def track_flow_video(
     label: str,
     path: Path,
@@ -254,6 +287,7 @@ def track_flow_video(
     model,
     audio: AudioSource | None = None,
 ) -> SequenceTrack:
+    """Lucas-Kanade tracking of one video from its start shape; gaps filled (or held) afterwards."""
     from stages.tracking.opticalflow import LucasKanadeTracker
 
     field = f"inputs.videos.{label}"
@@ -267,64 +301,31 @@ def track_flow_video(
         min_good_fraction=params.min_good_fraction,
     )
     collector = CropCollector(params, params.max_gap_frames)
-    mesh_tracker = None
-    times, shapes, conf, valid, fb_errors = [], [], [], [], []
-    started = False
-    for i, (t, frame) in enumerate(iter_planes(path, field=field)):
-        gray = frame.gray()
-        points, ok, c = None, False, 0.0
-        if not started:
-            if init is None:
-                mesh_tracker = mesh_tracker or tracker_factory()
-                mesh, score = mesh_tracker.step(frame)
-                if mesh is not None:
-                    points, c = mesh_to_ibug68(mesh[:468, :2]), score
-            elif i == init[0]:
-                points, c = init[1], 1.0
-            if points is not None:
-                flow.start(gray, points)
-                started, ok = True, True
-        else:
-            points, good, fb = flow.step(gray)
-            ok = not flow.is_lost(good)
-            c = float(good.mean())
-            fb_errors.append(float(np.median(fb)))
-        collector.add(frame, points if ok else None)
-        times.append(t)
-        shapes.append(points if points is not None else np.full((68, 2), np.nan))
-        conf.append(c)
-        valid.append(ok)
-    if init is not None and not started:
+    rows = list(flow_frames(path, field, flow, FlowStart(init, tracker_factory), collector))
+    times = np.array([r[0] for r in rows])
+    valid = np.array([r[2] for r in rows], dtype=bool)
+    if init is not None and init[0] >= len(rows):
         raise UserError(
-            f"the init shape is for frame {init[0]} but the video has only {len(times)} frames",
+            f"the init shape is for frame {init[0]} but the video has only {len(rows)} frames",
             file=str(path),
             field=f"inputs.init.{label}",
         )
-    times_arr, valid_arr = np.array(times), np.array(valid, dtype=bool)
+    shapes = np.array([np.full((68, 2), np.nan) if r[1] is None else r[1] for r in rows])
     landmarks, sources, gaps = fill_gaps(
-        np.array(shapes), valid_arr, params.max_gap_frames, params.long_gaps, times_arr, file=str(path), field=field
+        shapes, valid, params.max_gap_frames, params.long_gaps, times, file=str(path), field=field
     )
     crops, transforms = collector.finish(landmarks, sources)
+    fb_errors = [r[4] for r in rows if r[4] is not None]
+    meta = {
+        "init": "file" if init is not None else "facemesh",
+        "fb_error_px": float(np.mean(fb_errors)) if fb_errors else 0.0,
+    }
+    size = (info.width, info.height)
+    conf = np.array([r[3] for r in rows])
     return SequenceTrack(
-        label,
-        path.name,
-        landmarks,
-        valid_arr,
-        np.array(conf),
-        times_arr,
-        info.fps,
-        (info.width, info.height),
-        field,
-        crops=crops,
-        crop_transforms=transforms,
-        video=path,
-        audio_source=audio,
-        gaps=gaps,
-        meta={
-            "init": "file" if init is not None else "facemesh",
-            "fb_error_px": float(np.mean(fb_errors)) if fb_errors else 0.0,
-        },
-    )
+        label, path.name, landmarks, valid, conf, times, info.fps, size, field, crops=crops,
+        crop_transforms=transforms, video=path, audio_source=audio, gaps=gaps, meta=meta,
+    )  # fmt: skip
 
 
 class OpticalFlow(Stage):
@@ -388,7 +389,7 @@ class OpticalFlow(Stage):
             sequences.append(track_flow_video(label, Path(path), params, init, factory, model, audio[label]))
         extra = {"shape_modes": int(model.basis.shape[1]) if model is not None else 0}
         fields = labels_fields(videos, inputs.get("init"), inputs.get("audio"))
-        outputs = FrameOutputs()
+        outputs = FrameOutputs(self.sink, TRACKING_OUTPUTS)
         takes = [write_sequence(seq, params, face3d, outputs) for seq in sequences]
         return assemble(takes, outputs, params, face3d_name, "OpticalFlow", extra_meta=extra, fields=fields)
 
@@ -469,94 +470,95 @@ class TrackFile(Stage):
     figures = FIGURES
 
     def run(self, params: TrackFileParams, inputs: dict) -> Result:
-        from stages.tracking.pose import openface_pose_to_gltf
-        from stages.tracking.trackfile import read_track
-
         tracks = _require_files(inputs["tracks"], "tracks")
         videos = dict(inputs.get("videos") or {})
         if videos and set(videos) != set(tracks):
             raise UserError(
                 f"video labels {sorted(videos)} do not match track labels {sorted(tracks)}", field="inputs.videos"
             )
-        audio = audio_sources(
-            {label: videos.get(label) for label in tracks}, inputs.get("audio"), params, "inputs.tracks"
-        )
+        takes = {label: videos.get(label) for label in tracks}
+        audio = audio_sources(takes, inputs.get("audio"), params, "inputs.tracks")
+        preflight_audio(audio, video_durations(videos), params)
         face3d, face3d_name = resolve_face3d(inputs.get("face3d"))
-        sequences = []
-        for label, path in tracks.items():
-            path = Path(path)
-            field = f"inputs.tracks.{label}"
-            track = read_track(path, params.format, frame_base=params.frame_base, face_id=params.face_id, field=field)
-            if params.min_confidence > 0:
-                track.valid &= track.confidence >= params.min_confidence
-            video = Path(videos[label]) if label in videos else None
-            crops = transforms = None
-            if video is not None:
-                vfield = f"inputs.videos.{label}"
-                info = probe_video(video, field=vfield)
-                row_of = {int(f): r for r, f in enumerate(track.frame) if track.valid[r]}
-                collector = CropCollector(params, params.max_gap_frames)
-                times = []
-                for i, (t, frame) in enumerate(iter_planes(video, field=vfield)):
-                    collector.add(frame, track.landmarks[row_of[i]] if i in row_of else None)
-                    times.append(t)
-                n = len(times)
-                times_arr, fps, size = np.array(times), info.fps, (info.width, info.height)
-            else:
-                n = int(track.frame.max()) + 1
-                times_arr, fps = track_times(track, n, params, path, field)
-                size = track.frame_size or params.frame_size
-                if size is None:
-                    raise UserError(
-                        "frame size unknown (needed for head pose): give the video or "
-                        "params.frame_size [width, height]",
-                        file=str(path),
-                        field=field,
-                    )
-            landmarks, valid, conf = dense_track(track, n, label, path)
-            landmarks, sources, gaps = fill_gaps(
-                landmarks, valid, params.max_gap_frames, params.long_gaps, times_arr, file=str(path), field=field
-            )
-            if video is not None:
-                crops, transforms = collector.finish(landmarks, sources)
-            rotation = translation = None
-            if params.pose_source == "file":
-                if track.openface_pose is None:
-                    raise UserError(
-                        "pose_source 'file' needs OpenFace pose columns pose_Tx..pose_Rz", file=str(path), field=field
-                    )
-                q, t = openface_pose_to_gltf(track.openface_pose[:, 3:], track.openface_pose[:, :3])
-                dense_q, dense_t = np.zeros((n, 4)), np.zeros((n, 3))
-                dense_q[track.frame], dense_t[track.frame] = q, t
-                plan = gap_plan(valid, params.max_gap_frames)[:3]
-                rotation = apply_plan(dense_q, *plan)
-                rotation /= np.linalg.norm(rotation, axis=1, keepdims=True)
-                translation = apply_plan(dense_t, *plan)
-            sequences.append(
-                SequenceTrack(
-                    label,
-                    path.name,
-                    landmarks,
-                    valid,
-                    conf,
-                    times_arr,
-                    fps,
-                    (int(size[0]), int(size[1])),
-                    field,
-                    crops=crops,
-                    crop_transforms=transforms,
-                    video=video,
-                    audio_source=audio[label],
-                    rotation=rotation,
-                    translation=translation,
-                    gaps=gaps,
-                    meta={"track_format": track.format},
-                )
-            )
+        sequences = [
+            trackfile_sequence(label, Path(path), params, takes[label], audio[label]) for label, path in tracks.items()
+        ]
         fields = labels_fields(tracks, videos, inputs.get("audio"))
-        outputs = FrameOutputs()
-        takes = [write_sequence(seq, params, face3d, outputs) for seq in sequences]
-        return assemble(takes, outputs, params, face3d_name, "TrackFile", fields=fields)
+        outputs = FrameOutputs(self.sink, TRACKING_OUTPUTS)
+        takes_out = [write_sequence(seq, params, face3d, outputs) for seq in sequences]
+        return assemble(takes_out, outputs, params, face3d_name, "TrackFile", fields=fields)
+
+
+def video_crops(video: Path, track, params: TrackFileParams, label: str) -> tuple[CropCollector, np.ndarray, VideoInfo]:
+    """Crops (collected while the video streams) at the file's valid rows, the video's frame times and info."""
+    field = f"inputs.videos.{label}"
+    info = probe_video(video, field=field)
+    row_of = {int(f): r for r, f in enumerate(track.frame) if track.valid[r]}
+    collector = CropCollector(params, params.max_gap_frames)
+    times = []
+    for i, (t, frame) in enumerate(iter_planes(video, field=field)):
+        collector.add(frame, track.landmarks[row_of[i]] if i in row_of else None)
+        times.append(t)
+    return collector, np.array(times), info
+
+
+def file_frame_size(track, params: TrackFileParams, path: Path, field: str) -> tuple[int, int]:
+    size = track.frame_size or params.frame_size
+    if size is None:
+        raise UserError(
+            "frame size unknown (needed for head pose): give the video or params.frame_size [width, height]",
+            file=str(path),
+            field=field,
+        )
+    return int(size[0]), int(size[1])
+
+
+def file_pose(track, valid: np.ndarray, n: int, params: TrackFileParams, path: Path, field: str):
+    """(rotation, translation) from the OpenFace pose columns, filled like the landmarks; (None, None) unless
+    params.pose_source is 'file'."""
+    from stages.tracking.pose import openface_pose_to_gltf
+
+    if params.pose_source != "file":
+        return None, None
+    if track.openface_pose is None:
+        raise UserError("pose_source 'file' needs OpenFace pose columns pose_Tx..pose_Rz", file=str(path), field=field)
+    q, t = openface_pose_to_gltf(track.openface_pose[:, 3:], track.openface_pose[:, :3])
+    dense_q, dense_t = np.zeros((n, 4)), np.zeros((n, 3))
+    dense_q[track.frame], dense_t[track.frame] = q, t
+    plan = gap_plan(valid, params.max_gap_frames)[:3]
+    rotation = apply_plan(dense_q, *plan)
+    rotation /= np.linalg.norm(rotation, axis=1, keepdims=True)
+    return rotation, apply_plan(dense_t, *plan)
+
+
+def trackfile_sequence(
+    label: str, path: Path, params: TrackFileParams, video: Path | None, audio: AudioSource | None
+) -> SequenceTrack:
+    """One track file on the frame axis (of its video, when given), gaps filled (or held), crops, pose."""
+    from stages.tracking.trackfile import read_track
+
+    field = f"inputs.tracks.{label}"
+    track = read_track(path, params.format, frame_base=params.frame_base, face_id=params.face_id, field=field)
+    if params.min_confidence > 0:
+        track.valid &= track.confidence >= params.min_confidence
+    collector = None
+    if video is not None:
+        collector, times, info = video_crops(Path(video), track, params, label)
+        n, fps, size = len(times), info.fps, (info.width, info.height)
+    else:
+        n = int(track.frame.max()) + 1
+        (times, fps), size = track_times(track, n, params, path, field), file_frame_size(track, params, path, field)
+    landmarks, valid, conf = dense_track(track, n, label, path)
+    landmarks, sources, gaps = fill_gaps(
+        landmarks, valid, params.max_gap_frames, params.long_gaps, times, file=str(path), field=field
+    )
+    crops, transforms = collector.finish(landmarks, sources) if collector is not None else (None, None)
+    rotation, translation = file_pose(track, valid, n, params, path, field)
+    return SequenceTrack(
+        label, path.name, landmarks, valid, conf, times, fps, size, field, crops=crops, crop_transforms=transforms,
+        video=video, audio_source=audio, rotation=rotation, translation=translation, gaps=gaps,
+        meta={"track_format": track.format},
+    )  # fmt: skip
 
 
 __all__ = ["FaceMesh", "OpticalFlow", "TrackFile"]
