@@ -151,14 +151,18 @@ def speed_high_resolution(heads: Path | None, out: Path) -> None:
         return
     source = heads / "address_us.mp4"
     clips = {"1080p (address_us upscaled)": upscaled_1080p(source, out / "address_us_1080p.mp4"), "720p": source}
-    print("2. FaceMesh stage (default model), 2 workers and 1 worker: frames/s wall (CPU seconds per frame)")
+    print("2. FaceMesh stage (default model), 2 workers and 1 worker: frames/s wall (CPU per frame, load average)")
     for name, clip in clips.items():
         for jobs in (2, 1):
             started, cpu0 = time.perf_counter(), time.process_time()
             result = run_stage(FaceMesh, {"audio": "none"}, {"videos": {"c": clip}}, jobs=jobs)
             wall, cpu = time.perf_counter() - started, time.process_time() - cpu0
             n = len(result.arrays["valid"])
-            print(f"   {name:28s} jobs {jobs}: {n / wall:6.1f} frames/s ({1000 * cpu / n:.1f} ms CPU per frame)")
+            load = os.getloadavg()[0]
+            print(
+                f"   {name:28s} jobs {jobs}: {n / wall:6.1f} frames/s ({1000 * cpu / n:.1f} ms CPU per frame, "
+                f"load {load:.1f})"
+            )
 
 
 def agreement(clips: list[Path], cache: Path, fresh: bool) -> None:

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, PositiveInt
 
 from msflow import Input, Result, Stage, UserError
 from stages.data import DATA
@@ -411,7 +411,7 @@ class TrackFileParams(TrackingParams):
     fps: float | None = Field(
         None, gt=0, description="frame rate when there is no video and the file has no timestamps"
     )
-    frame_size: tuple[int, int] | None = Field(
+    frame_size: tuple[PositiveInt, PositiveInt] | None = Field(
         None, description="[width, height] of the tracked video when no video is given (needed for head pose)"
     )
     pose_source: Literal["landmarks", "file"] = Field(
