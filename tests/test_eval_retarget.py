@@ -136,7 +136,10 @@ def test_the_characters_own_animation_scores_zero(truth):
     # mouth opening follows an audio envelope made from it, for the performer and the character alike
     assert m["envelope_r_character"] > 0.8
     assert abs(m["envelope_r_character"] - m["envelope_r_performer"]) < 1e-6
-    assert m["dead_channels"] >= 1  # e.g. the smiles: the mouth moved and they never did
+    # e.g. the smiles: the mouth moved and they never did; ARKit columns through the export's mapping
+    assert m["dead_morphs"] >= 1 and "mouthSmile_L" in out.meta["dead_morphs"]
+    assert "MouthSmileLeft" in out.meta["dead_arkit_columns"] and "JawOpen" not in out.meta["dead_arkit_columns"]
+    assert "TongueOut" not in out.meta["dead_arkit_columns"]
 
 
 def test_a_shifted_animation_scores_badly(character, truth):

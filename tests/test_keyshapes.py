@@ -5,9 +5,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from pydantic import ValidationError
 from face_fixtures import face_modes as fixture_modes
 from face_fixtures import face_template
+from pydantic import ValidationError
 
 from msflow import UserError
 from msflow.testing import artifact, run_stage

@@ -21,8 +21,9 @@ first aligned to that model by a 3D similarity on the rigid landmarks), then com
   performer (the reference) and the character shifted by half a take (no timing: the chance level).
 - **jaw vs funnel**: at the performer's widest-jaw frames (chin-to-nose-bridge distance, top ``widest_fraction``
   of each take), jawOpen minus mouthFunnel, and how often jawOpen is the larger.
-- **dead channels**: morphs that never exceed ``dead_level`` although their region moved (RMS landmark motion
-  above ``moved_level`` IOD; gaze needs tracking ``gaze``).
+- **dead channels**: ARKit columns (the export's mapping, ``stages.formats.live_link``) and character morphs that
+  never exceed ``dead_level`` although their region moved (RMS landmark motion above ``moved_level`` IOD; eyes:
+  aperture std; gaze needs tracking ``gaze``; the tongue is never tracked).
 - **keyshape residual**: the decomposition residual (Eq 8) of the keyshapes artifact, when given.
 """
 
@@ -554,8 +555,15 @@ def evaluate(params, **data) -> dict:
     moved = {region: amount > params.moved_level for region, amount in moved_amount.items()}
     if data["gaze"] is not None:
         moved["gaze"] = bool(np.asarray(data["gaze"]).std(axis=0).max() > 2.0)
+    from stages.formats.live_link import ARKIT_NAMES, UNTRACKED_COLUMNS, arkit_weights
+
+    arkit, _ = arkit_weights(weights, names, data["deltas"])
+    dead_columns = [
+        c for c in dead_channels(arkit, ARKIT_NAMES, moved, params.dead_level) if c not in UNTRACKED_COLUMNS
+    ]
     dead = dead_channels(weights, names, moved, params.dead_level)
-    metrics["dead_channels"] = float(len(dead))
+    metrics["dead_arkit_columns"] = float(len(dead_columns))
+    metrics["dead_morphs"] = float(len(dead))
 
     metrics["pose_rms_px"] = float(np.sqrt(np.mean((predicted[:, list(RIGID)] - tracked[:, list(RIGID)]) ** 2) * 2))
     meta = {
@@ -566,7 +574,8 @@ def evaluate(params, **data) -> dict:
         "blink_source": "tracking eye_aperture" if data["aperture"] is not None else "landmarks",
         "widest_jaw_frames": widest.tolist(),
         "region_motion": moved_amount,
-        "dead_channels": dead,
+        "dead_arkit_columns": dead_columns,
+        "dead_morphs": dead,
         "similarity_to_pose_model": {"scale": float(to_model.scale)},
     }
     arrays = {
