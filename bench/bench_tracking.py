@@ -5,14 +5,15 @@
 DIR defaults to ../shared/data/talking-heads beside the project (skipped when absent). Printed:
 
 1. speed per core (one OpenCV thread, one decoder thread; CPU seconds, so other load matters little) of the whole
-   FaceMesh stage (decode, landmarks, crops, head pose, eyes, audio) with each landmark model on CREMA-D;
+   FaceMesh stage (decode, landmarks, crops, head pose, eyes, audio) in each configuration (``CONFIGS``: the
+   default, face_mesh_v1 landmarks with eyes from a Face Landmarker v2 pass; v2 alone; v1 alone) on CREMA-D;
 2. 1080p and 720p speed with 2 workers (``jobs`` = 2: decoder threads and OpenCV threads): a 1920x1080 clip made
    by upscaling 20 s of ``address_us.mp4`` with PyAV (written under --out), and ``address_us.mp4`` itself;
 3. landmark agreement, per clip: the streaming pipeline (Y'CbCr planes) against the previous one (whole frames
    converted to BGR by FFmpeg) with the same model (face_mesh_v1), and Face Landmarker v2 against face_mesh_v1;
    nose-bridge jitter (mean second difference) of both models;
-4. eyes: blinks found by ``eyes.detect_blinks`` on Face Landmarker v2's eye aperture (and on face_mesh_v1's)
-   against blinks marked by hand, frame by frame, on contact sheets of the eye region (``HAND_BLINKS``); the rest
+4. eyes: blinks found by ``eyes.detect_blinks`` on each configuration's eye aperture (face_mesh_v1 alone: its
+   own lids, measured the same way) against blinks marked by hand, frame by frame, on contact sheets of the eye region (``HAND_BLINKS``); the rest
    position of the iris in the eye (median over every clip's open-eye frames; ``eyes.REST_OFFSET``).
 
 Tracks are cached per clip and model under --out/tracks (``--fresh`` recomputes them).
@@ -39,7 +40,13 @@ from stages.tracking.assemble import inter_ocular  # noqa: E402
 from stages.tracking.eyes import detect_blinks, eye_aperture, eye_offsets  # noqa: E402
 
 CREMA = sorted((ROOT / "data" / "crema-d").glob("*.flv"))
-MODELS = ("face_landmarker_v2", "face_mesh_v1")
+#: FaceMesh configurations compared: the default (face_mesh_v1 landmarks, eyes from a Face Landmarker v2 pass on
+#: the same face region), Face Landmarker v2 as the landmark model, face_mesh_v1 alone
+CONFIGS = {
+    "default": {},
+    "face_landmarker_v2": {"model": "face_landmarker_v2"},
+    "face_mesh_v1": {"eyes": False},
+}
 #: blinks marked by hand on eye-region contact sheets: clip -> (frames looked at, or None for all;
 #: [first, last] closed-or-closing frames, inclusive)
 HAND_BLINKS = {
@@ -74,13 +81,13 @@ HAND_BLINKS = {
 }
 
 
-def track(clip: Path, model: str, cache: Path, fresh: bool) -> dict:
-    """FaceMesh arrays of one clip (cached), with the CPU seconds it took."""
-    path = cache / f"{clip.stem}.{model}.npz"
+def track(clip: Path, config: str, cache: Path, fresh: bool) -> dict:
+    """FaceMesh arrays of one clip with one of CONFIGS (cached), with the CPU seconds it took."""
+    path = cache / f"{clip.stem}.{config}.npz"
     if path.exists() and not fresh:
         return dict(np.load(path))
     started = time.process_time()
-    out = run_stage(FaceMesh, {"model": model, "audio": "none"}, {"videos": {clip.stem: clip}})
+    out = run_stage(FaceMesh, {**CONFIGS[config], "audio": "none"}, {"videos": {clip.stem: clip}})
     keep = ("mesh", "landmarks", "valid", "time", "iris", "eye_aperture", "gaze")
     arrays = {k: np.asarray(out.arrays[k]) for k in keep if k in out.arrays}
     arrays["cpu"] = np.array(time.process_time() - started)
@@ -116,13 +123,13 @@ def jitter(landmarks: np.ndarray) -> float:
 def speed_per_core(out: Path) -> None:
     print("1. FaceMesh stage on the six CREMA-D clips, one core (CPU time):")
     videos = {c.stem: c for c in CREMA}
-    for model in MODELS:
-        run_stage(FaceMesh, {"model": model}, {"videos": {"w": CREMA[0]}})  # warm-up: imports, model load
+    for config, params in CONFIGS.items():
+        run_stage(FaceMesh, params, {"videos": {"w": CREMA[0]}})  # warm-up: imports, model load
         started = time.process_time()
-        result = run_stage(FaceMesh, {"model": model}, {"videos": videos})
+        result = run_stage(FaceMesh, params, {"videos": videos})
         cpu = time.process_time() - started
         n = len(result.arrays["valid"])
-        print(f"   {model:20s} {n / cpu:6.1f} frames/s per core ({1000 * cpu / n:.1f} ms CPU per frame)")
+        print(f"   {config:20s} {n / cpu:6.1f} frames/s per core ({1000 * cpu / n:.1f} ms CPU per frame)")
 
 
 def upscaled_1080p(source: Path, path: Path, seconds: float = 20.0) -> Path:
@@ -169,7 +176,7 @@ def agreement(clips: list[Path], cache: Path, fresh: bool) -> None:
     print("3. landmarks (68 points), RMS px and % of the outer-eye-corner distance (IOD):")
     print("   clip                 IOD px | streaming vs previous (v1) | v2 vs v1        | jitter v2 / v1 px")
     for clip in clips:
-        v2, v1 = track(clip, MODELS[0], cache, fresh), track(clip, MODELS[1], cache, fresh)
+        v2, v1 = track(clip, "face_landmarker_v2", cache, fresh), track(clip, "face_mesh_v1", cache, fresh)
         before = previous_pipeline_landmarks(clip)
         iod = float(np.mean(inter_ocular(v1["landmarks"])))
         same, models = rms(v1["landmarks"], before), rms(v2["landmarks"], v1["landmarks"])
@@ -183,14 +190,15 @@ def agreement(clips: list[Path], cache: Path, fresh: bool) -> None:
 def eyes(clips: list[Path], cache: Path, fresh: bool) -> None:
     print("4. blinks against the hand-marked ones (a hand blink is found when a detected one overlaps it):")
     by_stem = {c.stem: c for c in clips}
-    for model in MODELS:
+    for config in CONFIGS:
         marked = found = detected = false = 0
         for stem, (limit, hand) in HAND_BLINKS.items():
             if stem not in by_stem:
                 continue
-            arrays = track(by_stem[stem], model, cache, fresh)
+            arrays = track(by_stem[stem], config, cache, fresh)
             n = limit or len(arrays["valid"])
-            aperture = eye_aperture(arrays["mesh"][:n].astype(np.float64))
+            # face_mesh_v1 alone has no eye outputs: its own lids, measured the same way
+            aperture = arrays["eye_aperture"][:n] if "eye_aperture" in arrays else eye_aperture(arrays["mesh"][:n])
             blinks = [(a, b - 1) for a, b in detect_blinks(aperture, arrays["valid"][:n])]
 
             def overlaps(x, y):
@@ -201,12 +209,12 @@ def eyes(clips: list[Path], cache: Path, fresh: bool) -> None:
             detected += len(blinks)
             false += sum(not any(overlaps(b, h) for h in hand) for b in blinks)
         print(
-            f"   {model:20s} recall {found}/{marked} = {found / max(marked, 1):.0%}, "
+            f"   {config:20s} recall {found}/{marked} = {found / max(marked, 1):.0%}, "
             f"false blinks {false}/{detected} = {false / max(detected, 1):.0%}"
         )
     medians = []
     for clip in clips:
-        arrays = track(clip, MODELS[0], cache, fresh)
+        arrays = track(clip, "face_landmarker_v2", cache, fresh)
         points = np.concatenate([arrays["mesh"], arrays["iris"]], axis=1).astype(np.float64)
         aperture = eye_aperture(points).mean(axis=1)
         open_eyes = arrays["valid"] & (aperture > 0.6 * np.median(aperture))

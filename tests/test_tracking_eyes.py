@@ -92,22 +92,36 @@ def test_aperture_and_a_synthetic_blink():
 
 @pytest.fixture(scope="module")
 def sad(tmp_path_factory):
-    """FaceMesh (Face Landmarker v2) on the sad take and on its mirror image."""
+    """FaceMesh with Face Landmarker v2 as the landmark model on the sad take and on its mirror image."""
     times, frames = read_frames(CLIPS["SAD"])
     mirrored = write_video(tmp_path_factory.mktemp("mirror") / "mirror.mp4", [f[:, ::-1].copy() for f in frames])
-    params = {"audio": "none"}
+    params = {"audio": "none", "model": "face_landmarker_v2"}
     return run_stage(FaceMesh, params, {"videos": {"sad": CLIPS["SAD"]}}), run_stage(
         FaceMesh, params, {"videos": {"mirror": mirrored}}
     )
 
 
-def test_the_sad_takes_blink_is_found(sad):
+@pytest.fixture(scope="module")
+def sad_default():
+    """FaceMesh as configured by default: face_mesh_v1 landmarks, eyes from a Face Landmarker v2 pass."""
+    return run_stage(FaceMesh, {"audio": "none", "output_mesh": False}, {"videos": {"sad": CLIPS["SAD"]}})
+
+
+@pytest.mark.parametrize("which", ["default", "v2"])
+def test_the_sad_takes_blink_is_found(sad, sad_default, which):
     """By eye: the actor's eyes close over frames 6-7 and open at 8 (and are open everywhere else)."""
-    aperture = sad[0].arrays["eye_aperture"]
-    assert detect_blinks(aperture, sad[0].arrays["valid"]) == [(6, 9)]
-    assert (aperture[6:8] < 0.1).all()  # closed
+    run = sad_default if which == "default" else sad[0]
+    aperture = run.arrays["eye_aperture"]
+    assert detect_blinks(aperture, run.arrays["valid"]) == [(6, 9)]
+    assert (aperture[6:8].mean(axis=1) < 0.1).all()  # closed
     others = np.r_[0:5, 10 : len(aperture)]
     assert (aperture[others] > 0.2).all() and (aperture[others] < 0.4).all()
+    assert run.arrays["gaze"].shape == (len(aperture), 2, 2) and run.arrays["iris"].shape == (len(aperture), 10, 3)
+
+
+def test_no_eye_outputs_when_asked():
+    out = run_stage(FaceMesh, {"audio": "none", "eyes": False}, {"videos": {"neu": CLIPS["NEU"]}})
+    assert not {"eye_aperture", "gaze", "iris"} & set(out.arrays) and out.arrays["mesh"].shape[1] == 468
 
 
 def test_eye_indices_and_mirror_symmetry_on_real_footage(sad):

@@ -151,9 +151,12 @@ class FaceMeshTracker:
         min_presence: float = 0.5,
         redetect_every: int = 0,
         model: str = "face_mesh_v1",
+        eye_model_path: str | Path | None = None,
     ):
         self.detector = BlazeFaceDetector(detector_path, min_score=min_detection_score)
         self.mesh = FaceMeshModel(landmark_path, LANDMARK_MODELS[model])
+        #: a second, 478-point model run on the same ROI for the eyes (when the landmark model has no iris)
+        self.eyes = FaceMeshModel(eye_model_path, LANDMARK_MODELS["face_landmarker_v2"]) if eye_model_path else None
         self.min_presence = min_presence
         self.redetect_every = redetect_every
         self.reset()
@@ -165,9 +168,21 @@ class FaceMeshTracker:
         self.detections = 0
         self.detector_scores: list[float] = []
 
+    @property
+    def points(self) -> int:
+        """Points per frame ``step`` returns: the landmark model's, then the eye model's when there is one."""
+        return self.mesh.spec.points + (self.eyes.spec.points if self.eyes is not None else 0)
+
+    @property
+    def eye_offset(self) -> int | None:
+        """Where a 478-point (Face Landmarker v2) layout starts in ``step``'s points; None: no eyes."""
+        if self.eyes is not None:
+            return self.mesh.spec.points
+        return 0 if self.mesh.spec.points >= 478 else None
+
     def step(self, frame) -> tuple[np.ndarray | None, float]:
-        """(points, 3) landmarks and presence score for the next frame (BGR array or ``planes.FramePlanes``);
-        (None, 0.0) when no face is found.
+        """(``points``, 3) landmarks and presence score for the next frame (BGR array or ``planes.FramePlanes``);
+        (None, 0.0) when no face is found. With an eye model its 478 points follow the landmark model's.
 
         The ROI comes from the previous frame's points; the detector runs when there is none, when the presence
         score drops below ``min_presence`` (the tracked face was lost) or every ``redetect_every`` frames.
@@ -175,28 +190,31 @@ class FaceMeshTracker:
         frame = as_image(frame)
         if self.redetect_every and self.since_detection >= self.redetect_every:
             self.roi = None
-        points, score = None, 0.0
-        if self.roi is not None:
-            points, score = self.mesh.infer(frame, self.roi)
-        if self.roi is None or score < self.min_presence:
+        roi, points, score = self.roi, None, 0.0
+        if roi is not None:
+            points, score = self.mesh.infer(frame, roi)
+        if roi is None or score < self.min_presence:
             found = self.detector.detect(frame, max_faces=1)
             self.detections += 1
             self.since_detection = 0
-            points, score = None, 0.0
+            roi, points, score = None, None, 0.0
             if len(found):
                 self.detector_scores.append(float(found.scores[0]))
-                points, score = self.mesh.infer(frame, roi_from_detection(found))
+                roi = roi_from_detection(found)
+                points, score = self.mesh.infer(frame, roi)
         self.since_detection += 1
         if points is None or score < self.min_presence:
             self.roi = None
             return None, 0.0
         self.roi = roi_from_mesh(points)
+        if self.eyes is not None:  # the same ROI: both models see the same face region
+            points = np.concatenate([points, self.eyes.infer(frame, roi)[0]])
         return points, score
 
     def track(self, frames: Iterable) -> tuple[np.ndarray, np.ndarray]:
         """All frames at once: (points (n, points, 3) with NaN where no face, presence scores (n,))."""
         self.reset()
-        n_points = self.mesh.spec.points
+        n_points = self.points
         points, scores = [], []
         for frame in frames:
             p, s = self.step(frame)

@@ -38,7 +38,7 @@ LANDMARKER_V2_MODEL = MODELS / "face_landmarks_detector.tflite"
 
 VIDEOS_DOC = "labelled videos (label -> file); any container/codec FFmpeg reads"
 FACE3D_DOC = "optional 3D face for head pose: a JSON file with 'neutral' (68, 3) like data/face3d"
-MODELS_DOC = "optional MediaPipe models: labels 'detector' and 'landmarks' (.tflite); default data/models"
+MODELS_DOC = "optional MediaPipe models: labels 'detector', 'landmarks' and 'eyes' (.tflite); default data/models"
 AUDIO_DOC = (
     "optional separate audio files (WAV, FLAC, MP3, ...) matched to the takes by label; params.audio_offset "
     "places each take's first frame in its file"
@@ -54,16 +54,20 @@ MESH_RESOURCES = {
 }
 
 
-def model_paths(models: dict | None, model: str = "face_mesh_v1") -> tuple[Path, Path]:
-    """(detector, landmark model) files: the ``models`` input's, or the project's for the chosen ``model``."""
+def model_paths(models: dict | None, model: str = "face_mesh_v1") -> tuple[Path, Path, Path]:
+    """(detector, landmark model, eye model) files: the ``models`` input's, or the project's for ``model``."""
     models = dict(models or {})
-    unknown = set(models) - {"detector", "landmarks"}
+    unknown = set(models) - {"detector", "landmarks", "eyes"}
     if unknown:
         raise UserError(
-            f"unknown model labels {sorted(unknown)}; use 'detector' and 'landmarks'", field="inputs.models"
+            f"unknown model labels {sorted(unknown)}; use 'detector', 'landmarks' and 'eyes'", field="inputs.models"
         )
     default = LANDMARKER_V2_MODEL if model == "face_landmarker_v2" else LANDMARK_MODEL
-    return Path(models.get("detector", DETECTOR_MODEL)), Path(models.get("landmarks", default))
+    return (
+        Path(models.get("detector", DETECTOR_MODEL)),
+        Path(models.get("landmarks", default)),
+        Path(models.get("eyes", LANDMARKER_V2_MODEL)),
+    )
 
 
 def _require_files(files: dict | None, name: str) -> dict:
@@ -89,10 +93,15 @@ class FaceMeshParams(TrackingParams):
         0, ge=0, description="also re-run the detector every this many frames (0: only when the face is lost)"
     )
     output_mesh: bool = Field(True, description="include the 468-point mesh output")
-    model: Literal["face_landmarker_v2", "face_mesh_v1"] = Field(
-        "face_landmarker_v2",
-        description="landmark model: MediaPipe Face Landmarker v2 (478 points: mesh plus iris; eyelids follow "
-        "blinks; eye_aperture, gaze and iris outputs) or the older 468-point face mesh (no eye outputs)",
+    model: Literal["face_mesh_v1", "face_landmarker_v2"] = Field(
+        "face_mesh_v1",
+        description="landmark model for the mesh and the 68 points: MediaPipe's 468-point face mesh, or Face "
+        "Landmarker v2 (478 points: the mesh plus the irises; 2.2x slower per frame)",
+    )
+    eyes: bool = Field(
+        True,
+        description="eye outputs (eye_aperture, gaze, iris) from Face Landmarker v2, whose eyelids follow blinks: "
+        "the landmark model's own points when it is v2, else a second model pass on the same face region",
     )
 
 
@@ -100,7 +109,8 @@ def new_tracker(params, models: dict | None):
     from stages.tracking.facemesh import FaceMeshTracker
 
     model = getattr(params, "model", "face_mesh_v1")
-    detector, landmarks = model_paths(models, model)
+    detector, landmarks, eyes = model_paths(models, model)
+    second_pass = getattr(params, "eyes", False) and model != "face_landmarker_v2"
     return FaceMeshTracker(
         detector,
         landmarks,
@@ -108,6 +118,7 @@ def new_tracker(params, models: dict | None):
         min_presence=params.min_presence,
         redetect_every=getattr(params, "redetect_every", 0),
         model=model,
+        eye_model_path=eyes if second_pass else None,
     )
 
 
@@ -144,7 +155,8 @@ def track_facemesh_take(
     crop = CropSettings(params.crop_size, params.crop_eye_distance, params.crop_eye_height)
     camera = camera_matrix(info.width, info.height, params.focal_length)
     solver = PoseSolver(face3d.neutral, camera, pose_point_indices(params, face3d))
-    writer = BlockWriter(tracker.mesh.spec.points, crop, solver, outputs.append, params.output_mesh)
+    eyes = tracker.eye_offset if params.eyes else None
+    writer = BlockWriter(tracker.points, crop, solver, outputs.append, params.output_mesh, eyes)
     frames = iter_planes(path, field=field, threads=jobs)
     stream_take(frames, tracker, writer, crop, params.max_gap_frames, path, field)
     s = writer.finish()
@@ -214,8 +226,8 @@ class OpticalFlowParams(TrackingParams):
         "forward-backward check are flagged as not tracked (valid = False)",
     )
     min_detection_score: float = Field(0.5, gt=0, lt=1, description="BlazeFace score for the FaceMesh start")
-    model: Literal["face_landmarker_v2", "face_mesh_v1"] = Field(
-        "face_landmarker_v2", description="landmark model of the FaceMesh start (see FaceMesh)"
+    model: Literal["face_mesh_v1", "face_landmarker_v2"] = Field(
+        "face_mesh_v1", description="landmark model of the FaceMesh start (see FaceMesh)"
     )
     min_presence: float = Field(0.5, gt=0, lt=1, description="face-mesh presence score for the FaceMesh start")
     init_frame_base: int | None = Field(

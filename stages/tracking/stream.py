@@ -136,13 +136,22 @@ class BlockWriter:
     """Gathers filled frames into blocks and hands each block's outputs to ``emit(arrays)``.
 
     Per block: the 68 points from the mesh, crops for frames filled in a short gap, crop landmarks, head pose
-    (``pose_solver``, stateful across blocks), and with 478-point models the eyes. Keeps the small per-frame
-    arrays for the take's summary.
+    (``pose_solver``, stateful across blocks), and the eyes from the 478-point layout starting at ``eye_offset``
+    in each frame's points (None: no eye outputs). Keeps the small per-frame arrays for the take's summary.
     """
 
-    def __init__(self, n_points: int, crop: CropSettings, pose_solver, emit, keep_mesh: bool, block: int = 0):
+    def __init__(
+        self,
+        n_points: int,
+        crop: CropSettings,
+        pose_solver,
+        emit,
+        keep_mesh: bool,
+        eye_offset: int | None = None,
+        block: int = 0,
+    ):
         self.n_points, self.crop, self.pose, self.emit = n_points, crop, pose_solver, emit
-        self.keep_mesh, self.block = keep_mesh, block or BLOCK_FRAMES
+        self.keep_mesh, self.eye_offset, self.block = keep_mesh, eye_offset, block or BLOCK_FRAMES
         self.frames: list[FilledFrame] = []
         self.summary: dict[str, list[np.ndarray]] = {}
 
@@ -163,12 +172,13 @@ class BlockWriter:
         arrays = block_arrays(frames, self.n_points, self.crop)
         rotation, translation, rms = self.pose.solve(arrays.pop("landmarks64"))
         arrays.update(rotation=rotation, translation=translation, pose_rms=rms.astype(np.float32))
-        if self.n_points >= 478:
+        if self.eye_offset is not None:
             from stages.tracking.eyes import eye_aperture, gaze_angles
 
-            arrays["eye_aperture"] = eye_aperture(arrays["points"])
-            arrays["gaze"] = gaze_angles(arrays["points"])
-            arrays["iris"] = arrays["points"][:, 468:478].astype(np.float32)
+            eye_points = arrays["points"][:, self.eye_offset : self.eye_offset + 478]
+            arrays["eye_aperture"] = eye_aperture(eye_points)
+            arrays["gaze"] = gaze_angles(eye_points)
+            arrays["iris"] = eye_points[:, 468:478].astype(np.float32)
         points = arrays.pop("points")
         if self.keep_mesh:
             arrays["mesh"] = points[:, :468].astype(np.float32)
