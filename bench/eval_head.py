@@ -39,17 +39,14 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from msflow.testing import artifact, run_stage  # noqa: E402
 from stages.head.database import TrackedHeadDb  # noqa: E402
-from stages.head.motion_blend import (  # noqa: E402
+from stages.head.measures import (  # noqa: E402
     JOIN_MEASURE_WINDOW,
-    MotionBlend,
-    _reference_angles,
     angular_acceleration,
-    database_motion,
     join_acceleration,
     pitch_velocity_correlation,
-    synthesise,
     wasserstein_speed,
 )
+from stages.head.motion_blend import MotionBlend, _reference_angles, database_motion, synthesise  # noqa: E402
 from stages.head.pitch import Pitch, semitones  # noqa: E402
 from stages.head.trellis import Trellis  # noqa: E402
 
@@ -123,7 +120,7 @@ def evaluate(
     t0 = time.perf_counter()
     trellis = run_stage(
         Trellis,
-        {"exclude_source": True, **(params_trellis or {})},
+        {"holdout": "take", **(params_trellis or {})},
         {"database": headdb, "database_pitch": db_pitch, "test_pitch": test_pitch},
     ).view()
     blend = run_stage(

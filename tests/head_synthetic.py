@@ -145,8 +145,11 @@ def synth_database(n_phrases: int = 67, *, seed: int = 0, audio_rate: int = 1600
     ]
 
 
-def tracking_artifact(phrases: list[Phrase], fps: float = 30.0, *, audio_offset: float = 0.0):
-    """A tracking-shaped artifact (rotation, translation, time, sequence, audio, audio_bounds, meta)."""
+def tracking_artifact(
+    phrases: list[Phrase], fps: float = 30.0, *, audio_offset: float = 0.0, speaker: str | None = "synthetic"
+):
+    """A tracking-shaped artifact (rotation, translation, time, sequence, audio, audio_bounds, meta); every take
+    labelled with ``speaker`` in meta ``fields`` (the tracking contract), or unlabelled when None."""
     from msflow.testing import artifact
     from stages.geometry.rotations import euler_to_quat
 
@@ -168,6 +171,7 @@ def tracking_artifact(phrases: list[Phrase], fps: float = 30.0, *, audio_offset:
         "audio_rate": phrases[0].audio_rate,
         "audio_offset": [audio_offset] * len(phrases),
         "translation_units": "mm",
+        "fields": {p.label: ({"speaker": speaker} if speaker else {}) for p in phrases},
     }
     return artifact(
         {

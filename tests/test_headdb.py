@@ -150,9 +150,11 @@ def write_bvh_and_wav(phrases, folder: Path, order: str, fps: float = 60.0):
 @pytest.mark.parametrize("order", ["ZXY", "XYZ"])
 def test_bvh_database_matches_the_tracking_database(phrases, tracks60, tmp_path, order):
     motion, audio = write_bvh_and_wav(phrases, tmp_path, order)
-    bvh = run_stage(BvhHeadDb, {"joint": "head_jnt", "fps": 30.0}, {"motion": motion, "audio": audio})
+    labelled = {label: {"path": path, "speaker": "synthetic"} for label, path in motion.items()}
+    bvh = run_stage(BvhHeadDb, {"joint": "head_jnt", "fps": 30.0}, {"motion": labelled, "audio": audio})
     tracked = run_stage(TrackedHeadDb, {"fps": 30.0}, {"tracks": tracks60})
     assert bvh.meta["labels"] == tracked.meta["labels"]
+    assert bvh.meta["speakers"] == tracked.meta["speakers"] == ["synthetic"] * len(bvh.meta["labels"])
     np.testing.assert_allclose(bvh.arrays["angles"], tracked.arrays["angles"], atol=1e-5)
     np.testing.assert_allclose(bvh.arrays["translation"], tracked.arrays["translation"], atol=1e-4)
     assert bvh.meta["sources"][0] == "take0.bvh"
@@ -256,8 +258,9 @@ def test_paper_sized_database():
 
 
 def test_crema_d_tracked_database(crema_tracks):
-    run = run_stage(TrackedHeadDb, {}, {"tracks": crema_tracks})
+    run = run_stage(TrackedHeadDb, {"speaker": "1001"}, {"tracks": crema_tracks})
     assert run.meta["labels"] == ["ANG", "ANG~mirror", "HAP", "HAP~mirror", "NEU", "NEU~mirror"]
+    assert run.meta["speakers"] == ["1001"] * 6
     assert run.meta["fps"] == pytest.approx(29.97, abs=0.01) and run.meta["translation_units"] == "cm"
     counts = np.bincount(crema_tracks.arrays["sequence"])
     assert run.meta["frames"][0::2] == list(counts)

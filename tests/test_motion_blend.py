@@ -4,26 +4,29 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 from head_synthetic import synth_database, tracking_artifact
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from msflow import UserError
-from msflow.testing import artifact, run_stage
+from msflow.testing import artifact, prepare_inputs, run_stage
 from stages.formats.bvh import joint_rotation, joint_translation, parse_bvh
 from stages.head.database import TrackedHeadDb
+from stages.head.measures import (
+    angular_acceleration,
+    angular_speed,
+    join_acceleration,
+    pitch_velocity_correlation,
+    wasserstein_speed,
+)
 from stages.head.motion_blend import (
     DatabaseMotion,
     MotionBlend,
     _reference_angles,
-    angular_acceleration,
-    angular_speed,
-    join_acceleration,
     join_windows,
-    pitch_velocity_correlation,
     segment_weights,
     stitch_segments,
-    wasserstein_speed,
 )
 from stages.head.pitch import Pitch
 from stages.head.trellis import Trellis
@@ -48,19 +51,24 @@ def database(tracks):
 
 
 @pytest.fixture(scope="module")
-def test_pitch(tracks):
+def take_pitch(tracks):
     return run_stage(Pitch, {}, {"source": tracks})
 
 
-def trellis(database, test_pitch, **params):
+def trellis(database, take_pitch, **params):
     return run_stage(
-        Trellis, params, {"database": database[0], "database_pitch": database[1], "test_pitch": test_pitch}
+        Trellis, params, {"database": database[0], "database_pitch": database[1], "test_pitch": take_pitch}
     )
 
 
 @pytest.fixture(scope="module")
-def leave_one_out(database, test_pitch):
-    return trellis(database, test_pitch, exclude_source=True)
+def leave_one_out(database, take_pitch):
+    return trellis(database, take_pitch, holdout="take")
+
+
+def stage_result(cls, params, inputs):
+    """The stage's own Result (with its warnings), inputs prepared as the runner would."""
+    return cls(cls.__name__).run(cls.Params(**params), prepare_inputs(cls, inputs))
 
 
 def line_database(slopes, seconds=4.0, fps=100.0):
@@ -327,8 +335,8 @@ def test_an_utterance_found_in_the_database_gets_its_own_motion_back(phrases, tr
     headdb = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": tracks})
     db_pitch = run_stage(Pitch, {}, {"source": headdb})
     test_tracks = tracking_artifact(phrases[3:4], fps=30.0)
-    test_pitch = run_stage(Pitch, {}, {"source": test_tracks})
-    tr = run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": test_pitch})
+    take_pitch = run_stage(Pitch, {}, {"source": test_tracks})
+    tr = run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": take_pitch})
     run = run_stage(MotionBlend, {}, {"trellis": tr, "database": headdb, "reference": test_tracks})
     real = _reference_angles(test_tracks, phrases[3].label, 1, 30.0)
     assert run.arrays["angles"].shape == real.shape
@@ -388,12 +396,18 @@ def test_a_silent_test_take_gives_a_still_head(database):
         {"audio": audio, "audio_bounds": np.array([[0, 24000]])},
         {"labels": ["quiet"], "sources": ["quiet.wav"], "audio_rate": 16000},
     )
-    pitch = run_stage(Pitch, {"on_silence": "still"}, {"source": quiet})
-    tr = run_stage(Trellis, {}, {"database": database[0], "database_pitch": database[1], "test_pitch": pitch})
-    run = run_stage(MotionBlend, {}, {"trellis": tr, "database": database[0]})
+    pitch = stage_result(Pitch, {}, {"source": quiet})
+    assert pitch.warnings and "no voiced speech in 'quiet'" in pitch.warnings[0]
+    tr = run_stage(
+        Trellis,
+        {},
+        {"database": database[0], "database_pitch": database[1], "test_pitch": artifact(pitch.arrays, pitch.meta)},
+    )
+    run = stage_result(MotionBlend, {}, {"trellis": tr, "database": database[0]})
     assert run.meta["frames"] == [45] and run.meta["fps"] == database[0].meta["fps"]
     np.testing.assert_allclose(run.arrays["rotation"], np.tile([1.0, 0, 0, 0], (45, 1)))
     assert len(run.arrays["joins"]) == 0
+    assert run.warnings == ["'quiet' has no voiced speech: its head stays at the rest pose"]
 
 
 @pytest.mark.parametrize(
@@ -404,9 +418,10 @@ def test_a_silent_test_take_gives_a_still_head(database):
         ({"blend_window": -0.1}, "blend_window"),
     ],
 )
-def test_bad_blend_settings(leave_one_out, database, params, field):
-    with pytest.raises(UserError, match=field):
-        run_stage(MotionBlend, params, {"trellis": leave_one_out, "database": database[0]})
+def test_bad_blend_settings_are_rejected_by_the_params(params, field):
+    with pytest.raises(ValidationError) as err:
+        MotionBlend.Params(**params)
+    assert err.value.errors()[0]["loc"] == (field,)
 
 
 def test_trellis_from_another_database_is_an_error(leave_one_out, phrases):
@@ -434,10 +449,10 @@ def crema():
 def test_crema_d_end_to_end(crema):
     """The default pipeline's head branch on real data: three tracked takes in, the sad take's audio drives."""
     train, test = crema
-    headdb = run_stage(TrackedHeadDb, {}, {"tracks": train})
+    headdb = run_stage(TrackedHeadDb, {"speaker": "1001"}, {"tracks": train})
     db_pitch = run_stage(Pitch, {}, {"source": headdb})
-    test_pitch = run_stage(Pitch, {}, {"source": test})
-    tr = run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": test_pitch})
+    take_pitch = run_stage(Pitch, {}, {"source": test})
+    tr = run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": take_pitch})
     run = run_stage(MotionBlend, {}, {"trellis": tr, "database": headdb, "reference": test})
     assert run.meta["fps"] == pytest.approx(test.meta["fps"][0])
     assert run.meta["frames"] == [len(test.arrays["rotation"])]

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from pydantic import Field
 
 from msflow import Input, Output, Result, Stage, UserError
 from stages.geometry.rotations import (
@@ -68,6 +69,7 @@ class Recording:
     audio_rate: int
     audio_offset: float  # time of the first audio sample relative to the first motion frame
     field: str
+    speaker: str | None = None  # the take's speaker label (field "speaker"), None when unlabelled
 
 
 def check_motion_finite(rec: Recording) -> None:
@@ -136,14 +138,11 @@ def build_database(
     mirror: bool,
     center: bool,
     max_length_mismatch: float,
-    speaker: str,
     translation_units: str,
 ) -> Result:
     """Resample every recording to ``fps``, optionally centre it and add its mirror image; one artifact."""
     if not recordings:
         raise UserError("the database has no recordings", field="inputs")
-    if not fps > 0:
-        raise UserError(f"fps must be positive, got {fps}", field="params.fps")
     rates = {r.audio_rate for r in recordings}
     if len(rates) != 1:
         raise UserError(f"audio rates differ between recordings: {sorted(rates)}", field="inputs")
@@ -182,12 +181,13 @@ def build_database(
         "frames": frames,
         "audio_rate": int(rates.pop()),
         "audio_offset": [float(s[1].audio_offset) for s in sequences],
-        "speakers": [speaker] * len(sequences),
+        "speakers": [s[1].speaker for s in sequences],
         "center": center,
         "translation_units": translation_units,
     }
     metrics = {
         "recordings": len(recordings),
+        "speakers": len({r.speaker for r in recordings}),
         "sequences": len(sequences),
         "motion_seconds": float(sum(frames) / fps),
         "audio_seconds": float(audio_cursor / meta["audio_rate"]),
@@ -196,11 +196,25 @@ def build_database(
 
 
 class HeadDbParams(Stage.Params):
-    fps: float | None = None  # motion rate of the database; None: the first recording's own rate
-    mirror: bool = True  # add each take's mirror image (paper Sec. 6)
-    center: bool = True  # motion relative to each take's mean pose
-    max_length_mismatch: float = 0.5  # seconds allowed between the audio and motion lengths of a take
-    speaker: str = "speaker"  # speaker label (pitch normalises semitones per speaker)
+    fps: float | None = Field(None, gt=0, description="motion rate of the database; None: the first take's own rate")
+    mirror: bool = Field(True, description="add each take's mirror image (paper Sec. 6)")
+    center: bool = Field(True, description="motion relative to each take's mean pose")
+    max_length_mismatch: float = Field(
+        0.5, ge=0, description="seconds allowed between the audio and motion lengths of a take"
+    )
+    speaker: str | None = Field(
+        None,
+        min_length=1,
+        description="speaker of the takes that carry no 'speaker' field (pitch is normalised per speaker); "
+        "None: takes without the field stay unlabelled",
+    )
+
+
+def label_speakers(recordings: list[Recording], fields: dict, default: str | None) -> list[Recording]:
+    """Each recording's speaker: its label's ``speaker`` field (contract: labelled files), else ``default``."""
+    for rec in recordings:
+        rec.speaker = (fields.get(rec.label) or {}).get("speaker") or default
+    return recordings
 
 
 class TrackedHeadDb(Stage):
@@ -222,7 +236,9 @@ class TrackedHeadDb(Stage):
 
     def run(self, params, inputs):
         view = inputs["tracks"]
-        recordings = recordings_from_tracking(view, params.labels)
+        recordings = label_speakers(
+            recordings_from_tracking(view, params.labels), view.meta.get("fields") or {}, params.speaker
+        )
         fps = params.fps or _first(view.meta.get("fps"))
         if not fps:
             fps = 1.0 / float(np.median(np.diff(recordings[0].time)))
@@ -232,7 +248,6 @@ class TrackedHeadDb(Stage):
             mirror=params.mirror,
             center=params.center,
             max_length_mismatch=params.max_length_mismatch,
-            speaker=params.speaker,
             translation_units=str(view.meta.get("translation_units", "unknown")),
         )
 
@@ -311,8 +326,8 @@ def _decode(path, rate: int, label: str):
 
 
 class FileHeadDbParams(HeadDbParams):
-    audio_rate: int = 16000
-    translation_scale: float = 1.0  # multiplies positions (e.g. 10 for cm -> mm)
+    audio_rate: int = Field(16000, ge=4000, le=192000, description="decoding rate of the audio files (Hz)")
+    translation_scale: float = Field(1.0, gt=0, description="multiplies positions (e.g. 10 for cm -> mm)")
     translation_units: str = "unknown"
     audio_offset: dict[str, float] = {}  # per label: start of the audio relative to the first motion frame
 
@@ -352,13 +367,13 @@ class BvhHeadDb(Stage):
                     field,
                 )
             )
+        label_speakers(recordings, {**inputs["audio"].fields, **inputs["motion"].fields}, params.speaker)
         return build_database(
             recordings,
             fps=params.fps or rates[0],
             mirror=params.mirror,
             center=params.center,
             max_length_mismatch=params.max_length_mismatch,
-            speaker=params.speaker,
             translation_units=params.translation_units,
         )
 
@@ -438,6 +453,7 @@ class CsvHeadDb(Stage):
                     field,
                 )
             )
+        label_speakers(recordings, {**inputs["audio"].fields, **inputs["motion"].fields}, params.speaker)
         fps = params.fps or (rates[0] if rates else None)
         if not fps:
             raise UserError("cannot tell the motion rate (CSV with fewer than two rows); set fps", field="params.fps")
@@ -447,6 +463,5 @@ class CsvHeadDb(Stage):
             mirror=params.mirror,
             center=params.center,
             max_length_mismatch=params.max_length_mismatch,
-            speaker=params.speaker,
             translation_units=params.translation_units,
         )

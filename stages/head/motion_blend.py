@@ -31,9 +31,17 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from pydantic import Field
 
 from msflow import Input, Output, Result, Stage, UserError
 from stages.geometry.rotations import euler_to_quat, quat_to_euler
+from stages.head.measures import (
+    JOIN_MEASURE_WINDOW,
+    angular_acceleration,
+    angular_speed,
+    join_acceleration,
+    wasserstein_speed,
+)
 
 
 @dataclass
@@ -400,61 +408,6 @@ def crossfade_segments(
     return Stitched(out, a[1:].copy(), windows, np.full(n - 1, np.nan))
 
 
-# ---------------------------------------------------------------------------------- evaluation measures
-
-JOIN_MEASURE_WINDOW = 0.15  # seconds either side of a join over which join acceleration is measured (fixed, so
-#                              that every smoothing method and parameter is measured alike)
-
-
-def angular_speed(angles: np.ndarray, fps: float) -> np.ndarray:
-    """Angular speed (frames - 1,) in degrees per second from (yaw, pitch, roll) angles in radians."""
-    from stages.geometry.rotations import angular_velocity
-
-    q = euler_to_quat(angles[:, 0], angles[:, 1], angles[:, 2])
-    return np.degrees(np.linalg.norm(angular_velocity(q, fps), axis=1))
-
-
-def angular_acceleration(angles: np.ndarray, fps: float) -> np.ndarray:
-    """Magnitude of angular acceleration (frames - 2,) in degrees per second^2."""
-    from stages.geometry.rotations import angular_velocity
-
-    q = euler_to_quat(angles[:, 0], angles[:, 1], angles[:, 2])
-    w = angular_velocity(q, fps)
-    return np.degrees(np.linalg.norm(np.diff(w, axis=0) * fps, axis=1))
-
-
-def join_acceleration(angles: np.ndarray, fps: float, joins: np.ndarray, window: float) -> np.ndarray:
-    """Largest angular acceleration within +-``window`` seconds of each join (deg/s^2), one value per join."""
-    acc = angular_acceleration(angles, fps)
-    if len(acc) == 0 or len(joins) == 0:
-        return np.zeros(0)
-    t = (np.arange(len(acc)) + 1) / fps
-    inside = np.abs(t[None, :] - np.asarray(joins)[:, None]) <= window
-    return np.where(inside, acc[None, :], 0.0).max(axis=1)
-
-
-def wasserstein_speed(angles_a: np.ndarray, angles_b: np.ndarray, fps: float) -> float:
-    """Wasserstein-1 distance (deg/s) between the angular-speed distributions of two motions."""
-    from scipy.stats import wasserstein_distance
-
-    return float(wasserstein_distance(angular_speed(angles_a, fps), angular_speed(angles_b, fps)))
-
-
-def pitch_velocity_correlation(angles: np.ndarray, fps: float, f0_time: np.ndarray, f0_semitones: np.ndarray) -> float:
-    """Pearson correlation between the voice pitch (semitones, voiced frames only) and the head-pitch velocity
-    at the same times. NaN when fewer than 3 voiced frames overlap the motion."""
-    velocity = np.gradient(angles[:, 1]) * fps
-    t = np.arange(len(angles)) / fps
-    ok = np.isfinite(f0_semitones) & (f0_time >= t[0]) & (f0_time <= t[-1])
-    if ok.sum() < 3:
-        return float("nan")
-    v = np.interp(f0_time[ok], t, velocity)
-    p = f0_semitones[ok]
-    if v.std() < 1e-12 or p.std() < 1e-12:
-        return 0.0
-    return float(np.corrcoef(p, v)[0, 1])
-
-
 # ---------------------------------------------------------------------------------------------- the stage
 
 MOTION_BLEND_OUTPUTS = {
@@ -544,25 +497,38 @@ def _plot_head_angles(view, inputs=None):
     return fig
 
 
+class MotionBlendParams(Stage.Params):
+    fps: float | None = Field(
+        None, gt=0, description="output rate; None: the test take's video rate, else the database's"
+    )
+    join_smoothing: Literal["velocity", "crossfade"] = Field(
+        "velocity",
+        description="velocity-domain blend, or the earlier position crossfade (overshoots the velocity inside its "
+        "window)",
+    )
+    blend_window: float = Field(0.15, ge=0, description="seconds either side of a join to blend over (at least)")
+    break_blend_window: float = Field(0.25, ge=0, description="the same at joins between sub-sentences")
+    max_blend_window: float = Field(0.5, ge=0, description="widest half-window a large velocity step may get")
+    join_acceleration: float | None = Field(
+        None,
+        ge=0,
+        description="deg/s^2 a join's velocity step may add (sets its window); None: half the database's median "
+        "angular acceleration; 0: fixed windows",
+    )
+    preserve_speed: bool = Field(False, description="keep the blended velocity as fast as the joined segments' own")
+    drift_correction: bool = Field(True, description="warp each sub-sentence to meet the next")
+    translation: bool = Field(True, description="False: rotation only (translation zero)")
+    bvh_joint: str = Field("Head", min_length=1)
+    bvh_order: Literal["XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX"] = Field(
+        "ZXY", description="Euler channel order written to the BVH"
+    )
+
+
 class MotionBlend(Stage):
     """Stitch, drift-correct and smooth the joins of the chosen database motion (Sec. 5.4); head rotation,
     translation and a BVH of the head joint at the output rate."""
 
-    class Params(Stage.Params):
-        fps: float | None = None  # output rate; None: the test take's video rate, else the database's
-        join_smoothing: Literal["velocity", "crossfade"] = "velocity"  # velocity-domain blend, or the earlier
-        #                                   position crossfade (overshoots the velocity inside its window)
-        blend_window: float = 0.15  # seconds either side of a join to blend over (at least)
-        break_blend_window: float = 0.25  # the same at joins between sub-sentences (breath pauses)
-        max_blend_window: float = 0.5  # widest half-window a large velocity step may get
-        join_acceleration: float | None = None  # deg/s^2 a join's velocity step may add (sets its window);
-        #                                   None: half the database's median angular acceleration; 0: fixed windows
-        preserve_speed: bool = False  # keep the blended velocity as fast as the joined segments' own
-        drift_correction: bool = True  # warp each sub-sentence to meet the next
-        translation: bool = True  # False: rotation only (translation zero)
-        bvh_joint: str = "Head"
-        bvh_order: str = "ZXY"  # Euler channel order written to the BVH
-
+    Params = MotionBlendParams
     inputs = {
         "trellis": Input.artifact("segments", "chosen", "db_segments", "db_segment_sequence"),
         "database": Input.artifact("angles", "translation", "sequence", doc="the headdb artifact searched"),
@@ -577,74 +543,102 @@ class MotionBlend(Stage):
     figures = {"head_angles": _plot_head_angles}
 
     def run(self, params, inputs):
-        from stages.formats.bvh import head_bvh
-
         trellis, database = inputs["trellis"], inputs["database"]
-        db_labels = list(database.meta.get("labels") or [])
-        if trellis.meta.get("db_labels") is not None and list(trellis.meta["db_labels"]) != db_labels:
-            raise UserError(
-                "the trellis was searched over a different database than the one given", field="inputs.database"
-            )
-        if params.blend_window < 0 or params.break_blend_window < 0:
-            raise UserError("blend_window must be >= 0", field="params.blend_window")
-        if params.max_blend_window < 0:
-            raise UserError("max_blend_window must be >= 0", field="params.max_blend_window")
-        if params.join_acceleration is not None and params.join_acceleration < 0:
-            raise UserError("join_acceleration must be >= 0 (0: fixed windows)", field="params.join_acceleration")
+        check_same_database(trellis, database)
         db = database_motion(database, use_translation=params.translation)
-        budget = (
-            JOIN_BUDGET_OF_MEDIAN * db.typical_acceleration()
-            if params.join_acceleration is None
-            else params.join_acceleration
-        )
+        options = stitch_options(params, db, trellis)
+        fps = output_rate(params, trellis, db)
+        synth = synthesise(trellis, db, fps, **options)
+        arrays = pack_motion(synth, fps, params)
         labels = list(trellis.meta.get("labels") or [])
-        test_fps = [f for f in (trellis.meta.get("fps") or []) if f]
-        fps = float(params.fps or (test_fps[0] if test_fps else db.fps))
-        if not fps > 0:
-            raise UserError(f"fps must be positive, got {fps}", field="params.fps")
-        synth = synthesise(
-            trellis,
-            db,
-            fps,
-            smoothing=params.join_smoothing,
-            blend_window=params.blend_window,
-            break_blend_window=params.break_blend_window,
-            max_blend_window=params.max_blend_window,
-            acceleration_budget=budget or None,
-            preserve_speed=params.preserve_speed,
-            drift_correction=params.drift_correction,
-        )
-        angles = np.concatenate([s.channels[:, :3] for s in synth]) if synth else np.zeros((0, 3))
-        translation = np.concatenate([s.channels[:, 3:] for s in synth]) if synth else np.zeros((0, 3))
-        rotation = euler_to_quat(angles[:, 0], angles[:, 1], angles[:, 2])
-        arrays = {
-            "rotation": rotation,
-            "translation": translation,
-            "angles": angles,
-            "time": np.concatenate([np.arange(len(s.channels)) / fps for s in synth]),
-            "sequence": np.concatenate([np.full(len(s.channels), u, np.int32) for u, s in enumerate(synth)]),
-            "joins": np.concatenate([s.joins for s in synth]),
-            "join_utterance": np.concatenate([np.full(len(s.joins), u, np.int32) for u, s in enumerate(synth)]),
-            "join_window": np.concatenate([s.windows for s in synth]).reshape(-1, 2),
-            "join_velocity_step": np.concatenate([s.velocity_mismatch for s in synth]),
-            "bvh": head_bvh(rotation, translation, fps, joint=params.bvh_joint, order=params.bvh_order).encode(),
-        }
         metrics = motion_metrics(arrays, fps, JOIN_MEASURE_WINDOW, inputs.get("reference"), labels)
-        steps = arrays["join_velocity_step"][np.isfinite(arrays["join_velocity_step"])]
-        if len(steps):
-            widths = np.diff(arrays["join_window"], axis=1)[:, 0]
-            metrics.update({"mean_join_velocity_step": float(steps.mean()), "mean_join_window": float(widths.mean())})
+        metrics.update(join_metrics(arrays))
         meta = {
             "fps": fps,
             "labels": labels,
             "frames": [len(s.channels) for s in synth],
             "join_smoothing": params.join_smoothing,
-            "join_acceleration_budget": float(budget),
+            "join_acceleration_budget": float(options["acceleration_budget"] or 0.0),
+            "stitch": options,
             "translation_units": database.meta.get("translation_units", "unknown"),
             "bvh_joint": params.bvh_joint,
-            "db_labels": db_labels,
+            "db_labels": list(database.meta.get("labels") or []),
         }
-        return Result(arrays, meta, metrics)
+        return Result(arrays, meta, metrics, rest_warnings(trellis, labels))
+
+
+def check_same_database(trellis, database) -> None:
+    db_labels = list(database.meta.get("labels") or [])
+    if trellis.meta.get("db_labels") is not None and list(trellis.meta["db_labels"]) != db_labels:
+        raise UserError(
+            "the trellis was searched over a different database than the one given", field="inputs.database"
+        )
+
+
+def stitch_options(params, db: DatabaseMotion, trellis) -> dict:
+    """Keyword arguments of ``stitch_segments`` from the stage's params (JSON, kept in the artifact's meta so the
+    evaluation can stitch its baselines exactly alike)."""
+    budget = (
+        JOIN_BUDGET_OF_MEDIAN * db.typical_acceleration()
+        if params.join_acceleration is None
+        else params.join_acceleration
+    )
+    return {
+        "smoothing": params.join_smoothing,
+        "blend_window": params.blend_window,
+        "break_blend_window": params.break_blend_window,
+        "max_blend_window": params.max_blend_window,
+        "acceleration_budget": float(budget) or None,
+        "preserve_speed": params.preserve_speed,
+        "drift_correction": params.drift_correction,
+        "boundary_window": float(trellis.meta.get("boundary_window", 0.1)),
+    }
+
+
+def output_rate(params, trellis, db: DatabaseMotion) -> float:
+    test_fps = [f for f in (trellis.meta.get("fps") or []) if f]
+    return float(params.fps or (test_fps[0] if test_fps else db.fps))
+
+
+def pack_motion(synth: list, fps: float, params) -> dict:
+    """The blend's arrays: angles, rotation, translation, per-frame time and utterance, joins, BVH."""
+    from stages.formats.bvh import head_bvh
+
+    def cat(parts, empty):
+        return np.concatenate(parts) if parts else empty
+
+    angles = cat([s.channels[:, :3] for s in synth], np.zeros((0, 3)))
+    translation = cat([s.channels[:, 3:] for s in synth], np.zeros((0, 3)))
+    rotation = euler_to_quat(angles[:, 0], angles[:, 1], angles[:, 2])
+    return {
+        "rotation": rotation,
+        "translation": translation,
+        "angles": angles,
+        "time": cat([np.arange(len(s.channels)) / fps for s in synth], np.zeros(0)),
+        "sequence": cat([np.full(len(s.channels), u, np.int32) for u, s in enumerate(synth)], np.zeros(0, np.int32)),
+        "joins": cat([s.joins for s in synth], np.zeros(0)),
+        "join_utterance": cat([np.full(len(s.joins), u, np.int32) for u, s in enumerate(synth)], np.zeros(0, np.int32)),
+        "join_window": cat([s.windows for s in synth], np.zeros((0, 2))).reshape(-1, 2),
+        "join_velocity_step": cat([s.velocity_mismatch for s in synth], np.zeros(0)),
+        "bvh": head_bvh(rotation, translation, fps, joint=params.bvh_joint, order=params.bvh_order).encode(),
+    }
+
+
+def join_metrics(arrays: dict) -> dict:
+    """Mean velocity step the joins absorbed (deg/s) and mean blend window (s); none for the crossfade."""
+    steps = arrays["join_velocity_step"][np.isfinite(arrays["join_velocity_step"])]
+    if not len(steps):
+        return {}
+    widths = np.diff(arrays["join_window"], axis=1)[:, 0]
+    return {"mean_join_velocity_step": float(steps.mean()), "mean_join_window": float(widths.mean())}
+
+
+def rest_warnings(trellis, labels: list[str]) -> list[str]:
+    """A warning per test utterance with no voiced segment: its head stays at the rest pose."""
+    counts = np.bincount(np.asarray(trellis["segment_utterance"], dtype=np.int64), minlength=len(labels))
+    return [
+        f"'{label}' has no voiced speech: its head stays at the rest pose" for label, n in zip(labels, counts) if n == 0
+    ]
 
 
 def database_motion(view, *, use_translation: bool = True) -> DatabaseMotion:
