@@ -4,10 +4,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pydantic import ValidationError
 from head_synthetic import synth_database, tracking_artifact
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pydantic import ValidationError
 
 from msflow import UserError
 from msflow.testing import artifact, prepare_inputs, run_stage

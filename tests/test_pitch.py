@@ -5,8 +5,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pydantic import ValidationError
 from head_synthetic import synth_phrase, tracking_artifact
+from pydantic import ValidationError
 
 from msflow import UserError
 from msflow.testing import artifact, prepare_inputs, run_stage

@@ -4,10 +4,10 @@ import itertools
 
 import numpy as np
 import pytest
-from pydantic import ValidationError
 from head_synthetic import synth_database, tracking_artifact
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pydantic import ValidationError
 
 from msflow import UserError
 from msflow.testing import artifact, run_stage
@@ -16,9 +16,9 @@ from stages.head.pitch import Pitch
 from stages.head.trellis import (
     Database,
     SegmentTable,
+    SpeakerReference,
     Trellis,
     contour_geometry,
-    SpeakerReference,
     reference_for_test,
     segment_distances,
     smoothness_weights,
