@@ -44,9 +44,10 @@ from stages.head.measures import (  # noqa: E402
     angular_acceleration,
     join_acceleration,
     pitch_velocity_correlation,
+    reference_angles,
     wasserstein_speed,
 )
-from stages.head.motion_blend import MotionBlend, _reference_angles, database_motion, synthesise  # noqa: E402
+from stages.head.motion_blend import MotionBlend, database_motion, synthesise  # noqa: E402
 from stages.head.pitch import Pitch, semitones  # noqa: E402
 from stages.head.trellis import Trellis  # noqa: E402
 
@@ -155,7 +156,7 @@ def evaluate(
     medians = np.asarray(test_pitch["speaker_median"])
     rows = []
     for u, label in enumerate(labels):
-        real = _reference_angles(tracks, label, len(labels), fps)
+        real = reference_angles(tracks, label, len(labels), fps)
         synth = blend["angles"][blend["sequence"] == u]
         n = min(len(real), len(synth))
         rands = [r[u].channels[:n, :3] for r in random_synths]

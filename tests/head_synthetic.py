@@ -184,3 +184,21 @@ def tracking_artifact(
         },
         meta,
     )
+
+
+def pitch_driven(phrases: list[Phrase], gain_deg_per_semitone: float = 1.5) -> list[Phrase]:
+    """The same phrases with head motion that is a known function of the voice: the head pitch angle is
+    ``gain`` degrees per semitone of f0 above the speaker's base (0 where unvoiced), smoothed over 40 ms; yaw and
+    roll stay still. A database of such takes must give back the function for held-out audio."""
+    from dataclasses import replace
+
+    from scipy.ndimage import gaussian_filter1d
+
+    out = []
+    for p in phrases:
+        st = np.where(np.isfinite(p.f0), 12 * np.log2(np.nan_to_num(p.f0, nan=SPEAKER_BASE) / SPEAKER_BASE), 0.0)
+        nod = gaussian_filter1d(np.radians(gain_deg_per_semitone) * st, 0.04 * CONTROL_RATE)
+        n = len(p.angles)
+        angles = np.stack([np.zeros(n), nod[:n], np.zeros(n)], axis=1)
+        out.append(replace(p, angles=angles, translation=np.zeros((n, 3))))
+    return out

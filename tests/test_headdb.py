@@ -279,3 +279,32 @@ def test_unreadable_audio_names_the_file(phrases, tmp_path):
     with pytest.raises(UserError) as err:
         run_stage(BvhHeadDb, {"joint": "head_jnt"}, {"motion": motion, "audio": {"take0": fake}})
     assert "take0.mp3" in str(err.value)
+
+
+def test_two_corpora_pool_into_one_database_with_their_speakers(phrases):
+    ann = tracking_artifact(phrases[:2], speaker="ann")
+    bob = tracking_artifact(phrases[2:], speaker="bob")
+    run = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": ann, "more_tracks": bob})
+    assert run.meta["labels"] == [p.label for p in phrases] and run.meta["speakers"] == ["ann", "ann", "bob"]
+    alone = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": tracking_artifact(phrases)})
+    np.testing.assert_allclose(run.arrays["angles"], alone.arrays["angles"])
+    # per-speaker pitch: each speaker's median from its own takes only
+    pitch = run_stage(Pitch, {}, {"source": run})
+    bob_alone = run_stage(Pitch, {}, {"source": bob})
+    assert pitch.arrays["speaker_median"][2] == pytest.approx(bob_alone.arrays["speaker_median"][0])
+    assert pitch.arrays["speaker_median"][0] != pitch.arrays["speaker_median"][2]
+    with pytest.raises(UserError, match="both tracking artifacts"):
+        run_stage(TrackedHeadDb, {}, {"tracks": ann, "more_tracks": ann})
+    with pytest.raises(UserError, match="nobody"):
+        run_stage(TrackedHeadDb, {"labels": ["nobody"]}, {"tracks": ann, "more_tracks": bob})
+
+
+def test_a_silent_take_cannot_enter_the_database(phrases):
+    tracks = tracking_artifact(phrases[:2])
+    bounds = np.asarray(tracks["audio_bounds"]).copy()
+    bounds[1, 1] = bounds[1, 0]  # the second take has no audio
+    meta = {**tracks.meta, "has_audio": [True, False]}
+    silent = artifact({**{k: tracks[k] for k in tracks.names}, "audio_bounds": bounds}, meta)
+    with pytest.raises(UserError, match="no audio") as err:
+        run_stage(TrackedHeadDb, {}, {"tracks": silent})
+    assert err.value.field == f"inputs.tracks[{phrases[1].label}]"

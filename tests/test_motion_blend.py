@@ -18,12 +18,12 @@ from stages.head.measures import (
     angular_speed,
     join_acceleration,
     pitch_velocity_correlation,
+    reference_angles,
     wasserstein_speed,
 )
 from stages.head.motion_blend import (
     DatabaseMotion,
     MotionBlend,
-    _reference_angles,
     join_windows,
     segment_weights,
     stitch_segments,
@@ -338,7 +338,7 @@ def test_an_utterance_found_in_the_database_gets_its_own_motion_back(phrases, tr
     take_pitch = run_stage(Pitch, {}, {"source": test_tracks})
     tr = run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": take_pitch})
     run = run_stage(MotionBlend, {}, {"trellis": tr, "database": headdb, "reference": test_tracks})
-    real = _reference_angles(test_tracks, phrases[3].label, 1, 30.0)
+    real = reference_angles(test_tracks, phrases[3].label, 1, 30.0)
     assert run.arrays["angles"].shape == real.shape
     np.testing.assert_allclose(run.arrays["angles"], real, atol=1e-9)
     assert run.metrics["speed_wasserstein"] < 1e-9

@@ -5,8 +5,10 @@ the next), picked like a percussive onset detector (a local maximum, above the l
 ``min_gap`` after the previous one). Pitch accents are the local maxima of the voice pitch (semitones) whose
 prominence is at least ``prominence`` semitones, inside voiced runs.
 
-Head beats are kinematic beats: local minima of the head's angular speed after Gaussian smoothing, i.e. the moments
-a nod or a turn stops or reverses. The beat alignment of a motion with a set of audio beats is
+Head beats are kinematic beats of the head's angular speed after Gaussian smoothing: its local maxima (the strokes of
+nods and turns, ``kind="peaks"``) or its local minima (the moments a movement stops or reverses, ``"minima"``, the
+dance-motion convention). On real talking-head footage the strokes line up with speech onsets and pitch accents
+and the stops do not (docs/head.md, calibration). The beat alignment of a motion with a set of audio beats is
 
     BA = 1/|B_head| sum_{b in B_head} exp(-d(b)^2 / (2 sigma^2)),   d(b) = distance to the nearest audio beat,
 
@@ -87,17 +89,16 @@ def audio_onsets(samples: np.ndarray, rate: int, *, offset: float = 0.0, **picki
 
 
 def pitch_accents(times: np.ndarray, semitones: np.ndarray, *, prominence: float = 1.0) -> np.ndarray:
-    """Times of pitch accents: local maxima of the voice pitch (semitones, NaN unvoiced) with at least
-    ``prominence`` semitones of prominence within their voiced run."""
+    """Times of pitch accents: local maxima of the voice pitch (semitones, NaN unvoiced) inside a voiced run (not
+    at its ends), with at least ``prominence`` semitones of prominence within that run."""
     from scipy.signal import find_peaks
 
     voiced = np.isfinite(semitones)
     edges = np.diff(np.concatenate([[0], voiced.astype(np.int8), [0]]))
     out = []
     for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
-        run = np.concatenate([[-np.inf], semitones[a:b], [-np.inf]])  # a run's ends count as valleys
-        peaks, _ = find_peaks(run, prominence=prominence)
-        out.append(times[a + peaks - 1])
+        peaks, _ = find_peaks(semitones[a:b], prominence=prominence)  # interior maxima of the voiced run
+        out.append(times[a + peaks])
     return np.concatenate(out) if out else np.zeros(0)
 
 
@@ -118,16 +119,18 @@ def smoothed_speed(angles: np.ndarray, fps: float, smoothing: float) -> np.ndarr
     return np.linalg.norm(velocity, axis=1)
 
 
-def kinematic_beats(angles: np.ndarray, fps: float, *, smoothing: float = 0.1, prominence: float = 0.0) -> np.ndarray:
-    """Times (seconds from the first frame) of head beats: local minima of the smoothed angular speed with at least
-    ``prominence`` deg/s of prominence. A still head has none."""
+def kinematic_beats(
+    angles: np.ndarray, fps: float, *, kind: str = "peaks", smoothing: float = 0.1, prominence: float = 0.0
+) -> np.ndarray:
+    """Times (seconds from the first frame) of head beats: local maxima (``kind="peaks"``) or minima (``"minima"``)
+    of the smoothed angular speed with at least ``prominence`` deg/s of prominence. A still head has none."""
     from scipy.signal import find_peaks
 
     speed = smoothed_speed(angles, fps, smoothing)
     if len(speed) < 3 or np.ptp(speed) <= 1e-9:
         return np.zeros(0)
-    minima, _ = find_peaks(-speed, prominence=max(prominence, 1e-9))
-    return minima / fps
+    found, _ = find_peaks(speed if kind == "peaks" else -speed, prominence=max(prominence, 1e-9))
+    return found / fps
 
 
 # --------------------------------------------------------------------------------------------- alignment

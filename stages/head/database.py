@@ -217,29 +217,33 @@ def label_speakers(recordings: list[Recording], fields: dict, default: str | Non
     return recordings
 
 
+TRACKS_DOC = "tracking artifact (stages/tracking/schema.py) with audio"
+
+
 class TrackedHeadDb(Stage):
-    """Database from tracking outputs: video head pose (rotation, translation) and each video's audio."""
+    """Database from tracking outputs: video head pose (rotation, translation) and each video's audio; the takes
+    of ``tracks`` and, optionally, of a second tracking artifact ``more_tracks`` (say, another corpus)."""
 
     class Params(HeadDbParams):
-        labels: list[str] | None = None  # use only these sequences of the tracking artifact
+        labels: list[str] | None = Field(None, description="use only these sequences of the tracking artifacts")
 
     inputs = {
-        "tracks": Input.artifact(
-            "rotation",
-            "translation",
-            "time",
-            "sequence",
-            doc="tracking artifact (stages/tracking/schema.py) with audio",
-        )
+        "tracks": Input.artifact("rotation", "translation", "time", "sequence", doc=TRACKS_DOC),
+        "more_tracks": Input.artifact("rotation", "translation", "time", "sequence", optional=True, doc=TRACKS_DOC),
     }
     outputs = HEADDB_OUTPUTS
 
     def run(self, params, inputs):
-        view = inputs["tracks"]
-        recordings = label_speakers(
-            recordings_from_tracking(view, params.labels), view.meta.get("fields") or {}, params.speaker
-        )
-        fps = params.fps or _first(view.meta.get("fps"))
+        views = [(name, inputs[name]) for name in ("tracks", "more_tracks") if inputs.get(name) is not None]
+        recordings = []
+        for name, view in views:
+            wanted = (
+                None if params.labels is None else [x for x in params.labels if x in (view.meta.get("labels") or [])]
+            )
+            found = recordings_from_tracking(view, wanted, field=f"inputs.{name}")
+            recordings += label_speakers(found, view.meta.get("fields") or {}, params.speaker)
+        check_labels(recordings, params.labels)
+        fps = params.fps or _first(views[0][1].meta.get("fps"))
         if not fps:
             fps = 1.0 / float(np.median(np.diff(recordings[0].time)))
         return build_database(
@@ -248,8 +252,19 @@ class TrackedHeadDb(Stage):
             mirror=params.mirror,
             center=params.center,
             max_length_mismatch=params.max_length_mismatch,
-            translation_units=str(view.meta.get("translation_units", "unknown")),
+            translation_units=str(views[0][1].meta.get("translation_units", "unknown")),
         )
+
+
+def check_labels(recordings: list[Recording], wanted: list[str] | None) -> None:
+    """Every take label once across the tracking artifacts, and every wanted label found."""
+    labels = [r.label for r in recordings]
+    twice = sorted({x for x in labels if labels.count(x) > 1})
+    if twice:
+        raise UserError(f"takes {twice} appear in both tracking artifacts; labels must be unique", field="inputs")
+    missing = [x for x in (wanted or []) if x not in labels]
+    if missing:
+        raise UserError(f"labels {missing} are not in the tracking artifacts ({labels})", field="params.labels")
 
 
 def _first(value):
@@ -283,6 +298,7 @@ def recordings_from_tracking(view, labels: list[str] | None, field: str = "input
 
     sources = per_sequence("sources", None)
     offsets = per_sequence("audio_offset", 0.0)
+    has_audio = per_sequence("has_audio", True)
     rate = int(meta.get("audio_rate") or 16000)
     audio, bounds = view["audio"], np.asarray(view["audio_bounds"]).reshape(-1, 2)
     rotation, translation, time = view["rotation"], view["translation"], view["time"]
@@ -293,6 +309,12 @@ def recordings_from_tracking(view, labels: list[str] | None, field: str = "input
         if not mask.any():
             raise UserError(f"sequence '{label}' has no frames", field=field)
         a, b = bounds[k]
+        if not has_audio[k] or b <= a:
+            raise UserError(
+                f"take '{label}' has no audio (a silent video); the head-motion database pairs motion with speech",
+                file=str(sources[k] or label),
+                field=f"{field}[{label}]",
+            )
         out.append(
             Recording(
                 label,

@@ -8,10 +8,38 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.geometry.rotations import angular_velocity, euler_to_quat
+from stages.geometry.rotations import angular_velocity, euler_to_quat, quat_to_euler
 
 JOIN_MEASURE_WINDOW = 0.15  # seconds either side of a join over which join acceleration is measured (fixed, so
 #                              that every smoothing method and parameter is measured alike)
+
+
+def reference_angles(view, label: str, n_labels: int, fps: float) -> np.ndarray | None:
+    """The real head motion of ``label`` from a tracking or headdb artifact, centred like the database and
+    resampled to ``fps``; None when it has no such sequence."""
+    from stages.head.database import center_motion, resample_motion
+
+    labels = list(view.meta.get("labels") or [])
+    if label in labels:
+        k = labels.index(label)
+    elif len(labels) <= 1 and n_labels == 1:
+        k = 0
+    else:
+        return None
+    mask = np.asarray(view["sequence"]) == k
+    rotation = np.asarray(view["rotation"])[mask]
+    translation = np.asarray(view["translation"])[mask] if "translation" in view else np.zeros((mask.sum(), 3))
+    if "time" in view:
+        time = np.asarray(view["time"])[mask]
+    else:
+        src_fps = view.meta.get("fps")
+        src_fps = src_fps[k] if isinstance(src_fps, list) else src_fps
+        time = np.arange(mask.sum()) / float(src_fps or fps)
+    if len(time) < 2:
+        return None
+    _, rot, trans = resample_motion(time, rotation, translation, fps)
+    rot, _ = center_motion(rot, trans)
+    return quat_to_euler(rot)
 
 
 def angular_speed(angles: np.ndarray, fps: float) -> np.ndarray:

@@ -34,12 +34,13 @@ import numpy as np
 from pydantic import Field
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.geometry.rotations import euler_to_quat, quat_to_euler
+from stages.geometry.rotations import euler_to_quat
 from stages.head.measures import (
     JOIN_MEASURE_WINDOW,
     angular_acceleration,
     angular_speed,
     join_acceleration,
+    reference_angles,
     wasserstein_speed,
 )
 
@@ -433,34 +434,6 @@ MOTION_BLEND_OUTPUTS = {
 }
 
 
-def _reference_angles(view, label: str, n_labels: int, fps: float) -> np.ndarray | None:
-    """The real head motion of ``label`` from a tracking or headdb artifact, centred like the database and
-    resampled to ``fps``; None when it has no such sequence."""
-    from stages.head.database import center_motion, resample_motion
-
-    labels = list(view.meta.get("labels") or [])
-    if label in labels:
-        k = labels.index(label)
-    elif len(labels) <= 1 and n_labels == 1:
-        k = 0
-    else:
-        return None
-    mask = np.asarray(view["sequence"]) == k
-    rotation = np.asarray(view["rotation"])[mask]
-    translation = np.asarray(view["translation"])[mask] if "translation" in view else np.zeros((mask.sum(), 3))
-    if "time" in view:
-        time = np.asarray(view["time"])[mask]
-    else:
-        src_fps = view.meta.get("fps")
-        src_fps = src_fps[k] if isinstance(src_fps, list) else src_fps
-        time = np.arange(mask.sum()) / float(src_fps or fps)
-    if len(time) < 2:
-        return None
-    _, rot, trans = resample_motion(time, rotation, translation, fps)
-    rot, _ = center_motion(rot, trans)
-    return quat_to_euler(rot)
-
-
 def _plot_head_angles(view, inputs=None):
     """Head yaw, pitch and roll over time: synthesised (and real, when a reference was given); joins marked."""
     import matplotlib
@@ -475,7 +448,7 @@ def _plot_head_angles(view, inputs=None):
     t = view["time"][mask]
     reference = None
     if inputs and inputs.get("reference") is not None and labels:
-        ref = _reference_angles(inputs["reference"], labels[0], len(labels), fps)
+        ref = reference_angles(inputs["reference"], labels[0], len(labels), fps)
         reference = None if ref is None else np.degrees(ref)
     joins = view["joins"][view["join_utterance"] == 0]
     windows = view["join_window"][view["join_utterance"] == 0] if "join_window" in view else np.zeros((0, 2))
@@ -704,7 +677,7 @@ def motion_metrics(arrays: dict, fps: float, window: float, reference, labels: l
             join_acceleration(angles, fps, arrays["joins"][arrays["join_utterance"] == u], max(window, 1.0 / fps))
         )
         if reference is not None:
-            real = _reference_angles(reference, labels[u], len(labels), fps)
+            real = reference_angles(reference, labels[u], len(labels), fps)
             if real is not None and len(real) >= 3:
                 ref_speed.append(angular_speed(real, fps))
                 ref_acc99.append(np.percentile(angular_acceleration(real, fps), 99))
