@@ -337,7 +337,7 @@ def test_an_utterance_found_in_the_database_gets_its_own_motion_back(phrases, tr
     test_tracks = tracking_artifact(phrases[3:4], fps=30.0)
     take_pitch = run_stage(Pitch, {}, {"source": test_tracks})
     tr = run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": take_pitch})
-    run = run_stage(MotionBlend, {}, {"trellis": tr, "database": headdb, "reference": test_tracks})
+    run = run_stage(MotionBlend, {"timing": "segment"}, {"trellis": tr, "database": headdb, "reference": test_tracks})
     real = reference_angles(test_tracks, phrases[3].label, 1, 30.0)
     assert run.arrays["angles"].shape == real.shape
     np.testing.assert_allclose(run.arrays["angles"], real, atol=1e-9)
@@ -464,3 +464,78 @@ def test_crema_d_end_to_end(crema):
         < run.metrics["mean_angular_speed"]
         < 5 * run.metrics["real_mean_angular_speed"]
     )
+
+
+# ------------------------------------------------------------------------------------ beyond the paper
+
+
+def test_timing_knots_move_database_events_onto_test_events():
+    from stages.head.motion_blend import segment_knots, warp_time
+
+    # a 1 s test segment drawn from a 2 s database segment: uniform rate 2
+    knots_t, knots_d = segment_knots(
+        (10.0, 11.0), (4.0, 6.0), np.array([10.35, 10.8]), np.array([4.5, 5.9]), tolerance=0.15, max_stretch=2.0
+    )
+    # 4.5 would land at 10.25: moved onto 10.35; 5.9 would land at 10.95, next to 10.8: too fast a piece after it
+    np.testing.assert_allclose(knots_t, [10.0, 10.35, 11.0])
+    np.testing.assert_allclose(knots_d, [4.0, 4.5, 6.0])
+    t = np.linspace(9.5, 11.5, 201)
+    mapped = warp_time(t, knots_t, knots_d)
+    assert np.all(np.diff(mapped) > 0)  # monotone, continuous
+    np.testing.assert_allclose(warp_time(np.array([10.0, 10.35, 11.0]), knots_t, knots_d), [4.0, 4.5, 6.0])
+    np.testing.assert_allclose(warp_time(np.array([9.5, 11.5]), knots_t, knots_d), [3.0, 7.0])  # beyond: uniform
+    far = segment_knots((10.0, 11.0), (4.0, 6.0), np.array([10.6]), np.array([4.5]), tolerance=0.15, max_stretch=2.0)
+    np.testing.assert_allclose(far[0], [10.0, 11.0])  # 0.35 s away: left alone
+
+
+def test_amplitude_gains_bring_every_speaker_to_the_target_spread():
+    from stages.head.motion_blend import amplitude_gains
+
+    t = np.linspace(0, 4 * np.pi, 400)
+    quiet = np.repeat(np.sin(t)[:, None], 6, axis=1)
+    db = DatabaseMotion(
+        np.concatenate([quiet, 3 * quiet]), np.array([0, 400]), np.array([400, 400]), 100.0, ["ann", "bob"]
+    )
+    np.testing.assert_allclose(amplitude_gains(db, "ann"), [[1.0] * 6, [1 / 3] * 6])
+    np.testing.assert_allclose(amplitude_gains(db, "bob"), [[3.0] * 6, [1.0] * 6])
+    scaled = db.scaled(amplitude_gains(db, None))  # a held-out speaker: both to the database's pooled spread
+    spread = lambda x: np.percentile(x, 95, axis=0) - np.percentile(x, 5, axis=0)
+    np.testing.assert_allclose(spread(scaled.channels[:400]), spread(scaled.channels[400:]))
+
+
+def test_rest_anchor_removes_slow_wander(leave_one_out, database):
+    plain = run_stage(MotionBlend, {}, {"trellis": leave_one_out, "database": database[0]})
+    anchored = run_stage(MotionBlend, {"rest_anchor": 1.0}, {"trellis": leave_one_out, "database": database[0]})
+    from scipy.ndimage import gaussian_filter1d
+
+    slow = lambda run: np.abs(gaussian_filter1d(run.arrays["angles"], 60, axis=0)).mean()
+    assert slow(anchored) < 0.5 * slow(plain)
+    assert anchored.meta["stitch"]["rest_anchor"] == 1.0
+
+
+def test_stroke_timing_puts_head_strokes_on_the_test_onsets():
+    """A database take whose nods stroke at known times, played onto a test segment of the same length whose
+    onsets come 0.1 s later: uniform resampling keeps the strokes 0.1 s early, the stroke timing moves them on."""
+    from scipy.special import erf
+
+    from stages.head.beats import beat_alignment, kinematic_beats
+    from stages.head.motion_blend import database_events, utterance_time_maps
+
+    fps = 100.0
+    t = np.arange(600) / fps
+    strokes = np.array([0.8, 1.6, 2.5, 3.3, 4.2, 5.0])
+    nod = sum(0.05 * (1 + erf((t - s) / (np.sqrt(2) * 0.06))) * (-1) ** k for k, s in enumerate(strokes))
+    channels = np.zeros((600, 6))
+    channels[:, 1] = nod
+    db = DatabaseMotion(channels, np.array([0]), np.array([600]), fps)
+    segment = np.array([[0.0, 5.0, 5.99]])
+    onsets = strokes + 0.1
+    events = database_events(None, db, "strokes")
+    np.testing.assert_allclose(events[0], strokes, atol=0.011)
+    maps = utterance_time_maps(segment, segment, np.array([0]), onsets, events, 0.15, 2.0)
+    times = np.arange(599) / fps
+    uniform = stitch_segments(db, segment, np.array([True]), np.array([0]), segment, times)
+    timed = stitch_segments(db, segment, np.array([True]), np.array([0]), segment, times, time_maps=maps)
+    score = lambda run: beat_alignment(kinematic_beats(run.channels[:, :3], fps, smoothing=0.02), onsets, 0.05)
+    assert score(uniform) == pytest.approx(np.exp(-2.0), abs=0.05)  # 0.1 s off at sigma 0.05 s
+    assert score(timed) > 0.95

@@ -15,7 +15,9 @@ from stages.head.database import TrackedHeadDb
 from stages.head.pitch import Pitch
 from stages.head.trellis import (
     Database,
+    SegmentScales,
     SegmentTable,
+    SegmentWeights,
     SpeakerReference,
     Trellis,
     contour_geometry,
@@ -127,22 +129,34 @@ def test_smoothness_terms_each_average_a_third():
         assert w[k] * pairs.mean() == pytest.approx(1 / 3)
 
 
-def table(contours, lengths, voiced=None):
+def table(contours, lengths, voiced=None, energy=None, onset_rate=None):
     contours = np.asarray(contours, dtype=float)
     n = len(contours)
     lengths = np.asarray(lengths, dtype=float)
     voiced = lengths * 0.6 if voiced is None else np.asarray(voiced, dtype=float)
     times = np.stack([np.zeros(n), voiced, lengths], axis=1)
+    energy = np.zeros_like(contours) if energy is None else np.asarray(energy, dtype=float)
+    onset_rate = np.zeros(n) if onset_rate is None else np.asarray(onset_rate, dtype=float)
     return SegmentTable(
-        times, np.arange(n), np.zeros(n, int), np.ones(n, bool), contours, contour_geometry(contours, voiced)
+        times,
+        np.arange(n),
+        np.zeros(n, int),
+        np.ones(n, bool),
+        contours,
+        contour_geometry(contours, voiced),
+        energy,
+        onset_rate,
     )
+
+
+UNIT_SCALES = SegmentScales(np.zeros(6), np.ones(6), 1.0, 1.0)
 
 
 def test_segment_distance_terms():
     base = np.sin(np.linspace(0, 3, 20)) * 2
     test = table([base], [0.4])
     db = table([base, base + 1.5, base], [0.4, 0.4, 0.6])
-    d = segment_distances(test, db, np.arange(3), b=0.05, c=0.3, geometry_mean=np.zeros(6), geometry_sd=np.ones(6))
+    d = segment_distances(test, db, np.arange(3), SegmentWeights(0.05, 0.3), UNIT_SCALES)
     assert d.total[0, 0] == pytest.approx(0.0, abs=1e-9)
     assert d.pitch[0, 1] == pytest.approx(1.5)  # Eq. 10: RMS of a constant offset
     assert d.length[0, 2] == pytest.approx(0.5)  # Eq. 11: |0.6 - 0.4| / 0.4
@@ -152,6 +166,19 @@ def test_segment_distance_terms():
     assert d.total[0, 1] == pytest.approx(expected)
     # G_d sees the offset in min and max
     assert d.geometry[0, 1] == pytest.approx(np.sqrt((1.5**2 * 2) / 6))
+
+
+def test_loudness_and_rhythm_terms_beyond_the_paper():
+    base = np.sin(np.linspace(0, 3, 20)) * 2
+    loud = np.linspace(-6, 0, 20)
+    test = table([base], [0.4], energy=[loud], onset_rate=[5.0])
+    db = table([base, base], [0.4, 0.4], energy=[loud, loud + 3.0], onset_rate=[5.0, 2.0])
+    scales = SegmentScales(np.zeros(6), np.ones(6), 2.0, 1.5)
+    paper = segment_distances(test, db, np.arange(2), SegmentWeights(0.05, 0.3), scales)
+    assert paper.total[0, 0] == paper.total[0, 1] == pytest.approx(0.0, abs=1e-9)  # e = o = 0: Eq. 12 only
+    richer = segment_distances(test, db, np.arange(2), SegmentWeights(0.05, 0.3, e=0.5, o=0.2), scales)
+    assert richer.loudness[0, 1] == pytest.approx(3.0 / 2.0) and richer.rhythm[0, 1] == pytest.approx(3.0 / 1.5)
+    assert richer.total[0, 1] == pytest.approx(0.5 * 1.5 + 0.2 * 2.0) and richer.total[0, 0] == pytest.approx(0.0)
 
 
 def test_contour_geometry_of_lines_and_parabolas():

@@ -223,11 +223,12 @@ class WindowScores:
     beat_accent: np.ndarray  # (W, M) with pitch accents
     speed_w1: np.ndarray  # (W, M) deg/s, against the real motion
     accel_w1: np.ndarray  # (W, M) deg/s^2
+    correlation: np.ndarray  # (W, M) Pearson correlation with the real motion, mean over the angles that move
 
 
 def motion_scores(motion: np.ndarray, real: np.ndarray, fps: float, onsets, accents, params) -> list[float]:
-    """Beat alignment with ``onsets`` and with ``accents`` (on the excerpt's clock), and the Wasserstein
-    distances of angular speed and acceleration to ``real``, of one motion excerpt."""
+    """Beat alignment with ``onsets`` and with ``accents`` (on the excerpt's clock), the Wasserstein distances of
+    angular speed and acceleration to ``real`` and the correlation with ``real``, of one motion excerpt."""
     from stages.head.beats import beat_alignment, kinematic_beats
     from stages.head.measures import angular_acceleration, angular_speed, wasserstein
 
@@ -237,7 +238,16 @@ def motion_scores(motion: np.ndarray, real: np.ndarray, fps: float, onsets, acce
         beat_alignment(beats, accents, params.sigma),
         wasserstein(angular_speed(motion, fps), angular_speed(real, fps)),
         wasserstein(angular_acceleration(motion, fps), angular_acceleration(real, fps)),
+        pose_correlation(motion, real),
     ]
+
+
+def pose_correlation(motion: np.ndarray, real: np.ndarray) -> float:
+    """Mean over angles of the Pearson correlation of ``motion`` with ``real`` (angles where either is constant
+    count 0): near 0 when the motion is not a function of the same voice, 1 for the real motion itself."""
+    a, b = motion - motion.mean(axis=0), real - real.mean(axis=0)
+    norm = np.sqrt((a * a).sum(axis=0) * (b * b).sum(axis=0))
+    return float(np.mean(np.where(norm > 1e-20, (a * b).sum(axis=0) / np.maximum(norm, 1e-300), 0.0)))
 
 
 def window_motions(take: Take, a: int, b: int, shifted, paths, db, rng, params) -> dict[str, list[np.ndarray]]:
@@ -275,11 +285,11 @@ def score_windows(takes: list[Take], paths: list[list[np.ndarray]], db, params) 
                 scores.append(np.mean(draws, axis=0))
                 pooled.setdefault(take.speaker, {}).setdefault(name, []).extend(motions[name])
             rows.append((t, (t0, b / take.fps), np.array(scores)))
-    table = np.array([r[2] for r in rows]).reshape(len(rows), len(MOTIONS), 4)
+    table = np.array([r[2] for r in rows]).reshape(len(rows), len(MOTIONS), 5)
     windows = WindowScores(
         np.array([r[0] for r in rows], dtype=np.int32),
         np.array([r[1] for r in rows], dtype=np.float64).reshape(-1, 2),
-        *(table[:, :, i] for i in range(4)),
+        *(table[:, :, i] for i in range(5)),
     )
     return windows, pooled
 
@@ -431,6 +441,7 @@ def pooled_metrics(w: WindowScores, ranges: RangeScores, per_take: dict, params)
         if m != "real":
             metrics[f"speed_w1_{m}"] = float(np.nanmean(w.speed_w1[:, i]))
             metrics[f"accel_w1_{m}"] = float(np.nanmean(w.accel_w1[:, i]))
+            metrics[f"corr_{m}"] = float(w.correlation[:, i].mean())
         metrics[f"amplitude_{m}"] = float(ranges.amplitude[:, i].mean())
         metrics[f"range_ok_{m}"] = float(ranges.inside[:, i].mean())
         metrics[f"in_range_{m}"] = float(ranges.in_range[:, i].mean())
@@ -474,6 +485,9 @@ HEAD_EVAL_OUTPUTS = {
         shape=("speakers", len(MOTIONS), 3),
         dtype="float64",
         doc="per speaker (meta range_speakers) and angle: p95 - p5 of the motion over that of the real motion",
+    ),
+    "correlation": Output.array(
+        "f", shape=("utterances", len(MOTIONS)), dtype="float64", doc="correlation with the real motion"
     ),
     "range_ok": Output.array(
         "f",
@@ -539,8 +553,8 @@ class HeadEvalParams(Stage.Params):
     )
     beat_smoothing: float = Field(0.1, ge=0, description="Gaussian smoothing (s, sd) of the angular velocity")
     onset_delta: float = Field(0.15, ge=0, le=1, description="onset peak height above the local mean (flux in 0..1)")
-    onset_min_gap: float = Field(0.25, ge=0, description="shortest time (s) between two audio onsets")
-    accent_prominence: float = Field(1.0, gt=0, description="semitones of prominence of a pitch accent")
+    onset_min_gap: float = Field(0.1, ge=0, description="shortest time (s) between two audio onsets")
+    accent_prominence: float = Field(0.5, gt=0, description="semitones of prominence of a pitch accent")
     draws: int = Field(20, ge=1, le=1000, description="draws averaged per random baseline")
     min_shift: float = Field(1.0, ge=0, description="smallest circular shift (s) of the 'shifted' baseline")
     bootstrap: int = Field(2000, ge=100, description="bootstrap resamples of the takes for the intervals")
@@ -598,6 +612,7 @@ def pack_evaluation(
         "beat_align_accent": w.beat_accent,
         "speed_w1": w.speed_w1,
         "accel_w1": w.accel_w1,
+        "correlation": w.correlation,
         "amplitude": ranges.amplitude,
         "range_ok": ranges.inside,
         "in_range": ranges.in_range,

@@ -51,6 +51,7 @@ class DatabaseMotion:
     first: np.ndarray  # (sequences,) first frame of each sequence
     frames: np.ndarray  # (sequences,) frame count
     fps: float
+    speakers: list | None = None  # (sequences,) speaker labels, when known
 
     def sample(self, sequence: int, times: np.ndarray) -> np.ndarray:
         """Channels of ``sequence`` at ``times`` (seconds), linearly interpolated, held beyond the take."""
@@ -69,6 +70,30 @@ class DatabaseMotion:
             if n >= 3:
                 values.append(angular_acceleration(self.channels[first : first + n, :3], self.fps))
         return float(np.median(np.concatenate(values))) if values else 0.0
+
+    def sequence_of_frames(self) -> np.ndarray:
+        return np.repeat(np.arange(len(self.frames)), self.frames)
+
+    def scaled(self, gains: np.ndarray) -> DatabaseMotion:
+        """The database with each sequence's channels multiplied by its row of ``gains`` (sequences, channels)."""
+        channels = self.channels * gains[self.sequence_of_frames()]
+        return DatabaseMotion(channels, self.first, self.frames, self.fps, self.speakers)
+
+
+def amplitude_gains(db: DatabaseMotion, target: str | None) -> np.ndarray:
+    """Per sequence and channel, the gain that gives its speaker's motion the spread (p95 - p5 over all of that
+    speaker's sequences) of the ``target`` speaker's in the database, or of the whole database when the target
+    is not in it (a held-out speaker): every source speaker then moves about as much as the typical one."""
+    speakers = list(db.speakers or [None] * len(db.frames))
+    owner = np.array([speakers.index(x) for x in speakers])[db.sequence_of_frames()]  # first sequence of each speaker
+
+    def spread(mask):
+        values = db.channels[mask]
+        return np.maximum(np.percentile(values, 95, axis=0) - np.percentile(values, 5, axis=0), 1e-12)
+
+    wanted = spread(owner == speakers.index(target)) if target in speakers else spread(np.ones(len(owner), bool))
+    by_speaker = {x: spread(owner == speakers.index(x)) for x in set(speakers)}
+    return np.stack([wanted / by_speaker[x] for x in speakers])
 
 
 JOIN_BUDGET_OF_MEDIAN = 0.5  # default acceleration a join's velocity step may add, as a fraction of the
@@ -165,6 +190,52 @@ def segment_weights(x: np.ndarray, k: int, left: np.ndarray, right: np.ndarray, 
     return np.clip(ramp(k) - ramp(k + 1), 0.0, 1.0)
 
 
+def warp_time(t: np.ndarray, test_knots: np.ndarray, db_knots: np.ndarray) -> np.ndarray:
+    """Database time of output times ``t`` under a piecewise-linear map through the knots (test time -> database
+    time), continued beyond the first and last knot at the segment's average rate."""
+    t = np.asarray(t, dtype=np.float64)
+    rate = (db_knots[-1] - db_knots[0]) / max(test_knots[-1] - test_knots[0], 1e-9)
+    inside = np.interp(t, test_knots, db_knots)
+    before = db_knots[0] + (t - test_knots[0]) * rate
+    after = db_knots[-1] + (t - test_knots[-1]) * rate
+    return np.where(t < test_knots[0], before, np.where(t > test_knots[-1], after, inside))
+
+
+def segment_knots(
+    test_segment: tuple[float, float],
+    db_segment: tuple[float, float],
+    test_events: np.ndarray,
+    db_events: np.ndarray,
+    *,
+    tolerance: float,
+    max_stretch: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Knots of a time map that keeps the segment's ends (Sec. 5.4: onset to onset) and moves each database event
+    inside it onto the nearest test event, when that is within ``tolerance`` seconds of where uniform resampling
+    would put it and no piece of the map plays faster or slower than ``max_stretch`` times the uniform rate.
+    Events are matched in time order, each test event at most once."""
+    (a, e), (da, de) = test_segment, db_segment
+    rate = (de - da) / max(e - a, 1e-9)
+    knots_t, knots_d = [a], [da]
+    free = np.sort(np.asarray(test_events, dtype=np.float64))
+    for tau in np.sort(np.asarray(db_events, dtype=np.float64)):
+        if not da < tau < de:
+            continue
+        uniform = a + (tau - da) / rate
+        options = free[(free > knots_t[-1]) & (free < e) & (np.abs(free - uniform) <= tolerance)]
+        if not len(options):
+            continue
+        t = float(options[np.argmin(np.abs(options - uniform))])
+        before = (tau - knots_d[-1]) / max(t - knots_t[-1], 1e-9)
+        after = (de - tau) / max(e - t, 1e-9)
+        if all(rate / max_stretch <= r <= rate * max_stretch for r in (before, after)):
+            knots_t.append(t)
+            knots_d.append(float(tau))
+    knots_t.append(e)
+    knots_d.append(de)
+    return np.array(knots_t), np.array(knots_d)
+
+
 def stitch_segments(
     db: DatabaseMotion,
     test_segments: np.ndarray,
@@ -181,6 +252,7 @@ def stitch_segments(
     max_blend_window: float = 0.5,
     preserve_speed: bool = False,
     boundary_window: float = 0.1,
+    time_maps: list[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> Stitched:
     """Sec. 5.4 for one utterance. ``test_segments`` (N, 3) and the chosen database segments' sequence (N,) and
     times (N, 3); ``times`` the output frame times (increasing). Returns the blended channels on ``times``.
@@ -227,7 +299,9 @@ def stitch_segments(
     sequence = np.asarray(db_sequence, dtype=np.int64)
 
     def raw(k: int, t: np.ndarray) -> np.ndarray:
-        return db.sample(int(sequence[k]), da[k] + (t - a[k]) * scale[k])
+        if time_maps is None:
+            return db.sample(int(sequence[k]), da[k] + (t - a[k]) * scale[k])
+        return db.sample(int(sequence[k]), warp_time(t, *time_maps[k]))
 
     starts = np.asarray(subsentence_start, dtype=bool).copy()
     starts[0] = True
@@ -489,6 +563,24 @@ class MotionBlendParams(Stage.Params):
         "angular acceleration; 0: fixed windows",
     )
     preserve_speed: bool = Field(False, description="keep the blended velocity as fast as the joined segments' own")
+    timing: Literal["segment", "onsets", "strokes"] = Field(
+        "strokes",
+        description="resampling of each chosen segment onto its test segment: 'segment', uniform from onset to onset "
+        "(the paper); or piecewise, moving the segment's head strokes ('strokes') or its audio onsets ('onsets') "
+        "onto the test's audio onsets",
+    )
+    timing_tolerance: float = Field(0.15, gt=0, description="farthest (s) the timing warp moves an event")
+    amplitude: Literal["database", "speaker"] = Field(
+        "database",
+        description="motion amplitude as recorded, or each source speaker's scaled to the test speaker's spread "
+        "(the whole database's when the test speaker is not in it)",
+    )
+    rest_anchor: float = Field(
+        0.0, ge=0, description="remove wander slower than this many seconds, back to the rest pose (0: off)"
+    )
+    max_stretch: float = Field(
+        2.0, ge=1, description="fastest or slowest a piece of the warp plays, x the uniform rate"
+    )
     drift_correction: bool = Field(True, description="warp each sub-sentence to meet the next")
     translation: bool = Field(True, description="False: rotation only (translation zero)")
     bvh_joint: str = Field("Head", min_length=1)
@@ -565,6 +657,11 @@ def stitch_options(params, db: DatabaseMotion, trellis) -> dict:
         "preserve_speed": params.preserve_speed,
         "drift_correction": params.drift_correction,
         "boundary_window": float(trellis.meta.get("boundary_window", 0.1)),
+        "timing": params.timing,
+        "timing_tolerance": params.timing_tolerance,
+        "max_stretch": params.max_stretch,
+        "amplitude": params.amplitude,
+        "rest_anchor": params.rest_anchor,
     }
 
 
@@ -625,17 +722,69 @@ def database_motion(view, *, use_translation: bool = True) -> DatabaseMotion:
     )
     if not np.isfinite(channels).all():
         raise UserError("NaN in the database motion", field="inputs.database")
-    return DatabaseMotion(channels, np.concatenate([[0], np.cumsum(frames)[:-1]]), frames, float(view.meta["fps"]))
+    first = np.concatenate([[0], np.cumsum(frames)[:-1]])
+    return DatabaseMotion(channels, first, frames, float(view.meta["fps"]), view.meta.get("speakers"))
 
 
-def synthesise(trellis, db: DatabaseMotion, fps: float, **blend) -> list[Stitched]:
-    """The stitched motion of each test utterance of a trellis artifact (a still head where silent); ``blend``:
-    keyword arguments of ``stitch_segments``."""
+def database_events(trellis, db: DatabaseMotion, timing: str) -> list[np.ndarray]:
+    """Per database sequence, the events the timing warp moves: its audio onsets (``timing="onsets"``) or the
+    strokes of its head motion (``"strokes"``: maxima of the smoothed angular speed, stages.head.beats)."""
+    from stages.head.beats import kinematic_beats
+
+    if timing == "strokes":
+        return [
+            kinematic_beats(db.channels[first : first + n, :3], db.fps, kind="peaks", smoothing=0.1)
+            for first, n in zip(db.first, db.frames)
+        ]
+    times = np.asarray(trellis["db_onsets"]) if "db_onsets" in trellis else np.zeros(0)
+    owner = np.asarray(trellis["db_onset_sequence"]) if "db_onset_sequence" in trellis else np.zeros(0, int)
+    return [times[owner == k] for k in range(len(db.frames))]
+
+
+def utterance_time_maps(
+    test_segments: np.ndarray,
+    db_segments: np.ndarray,
+    db_sequence: np.ndarray,
+    test_events: np.ndarray,
+    db_events: list[np.ndarray],
+    tolerance: float,
+    max_stretch: float,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``segment_knots`` of every chosen segment of one utterance."""
+    return [
+        segment_knots(
+            (test_segments[k, 0], test_segments[k, 2]),
+            (db_segments[k, 0], db_segments[k, 2]),
+            test_events,
+            db_events[int(db_sequence[k])],
+            tolerance=tolerance,
+            max_stretch=max_stretch,
+        )
+        for k in range(len(test_segments))
+    ]
+
+
+def synthesise(
+    trellis,
+    db: DatabaseMotion,
+    fps: float,
+    *,
+    timing: str = "segment",
+    timing_tolerance: float = 0.15,
+    max_stretch: float = 2.0,
+    amplitude: str = "database",
+    rest_anchor: float = 0.0,
+    **blend,
+) -> list[Stitched]:
+    """The stitched motion of each test utterance of a trellis artifact (a still head where silent). ``timing``:
+    each chosen segment resampled uniformly onto its test segment (``"segment"``, the paper), or with its audio
+    onsets (``"onsets"``) or its head strokes (``"strokes"``) moved onto the test's audio onsets
+    (``segment_knots``). ``amplitude="speaker"`` scales every source speaker's motion to the test speaker's
+    spread (``amplitude_gains``); ``rest_anchor`` > 0 removes wander slower than that many seconds (a Gaussian
+    low-pass of that sd), so the head keeps returning to its rest pose. ``blend``: keyword arguments of
+    ``stitch_segments``."""
     labels = list(trellis.meta.get("labels") or [])
     durations = trellis.meta.get("durations") or []
-    if blend.get("smoothing", "velocity") == "velocity":
-        # velocity steps measured like the trellis's H measured them
-        blend.setdefault("boundary_window", float(trellis.meta.get("boundary_window", 0.1)))
     test_fps = trellis.meta.get("fps") or [None] * len(labels)
     test_frames = trellis.meta.get("frames") or [None] * len(labels)
     segments = np.asarray(trellis["segments"]).reshape(-1, 3)
@@ -643,24 +792,50 @@ def synthesise(trellis, db: DatabaseMotion, fps: float, **blend) -> list[Stitche
     chosen = np.asarray(trellis["chosen"], dtype=np.int64)
     db_seq = np.asarray(trellis["db_segment_sequence"], dtype=np.int64)
     db_segments = np.asarray(trellis["db_segments"]).reshape(-1, 3)
+    events = database_events(trellis, db, timing) if timing != "segment" else None
+    onsets = np.asarray(trellis["test_onsets"]) if "test_onsets" in trellis else np.zeros(0)
+    onset_utt = np.asarray(trellis["test_onset_utterance"]) if "test_onset_utterance" in trellis else np.zeros(0, int)
+    test_speakers = trellis.meta.get("speakers") or [None] * len(labels)
     out = []
     for u in range(len(labels)):
+        source = db.scaled(amplitude_gains(db, test_speakers[u])) if amplitude == "speaker" else db
         if test_frames[u] and test_fps[u] and abs(float(test_fps[u]) - fps) < 1e-6:
             n_frames = int(test_frames[u])
         else:
             n_frames = int(round(float(durations[u]) * fps))
         rows = np.flatnonzero(seg_utt == u)
+        maps = None
+        if events is not None:
+            maps = utterance_time_maps(
+                segments[rows],
+                db_segments[chosen[rows]],
+                db_seq[chosen[rows]],
+                onsets[onset_utt == u],
+                events,
+                timing_tolerance,
+                max_stretch,
+            )
         stitched = stitch_segments(
-            db,
+            source,
             segments[rows],
             np.asarray(trellis["subsentence_start"])[rows],
             db_seq[chosen[rows]],
             db_segments[chosen[rows]],
             np.arange(n_frames) / fps,
+            time_maps=maps,
             **blend,
         )
+        if rest_anchor > 0 and len(stitched.channels) > 1:
+            stitched.channels = stitched.channels - low_pass(stitched.channels, rest_anchor * fps)
         out.append(stitched)
     return out
+
+
+def low_pass(channels: np.ndarray, sd_frames: float) -> np.ndarray:
+    """Gaussian low-pass along frames (edges extended with the end values)."""
+    from scipy.ndimage import gaussian_filter1d
+
+    return gaussian_filter1d(channels, sd_frames, axis=0, mode="nearest")
 
 
 def motion_metrics(arrays: dict, fps: float, window: float, reference, labels: list[str]) -> dict:

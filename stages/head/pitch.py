@@ -75,6 +75,18 @@ def praat_pitch(
     return times, np.where(f0 > 0, f0, np.nan)
 
 
+def frame_energy(samples: np.ndarray, rate: int, times: np.ndarray, window: float = 0.04) -> np.ndarray:
+    """Loudness in dB (20 log10 of the RMS, floored at -100 dB) of ``window``-second frames of a mono signal
+    centred at ``times`` (seconds from the first sample). Vectorised over frames through a cumulative sum."""
+    x = np.asarray(samples, dtype=np.float64)
+    power = np.concatenate([[0.0], np.cumsum(x * x)])
+    half = max(1, int(round(window * rate / 2)))
+    centre = np.round(np.asarray(times) * rate).astype(np.int64)
+    lo, hi = np.clip(centre - half, 0, len(x)), np.clip(centre + half, 0, len(x))
+    mean = (power[hi] - power[lo]) / np.maximum(hi - lo, 1)
+    return 10.0 * np.log10(np.maximum(mean, 1e-10))
+
+
 def voiced_runs(voiced: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Start and stop (exclusive) indices of the runs of True in a boolean array."""
     edges = np.diff(np.concatenate([[0], np.asarray(voiced, dtype=np.int8), [0]]))
@@ -381,6 +393,7 @@ PITCH_OUTPUTS = {
     "f0": Output.array("f", shape=("pitch_frames",), dtype="float32", doc="cleaned f0 in Hz, NaN where unvoiced"),
     "f0_raw": Output.array("f", shape=("pitch_frames",), dtype="float32", doc="Praat's f0 in Hz, NaN unvoiced"),
     "pitch_time": Output.array("f", shape=("pitch_frames",), dtype="float64", doc="seconds on the sequence clock"),
+    "energy": Output.array("f", shape=("pitch_frames",), dtype="float32", doc="loudness (dB) of 40 ms frames"),
     "pitch_utterance": Output.array("i", shape=("pitch_frames",), dtype="int32", doc="index into meta labels"),
     "segments": Output.array(
         "f",
@@ -397,6 +410,10 @@ PITCH_OUTPUTS = {
         doc="meta feature_names; NaN rows for utterances without voice",
     ),
     "speaker_median": Output.array("f", shape=("utterances",), dtype="float64", doc="Hz, reference of semitones"),
+    "onsets": Output.array(
+        "f", shape=("onsets",), dtype="float64", doc="audio onsets (spectral-flux peaks), sequence clock seconds"
+    ),
+    "onset_utterance": Output.array("i", shape=("onsets",), dtype="int32", doc="index into meta labels"),
     "speaker_spread": Output.array(
         "f", shape=("utterances",), dtype="float64", doc="standard deviation of the speaker's pitch in semitones"
     ),
@@ -460,6 +477,8 @@ class PitchParams(Stage.Params):
     on_silence: Literal["error", "warn"] = Field(
         "warn", description="an utterance without voiced speech: an error, or a warning and no segments (a still head)"
     )
+    onset_delta: float = Field(0.15, ge=0, le=1, description="onset peak height above the local mean (flux in 0..1)")
+    onset_min_gap: float = Field(0.1, ge=0, description="shortest time (s) between two audio onsets")
     audio_rate: int = Field(16000, ge=4000, le=192000, description="decoding rate of audio files (Hz)")
     analysis_rate: int = Field(
         8000,
@@ -527,42 +546,53 @@ def analysis_signal(samples: np.ndarray, rate: int, analysis_rate: int) -> tuple
     return resample_poly(np.asarray(samples, dtype=np.float64), analysis_rate // g, rate // g), int(analysis_rate)
 
 
+def analyse_audio(utt: Utterance, params) -> tuple[np.ndarray, ...]:
+    """Praat pitch (raw and cleaned, on the sequence clock, NaN outside the utterance), audio onsets and loudness
+    (dB, at the pitch frames) of one utterance's audio."""
+    from stages.head.beats import audio_onsets
+
+    if len(utt.samples) < int(0.1 * utt.rate):
+        raise UserError(
+            f"audio of '{utt.label}' is too short to analyse ({len(utt.samples)} samples)",
+            file=utt.source,
+            field=utt.field,
+        )
+    samples, rate = analysis_signal(utt.samples, utt.rate, params.analysis_rate)
+    tau, raw = praat_pitch(
+        samples,
+        rate,
+        method=params.method,
+        time_step=params.time_step,
+        floor=params.floor,
+        ceiling=params.ceiling,
+        voicing_threshold=params.voicing_threshold,
+        silence_threshold=params.silence_threshold,
+    )
+    times = tau + utt.offset
+    raw = np.where((times < 0) | (times > utt.duration), np.nan, raw)
+    clean = clean_pitch(
+        raw,
+        params.time_step,
+        human_range=params.human_range,
+        max_deviation=params.max_deviation,
+        max_gap=params.max_gap,
+        min_voiced=params.min_voiced,
+    )
+    onsets = audio_onsets(
+        utt.samples, utt.rate, offset=utt.offset, delta=params.onset_delta, min_gap=params.onset_min_gap
+    )
+    energy = frame_energy(utt.samples, utt.rate, times - utt.offset)
+    return times, raw, clean, onsets[(onsets >= 0) & (onsets < utt.duration)], energy
+
+
 def analyse_utterances(utterances: list[Utterance], params) -> list[dict]:
-    """Pitch, cleaning and segmentation per utterance; utterances sharing audio are analysed once."""
+    """Pitch, cleaning, segmentation and onsets per utterance; utterances sharing audio are analysed once."""
     cache: dict[tuple, tuple] = {}
     analyses = []
     for utt in utterances:
         if utt.audio_key not in cache:
-            if len(utt.samples) < int(0.1 * utt.rate):
-                raise UserError(
-                    f"audio of '{utt.label}' is too short to analyse ({len(utt.samples)} samples)",
-                    file=utt.source,
-                    field=utt.field,
-                )
-            samples, rate = analysis_signal(utt.samples, utt.rate, params.analysis_rate)
-            tau, raw = praat_pitch(
-                samples,
-                rate,
-                method=params.method,
-                time_step=params.time_step,
-                floor=params.floor,
-                ceiling=params.ceiling,
-                voicing_threshold=params.voicing_threshold,
-                silence_threshold=params.silence_threshold,
-            )
-            times = tau + utt.offset
-            outside = (times < 0) | (times > utt.duration)
-            raw = np.where(outside, np.nan, raw)
-            clean = clean_pitch(
-                raw,
-                params.time_step,
-                human_range=params.human_range,
-                max_deviation=params.max_deviation,
-                max_gap=params.max_gap,
-                min_voiced=params.min_voiced,
-            )
-            cache[utt.audio_key] = (times, raw, clean)
-        times, raw, clean = cache[utt.audio_key]
+            cache[utt.audio_key] = analyse_audio(utt, params)
+        times, raw, clean, onsets, energy = cache[utt.audio_key]
         if not np.isfinite(clean).any() and params.on_silence == "error":
             raise UserError(
                 f"no voiced speech found in '{utt.label}' (pitch floor {params.floor} Hz, ceiling "
@@ -571,7 +601,9 @@ def analyse_utterances(utterances: list[Utterance], params) -> list[dict]:
                 field=utt.field,
             )
         seg = segment_pitch(times, clean, utt.duration, time_step=params.time_step, breath_pause=params.breath_pause)
-        analyses.append({"times": times, "raw": raw, "clean": clean, "segmentation": seg})
+        analyses.append(
+            {"times": times, "raw": raw, "clean": clean, "segmentation": seg, "onsets": onsets, "energy": energy}
+        )
     return analyses
 
 
@@ -623,6 +655,7 @@ def pitch_result(utterances: list[Utterance], params) -> Result:
     arrays = {
         "f0": np.concatenate([a["clean"] for a in analyses]).astype(np.float32),
         "f0_raw": np.concatenate([a["raw"] for a in analyses]).astype(np.float32),
+        "energy": np.concatenate([a["energy"] for a in analyses]).astype(np.float32),
         "pitch_time": np.concatenate([a["times"] for a in analyses]),
         "pitch_utterance": np.concatenate([np.full(len(a["times"]), k, np.int32) for k, a in enumerate(analyses)]),
         "segments": np.concatenate([a["segmentation"].segments for a in analyses]).reshape(-1, 3),
@@ -631,6 +664,8 @@ def pitch_result(utterances: list[Utterance], params) -> Result:
         "phrase_features": features,
         "speaker_median": medians,
         "speaker_spread": spreads,
+        "onsets": np.concatenate([a["onsets"] for a in analyses]),
+        "onset_utterance": np.concatenate([np.full(len(a["onsets"]), k, np.int32) for k, a in enumerate(analyses)]),
         "utterance_duration": np.array([u.duration for u in utterances]),
     }
     arrays.update(praat_exports(utterances, analyses))

@@ -52,6 +52,11 @@ class SegmentTable:
     subsentence_start: np.ndarray  # (n,) bool
     contour: np.ndarray  # (n, L) voiced pitch resampled to L points, in the matching unit
     geometry: np.ndarray  # (n, 6) GEOMETRY_FEATURES of the contour
+    energy: np.ndarray  # (n, L) loudness (dB re the take's median voiced loudness), onset to next onset
+    onset_rate: np.ndarray  # (n,) audio onsets per second inside the segment
+
+    def rows(self, index: np.ndarray) -> SegmentTable:
+        return SegmentTable(*(getattr(self, f)[index] for f in self.__dataclass_fields__))
 
     def __len__(self) -> int:
         return len(self.times)
@@ -123,12 +128,13 @@ def pitch_in_unit(f0_hz: np.ndarray, unit: str, reference_hz: np.ndarray, spread
 
 def segment_table(view, reference: SpeakerReference, unit: str, length: int) -> SegmentTable:
     """Segments of a pitch artifact with contours in ``unit`` (``pitch_in_unit``, each utterance relative to its
-    entry of ``reference``)."""
+    entry of ``reference``), loudness contours and onset rates."""
     utt = np.asarray(view["pitch_utterance"], dtype=np.int64)
     f0 = pitch_in_unit(np.asarray(view["f0"], dtype=np.float64), unit, reference.median[utt], reference.spread[utt])
     segments = np.asarray(view["segments"], dtype=np.float64).reshape(-1, 3)
     seg_utt = np.asarray(view["segment_utterance"], dtype=np.int64)
-    contour = voiced_contours(f0, np.asarray(view["pitch_time"]), utt, segments, seg_utt, length)
+    pitch_time = np.asarray(view["pitch_time"])
+    contour = voiced_contours(f0, pitch_time, utt, segments, seg_utt, length)
     position = np.zeros(len(segments), dtype=np.int64)
     if len(segments):
         starts = np.flatnonzero(np.concatenate([[True], seg_utt[1:] != seg_utt[:-1]]))
@@ -140,7 +146,38 @@ def segment_table(view, reference: SpeakerReference, unit: str, length: int) -> 
         np.asarray(view["subsentence_start"], dtype=bool),
         contour,
         contour_geometry(contour, segments[:, 1] - segments[:, 0]),
+        loudness_contours(view, segments, seg_utt, length),
+        onset_rates(view, segments, seg_utt),
     )
+
+
+def loudness_contours(view, segments: np.ndarray, seg_utt: np.ndarray, length: int) -> np.ndarray:
+    """Loudness of each segment from onset to next onset resampled to ``length`` points, in dB relative to its
+    take's median loudness over voiced frames (recording levels differ between takes); zeros without ``energy``."""
+    if "energy" not in view or not len(segments):
+        return np.zeros((len(segments), length))
+    utt = np.asarray(view["pitch_utterance"], dtype=np.int64)
+    energy = np.asarray(view["energy"], dtype=np.float64)
+    voiced = np.isfinite(np.asarray(view["f0"], dtype=np.float64))
+    n_utt = int(utt.max()) + 1
+    level = np.array([np.median(energy[(utt == u) & voiced]) if np.any((utt == u) & voiced) else 0.0
+                      for u in range(n_utt)])  # fmt: skip
+    span = np.stack([segments[:, 0], segments[:, 2], segments[:, 2]], axis=1)
+    return voiced_contours(energy - level[utt], np.asarray(view["pitch_time"]), utt, span, seg_utt, length)
+
+
+def onset_rates(view, segments: np.ndarray, seg_utt: np.ndarray) -> np.ndarray:
+    """Audio onsets per second inside each segment (onset to next onset); zeros without ``onsets``."""
+    if "onsets" not in view or not len(segments):
+        return np.zeros(len(segments))
+    onsets = np.asarray(view["onsets"], dtype=np.float64)
+    owner = np.asarray(view["onset_utterance"], dtype=np.int64)
+    inside = (
+        (owner[None, :] == seg_utt[:, None])
+        & (onsets[None, :] >= segments[:, :1])
+        & (onsets[None, :] < segments[:, 2:3])
+    )
+    return inside.sum(axis=1) / np.maximum(segments[:, 2] - segments[:, 0], 1e-6)
 
 
 # -------------------------------------------------------------------------------------------- distances
@@ -164,38 +201,71 @@ def phrase_distances(
 
 @dataclass
 class SegmentDistance:
-    total: np.ndarray  # (N, S) D of Eq. 12
+    total: np.ndarray  # (N, S) D of Eq. 12 (plus the loudness and rhythm terms when weighted)
     geometry: np.ndarray  # G_d
     pitch: np.ndarray  # P_d, Eq. 10
     length: np.ndarray  # L_d, Eq. 11
+    loudness: np.ndarray  # E_d (beyond the paper)
+    rhythm: np.ndarray  # O_d (beyond the paper)
+
+
+@dataclass
+class SegmentWeights:
+    """Weights of the segment distance: b, c of Eq. 12 (L_d gets 1 - b - c), and e, o of the loudness and rhythm
+    terms added beyond the paper (0: the paper's distance)."""
+
+    b: float
+    c: float
+    e: float = 0.0
+    o: float = 0.0
+
+
+@dataclass
+class SegmentScales:
+    """Database statistics that put the terms on comparable scales."""
+
+    geometry_mean: np.ndarray
+    geometry_sd: np.ndarray
+    loudness_sd: float
+    rhythm_sd: float
+
+
+def segment_scales(db: SegmentTable) -> SegmentScales:
+    """z-normalisation of the geometric features, and the spread of loudness values and of onset rates."""
+    mean, sd = zscore_stats(db.geometry) if len(db) else (np.zeros(6), np.ones(6))
+    loud = float(np.std(db.energy)) if db.energy.size else 1.0
+    rhythm = float(np.std(db.onset_rate)) if len(db) else 1.0
+    return SegmentScales(mean, sd, loud if loud > 1e-9 else 1.0, rhythm if rhythm > 1e-9 else 1.0)
+
+
+def rms_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """RMS difference (N, S) between every row of ``a`` (N, L) and of ``b`` (S, L), without the (N, S, L)
+    temporary: |a - b|^2 = |a|^2 + |b|^2 - 2 a.b."""
+    sq = (a**2).sum(1)[:, None] + (b**2).sum(1)[None, :] - 2 * a @ b.T
+    return np.sqrt(np.maximum(sq, 0.0) / a.shape[1])
 
 
 def segment_distances(
-    test: SegmentTable,
-    db: SegmentTable,
-    candidates: np.ndarray,
-    *,
-    b: float,
-    c: float,
-    geometry_mean: np.ndarray,
-    geometry_sd: np.ndarray,
+    test: SegmentTable, db: SegmentTable, candidates: np.ndarray, weights: SegmentWeights, scales: SegmentScales
 ) -> SegmentDistance:
-    """D = b G_d + c P_d + (1 - b - c) L_d between every test segment and the ``candidates`` database segments.
+    """D = b G_d + c P_d + (1 - b - c) L_d (+ e E_d + o O_d) between every test segment and the ``candidates``
+    database segments.
 
     G_d: RMS difference of the z-normalised geometric features; P_d = RMS(P_test - P_template) of the
     length-normalised contours (Eq. 10); L_d = |len_template - len_test| / len_test (Eq. 11), lengths onset to
-    next onset.
+    next onset. Beyond the paper: E_d, the RMS difference of the length-normalised loudness contours over the
+    database's loudness spread; O_d, the difference of onset rates over the database's spread of onset rates.
     """
-    zt = (test.geometry - geometry_mean) / geometry_sd
-    zd = (db.geometry[candidates] - geometry_mean) / geometry_sd
-    g = np.sqrt(np.mean((zt[:, None, :] - zd[None, :, :]) ** 2, axis=2))
-    ct, cd = test.contour, db.contour[candidates]
-    # RMS of the difference without the (N, S, L) temporary: |a - b|^2 = |a|^2 + |b|^2 - 2 a.b
-    sq = (ct**2).sum(1)[:, None] + (cd**2).sum(1)[None, :] - 2 * ct @ cd.T
-    p = np.sqrt(np.maximum(sq, 0.0) / ct.shape[1])
+    zt = (test.geometry - scales.geometry_mean) / scales.geometry_sd
+    zd = (db.geometry[candidates] - scales.geometry_mean) / scales.geometry_sd
+    g = np.sqrt(np.mean((zt[:, None, :] - zd[None, :, :]) ** 2, axis=2))  # 6 features: the direct form is exact
+    p = rms_rows(test.contour, db.contour[candidates])
     lt = test.length[:, None]
     ld = np.abs(db.length[candidates][None, :] - lt) / np.maximum(lt, 1e-6)
-    return SegmentDistance(b * g + c * p + (1 - b - c) * ld, g, p, ld)
+    e = rms_rows(test.energy, db.energy[candidates]) / scales.loudness_sd
+    o = np.abs(test.onset_rate[:, None] - db.onset_rate[candidates][None, :]) / scales.rhythm_sd
+    w = weights
+    return SegmentDistance(w.b * g + w.c * p + (1 - w.b - w.c) * ld + w.e * e + w.o * o, g, p, ld, e, o)
 
 
 # ----------------------------------------------------------------------------------- motion at boundaries
@@ -339,8 +409,7 @@ class SearchSettings:
 
     top_m: int
     k: int
-    b: float
-    c: float
+    weights: SegmentWeights
     w1: float
     w2: float
     warp_boundaries: bool
@@ -445,7 +514,7 @@ def search_utterance(
     db: Database,
     allowed: np.ndarray,
     settings: SearchSettings,
-    geometry_stats: tuple[np.ndarray, np.ndarray],
+    scales: SegmentScales,
     feature_stats: tuple[np.ndarray, np.ndarray],
 ) -> SearchResult:
     """Phrase stage, segment stage and per-sub-sentence Viterbi for one test utterance's segments."""
@@ -466,15 +535,7 @@ def search_utterance(
             selected,
         )
     pool = np.flatnonzero(selected[db.segments.utterance])
-    dist = segment_distances(
-        test,
-        db.segments,
-        pool,
-        b=settings.b,
-        c=settings.c,
-        geometry_mean=geometry_stats[0],
-        geometry_sd=geometry_stats[1],
-    )
+    dist = segment_distances(test, db.segments, pool, settings.weights, scales)
     candidates, candidate_cost = top_candidates(dist, pool, k)
     rank, smooth, repeat = path_search(test, db, candidates, candidate_cost, settings)
     rows = np.arange(n)
@@ -564,6 +625,10 @@ def build_database(db_view, db_pitch, *, unit: str, length: int | None, window: 
 
 TRELLIS_OUTPUTS = {
     "segments": Output.array("f", shape=("segments", 3), dtype="float64", doc="test segments (start, voiced end, end)"),
+    "test_onsets": Output.array("f", shape=("test_onsets",), dtype="float64", doc="audio onsets of the test (s)"),
+    "test_onset_utterance": Output.array("i", shape=("test_onsets",), dtype="int32"),
+    "db_onsets": Output.array("f", shape=("db_onsets",), dtype="float64", doc="audio onsets of the database (s)"),
+    "db_onset_sequence": Output.array("i", shape=("db_onsets",), dtype="int32"),
     "segment_utterance": Output.array("i", shape=("segments",), dtype="int32", doc="index into meta labels"),
     "subsentence_start": Output.array("b", shape=("segments",)),
     "chosen": Output.array("i", shape=("segments",), dtype="int32", doc="database segment per test segment"),
@@ -658,6 +723,8 @@ class TrellisParams(Stage.Params):
     k: int = Field(10, ge=1, description="candidates per test segment")
     b: float = Field(0.05, ge=0, le=1, description="weight of G_d (Eq. 12)")
     c: float = Field(0.3, ge=0, le=1, validate_default=True, description="weight of P_d; L_d gets 1 - b - c")
+    e: float = Field(0.0, ge=0, description="weight of the loudness-contour distance E_d (beyond the paper; 0: off)")
+    o: float = Field(0.0, ge=0, description="weight of the onset-rate distance O_d (beyond the paper; 0: off)")
     w1: float = Field(1.0, ge=0, description="weight of H (Eq. 15)")
     w2: float = Field(1.0, ge=0, description="weight of R (Eq. 15)")
     unit: Literal["semitones", "zscore", "hz"] = Field(
@@ -713,7 +780,18 @@ class Trellis(Stage):
             length=params.contour_length,
             window=params.boundary_window,
         )
-        return search(db, inputs["test_pitch"], params, length, inputs["database"].meta)
+        result = search(db, inputs["test_pitch"], params, length, inputs["database"].meta)
+        result.arrays.update(onsets_of("test", inputs["test_pitch"]) | onsets_of("db", inputs["database_pitch"]))
+        return result
+
+
+def onsets_of(prefix: str, pitch) -> dict[str, np.ndarray]:
+    """A pitch artifact's audio onsets and their utterance, carried through for the blend's timing (empty when the
+    artifact predates onsets)."""
+    has = "onsets" in pitch and "onset_utterance" in pitch
+    times = np.asarray(pitch["onsets"], dtype=np.float64) if has else np.zeros(0)
+    owner = np.asarray(pitch["onset_utterance"], dtype=np.int32) if has else np.zeros(0, np.int32)
+    return {f"{prefix}_onsets": times, f"{prefix}_onset_{'utterance' if prefix == 'test' else 'sequence'}": owner}
 
 
 def reference_for_test(test_view, db: Database, test_speaker: str) -> tuple[SpeakerReference, np.ndarray]:
@@ -764,18 +842,6 @@ def test_phrase_features(test_view, shift: np.ndarray) -> np.ndarray:
     return features
 
 
-def utterance_rows(test: SegmentTable, u: int) -> SegmentTable:
-    rows = np.flatnonzero(test.utterance == u)
-    return SegmentTable(
-        test.times[rows],
-        test.utterance[rows],
-        test.position[rows],
-        test.subsentence_start[rows],
-        test.contour[rows],
-        test.geometry[rows],
-    )
-
-
 def search(db: Database, test_view, params, length: int, db_meta: dict) -> Result:
     """The search for every test utterance, packed as the trellis artifact."""
     unknown = [x for x in params.exclude_labels if x not in db.labels and x not in db.recordings]
@@ -787,20 +853,21 @@ def search(db: Database, test_view, params, length: int, db_meta: dict) -> Resul
     reference, shift = reference_for_test(test_view, db, params.test_speaker)
     test = segment_table(test_view, reference, params.unit, length)
     features = test_phrase_features(test_view, shift)
-    settings = SearchSettings(params.top_m, params.k, params.b, params.c, params.w1, params.w2, params.warp_boundaries)
-    geometry_stats = zscore_stats(db.segments.geometry) if len(db.segments) else (np.zeros(6), np.ones(6))
+    weights = SegmentWeights(params.b, params.c, params.e, params.o)
+    settings = SearchSettings(params.top_m, params.k, weights, params.w1, params.w2, params.warp_boundaries)
+    scales = segment_scales(db.segments)
     results, excluded = [], []
     for u, label in enumerate(test_labels):
         allowed = allowed_sequences(db, params, test_sources[u], test_speakers[u], label)
         excluded.append([db.labels[i] for i in np.flatnonzero(~allowed)])
         results.append(
             search_utterance(
-                utterance_rows(test, u),
+                test.rows(np.flatnonzero(test.utterance == u)),
                 features[u],
                 db,
                 allowed,
                 settings,
-                geometry_stats,
+                scales,
                 zscore_stats(db.features[allowed]),
             )
         )
