@@ -288,76 +288,142 @@ def stitch_segments(
     if smoothing != "velocity":
         raise ValueError(f"unknown join smoothing {smoothing!r}")
     times = np.asarray(times, dtype=np.float64)
-    n = len(test_segments)
-    channels = db.channels.shape[1]
-    out = np.zeros((len(times), channels))
-    if n == 0:
+    out = np.zeros((len(times), db.channels.shape[1]))
+    if len(test_segments) == 0:
         return Stitched(out, np.zeros(0), np.zeros((0, 2)), np.zeros(0))
-    a, e = test_segments[:, 0], test_segments[:, 2]
-    da, de = db_segments[:, 0], db_segments[:, 2]
-    scale = (de - da) / np.maximum(e - a, 1e-9)  # database seconds per output second
-    sequence = np.asarray(db_sequence, dtype=np.int64)
-
-    def raw(k: int, t: np.ndarray) -> np.ndarray:
-        if time_maps is None:
-            return db.sample(int(sequence[k]), da[k] + (t - a[k]) * scale[k])
-        return db.sample(int(sequence[k]), warp_time(t, *time_maps[k]))
-
+    chosen = ChosenMotion(db, test_segments, db_segments, np.asarray(db_sequence, dtype=np.int64), time_maps)
     starts = np.asarray(subsentence_start, dtype=bool).copy()
     starts[0] = True
-    joins = a[1:].copy()
-    dv = join_velocity_mismatch(
-        db, sequence[:-1], de[:-1], scale[:-1], sequence[1:], da[1:], scale[1:], boundary_window
+    joins, left, right, dv_deg = velocity_blend_windows(
+        chosen, starts, blend_window, break_blend_window, acceleration_budget, max_blend_window, boundary_window
     )
+    windows = np.stack([left, right], axis=1)
+    if len(times) < 2:
+        out[:1] = chosen.raw(0, times)[:1]
+        return Stitched(out, joins, windows, dv_deg)
+    base, drift = blended_increments(chosen, times, starts, left, right, joins, preserve_speed)
+    out = anchor_subsentences(chosen, times, starts, base, drift, drift_correction)
+    return Stitched(out, joins, windows, dv_deg)
+
+
+@dataclass
+class ChosenMotion:
+    """The chosen database segments of one utterance, each resampled onto its test segment (Sec. 5.4)."""
+
+    db: DatabaseMotion
+    test_segments: np.ndarray  # (N, 3) start, voiced end, end (output seconds)
+    db_segments: np.ndarray  # (N, 3) the same in database seconds
+    sequence: np.ndarray  # (N,) database sequence of each
+    time_maps: list | None = None  # per segment (test knots, database knots); None: uniform
+
+    @property
+    def scale(self) -> np.ndarray:
+        """Database seconds per output second of each segment's uniform resampling."""
+        return (self.db_segments[:, 2] - self.db_segments[:, 0]) / np.maximum(
+            self.test_segments[:, 2] - self.test_segments[:, 0], 1e-9
+        )
+
+    def raw(self, k: int, t: np.ndarray) -> np.ndarray:
+        """Channels of segment ``k``'s database motion at output times ``t`` (continued beyond its ends)."""
+        if self.time_maps is None:
+            db_time = self.db_segments[k, 0] + (t - self.test_segments[k, 0]) * self.scale[k]
+        else:
+            db_time = warp_time(t, *self.time_maps[k])
+        return self.db.sample(int(self.sequence[k]), db_time)
+
+
+def velocity_blend_windows(
+    chosen: ChosenMotion,
+    starts: np.ndarray,
+    blend_window: float,
+    break_blend_window: float,
+    acceleration_budget: float | None,
+    max_blend_window: float,
+    boundary_window: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Join times (each segment's start after the first), their blend windows (left, right) sized from the
+    velocity step each join absorbs (``join_windows``), and that step (deg/s)."""
+    a, da, de, scale, seq = (
+        chosen.test_segments[:, 0],
+        chosen.db_segments[:, 0],
+        chosen.db_segments[:, 2],
+        chosen.scale,
+        chosen.sequence,
+    )
+    joins = a[1:].copy()
+    dv = join_velocity_mismatch(chosen.db, seq[:-1], de[:-1], scale[:-1], seq[1:], da[1:], scale[1:], boundary_window)
     dv_deg = np.degrees(np.linalg.norm(dv[:, :3], axis=1))
     half = np.where(starts[1:], break_blend_window, blend_window)
     left, right = join_windows(joins, half, dv_deg, acceleration_budget=acceleration_budget, max_half=max_blend_window)
-    windows = np.stack([left, right], axis=1)
-    if len(times) == 0:
-        return Stitched(out, joins, windows, dv_deg)
-    if len(times) == 1:
-        out[0] = raw(0, times)[0]
-        return Stitched(out, joins, windows, dv_deg)
+    return joins, left, right, dv_deg
 
+
+def blended_increments(
+    chosen: ChosenMotion,
+    times: np.ndarray,
+    starts: np.ndarray,
+    left: np.ndarray,
+    right: np.ndarray,
+    joins: np.ndarray,
+    preserve_speed: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The integrated blend of the segments' own frame-to-frame increments, weighted by a smoothstep partition of
+    unity over the join windows (``base``, frames x channels, 0 at the first frame), and per sub-sentence the
+    integrated time its weight was active (``drift``, frames x sub-sentences: what a constant drift velocity of that
+    sub-sentence adds by each frame)."""
     mid = 0.5 * (times[1:] + times[:-1])
     step = np.diff(times)
+    channels = chosen.db.channels.shape[1]
     group = np.cumsum(starts) - 1
-    n_groups = int(group[-1]) + 1
     increments = np.zeros((len(mid), channels))
-    group_weight = np.zeros((len(mid), n_groups))  # time each group's drift velocity acts in each step
+    group_weight = np.zeros((len(mid), int(group[-1]) + 1))
     bounds_lo = np.concatenate([[-np.inf], left])
     bounds_hi = np.concatenate([right, [np.inf]])
     parts = []  # (first step, weights, increments) per segment
-    for k in range(n):
+    for k in range(len(chosen.sequence)):
         idx = np.flatnonzero((mid >= bounds_lo[k]) & (mid <= bounds_hi[k]))
         if len(idx) == 0:
             parts.append((0, np.zeros(0), np.zeros((0, channels))))
             continue
         w = segment_weights(mid[idx], k, left, right, joins)
-        delta = raw(k, times[idx + 1]) - raw(k, times[idx])
+        delta = chosen.raw(k, times[idx + 1]) - chosen.raw(k, times[idx])
         parts.append((int(idx[0]), w, delta))
         increments[idx] += w[:, None] * delta
         group_weight[idx, group[k]] += w * step[idx]
     if preserve_speed:
         increments *= speed_preserving_gain(parts, len(mid))[:, None]
     base = np.concatenate([np.zeros((1, channels)), np.cumsum(increments, axis=0)])
-    drift = np.concatenate([np.zeros((1, n_groups)), np.cumsum(group_weight, axis=0)])
+    drift = np.concatenate([np.zeros((1, group_weight.shape[1])), np.cumsum(group_weight, axis=0)])
+    return base, drift
+
+
+def anchor_subsentences(
+    chosen: ChosenMotion,
+    times: np.ndarray,
+    starts: np.ndarray,
+    base: np.ndarray,
+    drift: np.ndarray,
+    drift_correction: bool,
+) -> np.ndarray:
+    """Place the integrated blend so that every sub-sentence starts at its first segment's recorded pose: with
+    ``drift_correction``, x = c + base + sum_g d_g drift_g, one constant and one drift velocity per sub-sentence
+    but the last (Sec. 5.4's linear warp, as a velocity); without it, each sub-sentence is offset on its own and the
+    head jumps between sub-sentences."""
+    n_groups = drift.shape[1]
     first_of = np.flatnonzero(starts)
-    anchor_t = a[first_of]
-    target = np.stack([raw(k, a[k : k + 1])[0] for k in first_of])  # recorded pose at each sub-sentence start
-    at = lambda curve: np.stack([np.interp(anchor_t, times, curve[:, c]) for c in range(curve.shape[1])], axis=1)
+    anchor_t = chosen.test_segments[first_of, 0]
+    target = np.stack([chosen.raw(k, anchor_t[i : i + 1])[0] for i, k in enumerate(first_of)])
+
+    def at(curve):
+        return np.stack([np.interp(anchor_t, times, curve[:, c]) for c in range(curve.shape[1])], axis=1)
+
     base_at = at(base)
     if drift_correction:
-        # x = c + base + sum_g d_g drift_g: one constant, one drift velocity per sub-sentence but the last,
-        # such that every sub-sentence starts at its recorded pose
         system = np.concatenate([np.ones((n_groups, 1)), at(drift)[:, : n_groups - 1]], axis=1)
         solution = np.linalg.lstsq(system, target - base_at, rcond=None)[0]  # (groups, channels)
-        out = solution[0][None, :] + base + drift[:, : n_groups - 1] @ solution[1:]
-    else:
-        # each sub-sentence starts at its recorded pose and is not warped: the head jumps between sub-sentences
-        frame_group = np.clip(np.searchsorted(anchor_t, times, side="right") - 1, 0, n_groups - 1)
-        out = base + (target - base_at)[frame_group]
-    return Stitched(out, joins, windows, dv_deg)
+        return solution[0][None, :] + base + drift[:, : n_groups - 1] @ solution[1:]
+    frame_group = np.clip(np.searchsorted(anchor_t, times, side="right") - 1, 0, n_groups - 1)
+    return base + (target - base_at)[frame_group]
 
 
 def speed_preserving_gain(parts: list[tuple[int, np.ndarray, np.ndarray]], steps: int) -> np.ndarray:
@@ -764,6 +830,47 @@ def utterance_time_maps(
     ]
 
 
+@dataclass
+class TrellisPath:
+    """What the blend reads from a trellis artifact: test segments, the chosen database segments, onsets."""
+
+    labels: list[str]
+    speakers: list
+    segments: np.ndarray  # (N, 3) test segments
+    utterance: np.ndarray  # (N,)
+    subsentence_start: np.ndarray  # (N,)
+    db_sequence: np.ndarray  # (N,) database sequence of the chosen segment
+    db_segments: np.ndarray  # (N, 3) its times
+    onsets: np.ndarray  # test audio onsets
+    onset_utterance: np.ndarray
+
+    @classmethod
+    def of(cls, trellis) -> TrellisPath:
+        labels = list(trellis.meta.get("labels") or [])
+        chosen = np.asarray(trellis["chosen"], dtype=np.int64)
+        has_onsets = "test_onsets" in trellis and "test_onset_utterance" in trellis
+        return cls(
+            labels,
+            list(trellis.meta.get("speakers") or [None] * len(labels)),
+            np.asarray(trellis["segments"]).reshape(-1, 3),
+            np.asarray(trellis["segment_utterance"]),
+            np.asarray(trellis["subsentence_start"], dtype=bool),
+            np.asarray(trellis["db_segment_sequence"], dtype=np.int64)[chosen],
+            np.asarray(trellis["db_segments"]).reshape(-1, 3)[chosen],
+            np.asarray(trellis["test_onsets"]) if has_onsets else np.zeros(0),
+            np.asarray(trellis["test_onset_utterance"]) if has_onsets else np.zeros(0, int),
+        )
+
+
+def utterance_frames(trellis, u: int, fps: float) -> int:
+    """Output frames of test utterance ``u``: its own frame count at its own rate, else its duration at ``fps``."""
+    test_fps = (trellis.meta.get("fps") or [None] * (u + 1))[u]
+    test_frames = (trellis.meta.get("frames") or [None] * (u + 1))[u]
+    if test_frames and test_fps and abs(float(test_fps) - fps) < 1e-6:
+        return int(test_frames)
+    return int(round(float(trellis.meta["durations"][u]) * fps))
+
+
 def synthesise(
     trellis,
     db: DatabaseMotion,
@@ -783,45 +890,32 @@ def synthesise(
     spread (``amplitude_gains``); ``rest_anchor`` > 0 removes wander slower than that many seconds (a Gaussian
     low-pass of that sd), so the head keeps returning to its rest pose. ``blend``: keyword arguments of
     ``stitch_segments``."""
-    labels = list(trellis.meta.get("labels") or [])
-    durations = trellis.meta.get("durations") or []
-    test_fps = trellis.meta.get("fps") or [None] * len(labels)
-    test_frames = trellis.meta.get("frames") or [None] * len(labels)
-    segments = np.asarray(trellis["segments"]).reshape(-1, 3)
-    seg_utt = np.asarray(trellis["segment_utterance"])
-    chosen = np.asarray(trellis["chosen"], dtype=np.int64)
-    db_seq = np.asarray(trellis["db_segment_sequence"], dtype=np.int64)
-    db_segments = np.asarray(trellis["db_segments"]).reshape(-1, 3)
+    path = TrellisPath.of(trellis)
     events = database_events(trellis, db, timing) if timing != "segment" else None
-    onsets = np.asarray(trellis["test_onsets"]) if "test_onsets" in trellis else np.zeros(0)
-    onset_utt = np.asarray(trellis["test_onset_utterance"]) if "test_onset_utterance" in trellis else np.zeros(0, int)
-    test_speakers = trellis.meta.get("speakers") or [None] * len(labels)
     out = []
-    for u in range(len(labels)):
-        source = db.scaled(amplitude_gains(db, test_speakers[u])) if amplitude == "speaker" else db
-        if test_frames[u] and test_fps[u] and abs(float(test_fps[u]) - fps) < 1e-6:
-            n_frames = int(test_frames[u])
-        else:
-            n_frames = int(round(float(durations[u]) * fps))
-        rows = np.flatnonzero(seg_utt == u)
+    for u in range(len(path.labels)):
+        source = db.scaled(amplitude_gains(db, path.speakers[u])) if amplitude == "speaker" else db
+        rows = np.flatnonzero(path.utterance == u)
         maps = None
         if events is not None:
+            onsets = path.onsets[path.onset_utterance == u]
             maps = utterance_time_maps(
-                segments[rows],
-                db_segments[chosen[rows]],
-                db_seq[chosen[rows]],
-                onsets[onset_utt == u],
+                path.segments[rows],
+                path.db_segments[rows],
+                path.db_sequence[rows],
+                onsets,
                 events,
                 timing_tolerance,
                 max_stretch,
             )
+        times = np.arange(utterance_frames(trellis, u, fps)) / fps
         stitched = stitch_segments(
             source,
-            segments[rows],
-            np.asarray(trellis["subsentence_start"])[rows],
-            db_seq[chosen[rows]],
-            db_segments[chosen[rows]],
-            np.arange(n_frames) / fps,
+            path.segments[rows],
+            path.subsentence_start[rows],
+            path.db_sequence[rows],
+            path.db_segments[rows],
+            times,
             time_maps=maps,
             **blend,
         )

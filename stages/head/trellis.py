@@ -720,7 +720,9 @@ def _plot_trellis(view, inputs=None, utterance: int = 0, max_segments: int = 40)
 
 class TrellisParams(Stage.Params):
     top_m: int = Field(20, ge=1, description="phrases searched (database sequences, mirrors included)")
-    k: int = Field(10, ge=1, description="candidates per test segment")
+    k: int = Field(
+        3, ge=1, description="candidates per test segment (the paper gives no value; 3 tuned on the shared clips)"
+    )
     b: float = Field(0.05, ge=0, le=1, description="weight of G_d (Eq. 12)")
     c: float = Field(0.3, ge=0, le=1, validate_default=True, description="weight of P_d; L_d gets 1 - b - c")
     e: float = Field(0.0, ge=0, description="weight of the loudness-contour distance E_d (beyond the paper; 0: off)")
