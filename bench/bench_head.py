@@ -93,7 +93,7 @@ def main():
         3, lambda: run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": test_pitch})
     )
     print(
-        f"trellis + blend, {utterance.duration:.0f} s utterance ({tr.metrics['segments']} segments, K = 10) "
+        f"trellis + blend, {utterance.duration:.0f} s utterance ({tr.metrics['segments']} segments, K = {tr.meta['k']}) "
         f"against {tr.metrics['db_segments']} database segments: {seconds:.3f} s "
         f"(trellis alone {trellis_seconds:.3f} s); {len(mb.arrays['rotation'])} frames out"
     )
