@@ -539,3 +539,17 @@ def test_stroke_timing_puts_head_strokes_on_the_test_onsets():
     score = lambda run: beat_alignment(kinematic_beats(run.channels[:, :3], fps, smoothing=0.02), onsets, 0.05)
     assert score(uniform) == pytest.approx(np.exp(-2.0), abs=0.05)  # 0.1 s off at sigma 0.05 s
     assert score(timed) > 0.95
+
+
+def test_an_audio_file_alone_drives_the_synthesis(phrases, database, tmp_path):
+    """A test take with no video (an audio file only): pitch from the file, motion at the database's rate."""
+    from stages.head.pitch import wav_bytes
+
+    wav = tmp_path / "line.wav"
+    wav.write_bytes(wav_bytes(phrases[0].audio, phrases[0].audio_rate))
+    pitch = run_stage(Pitch, {}, {"audio": {"line": {"path": wav, "speaker": "synthetic"}}})
+    tr = run_stage(Trellis, {}, {"database": database[0], "database_pitch": database[1], "test_pitch": pitch})
+    run = run_stage(MotionBlend, {}, {"trellis": tr, "database": database[0]})
+    assert run.meta["fps"] == database[0].meta["fps"] and run.meta["labels"] == ["line"]
+    assert run.meta["frames"] == [int(round(phrases[0].duration * run.meta["fps"]))]
+    assert np.ptp(run.arrays["angles"], axis=0).max() > 0  # it moves

@@ -357,3 +357,35 @@ def test_trellis_figure_renders(database, take_pitch):
     run = search(database, take_pitch, holdout="take")
     fig = Trellis.figures["trellis"](run.view(), {})
     assert fig.axes[0].get_xlabel() == "test segment"
+
+
+def test_a_database_without_voice_is_an_error(take_pitch):
+    quiet = (np.random.default_rng(0).standard_normal(32000) * 1e-4).astype(np.float32)
+    silent = artifact(
+        {
+            "rotation": np.tile([1.0, 0, 0, 0], (60, 1)),
+            "translation": np.zeros((60, 3)),
+            "time": np.arange(60) / 30.0,
+            "sequence": np.zeros(60, np.int32),
+            "audio": quiet,
+            "audio_bounds": np.array([[0, 32000]]),
+        },
+        {"labels": ["quiet"], "sources": ["quiet.wav"], "fps": [30.0], "audio_rate": 16000},
+    )
+    headdb = run_stage(TrackedHeadDb, {"speaker": "ann"}, {"tracks": silent})
+    db_pitch = run_stage(Pitch, {}, {"source": headdb})
+    with pytest.raises(UserError, match="no voiced speech in any take") as err:
+        run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": take_pitch})
+    assert err.value.field == "inputs.database_pitch"
+
+
+def test_a_database_shorter_than_one_phrase_is_an_error(phrases, take_pitch):
+    short = tracking_artifact([phrases[0]])
+    headdb = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": short})
+    db_pitch = run_stage(Pitch, {}, {"source": headdb})
+    segments = db_pitch.metrics["segments"]
+    with pytest.raises(UserError, match=f"has {segments} segments") as err:
+        run_stage(
+            Trellis, {"k": segments + 1}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": take_pitch}
+        )
+    assert err.value.field == "params.k"
