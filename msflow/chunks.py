@@ -1,7 +1,7 @@
 """The stored form of one array: zarr v3 chunks along the first axis, zstd-compressed, each with a crc32c.
 
 Shared by whole-array writes (msflow.artifact), output sinks (msflow.sinks) and the object-store reader
-(msflow.remote). Chunks carry zarr v3's ``crc32c`` codec: zarr checks it on every read, and so does
+(msflow.stores.remote). Chunks carry zarr v3's ``crc32c`` codec: zarr checks it on every read, and so does
 ``decode_chunk``, so a flipped byte is an error, never a wrong value.
 """
 

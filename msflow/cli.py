@@ -10,6 +10,7 @@ from typing import List, Optional
 import typer
 
 from msflow.errors import StageFailed, UserError
+from msflow.jobs import DryStatus, StageStatus
 
 app = typer.Typer(
     add_completion=False,
@@ -75,7 +76,7 @@ def run(
         _echo(f"{summary or 'nothing selected'} in {result.record['seconds']:.2f}s (run {result.run_id})", err=True)
     _echo_warnings(result.warnings, {n: s.state for n, s in result.states.items()})
     for name, state in result.states.items():
-        if state.state == "failed" and not state.user_error and state.traceback:
+        if state.state is StageStatus.FAILED and not state.user_error and state.traceback:
             _echo(f"\n--- stage '{name}' failed; traceback (also in the run record):", err=True)
             _echo(state.traceback.rstrip(), err=True)
     from msflow.api import raise_for_failures
@@ -87,7 +88,7 @@ def _echo_warnings(warnings: dict[str, list[str]], states: dict[str, str]) -> No
     """Stage warnings, yellow on a terminal; those of reused results say so (they were raised when computed)."""
     colour = sys.stderr.isatty()
     for stage, messages in warnings.items():
-        origin = " (cached result)" if states.get(stage) == "cached" else ""
+        origin = " (cached result)" if states.get(stage) == StageStatus.CACHED else ""
         for message in messages:
             line = f"warning: {stage}{origin}: {message}"
             _echo(f"\033[33m{line}\033[0m" if colour else line, err=True)
@@ -108,14 +109,14 @@ def status(
     session.save_memo()
     width = max(len(n) for n in dry)
     for name, d in dry.items():
-        label = {"cached": "cached", "run": "will run", "blocked": "waits"}[d.state]
+        label = {DryStatus.CACHED: "cached", DryStatus.RUN: "will run", DryStatus.BLOCKED: "waits"}[d.state]
         _echo(f"{name:<{width}}  {label}")
         for reason in d.reasons:
             _echo(f"{'':<{width}}    - {reason}")
-    counts = {state: sum(1 for d in dry.values() if d.state == state) for state in ("cached", "run", "blocked")}
-    summary = f"{counts['cached']} cached, {counts['run']} to run"
-    if counts["blocked"]:
-        summary += f", {counts['blocked']} waiting on them (rerun only if their inputs change)"
+    counts = {state: sum(1 for d in dry.values() if d.state is state) for state in DryStatus}
+    summary = f"{counts[DryStatus.CACHED]} cached, {counts[DryStatus.RUN]} to run"
+    if counts[DryStatus.BLOCKED]:
+        summary += f", {counts[DryStatus.BLOCKED]} waiting on them (rerun only if their inputs change)"
     _echo(summary)
 
 
@@ -128,22 +129,22 @@ def why(
     """Which part of STAGE's cache key changed since its last run (code file, param, input)."""
     from msflow.api import open_session
     from msflow.inspect import RunHistory, dry_run
-    from msflow.spec import _suggest
+    from msflow.spec import suggest
 
     session = open_session(file, tuple(overrides or ()))
     if stage not in session.pipeline.stages:
         raise UserError(
-            f"unknown stage '{stage}'{_suggest(stage, session.pipeline.stages)}", file=str(file), field="STAGE"
+            f"unknown stage '{stage}'{suggest(stage, session.pipeline.stages)}", file=str(file), field="STAGE"
         )
     history = RunHistory(session)
     d = dry_run(session, history)[stage]
     previous = history.last(stage)
     session.save_memo()
-    if d.state == "cached":
+    if d.state is DryStatus.CACHED:
         _echo(f"{stage}: up to date (key {d.key[:12]})")
         return
     since = f" since run {previous['run']}" if previous else ""
-    _echo(f"{stage}: {'would run' if d.state == 'run' else 'waits for upstream'}{since}")
+    _echo(f"{stage}: {'would run' if d.state is DryStatus.RUN else 'waits for upstream'}{since}")
     for reason in d.reasons:
         _echo(f"  - {reason}")
 

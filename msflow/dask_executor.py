@@ -52,12 +52,11 @@ class DaskExecutor:
             self.client = Client(self.cluster, set_as_default=False)
 
     def submit(self, job_json: str) -> Future:
-        import json
-
+        from msflow.jobs import Job
         from msflow.worker import run_job
 
-        job = json.loads(job_json)
-        key = f"msflow-{job['stage']}-{job['key'][:12]}-{uuid.uuid4().hex[:6]}"
+        job = Job.from_json(job_json)
+        key = f"msflow-{job.stage}-{job.key[:12]}-{uuid.uuid4().hex[:6]}"
         task = self.client.submit(run_job, job_json, key=key, pure=False)
         future: Future = Future()
 

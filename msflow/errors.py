@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 
 class UserError(Exception):
     """Something the user can fix: bad config, missing file, unusable data.
@@ -30,7 +32,7 @@ class UserError(Exception):
     def __str__(self) -> str:
         where = []
         if self.file:
-            where.append(str(self.file))
+            where.append(display_path(self.file))
         if self.stage:
             where.append(f"stage '{self.stage}'")
         if self.field:
@@ -64,3 +66,20 @@ class InvalidResult(TypeError, ValueError):
 
     A ``TypeError`` and a ``ValueError`` both, as the schema checks raise either; the runner reports it as a
     failed stage without a traceback (the message names the stage and output)."""
+
+
+def display_path(path: str | os.PathLike[str]) -> str:
+    """A path as messages show it: relative to the current folder when inside it, else absolute.
+
+    >>> display_path(os.path.join(os.getcwd(), "pipeline.yaml"))
+    'pipeline.yaml'
+    """
+    text = os.fspath(path)
+    if "://" in text:
+        return text
+    absolute = os.path.abspath(text)
+    try:
+        relative = os.path.relpath(absolute)
+    except ValueError:  # another drive
+        return absolute
+    return absolute if relative.startswith("..") else relative

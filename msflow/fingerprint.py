@@ -59,7 +59,6 @@ class CodeIndex:
         self.root = Path(root).resolve()
         self.memo = memo if memo is not None else {}
         self.memo.setdefault("files", {})
-        self.dirty = False
         self._closures: dict[str, dict] = {}
 
     # ------------------------------------------------------------------ locating modules
@@ -80,7 +79,7 @@ class CodeIndex:
         if top in STDLIB or not top:
             return None
         roots = self.memo.setdefault("roots", {})
-        signature = _path_signature()
+        signature = path_signature(self.root)
         if roots.get("sig") != signature:
             roots.clear()
             roots["sig"] = signature
@@ -123,7 +122,6 @@ class CodeIndex:
         except SyntaxError as exc:
             raise UserError(f"syntax error at line {exc.lineno}: {exc.msg}", file=str(path)) from None
         self.memo["files"][key] = [sig, digest, imports]
-        self.dirty = True
         return digest, imports
 
     # ------------------------------------------------------------------ closure
@@ -251,17 +249,26 @@ def _find_source_root(top: str) -> str | None:
     return str(resolved.parent if locations else resolved.parent)
 
 
-def _path_signature() -> str:
-    return json_hash([[p, _mtime(p)] for p in sys.path])
+def path_signature(project_root: Path | None = None) -> str:
+    """What installed packages and their locations depend on: sys.path, and the mtime of each folder on it (a
+    package installed or removed changes its folder's mtime). The project root and folders inside it count by
+    name only: writing pipeline.lock or a run's outputs there changes no installed package, and the project's own
+    modules are fingerprinted by content instead."""
+    root = str(project_root).rstrip("/") + "/" if project_root is not None else None
+    entries = []
+    for entry in sys.path:
+        inside = root is not None and (os.path.abspath(entry or ".") + "/").startswith(root)
+        entries.append([entry, 0 if inside else _mtime(entry)])
+    return json_hash(entries)
 
 
-def distribution_versions(names: list[str], memo: dict) -> dict[str, str]:
+def distribution_versions(names: list[str], memo: dict, project_root: Path | None = None) -> dict[str, str]:
     """Map top-level import names to "dist==version"; memoised on the state of sys.path's directories.
 
     A name with no distribution and no importable module is recorded as absent (an optional dependency that is not
     installed is a fact about the environment, hashed like a version).
     """
-    signature = _path_signature()
+    signature = path_signature(project_root)
     cache = memo.get("dists")
     if not cache or cache.get("sig") != signature:
         cache = {"sig": signature, "map": {}}
@@ -280,7 +287,6 @@ def distribution_versions(names: list[str], memo: dict) -> dict[str, str]:
                 cache["map"][name] = ["absent"]
             else:
                 cache["map"][name] = [f"unpackaged:{_unpackaged_digest(name)}"]
-        memo["dirty"] = True
     return {n: ",".join(cache["map"][n]) for n in names}
 
 

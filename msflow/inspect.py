@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from msflow.api import Session
 from msflow.errors import UserError
 from msflow.hashing import FileHashMemo
+from msflow.jobs import DryStatus, StageStatus
 from msflow.runner import StageState, key_parts, stage_key
 from msflow.spec import topological_order
 
@@ -14,7 +15,7 @@ from msflow.spec import topological_order
 @dataclass
 class DryState:
     name: str
-    state: str  # cached | run | blocked (an upstream stage must run first)
+    state: DryStatus
     key: str | None = None
     parts: dict | None = None
     reasons: list[str] = field(default_factory=list)
@@ -45,7 +46,7 @@ class RunHistory:
         """The newest settled (cached or ran) entry of ``stage``, with its run id."""
         for run_id, record in self._records():
             entry = record.get("stages", {}).get(stage)
-            if entry and entry.get("key_parts") and entry["state"] in ("cached", "ran"):
+            if entry and entry.get("key_parts") and entry["state"] in (StageStatus.CACHED, StageStatus.RAN):
                 return {**entry, "run": run_id}
         return None
 
@@ -58,7 +59,7 @@ def dry_run(session: Session, history: RunHistory | None = None) -> dict[str, Dr
     dry: dict[str, DryState] = {}
     memo = FileHashMemo(session.memo.setdefault("data", {}))
     for name in topological_order(pipeline.stages):
-        blocked = [d for d in pipeline.stages[name].deps if dry[d].state != "cached"]
+        blocked = [d for d in pipeline.stages[name].deps if dry[d].state is not DryStatus.CACHED]
         plan = session.plans[name]
         if blocked:
             reasons = [f"upstream {', '.join(blocked)} must run first; this stage reruns if their outputs change"]
@@ -69,14 +70,14 @@ def dry_run(session: Session, history: RunHistory | None = None) -> dict[str, Dr
                     for r in explain(previous["key_parts"], {**key_parts(plan, {}), "inputs": None})
                     if not r.startswith("input")
                 ]
-            dry[name] = DryState(name, "blocked", reasons=reasons)
-            states[name] = StageState(name, state="pending")
+            dry[name] = DryState(name, DryStatus.BLOCKED, reasons=reasons)
+            states[name] = StageState(name)
             continue
         full, key, _, provenance = stage_key(pipeline, plan, name, states, memo)
         state = StageState(name, key=key, parts=full, inputs=provenance)
         if store.has(key):
-            state.state, state.manifest = "cached", store.manifest(key)
-            dry[name] = DryState(name, "cached", key, full, manifest=state.manifest)
+            state.state, state.manifest = StageStatus.CACHED, store.manifest(key)
+            dry[name] = DryState(name, DryStatus.CACHED, key, full, manifest=state.manifest)
         else:
             previous = history.last(name)
             if previous is None:
@@ -86,7 +87,7 @@ def dry_run(session: Session, history: RunHistory | None = None) -> dict[str, Dr
                     "key unchanged since the last run but its artifact is missing from the store "
                     "(garbage-collected, or a different store)"
                 ]
-            dry[name] = DryState(name, "run", key, full, reasons)
+            dry[name] = DryState(name, DryStatus.RUN, key, full, reasons)
         states[name] = state
     return dry
 
@@ -161,16 +162,16 @@ def _diff_values(old, new, prefix: str = "") -> list[str]:
 def resolve_artifact_key(session: Session, stage: str) -> tuple[str, str]:
     """Key of the artifact ``show``/``export`` should use: the current one if present, else the last run's."""
     if stage not in session.pipeline.stages:
-        from msflow.spec import _suggest
+        from msflow.spec import suggest
 
         raise UserError(
-            f"unknown stage '{stage}'{_suggest(stage, session.pipeline.stages)}",
+            f"unknown stage '{stage}'{suggest(stage, session.pipeline.stages)}",
             file=str(session.pipeline.path),
             field="STAGE",
         )
     history = RunHistory(session)
     dry = dry_run(session, history)
-    if dry[stage].state == "cached":
+    if dry[stage].state is DryStatus.CACHED:
         return dry[stage].key, "current"
     previous = history.last(stage)
     if previous and session.store.has(previous["key"]):

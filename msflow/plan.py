@@ -15,7 +15,7 @@ from typing import Any
 from msflow.errors import UserError
 from msflow.fingerprint import CodeIndex, distribution_versions
 from msflow.hashing import json_hash
-from msflow.spec import FilesRef, Pipeline, StageRef, _suggest, rel_to
+from msflow.spec import FilesRef, Pipeline, StageRef, rel_to, suggest
 
 PYTHON = f"{sys.version_info.major}.{sys.version_info.minor}"
 
@@ -134,7 +134,7 @@ def import_stage_class(uses: str, *, file: str | None = None, stage: str | None 
             n for n, v in vars(module).items() if isinstance(v, type) and issubclass(v, Stage) and v is not Stage
         )
         raise UserError(
-            f"module '{module_name}' has no class '{cls_name}'{_suggest(cls_name, classes)}; stages "
+            f"module '{module_name}' has no class '{cls_name}'{suggest(cls_name, classes)}; stages "
             f"there: {classes or 'none'}",
             file=file,
             stage=stage,
@@ -157,7 +157,7 @@ def canonical_params(cls, raw: dict, *, file: str, stage: str) -> dict:
         loc = ".".join(str(p) for p in err.get("loc", ()))
         if err.get("type") == "extra_forbidden":
             allowed = sorted(cls.Params.model_fields)
-            msg = f"unknown parameter '{loc}'{_suggest(loc, allowed)}; parameters: {', '.join(allowed) or 'none'}"
+            msg = f"unknown parameter '{loc}'{suggest(loc, allowed)}; parameters: {', '.join(allowed) or 'none'}"
         elif err.get("type") == "missing":
             msg = "required parameter is missing"
         else:
@@ -198,7 +198,7 @@ def resolve(pipeline: Pipeline, memo: dict) -> dict[str, StagePlan]:
             closure = {"modules": {}, "external": [top]}
         code = {
             "modules": closure["modules"],
-            "dists": distribution_versions(closure["external"], index.memo),
+            "dists": distribution_versions(closure["external"], index.memo, pipeline.root),
             "python": PYTHON,
         }
         code_digest = json_hash(code)
@@ -234,7 +234,7 @@ def resolve(pipeline: Pipeline, memo: dict) -> dict[str, StagePlan]:
         outputs = plans[stage].interface["outputs"]
         if output not in outputs:
             raise UserError(
-                f"stage '{stage}' has no output '{output}'{_suggest(output, outputs)}; outputs: {', '.join(outputs)}",
+                f"stage '{stage}' has no output '{output}'{suggest(output, outputs)}; outputs: {', '.join(outputs)}",
                 file=file,
                 field=f"publish.{target}",
             )
@@ -248,7 +248,7 @@ def check_inputs(pipeline: Pipeline, plans: dict[str, StagePlan], name: str) -> 
     for input_name in node.inputs:
         if input_name not in declared:
             raise UserError(
-                f"unknown input '{input_name}'{_suggest(input_name, declared)}; "
+                f"unknown input '{input_name}'{suggest(input_name, declared)}; "
                 f"{node.uses} takes: {', '.join(declared) or 'no inputs'}",
                 file=file,
                 stage=name,
@@ -283,7 +283,7 @@ def check_inputs(pipeline: Pipeline, plans: dict[str, StagePlan], name: str) -> 
         upstream = plans[ref.stage].interface["outputs"]
         if ref.output is not None and ref.output not in upstream:
             raise UserError(
-                f"stage '{ref.stage}' has no output '{ref.output}'{_suggest(ref.output, upstream)}; "
+                f"stage '{ref.stage}' has no output '{ref.output}'{suggest(ref.output, upstream)}; "
                 f"outputs: {', '.join(upstream)}",
                 file=file,
                 stage=name,

@@ -7,17 +7,19 @@ from __future__ import annotations
 
 import sys
 import time
+from typing import Any
+
+from msflow.jobs import StageStatus
 
 STYLE = {
-    "pending": ("·", "dim"),
-    "cached": ("=", "cyan"),
-    "running": ("…", "yellow"),
-    "ran": ("✓", "green"),
-    "failed": ("✗", "bold red"),
-    "skipped": ("-", "dim"),
-    "waiting": ("⏳", "magenta"),
+    StageStatus.PENDING: ("·", "dim"),
+    StageStatus.CACHED: ("=", "cyan"),
+    StageStatus.RUNNING: ("…", "yellow"),
+    StageStatus.RAN: ("✓", "green"),
+    StageStatus.FAILED: ("✗", "bold red"),
+    StageStatus.SKIPPED: ("-", "dim"),
 }
-LABEL = {"ran": "done"}
+LABEL = {StageStatus.RAN: "done"}
 
 
 class PlainReporter:
@@ -29,10 +31,12 @@ class PlainReporter:
         pass
 
     def update(self, state) -> None:
-        if state.state == "pending":
+        if state.state is StageStatus.PENDING:
             return
         mark, _ = STYLE.get(state.state, ("?", ""))
-        timing = f"{state.seconds:7.2f}s" if state.state in ("ran", "failed") and state.seconds else ""
+        timing = (
+            f"{state.seconds:7.2f}s" if state.state in (StageStatus.RAN, StageStatus.FAILED) and state.seconds else ""
+        )
         detail = f"  ({state.detail})" if state.detail else ""
         print(
             f"{mark} {state.name:<{self.width}}  {LABEL.get(state.state, state.state):<8}{timing}{detail}",
@@ -51,7 +55,7 @@ class RichReporter:
         from rich.console import Console
         from rich.live import Live
 
-        self.rows = {n: ["pending", 0.0, "", None] for n in names}
+        self.rows: dict[str, list[Any]] = {n: [StageStatus.PENDING, 0.0, "", None] for n in names}
         self.console = Console(stderr=True)
         self.live = Live(self, console=self.console, refresh_per_second=8, transient=False)
 
@@ -61,9 +65,9 @@ class RichReporter:
         table = Table.grid(padding=(0, 2))
         for name, (state, seconds, detail, since) in self.rows.items():
             mark, style = STYLE.get(state, ("?", ""))
-            if state == "running" and since is not None:
+            if state is StageStatus.RUNNING and since is not None:
                 seconds = time.perf_counter() - since
-            timing = f"{seconds:.2f}s" if state in ("running", "ran", "failed") else ""
+            timing = f"{seconds:.2f}s" if state in (StageStatus.RUNNING, StageStatus.RAN, StageStatus.FAILED) else ""
             table.add_row(
                 f"[{style}]{mark}[/]", name, f"[{style}]{LABEL.get(state, state)}[/]", timing, f"[dim]{detail}[/]"
             )
@@ -73,9 +77,9 @@ class RichReporter:
         self.live.start()
 
     def update(self, state) -> None:
-        row = self.rows.setdefault(state.name, ["pending", 0.0, "", None])
+        row = self.rows.setdefault(state.name, [StageStatus.PENDING, 0.0, "", None])
         row[0], row[1], row[2] = state.state, state.seconds, state.detail
-        if state.state == "running":
+        if state.state is StageStatus.RUNNING:
             row[3] = time.perf_counter()
 
     def stop(self) -> None:
@@ -115,11 +119,12 @@ class SweepReporter:
     def update(self, index: int, params: dict, state) -> None:
         row = self.rows.setdefault(index, {"states": {}, "done": False})
         row["states"][state.name] = state.state
-        settled = [s for s in row["states"].values() if s in ("cached", "ran", "failed", "skipped")]
+        settled = [s for s in row["states"].values() if s.settled]
         if len(settled) == self.stages and not row["done"]:
             row["done"] = True
             self.finished += 1
-            counts = {k: settled.count(k) for k in ("ran", "cached", "failed", "skipped") if settled.count(k)}
+            order = (StageStatus.RAN, StageStatus.CACHED, StageStatus.FAILED, StageStatus.SKIPPED)
+            counts = {k.value: settled.count(k) for k in order if settled.count(k)}
             described = ", ".join(f"{k}={v}" for k, v in params.items())
             print(
                 f"[{self.finished}/{self.total}] variant {index + 1} ({described}): "

@@ -8,7 +8,9 @@ import sys
 import time
 from pathlib import Path
 
+from msflow.atomic import write_atomic
 from msflow.hashing import json_hash
+from msflow.jobs import StageStatus
 from msflow.plan import StagePlan
 from msflow.runner import StageState
 from msflow.spec import Pipeline
@@ -23,7 +25,7 @@ def stage_record(plan: StagePlan, state: StageState) -> dict:
     manifest = state.manifest or {}
     return {
         "uses": plan.uses,
-        "state": state.state,
+        "state": state.state.value,
         "detail": state.detail or None,
         "key": state.key,
         "key_parts": state.parts,
@@ -56,7 +58,7 @@ def build_record(
     dists: dict[str, str] = {}
     for plan in plans.values():
         dists.update(plan.code["dists"])
-    from msflow import __version__
+    from msflow.version import __version__
 
     return {
         "id": run_id,
@@ -64,7 +66,7 @@ def build_record(
         "project": pipeline.root.name,
         "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(started)),
         "seconds": round(finished - started, 6),
-        "ok": all(s.state in ("cached", "ran") for s in states.values()),
+        "ok": all(s.state.done for s in states.values()),
         "executor": executor,
         "jobs": jobs,
         "argv": argv or [],
@@ -80,7 +82,8 @@ def build_record(
         },
         "stages": {name: stage_record(plans[name], state) for name, state in states.items()},
         "counts": {
-            s: sum(1 for st in states.values() if st.state == s) for s in ("cached", "ran", "failed", "skipped")
+            s.value: sum(1 for st in states.values() if st.state is s)
+            for s in (StageStatus.CACHED, StageStatus.RAN, StageStatus.FAILED, StageStatus.SKIPPED)
         },
         "versions": {"msflow": __version__, "python": platform.python_version(), **dists},
         "platform": {
@@ -96,7 +99,7 @@ def build_record(
 def lock_entries(pipeline: Pipeline, plans: dict[str, StagePlan], states: dict[str, StageState]) -> dict:
     entries = {}
     for name, state in states.items():
-        if state.state not in ("cached", "ran"):
+        if not state.state.done:
             continue
         manifest = state.manifest or {}
         entries[name] = {
@@ -147,8 +150,5 @@ def update_lock(pipeline: Pipeline, plans: dict[str, StagePlan], states: dict[st
         pass
     dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
     text = LOCK_HEADER.format(name=pipeline.path.name) + yaml.dump(data, Dumper=dumper, sort_keys=True, width=120)
-    path = lock_path(pipeline)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
+    write_atomic(lock_path(pipeline), text)
     return True

@@ -16,11 +16,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from msflow.atomic import write_atomic
+from msflow.dag import STATE_COLOURS
 from msflow.errors import UserError
 from msflow.hashing import json_hash
+from msflow.jobs import StageStatus
 
 FIGURE_SCHEME = 1
-STATE_COLOURS = {"cached": "#9ecae1", "ran": "#74c476", "failed": "#fb6a4a", "skipped": "#d9d9d9", "pending": "#eeeeee"}
 
 
 @dataclass
@@ -84,7 +86,7 @@ def render_stage_figures(job: dict) -> list[dict]:
 
     matplotlib.use("Agg")
     from msflow.plan import ensure_importable, import_stage_class
-    from msflow.store import open_store
+    from msflow.stores import open_store
 
     ensure_importable(job["root"])
     store = open_store(job["store"], job.get("store_options"))
@@ -145,7 +147,7 @@ def collect_figures(session, record: dict, jobs: int) -> list[Figure]:
     stages = [
         s
         for s in session.pipeline.stages
-        if record["stages"].get(s, {}).get("state") in ("cached", "ran")
+        if record["stages"].get(s, {}).get("state") in (StageStatus.CACHED, StageStatus.RAN)
         and session.store.has(record["stages"][s]["key"])
     ]
     payloads = {
@@ -255,9 +257,9 @@ def dag_svg(pipeline, record: dict) -> str:
     for name in order:
         x, y = pos[name]
         entry = record["stages"].get(name, {})
-        state = entry.get("state", "pending")
+        state = entry.get("state", StageStatus.PENDING)
         seconds = entry.get("seconds") or 0.0
-        timing = f"{seconds:.2f}s" if state in ("ran", "failed") else state
+        timing = f"{seconds:.2f}s" if state in (StageStatus.RAN, StageStatus.FAILED) else state
         parts.append(
             f"<g><title>{html.escape(name)}: {html.escape(state)}</title>"
             f'<rect x="{x}" y="{y}" width="{box_w}" height="{box_h}" rx="7" '
@@ -287,10 +289,10 @@ def _state_badge(state: str) -> str:
     return f'<span class="state" style="background:{STATE_COLOURS.get(state, "#eee")}">{html.escape(state)}</span>'
 
 
-def _fmt(value) -> str:
-    if isinstance(value, float):
-        return f"{value:.5g}"
-    return html.escape(str(value))
+def _cell_html(value: object) -> str:
+    from msflow.sweep import format_value
+
+    return html.escape(format_value(value, digits=5))
 
 
 def _media_html(fig: Figure) -> str:
@@ -328,12 +330,12 @@ def run_page(session, record: dict, figures: list[Figure]) -> str:
     for name in order:
         for metric, value in (record["stages"][name].get("metrics") or {}).items():
             metric_rows.append(
-                f"<tr><td>{html.escape(name)}</td><td>{html.escape(metric)}</td><td>{_fmt(value)}</td></tr>"
+                f"<tr><td>{html.escape(name)}</td><td>{html.escape(metric)}</td><td>{_cell_html(value)}</td></tr>"
             )
     errors = [
         f"<li><b>{html.escape(n)}</b>: {html.escape(str(record['stages'][n].get('error')))}</li>"
         for n in order
-        if record["stages"][n]["state"] == "failed"
+        if record["stages"][n]["state"] == StageStatus.FAILED
     ]
     warnings = [
         f"<li><b>{html.escape(n)}</b>: {html.escape(w)}</li>"
@@ -352,7 +354,10 @@ def run_page(session, record: dict, figures: list[Figure]) -> str:
                 f"<span class='muted'>{html.escape(entry['uses'])}</span></h3>"
                 + "".join(_media_html(f) for f in by_stage[name])
             )
-    legend = "".join(f"<span>{_state_badge(s)}</span>" for s in ("ran", "cached", "failed", "skipped"))
+    legend = "".join(
+        f"<span>{_state_badge(s)}</span>"
+        for s in (StageStatus.RAN, StageStatus.CACHED, StageStatus.FAILED, StageStatus.SKIPPED)
+    )
     versions = ", ".join(f"{k} {v}" for k, v in sorted(record.get("versions", {}).items()))
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>msflow report: {html.escape(pipeline.path.name)}</title>
@@ -390,7 +395,7 @@ def sweep_page(pipeline_name: str, sweep: dict, metric: str | None) -> str:
     table = format_table(header, rows, "md")
     body = ["<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>"]
     for row in rows:
-        body.append("<tr>" + "".join(f"<td>{_fmt(c) if c is not None else '-'}</td>" for c in row) + "</tr>")
+        body.append("<tr>" + "".join(f"<td>{_cell_html(c)}</td>" for c in row) + "</tr>")
     body.append("</table>")
     plots = ""
     if metric:
@@ -419,12 +424,12 @@ def metric_plots(result, metric: str) -> dict[str, bytes]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from msflow.sweep import _metric
+    from msflow.sweep import variant_metric
 
     params = list(dict.fromkeys(t for v in result.variants for t in v.params))
     plots = {}
     for param in params:
-        points = [(v.params.get(param), _metric(v, metric)) for v in result.variants if v.ok]
+        points = [(v.params.get(param), variant_metric(v, metric)) for v in result.variants if v.ok]
         points = [(x, y) for x, y in points if isinstance(y, (int, float)) and x is not None]
         if not points:
             continue
@@ -464,7 +469,7 @@ def build_report(
     started = time.perf_counter()
     session = open_session(path)
     store = session.store
-    if run and hasattr(store, "sweep_ids") and any(s == run or s.endswith(run) for s in store.sweep_ids()):
+    if run and any(s == run or s.endswith(run) for s in store.sweep_ids()):
         sweep_id = next(s for s in store.sweep_ids() if s == run or s.endswith(run))
         sweep = store.read_sweep(sweep_id)
         page = sweep_page(session.pipeline.path.name, sweep, metric)
@@ -475,9 +480,7 @@ def build_report(
         page = run_page(session, record, figures)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp")
-    tmp.write_text(page, encoding="utf-8")
-    tmp.replace(out)
+    write_atomic(out, page)
     session.save_memo()
     return {
         "path": str(out),

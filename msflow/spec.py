@@ -10,6 +10,7 @@ import difflib
 import glob as globlib
 import re
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Literal
 
@@ -92,8 +93,9 @@ class StageNode:
     inputs: dict[str, StageRef | FilesRef]
     description: str | None = None
 
-    @property
+    @cached_property
     def deps(self) -> list[str]:
+        """Upstream stages, sorted (computed once: the scheduler asks for them often)."""
         return sorted({r.stage for r in self.inputs.values() if isinstance(r, StageRef)})
 
 
@@ -108,7 +110,7 @@ class Pipeline:
     store_options: dict[str, Any] = field(default_factory=dict)
 
     def open_store(self):
-        from msflow.store import open_store
+        from msflow.stores import open_store
 
         return open_store(self.store, self.store_options, self.path.parent / ".msflow" / "cache")
 
@@ -125,7 +127,7 @@ def rel_to(path: Path, root: Path) -> str:
 
 
 # ---------------------------------------------------------------------------------------------------------- yaml
-class _UniqueKeyLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: ignore[misc]
+class UniqueKeyLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: ignore[misc]
     """Safe loader that refuses duplicate mapping keys (PyYAML would silently keep the last)."""
 
 
@@ -143,13 +145,13 @@ def _construct_mapping(loader, node, deep=False):
     return loader.construct_mapping_plain(node, deep=deep)
 
 
-_UniqueKeyLoader.construct_mapping_plain = yaml.SafeLoader.construct_mapping  # type: ignore[attr-defined]
-_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+UniqueKeyLoader.construct_mapping_plain = yaml.SafeLoader.construct_mapping  # type: ignore[attr-defined]
+UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
 
 
 def parse_yaml(text: str, file: str) -> Any:
     try:
-        return yaml.load(text, Loader=_UniqueKeyLoader)
+        return yaml.load(text, Loader=UniqueKeyLoader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
@@ -189,14 +191,14 @@ def substitute_vars(value: Any, variables: dict[str, Any], file: str, where: str
 
 def _lookup_var(name: str, variables: dict[str, Any], file: str, where: str) -> Any:
     if name not in variables:
-        hint = _suggest(name, variables)
+        hint = suggest(name, variables)
         raise UserError(
             f"unknown variable '${{{name}}}'{hint}; defined: {sorted(variables) or 'none'}", file=file, field=where
         )
     return variables[name]
 
 
-def _suggest(name: str, options) -> str:
+def suggest(name: str, options) -> str:
     close = difflib.get_close_matches(str(name), [str(o) for o in options], n=1)
     return f" (did you mean '{close[0]}'?)" if close else ""
 
@@ -211,7 +213,7 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     if len(parts) < 2 or not all(parts):
         raise UserError(f"bad override '{text}': the target must be stage.param (got '{target}')", field="-S")
     try:
-        value = yaml.load(raw, Loader=_UniqueKeyLoader) if raw.strip() else ""
+        value = yaml.load(raw, Loader=UniqueKeyLoader) if raw.strip() else ""
     except yaml.YAMLError:
         value = raw
     return parts, value
@@ -233,7 +235,7 @@ def apply_overrides(raw: dict, overrides: tuple[str, ...], file: str) -> None:
             continue
         if head not in stages:
             raise UserError(
-                f"override '{text}': unknown stage '{head}'{_suggest(head, stages)}; stages: {sorted(stages)}",
+                f"override '{text}': unknown stage '{head}'{suggest(head, stages)}; stages: {sorted(stages)}",
                 file=file,
                 field="-S",
             )
@@ -320,7 +322,7 @@ def load_pipeline(path: str | Path, overrides: tuple[str, ...] | list[str] = ())
         for input_name, ref in node.inputs.items():
             if isinstance(ref, StageRef) and ref.stage not in nodes:
                 raise UserError(
-                    f"refers to unknown stage '{ref.stage}'{_suggest(ref.stage, nodes)}; stages: {sorted(nodes)}",
+                    f"refers to unknown stage '{ref.stage}'{suggest(ref.stage, nodes)}; stages: {sorted(nodes)}",
                     file=file,
                     stage=name,
                     field=f"inputs.{input_name}",

@@ -41,11 +41,33 @@ DTYPE_KINDS = {"f": "float", "i": "signed int", "u": "unsigned int", "b": "bool"
 
 @dataclass(frozen=True)
 class Output:
-    """Schema of one output. ``kind`` lists accepted numpy dtype kinds ("f", "iu", "b").
+    """Schema of one output of a stage, checked against what ``run`` returns (a mismatch fails the stage).
 
-    ``shape`` entries: an int (fixed), None (free) or a name: a named dimension must have one size across all
-    outputs of the stage (e.g. "frames"). ``file`` outputs carry bytes (a GLB, a CSV, a video) stored as a
-    uint8 array; ``msflow export`` writes them back out as files.
+    Build one with ``Output.array(...)`` or ``Output.file(suffix)``. Two implementations of one pipeline step
+    share one ``outputs`` mapping, so ``uses:`` swaps them.
+
+    Attributes
+    ----------
+    kind : str
+        Accepted numpy dtype kinds: "f" float, "i" signed, "u" unsigned, "b" bool, "c" complex ("iu": either).
+    ndim : int or None
+        Number of dimensions, when fixed.
+    shape : tuple or None
+        Per axis: an int (fixed size), None (free) or a name: a named dimension has one size across all outputs
+        of the stage (e.g. "frames").
+    dtype : str or None
+        One exact dtype, when ``kind`` is not enough.
+    optional : bool
+        The stage may leave it out of its ``Result``.
+    file_suffix : str or None
+        A file output (bytes: a GLB, a CSV, a video), stored as uint8; ``msflow export`` writes the file back.
+
+    Examples
+    --------
+    >>> Output.array("f", shape=("frames", 68, 2)).ndim
+    3
+    >>> Output.file(".glb").describe()["file_suffix"]
+    '.glb'
     """
 
     kind: str = "f"
@@ -91,7 +113,31 @@ class Output:
 
 @dataclass(frozen=True)
 class Input:
-    """Declaration of one input. ``kind`` is "array", "artifact" or "files"."""
+    """Declaration of one input of a stage; pipeline.yaml connects it, and ``msflow status`` checks the connection
+    before anything runs.
+
+    Attributes
+    ----------
+    kind : str
+        "array": one upstream output (``stage.output``), handed over as numpy, or as a read-only zarr array
+        when ``lazy``; "artifact": a whole upstream artifact (``stage``), an ``ArtifactView``; "files": data
+        files, a ``Files`` mapping label -> Path with each label's fields.
+    optional : bool
+        The pipeline may leave it unconnected (the stage receives None).
+    requires : tuple of str
+        "artifact": outputs the upstream artifact must declare.
+    lazy : bool
+        "array": pass a lazy array (read it in blocks with ``msflow.iter_blocks``).
+    array_kind, ndim
+        "array": documentation of the expected dtype kind and dimensions.
+
+    Examples
+    --------
+    >>> Input.array("f", lazy=True).describe()["kind"]
+    'array'
+    >>> Input.artifact("mesh", "pose").requires
+    ('mesh', 'pose')
+    """
 
     kind: str
     optional: bool = False
@@ -165,7 +211,50 @@ class Params(BaseModel):
 
 
 class Stage:
-    """Base class of pipeline stages. Subclasses set ``Params``, ``inputs``, ``outputs`` and define ``run``."""
+    """Base class of pipeline stages: subclasses declare ``Params``, ``inputs``, ``outputs`` and define ``run``.
+
+    ``run(params, inputs)`` receives validated params (an instance of ``Params``, a frozen pydantic model: put
+    every rule pydantic can express there, so a bad ``-S`` is rejected before anything runs) and the inputs, and
+    returns a ``Result``. Keep it thin: validate, call plain numpy functions, pack. Import heavy modules inside
+    ``run``: a no-op run imports no stage code.
+
+    Attributes
+    ----------
+    Params : type
+        The parameters' pydantic model (unknown keys are errors).
+    inputs : mapping of str to Input
+        Declared inputs.
+    outputs : mapping of str to Output
+        Declared outputs.
+    figures : mapping of str to callable
+        Report figures: ``f(view, inputs)`` returning a matplotlib Figure, PNG or MP4 bytes.
+    resources : mapping of str to path
+        Data files the code reads by default (models): hashed into the cache key.
+    name : str
+        The stage's name in the pipeline (instance attribute).
+    jobs : int
+        The run's worker count (``-j``), for parallelism inside ``run``; not in the key: results must not
+        depend on it (instance attribute).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> class Scale(Stage):
+    ...     \"\"\"Multiply an array by a factor.\"\"\"
+    ...     class Params(Stage.Params):
+    ...         factor: float = 2.0
+    ...     inputs = {"x": Input.array("f")}
+    ...     outputs = {"y": Output.array("f", shape=("n",))}
+    ...     def run(self, params, inputs):
+    ...         return Result({"y": inputs["x"] * params.factor})
+    >>> Scale("scale").run(Scale.Params(factor=3), {"x": np.ones(2)}).arrays["y"]
+    array([3., 3.])
+    >>> Scale.Params(factor="x")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    pydantic_core._pydantic_core.ValidationError: 1 validation error for Params
+    ...
+    """
 
     Params: ClassVar[type[Params]] = Params
     inputs: ClassVar[Mapping[str, Input]] = {}

@@ -24,9 +24,10 @@ from conftest import cli_env, executions, run_cli
 import msflow
 from msflow.artifact import check_contents, encode_artifact, prepare_manifest
 from msflow.errors import UserError
-from msflow.remote import RemoteStore, open_remote_store
-from msflow.remote_leases import Lease
-from msflow.store import HOST, open_store
+from msflow.stores import open_store
+from msflow.stores.base import HOST
+from msflow.stores.leases import Lease
+from msflow.stores.remote import RemoteStore, open_remote_store
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -20,39 +20,27 @@ import errno
 import json
 import os
 import shutil
-import socket
 import time
 import uuid
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import TYPE_CHECKING, Any
 
+from msflow.atomic import write_json_atomic
 from msflow.errors import UserError
+from msflow.stores.base import HOST, Json, pid_alive
 
-HOST = socket.gethostname()
-
-
-def open_store(location: str, options: dict | None = None, cache_dir: str | Path | None = None):
-    """A store for a path or URL: ``file://`` and plain paths here, object stores (``s3://`` ...) through fsspec
-    in msflow.remote. ``options`` are fsspec storage options; ``cache_dir`` holds machine-local memos of
-    remote stores (file stat signatures mean nothing on another machine)."""
-    if location.startswith("file://"):
-        return LocalStore(location[len("file://") :])
-    if "://" in location:
-        from msflow.remote import open_remote_store
-
-        return open_remote_store(location, options or {}, cache_dir)
-    return LocalStore(location)
+if TYPE_CHECKING:
+    pass
 
 
 class LocalStore:
-    """The store interface every backend implements: has, manifest, open, keys, write, remove, verify, size,
-    clean_tmp, lock, load_memo/save_memo, write_run/run_ids/read_run/remove_run, plus ``url`` and ``options``
-    (what a worker needs to reopen it)."""
+    """A store in a folder (see the module docstring for its layout); implements ``msflow.stores.base.Store``."""
 
     def __init__(self, root: str | Path):
         self.root = Path(root)
         self.url = str(self.root)
-        self.options: dict = {}
+        self.options: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ paths
     @property
@@ -152,7 +140,7 @@ class LocalStore:
             parts = entry.name.split(".")
             dead = True
             if len(parts) >= 4 and parts[0] != "trash" and parts[-3] == HOST:
-                dead = not _pid_alive(int(parts[-2])) if parts[-2].isdigit() else True
+                dead = not pid_alive(int(parts[-2])) if parts[-2].isdigit() else True
             elif len(parts) >= 4 and parts[0] != "trash":
                 dead = max_age is not None and time.time() - entry.stat().st_mtime > max_age
             if dead:
@@ -181,7 +169,7 @@ class LocalStore:
                     break
                 except BlockingIOError:
                     if not waited and on_wait is not None:
-                        on_wait(_read_holder(path))
+                        on_wait(read_holder(path))
                     waited = True
                     time.sleep(poll)
             os.ftruncate(fd, 0)
@@ -294,25 +282,9 @@ class LocalWriter:
             shutil.rmtree(self.path, ignore_errors=True)
 
 
-def write_json_atomic(path: Path, value: Any, indent: int | None = None) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:6]}")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(value, fh, indent=indent, sort_keys=indent is not None, allow_nan=False)
-    os.replace(tmp, path)
-
-
-def _read_holder(path: Path) -> dict:
+def read_holder(path: Path) -> Json:
+    """The host and pid a lock file names (empty when unreadable)."""
     try:
         return json.loads(path.read_text() or "{}")
     except (OSError, ValueError):
         return {}
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True

@@ -20,7 +20,7 @@ release
     Stop the heartbeat, delete the lease if it still has our etag.
 
 Leases make "each stage instance computed once" hold across machines; they are not what keeps the store
-consistent. Publishing is atomic and content-addressed (msflow.remote), so a lost lease costs duplicated work,
+consistent. Publishing is atomic and content-addressed (msflow.stores.remote), so a lost lease costs duplicated work,
 never a torn or mixed artifact.
 """
 
@@ -33,7 +33,7 @@ import time
 import uuid
 from typing import Callable
 
-from msflow.store import HOST, _pid_alive
+from msflow.stores.base import HOST, pid_alive
 
 DEFAULT_TTL = 60.0
 SKEW = 2.0  # seconds of grace beyond a lease's ttl before it is broken (clock and timestamp granularity)
@@ -57,7 +57,7 @@ def parse_holder(data: bytes) -> dict:
 
 def lease_is_stale(holder: dict, age: float | None, now: float | None = None) -> bool:
     """Whether a lease may be broken: its holder on this host is gone, or it was not renewed within its ttl."""
-    if holder.get("host") == HOST and isinstance(holder.get("pid"), int) and not _pid_alive(holder["pid"]):
+    if holder.get("host") == HOST and isinstance(holder.get("pid"), int) and not pid_alive(holder["pid"]):
         return True
     ttl = holder.get("ttl") if isinstance(holder.get("ttl"), (int, float)) else DEFAULT_TTL
     if age is not None:  # server clock: immune to skew between machines

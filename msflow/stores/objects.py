@@ -1,4 +1,4 @@
-"""Object access for remote stores: the handful of primitives msflow.remote needs, and translation of backend
+"""Object access for remote stores: the handful of primitives msflow.stores.remote needs, and translation of backend
 failures (credentials, bucket, network) into UserErrors that name the store.
 
 Two backends:
@@ -10,7 +10,7 @@ Two backends:
     clock (``Date`` minus ``Last-Modified``), so clock skew between machines does not matter.
 ``FsspecObjects``
     Any other fsspec filesystem (``memory://``, ``gcs://`` ...). Conditional operations are emulated by
-    read-compare-write and are not atomic; msflow.remote_leases compensates with a settle delay.
+    read-compare-write and are not atomic; msflow.stores.leases compensates with a settle delay.
 
 Paths given to these methods are relative to the store's root.
 """

@@ -5,7 +5,7 @@ Layout under the store's prefix::
     commits/<k[:2]>/<key>.json       commit marker: names the key's data folder and holds its manifest
     artifacts/<k[:2]>/<key>/<wid>/   zarr v3 groups, one folder per writer (wid: time, random)
     pending/<key>.<wid>.json         journal of folders that may become garbage (being written or retired)
-    locks/<key>.lease                per-key leases (msflow.remote_leases)
+    locks/<key>.lease                per-key leases (msflow.stores.leases)
     runs/<id>.json                   one record per run (shared by every machine using the store)
     sweeps/<id>.json                 one record per sweep
 
@@ -28,7 +28,7 @@ Cleanup
 Locks (the rule)
     Any number of runs, on any number of machines, may share a store. Each key has a lease (60 s, or
     MSFLOW_LEASE_SECONDS) renewed by a heartbeat while its stage runs; a lease is broken when it expired or when
-    its holder ran on this host and is dead (see msflow.remote_leases). So each stage instance is computed
+    its holder ran on this host and is dead (see msflow.stores.leases). So each stage instance is computed
     once; a holder stalled past its ttl may see its work duplicated, never a torn or mixed artifact, because
     the commit is conditional. On S3 expiry is judged by the server's clock; on other fsspec backends by the
     machines' clocks (keep them within a second or two).
@@ -52,10 +52,11 @@ import uuid
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+from msflow.atomic import write_json_atomic
 from msflow.errors import UserError
-from msflow.remote_leases import Lease, lease_is_stale, parse_holder
-from msflow.remote_objects import dumps, iter_chunks, make_objects
-from msflow.store import HOST, _pid_alive, write_json_atomic
+from msflow.stores.base import HOST, pid_alive
+from msflow.stores.leases import Lease, lease_is_stale, parse_holder
+from msflow.stores.objects import dumps, iter_chunks, make_objects
 
 MARKER_FORMAT = 1
 STALE_SECONDS = 3600.0  # a journalled folder of a writer on another host, without a live lease, is gone after this
@@ -292,7 +293,7 @@ class RemoteStore:
     def _writer_alive(self, entry: dict, grace: float) -> bool:
         pid = entry.get("pid")
         if entry.get("host") == HOST and isinstance(pid, int):
-            return _pid_alive(pid)
+            return pid_alive(pid)
         lease = self.objects.get_versioned(self.lease_path(entry["key"]))
         if lease is not None and not lease_is_stale(parse_holder(lease.data), lease.age):
             return True
@@ -305,7 +306,7 @@ class RemoteStore:
 
     @contextlib.contextmanager
     def lock(self, key: str, on_wait: Callable[[dict], None] | None = None, poll: float = 0.1):
-        """Exclusive per-key lease across processes and machines (msflow.remote_leases)."""
+        """Exclusive per-key lease across processes and machines (msflow.stores.leases)."""
         lease = Lease(self.objects, self.lease_path(key))
         lease.acquire(on_wait, poll)
         try:
@@ -491,7 +492,7 @@ class RemoteArray:
             import zarr
             from zarr.storage import FsspecStore
 
-            from msflow.remote_objects import s3_defaults
+            from msflow.stores.objects import s3_defaults
 
             protocol = self._store.url.split("://", 1)[0]
             options = s3_defaults(self._store.options) if protocol in ("s3", "s3a") else self._store.options
