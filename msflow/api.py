@@ -1,4 +1,4 @@
-"""Python API: ``msflow.run(path, overrides=...)`` and the helpers the CLI shares with it."""
+"""Running pipelines: ``msflow.run`` (one pipeline) and ``run_sessions`` (several at once: sweeps), ``RunResult``."""
 
 from __future__ import annotations
 
@@ -6,59 +6,15 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from msflow.errors import StageFailed, UserError
-from msflow.hashing import json_hash
 from msflow.jobs import StageStatus
-from msflow.plan import StagePlan, resolve
 from msflow.runner import Reporter, Runner, StageState, new_run_id
-from msflow.spec import Pipeline, load_pipeline
+from msflow.session import Session, open_session
 
-MEMO_ENTRIES = 2000  # per memo section; an evicted entry is only recomputed (one parse, import or file hash)
-
-
-def trim_memo(memo: dict) -> None:
-    """Keep each growing memo section to its newest entries: every code edit adds fingerprints, interfaces and
-    params that later runs never ask for again, and the memo is read by every no-op run."""
-    sections = [memo.get("interfaces"), memo.get("params"), memo.get("data"), memo.get("published")]
-    code = memo.get("code") or {}
-    sections += [code.get("files"), code.get("closures")]
-    for section in sections:
-        if isinstance(section, dict) and len(section) > MEMO_ENTRIES:
-            for key in list(section)[: len(section) - MEMO_ENTRIES]:
-                del section[key]
-
-
-@dataclass
-class Session:
-    """A loaded, resolved pipeline with its store and memo: what every command starts from."""
-
-    pipeline: Pipeline
-    store: Any
-    memo: dict
-    plans: dict[str, StagePlan]
-    memo_digest: str
-
-    def save_memo(self) -> None:
-        trim_memo(self.memo)
-        digest = json_hash(self.memo)
-        if digest != self.memo_digest:
-            try:
-                self.store.save_memo(self.memo)
-            except OSError:
-                pass  # a read-only store still runs; it only loses the memo
-            self.memo_digest = digest
-
-
-def open_session(path: str | Path, overrides=(), memo: dict | None = None) -> Session:
-    """Load and resolve a pipeline; ``memo`` shares one memo between sessions (sweep variants)."""
-    pipeline = load_pipeline(path, tuple(overrides))
-    store = pipeline.open_store()
-    memo = store.load_memo() if memo is None else memo
-    digest = json_hash(memo)
-    plans = resolve(pipeline, memo)
-    return Session(pipeline, store, memo, plans, digest)
+if TYPE_CHECKING:
+    from msflow.artifact import ArtifactView
 
 
 @dataclass
@@ -67,15 +23,19 @@ class RunResult:
 
     session: Session
     states: dict[str, StageState]
-    record: dict
+    record: dict[str, Any]
+
+    def __repr__(self) -> str:
+        counts = ", ".join(f"{v} {k}" for k, v in self.record.get("counts", {}).items() if v)
+        return f"RunResult(run {self.run_id}, {'ok' if self.ok else 'FAILED'}: {counts or 'nothing selected'})"
 
     @property
     def ok(self) -> bool:
-        return self.record["ok"]
+        return bool(self.record["ok"])
 
     @property
     def run_id(self) -> str:
-        return self.record["id"]
+        return str(self.record["id"])
 
     @property
     def warnings(self) -> dict[str, list[str]]:
@@ -88,10 +48,10 @@ class RunResult:
 
     @property
     def executed(self) -> list[str]:
-        return [n for n, s in self.states.items() if s.state == "ran"]
+        return [n for n, s in self.states.items() if s.state is StageStatus.RAN]
 
     @property
-    def metrics(self) -> dict[str, dict]:
+    def metrics(self) -> dict[str, dict[str, Any]]:
         return {n: (s.manifest or {}).get("metrics", {}) for n, s in self.states.items()}
 
     def key(self, stage: str) -> str:
@@ -100,10 +60,10 @@ class RunResult:
             raise KeyError(f"stage '{stage}' was not part of this run")
         return state.key
 
-    def artifact(self, stage: str):
+    def artifact(self, stage: str) -> ArtifactView:
         return self.session.store.open(self.key(stage))
 
-    def load(self, ref: str):
+    def load(self, ref: str) -> Any:
         """``"stage.output"`` -> numpy array."""
         stage, _, output = ref.partition(".")
         return self.artifact(stage)[output]

@@ -42,7 +42,7 @@ def fill_value(dtype: Any) -> Any:
     return False if kind == "b" else [0.0, 0.0] if kind == "c" else 0.0 if kind == "f" else 0
 
 
-def array_metadata(shape: tuple[int, ...], dtype: Any) -> dict:
+def array_metadata(shape: tuple[int, ...], dtype: Any) -> dict[str, Any]:
     """zarr v3 array metadata: regular chunks along the first axis; codecs bytes (little endian), zstd, then a
     crc32c checksum of every stored chunk, which zarr (and msflow's own reader) checks on every read."""
     import numpy as np

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from typing import Any
 
 
 class UserError(Exception):
@@ -39,7 +40,7 @@ class UserError(Exception):
             where.append(f"field '{self.field}'")
         return (": ".join(where) + ": " if where else "") + self.message
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         return {
             "type": "UserError",
             "message": self.message,

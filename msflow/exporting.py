@@ -7,7 +7,7 @@ import json
 import os
 from collections.abc import Callable
 from pathlib import Path
-from typing import IO, TYPE_CHECKING
+from typing import IO, TYPE_CHECKING, Any
 
 from msflow.atomic import write_with
 from msflow.errors import UserError, display_path
@@ -15,6 +15,8 @@ from msflow.sinks import iter_blocks
 
 if TYPE_CHECKING:
     from msflow.artifact import ArtifactView
+    from msflow.runner import StageState
+    from msflow.session import Session
 
 ARRAY_SUFFIXES = (".npy", ".npz", ".csv", ".json")
 
@@ -67,7 +69,7 @@ def output_writer(view: ArtifactView, output: str, dest: Path, field: str) -> Ca
     return lambda fh: fh.write(text.encode("utf-8"))
 
 
-def array_to_csv(arr, name: str) -> str:
+def array_to_csv(arr: Any, name: str) -> str:
     """Rows = first axis; the remaining axes are flattened into columns named name[i][j]..."""
     import io
 
@@ -89,7 +91,7 @@ def array_to_csv(arr, name: str) -> str:
     return buf.getvalue()
 
 
-def _nan_to_none(value):
+def _nan_to_none(value: Any) -> Any:
     if isinstance(value, list):
         return [_nan_to_none(v) for v in value]
     if isinstance(value, float) and value != value:
@@ -97,18 +99,18 @@ def _nan_to_none(value):
     return value
 
 
-def publish_outputs(session, states) -> list[str]:
+def publish_outputs(session: Session, states: dict[str, StageState]) -> list[str]:
     """Materialise the pipeline's ``publish:`` entries; skip files already holding the same output content."""
     from msflow.hashing import stat_signature
 
     published = session.memo.setdefault("published", {})
-    written = []
+    written: list[str] = []
     for ref, dest in session.pipeline.publish.items():
         stage, _, output = ref.partition(".")
         state = states.get(stage)
         if state is None or not state.state.done:
             continue
-        digest = state.manifest["outputs"].get(output, {}).get("hash")
+        digest = (state.manifest or {}).get("outputs", {}).get(output, {}).get("hash")
         if digest is None:
             raise UserError(
                 f"stage '{stage}' has no output '{output}'", file=str(session.pipeline.path), field=f"publish.{ref}"
@@ -116,6 +118,7 @@ def publish_outputs(session, states) -> list[str]:
         previous = published.get(dest)
         if previous and previous[0] == digest and os.path.exists(dest) and previous[1] == stat_signature(Path(dest)):
             continue
+        assert state.key is not None
         try:
             export_output(session.store.open(state.key), output, Path(dest), field=f"publish.{ref}")
         except UserError as exc:

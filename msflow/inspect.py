@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
-from msflow.api import Session
 from msflow.errors import UserError
 from msflow.hashing import FileHashMemo
 from msflow.jobs import DryStatus, StageStatus
 from msflow.runner import StageState, key_parts, stage_key
+from msflow.session import Session
 from msflow.spec import topological_order
 
 
@@ -17,9 +19,9 @@ class DryState:
     name: str
     state: DryStatus
     key: str | None = None
-    parts: dict | None = None
+    parts: dict[str, Any] | None = None
     reasons: list[str] = field(default_factory=list)
-    manifest: dict | None = None
+    manifest: dict[str, Any] | None = None
 
 
 class RunHistory:
@@ -28,9 +30,9 @@ class RunHistory:
     def __init__(self, session: Session):
         self.session = session
         self._pending = list(reversed(session.store.run_ids()))
-        self._read: list[tuple[str, dict]] = []
+        self._read: list[tuple[str, dict[str, Any]]] = []
 
-    def _records(self):
+    def _records(self) -> Iterator[tuple[str, dict[str, Any]]]:
         yield from self._read
         while self._pending:
             run_id = self._pending.pop(0)
@@ -42,7 +44,7 @@ class RunHistory:
                 self._read.append((run_id, record))
                 yield run_id, record
 
-    def last(self, stage: str) -> dict | None:
+    def last(self, stage: str) -> dict[str, Any] | None:
         """The newest settled (cached or ran) entry of ``stage``, with its run id."""
         for run_id, record in self._records():
             entry = record.get("stages", {}).get(stage)
@@ -92,7 +94,7 @@ def dry_run(session: Session, history: RunHistory | None = None) -> dict[str, Dr
     return dry
 
 
-def explain(old: dict, new: dict, provenance: dict | None = None) -> list[str]:
+def explain(old: dict[str, Any], new: dict[str, Any], provenance: dict[str, Any] | None = None) -> list[str]:
     """Human-readable differences between two key-part dicts (code files, versions, params, inputs)."""
     reasons: list[str] = []
     if old.get("scheme") != new.get("scheme"):
@@ -148,7 +150,7 @@ def explain(old: dict, new: dict, provenance: dict | None = None) -> list[str]:
     return reasons
 
 
-def _diff_values(old, new, prefix: str = "") -> list[str]:
+def _diff_values(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:
     out = []
     for k in sorted(set(old) | set(new)):
         a, b = old.get(k, "<unset>"), new.get(k, "<unset>")
@@ -171,8 +173,9 @@ def resolve_artifact_key(session: Session, stage: str) -> tuple[str, str]:
         )
     history = RunHistory(session)
     dry = dry_run(session, history)
-    if dry[stage].state is DryStatus.CACHED:
-        return dry[stage].key, "current"
+    key = dry[stage].key
+    if dry[stage].state is DryStatus.CACHED and key is not None:
+        return key, "current"
     previous = history.last(stage)
     if previous and session.store.has(previous["key"]):
         return previous["key"], f"from run {previous['run']} (stale: the pipeline changed since)"

@@ -10,12 +10,15 @@ import importlib
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from msflow.errors import UserError
 from msflow.fingerprint import CodeIndex, distribution_versions
 from msflow.hashing import json_hash
 from msflow.spec import FilesRef, Pipeline, StageRef, rel_to, suggest
+
+if TYPE_CHECKING:
+    from msflow.stage import Stage
 
 PYTHON = f"{sys.version_info.major}.{sys.version_info.minor}"
 
@@ -24,16 +27,16 @@ PYTHON = f"{sys.version_info.major}.{sys.version_info.minor}"
 class StagePlan:
     name: str
     uses: str
-    code: dict  # {"modules": {relpath: digest}, "dists": {name: version}, "python": "3.11"}
+    code: dict[str, Any]  # {"modules": {relpath: digest}, "dists": {name: version}, "python": "3.11"}
     code_digest: str
-    interface: dict  # {"inputs": {...}, "outputs": {...}}
-    params: dict  # canonical: validated, defaults filled in
+    interface: dict[str, Any]  # {"inputs": {...}, "outputs": {...}}
+    params: dict[str, Any]  # canonical: validated, defaults filled in
 
 
 _PROJECT_ROOTS: set[str] = set()
 
 
-def ensure_importable(root) -> None:
+def ensure_importable(root: str | Path) -> None:
     """Put the project root first on sys.path so its stage modules import (also in worker processes)."""
     root = str(root)
     _PROJECT_ROOTS.add(root.rstrip("/") + "/")
@@ -46,7 +49,7 @@ def ensure_importable(root) -> None:
 _IMPORTED: dict[str, str] = {}  # module name -> stat signature of its file when this process imported it
 
 
-def forget_stale_modules(root: str | None = None) -> None:
+def forget_stale_modules(root: str | Path | None = None) -> None:
     """Drop project modules from sys.modules when any project file changed since it was imported.
 
     A long-lived process (a notebook, a Dask worker) would otherwise run yesterday's code under today's key.
@@ -98,7 +101,9 @@ def _remember_project_modules() -> None:
                 pass
 
 
-def import_stage_class(uses: str, *, file: str | None = None, stage: str | None = None, root=None):
+def import_stage_class(
+    uses: str, *, file: str | None = None, stage: str | None = None, root: str | Path | None = None
+) -> type[Stage]:
     """Import ``package.module:Class`` (re-importing edited project modules) and check it is a Stage subclass."""
     from msflow.stage import Stage
 
@@ -145,7 +150,7 @@ def import_stage_class(uses: str, *, file: str | None = None, stage: str | None 
     return cls
 
 
-def canonical_params(cls, raw: dict, *, file: str, stage: str) -> dict:
+def canonical_params(cls: type[Stage], raw: dict[str, Any], *, file: str, stage: str) -> dict[str, Any]:
     from pydantic import ValidationError
 
     from msflow.stage import to_strict_json
@@ -166,12 +171,13 @@ def canonical_params(cls, raw: dict, *, file: str, stage: str) -> dict:
     except TypeError as exc:
         raise UserError(f"invalid params: {exc}", file=file, stage=stage, field="params") from None
     try:
-        return to_strict_json(validated.model_dump(mode="json"), "params")
+        canonical: dict[str, Any] = to_strict_json(validated.model_dump(mode="json"), "params")
+        return canonical
     except ValueError as exc:
         raise UserError(str(exc), file=file, stage=stage, field="params") from None
 
 
-def resolve(pipeline: Pipeline, memo: dict) -> dict[str, StagePlan]:
+def resolve(pipeline: Pipeline, memo: dict[str, Any]) -> dict[str, StagePlan]:
     """Fingerprint, interface and canonical params for every stage; checks every input against its declaration."""
     file = str(pipeline.path)
     index = CodeIndex(pipeline.root, memo.setdefault("code", {}))

@@ -7,9 +7,12 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any, TextIO
 
 from msflow.jobs import StageStatus
+
+if TYPE_CHECKING:
+    from msflow.runner import Reporter, StageState
 
 STYLE = {
     StageStatus.PENDING: ("·", "dim"),
@@ -23,14 +26,14 @@ LABEL = {StageStatus.RAN: "done"}
 
 
 class PlainReporter:
-    def __init__(self, names: list[str], stream=None):
+    def __init__(self, names: list[str], stream: TextIO | None = None):
         self.stream = stream or sys.stderr
         self.width = max((len(n) for n in names), default=8)
 
     def start(self) -> None:
         pass
 
-    def update(self, state) -> None:
+    def update(self, state: StageState) -> None:
         if state.state is StageStatus.PENDING:
             return
         mark, _ = STYLE.get(state.state, ("?", ""))
@@ -59,7 +62,7 @@ class RichReporter:
         self.console = Console(stderr=True)
         self.live = Live(self, console=self.console, refresh_per_second=8, transient=False)
 
-    def __rich__(self):
+    def __rich__(self) -> Any:
         from rich.table import Table
 
         table = Table.grid(padding=(0, 2))
@@ -76,7 +79,7 @@ class RichReporter:
     def start(self) -> None:
         self.live.start()
 
-    def update(self, state) -> None:
+    def update(self, state: StageState) -> None:
         row = self.rows.setdefault(state.name, [StageStatus.PENDING, 0.0, "", None])
         row[0], row[1], row[2] = state.state, state.seconds, state.detail
         if state.state is StageStatus.RUNNING:
@@ -86,7 +89,7 @@ class RichReporter:
         self.live.stop()
 
 
-def make_reporter(names: list[str], quiet: bool = False):
+def make_reporter(names: list[str], quiet: bool = False) -> PlainReporter | RichReporter | None:
     if quiet:
         return None
     if sys.stderr.isatty():
@@ -97,18 +100,18 @@ def make_reporter(names: list[str], quiet: bool = False):
 class SweepReporter:
     """One line per variant: how many of its stages are settled, cached, run, failed."""
 
-    def __init__(self, total: int, stages: int, stream=None):
+    def __init__(self, total: int, stages: int, stream: TextIO | None = None):
         self.stream = stream or sys.stderr
         self.total = total
         self.stages = stages
-        self.rows: dict[int, dict] = {}
+        self.rows: dict[int, dict[str, Any]] = {}
         self.finished = 0
 
-    def for_variant(self, index: int, params: dict):
+    def for_variant(self, index: int, params: dict[str, Any]) -> Reporter:
         reporter = self
 
         class Proxy:
-            def update(self, state):
+            def update(self, state: StageState) -> None:
                 reporter.update(index, params, state)
 
         return Proxy()
@@ -116,7 +119,7 @@ class SweepReporter:
     def start(self) -> None:
         pass
 
-    def update(self, index: int, params: dict, state) -> None:
+    def update(self, index: int, params: dict[str, Any], state: StageState) -> None:
         row = self.rows.setdefault(index, {"states": {}, "done": False})
         row["states"][state.name] = state.state
         settled = [s for s in row["states"].values() if s.settled]

@@ -7,6 +7,7 @@ import platform
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from msflow.atomic import write_atomic
 from msflow.hashing import json_hash
@@ -21,7 +22,7 @@ LOCK_HEADER = (
 )
 
 
-def stage_record(plan: StagePlan, state: StageState) -> dict:
+def stage_record(plan: StagePlan, state: StageState) -> dict[str, Any]:
     manifest = state.manifest or {}
     return {
         "uses": plan.uses,
@@ -53,8 +54,8 @@ def build_record(
     executor: str,
     jobs: int,
     argv: list[str] | None = None,
-    label: dict | None = None,
-) -> dict:
+    label: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     dists: dict[str, str] = {}
     for plan in plans.values():
         dists.update(plan.code["dists"])
@@ -96,7 +97,7 @@ def build_record(
     }
 
 
-def lock_entries(pipeline: Pipeline, plans: dict[str, StagePlan], states: dict[str, StageState]) -> dict:
+def lock_entries(pipeline: Pipeline, plans: dict[str, StagePlan], states: dict[str, StageState]) -> dict[str, Any]:
     entries = {}
     for name, state in states.items():
         if not state.state.done:
@@ -124,7 +125,7 @@ def lock_path(pipeline: Pipeline) -> Path:
     )
 
 
-def read_lock(pipeline: Pipeline) -> dict:
+def read_lock(pipeline: Pipeline) -> dict[str, Any]:
     import yaml
 
     try:

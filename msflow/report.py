@@ -14,13 +14,19 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from msflow.atomic import write_atomic
 from msflow.dag import STATE_COLOURS
 from msflow.errors import UserError
 from msflow.hashing import json_hash
 from msflow.jobs import StageStatus
+
+if TYPE_CHECKING:
+    from msflow.session import Session
+    from msflow.spec import Pipeline
+    from msflow.stores.base import Store
+    from msflow.sweep import SweepResult
 
 FIGURE_SCHEME = 1
 
@@ -63,7 +69,7 @@ def to_media(result: Any) -> tuple[str, bytes]:
     return "image/png", buf.getvalue()
 
 
-def stage_inputs(record: dict, stage: str, store, root: Path) -> dict:
+def stage_inputs(record: dict[str, Any], stage: str, store: Store, root: Path) -> dict[str, Any]:
     """The inputs a stage saw in a run, reopened from the store (artifacts) and the project (files)."""
     entry = record["stages"][stage]
     inputs: dict[str, Any] = {}
@@ -80,7 +86,7 @@ def stage_inputs(record: dict, stage: str, store, root: Path) -> dict:
     return inputs
 
 
-def render_stage_figures(job: dict) -> list[dict]:
+def render_stage_figures(job: dict[str, Any]) -> list[dict[str, Any]]:
     """Render (or fetch from the cache) every figure of one stage. JSON in, JSON out: runs in a worker process."""
     import matplotlib
 
@@ -142,7 +148,7 @@ def _render_job(job_json: str) -> str:
         return json.dumps(render_stage_figures(json.loads(job_json)))
 
 
-def collect_figures(session, record: dict, jobs: int) -> list[Figure]:
+def collect_figures(session: Session, record: dict[str, Any], jobs: int) -> list[Figure]:
     """Figures of every settled stage of a run, rendered in parallel worker processes when ``jobs`` > 1."""
     stages = [
         s
@@ -162,7 +168,7 @@ def collect_figures(session, record: dict, jobs: int) -> list[Figure]:
         )
         for s in stages
     }
-    results: dict[str, list[dict]] = {}
+    results: dict[str, list[dict[str, Any]]] = {}
     pending = []
     for stage in stages:  # cheap pass: stages whose figures are all cached need no worker
         entry = record["stages"][stage]
@@ -203,7 +209,7 @@ def collect_figures(session, record: dict, jobs: int) -> list[Figure]:
     return figures
 
 
-def _slim(record: dict) -> dict:
+def _slim(record: dict[str, Any]) -> dict[str, Any]:
     """What a figure worker needs of the run record (not the tracebacks and key parts)."""
     return {
         "stages": {n: {k: s.get(k) for k in ("uses", "key", "inputs", "state")} for n, s in record["stages"].items()}
@@ -211,7 +217,7 @@ def _slim(record: dict) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------------------- DAG svg
-def dag_svg(pipeline, record: dict) -> str:
+def dag_svg(pipeline: Pipeline, record: dict[str, Any]) -> str:
     """The stage graph as inline SVG: columns by dependency depth, boxes coloured by state, times inside."""
     from msflow.spec import topological_order
 
@@ -308,7 +314,7 @@ def _media_html(fig: Figure) -> str:
     )
 
 
-def run_page(session, record: dict, figures: list[Figure]) -> str:
+def run_page(session: Session, record: dict[str, Any], figures: list[Figure]) -> str:
     pipeline = session.pipeline
     from msflow.spec import topological_order
 
@@ -377,7 +383,7 @@ def run_page(session, record: dict, figures: list[Figure]) -> str:
 """
 
 
-def sweep_page(pipeline_name: str, sweep: dict, metric: str | None) -> str:
+def sweep_page(pipeline_name: str, sweep: dict[str, Any], metric: str | None) -> str:
     """Results table of a sweep and a plot of a chosen metric against each swept parameter."""
     from msflow.sweep import SweepResult, VariantOutcome, format_table, metric_columns, results_rows
 
@@ -416,7 +422,7 @@ executions for {result.unique_keys} distinct keys · {result.seconds:.2f}s</p>
 """
 
 
-def metric_plots(result, metric: str) -> dict[str, bytes]:
+def metric_plots(result: SweepResult, metric: str) -> dict[str, bytes]:
     import io
 
     import matplotlib
@@ -427,15 +433,17 @@ def metric_plots(result, metric: str) -> dict[str, bytes]:
     from msflow.sweep import variant_metric
 
     params = list(dict.fromkeys(t for v in result.variants for t in v.params))
-    plots = {}
+    plots: dict[str, bytes] = {}
     for param in params:
-        points = [(v.params.get(param), variant_metric(v, metric)) for v in result.variants if v.ok]
-        points = [(x, y) for x, y in points if isinstance(y, (int, float)) and x is not None]
+        pairs = [(v.params.get(param), variant_metric(v, metric)) for v in result.variants if v.ok]
+        points: list[tuple[Any, float]] = [
+            (x, float(y)) for x, y in pairs if isinstance(y, (int, float)) and x is not None
+        ]
         if not points:
             continue
         fig, ax = plt.subplots(figsize=(5, 3.2))
         numeric = all(isinstance(x, (int, float)) for x, _ in points)
-        xs = [x if numeric else str(x) for x, _ in points]
+        xs: list[Any] = [x if numeric else str(x) for x, _ in points]
         ax.plot(xs, [y for _, y in points], "o")
         ax.set_xlabel(param)
         ax.set_ylabel(metric)
@@ -448,7 +456,7 @@ def metric_plots(result, metric: str) -> dict[str, bytes]:
 
 
 # ---------------------------------------------------------------------------------------------------------- entry
-def find_record(session, run: str | None) -> dict:
+def find_record(session: Session, run: str | None) -> dict[str, Any]:
     store = session.store
     if run:
         return store.read_run(run)
@@ -462,9 +470,9 @@ def find_record(session, run: str | None) -> dict:
 
 def build_report(
     path: str | Path, out: str | Path, run: str | None = None, *, jobs: int = 2, metric: str | None = None
-) -> dict:
+) -> dict[str, Any]:
     """Write the report of a run (default: the newest) or, if ``run`` names a sweep, of that sweep."""
-    from msflow.api import open_session
+    from msflow.session import open_session
 
     started = time.perf_counter()
     session = open_session(path)

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from msflow.errors import UserError
+from msflow.executors import Executor
 from msflow.hashing import FileHashMemo, json_hash
 from msflow.jobs import Job, JobInput, Outcome, StageStatus
 from msflow.plan import StagePlan
@@ -23,16 +24,6 @@ from msflow.spec import FilesRef, Pipeline, rel_to, suggest, topological_order
 from msflow.stores.base import Store
 
 KEY_SCHEME = 2  # 2: artifact format 2 (streamed array hashes, chunk checksums)
-
-
-class Executor(Protocol):
-    """Runs jobs (JSON, see msflow.jobs) and hands back futures of JSON outcomes."""
-
-    name: str
-
-    def submit(self, job_json: str) -> Future[str]: ...
-
-    def shutdown(self) -> None: ...
 
 
 class Reporter(Protocol):

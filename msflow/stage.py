@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, ClassVar, Mapping
 
 from pydantic import BaseModel, ConfigDict
@@ -84,7 +85,7 @@ class Output:
         kind: str = "f",
         *,
         ndim: int | None = None,
-        shape: tuple | None = None,
+        shape: tuple[int | str | None, ...] | None = None,
         dtype: str | None = None,
         optional: bool = False,
         doc: str = "",
@@ -100,7 +101,7 @@ class Output:
     def file(cls, suffix: str, *, optional: bool = False, doc: str = "") -> Output:
         return cls(kind="u", ndim=1, dtype="uint8", optional=optional, file_suffix=suffix, doc=doc)
 
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         return {
             "kind": self.kind,
             "ndim": self.ndim,
@@ -167,7 +168,7 @@ class Input:
     def files(cls, *, optional: bool = False, doc: str = "") -> Input:
         return cls("files", optional=optional, doc=doc)
 
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         return {
             "kind": self.kind,
             "optional": self.optional,
@@ -177,13 +178,13 @@ class Input:
         }
 
 
-class Files(dict):
+class Files(dict[str, Path]):
     """What an ``Input.files`` input receives: label -> absolute ``Path`` in the order written, and ``fields``:
     label -> {field: value}, the labels' fields (parsed from file names by a ``pattern``, or written beside each
     path in pipeline.yaml). Fields enter the cache key with the files' content."""
 
-    def __init__(self, paths: Mapping[str, Any] = (), fields: Mapping[str, Mapping[str, str]] | None = None):
-        super().__init__(paths)
+    def __init__(self, paths: Mapping[str, Any] | None = None, fields: Mapping[str, Mapping[str, str]] | None = None):
+        super().__init__(paths or {})
         self.fields: dict[str, dict[str, str]] = {label: dict((fields or {}).get(label, {})) for label in self}
 
     def field(self, label: str, name: str, default: str | None = None) -> str | None:
@@ -259,7 +260,7 @@ class Stage:
     Params: ClassVar[type[Params]] = Params
     inputs: ClassVar[Mapping[str, Input]] = {}
     outputs: ClassVar[Mapping[str, Output]] = {}
-    #: figures for the run report: name -> function(view: ArtifactView, inputs: dict) returning a matplotlib
+    #: figures for the run report: name -> function(view: ArtifactView, inputs: dict[str, Any]) returning a matplotlib
     #: Figure, PNG bytes or MP4 bytes; rendered from artifacts at report time (import matplotlib inside).
     figures: ClassVar[Mapping[str, Callable[..., Any]]] = {}
     #: data files or folders the stage's code reads by default (models, reference meshes): name -> path. They
@@ -304,10 +305,8 @@ class Stage:
         return dict(self._sinks)
 
     @classmethod
-    def interface(cls) -> dict:
+    def interface(cls) -> dict[str, Any]:
         """JSON description of inputs and outputs, used to check a pipeline without importing the stage."""
-        from pathlib import Path
-
         return {
             "inputs": {k: v.describe() for k, v in cls.inputs.items()},
             "outputs": {k: v.describe() for k, v in cls.outputs.items()},
@@ -346,7 +345,7 @@ def check_output(
     spec: Output,
     dtype: Any,
     shape: tuple[int, ...],
-    dims: dict | None = None,
+    dims: dict[str, Any] | None = None,
     name: str = "",
     frames: bool = True,
 ) -> None:

@@ -139,7 +139,7 @@ class VariantOutcome:
     run_id: str | None = None
     ok: bool = False
     error: str | None = None
-    metrics: dict[str, dict] = field(default_factory=dict)
+    metrics: dict[str, dict[str, Any]] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
 
 
@@ -152,7 +152,7 @@ class SweepResult:
     executed: int  # stage executions across all variants
     unique_keys: int  # distinct cache keys across all variants
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         return {
             "id": self.sweep_id,
             "pipeline": self.pipeline,
@@ -176,8 +176,9 @@ def run_sweep(
 ) -> SweepResult:
     """Validate every variant (nothing runs if one is invalid), then run them together on one executor
     (``msflow.api.run_sessions``, the path of ``msflow run`` too)."""
-    from msflow.api import Session, open_session, run_sessions
+    from msflow.api import run_sessions
     from msflow.runner import new_run_id
+    from msflow.session import Session, open_session
 
     started = time.time()
     sessions: list[Session] = []
@@ -244,12 +245,12 @@ def metric_columns(result: SweepResult, patterns: list[str] | None) -> list[str]
     return varying or [n for n in names if n.split(".")[0] in swept_stages and n not in echoes]
 
 
-def variant_metric(variant: VariantOutcome, column: str):
+def variant_metric(variant: VariantOutcome, column: str) -> Any:
     stage, _, name = column.partition(".")
     return variant.metrics.get(stage, {}).get(name)
 
 
-def results_rows(result: SweepResult, metrics: list[str], sort: str | None = None) -> tuple[list[str], list[list]]:
+def results_rows(result: SweepResult, metrics: list[str], sort: str | None = None) -> tuple[list[str], list[list[Any]]]:
     params = list(dict.fromkeys(t for v in result.variants for t in v.params))
     header = ["#", *params, "status", *metrics]
     variants = list(result.variants)
@@ -261,7 +262,7 @@ def results_rows(result: SweepResult, metrics: list[str], sort: str | None = Non
                 f"cannot sort by '{column}': not a column; columns: {', '.join(params + metrics)}", field="--sort"
             )
 
-        def sort_key(v):
+        def sort_key(v: VariantOutcome) -> tuple[bool, Any]:
             value = v.params.get(column) if column in params else variant_metric(v, column)
             return (value is None, -value if descending and isinstance(value, (int, float)) else value)
 
@@ -278,7 +279,7 @@ def results_rows(result: SweepResult, metrics: list[str], sort: str | None = Non
     return header, rows
 
 
-def format_table(header: list[str], rows: list[list], fmt: str) -> str:
+def format_table(header: list[str], rows: list[list[Any]], fmt: str) -> str:
     if fmt == "json":
         return json.dumps([dict(zip(header, r)) for r in rows], indent=1)
     if fmt == "csv":

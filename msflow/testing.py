@@ -21,7 +21,9 @@ from msflow.artifact import ArtifactView, settle_output
 from msflow.stage import Files, Stage
 
 
-def artifact(arrays: Mapping[str, Any], meta: dict | None = None, metrics: dict | None = None) -> ArtifactView:
+def artifact(
+    arrays: Mapping[str, Any], meta: dict[str, Any] | None = None, metrics: dict[str, Any] | None = None
+) -> ArtifactView:
     """An in-memory artifact with the interface stages see for ``Input.artifact`` inputs."""
     import numpy as np
 
@@ -33,8 +35,8 @@ class StageRun:
     """What ``run_stage`` returns: the outputs as numpy, meta, metrics and warnings."""
 
     arrays: dict[str, Any]
-    meta: dict
-    metrics: dict
+    meta: dict[str, Any]
+    metrics: dict[str, Any]
     warnings: list[str] = field(default_factory=list)
 
     def view(self) -> ArtifactView:

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 from msflow.jobs import Job, JobInput, Outcome, StageStatus
 
 if TYPE_CHECKING:
+    from msflow.stage import Result, Stage
     from msflow.stores.base import ArtifactWriter, Store
 
 BLAS_VARS = (
@@ -76,11 +77,21 @@ def run_locked(job: Job) -> Outcome:
 
     ensure_importable(job.project_root)
     store = open_store(job.store, job.store_options)
-    with store.lock(job.key):
+    with store.lock(job.key, on_wait=lambda holder: report_waiting(job.stage, holder)):
         if store.has(job.key) and not job.force:
             return Outcome(StageStatus.CACHED, manifest=store.manifest(job.key), concurrent=True)
         with store.writer(job.key) as writer:
             return execute(job, store, writer)
+
+
+def report_waiting(stage: str, holder: dict[str, Any]) -> None:
+    """Tell the user why a stage seems stuck: another run (named by the lock) is computing the same key."""
+    import sys
+
+    who = f"pid {holder.get('pid', '?')} on {holder.get('host', '?')}" if holder else "another process"
+    print(
+        f"msflow: stage '{stage}' is being computed by another run ({who}); waiting for it", file=sys.stderr, flush=True
+    )
 
 
 @dataclass
@@ -98,7 +109,7 @@ class Computed:
 
 
 def compute(
-    cls,
+    cls: type[Stage],
     name: str,
     params: Any,
     inputs: dict[str, Any],
@@ -168,7 +179,7 @@ def execute(job: Job, store: Store, writer: ArtifactWriter) -> Outcome:
     return Outcome(StageStatus.RAN, manifest=manifest, compute_seconds=done.seconds)
 
 
-def collect_warnings(result, caught: list) -> list[str]:
+def collect_warnings(result: Result, caught: list[Any]) -> list[str]:
     """The stage's warnings: ``Result.warnings`` then ``UserWarning``s raised in ``run``, in order, each once."""
     messages = list(getattr(result, "warnings", None) or [])
     messages += [str(w.message) for w in caught if issubclass(w.category, UserWarning)]

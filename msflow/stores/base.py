@@ -100,3 +100,13 @@ def pid_alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def json_object(data: bytes | str) -> Json:
+    """Parse a JSON object (a record, a manifest, a memo); ValueError when it is not one."""
+    import json
+
+    value = json.loads(data)
+    if not isinstance(value, dict):
+        raise ValueError(f"expected a JSON object, got {type(value).__name__}")
+    return value

@@ -22,16 +22,16 @@ import os
 import shutil
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from msflow.atomic import write_json_atomic
 from msflow.errors import UserError
-from msflow.stores.base import HOST, Json, pid_alive
+from msflow.stores.base import HOST, Json, json_object, pid_alive
 
 if TYPE_CHECKING:
-    pass
+    from msflow.artifact import ArtifactView
 
 
 class LocalStore:
@@ -59,12 +59,12 @@ class LocalStore:
     def has(self, key: str) -> bool:
         return (self.artifact_path(key) / "zarr.json").is_file()
 
-    def manifest(self, key: str) -> dict:
+    def manifest(self, key: str) -> Json:
         from msflow.artifact import read_manifest
 
         return read_manifest(self.artifact_path(key))
 
-    def open(self, key: str):
+    def open(self, key: str) -> ArtifactView:
         from msflow.artifact import read_artifact
 
         return read_artifact(self.artifact_path(key), key=key)
@@ -83,8 +83,13 @@ class LocalStore:
         return LocalWriter(self, key)
 
     def write(
-        self, key: str, arrays: dict, extra: dict, file_suffixes: dict | None = None, replace: bool = False
-    ) -> dict:
+        self,
+        key: str,
+        arrays: Mapping[str, Any],
+        extra: Json,
+        file_suffixes: Mapping[str, str | None] | None = None,
+        replace: bool = False,
+    ) -> Json:
         """Write arrays and manifest under tmp/, then publish atomically; returns the manifest."""
         with self.writer(key) as writer:
             return writer.commit(arrays, extra, file_suffixes, replace)
@@ -133,7 +138,7 @@ class LocalStore:
     def clean_tmp(self, *, max_age: float | None = None) -> list[str]:
         """Remove temporary directories whose writer is gone (or older than max_age seconds)."""
         tmp = self.root / "tmp"
-        removed = []
+        removed: list[str] = []
         if not tmp.is_dir():
             return removed
         for entry in tmp.iterdir():
@@ -150,7 +155,7 @@ class LocalStore:
 
     # ------------------------------------------------------------------ locks
     @contextlib.contextmanager
-    def lock(self, key: str, on_wait: Callable[[dict], None] | None = None, poll: float = 0.05):
+    def lock(self, key: str, on_wait: Callable[[Json], None] | None = None, poll: float = 0.05) -> Iterator[None]:
         """Exclusive per-key lock across processes and concurrent runs.
 
         flock locks belong to the open file description: when the holder dies (even by SIGKILL) the kernel drops
@@ -181,50 +186,47 @@ class LocalStore:
             os.close(fd)
 
     # ------------------------------------------------------------------ memo, runs
-    def load_memo(self) -> dict:
+    def load_memo(self) -> Json:
         try:
-            with open(self.root / "cache" / "memo.json", "rb") as fh:
-                return json.load(fh)
+            return json_object((self.root / "cache" / "memo.json").read_bytes())
         except (OSError, ValueError):
             return {}
 
-    def save_memo(self, memo: dict) -> None:
+    def save_memo(self, memo: Json) -> None:
         write_json_atomic(self._dir("cache") / "memo.json", memo)
 
-    def write_run(self, record: dict) -> Path:
+    def write_run(self, record: Json) -> str:
         path = self._dir("runs") / f"{record['id']}.json"
         write_json_atomic(path, record, indent=1)
-        return path
+        return str(path)
 
     def run_ids(self) -> list[str]:
         runs = self.root / "runs"
         return sorted(p.stem for p in runs.glob("*.json")) if runs.is_dir() else []
 
-    def read_run(self, run_id: str) -> dict:
+    def read_run(self, run_id: str) -> Json:
         path = self.root / "runs" / f"{run_id}.json"
         if not path.is_file():
             matches = [r for r in self.run_ids() if r.startswith(run_id) or r.endswith(run_id)]
             if len(matches) != 1:
                 raise UserError(f"no single run matches '{run_id}' ({len(matches)} do)", file=str(self.root))
             path = self.root / "runs" / f"{matches[0]}.json"
-        with open(path, "rb") as fh:
-            return json.load(fh)
+        return json_object(path.read_bytes())
 
-    def write_sweep(self, record: dict) -> Path:
+    def write_sweep(self, record: Json) -> str:
         path = self._dir("sweeps") / f"{record['id']}.json"
         write_json_atomic(path, record, indent=1)
-        return path
+        return str(path)
 
     def sweep_ids(self) -> list[str]:
         sweeps = self.root / "sweeps"
         return sorted(p.stem for p in sweeps.glob("*.json")) if sweeps.is_dir() else []
 
-    def read_sweep(self, sweep_id: str) -> dict:
+    def read_sweep(self, sweep_id: str) -> Json:
         path = self.root / "sweeps" / f"{sweep_id}.json"
         if not path.is_file():
             raise UserError(f"no sweep '{sweep_id}'", file=str(self.root))
-        with open(path, "rb") as fh:
-            return json.load(fh)
+        return json_object(path.read_bytes())
 
     def remove_run(self, run_id: str) -> None:
         with contextlib.suppress(FileNotFoundError):
@@ -262,7 +264,13 @@ class LocalWriter:
         with open(target, "wb") as fh:
             fh.write(data)
 
-    def commit(self, arrays: dict, extra: dict, file_suffixes: dict | None = None, replace: bool = False) -> dict:
+    def commit(
+        self,
+        arrays: Mapping[str, Any],
+        extra: Json,
+        file_suffixes: Mapping[str, str | None] | None = None,
+        replace: bool = False,
+    ) -> Json:
         """Write the remaining arrays and the manifest, then publish; returns the manifest."""
         from msflow.artifact import encode_artifact, prepare_manifest
 
@@ -285,6 +293,6 @@ class LocalWriter:
 def read_holder(path: Path) -> Json:
     """The host and pid a lock file names (empty when unreadable)."""
     try:
-        return json.loads(path.read_text() or "{}")
+        return json_object(path.read_text() or "{}")
     except (OSError, ValueError):
         return {}
