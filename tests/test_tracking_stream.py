@@ -11,7 +11,7 @@ from msflow import UserError
 from msflow.testing import run_stage
 from stages.tracking import FaceMesh
 from stages.tracking.gaps import FILLED, HELD, TRACKED, apply_plan, fill_gaps, gap_plan
-from stages.tracking.planes import frame_planes, yuv_to_rgb_matrix
+from stages.tracking.planes import RegionConverter, frame_planes
 from stages.tracking.pose import PoseSolver, camera_matrix, solve_head_pose
 from stages.tracking.stream import FrameRecord, GapFiller
 
@@ -83,32 +83,32 @@ def test_pose_solver_by_blocks_is_the_whole_sequence():
         np.testing.assert_array_equal(np.concatenate([p[k] for p in parts]), whole[k])
 
 
-def test_yuv_to_rgb_known_colours():
-    m, o = yuv_to_rgb_matrix("bt601", full_range=False)
-    for yuv, rgb in (((235, 128, 128), (255, 255, 255)), ((16, 128, 128), (0, 0, 0)), ((81, 90, 240), (255, 0, 0))):
-        np.testing.assert_allclose(m @ (np.array(yuv, float) - o), rgb, atol=1.5)
-    m, o = yuv_to_rgb_matrix("bt709", full_range=True)
-    np.testing.assert_allclose(m @ (np.array([255.0, 128, 128]) - o), [255, 255, 255], atol=1e-9)
-
-
-@pytest.mark.parametrize("fmt", ["yuv420p", "yuvj420p", "nv12"])
-def test_planes_warp_to_the_same_picture_as_rgb(fmt):
-    """A smooth colour picture through 4:2:0 planes (or a packed format converted to 4:4:4) and back."""
+@pytest.mark.parametrize("fmt", ["yuv420p", "yuvj420p", "yuv422p", "yuv444p", "nv12"])
+@pytest.mark.parametrize("height", [180, 181])
+def test_warps_read_exactly_the_whole_frame_conversion(fmt, height):
+    """Regions converted on demand are FFmpeg's whole-frame BGR, byte for byte, so every warp (the model's patch,
+    the gray crop) is what it was when each whole frame was converted."""
     import av
     import cv2
 
-    y, x = np.mgrid[0:96, 0:128]
-    rgb = np.stack([x * 2, y * 2, 255 - x - y], axis=-1).clip(0, 255).astype(np.uint8)
-    frame = av.VideoFrame.from_ndarray(rgb, format="rgb24").reformat(format=fmt)
-    planes = frame_planes(frame)
-    identity = np.array([[1.0, 0, 0], [0, 1.0, 0]])
-    back = planes.warp_rgb(identity, 96) * 255
-    inner = (slice(2, -2), slice(2, 94))
-    assert np.abs(back[inner] - rgb[:96, :96][inner]).max() < 6
-    shifted = planes.warp_gray(np.array([[1.0, 0, -10.5], [0, 1.0, -4]]), 64)
-    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(float)
-    expect = cv2.warpAffine(gray, np.array([[1.0, 0, -10.5], [0, 1.0, -4]]), (64, 64))
-    assert np.abs(shifted[2:-2, 2:-2] - expect[2:-2, 2:-2]).max() < 4
+    rng = np.random.default_rng(1)
+    y, x = np.mgrid[0:height, 0:244]
+    rgb = np.stack([x, y * 1.4, 255 - x + y], axis=-1) + rng.normal(scale=20, size=(height, 244, 3))
+    frame = av.VideoFrame.from_ndarray(rgb.clip(0, 255).astype(np.uint8), format="rgb24").reformat(format=fmt)
+    whole = frame.to_ndarray(format="bgr24")
+    gray = cv2.cvtColor(whole, cv2.COLOR_BGR2GRAY)
+    converter = RegionConverter()
+    for angle, scale, centre, size in ((0.3, 0.7, (120, 90), 64), (-0.2, 1.6, (20, 170), 96), (1.0, 0.4, (240, 5), 48)):
+        planes = frame_planes(frame, converter)  # a fresh frame object: no region cached yet
+        c, s = np.cos(angle) * scale, np.sin(angle) * scale
+        affine = np.array(
+            [[c, s, size / 2 - c * centre[0] - s * centre[1]], [-s, c, size / 2 + s * centre[0] - c * centre[1]]]
+        )
+        expect = cv2.warpAffine(whole, affine, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        np.testing.assert_array_equal(planes.warp_bgr(affine, size), expect)
+        expect = cv2.warpAffine(gray, affine, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        np.testing.assert_array_equal(planes.warp_gray(affine, size), expect)
+    np.testing.assert_array_equal(frame_planes(frame, converter).gray(), gray)
 
 
 # ------------------------------------------------------------------------------------- the stage

@@ -136,16 +136,18 @@ class BlazeFaceDetector:
         self.iou_threshold = iou_threshold
 
     def detect(self, frame, max_faces: int | None = None) -> Detections:
-        """Faces in a frame: a BGR array, or anything with ``shape`` and ``warp_rgb`` (``planes.FramePlanes``)."""
-        if not hasattr(frame, "warp_rgb"):
+        """Faces in a frame: a BGR array, or anything with ``shape`` and ``warp_bgr`` (``planes.FramePlanes``)."""
+        import cv2
+
+        if not hasattr(frame, "warp_bgr"):
             from stages.tracking.planes import BgrImage
 
             frame = BgrImage(np.asarray(frame))
         height, width = frame.shape[:2]
         to_input = letterbox_transform(width, height)
-        square = frame.warp_rgb(to_input, INPUT_SIZE)  # RGB 0..1, black padding
+        square = frame.warp_bgr(to_input, INPUT_SIZE)  # black padding
         # the detector was trained on RGB in [-1, 1]
-        blob = np.ascontiguousarray((square * 2.0 - 1.0).transpose(2, 0, 1)[None])
+        blob = cv2.dnn.blobFromImage(square, 1 / 127.5, mean=(127.5, 127.5, 127.5), swapRB=True)
         logits, regressors = self.net.forward(blob)
         # MediaPipe clips logits to +-100 before the sigmoid
         scores = sigmoid(np.clip(logits.reshape(-1).astype(np.float64), -100, 100))

@@ -14,8 +14,8 @@ tracking mode the next frame's ROI comes from the current points (their bounding
 rotated by the eye line: MediaPipe's face_landmark_landmarks_to_roi); BlazeFace runs only on the first frame and
 whenever the presence score falls below the threshold.
 
-Frames are anything with ``warp_rgb(affine, size)`` (``stages.tracking.planes``: decoded Y'CbCr planes, or a BGR
-image), so only the model's input patch is ever converted to RGB.
+Frames are anything with ``warp_bgr(affine, size)`` (``stages.tracking.planes``: a decoded frame converted only
+where the patch reads it, or a BGR image).
 """
 
 from __future__ import annotations
@@ -108,8 +108,8 @@ LANDMARK_MODELS = {
 
 
 def as_image(frame):
-    """Frames given as BGR arrays get the planes' interface; anything with ``warp_rgb`` passes through."""
-    if hasattr(frame, "warp_rgb"):
+    """Frames given as BGR arrays get the planes' interface; anything with ``warp_bgr`` passes through."""
+    if hasattr(frame, "warp_bgr"):
         return frame
     from stages.tracking.planes import BgrImage
 
@@ -127,9 +127,11 @@ class FaceMeshModel:
 
     def infer(self, frame, roi: Roi) -> tuple[np.ndarray, float]:
         """(points, 3) landmarks (x, y image pixels; z depth in pixels, same scale as x) and the presence score."""
+        import cv2
+
         size = self.spec.input_size
-        patch = as_image(frame).warp_rgb(roi.image_to_input(size), size)
-        blob = np.ascontiguousarray(patch.transpose(2, 0, 1)[None])
+        patch = as_image(frame).warp_bgr(roi.image_to_input(size), size)
+        blob = cv2.dnn.blobFromImage(patch, 1 / 255.0, swapRB=True)  # RGB in 0..1
         raw, presence = self.net.forward(blob)
         local = raw.reshape(self.spec.points, 3).astype(np.float64)
         to_image = roi.input_to_image(size)

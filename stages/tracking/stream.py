@@ -230,14 +230,8 @@ def track_frame(tracker, t: float, image, crop: CropSettings, keep_image: bool) 
 
 
 def luma_copy(image):
-    """What a frame waiting in a gap keeps: its luma plane alone (enough for ``warp_gray``)."""
-    from dataclasses import replace
-
-    from stages.tracking.planes import BgrImage
-
-    if isinstance(image, BgrImage):
-        return BgrImage(image.gray())
-    return replace(image, y=image.y.copy(), u=None, v=None, frame=None)
+    """What a frame waiting in a gap keeps: the whole frame in gray (enough for ``warp_gray``)."""
+    return image.gray_image()
 
 
 def stream_take(frames, tracker, writer: BlockWriter, crop: CropSettings, max_gap: int, path: Path, field: str):

@@ -143,12 +143,13 @@ def iter_frames(
 
 
 def iter_planes(path: str | Path, *, field: str | None = None, threads: int = 1):
-    """Yield (seconds since the first frame, ``planes.FramePlanes``) for every frame: the decoded Y'CbCr planes
-    without a whole-frame colour conversion (see stages/tracking/planes.py). Errors as ``iter_decoded``."""
-    from stages.tracking.planes import frame_planes
+    """Yield (seconds since the first frame, ``planes.FramePlanes``) for every frame: decoded frames converted to
+    BGR only where a warp reads them (see stages/tracking/planes.py). Errors as ``iter_decoded``."""
+    from stages.tracking.planes import RegionConverter, frame_planes
 
+    converter = RegionConverter()
     for t, frame in iter_decoded(path, field=field, threads=threads):
-        yield t, frame_planes(frame)
+        yield t, frame_planes(frame, converter)
 
 
 def _bgr_to_gray(image: np.ndarray) -> np.ndarray:
