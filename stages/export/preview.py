@@ -111,19 +111,31 @@ class Poses:
             "eye_rotations": None if self.eyes is None else self.eyes[i],
         }
 
+    def block(self, start: int, stop: int) -> Poses:
+        """Frames start..stop-1."""
+        rows = slice(start, stop)
+        return Poses(
+            *(None if a is None else a[rows] for a in (self.weights, self.rotation, self.translation, self.eyes))
+        )
 
-def render_block(renderer, poses: Poses, start: int, stop: int) -> list[np.ndarray]:
-    """Frames start..stop-1 as (H, W, 3) uint8 images."""
-    return [renderer(**poses.frame(i)) for i in range(start, stop)]
+
+def render_poses(renderer, poses: Poses) -> list[np.ndarray]:
+    """Every frame of ``poses`` as (H, W, 3) uint8 images."""
+    return [renderer(**poses.frame(i)) for i in range(len(poses))]
 
 
-def rendered_frames(renderer, poses: Poses, *, jobs: int = 1, block: int = 8) -> Iterator[np.ndarray]:
-    """Every frame in order, rendered ``block`` frames at a time by ``jobs`` threads; at most 2 * jobs blocks
-    wait for the encoder, so memory stays bounded whatever the take's length."""
+def rendered_frames(renderer, poses: Poses, *, jobs: int = 1, block: int = 16) -> Iterator[np.ndarray]:
+    """Every frame in order, rendered ``block`` frames at a time.
+
+    With ``jobs`` > 1, ``jobs`` threads render the blocks (the rasteriser's work is numpy operations on whole
+    arrays, which release the GIL); at most 2 * jobs blocks wait for the encoder, so memory stays bounded
+    whatever the take's length. A frame's image depends only on its pose, so the frames are the same whatever
+    ``jobs`` is.
+    """
     starts = range(0, len(poses), block)
     if jobs <= 1:
         for start in starts:
-            yield from render_block(renderer, poses, start, min(start + block, len(poses)))
+            yield from render_poses(renderer, poses.block(start, start + block))
         return
     from collections import deque
     from concurrent.futures import ThreadPoolExecutor
@@ -131,7 +143,7 @@ def rendered_frames(renderer, poses: Poses, *, jobs: int = 1, block: int = 8) ->
     with ThreadPoolExecutor(max_workers=jobs) as pool:
         pending: deque = deque()
         for start in starts:
-            pending.append(pool.submit(render_block, renderer, poses, start, min(start + block, len(poses))))
+            pending.append(pool.submit(render_poses, renderer, poses.block(start, start + block)))
             if len(pending) >= 2 * jobs:
                 yield from pending.popleft().result()
         while pending:

@@ -402,22 +402,6 @@ def _apply_world_transform(mesh: MorphMesh, gltf, mesh_index: int) -> None:
 # ----------------------------------------------------------------------------------------------------- writing
 
 
-def vertex_normals(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Unit area-weighted vertex normals (float32); vertices without a proper triangle get +z."""
-    p = np.asarray(positions, dtype=np.float64)
-    t = np.asarray(triangles)
-    face = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
-    n = np.zeros_like(p)
-    for corner in range(3):
-        for axis in range(3):
-            n[:, axis] += np.bincount(t[:, corner], weights=face[:, axis], minlength=len(p))
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    n = np.where(length > 1e-20, n / np.maximum(length, 1e-300), np.array([0.0, 0.0, 1.0]))
-    n = n.astype(np.float32)
-    # float32 rounding can leave |n| - 1 above the validator's tolerance for near-degenerate inputs
-    return n / np.linalg.norm(n, axis=1, keepdims=True).astype(np.float32)
-
-
 class _BinaryBuilder:
     """Accumulates the GLB binary chunk and the bufferViews/accessors pointing into it."""
 
@@ -584,6 +568,8 @@ def _vertex_attributes(bin_: _BinaryBuilder, mesh: MorphMesh, normals: bool, ske
     positions = np.ascontiguousarray(mesh.positions, dtype=np.float32)
     attributes = {"POSITION": bin_.accessor(positions, "VEC3", target=ARRAY_BUFFER, min_max=True, name="positions")}
     if normals:
+        from stages.geometry.render import vertex_normals
+
         attributes["NORMAL"] = bin_.accessor(
             vertex_normals(positions, np.asarray(mesh.triangles)), "VEC3", target=ARRAY_BUFFER, name="normals"
         )
