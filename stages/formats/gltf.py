@@ -452,12 +452,15 @@ class _BinaryBuilder:
         self.gltf.accessors.append(acc)
         return len(self.gltf.accessors) - 1
 
-    def sparse_accessor(self, values: np.ndarray, tolerance: float, name: str | None = None) -> int:
-        """A VEC3 float accessor of len(values) elements storing only rows with a component above ``tolerance``."""
+    def sparse_accessor(
+        self, values: np.ndarray, tolerance: float, name: str | None = None, moving: np.ndarray | None = None
+    ) -> int:
+        """A VEC3 float accessor of len(values) elements storing only rows with a component above ``tolerance``
+        (``moving``: those rows' mask, when already known)."""
         import pygltflib
 
         values = np.asarray(values, dtype=np.float32)
-        keep = np.flatnonzero(np.abs(values).max(axis=1) > tolerance)
+        keep = np.flatnonzero(moving_rows(values, tolerance) if moving is None else moving)
         index_size = 2 if len(values) <= 65535 else 4
         if len(keep) * (12 + index_size) >= 12 * len(values):  # a dense target (identity shape) is smaller as is
             return self.accessor(values, "VEC3", target=ARRAY_BUFFER, min_max=True, name=name)
@@ -484,6 +487,12 @@ class _BinaryBuilder:
     def blob(self) -> bytes:
         data = b"".join(self.chunks)
         return data + b"\0" * ((-len(data)) % 4)
+
+
+def moving_rows(values: np.ndarray, tolerance: float) -> np.ndarray:
+    """Mask of the (..., 3) rows with a component above ``tolerance`` in absolute value."""
+    a = np.abs(values)
+    return np.maximum(np.maximum(a[..., 0], a[..., 1]), a[..., 2]) > tolerance
 
 
 def _min_max(flat: np.ndarray) -> tuple[list[float], list[float]]:
@@ -589,8 +598,9 @@ def _add_mesh(gltf, bin_: _BinaryBuilder, mesh: MorphMesh, attributes: dict, spa
     import pygltflib
 
     deltas = np.asarray(mesh.deltas, dtype=np.float32)
+    moving = moving_rows(deltas, sparse_tolerance)  # (targets, vertices), all targets at once
     targets = [
-        pygltflib.Attributes(POSITION=bin_.sparse_accessor(deltas[i], sparse_tolerance, name=name))
+        pygltflib.Attributes(POSITION=bin_.sparse_accessor(deltas[i], sparse_tolerance, name=name, moving=moving[i]))
         for i, name in enumerate(mesh.target_names)
     ]
     triangles = np.asarray(mesh.triangles)

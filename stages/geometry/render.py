@@ -186,9 +186,12 @@ def triangle_setup(xy, depth, triangles, size, *, cull: bool, centre: float, dty
     return TriangleSetup(ids, np.stack([xmin[ids], ymin[ids], xmax[ids], ymax[ids]]), coef)
 
 
-def batch_fragments(setup: TriangleSetup, grid_w: int, grid_h: int, eps: float, width: int, height: int):
+def batch_fragments(
+    setup: TriangleSetup, grid_w: int, grid_h: int, eps: float, width: int, height: int, overflow: bool = True
+):
     """Fragments of triangles sharing a candidate grid: (flat pixel, depth, row of ``setup``, b0, b1) where
-    the pixel centre is inside (barycentrics >= -eps) and on the image."""
+    the pixel centre is inside (barycentrics >= -eps) and on the image (``overflow``: the grid of some triangle
+    reaches past the image, so the fragments are checked)."""
     cells = grid_w * grid_h
     oy, ox = np.divmod(np.arange(cells, dtype=np.int64), grid_w)
     c = setup.coef
@@ -200,8 +203,8 @@ def batch_fragments(setup: TriangleSetup, grid_w: int, grid_h: int, eps: float, 
     b0, b1 = b0.reshape(-1)[hit], b1.reshape(-1)[hit]
     depth = c[6][row] + b0 * c[7][row] + b1 * c[8][row]
     px, py = setup.box[0][row] + ox[cell], setup.box[1][row] + oy[cell]
-    if cells > 1 and (px.max(initial=0) >= width or py.max(initial=0) >= height):
-        on = (px < width) & (py < height)  # padded grids may reach past the image
+    if overflow:
+        on = (px < width) & (py < height)
         px, py, depth, row, b0, b1 = px[on], py[on], depth[on], row[on], b0[on], b1[on]
     return py * width + px, depth, row, b0, b1
 
@@ -216,10 +219,18 @@ def setup_fragments(setup: TriangleSetup, eps: float, width: int, height: int) -
     starts = np.flatnonzero(np.r_[True, batch[1:] != batch[:-1]]) if len(batch) else np.zeros(0, np.int64)
     ends = np.r_[starts[1:], len(batch)].astype(np.int64)
     ordered = setup.take(order)  # batches are then contiguous slices (views)
+    # padded grids may reach past the image: only batches holding such a triangle check their fragments
+    overflow = ((setup.box[0] + grid_w > width) | (setup.box[1] + grid_h > height))[order]
     out = []
     for s, e in zip(starts, ends):
         pix, depth, row, b0, b1 = batch_fragments(
-            ordered.take(slice(s, e)), int(batch[s] // 65536), int(batch[s] % 65536), eps, width, height
+            ordered.take(slice(s, e)),
+            int(batch[s] // 65536),
+            int(batch[s] % 65536),
+            eps,
+            width,
+            height,
+            bool(overflow[s:e].any()),
         )
         out.append((pix, depth, order[s + row], b0, b1))
     return out
