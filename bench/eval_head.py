@@ -108,7 +108,10 @@ def main(argv=None):
         args.work = args.work or tmp
         rows = []
         for name, pipeline, stage, overrides in runs(args):
-            result = msflow.run(ROOT / pipeline, overrides=overrides + args.set)
+            try:
+                result = msflow.run(ROOT / pipeline, overrides=overrides + args.set)
+            except msflow.UserError as exc:
+                sys.exit(f"error: {exc} (for the shared clips elsewhere: --shared PATH)")
             rows.append((name, result.artifact(stage).metrics))
             print(f"{name}: run {result.run_id}", file=sys.stderr)
     print("| data | " + " | ".join(title for _, title, _ in COLUMNS) + " |")
