@@ -171,7 +171,7 @@ def test_bilinear_stage_errors():
     )
     with pytest.raises(UserError, match="at least two"):
         run_stage(BilinearFit, {"align": "mouth"}, {"aam": single})
-    with pytest.raises(UserError, match="reference take 'sad'"):
+    with pytest.raises(UserError, match="reference expression 'sad'"):
         run_stage(BilinearFit, {"align": "mouth", "reference": "sad"}, {"aam": view})
     with pytest.raises(ValidationError):
         BilinearFit.Params(align="video")
