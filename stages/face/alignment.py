@@ -225,11 +225,15 @@ class TakeSets:
     skipped: list[str]  # sentences left out because some style never says them
 
 
-def group_takes(expressions: list[str], sentences: list[str], include: np.ndarray | None = None) -> TakeSets:
-    """Group takes (their expression and sentence each) into sets; ``include`` (n_takes,) bool selects the takes."""
+def group_takes(
+    expressions: list[str], sentences: list[str], include: np.ndarray | None = None, order: list[str] | None = None
+) -> TakeSets:
+    """Group takes (their expression and sentence each) into sets; ``include`` (n_takes,) bool selects the takes,
+    ``order`` the styles' order (default: as they first appear)."""
     n = len(expressions)
     include = np.ones(n, dtype=bool) if include is None else np.asarray(include, dtype=bool)
-    styles = list(dict.fromkeys(e for e, keep in zip(expressions, include) if keep))
+    present = list(dict.fromkeys(e for e, keep in zip(expressions, include) if keep))
+    styles = present if order is None else [s for s in order if s in present]
     take_style = np.array([styles.index(e) if keep else -1 for e, keep in zip(expressions, include)], dtype=np.int64)
     sets, set_sentence, skipped = [], [], []
     for sentence in dict.fromkeys(s for s, keep in zip(sentences, include) if keep):

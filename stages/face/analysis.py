@@ -487,19 +487,24 @@ def analyse_frames(
 
 
 def convergence_warnings(
-    analysis: FrameAnalysis, sequence: np.ndarray, labels: list[str], max_iter: int, what: str = "analysis"
+    residual: np.ndarray,
+    converged: np.ndarray,
+    sequence: np.ndarray,
+    labels: list[str],
+    max_iter: int,
+    what: str = "analysis",
 ) -> list[str]:
     """One warning per take whose analysis stopped at ``max_iter`` with frames unconverged, naming the take and the
-    relative residual of those frames."""
+    relative residual of those frames. ``residual``, ``converged`` and ``sequence`` (the take) per frame."""
     out = []
     sequence = np.asarray(sequence)
     for take in np.unique(sequence):
         frames = sequence == take
-        stuck = frames & ~analysis.converged
+        stuck = frames & ~np.asarray(converged, dtype=bool)
         if not stuck.any():
             continue
         label = labels[int(take)] if int(take) < len(labels) else str(int(take))
-        resid = analysis.residual[stuck]
+        resid = np.asarray(residual)[stuck]
         out.append(
             f"{what} of take '{label}' stopped at max_iter={max_iter} with {int(stuck.sum())} of {int(frames.sum())} "
             f"frames unconverged (relative residual of those frames: mean {resid.mean():.3g}, worst "

@@ -362,9 +362,11 @@ class TrainingTakes:
         )
 
 
-def training_sets(takes: TrainingTakes, include: np.ndarray | None = None, field: str = "inputs.aam") -> TakeSets:
+def training_sets(
+    takes: TrainingTakes, include: np.ndarray | None = None, field: str = "inputs.aam", order: list[str] | None = None
+) -> TakeSets:
     """The takes grouped into sets (``group_takes``); UserError with fewer than two expressions or no complete set."""
-    groups = group_takes(takes.expressions, takes.sentences, include)
+    groups = group_takes(takes.expressions, takes.sentences, include, order)
     if len(groups.styles) < 2:
         raise UserError(
             f"the bilinear model needs at least two training expressions, got {groups.styles} "

@@ -579,7 +579,7 @@ def pack_edit(params, take: TestTake, targets: EditTargets, analysis: FrameAnaly
         **{f"fraction_{labels[s]}": float(counts[s] / len(analysis.classes)) for s in range(len(labels))},
         **{f"weight_{labels[s]}": float(np.mean(analysis.style_weights[:, s])) for s in range(len(labels))},
     }
-    warned = convergence_warnings(analysis, take.sequence, take.labels, params.max_iter)
+    warned = convergence_warnings(analysis.residual, analysis.converged, take.sequence, take.labels, params.max_iter)
     return Result(arrays, meta=meta, metrics=metrics, warnings=warned)
 
 
