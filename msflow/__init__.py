@@ -15,6 +15,8 @@ _LAZY = {
     "Output": "msflow.stage",
     "Result": "msflow.stage",
     "Files": "msflow.stage",
+    "OutputSink": "msflow.sinks",
+    "iter_blocks": "msflow.sinks",
 }
 
 
@@ -33,4 +35,17 @@ def run(path, overrides=(), **options):
     return _run(path, overrides=overrides, **options)
 
 
-__all__ = ["Stage", "Params", "Input", "Output", "Result", "Files", "UserError", "StageFailed", "run", "__version__"]
+__all__ = [
+    "Stage",
+    "Params",
+    "Input",
+    "Output",
+    "Result",
+    "Files",
+    "OutputSink",
+    "iter_blocks",
+    "UserError",
+    "StageFailed",
+    "run",
+    "__version__",
+]

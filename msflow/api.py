@@ -142,6 +142,7 @@ def run(
         until=until,
         force=tuple(force),
         reporter=reporter,
+        jobs=jobs,
     )
     try:
         states = runner.run()

@@ -11,10 +11,11 @@ import json
 from pathlib import Path
 from typing import Any, Mapping
 
-from msflow.hashing import array_hash, json_hash
+from msflow.chunks import array_metadata, chunk_path, encode_chunk
+from msflow.hashing import ArrayHasher, array_hash, array_hash_v1, json_hash
+from msflow.sinks import OutputSink, iter_blocks
 
-FORMAT = 1
-CHUNK_BYTES = 4 << 20
+FORMAT = 2  # 2: incremental array hash (hashing.ArrayHasher), crc32c on every chunk
 
 
 class ArtifactView:
@@ -64,27 +65,19 @@ class ArtifactView:
         return f"ArtifactView({', '.join(self.names)})"
 
 
-def chunk_shape(shape: tuple[int, ...], itemsize: int) -> tuple[int, ...]:
-    """Chunk along the first axis only, about CHUNK_BYTES each: frames are read in runs."""
-    if not shape:
-        return ()
-    row = itemsize * max(1, int(_prod(shape[1:])))
-    return (max(1, min(shape[0], CHUNK_BYTES // row)),) + tuple(max(1, s) for s in shape[1:])
-
-
-def _prod(values) -> int:
-    out = 1
-    for v in values:
-        out *= v
-    return out
-
-
 def meta_digest(meta: dict, metrics: dict, warnings: list[str] | None = None) -> str:
     """Hash of the JSON part of an artifact (warnings enter only when there are some: older hashes hold)."""
     content: dict[str, Any] = {"meta": meta, "metrics": metrics}
     if warnings:
         content["warnings"] = warnings
     return json_hash(content)
+
+
+def output_entry(value: Any) -> dict:
+    """Manifest entry of one output: content hash, shape, dtype (of an array, or of a finished output sink)."""
+    if isinstance(value, OutputSink):
+        return value.finish()
+    return {"hash": array_hash(value), "shape": list(value.shape), "dtype": str(value.dtype)}
 
 
 def build_manifest(
@@ -97,7 +90,7 @@ def build_manifest(
     """Content hashes of arrays and metadata; ``content_hash`` identifies the artifact's content."""
     outputs = {}
     for name, arr in arrays.items():
-        entry = {"hash": array_hash(arr), "shape": list(arr.shape), "dtype": str(arr.dtype)}
+        entry = output_entry(arr)
         suffix = (file_suffixes or {}).get(name)
         if suffix:
             entry["file_suffix"] = suffix
@@ -117,73 +110,47 @@ def build_manifest(
     return manifest
 
 
-ZSTD_LEVEL = 3
-
-
-def array_metadata(arr) -> dict:
-    """zarr v3 array metadata: regular chunks along the first axis, bytes (little endian) + zstd codecs."""
-    bytes_codec = {"name": "bytes"}
-    if arr.dtype.itemsize > 1:
-        bytes_codec["configuration"] = {"endian": "little"}
-    fill = False if arr.dtype.kind == "b" else 0.0 if arr.dtype.kind in "fc" else 0
-    if arr.dtype.kind == "c":
-        fill = [0.0, 0.0]
-    return {
-        "shape": list(arr.shape),
-        "data_type": arr.dtype.name,
-        "chunk_grid": {
-            "name": "regular",
-            "configuration": {"chunk_shape": list(chunk_shape(arr.shape, arr.dtype.itemsize))},
-        },
-        "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
-        "fill_value": fill,
-        "codecs": [bytes_codec, {"name": "zstd", "configuration": {"level": ZSTD_LEVEL, "checksum": False}}],
-        "attributes": {},
-        "zarr_format": 3,
-        "node_type": "array",
-        "storage_transformers": [],
-    }
-
-
 def encode_artifact(arrays: Mapping[str, Any], manifest: dict):
     """Yield (relative path, bytes) of a complete zarr v3 group holding ``arrays``, manifest in its attributes.
 
     Written directly rather than through zarr's async machinery, which costs ~20 ms per small artifact; the
-    result is plain zarr v3 that zarr (and any v3 reader) opens. The group's zarr.json comes last, so a reader
-    that finds it may assume everything else is there.
+    result is plain zarr v3 that zarr (and any v3 reader) opens. Output sinks wrote their chunks already: only
+    their array metadata is yielded here. The group's zarr.json comes last, so a reader that finds it may assume
+    everything else is there.
     """
-    import numpy as np
-    from numcodecs import Zstd
-
-    codec = Zstd(level=ZSTD_LEVEL)
     for name, arr in arrays.items():
-        meta = array_metadata(arr)
+        entry = manifest["outputs"][name]
+        meta = array_metadata(tuple(entry["shape"]), entry["dtype"])
         yield f"{name}/zarr.json", json.dumps(meta, allow_nan=False).encode()
-        if arr.size == 0:
+        if isinstance(arr, OutputSink) or arr.size == 0:
             continue
-        little = arr.astype(arr.dtype.newbyteorder("<"), copy=False) if arr.dtype.byteorder == ">" else arr
         if arr.ndim == 0:
-            yield f"{name}/c", codec.encode(np.ascontiguousarray(little).tobytes())
+            yield chunk_path(name, None, 0), encode_chunk(arr)
             continue
         step = meta["chunk_grid"]["configuration"]["chunk_shape"][0]
-        rest = "/0" * (arr.ndim - 1)
         for index, start in enumerate(range(0, arr.shape[0], step)):
-            block = little[start : start + step]
-            if block.shape[0] < step:  # zarr stores edge chunks at full chunk size, padded with the fill value
-                padded = np.zeros((step,) + block.shape[1:], dtype=block.dtype)
-                padded[: block.shape[0]] = block
-                block = padded
-            yield f"{name}/c/{index}{rest}", codec.encode(np.ascontiguousarray(block).tobytes())
+            yield chunk_path(name, index, arr.ndim), encode_chunk(arr[start : start + step], step)
     group = {"attributes": {"msflow": manifest}, "zarr_format": 3, "node_type": "group"}
     yield "zarr.json", json.dumps(group, allow_nan=False).encode()
+
+
+def settle_output(value: Any) -> Any:
+    """An output as it is written: a streaming sink stays (its chunks are stored), an in-memory sink becomes its
+    array, anything else a C-order numpy array."""
+    import numpy as np
+
+    if isinstance(value, OutputSink):
+        return value if value.streaming else value.to_array()
+    return np.asarray(value, order="C")
 
 
 def prepare_manifest(
     arrays: Mapping[str, Any], manifest_extra: dict, file_suffixes: Mapping[str, str | None] | None = None
 ) -> tuple[dict, dict]:
-    import numpy as np
+    """(outputs as C-order numpy arrays or finished sinks, manifest); ``manifest_extra`` holds meta, metrics,
+    warnings and any other manifest fields (key, stage, ...)."""
 
-    arrays = {k: np.asarray(v, order="C") for k, v in arrays.items()}
+    arrays = {k: settle_output(v) for k, v in arrays.items()}
     manifest = build_manifest(
         arrays,
         manifest_extra.get("meta", {}),
@@ -195,6 +162,18 @@ def prepare_manifest(
     return arrays, manifest
 
 
+def write_files(path: Path, files) -> None:
+    """Write (relative path, bytes) pairs under ``path``, creating folders as needed."""
+    made: set[Path] = set()
+    for rel, data in files:
+        target = path / rel
+        if target.parent not in made:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            made.add(target.parent)
+        with open(target, "wb") as fh:
+            fh.write(data)
+
+
 def write_artifact(
     path: Path, arrays: Mapping[str, Any], manifest_extra: dict, file_suffixes: Mapping[str, str | None] | None = None
 ) -> dict:
@@ -202,14 +181,7 @@ def write_artifact(
     arrays, manifest = prepare_manifest(arrays, manifest_extra, file_suffixes)
     path = Path(path)
     path.mkdir(parents=True, exist_ok=False)
-    made = {path}
-    for rel, data in encode_artifact(arrays, manifest):
-        target = path / rel
-        if target.parent not in made:
-            target.parent.mkdir(parents=True, exist_ok=True)
-            made.add(target.parent)
-        with open(target, "wb") as fh:
-            fh.write(data)
+    write_files(path, encode_artifact(arrays, manifest))
     return manifest
 
 
@@ -238,17 +210,30 @@ def verify_artifact(path: Path) -> list[str]:
         view = read_artifact(path)
     except Exception as exc:
         return [f"unreadable: {type(exc).__name__}: {exc}"]
-    return check_contents(manifest, view.__getitem__)
+    return check_contents(manifest, view.lazy)
 
 
-def check_contents(manifest: dict, load) -> list[str]:
-    """Problems found recomputing the content hashes recorded in ``manifest``; ``load(name)`` reads an output
-    (from a local zarr group, an object store, ...)."""
+def stored_hash(manifest: dict, array: Any) -> str:
+    """Content hash of a stored output read block by block (bounded memory), by the manifest format's rule."""
+    if manifest.get("format", 1) < 2:
+        return array_hash_v1(array[...])
+    hasher = ArrayHasher(array.dtype)
+    if not array.shape:
+        hasher.update(array[...])
+    else:
+        for block in iter_blocks(array):
+            hasher.update(block)
+    return hasher.hexdigest(tuple(array.shape))
+
+
+def check_contents(manifest: dict, lazy) -> list[str]:
+    """Problems found recomputing the content hashes recorded in ``manifest``; ``lazy(name)`` opens an output as
+    a sliceable array (a zarr array, a remote array, numpy), read here one chunk at a time."""
     problems = []
     try:
         for name, entry in manifest["outputs"].items():
             try:
-                got = array_hash(load(name))
+                got = stored_hash(manifest, lazy(name))
             except Exception as exc:
                 problems.append(f"output '{name}': unreadable ({type(exc).__name__}: {exc})")
                 continue

@@ -57,3 +57,10 @@ class StageFailed(Exception):
         self.stage = stage
         self.message = message
         self.traceback = traceback
+
+
+class InvalidResult(TypeError, ValueError):
+    """What a stage's ``run`` returned breaks its declared outputs or the strict-JSON rules (a bug in the stage).
+
+    A ``TypeError`` and a ``ValueError`` both, as the schema checks raise either; the runner reports it as a
+    failed stage without a traceback (the message names the stage and output)."""

@@ -139,7 +139,7 @@ class RemoteStore:
         folder = self.data_path(key, marker["data"])
         chunks = marker.get("chunks", {})
         arrays = {
-            name: RemoteArray(self, folder, name, entry, chunks.get(name))
+            name: RemoteArray(self, folder, name, entry, chunks.get(name), checksum=manifest.get("format", 1) >= 2)
             for name, entry in manifest["outputs"].items()
         }
         return ArtifactView(arrays, manifest.get("meta", {}), manifest.get("metrics", {}), key=key, manifest=manifest)
@@ -183,45 +183,44 @@ class RemoteStore:
         return sum(o.size for o in self.objects.list(self.data_path(key, marker["data"]) + "/"))
 
     # ------------------------------------------------------------------ writing
+    def writer(self, key: str) -> RemoteWriter:
+        """An artifact being written under ``key`` into a fresh folder; ``commit`` writes the marker."""
+        return RemoteWriter(self, key)
+
     def write(
         self, key: str, arrays: dict, extra: dict, file_suffixes: dict | None = None, replace: bool = False
     ) -> dict:
         """Upload the zarr group under a fresh folder, then commit it with the marker; returns the manifest."""
-        from msflow.artifact import array_metadata, encode_artifact, prepare_manifest
+        with self.writer(key) as writer:
+            return writer.commit(arrays, extra, file_suffixes, replace)
 
-        arrays, manifest = prepare_manifest(arrays, extra, file_suffixes)
-        wid = writer_id()
-        folder = self.data_path(key, wid)
-        journal = self.journal_path(key, wid)
-        self.objects.put(journal, self._journal_entry(key, wid, "write"))
-        try:
-            for batch in iter_chunks(encode_artifact(arrays, manifest)):
-                self.objects.put_many({f"{folder}/{rel}": data for rel, data in batch.items()})
-            chunks = {
-                name: array_metadata(arr)["chunk_grid"]["configuration"]["chunk_shape"] for name, arr in arrays.items()
+    def commit_folder(self, key: str, wid: str, manifest: dict, replace: bool) -> dict:
+        """Write the commit marker naming folder ``wid``; returns the manifest that is committed (another
+        writer's, if one won the race)."""
+        from msflow.chunks import array_metadata
+
+        chunks = {
+            name: array_metadata(tuple(entry["shape"]), entry["dtype"])["chunk_grid"]["configuration"]["chunk_shape"]
+            for name, entry in manifest["outputs"].items()
+        }
+        marker = dumps(
+            {
+                "format": MARKER_FORMAT,
+                "key": key,
+                "data": wid,
+                "manifest": manifest,
+                "chunks": chunks,
+                "host": HOST,
+                "pid": os.getpid(),
+                "committed": time.time(),
             }
-            marker = dumps(
-                {
-                    "format": MARKER_FORMAT,
-                    "key": key,
-                    "data": wid,
-                    "manifest": manifest,
-                    "chunks": chunks,
-                    "host": HOST,
-                    "pid": os.getpid(),
-                    "committed": time.time(),
-                }
-            )
-            if replace:
-                self._replace(key, wid, marker)
-            elif self.objects.create(self.marker_path(key), marker) is None:
-                # published meanwhile by another writer of the key: theirs stays
-                self.objects.delete_prefix(folder + "/")
-                manifest = (self._marker(key) or {}).get("manifest", manifest)
-        except BaseException:
-            self._abandon(key, wid)
-            raise
-        self.objects.delete(journal)
+        )
+        if replace:
+            self._replace(key, wid, marker)
+        elif self.objects.create(self.marker_path(key), marker) is None:
+            # published meanwhile by another writer of the key: theirs stays
+            self.objects.delete_prefix(self.data_path(key, wid) + "/")
+            manifest = (self._marker(key) or {}).get("manifest", manifest)
         self._recent.pop(key, None)
         return manifest
 
@@ -230,10 +229,10 @@ class RemoteStore:
         a moment ago can still read its chunks. clean_tmp deletes it RETIRE_SECONDS later."""
         old = self._marker(key)
         if old and old["data"] != wid:
-            self.objects.put(self.journal_path(key, old["data"]), self._journal_entry(key, old["data"], "retire"))
+            self.objects.put(self.journal_path(key, old["data"]), self.journal_entry(key, old["data"], "retire"))
         self.objects.put(self.marker_path(key), marker)
 
-    def _abandon(self, key: str, wid: str) -> None:
+    def abandon(self, key: str, wid: str) -> None:
         """Best effort after a failed write: delete our folder unless the marker names it (a commit whose
         response was lost); whatever this cannot do, clean_tmp does later from the journal."""
         with contextlib.suppress(Exception):
@@ -243,7 +242,7 @@ class RemoteStore:
             self.objects.delete(self.journal_path(key, wid))
 
     @staticmethod
-    def _journal_entry(key: str, wid: str, action: str) -> bytes:
+    def journal_entry(key: str, wid: str, action: str) -> bytes:
         return dumps(
             {"key": key, "data": wid, "action": action, "host": HOST, "pid": os.getpid(), "started": time.time()}
         )
@@ -253,7 +252,7 @@ class RemoteStore:
         if marker is None:
             return
         wid = marker["data"]
-        self.objects.put(self.journal_path(key, wid), self._journal_entry(key, wid, "retire"))
+        self.objects.put(self.journal_path(key, wid), self.journal_entry(key, wid, "retire"))
         self.objects.delete(self.marker_path(key))
         self._recent.pop(key, None)
         self.objects.delete_prefix(self.data_path(key, wid) + "/")
@@ -372,10 +371,75 @@ class RemoteStore:
         return json.loads(data)
 
 
+class RemoteWriter:
+    """One artifact being written: objects go to a fresh folder (journalled before the first upload, so
+    clean_tmp can find it if the writer dies), and the commit marker written last makes it visible."""
+
+    def __init__(self, store: RemoteStore, key: str):
+        self.store = store
+        self.key = key
+        self.wid = writer_id()
+        self.folder = store.data_path(key, self.wid)
+        self.journal: str | None = None
+        self.committed = False
+
+    def __enter__(self) -> RemoteWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.abort()
+
+    def _start(self) -> None:
+        if self.journal is None:
+            self.journal = self.store.journal_path(self.key, self.wid)
+            self.store.objects.put(self.journal, self.store.journal_entry(self.key, self.wid, "write"))
+
+    def put(self, rel: str, data: bytes) -> None:
+        """Upload one object of the zarr group (a chunk of an output sink) now."""
+        self._start()
+        self.store.objects.put(f"{self.folder}/{rel}", data)
+
+    def commit(self, arrays: dict, extra: dict, file_suffixes: dict | None = None, replace: bool = False) -> dict:
+        """Upload the remaining arrays and the group's zarr.json, then write the marker; returns the manifest."""
+        from msflow.artifact import encode_artifact, prepare_manifest
+
+        arrays, manifest = prepare_manifest(arrays, extra, file_suffixes)
+        self._start()
+        objects = self.store.objects
+        for info in objects.list(self.folder + "/"):  # chunks of sinks the stage opened but did not return
+            if info.path[len(self.folder) + 1 :].split("/")[0] not in arrays:
+                objects.delete(info.path)
+        for batch in iter_chunks(encode_artifact(arrays, manifest)):
+            objects.put_many({f"{self.folder}/{rel}": data for rel, data in batch.items()})
+        manifest = self.store.commit_folder(self.key, self.wid, manifest, replace)
+        self.committed = True
+        assert self.journal is not None
+        objects.delete(self.journal)
+        return manifest
+
+    def abort(self) -> None:
+        """Best effort after a failed write (nothing once committed); clean_tmp does the rest from the journal."""
+        if self.journal is not None and not self.committed:
+            self.store.abandon(self.key, self.wid)
+
+
 def _selects_everything(selection) -> bool:
     if isinstance(selection, tuple):
         return selection in ((), (Ellipsis,))
     return selection is Ellipsis or (isinstance(selection, slice) and selection == slice(None))
+
+
+def _row_slice(selection) -> slice | None:
+    """The slice of rows a selection takes when it is a step-1 slice of whole rows (``a[i:j]``), else None."""
+    if isinstance(selection, tuple):
+        if not selection or not all(
+            s is Ellipsis or (isinstance(s, slice) and s == slice(None)) for s in selection[1:]
+        ):
+            return None
+        selection = selection[0]
+    if isinstance(selection, slice) and selection.step in (None, 1):
+        return selection
+    return None
 
 
 def _age(entry: dict) -> float:
@@ -388,7 +452,9 @@ class RemoteArray:
     decodes them directly; any other indexing, and every zarr attribute, goes through a zarr array opened on
     the store, so lazy inputs behave as zarr arrays do on a local store."""
 
-    def __init__(self, store: RemoteStore, folder: str, name: str, entry: dict, chunks: list | None):
+    def __init__(
+        self, store: RemoteStore, folder: str, name: str, entry: dict, chunks: list | None, checksum: bool = True
+    ):
         import numpy as np
 
         self._store = store
@@ -397,6 +463,7 @@ class RemoteArray:
         self.shape = tuple(entry["shape"])
         self.dtype = np.dtype(entry["dtype"]).newbyteorder("=")  # stored little endian, read as native
         self._chunks = chunks
+        self._checksum = checksum  # chunks carry a crc32c (artifact format 2 on)
         self._zarr = None
 
     @property
@@ -437,9 +504,18 @@ class RemoteArray:
             raise AttributeError(attr)
         return getattr(self.zarr, attr)
 
+    @property
+    def chunks(self) -> tuple[int, ...]:
+        from msflow.chunks import chunk_shape
+
+        return tuple(self._chunks) if self._chunks else chunk_shape(self.shape, self.dtype.itemsize)
+
     def __getitem__(self, selection):
         if _selects_everything(selection):
             return self.read()
+        rows = _row_slice(selection)
+        if rows is not None and self.shape:
+            return self.read_rows(*rows.indices(self.shape[0])[:2])
         return self.zarr[selection]
 
     def __array__(self, dtype=None, copy=None):
@@ -447,32 +523,42 @@ class RemoteArray:
         return out if dtype is None else out.astype(dtype)
 
     def read(self):
-        """The whole array: every chunk object fetched concurrently, zstd-decoded, concatenated."""
+        """The whole array: every chunk object fetched concurrently, decoded (checksum checked), concatenated."""
         import numpy as np
-        from numcodecs import Zstd
 
-        from msflow.artifact import chunk_shape
+        from msflow.chunks import decode_chunk
+
+        if self.size == 0:
+            return np.zeros(self.shape, dtype=self.dtype)
+        if self.shape:
+            return self.read_rows(0, self.shape[0])
+        blob = self._store.objects.get(f"{self._folder}/{self._name}/c")
+        if blob is None:
+            raise FileNotFoundError(f"chunk {self._name}/c of {self._store.url}/{self._folder} is missing")
+        little = self.dtype.newbyteorder("<") if self.dtype.itemsize > 1 else self.dtype
+        return np.array(np.frombuffer(decode_chunk(blob, self._checksum), dtype=little)[0], dtype=self.dtype)
+
+    def read_rows(self, start: int, stop: int):
+        """Rows ``start:stop``: the chunks covering them fetched concurrently and decoded."""
+        import numpy as np
+
+        from msflow.chunks import chunk_path, decode_chunk
 
         native = self.dtype
-        if self.size == 0:
-            return np.zeros(self.shape, dtype=native)
+        stop = max(start, stop)
+        if stop == start or self.size == 0:
+            return np.zeros((stop - start, *self.shape[1:]), dtype=native)
         little = native.newbyteorder("<") if native.itemsize > 1 else native
-        if not self.shape:
-            paths, chunk = [f"{self._name}/c"], ()
-        else:
-            chunk = tuple(self._chunks) if self._chunks else chunk_shape(self.shape, native.itemsize)
-            count = -(-self.shape[0] // chunk[0])
-            rest = "/0" * (len(self.shape) - 1)
-            paths = [f"{self._name}/c/{i}{rest}" for i in range(count)]
-        blobs = self._store.objects.get_many([f"{self._folder}/{p}" for p in paths])
-        codec = Zstd()
+        chunk = self.chunks
+        first, last = start // chunk[0], (stop - 1) // chunk[0]
+        paths = [f"{self._folder}/{chunk_path(self._name, i, len(self.shape))}" for i in range(first, last + 1)]
+        blobs = self._store.objects.get_many(paths)
         blocks = []
         for path in paths:
-            blob = blobs[f"{self._folder}/{path}"]
+            blob = blobs[path]
             if blob is None:
-                raise FileNotFoundError(f"chunk {path} of {self._store.url}/{self._folder} is missing")
-            blocks.append(np.frombuffer(codec.decode(blob), dtype=little).reshape(chunk))
+                raise FileNotFoundError(f"chunk {path} of {self._store.url} is missing")
+            blocks.append(np.frombuffer(decode_chunk(blob, self._checksum), dtype=little).reshape(chunk))
         out = blocks[0] if len(blocks) == 1 else np.concatenate(blocks)
-        if self.shape:
-            out = out[: self.shape[0]]
-        return np.array(out, dtype=native, order="C")  # writable and native-endian, as zarr would return
+        offset = first * chunk[0]
+        return np.array(out[start - offset : stop - offset], dtype=native, order="C")  # writable, native-endian

@@ -19,7 +19,7 @@ from msflow.hashing import FileHashMemo, json_hash
 from msflow.plan import StagePlan
 from msflow.spec import FilesRef, Pipeline, rel_to, topological_order
 
-KEY_SCHEME = 1
+KEY_SCHEME = 2  # 2: artifact format 2 (streamed array hashes, chunk checksums)
 DONE = ("cached", "ran")
 
 
@@ -156,6 +156,7 @@ class Runner:
         until: str | None = None,
         force: tuple[str, ...] = (),
         reporter=None,
+        jobs: int = 1,
     ):
         self.pipeline = pipeline
         self.plans = plans
@@ -168,6 +169,7 @@ class Runner:
             raise UserError(f"--force: unknown stage(s) {unknown}", file=str(pipeline.path), field="--force")
         self.force = set(force)
         self.reporter = reporter
+        self.jobs = jobs  # the run's worker count, handed to each stage (Stage.jobs); not part of any key
         self.states = {name: StageState(name) for name in self.selected}
         self.waiting: list[str] = []
         self.file_memo = FileHashMemo(memo.setdefault("data", {}))
@@ -200,6 +202,7 @@ class Runner:
             "params": plan.params,
             "inputs": job_inputs,
             "force": name in self.force,
+            "jobs": self.jobs,
             "key_parts": state.parts,
         }
 

@@ -177,11 +177,42 @@ class Stage:
     #: are hashed by content into the cache key like inputs, so replacing a model file reruns the stage.
     resources: ClassVar[Mapping[str, Any]] = {}
 
-    def __init__(self, name: str = ""):
+    def __init__(self, name: str = "", *, jobs: int = 1, chunk_target: Any = None):
         self.name = name or type(self).__name__
+        #: the run's worker count (``msflow run -j N``), for parallelism inside ``run`` (threads over blocks of
+        #: frames, a process pool). It is not part of the cache key: results must not depend on it.
+        self.jobs = max(1, int(jobs))
+        self._chunk_target = chunk_target  # where output sinks write chunks (the artifact being written)
+        self._sinks: dict[str, Any] = {}
 
     def run(self, params: Any, inputs: dict[str, Any]) -> Result:  # pragma: no cover - abstract
         raise NotImplementedError
+
+    def sink(self, name: str, *, dtype: Any, row_shape: tuple[int, ...] = ()) -> Any:
+        """An output sink for output ``name``: a frames-first array of unknown length, filled block by block.
+
+        ``sink.append(block)`` adds rows (``block.shape == (m, *row_shape)``); return the sink in ``Result``
+        like an array. In a store run its chunks are compressed and written as they fill, so the whole array is
+        never in memory; its content hash equals that of the same array returned whole.
+        """
+        from msflow.sinks import OutputSink
+
+        spec = type(self).outputs.get(name)
+        if spec is None:
+            raise ValueError(
+                f"stage '{self.name}': no declared output '{name}' to sink into; declared: {sorted(self.outputs)}"
+            )
+        if name in self._sinks:
+            raise ValueError(f"stage '{self.name}': output '{name}' already has a sink")
+        sink = OutputSink(name, dtype, tuple(row_shape), self._chunk_target)
+        check_output(f"stage '{self.name}', output '{name}'", spec, sink.dtype, (0, *sink.row_shape), frames=False)
+        self._sinks[name] = sink
+        return sink
+
+    @property
+    def sinks(self) -> dict[str, Any]:
+        """The sinks this stage instance opened, by output name."""
+        return dict(self._sinks)
 
     @classmethod
     def interface(cls) -> dict:
@@ -221,17 +252,56 @@ def to_strict_json(value: Any, where: str) -> Any:
     raise ValueError(f"{where}: {type(value).__name__} is not JSON (use str, int, float, bool, list, dict)")
 
 
+def check_output(
+    where: str,
+    spec: Output,
+    dtype: Any,
+    shape: tuple[int, ...],
+    dims: dict | None = None,
+    name: str = "",
+    frames: bool = True,
+) -> None:
+    """Check one output's dtype and shape against its declaration; ``dims`` collects named dimensions across
+    outputs (``frames=False``: the first axis is not known yet, as for a sink just opened)."""
+    import numpy as np
+
+    dtype = np.dtype(dtype)
+    if spec.file_suffix is not None and (dtype != np.uint8 or len(shape) != 1):
+        raise TypeError(f"{where}: a file output is bytes (a uint8 sink with row_shape ()), got {dtype} {shape}")
+    if dtype.kind not in spec.kind:
+        raise TypeError(f"{where}: dtype {dtype} is not of kind {'/'.join(DTYPE_KINDS.get(k, k) for k in spec.kind)}")
+    if spec.dtype is not None and dtype != np.dtype(spec.dtype):
+        raise TypeError(f"{where}: dtype {dtype}, expected {spec.dtype}")
+    if spec.ndim is not None and len(shape) != spec.ndim:
+        raise ValueError(f"{where}: {len(shape)} dimensions {tuple(shape)}, expected {spec.ndim}")
+    for axis, want in enumerate(spec.shape or ()):
+        got = shape[axis]
+        if axis == 0 and not frames:
+            continue
+        if isinstance(want, int) and got != want:
+            raise ValueError(f"{where}: axis {axis} has size {got}, expected {want} (shape {tuple(shape)})")
+        if isinstance(want, str) and dims is not None:
+            if want in dims and dims[want][0] != got:
+                raise ValueError(
+                    f"{where}: dimension '{want}' is {got} here but {dims[want][0]} in output '{dims[want][1]}'"
+                )
+            dims.setdefault(want, (got, name))
+
+
 def validate_result(stage: str, cls: type[Stage], result: Any) -> dict[str, Any]:
-    """Check a run() result against the class's output schema; return the arrays as numpy.
+    """Check a run() result against the class's output schema; return the outputs as numpy arrays (or the
+    output sinks returned, finished).
 
     Raises StageFailed-worthy ``TypeError``/``ValueError`` naming the stage and output: a schema violation is a
     bug in the stage, not in the user's data.
     """
     import numpy as np
 
+    from msflow.sinks import OutputSink
+
     if not isinstance(result, Result):
         raise TypeError(f"stage '{stage}': run() returned {type(result).__name__}, expected msflow.Result")
-    arrays: dict[str, np.ndarray] = {}
+    arrays: dict[str, Any] = {}
     unknown = set(result.arrays) - set(cls.outputs)
     if unknown:
         raise ValueError(
@@ -245,30 +315,20 @@ def validate_result(stage: str, cls: type[Stage], result: Any) -> dict[str, Any]
                 continue
             raise ValueError(f"{where}: missing (declared and not optional)")
         value = result.arrays[name]
+        if isinstance(value, OutputSink):
+            if value.name != name:
+                raise ValueError(f"{where}: got the sink of output '{value.name}'")
+            value.finish()
+            check_output(where, spec, value.dtype, value.shape, dims, name)
+            arrays[name] = value
+            continue
         if spec.file_suffix is not None:
             if not isinstance(value, (bytes, bytearray, memoryview)):
                 raise TypeError(f"{where}: a file output must be bytes, got {type(value).__name__}")
             arrays[name] = np.frombuffer(bytes(value), dtype=np.uint8)
             continue
         arr = np.asarray(value)
-        if arr.dtype.kind not in spec.kind:
-            raise TypeError(
-                f"{where}: dtype {arr.dtype} is not of kind {'/'.join(DTYPE_KINDS.get(k, k) for k in spec.kind)}"
-            )
-        if spec.dtype is not None and arr.dtype != np.dtype(spec.dtype):
-            raise TypeError(f"{where}: dtype {arr.dtype}, expected {spec.dtype}")
-        if spec.ndim is not None and arr.ndim != spec.ndim:
-            raise ValueError(f"{where}: {arr.ndim} dimensions {arr.shape}, expected {spec.ndim}")
-        for axis, want in enumerate(spec.shape or ()):
-            got = arr.shape[axis]
-            if isinstance(want, int) and got != want:
-                raise ValueError(f"{where}: axis {axis} has size {got}, expected {want} (shape {arr.shape})")
-            if isinstance(want, str):
-                if want in dims and dims[want][0] != got:
-                    raise ValueError(
-                        f"{where}: dimension '{want}' is {got} here but {dims[want][0]} in output '{dims[want][1]}'"
-                    )
-                dims.setdefault(want, (got, name))
+        check_output(where, spec, arr.dtype, arr.shape, dims, name)
         arrays[name] = np.asarray(arr, order="C")
     return arrays
 

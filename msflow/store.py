@@ -89,22 +89,26 @@ class LocalStore:
                 for entry in sorted(prefix.iterdir()):
                     yield entry.name
 
+    def writer(self, key: str) -> LocalWriter:
+        """An artifact being written under ``key``: output sinks put chunks into it while the stage runs, then
+        ``commit`` publishes it (use it as a context manager: leaving without a commit removes it)."""
+        return LocalWriter(self, key)
+
     def write(
         self, key: str, arrays: dict, extra: dict, file_suffixes: dict | None = None, replace: bool = False
     ) -> dict:
         """Write arrays and manifest under tmp/, then publish atomically; returns the manifest."""
-        from msflow.artifact import write_artifact
+        with self.writer(key) as writer:
+            return writer.commit(arrays, extra, file_suffixes, replace)
 
-        tmp = self._dir("tmp") / f"{key}.{HOST}.{os.getpid()}.{uuid.uuid4().hex[:8]}"
-        try:
-            manifest = write_artifact(tmp, arrays, extra, file_suffixes)
-            self._publish(tmp, key, replace)
-        finally:
-            if tmp.exists():
-                shutil.rmtree(tmp, ignore_errors=True)
-        return manifest
+    def temp_folder(self, key: str) -> Path:
+        """A fresh private folder under tmp/ for writing ``key``, named so clean_tmp knows its writer."""
+        path = self._dir("tmp") / f"{key}.{HOST}.{os.getpid()}.{uuid.uuid4().hex[:8]}"
+        path.mkdir()
+        return path
 
-    def _publish(self, tmp: Path, key: str, replace: bool) -> None:
+    def publish(self, tmp: Path, key: str, replace: bool) -> None:
+        """Move a complete temporary folder to ``key``'s place in one rename."""
         target = self.artifact_path(key)
         target.parent.mkdir(parents=True, exist_ok=True)
         if replace and target.exists():
@@ -237,6 +241,57 @@ class LocalStore:
     def remove_run(self, run_id: str) -> None:
         with contextlib.suppress(FileNotFoundError):
             (self.root / "runs" / f"{run_id}.json").unlink()
+
+
+class LocalWriter:
+    """One artifact being written: a private folder under tmp/ (created on the first write), published by one
+    rename. A writer killed at any moment leaves only that folder, which clean_tmp removes."""
+
+    def __init__(self, store: LocalStore, key: str):
+        self.store = store
+        self.key = key
+        self.path: Path | None = None
+        self._made: set[Path] = set()
+
+    def __enter__(self) -> LocalWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.abort()
+
+    def _folder(self) -> Path:
+        if self.path is None:
+            self.path = self.store.temp_folder(self.key)
+            self._made.add(self.path)
+        return self.path
+
+    def put(self, rel: str, data: bytes) -> None:
+        """Write one file of the zarr group (a chunk of an output sink) now."""
+        target = self._folder() / rel
+        if target.parent not in self._made:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            self._made.add(target.parent)
+        with open(target, "wb") as fh:
+            fh.write(data)
+
+    def commit(self, arrays: dict, extra: dict, file_suffixes: dict | None = None, replace: bool = False) -> dict:
+        """Write the remaining arrays and the manifest, then publish; returns the manifest."""
+        from msflow.artifact import encode_artifact, prepare_manifest
+
+        arrays, manifest = prepare_manifest(arrays, extra, file_suffixes)
+        folder = self._folder()
+        for entry in folder.iterdir():  # chunks of sinks the stage opened but did not return
+            if entry.name not in arrays:
+                shutil.rmtree(entry, ignore_errors=True)
+        for rel, data in encode_artifact(arrays, manifest):
+            self.put(rel, data)
+        self.store.publish(folder, self.key, replace)
+        return manifest
+
+    def abort(self) -> None:
+        """Remove whatever was written (nothing once committed: the folder became the artifact)."""
+        if self.path is not None and self.path.exists():
+            shutil.rmtree(self.path, ignore_errors=True)
 
 
 def write_json_atomic(path: Path, value: Any, indent: int | None = None) -> None:

@@ -192,7 +192,9 @@ def run_sweep(
     for index, session in enumerate(sessions):
         proxy = reporter.for_variant(index, variants[index]) if reporter is not None else None
         runners.append(
-            Runner(session.pipeline, session.plans, session.store, session.memo, executor=pool, reporter=proxy)
+            Runner(
+                session.pipeline, session.plans, session.store, session.memo, executor=pool, reporter=proxy, jobs=jobs
+            )
         )
     try:
         schedule(runners, pool)

@@ -10,12 +10,13 @@ The same validation as the runner applies (params, inputs, output schema, strict
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
-from msflow.artifact import ArtifactView
-from msflow.stage import Files, Result, Stage, to_strict_json, validate_result
+from msflow.artifact import ArtifactView, settle_output
+from msflow.stage import Files, Stage
 
 
 def artifact(arrays: Mapping[str, Any], meta: dict | None = None, metrics: dict | None = None) -> ArtifactView:
@@ -27,9 +28,12 @@ def artifact(arrays: Mapping[str, Any], meta: dict | None = None, metrics: dict 
 
 @dataclass
 class StageRun:
+    """What ``run_stage`` returns: the outputs as numpy, meta, metrics and warnings."""
+
     arrays: dict[str, Any]
     meta: dict
     metrics: dict
+    warnings: list[str] = field(default_factory=list)
 
     def view(self) -> ArtifactView:
         return ArtifactView(self.arrays, self.meta, self.metrics)
@@ -87,20 +91,28 @@ def run_stage(
     *,
     name: str | None = None,
     store: str | Path | None = None,
+    jobs: int = 1,
 ) -> StageRun:
-    """Validate params and inputs, run the stage, validate its result; optionally round-trip through zarr."""
+    """Validate params and inputs, run the stage, validate its result; optionally round-trip through zarr.
+
+    The stage runs through the same function as in the runner's workers (``msflow.worker.compute``), so a
+    result the runner rejects (a schema violation, non-JSON metadata, non-scalar metrics) raises here too.
+    Output sinks keep their blocks in memory; ``jobs`` is the stage's ``self.jobs``; BLAS threading is the
+    caller's (workers pin it to one thread).
+    """
+    from msflow.worker import compute
+
     stage_name = name or cls.__name__
     validated = cls.Params(**dict(params or {}))
-    result = cls(stage_name).run(validated, prepare_inputs(cls, inputs or {}))
-    arrays = validate_result(stage_name, cls, result)
-    assert isinstance(result, Result)
-    meta = to_strict_json(result.meta, f"stage '{stage_name}' meta")
-    metrics = to_strict_json(result.metrics, f"stage '{stage_name}' metrics")
+    done = compute(cls, stage_name, validated, prepare_inputs(cls, inputs or {}), jobs=jobs, pin_blas=False)
+    for caught in done.caught:  # as if the stage had run in the caller's own warning context
+        warnings.warn_explicit(caught.message, caught.category, caught.filename, caught.lineno)
+    arrays = {k: settle_output(v) for k, v in done.arrays.items()}
     if store is not None:
         from msflow.artifact import read_artifact, write_artifact
 
         path = Path(store) / f"{stage_name}.zarr"
-        write_artifact(path, arrays, {"meta": meta, "metrics": metrics})
+        write_artifact(path, arrays, {"meta": done.meta, "metrics": done.metrics})
         view = read_artifact(path)
         arrays = {k: view[k] for k in view.names}
-    return StageRun(arrays, meta, metrics)
+    return StageRun(arrays, done.meta, done.metrics, done.warnings)

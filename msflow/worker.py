@@ -7,12 +7,15 @@ stage, validates its result, and publishes the artifact atomically before releas
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
 import traceback
 import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 BLAS_VARS = (
     "OPENBLAS_NUM_THREADS",
@@ -71,52 +74,93 @@ def _run(job: dict) -> dict:
     with store.lock(key):
         if store.has(key) and not job.get("force"):
             return {"state": "cached", "manifest": store.manifest(key), "concurrent": True}
-        return _execute(job, store)
+        with store.writer(key) as writer:
+            return _execute(job, store, writer)
 
 
-def _execute(job: dict, store) -> dict:
-    from msflow.errors import StageFailed, UserError
-    from msflow.plan import import_stage_class
+@dataclass
+class Computed:
+    """A stage's validated result: outputs (numpy arrays or finished sinks), strict-JSON meta and metrics,
+    warnings (as messages), the seconds ``run`` took, and every warning ``run`` raised (``caught``, with its
+    category, for callers that re-emit them)."""
+
+    arrays: dict[str, Any]
+    meta: dict[str, Any]
+    metrics: dict[str, float]
+    warnings: list[str]
+    seconds: float
+    caught: list[Any] = field(default_factory=list)
+
+
+def compute(
+    cls,
+    name: str,
+    params: Any,
+    inputs: dict[str, Any],
+    *,
+    jobs: int = 1,
+    chunk_target: Any = None,
+    pin_blas: bool = True,
+) -> Computed:
+    """Run a stage and validate what it returns: the one execution path of the runner's workers and of
+    ``msflow.testing.run_stage``. Exceptions of ``run`` propagate unchanged; an invalid result raises
+    ``TypeError``/``ValueError`` naming the stage and output. ``pin_blas``: one BLAS thread during ``run`` (the
+    runner's workers run stages side by side); ``run_stage`` leaves the caller's BLAS threading alone."""
+    from msflow.errors import InvalidResult
     from msflow.stage import to_strict_json, validate_result
 
-    name = job["stage"]
-    cls = import_stage_class(job["uses"], stage=name, root=job["project_root"])
-    params = cls.Params(**job["params"])
-    inputs = open_inputs(job["inputs"], store)
-    compute_start = time.perf_counter()
-    try:
-        with single_threaded_blas(), warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", UserWarning)  # the stage's own warnings, each time
-            result = cls(name).run(params, inputs)
-    except UserError:
-        raise
-    except Exception as exc:
-        raise StageFailed(name, f"{type(exc).__name__}: {exc}", traceback.format_exc()) from exc
-    compute_seconds = time.perf_counter() - compute_start
+    stage = cls(name, jobs=jobs, chunk_target=chunk_target)
+    started = time.perf_counter()
+    with (
+        single_threaded_blas() if pin_blas else contextlib.nullcontext(),
+        warnings.catch_warnings(record=True) as caught,
+    ):
+        warnings.simplefilter("always", UserWarning)  # the stage's own warnings, each time
+        result = stage.run(params, inputs)
+    seconds = time.perf_counter() - started
     try:
         arrays = validate_result(name, cls, result)
         meta = to_strict_json(result.meta, f"stage '{name}' meta")
         metrics = to_strict_json(result.metrics, f"stage '{name}' metrics")
         stage_warnings = collect_warnings(result, caught)
     except (TypeError, ValueError) as exc:
-        raise StageFailed(name, str(exc)) from exc
+        raise InvalidResult(str(exc)) from None
     bad = [k for k, v in metrics.items() if not isinstance(v, (int, float)) or isinstance(v, bool)]
     if bad:
-        raise StageFailed(name, f"metrics must be scalar numbers; not: {bad}")
+        raise InvalidResult(f"stage '{name}': metrics must be scalar numbers; not: {bad}")
+    return Computed(arrays, meta, metrics, stage_warnings, seconds, list(caught))
+
+
+def _execute(job: dict, store, writer) -> dict:
+    from msflow.errors import InvalidResult, StageFailed, UserError
+    from msflow.plan import import_stage_class
+
+    name = job["stage"]
+    cls = import_stage_class(job["uses"], stage=name, root=job["project_root"])
+    params = cls.Params(**job["params"])
+    inputs = open_inputs(job["inputs"], store)
+    try:
+        done = compute(cls, name, params, inputs, jobs=int(job.get("jobs", 1)), chunk_target=writer)
+    except UserError:
+        raise
+    except InvalidResult as exc:
+        raise StageFailed(name, str(exc)) from exc
+    except Exception as exc:
+        raise StageFailed(name, f"{type(exc).__name__}: {exc}", traceback.format_exc()) from exc
     suffixes = {k: spec.file_suffix for k, spec in cls.outputs.items() if spec.file_suffix}
     extra = {
-        "meta": meta,
-        "metrics": metrics,
+        "meta": done.meta,
+        "metrics": done.metrics,
         "key": job["key"],
         "stage": name,
         "uses": job["uses"],
         "key_parts": job.get("key_parts"),
         "created": time.time(),
     }
-    if stage_warnings:
-        extra["warnings"] = stage_warnings
-    manifest = store.write(job["key"], arrays, extra, suffixes, replace=bool(job.get("force")))
-    return {"state": "ran", "manifest": manifest, "compute_seconds": compute_seconds}
+    if done.warnings:
+        extra["warnings"] = done.warnings
+    manifest = writer.commit(done.arrays, extra, suffixes, replace=bool(job.get("force")))
+    return {"state": "ran", "manifest": manifest, "compute_seconds": done.seconds}
 
 
 def collect_warnings(result, caught: list) -> list[str]:

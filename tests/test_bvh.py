@@ -203,6 +203,36 @@ def test_malformed_bvh_is_a_user_error(text, fragment):
     assert fragment in str(err.value) and err.value.file == "bad.bvh"
 
 
+def test_end_site_channels_do_not_overwrite_the_joints_channels():
+    """Issue 16: a ``CHANNELS 0`` line inside an End Site used to replace its parent joint's channels."""
+    text = skeleton_text(["Zrotation", "Xrotation", "Yrotation"], np.full((2, 3), 30.0))
+    text = text.replace("OFFSET 0 12 0\n", "OFFSET 0 12 0\n        CHANNELS 0\n")
+    bvh = parse_bvh(text)
+    assert bvh.joint("Head").channels == ["Zrotation", "Xrotation", "Yrotation"]
+    np.testing.assert_allclose(bvh.joint("Head").end_site, [0, 12, 0])
+    np.testing.assert_allclose(bvh.channel(bvh.joint("Head"), "Xrotation"), 30.0)
+    with pytest.raises(UserError, match="End Site of Head lists channels"):
+        parse_bvh(text.replace("CHANNELS 0", "CHANNELS 1 Xrotation"), source="x.bvh")
+
+
+@pytest.mark.parametrize("name", ["MOTION", "MOTION_capture", "Head_MOTION", "Frames:"])
+def test_joint_names_holding_motion_keywords(name):
+    """Issue 16: a joint named with "MOTION" used to split the file inside the HIERARCHY."""
+    truth = np.array([[10.0, 20.0, 30.0], [5.0, 6.0, 7.0]])
+    text = skeleton_text(["Zrotation", "Xrotation", "Yrotation"], truth).replace("JOINT Neck", f"JOINT {name}")
+    bvh = parse_bvh(text)
+    assert [j.name for j in bvh.joints] == ["Hips", name, "Head", "LeftLeg"] and bvh.frames == 2
+    np.testing.assert_allclose(bvh.channel(bvh.joint("Head"), "Zrotation"), truth[:, 0])
+
+
+def test_errors_name_the_hierarchy_line():
+    text = skeleton_text(["Zrotation", "Xrotation", "Yrotation"], np.zeros((1, 3))).replace(
+        "OFFSET 10 -5 0", "OFFSET 10 -5"
+    )
+    with pytest.raises(UserError, match=r"OFFSET of LeftLeg needs 3 numbers.*\(line 2[0-9]\)"):
+        parse_bvh(text)
+
+
 @pytest.mark.parametrize("order", ["ZXY", "XYZ", "YXZ"])
 def test_head_bvh_round_trip(order):
     rng = np.random.default_rng(3)

@@ -24,7 +24,7 @@ ARRAYS = {
 
 
 def test_zarr_reads_what_msflow_writes(tmp_path, monkeypatch):
-    monkeypatch.setattr("msflow.artifact.CHUNK_BYTES", 100_000)  # force several chunks, with a ragged edge
+    monkeypatch.setattr("msflow.chunks.CHUNK_BYTES", 100_000)  # force several chunks, with a ragged edge
     path = tmp_path / "a"
     manifest = write_artifact(path, ARRAYS, {"meta": {"labels": ["n", "h"]}, "metrics": {"m": 1.5}})
     group = zarr.open_group(str(path), mode="r")

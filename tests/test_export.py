@@ -3,34 +3,139 @@ stream alignment (frame rates, lengths, audio offset) and the user errors around
 
 import csv
 import io
+import os
+import shutil
+import subprocess
+import tempfile
 from pathlib import Path
 
+import av
 import numpy as np
 import pytest
 
 from msflow import UserError
-from msflow.testing import artifact, run_stage
-from stages.export.animation import (
-    ANGLE_COLUMNS,
-    ARKIT_NAMES,
-    Export,
-    align_head_motion,
-    arkit_key,
-    arkit_weights,
-    format_timecode,
-    live_link_csv,
-)
+from msflow.testing import artifact, prepare_inputs, run_stage
+from stages.export.animation import Export
+from stages.export.timeline import align_head_motion
 from stages.formats.audio import decode_audio
 from stages.formats.gltf import read_morph_mesh, validate_glb
+from stages.formats.live_link import (
+    ANGLE_COLUMNS,
+    ARKIT_NAMES,
+    ARKIT_TABLE,
+    arkit_key,
+    arkit_mapping,
+    arkit_weights,
+    fit_destination,
+    format_timecode,
+    live_link_csv,
+    timecode_seconds,
+)
 from stages.geometry.rotations import euler_to_quat, quat_to_euler
 from stages.retarget.character import GltfCharacter
 
 ROOT = Path(__file__).resolve().parents[1]
+NPM_PACKAGES = ("gltf-validator@2.0.0-dev.3.10", "three@0.170.0")
+NPM_INSTALL = f"npm install --no-save --no-package-lock {' '.join(NPM_PACKAGES)}"
 ICT_GLB = ROOT / "data" / "characters" / "ict-facekit.glb"
 CLIP = ROOT / "data" / "crema-d" / "1001_DFA_HAP_XX.flv"
 FPS = 30.0
 FRAMES = 45
 DRIVEN = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L", "browInnerUp_R", "eyeBlink_L"]
+
+
+CHROMIUM = "/usr/bin/chromium"
+ORIGIN = "http://msflow.test"
+THREEJS_PAGE = """<!doctype html><html><body><canvas id=c width=128 height=128></canvas>
+<script type="importmap">{"imports": {"three": "/three/build/three.module.js", "three/addons/": "/three/examples/jsm/"}}
+</script>
+<script type="module">
+import * as THREE from 'three';
+import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+window.probe = async (times) => {
+  const gltf = await new GLTFLoader().parseAsync(await (await fetch('/take.glb')).arrayBuffer(), '/');
+  const scene = gltf.scene, meshes = [], bones = {};
+  scene.traverse(o => { if (o.isMesh) meshes.push(o); if (o.isBone) bones[o.name] = o; });
+  const mixer = new THREE.AnimationMixer(scene);
+  mixer.clipAction(gltf.animations[0]).play();
+  const canvas = document.getElementById('c');
+  const renderer = new THREE.WebGLRenderer({canvas, preserveDrawingBuffer: true});
+  const camera = new THREE.PerspectiveCamera(20, 1, 0.01, 10);
+  camera.position.set(0, 0.03, 0.8);
+  scene.add(new THREE.AmbientLight(0xffffff, 1.0));
+  const frames = [];
+  for (const t of times) {
+    mixer.setTime(t);
+    scene.updateMatrixWorld(true);
+    renderer.render(scene, camera);
+    const gl = renderer.getContext(), pixels = new Uint8Array(128 * 128 * 4);
+    gl.readPixels(0, 0, 128, 128, gl.RGBA, gl.UNSIGNED_BYTE, pixels);
+    let image = 0;
+    for (let i = 0; i < pixels.length; i += 4) image += pixels[i] + 3 * pixels[i + 1] + 7 * pixels[i + 2];
+    frames.push({t, image, influences: Array.from(meshes[0].morphTargetInfluences),
+      skinned: meshes.every(m => m.isSkinnedMesh), head: bones.Head.quaternion.toArray(),
+      left: bones.LeftEye.quaternion.toArray()});
+  }
+  return {bones: Object.keys(bones), webgl: renderer.getContext() !== null,
+          morphs: meshes[0].morphTargetDictionary, frames};
+};
+window.ready = true;
+</script></body></html>"""
+
+
+def probe_in_threejs(glb: bytes, node_modules: Path, times: list[float]) -> dict:
+    """Load the GLB with three.js in headless Chromium (software WebGL), play it at ``times``, report the state.
+
+    Files are served from a made-up origin through Playwright's routing (ES modules do not load from file:)."""
+    from playwright.sync_api import sync_playwright
+
+    def serve(route):
+        path = route.request.url[len(ORIGIN) :]
+        if path == "/":
+            return route.fulfill(body=THREEJS_PAGE, content_type="text/html")
+        if path == "/take.glb":
+            return route.fulfill(body=glb, content_type="model/gltf-binary")
+        file = node_modules / path.lstrip("/")
+        if path.startswith("/three/") and file.is_file():
+            return route.fulfill(body=file.read_bytes(), content_type="text/javascript")
+        return route.fulfill(status=404, body="")
+
+    args = ["--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=args)
+        page = browser.new_page()
+        errors: list[str] = []
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.route(ORIGIN + "/**", serve)
+        page.goto(ORIGIN + "/")
+        page.wait_for_function("window.ready === true")
+        report = page.evaluate("(t) => window.probe(t)", times)
+        browser.close()
+    return report | {"errors": errors}
+
+
+def missing_tool(reason: str):
+    """Skip for a missing outside tool, with the install command; fail instead under CI."""
+    if os.environ.get("CI"):
+        pytest.fail(reason)
+    pytest.skip(reason)
+
+
+@pytest.fixture(scope="session")
+def node_modules():
+    """A node_modules folder with the Khronos glTF validator and three.js, installed once into a cache folder
+    (never into the project) when Node.js is present."""
+    if shutil.which("node") is None or shutil.which("npm") is None:
+        missing_tool("Node.js is not installed: apt-get install -y nodejs npm")
+    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "msflow-npm"
+    modules = cache / "node_modules"
+    if not all((modules / p.rsplit("@", 1)[0]).is_dir() for p in NPM_PACKAGES):
+        cache.mkdir(parents=True, exist_ok=True)
+        proc = subprocess.run(NPM_INSTALL.split() + ["--silent"], cwd=cache, capture_output=True, text=True)
+        if proc.returncode != 0:
+            missing_tool(f"npm could not install {NPM_PACKAGES} ({proc.stderr[-300:]}); run in {cache}: {NPM_INSTALL}")
+    return modules
 
 
 # ------------------------------------------------------------------------------------------------ Live Link Face
@@ -56,18 +161,80 @@ def test_arkit_weights_map_split_and_missing_targets():
         "cheekPuff_R",
         "cheekRaiser_L",
         "tongueOut",
+        "PupilDilate_L",
+        "mouthSmile",
     ]
-    w = np.array([[0.2, 0.5, 0.8, 0.4, 1.0, 0.0, 0.9, 0.3]])
-    out, sources = arkit_weights(w, names)
+    w = np.array([[0.2, 0.5, 0.8, 0.4, 1.0, 0.0, 0.5, 0.3, 0.7, 0.25]])
+    out, mapping = arkit_weights(w, names)
     col = {n: out[0, i] for i, n in enumerate(ARKIT_NAMES)}
     assert col["EyeBlinkLeft"] == pytest.approx(0.2)
     assert col["JawOpen"] == pytest.approx(0.5)
     assert col["BrowInnerUp"] == pytest.approx(0.6)  # mean of the halves
     assert col["CheekPuff"] == pytest.approx(0.5)
     assert col["TongueOut"] == pytest.approx(0.3)
-    assert col["EyeBlinkRight"] == 0.0 and col["MouthSmileLeft"] == 0.0
-    assert sources["BrowInnerUp"] == ["browInnerUp_L", "browInnerUp_R"]
-    assert "cheekRaiser_L" not in sum(sources.values(), [])  # no ARKit counterpart
+    assert col["MouthSmileLeft"] == col["MouthSmileRight"] == pytest.approx(0.25)  # a whole shape feeds both sides
+    # the raised cheek goes to the cheek and eye squint columns of its side
+    assert col["CheekSquintLeft"] == pytest.approx(0.5 * ARKIT_TABLE["cheekRaiser_L"]["CheekSquintLeft"])
+    assert col["EyeSquintLeft"] == pytest.approx(0.5 * ARKIT_TABLE["cheekRaiser_L"]["EyeSquintLeft"])
+    assert col["EyeBlinkRight"] == 0.0 and col["CheekSquintRight"] == 0.0
+    assert mapping.sources["BrowInnerUp"] == ["browInnerUp_L", "browInnerUp_R"]
+    assert mapping.rule["cheekRaiser_L"] == "table" and mapping.rule["jawOpen"] == "namesake"
+    assert mapping.unmapped == ["PupilDilate_L"] and mapping.dropped(w) == ["PupilDilate_L"]
+    assert mapping.dropped(w * 0) == []
+    assert "EyeBlinkRight" in mapping.missing_columns and "JawOpen" not in mapping.missing_columns
+
+
+def test_arkit_sums_are_clipped_and_aliases_take_precedence():
+    names = ["cheekSquint_L", "cheekRaiser_L", "smile_left"]
+    out, mapping = arkit_weights(np.array([[1.0, 1.0, 0.4]]), names, aliases={"smile_left": {"MouthSmileLeft": 2.0}})
+    col = dict(zip(ARKIT_NAMES, out[0]))
+    assert col["CheekSquintLeft"] == 1.0  # 1 + 0.92, clipped to ARKit's [0, 1]
+    assert col["MouthSmileLeft"] == pytest.approx(0.8) and mapping.rule["smile_left"] == "alias"
+    with pytest.raises(ValueError, match="did you mean 'MouthSmileLeft'"):
+        arkit_mapping(names, aliases={"smile_left": {"mouthSmile_L": 1.0}})
+
+
+def test_fitted_destination_recovers_a_known_mix():
+    """A morph built as 0.7 jawOpen + 0.4 mouthFunnel (plus noise far below) is placed in those columns."""
+    rng = np.random.default_rng(1)
+    basis = rng.normal(size=(4, 50, 3))
+    names = ["jawOpen", "mouthFunnel", "browDown_L", "browInnerUp_L", "ahVowel"]
+    mix = 0.7 * basis[0] + 0.4 * basis[1] + 0.01 * rng.normal(size=(50, 3))
+    mapping = arkit_mapping(names, deltas=np.r_[basis, mix[None]])
+    assert mapping.rule["ahVowel"] == "fitted"
+    assert mapping.destinations["ahVowel"] == pytest.approx({"JawOpen": 0.7, "MouthFunnel": 0.4}, abs=0.011)
+    assert mapping.explained["ahVowel"] > 0.95
+    # a half-shape (BrowInnerUp x 0.5) is used at its unit: a copy of browInnerUp_L maps to 0.5 of the column
+    half = arkit_mapping(names[:4] + ["browCopy"], deltas=np.r_[basis, basis[3:4]])
+    assert half.destinations["browCopy"] == pytest.approx({"BrowInnerUp": 0.5})
+    # unrelated displacement: no destination rather than a poor one
+    lone = arkit_mapping(names, deltas=np.r_[basis, rng.normal(size=(1, 50, 3))])
+    assert lone.rule["ahVowel"] == "none"
+
+
+def test_ict_table_is_the_fit_of_the_ict_displacements():
+    """ARKIT_TABLE's factors are fit_destination of each morph on the ICT head (documented derivation)."""
+    mesh = read_morph_mesh(ICT_GLB)
+    names = [n for n in mesh.target_names if not n.startswith("identity")]
+    mapping = arkit_mapping(names)
+    basis_names = [n for n in names if mapping.rule[n] == "namesake" and len(mapping.destinations[n]) == 1]
+    columns = [next(iter(mapping.destinations[n])) for n in basis_names]
+    basis = np.stack(
+        [mesh.deltas[mesh.target_names.index(n)] / mapping.destinations[n][c] for n, c in zip(basis_names, columns)]
+    )
+    for morph, table in ARKIT_TABLE.items():
+        fitted, explained = fit_destination(mesh.deltas[mesh.target_names.index(morph)], basis, columns)
+        assert fitted == pytest.approx(table, abs=0.011), morph
+        assert explained > 0.55
+
+
+def test_every_moving_ict_morph_has_a_destination():
+    mesh = read_morph_mesh(ICT_GLB)
+    names = [n for n in mesh.target_names if not n.startswith("identity")]
+    mapping = arkit_mapping(names, deltas=mesh.deltas[: len(names)])
+    assert mapping.unmapped == ["PupilDilate_L", "PupilDilate_R"]  # ARKit has no pupil
+    assert mapping.missing_columns == ["TongueOut"]  # ICT has no tongue shape
+    assert set(mapping.rule.values()) == {"namesake", "table", "none"}
 
 
 def test_timecodes():
@@ -79,10 +246,15 @@ def test_timecodes():
         "00:00:02:01.000",
         "01:00:01:15.000",
     ]
-    # 29.97 fps: frames are counted at the nominal 30 per second (non-drop-frame), one label per frame
-    codes = format_timecode(np.arange(1000), 29.97)
-    assert codes[1] == "00:00:00:01.000" and codes[30] == "00:00:01:00.000" and codes[999] == "00:00:33:09.000"
-    assert len(set(codes)) == 1000
+    # 29.97 fps (30000/1001): frames labelled at the nominal 30 with the exact sub-frame remainder
+    codes = format_timecode(np.arange(40000), 30000 / 1001)
+    assert codes[1] == "00:00:00:01.001" and codes[30] == "00:00:01:00.030"
+    assert codes == format_timecode(np.arange(40000), 29.97)
+    seconds = np.array([timecode_seconds(c, 29.97) for c in codes])
+    assert np.abs(seconds - np.arange(40000) * 1001 / 30000).max() < 0.5e-3 / 30 + 1e-9
+    assert len(set(codes)) == 40000
+    assert format_timecode(np.array([3]), 60.0) == ["00:00:00:03.000"]
+    assert format_timecode(np.array([24]), 24000 / 1001) == ["00:00:01:00.024"]
 
 
 def test_live_link_csv_layout():
@@ -132,14 +304,24 @@ def character():
     return run_stage(GltfCharacter, {}, {"mesh": ICT_GLB})
 
 
-def make_blend(frames=FRAMES, fps=FPS):
+def make_gaze(frames=FRAMES, fps=FPS):
+    """(frames, 2, 2) degrees: yaw 20 sin(2 pi t) (right eye 0.8 of it), pitch 10 cos(2 pi t) up."""
+    t = np.arange(frames) / fps
+    gaze = np.zeros((frames, 2, 2), np.float32)
+    gaze[:, 0, 0], gaze[:, 1, 0] = 20 * np.sin(2 * np.pi * t), 16 * np.sin(2 * np.pi * t)
+    gaze[:, :, 1] = 10 * np.cos(2 * np.pi * t)[:, None]
+    return gaze
+
+
+def make_blend(frames=FRAMES, fps=FPS, gaze=False):
     t = np.arange(frames) / fps
     w = np.zeros((frames, len(DRIVEN)), np.float32)
     w[:, 0] = np.where((t > 0.5) & (t < 1.0), 1.0, 0.0)  # jaw open between 0.5 s and 1 s
     w[:, 1] = w[:, 2] = np.linspace(0, 1, frames)
     w[:, 3], w[:, 4] = 0.8, 0.4
     w[:, 5] = 0.3
-    return artifact({"weights": w}, {"target_names": DRIVEN, "fps": fps})
+    arrays = {"weights": w, "gaze": make_gaze(frames, fps)} if gaze else {"weights": w}
+    return artifact(arrays, {"target_names": DRIVEN, "fps": fps})
 
 
 def make_head(frames=FRAMES, fps=FPS, units="cm"):
@@ -174,13 +356,18 @@ def exported(character):
     out = run_stage(
         Export,
         {"sequence": "beep", "video_size": 256},
-        {"character": character.view(), "blend": make_blend(), "head": make_head(), "audio": make_audio(offset=0.1)},
+        {
+            "character": character.view(),
+            "blend": make_blend(gaze=True),
+            "head": make_head(),
+            "audio": make_audio(offset=0.1),
+        },
     )
     return out
 
 
-def test_glb_passes_the_khronos_validator(exported):
-    report = validate_glb(exported.arrays["animation"].tobytes())
+def test_glb_passes_the_khronos_validator(exported, node_modules):
+    report = validate_glb(exported.arrays["animation"].tobytes(), node_modules=node_modules)
     assert report["numErrors"] == 0, report["messages"]
     assert report["numWarnings"] == 0, report["messages"]
 
@@ -228,19 +415,159 @@ def test_glb_animation_holds_the_weights_and_head_motion(exported, character, tm
     assert np.abs(mesh.deltas - character.arrays["deltas"]).max() <= 1e-5
 
 
-def test_live_link_csv_from_the_stage(exported):
-    rows = list(csv.reader(io.StringIO(exported.arrays["live_link"].tobytes().decode())))
-    assert len(rows) == FRAMES + 1 and all(len(r) == 63 for r in rows)
-    col = {n: i for i, n in enumerate(rows[0])}
-    jaw = np.array([float(r[col["JawOpen"]]) for r in rows[1:]])
-    assert np.allclose(jaw, make_blend()["weights"][:, 0], atol=1e-6)
-    brow = np.array([float(r[col["BrowInnerUp"]]) for r in rows[1:]])
-    assert np.allclose(brow, 0.6, atol=1e-6)
-    assert all(float(r[col["EyeBlinkRight"]]) == 0.0 for r in rows[1:])
-    yaw = np.array([float(r[col["HeadYaw"]]) for r in rows[1:]])
+def csv_by_name(data: bytes) -> dict[str, np.ndarray]:
+    """Reader 1: Python's csv module, columns looked up by header name."""
+    rows = list(csv.DictReader(io.StringIO(bytes(data).decode())))
+    return {name: np.array([float(r[name]) for r in rows]) for name in ARKIT_NAMES + ANGLE_COLUMNS} | {
+        "Timecode": [r["Timecode"] for r in rows]
+    }
+
+
+def csv_by_position(data: bytes) -> np.ndarray:
+    """Reader 2: numpy's text parser, the 61 values by position (columns 2..62), header skipped unread."""
+    return np.loadtxt(io.StringIO(bytes(data).decode()), delimiter=",", skiprows=1, usecols=range(2, 63), ndmin=2)
+
+
+def test_live_link_csv_read_by_name_and_by_position(exported):
+    data = exported.arrays["live_link"].tobytes()
+    named, values = csv_by_name(data), csv_by_position(data)
+    assert values.shape == (FRAMES, 61)
+    assert np.allclose(values[:, :52], exported.arrays["arkit"], atol=1e-6)
+    for k, name in enumerate(ARKIT_NAMES + ANGLE_COLUMNS):  # both readers see the same numbers
+        assert np.array_equal(named[name], values[:, k]), name
     t = np.arange(FRAMES) / FPS
-    assert np.allclose(yaw, 0.3 * np.sin(2 * np.pi * t), atol=1e-5)
+    assert np.allclose(named["JawOpen"], make_blend()["weights"][:, 0], atol=1e-6)
+    assert np.allclose(named["BrowInnerUp"], 0.6, atol=1e-6)
+    assert np.all(named["EyeBlinkRight"] == 0.0)
+    assert np.allclose(named["HeadYaw"], 0.3 * np.sin(2 * np.pi * t), atol=1e-5)  # radians
+    # eye angles from the gaze: yaw as is, pitch in the head's convention (> 0 looks down), radians
+    gaze = np.radians(make_gaze())
+    assert np.allclose(named["LeftEyeYaw"], gaze[:, 0, 0], atol=1e-6)
+    assert np.allclose(named["RightEyeYaw"], gaze[:, 1, 0], atol=1e-6)
+    assert np.allclose(named["LeftEyePitch"], -gaze[:, 0, 1], atol=1e-6)
+    assert np.all(named["LeftEyeRoll"] == 0.0)
+    assert [timecode_seconds(c, FPS) for c in named["Timecode"]] == pytest.approx(t, abs=1e-9)
     assert exported.metrics["live_link_columns_filled"] == 51  # ICT has all ARKit shapes but TongueOut
+
+
+def glb_accessor(gltf, index: int) -> np.ndarray:
+    """A dense accessor of a pygltflib GLTF2 loaded from a GLB."""
+    acc = gltf.accessors[index]
+    view = gltf.bufferViews[acc.bufferView]
+    dtype = {5126: np.float32, 5121: np.uint8, 5123: np.uint16}[acc.componentType]
+    n = {"SCALAR": 1, "VEC3": 3, "VEC4": 4, "MAT4": 16}[acc.type]
+    offset = (view.byteOffset or 0) + (acc.byteOffset or 0)
+    return np.frombuffer(gltf.binary_blob(), dtype, acc.count * n, offset).reshape(acc.count, n)
+
+
+def load_glb(data: bytes, tmp_path):
+    import pygltflib
+
+    path = tmp_path / "take.glb"
+    path.write_bytes(data)
+    return pygltflib.GLTF2().load(str(path))
+
+
+def test_glb_is_skinned_to_root_head_and_eye_joints(exported, character, tmp_path):
+    """Root and Head joints, an eye joint at each eyeball's centre; every vertex follows the head with weight 1,
+    but the eyeballs', which follow their eye; head motion on the Head joint, gaze on the eye joints."""
+    from stages.export.rig import gaze_rotations
+
+    gltf = load_glb(exported.arrays["animation"].tobytes(), tmp_path)
+    skin = gltf.skins[0]
+    names = [gltf.nodes[j].name for j in skin.joints]
+    assert names == ["Root", "Head", "LeftEye", "RightEye"]
+    mesh_node = next(n for n in gltf.nodes if n.mesh is not None)
+    assert mesh_node.skin == 0 and gltf.nodes.index(mesh_node) in gltf.scenes[0].nodes  # a root node
+    attributes = gltf.meshes[0].primitives[0].attributes
+    joints, weights = glb_accessor(gltf, attributes.JOINTS_0), glb_accessor(gltf, attributes.WEIGHTS_0)
+    assert np.all(weights == [1, 0, 0, 0])
+    eyes = [e for e in exported.meta["eyes"]]
+    groups = [g["name"] for g in character.meta["groups"]]
+    tri_groups = character.arrays["triangle_groups"]
+    for side, joint in ((0, 2), (1, 3)):
+        eye_groups = [i for i, g in enumerate(groups) if "Eye" in g and ("Left" if side == 0 else "Right") in g]
+        ids = np.unique(character.arrays["triangles"][np.isin(tri_groups, eye_groups)])
+        assert np.all(joints[ids, 0] == joint)
+        assert np.allclose(eyes[side]["radius"], 0.0144, atol=5e-4)  # the ICT eyeball, 14.4 mm
+    assert (joints[:, 0] == 1).sum() == len(joints) - sum(np.sum(joints[:, 0] == j) for j in (2, 3))
+    assert np.all(joints[:, 1:] == 0)
+    # inverse bind matrices translate by minus each joint's position
+    ibm = glb_accessor(gltf, skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)
+    assert np.allclose(ibm[2, :3, 3], -np.array(eyes[0]["center"]), atol=1e-6)
+    assert np.allclose(ibm[1, :3, 3], -np.array(character.meta["pivot"]), atol=1e-6)
+    # the animation: weights on the mesh node, head on Head, gaze on the eyes
+    anim = gltf.animations[0]
+    target = {(gltf.nodes[c.target.node].name, c.target.path): anim.samplers[c.sampler].output for c in anim.channels}
+    assert set(target) == {
+        ("Character", "weights"),
+        ("Head", "rotation"),
+        ("Head", "translation"),
+        ("LeftEye", "rotation"),
+        ("RightEye", "rotation"),
+    }
+    head = glb_accessor(gltf, target["Head", "rotation"])[:, [3, 0, 1, 2]]
+    assert np.allclose(np.abs((head * make_head()["rotation"]).sum(axis=1)), 1.0, atol=1e-6)
+    left = glb_accessor(gltf, target["LeftEye", "rotation"])[:, [3, 0, 1, 2]]
+    assert np.allclose(np.abs((left * gaze_rotations(make_gaze())[:, 0]).sum(axis=1)), 1.0, atol=1e-6)
+
+
+def test_gaze_without_eyes_goes_to_the_csv_with_a_warning(character):
+    inputs = {"character": character.view(), "blend": make_blend(gaze=True)}
+    result = run_with_warnings({"preview": False, "skin": False}, inputs)
+    assert any("gaze goes to the Live Link CSV only" in w for w in result.warnings)
+    named = csv_by_name(result.arrays["live_link"])
+    assert np.allclose(named["LeftEyeYaw"], np.radians(make_gaze()[:, 0, 0]), atol=1e-6)
+    plain = load_glb(result.arrays["animation"], Path(tempfile.mkdtemp()))
+    assert not plain.skins and [n.name for n in plain.nodes] == ["Head", "Character"]
+
+
+def test_output_frame_rate(character):
+    """fps: 60 from a 30 fps take: twice the frames, same duration, integer timecodes, streams interpolated."""
+    inputs = {"character": character.view(), "blend": make_blend(gaze=True), "head": make_head()}
+    out = run_stage(Export, {"preview": False, "fps": 60}, inputs)
+    frames = 2 * FRAMES
+    assert len(out.arrays["weights"]) == frames and out.meta["fps"] == 60.0
+    assert np.allclose(out.arrays["time"], np.arange(frames) / 60)
+    names = out.meta["target_names"]
+    smile = out.arrays["weights"][:, names.index("mouthSmile_L")]
+    ramp = np.linspace(0, 1, FRAMES)  # the blend's ramp, sampled at half frames and held past its end
+    assert np.allclose(smile, np.interp(np.arange(frames) / 2, np.arange(FRAMES), ramp), atol=1e-6)
+    yaw = quat_to_euler(out.arrays["head_rotation"])[:, 0]
+    t = np.minimum(np.arange(frames) / 60, (FRAMES - 1) / FPS)
+    assert np.allclose(yaw[::2], 0.3 * np.sin(2 * np.pi * t[::2]), atol=1e-6)
+    codes = csv_by_name(out.arrays["live_link"])["Timecode"]
+    assert codes[61] == "00:00:01:01.000" and all(c.endswith(".000") for c in codes)
+    assert np.allclose(out.arrays["gaze"][::2], make_gaze(), atol=1e-5)
+    for bad in (0, -30, 241):
+        with pytest.raises(ValueError, match="fps"):
+            Export.Params(fps=bad)
+
+
+def test_threejs_plays_the_glb_in_headless_chromium(exported, node_modules):
+    """three.js (GLTFLoader + AnimationMixer) in Debian's Chromium: a skinned mesh whose morph influences,
+    head rotation and eye rotations follow the animation, and rendered frames that change over time."""
+    if not Path(CHROMIUM).exists():
+        missing_tool(f"Chromium is not installed: apt-get update && apt-get install -y chromium ({CHROMIUM})")
+    times = [k / FPS for k in (0, 8, 15, 22, 30, 42)]  # key frames: the jaw is open at 22 only
+    report = probe_in_threejs(exported.arrays["animation"].tobytes(), node_modules, times)
+    assert report["errors"] == []
+    assert report["bones"] == ["Root", "Head", "LeftEye", "RightEye"] and report["webgl"]
+    index = report["morphs"]["jawOpen"]
+    head, gaze = make_head(), make_gaze()
+    from stages.export.rig import gaze_rotations
+
+    for frame in report["frames"]:
+        k = int(round(frame["t"] * FPS))
+        assert frame["skinned"]
+        expected_jaw = make_blend()["weights"][k, 0]
+        assert frame["influences"][index] == pytest.approx(expected_jaw, abs=1e-6)
+        q = np.array(frame["head"])[[3, 0, 1, 2]]
+        assert abs(q @ head["rotation"][k]) == pytest.approx(1.0, abs=1e-5)
+        q = np.array(frame["left"])[[3, 0, 1, 2]]
+        assert abs(q @ gaze_rotations(gaze)[k, 0]) == pytest.approx(1.0, abs=1e-5)
+    images = [f["image"] for f in report["frames"]]
+    assert len(set(images)) == len(images) and min(images) > 0  # something is drawn, and it moves
 
 
 def decode_mp4(data: bytes):
@@ -286,10 +613,10 @@ def test_bvh_carries_the_head_rotation(exported):
     assert np.allclose(np.abs((q * make_head()["rotation"]).sum(axis=1)), 1.0, atol=1e-6)
 
 
-def test_export_without_head_or_audio(character):
+def test_export_without_head_or_audio(character, node_modules):
     out = run_stage(Export, {"preview": False}, {"character": character.view(), "blend": make_blend(12)})
     assert "head_bvh" not in out.arrays and "preview" not in out.arrays
-    report = validate_glb(out.arrays["animation"].tobytes())
+    report = validate_glb(out.arrays["animation"].tobytes(), node_modules=node_modules)
     assert report["numErrors"] == 0 and report["numWarnings"] == 0, report["messages"]
     rows = list(csv.reader(io.StringIO(out.arrays["live_link"].tobytes().decode())))
     assert all(float(x) == 0.0 for r in rows[1:] for x in r[54:])
@@ -426,6 +753,64 @@ def test_real_take_audio_is_muxed(character):
     assert abs(lags[int(np.argmax(scores))]) <= 4  # in sync
     corr = np.corrcoef(audio[64 : 64 + n - 2048], ref[64 : 64 + n - 2048])[0, 1]
     assert corr > 0.9
+
+
+def run_with_warnings(params, inputs):
+    """The stage's Result with its warnings (msflow.testing.run_stage keeps arrays, meta and metrics only)."""
+    return Export("export").run(Export.Params(**params), prepare_inputs(Export, inputs))
+
+
+def test_a_character_without_the_needed_morphs_is_warned_about():
+    """Missing ARKit columns and moving morphs without an ARKit column are named in stage warnings."""
+    rng = np.random.default_rng(2)
+    neutral = rng.normal(size=(30, 3)).astype(np.float32)
+    names = ["jawOpen", "wiggle", "PupilDilate_L", "smile_left"]
+    deltas = rng.normal(size=(4, 30, 3)).astype(np.float32)
+    toy = artifact(
+        {
+            "neutral": neutral,
+            "triangles": np.arange(30).reshape(10, 3),
+            "deltas": deltas,
+            "landmark_ids": np.arange(68) % 30,
+        },
+        {"target_names": names},
+    )
+    blend = artifact({"weights": np.full((4, 4), 0.5, np.float32)}, {"target_names": names, "fps": FPS})
+    result = run_with_warnings({"preview": False}, {"character": toy, "blend": blend})
+    missing, dropped = result.warnings
+    assert "EyeBlinkLeft" in missing and "JawOpen" not in missing and "TongueOut" not in missing
+    assert "['wiggle', 'PupilDilate_L', 'smile_left']" in dropped
+    assert result.meta["live_link"]["dropped_morphs"] == ["wiggle", "PupilDilate_L", "smile_left"]
+    # an alias gives smile_left its column: no longer dropped, and the column is filled
+    result = run_with_warnings(
+        {"preview": False, "arkit_aliases": {"smile_left": {"MouthSmileLeft": 1.0}}}, {"character": toy, "blend": blend}
+    )
+    assert "smile_left" not in result.warnings[1] and "MouthSmileLeft" not in result.warnings[0]
+    col = ARKIT_NAMES.index("MouthSmileLeft")
+    assert np.allclose(result.arrays["arkit"][:, col], 0.5)
+    # a bad alias is refused by Params, before anything runs
+    with pytest.raises(ValueError, match="not one of the 52 ARKit columns"):
+        Export.Params(arkit_aliases={"smile_left": {"Smile": 1.0}})
+
+
+def test_the_ict_export_warns_about_nothing(exported):
+    """ICT FaceKit: every ARKit column but TongueOut has a source, and no moving morph is dropped."""
+    assert exported.meta["live_link"]["empty_columns"] == ["TongueOut"]
+    assert exported.meta["live_link"]["dropped_morphs"] == []
+
+
+def test_a_silent_take_gives_a_silent_preview_with_a_warning(character):
+    """Tracking contract: a take without audio has meta has_audio[label] false (or no audio output at all)."""
+    silent = make_audio(0.0)
+    silent.meta["has_audio"] = {"happy": True, "beep": False}
+    no_audio = artifact({"landmarks": np.zeros((3, 68, 2))}, {"labels": ["beep"], "fps": [FPS]})
+    for audio in (silent, no_audio):
+        inputs = {"character": character.view(), "blend": make_blend(6), "audio": audio}
+        result = run_with_warnings({"sequence": "beep", "video_size": 32}, inputs)
+        assert result.warnings == ["the take 'beep' has no audio: the preview is silent"]
+        assert result.meta["video"]["audio"] is False
+        with av.open(io.BytesIO(result.arrays["preview"])) as container:
+            assert not container.streams.audio and container.streams.video[0].frames == 6
 
 
 def test_figures(exported):

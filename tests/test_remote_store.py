@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 from conftest import cli_env, executions, run_cli
 
+import msflow
 from msflow.artifact import check_contents, encode_artifact, prepare_manifest
 from msflow.errors import UserError
 from msflow.remote import RemoteStore, open_remote_store
@@ -229,7 +230,6 @@ def test_sigkilled_runs_leave_nothing_visible_and_the_next_run_recovers(numproje
     assert result.returncode == 0, result.stderr
     verify = run_cli(numproject, "verify", "crash.yaml")
     assert verify.returncode == 0 and "0 corrupt" in verify.stdout, verify.stdout
-    import msflow
 
     out = msflow.run(numproject / "crash.yaml")
     assert out.executed == []
@@ -240,6 +240,17 @@ def test_sigkilled_runs_leave_nothing_visible_and_the_next_run_recovers(numproje
     store.clean_tmp(max_age=0)
     assert uncommitted_folders(store) == set()
     assert store.objects.list("pending/") == [] and store.objects.list("locks/") == []
+
+
+def test_output_sinks_stream_to_s3_with_the_hashes_of_whole_arrays(numproject, s3):
+    on_s3(numproject, s3, s3.bucket(), files=("stream.yaml",))
+    out = msflow.run(numproject / "stream.yaml")
+    assert out.states["streamed"].manifest["outputs"] == out.states["whole"].manifest["outputs"]
+    frames = out.load("streamed.frames")
+    assert frames.shape == (270_000, 16) and np.isclose(out.load("total.total"), frames.astype(np.float64).sum())
+    store = out.session.store
+    assert all(store.verify(key) == [] for key in store.keys())
+    assert store.objects.list("pending/") == []
 
 
 # ------------------------------------------------------------------------------------------- store contract

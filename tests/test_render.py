@@ -192,3 +192,39 @@ def test_character_renderer_shows_the_face_and_its_expressions(ict):
 
     turned = renderer(np.zeros(len(names)), rotation=euler_to_quat(0.4, 0.0, 0.0))
     assert np.abs(turned.astype(int) - neutral.astype(int)).mean() > 5
+
+
+def test_eyes_turn_about_their_centres(ict):
+    """An eye rotation from gaze turns the eyeball: yaw towards the character's left (+x) moves the iris to the
+    image's right (the camera faces the character), pitch up moves it up; the rest of the face stays."""
+    from stages.export.rig import find_eyes, gaze_rotations
+
+    groups = [g["name"] for g in ict.meta["groups"]]
+    eyes = find_eyes(ict["neutral"], ict["triangles"], ict["triangle_groups"], groups)
+    assert [e.side for e in eyes] == [0, 1]
+    renderer = CharacterRenderer.from_artifact(ict, size=256, eyes=[(e.vertices, e.center) for e in eyes])
+    zeros = np.zeros(len(ict.meta["target_names"]))
+    iris = [g for g, name in enumerate(groups) if "Iris" in name or "Pupil" in name]
+    iris_vertices = np.unique(ict["triangles"][np.isin(ict["triangle_groups"], iris)])
+
+    def iris_centre(gaze):
+        v = renderer.vertices(zeros, eye_rotations=gaze_rotations(np.array(gaze, float))[None][0])
+        _, xy = project(v[iris_vertices], renderer.view, 256)
+        return xy.mean(axis=0), v
+
+    (x0, y0), still = iris_centre([[0, 0], [0, 0]])
+    (x1, y1), turned = iris_centre([[25, 0], [25, 0]])
+    (x2, y2), _ = iris_centre([[0, 15], [0, 15]])
+    assert x1 > x0 + 2 and abs(y1 - y0) < 0.5  # towards the image's right
+    assert y2 < y0 - 1.5 and abs(x2 - x0) < 0.5  # up (image y points down)
+    others = np.setdiff1d(np.arange(len(still)), np.concatenate([e.vertices for e in eyes]))
+    assert np.array_equal(still[others], turned[others])
+    # the eyeball turns about its centre: its vertices keep their distance to it
+    for e in eyes:
+        assert np.allclose(
+            np.linalg.norm(turned[e.vertices] - e.center, axis=1),
+            np.linalg.norm(still[e.vertices] - e.center, axis=1),
+            atol=1e-6,
+        )
+    image = renderer(zeros, eye_rotations=gaze_rotations(np.array([[25.0, 0], [25.0, 0]])))
+    assert np.abs(image.astype(int) - renderer(zeros).astype(int)).sum(axis=2).max() > 60

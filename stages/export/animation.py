@@ -1,385 +1,97 @@
-"""Export: what an animator opens. The retargeted morph weights (paper Eq 9) and the synthesised head motion
-(Sec 5) on the character, as
+"""Export: what an animator opens. The retargeted morph weights (paper Eq 9), the synthesised head motion (Sec 5)
+and the gaze on the character, as
 
-- a GLB (glTF 2.0): the character with a morph-weight animation and, given head motion, rotation and translation
-  on its ``Head`` node (valid for the Khronos glTF Validator: no errors, no warnings);
-- a Live Link Face CSV: ``Timecode, BlendShapeCount``, the 52 ARKit blendshapes in PascalCase, then head and eye
-  angles (61 values per row), as the Live Link Face app records them;
-- a preview MP4: the character rendered (stages.geometry.render) at the pipeline fps with the take's audio muxed in;
-- a BVH of the head joint, given head motion (stages.formats.bvh).
+- a GLB (glTF 2.0, valid for the Khronos glTF Validator: no errors, no warnings): the character skinned to a
+  ``Root`` joint, a ``Head`` joint at the head pivot carrying the head rotation and translation, and an eye joint
+  per eyeball carrying the gaze when the character has eyes (stages.export.rig); the morph-weight animation on the
+  mesh. Every vertex but the eyeballs' follows the head with weight 1;
+- a Live Link Face CSV (stages.formats.live_link): the 52 ARKit blendshapes from the character's morphs through the
+  public ARKit mapping, head and eye angles (radians by default), exact timecodes;
+- a BVH of the head joint, given head motion (stages.formats.bvh), in centimetres and degrees;
+- a preview MP4 (stages.export.preview): the character rendered with the take's audio.
 
-Streams are on one timeline: frame i of the blend weights is at i / fps seconds, the take's audio is placed by its
-``audio_offset`` (start of the audio relative to the first video frame). A head motion at another frame rate is an
-error unless ``resample_head`` is set (then it is resampled: slerp for rotation, linear for translation); a head
-motion shorter or longer than the face animation by at most ``max_length_mismatch`` seconds is held at its last
-frame or cut, more is an error.
+Every file is sampled at the output frame rate ``fps`` (default: the blend's); see stages.export.timeline for how
+the streams are aligned and resampled. docs/formats.md states every convention and unit.
 """
 
 from __future__ import annotations
 
-import io
-from fractions import Fraction
+from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
+from pydantic import Field, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.geometry.rotations import quat_continuous, quat_normalize, quat_slerp, quat_to_euler
+from stages.export.timeline import (
+    align_head_motion,
+    output_frames,
+    sample_linear,
+    sample_positions,
+    select_take,
+    translation_scale,
+)
+from stages.formats.live_link import ARKIT_NAMES, UNTRACKED_COLUMNS, ArkitMapping, arkit_mapping, check_aliases
+from stages.geometry.rotations import quat_continuous, quat_normalize, quat_to_euler
 
-#: the 52 ARKit blendshapes in the column order of Live Link Face CSV files
-ARKIT_NAMES = [
-    "EyeBlinkLeft",
-    "EyeLookDownLeft",
-    "EyeLookInLeft",
-    "EyeLookOutLeft",
-    "EyeLookUpLeft",
-    "EyeSquintLeft",
-    "EyeWideLeft",
-    "EyeBlinkRight",
-    "EyeLookDownRight",
-    "EyeLookInRight",
-    "EyeLookOutRight",
-    "EyeLookUpRight",
-    "EyeSquintRight",
-    "EyeWideRight",
-    "JawForward",
-    "JawRight",
-    "JawLeft",
-    "JawOpen",
-    "MouthClose",
-    "MouthFunnel",
-    "MouthPucker",
-    "MouthRight",
-    "MouthLeft",
-    "MouthSmileLeft",
-    "MouthSmileRight",
-    "MouthFrownLeft",
-    "MouthFrownRight",
-    "MouthDimpleLeft",
-    "MouthDimpleRight",
-    "MouthStretchLeft",
-    "MouthStretchRight",
-    "MouthRollLower",
-    "MouthRollUpper",
-    "MouthShrugLower",
-    "MouthShrugUpper",
-    "MouthPressLeft",
-    "MouthPressRight",
-    "MouthLowerDownLeft",
-    "MouthLowerDownRight",
-    "MouthUpperUpLeft",
-    "MouthUpperUpRight",
-    "BrowDownLeft",
-    "BrowDownRight",
-    "BrowInnerUp",
-    "BrowOuterUpLeft",
-    "BrowOuterUpRight",
-    "CheekPuff",
-    "CheekSquintLeft",
-    "CheekSquintRight",
-    "NoseSneerLeft",
-    "NoseSneerRight",
-    "TongueOut",
-]
-ANGLE_COLUMNS = [
-    "HeadYaw",
-    "HeadPitch",
-    "HeadRoll",
-    "LeftEyeYaw",
-    "LeftEyePitch",
-    "LeftEyeRoll",
-    "RightEyeYaw",
-    "RightEyePitch",
-    "RightEyeRoll",
-]
-LIVE_LINK_COUNT = len(ARKIT_NAMES) + len(ANGLE_COLUMNS)  # 61
-UNITS_TO_METRES = {"m": 1.0, "metre": 1.0, "meter": 1.0, "metres": 1.0, "meters": 1.0, "cm": 0.01, "mm": 0.001}
+#: preview levels: "full" renders every triangle at params.video_size; "low" renders half the pixels of each side
+PREVIEW_LEVELS = ("low", "full")
 
 
-# ------------------------------------------------------------------------------------------------ Live Link Face
+@dataclass
+class Performance:
+    """The take as exported: every stream on the output timeline (``frames`` at ``fps``)."""
+
+    label: str | None
+    fps: float
+    weights: np.ndarray  # (frames, targets) in the character's target order, in [0, 1]
+    rotation: np.ndarray | None = None  # (frames, 4) head rotation (w, x, y, z)
+    translation: np.ndarray | None = None  # (frames, 3) head translation, metres, as exported
+    gaze: np.ndarray | None = None  # (frames, 2, 2) degrees, [left, right][yaw, pitch up]
+    meta: dict = field(default_factory=dict)
+    metrics: dict = field(default_factory=dict)
+
+    @property
+    def frames(self) -> int:
+        return len(self.weights)
+
+    @property
+    def times(self) -> np.ndarray:
+        return np.arange(self.frames) / self.fps
 
 
-def arkit_key(name: str) -> str:
-    """A target name in Live Link Face spelling: ICT/ARKit ``eyeBlink_L`` or ``eyeBlinkLeft`` -> ``EyeBlinkLeft``."""
-    key = name.strip()
-    for suffix, side in (
-        ("_L", "Left"),
-        ("_R", "Right"),
-        (".L", "Left"),
-        (".R", "Right"),
-        ("_l", "Left"),
-        ("_r", "Right"),
-    ):
-        if key.endswith(suffix):
-            key = key[: -len(suffix)] + side
-            break
-    return key[:1].upper() + key[1:]
+# ------------------------------------------------------------------------------------------------ validate
 
 
-def arkit_weights(weights: np.ndarray, target_names: list[str]) -> tuple[np.ndarray, dict[str, list[str]]]:
-    """(frames, 52) ARKit blendshape weights from a character's morph weights, in Live Link Face column order.
+def character_targets(character) -> tuple[list[str], np.ndarray]:
+    """The character's morph names and (targets, V, 3) deltas, checked against each other."""
+    names = list(character.meta.get("target_names") or [])
+    deltas = np.asarray(character["deltas"], dtype=np.float32)
+    if len(names) != len(deltas):
+        raise UserError(
+            f"character meta lists {len(names)} target names for {len(deltas)} morph targets",
+            field="inputs.character",
+        )
+    return names, deltas
 
-    Names match after ``arkit_key`` (case-insensitive). ARKit's whole ``BrowInnerUp`` and ``CheekPuff`` are split
-    left/right in ICT FaceKit: the column gets the mean of the halves (the weight that, applied to both halves,
-    reproduces their total displacement when the halves are mirror images). Columns with no source stay 0.
-    Returns the weights and, per column, the target names it was made from.
-    """
+
+def blend_take(blend, sequence: str | None) -> tuple[np.ndarray, np.ndarray | None, str | None, float]:
+    """The chosen take's rows of the blend: weights (frames, M), gaze (frames, 2, 2) or None, label, fps."""
+    fps = blend.meta.get("fps")
+    if not fps or fps <= 0:
+        raise UserError("the blend has no meta fps", field="inputs.blend")
+    (weights, gaze), label = select_take(blend, ("weights", "gaze"), sequence, None, "the blend")
     weights = np.asarray(weights, dtype=np.float64)
-    by_key: dict[str, int] = {}
-    for i, name in enumerate(target_names):
-        by_key.setdefault(arkit_key(name).lower(), i)
-    out = np.zeros((weights.shape[0], len(ARKIT_NAMES)))
-    sources: dict[str, list[str]] = {}
-    for c, column in enumerate(ARKIT_NAMES):
-        key = column.lower()
-        if key in by_key:
-            ids = [by_key[key]]
-        else:
-            ids = [by_key[k] for k in (key + "left", key + "right") if k in by_key]
-        if ids:
-            out[:, c] = weights[:, ids].mean(axis=1)
-            sources[column] = [target_names[i] for i in ids]
-    return out, sources
-
-
-def format_timecode(frame: np.ndarray, fps: float) -> list[str]:
-    """Live Link Face timecodes ``HH:MM:SS:FF.fff`` counting frames at the nominal (rounded) rate, as video
-    timecode does: at 29.97 fps the labels run non-drop-frame at 30 per second, slightly slower than the clock,
-    so every frame gets its own label and the sub-frame field stays .000."""
-    nominal = max(int(round(fps)), 1)
-    whole = np.asarray(frame, dtype=np.int64)
-    seconds, ff = np.divmod(whole, nominal)
-    minutes, ss = np.divmod(seconds, 60)
-    hh, mm = np.divmod(minutes, 60)
-    return [f"{h:02d}:{m:02d}:{s:02d}:{f:02d}.000" for h, m, s, f in zip(hh, mm, ss, ff)]
-
-
-def live_link_csv(
-    arkit: np.ndarray, fps: float, head_angles: np.ndarray | None = None, eye_angles: np.ndarray | None = None
-) -> bytes:
-    """The CSV text: header, then one row per frame with 61 values (angles in radians, 0 where unknown)."""
-    frames = arkit.shape[0]
-    angles = np.zeros((frames, len(ANGLE_COLUMNS)))
-    if head_angles is not None:
-        angles[:, :3] = head_angles
-    if eye_angles is not None:
-        angles[:, 3:] = eye_angles
-    values = np.concatenate([arkit, angles], axis=1)
-    lines = [",".join(["Timecode", "BlendShapeCount"] + ARKIT_NAMES + ANGLE_COLUMNS)]
-    codes = format_timecode(np.arange(frames), fps)
-    text_values = np.char.mod("%.6f", np.round(values, 6) + 0.0)  # + 0.0 turns -0.0 into 0.0
-    for code, row in zip(codes, text_values):
-        lines.append(f"{code},{LIVE_LINK_COUNT}," + ",".join(row))
-    return ("\n".join(lines) + "\n").encode("utf-8")
-
-
-# ------------------------------------------------------------------------------------------------ timelines
-
-
-def resample_head_motion(
-    rotation: np.ndarray, translation: np.ndarray, source_fps: float, target_fps: float, frames: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Head motion sampled at ``frames`` instants i / target_fps: slerp between the neighbouring source frames
-    for rotation, linear for translation; past the last source frame the last pose holds."""
-    rotation = quat_continuous(quat_normalize(rotation))
-    position = np.arange(frames) * (source_fps / target_fps)
-    position = np.clip(position, 0, len(rotation) - 1)
-    lo = np.floor(position).astype(np.int64)
-    hi = np.minimum(lo + 1, len(rotation) - 1)
-    frac = position - lo
-    rot = quat_slerp(rotation[lo], rotation[hi], frac)
-    trans = translation[lo] * (1 - frac)[:, None] + translation[hi] * frac[:, None]
-    return rot, trans
-
-
-def align_head_motion(
-    rotation: np.ndarray,
-    translation: np.ndarray,
-    head_fps: float,
-    fps: float,
-    frames: int,
-    *,
-    resample: bool,
-    max_mismatch: float,
-    fps_tolerance: float = 1e-3,
-) -> tuple[np.ndarray, np.ndarray, dict]:
-    """The head motion on the face animation's timeline (``frames`` at ``fps``): see the module docstring."""
-    info: dict = {"head_fps": float(head_fps), "head_frames": int(len(rotation))}
-    if abs(head_fps - fps) > fps_tolerance * fps:
-        if not resample:
-            raise UserError(
-                f"frame-rate mismatch: head motion at {head_fps:g} fps, blend weights at {fps:g} fps; "
-                f"resample the head motion (params.resample_head: true) or make the streams agree",
-                field="inputs.head",
-            )
-        info["resampled"] = True
-    head_duration = len(rotation) / head_fps
-    duration = frames / fps
-    shortfall = duration - head_duration
-    if shortfall > max_mismatch or -shortfall > max_mismatch:
+    names = list(blend.meta.get("target_names") or [])
+    if weights.ndim != 2 or weights.shape[1] != len(names):
         raise UserError(
-            f"head motion lasts {head_duration:.3f} s but the face animation {duration:.3f} s "
-            f"(difference above params.max_length_mismatch = {max_mismatch:g} s)",
-            field="inputs.head",
+            f"blend weights {weights.shape} do not match its {len(names)} target names", field="inputs.blend"
         )
-    rot, trans = resample_head_motion(rotation, translation, head_fps, fps, frames)
-    info["held_frames"] = int(max(0, frames - int(np.floor(head_duration * fps + 1e-9))))
-    return rot, trans, info
-
-
-def choose_take(labels: list[str], explicit: str | None, preferred: str | None, field: str) -> int:
-    """Index of the take to use among ``labels``: the one named by params.sequence (must exist), else the one the
-    blend's take is called (when present), else the only one; several takes and no way to choose is an error."""
-    if explicit is not None:
-        if labels and explicit not in labels:
-            raise UserError(f"no take labelled '{explicit}' in {field}; labels: {labels}", field="params.sequence")
-        return labels.index(explicit) if labels else 0
-    if preferred is not None and preferred in labels:
-        return labels.index(preferred)
-    if len(labels) > 1:
-        raise UserError(
-            f"{field} holds several takes {labels}; choose one with params.sequence", field="params.sequence"
-        )
-    return 0
-
-
-def take_audio(
-    audio_view, explicit: str | None, preferred: str | None, fps: float, frames: int
-) -> tuple[np.ndarray, int, dict]:
-    """The chosen take's audio on the animation timeline: shifted by its audio_offset (leading silence or
-    dropped samples) and cut or padded to ``frames / fps`` seconds."""
-    meta = audio_view.meta
-    if "audio" not in audio_view or "audio_bounds" not in audio_view:
-        raise UserError("the audio input has no audio (its tracking ran without audio)", field="inputs.audio")
-    labels = list(meta.get("labels") or [])
-    index = choose_take(labels, explicit, preferred, "the audio input")
-
-    def per_take(key, default=None):
-        value = meta.get(key, default)
-        return value[index] if isinstance(value, (list, tuple)) else value
-
-    rate = per_take("audio_rate")
-    if not rate:
-        raise UserError("the audio input has no meta audio_rate", field="inputs.audio")
-    rate = int(rate)
-    take_fps = per_take("fps")
-    if take_fps and abs(float(take_fps) - fps) > 1e-3 * fps:
-        raise UserError(
-            f"frame-rate mismatch: the take '{labels[index] if labels else index}' was tracked at "
-            f"{float(take_fps):g} fps but the blend weights are at {fps:g} fps",
-            field="inputs.audio",
-        )
-    bounds = np.asarray(audio_view["audio_bounds"])
-    start, stop = (int(v) for v in bounds[index])
-    samples = np.asarray(audio_view["audio"][start:stop], dtype=np.float32)
-    offset = float(per_take("audio_offset", 0.0) or 0.0)
-    shift = int(round(offset * rate))
-    if shift > 0:
-        samples = np.concatenate([np.zeros(shift, np.float32), samples])
-    elif shift < 0:
-        samples = samples[-shift:]
-    length = int(round(frames / fps * rate))
-    info = {
-        "audio_label": labels[index] if labels else None,
-        "audio_rate": rate,
-        "audio_offset": offset,
-        "audio_seconds_source": float((stop - start) / rate),
-    }
-    if len(samples) < length:
-        samples = np.concatenate([samples, np.zeros(length - len(samples), np.float32)])
-    return samples[:length], rate, info
-
-
-# ------------------------------------------------------------------------------------------------ video
-
-
-def video_codec_name(requested: str = "auto") -> str:
-    """libx264 when PyAV's FFmpeg has it, else the built-in MPEG-4 Part 2 encoder."""
-    import av
-
-    available = av.codecs_available
-    if requested != "auto":
-        if requested not in available:
-            raise UserError(f"video codec '{requested}' is not available in PyAV's FFmpeg", field="params.video_codec")
-        return requested
-    return "libx264" if "libx264" in available else "mpeg4"
-
-
-def encode_mp4(
-    frames,
-    fps: float,
-    size: tuple[int, int],
-    *,
-    audio: np.ndarray | None = None,
-    audio_rate: int | None = None,
-    codec: str = "auto",
-    crf: int = 20,
-) -> tuple[bytes, str]:
-    """Encode RGB uint8 frames (an iterable of (H, W, 3)) and optional mono float audio into MP4 bytes."""
-    import av
-
-    codec = video_codec_name(codec)
-    buffer = io.BytesIO()
-    rate = Fraction(fps).limit_denominator(1001)
-    with av.open(buffer, mode="w", format="mp4") as container:
-        video = container.add_stream(codec, rate=rate)
-        video.width, video.height = size
-        video.pix_fmt = "yuv420p"
-        video.codec_context.thread_count = 1  # one core, and byte-identical output from run to run
-        if codec == "libx264":
-            video.options = {"crf": str(crf), "preset": "medium"}
-        else:
-            video.codec_context.bit_rate = 2_000_000
-        astream = None
-        if audio is not None and len(audio):
-            astream = container.add_stream("aac", rate=int(audio_rate))
-            astream.layout = "mono"
-        for index, rgb in enumerate(frames):
-            frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
-            # explicit timestamps: without them x264's rate control sees undefined frame times and the output
-            # varies from run to run
-            frame.pts = index
-            frame.time_base = 1 / rate
-            for packet in video.encode(frame):
-                container.mux(packet)
-        for packet in video.encode(None):
-            container.mux(packet)
-        if astream is not None:
-            # explicit timestamps let the encoder mark its priming samples, which the MP4 edit list then skips:
-            # the first audio sample plays with the first video frame
-            if not astream.codec_context.is_open:
-                astream.codec_context.open()
-            step = astream.codec_context.frame_size or 1024
-            samples = np.asarray(audio, np.float32).reshape(1, -1)
-            for start in range(0, samples.shape[1], step):
-                chunk = av.AudioFrame.from_ndarray(
-                    np.ascontiguousarray(samples[:, start : start + step]), format="flt", layout="mono"
-                )
-                chunk.sample_rate = int(audio_rate)
-                chunk.pts = start
-                chunk.time_base = Fraction(1, int(audio_rate))
-                for packet in astream.encode(chunk):
-                    container.mux(packet)
-            for packet in astream.encode(None):
-                container.mux(packet)
-    return buffer.getvalue(), codec
-
-
-# ------------------------------------------------------------------------------------------------ the stage
-
-
-def _select_frames(blend, explicit: str | None) -> tuple[np.ndarray, str | None]:
-    """Rows of the blend weights for one take when the blend holds several (``sequence`` + meta labels), and
-    the take's label (None when the blend does not name it)."""
-    weights = np.asarray(blend["weights"], dtype=np.float64)
-    labels = list(blend.meta.get("labels") or [])
-    if "sequence" in blend and labels:
-        sequence = np.asarray(blend["sequence"])
-        present = [labels[i] for i in np.unique(sequence)]
-        if len(present) > 1:
-            index = choose_take(labels, explicit, None, "the blend")
-            return weights[sequence == index], labels[index]
-        return weights, present[0] if present else None
-    return weights, (labels[0] if len(labels) == 1 else None)
+    if len(weights) == 0:
+        raise UserError("the blend has no frames", field="inputs.blend")
+    if gaze is not None and np.shape(gaze) != (len(weights), 2, 2):
+        raise UserError(f"blend gaze {np.shape(gaze)}, expected ({len(weights)}, 2, 2)", field="inputs.blend")
+    return weights, gaze, label, float(fps)
 
 
 def character_weights(blend_weights: np.ndarray, blend_names: list[str], character_names: list[str]) -> np.ndarray:
@@ -394,72 +106,264 @@ def character_weights(blend_weights: np.ndarray, blend_names: list[str], charact
     return out
 
 
-def translation_scale(meta: dict, override: float | None) -> tuple[float | None, str]:
-    """Metres per unit of the head translation: the param, else from meta translation_units. Undeclared units
-    ("unknown", e.g. a BVH database without a stated unit) give None: the translation is left out, rotation
-    stays. Declared units that are not lengths (pixels) are the user's to convert."""
-    if override is not None:
-        return float(override), "params.translation_scale"
-    units = meta.get("translation_units", meta.get("units"))
-    if units is None or str(units).lower() in ("", "unknown"):
-        return None, "unknown: head translation left out (set params.translation_scale, metres per unit)"
-    if str(units).lower() not in UNITS_TO_METRES:
-        raise UserError(
-            f"head translation is in '{units}', which has no known size in metres; set "
-            f"params.translation_scale (metres per unit) or params.head_translation: none",
-            field="params.translation_scale",
+def head_motion(head, params, label: str | None, frames: int, fps: float, out_fps: float):
+    """Head rotation and translation (metres, as exported) on the output timeline, and what was done."""
+    head_fps = head.meta.get("fps")
+    if not head_fps:
+        raise UserError("the head motion has no meta fps", field="inputs.head")
+    (rotation, translation), head_label = select_take(
+        head, ("rotation", "translation"), params.sequence, label, "the head motion"
+    )
+    rotation, translation, info = align_head_motion(
+        np.asarray(rotation, np.float64),
+        np.asarray(translation, np.float64),
+        float(head_fps),
+        fps,
+        frames,
+        resample=params.resample_head,
+        max_mismatch=params.max_length_mismatch,
+        out_fps=out_fps,
+    )
+    info["take"] = head_label
+    scale = None
+    if params.head_translation != "none":
+        scale, info["translation_units"] = translation_scale(head.meta, params.translation_scale)
+    if scale is None:
+        translation = np.zeros_like(translation)
+    else:
+        translation = translation * scale
+        if params.head_translation == "relative":
+            translation = translation - translation.mean(axis=0)
+    info["translation_exported"] = scale is not None
+    return quat_continuous(quat_normalize(rotation)), translation, info
+
+
+def read_performance(params, inputs, names: list[str]) -> Performance:
+    """Validate the blend and head inputs and put every stream on the output timeline."""
+    blend_weights, gaze, label, fps = blend_take(inputs["blend"], params.sequence)
+    weights = character_weights(blend_weights, list(inputs["blend"].meta.get("target_names")), names)
+    clipped = float(np.mean((blend_weights < -1e-6) | (blend_weights > 1 + 1e-6)))  # of the blend's entries
+    out_fps = float(params.fps or fps)
+    frames_out = output_frames(len(weights), fps, out_fps)
+    position = sample_positions(frames_out, out_fps, fps, len(weights))
+    perf = Performance(
+        label,
+        out_fps,
+        np.clip(sample_linear(weights, position), 0.0, 1.0),
+        gaze=None if gaze is None else sample_linear(gaze, position),
+        meta={"fps": out_fps, "source_fps": fps, "target_names": names, "take": label},
+        metrics={"frames": frames_out, "duration_s": frames_out / out_fps, "clipped_fraction": clipped},
+    )
+    if inputs["head"] is not None:
+        perf.rotation, perf.translation, info = head_motion(inputs["head"], params, label, len(weights), fps, out_fps)
+        perf.meta["head"] = info
+        perf.metrics["head_held_frames"] = info["held_frames"]
+        perf.metrics["head_translation_exported"] = int(info.pop("translation_exported"))
+    return perf
+
+
+# ------------------------------------------------------------------------------------------------ pack
+
+
+def character_mesh(character, names: list[str], deltas: np.ndarray):
+    """The character as a stages.formats.gltf MorphMesh (materials, landmark ids and pivot in its extras)."""
+    from stages.formats.gltf import MaterialGroup, MorphMesh
+
+    groups = [
+        MaterialGroup(g.get("name", f"group{i}"), tuple(g.get("color", (0.8, 0.8, 0.8, 1.0))))
+        for i, g in enumerate(character.meta.get("groups") or [])
+    ]
+    return MorphMesh(
+        positions=np.asarray(character["neutral"], np.float32),
+        triangles=np.asarray(character["triangles"], np.int32),
+        target_names=names,
+        deltas=deltas,
+        triangle_groups=character["triangle_groups"] if "triangle_groups" in character else None,
+        groups=groups,
+        extras={
+            "landmarkVertexIds": [int(i) for i in character["landmark_ids"]],
+            "headPivot": list(pivot_of(character)),
+        },
+        name="Character",
+    )
+
+
+def pivot_of(character) -> tuple[float, float, float]:
+    return tuple(float(v) for v in character.meta.get("pivot", (0.0, 0.0, 0.0)))
+
+
+def character_eyes(character):
+    """The character's eyeballs (stages.export.rig.find_eyes), [] without eye material groups."""
+    from stages.export.rig import find_eyes
+
+    groups = [g.get("name", "") for g in character.meta.get("groups") or []]
+    triangle_groups = character["triangle_groups"] if "triangle_groups" in character else None
+    return find_eyes(character["neutral"], character["triangles"], triangle_groups, groups)
+
+
+def pack_glb(mesh, perf: Performance, eyes, skin: bool, pivot) -> bytes:
+    """The GLB: the skinned character (root, head and eye joints) or the plain node layout, with the animation."""
+    from stages.export.rig import EYE_JOINTS, character_skeleton, gaze_rotations
+    from stages.formats.gltf import Animation, write_morph_glb
+
+    joint_rotations = {}
+    if skin and eyes and perf.gaze is not None:
+        rotations = gaze_rotations(perf.gaze)
+        joint_rotations = {EYE_JOINTS[eye.side]: rotations[:, eye.side] for eye in eyes}
+    animation = Animation(
+        times=perf.times,
+        weights=perf.weights,
+        rotation=perf.rotation,
+        translation=perf.translation,
+        pivot=pivot,
+        joint_rotations=joint_rotations,
+    )
+    return write_morph_glb(
+        mesh,
+        animation=animation,
+        skeleton=character_skeleton(len(mesh.positions), pivot, eyes) if skin else None,
+        generator="msflow stages.export.animation",
+        scene_extras={"fps": perf.fps, "take": perf.label},
+    )
+
+
+def angles_in(radians: np.ndarray | None, units: str) -> np.ndarray | None:
+    return None if radians is None else np.degrees(radians) if units == "degrees" else radians
+
+
+def pack_live_link(perf: Performance, mapping: ArkitMapping, angle_units: str) -> tuple[bytes, np.ndarray]:
+    """The Live Link Face CSV and its (frames, 52) ARKit weights."""
+    from stages.export.rig import gaze_euler
+    from stages.formats.live_link import live_link_csv
+
+    arkit = mapping.weights(perf.weights)
+    head = angles_in(quat_to_euler(perf.rotation) if perf.rotation is not None else None, angle_units)
+    eyes = angles_in(gaze_euler(perf.gaze).reshape(perf.frames, 6) if perf.gaze is not None else None, angle_units)
+    return live_link_csv(arkit, perf.fps, head, eyes), arkit
+
+
+def live_link_report(mapping: ArkitMapping, weights: np.ndarray, angle_units: str) -> tuple[dict, list[str]]:
+    """meta["live_link"] and the warnings about missing ARKit columns and dropped morphs."""
+    missing = [c for c in mapping.missing_columns if c not in UNTRACKED_COLUMNS]
+    dropped = mapping.dropped(weights)
+    meta = {
+        "destinations": {n: d for n, d in mapping.destinations.items() if d},
+        "rules": mapping.rule,
+        "fitted_explained": mapping.explained,
+        "columns_from": mapping.sources,
+        "empty_columns": mapping.missing_columns,
+        "dropped_morphs": dropped,
+        "angle_units": angle_units,
+    }
+    warnings = []
+    if missing:
+        warnings.append(
+            f"Live Link CSV: the character has no morph for the ARKit columns {missing} (written as 0); "
+            f"name its equivalents in params.arkit_aliases"
         )
-    return UNITS_TO_METRES[str(units).lower()], str(units)
+    if dropped:
+        warnings.append(
+            f"Live Link CSV: the morphs {dropped} move but have no ARKit column: dropped from the CSV "
+            f"(kept in the GLB); give them one in params.arkit_aliases"
+        )
+    return meta, warnings
 
 
-def select_take(
-    view, names: tuple[str, ...], explicit: str | None, preferred: str | None, field: str
-) -> tuple[list[np.ndarray], str | None]:
-    """Rows of ``names`` for one take of an artifact holding several back to back (``sequence`` output + meta
-    labels, e.g. motion_blend over several test utterances); an artifact with one take is used whole."""
-    arrays = [np.asarray(view[n]) for n in names]
-    labels = list(view.meta.get("labels") or [])
-    if "sequence" not in view or len(labels) <= 1:
-        return arrays, (labels[0] if labels else None)
-    index = choose_take(labels, explicit, preferred, field)
-    rows = np.asarray(view["sequence"]) == index
-    return [a[rows] for a in arrays], labels[index]
+def pack_preview(character, perf: Performance, eyes, params, audio_view, jobs: int) -> tuple[bytes, dict, list[str]]:
+    """The preview MP4 with the take's audio, its meta and warnings (a silent take)."""
+    from stages.export.preview import Poses, encode_mp4, rendered_frames
+    from stages.export.rig import gaze_rotations
+    from stages.export.timeline import take_audio
+    from stages.geometry.render import CharacterRenderer
+
+    samples = rate = None
+    meta: dict = {}
+    warnings = []
+    if audio_view is not None:
+        seconds = perf.frames / perf.fps
+        samples, rate, meta["audio"] = take_audio(
+            audio_view, params.sequence, perf.label, perf.meta["source_fps"], seconds
+        )
+        if samples is None:
+            warnings.append(f"the take '{meta['audio']['audio_label']}' has no audio: the preview is silent")
+    size = int(params.video_size) // (2 if params.preview == "low" else 1) // 2 * 2  # yuv420p needs even sides
+    renderer = CharacterRenderer.from_artifact(
+        character,
+        size=size,
+        framing=params.framing,
+        yaw=params.view_yaw,
+        supersample=params.supersample,
+        eyes=[(eye.vertices, eye.center) for eye in eyes],
+    )
+    eye_rotations = gaze_rotations(perf.gaze) if eyes and perf.gaze is not None else None
+    poses = Poses(perf.weights, perf.rotation, perf.translation, eye_rotations)
+    frames = rendered_frames(renderer, poses, jobs=jobs)
+    video, codec = encode_mp4(frames, perf.fps, (size, size), audio=samples, audio_rate=rate, codec=params.video_codec)
+    meta["video"] = {"codec": codec, "size": size, "framing": params.framing, "level": params.preview}
+    meta["video"]["audio"] = samples is not None
+    return video, meta, warnings
+
+
+# ------------------------------------------------------------------------------------------------ the stage
 
 
 class Export(Stage):
-    """GLB with morph-weight (and head) animation, Live Link Face CSV, preview MP4 with audio, head BVH."""
+    """GLB with morph-weight, head and eye animation, Live Link Face CSV, preview MP4 with audio, head BVH."""
 
     class Params(Stage.Params):
         #: take label: picks the take in a multi-take blend, head motion and audio input (their meta labels);
         #: default: the blend's take, or the only take
         sequence: str | None = None
+        #: output frame rate of every file (e.g. 24, 25, 30, 60); default: the blend's
+        fps: float | None = Field(None, gt=0, le=240)
         #: head motion at another frame rate than the blend: False = error, True = resample onto the blend's frames
         resample_head: bool = False
         #: longest tolerated difference in duration between head motion and face animation, seconds
-        max_length_mismatch: float = 0.25
+        max_length_mismatch: float = Field(0.25, ge=0)
         #: "relative": head position minus its mean; "absolute": as given; "none": rotation only (also what
         #: happens when the head's translation_units are unknown and translation_scale is not set)
-        head_translation: str = "relative"
+        head_translation: Literal["relative", "absolute", "none"] = "relative"
         #: metres per unit of the head translation (default: from the head meta translation_units)
-        translation_scale: float | None = None
-        #: Live Link Face angle columns in "radians" or "degrees"
-        angle_units: str = "radians"
-        preview: bool = True
-        video_size: int = 384
-        video_codec: str = "auto"
+        translation_scale: float | None = Field(None, gt=0)
+        #: Live Link Face angle columns (head and eyes) in "radians" or "degrees"
+        angle_units: Literal["radians", "degrees"] = "radians"
+        #: extra ARKit destinations for the character's morphs, {morph: {ARKit column: factor}}, taking
+        #: precedence over the built-in rules (stages.formats.live_link); e.g. {smile_left: {MouthSmileLeft: 1}}
+        arkit_aliases: dict[str, dict[str, float]] = {}
+        #: GLB layout: True = skinned to Root/Head/eye joints (Unreal keeps morph targets on skinned meshes only);
+        #: False = a Head node over the mesh node
+        skin: bool = True
+        #: preview video: False (none), "low" (half the size) or "full"
+        preview: Literal[False, "low", "full"] = "full"
+        video_size: int = Field(384, ge=16, le=4096)
+        video_codec: Literal["auto", "libx264", "mpeg4"] = "auto"
         #: "face" frames the landmarks, "head" the whole mesh
-        framing: str = "face"
-        view_yaw: float = 0.0
-        supersample: int = 1
+        framing: Literal["face", "head"] = "face"
+        #: camera yaw about the character, radians
+        view_yaw: float = Field(0.0, ge=-np.pi, le=np.pi)
+        #: render k times larger and average k x k blocks (anti-aliasing at k^2 the cost)
+        supersample: int = Field(1, ge=1, le=4)
+
+        @field_validator("arkit_aliases")
+        @classmethod
+        def _known_columns(cls, value):
+            return check_aliases(value)
+
+        @field_validator("preview", mode="before")
+        @classmethod
+        def _preview_true_is_full(cls, value):
+            return "full" if value is True else value
 
     inputs = {
         "character": Input.artifact("neutral", "triangles", "deltas", "landmark_ids", doc="stages.retarget.character"),
-        "blend": Input.artifact("weights", doc="morph weights (frames, M) in [0, 1], meta target_names, fps"),
+        "blend": Input.artifact(
+            "weights", doc="morph weights (frames, M) in [0, 1], meta target_names, fps; optional gaze (frames, 2, 2)"
+        ),
         "head": Input.artifact("rotation", "translation", optional=True, doc="head motion, meta fps"),
         "audio": Input.artifact(optional=True, doc="a tracking artifact with the take's audio"),
     }
     outputs = {
-        "animation": Output.file(".glb", doc="the character with morph-weight and head animation"),
+        "animation": Output.file(".glb", doc="the skinned character with morph-weight, head and eye animation"),
         "live_link": Output.file(".csv", doc="Live Link Face CSV, 61 values per frame"),
         "preview": Output.file(".mp4", optional=True, doc="rendered preview with the take's audio"),
         "head_bvh": Output.file(".bvh", optional=True, doc="the head joint's motion"),
@@ -483,163 +387,53 @@ class Export(Stage):
         "head_translation": Output.array(
             "f", shape=("frames", 3), dtype="float64", optional=True, doc="head translation as exported, metres"
         ),
+        "gaze": Output.array(
+            "f", shape=("frames", 2, 2), dtype="float32", optional=True, doc="gaze as exported, degrees"
+        ),
     }
 
     def run(self, params, inputs):
-        from stages.formats.gltf import Animation, MaterialGroup, MorphMesh, write_morph_glb
-
-        if params.head_translation not in ("relative", "absolute", "none"):
-            raise UserError(
-                "head_translation must be 'relative', 'absolute' or 'none'", field="params.head_translation"
+        character = inputs["character"]
+        names, deltas = character_targets(character)
+        perf = read_performance(params, inputs, names)
+        eyes = character_eyes(character)
+        meta, metrics, warnings = perf.meta, perf.metrics, []
+        meta["eyes"] = [{"side": e.side, "center": e.center.tolist(), "radius": e.radius} for e in eyes]
+        if perf.gaze is not None and not (eyes and params.skin):
+            warnings.append(
+                "the character has no eye joints (no eye material groups, or params.skin false): "
+                "gaze goes to the Live Link CSV only"
             )
-        if params.angle_units not in ("radians", "degrees"):
-            raise UserError("angle_units must be 'radians' or 'degrees'", field="params.angle_units")
-        if params.video_size < 16:
-            raise UserError("video_size must be at least 16 pixels", field="params.video_size")
-        character, blend, head, audio = inputs["character"], inputs["blend"], inputs["head"], inputs["audio"]
-        char_names = list(character.meta.get("target_names") or [])
-        deltas = np.asarray(character["deltas"], dtype=np.float32)
-        if len(char_names) != len(deltas):
-            raise UserError(
-                f"character meta lists {len(char_names)} target names for {len(deltas)} morph targets",
-                field="inputs.character",
-            )
-        fps = blend.meta.get("fps")
-        if not fps or fps <= 0:
-            raise UserError("the blend has no meta fps", field="inputs.blend")
-        fps = float(fps)
-        blend_weights, label = _select_frames(blend, params.sequence)
-        blend_names = list(blend.meta.get("target_names") or [])
-        if blend_weights.ndim != 2 or blend_weights.shape[1] != len(blend_names):
-            raise UserError(
-                f"blend weights {blend_weights.shape} do not match its {len(blend_names)} target names",
-                field="inputs.blend",
-            )
-        frames = blend_weights.shape[0]
-        if frames == 0:
-            raise UserError("the blend has no frames", field="inputs.blend")
-        weights = np.clip(character_weights(blend_weights, blend_names, char_names), 0.0, 1.0)
-        clipped = float(np.mean((blend_weights < -1e-6) | (blend_weights > 1 + 1e-6)))  # of the blend's entries
-        times = np.arange(frames) / fps
-        meta: dict = {"fps": fps, "target_names": char_names, "take": label}
-        metrics: dict = {"frames": frames, "duration_s": frames / fps, "clipped_fraction": clipped}
-
-        rotation = translation = None
-        if head is not None:
-            head_fps = head.meta.get("fps")
-            if not head_fps:
-                raise UserError("the head motion has no meta fps", field="inputs.head")
-            (head_rot, head_trans), head_label = select_take(
-                head, ("rotation", "translation"), params.sequence, label, "the head motion"
-            )
-            rotation, translation, info = align_head_motion(
-                head_rot.astype(np.float64),
-                head_trans.astype(np.float64),
-                float(head_fps),
-                fps,
-                frames,
-                resample=params.resample_head,
-                max_mismatch=params.max_length_mismatch,
-            )
-            rotation = quat_continuous(quat_normalize(rotation))
-            info["take"] = head_label
-            scale = None
-            if params.head_translation != "none":
-                scale, info["translation_units"] = translation_scale(head.meta, params.translation_scale)
-            if scale is None:
-                translation = np.zeros_like(translation)
-            else:
-                translation = translation * scale
-                if params.head_translation == "relative":
-                    translation = translation - translation.mean(axis=0)
-            meta["head"] = info
-            metrics["head_held_frames"] = info["held_frames"]
-            metrics["head_translation_exported"] = int(scale is not None)
-
-        groups_meta = character.meta.get("groups") or []
-        groups = [
-            MaterialGroup(g.get("name", f"group{i}"), tuple(g.get("color", (0.8, 0.8, 0.8, 1.0))))
-            for i, g in enumerate(groups_meta)
-        ]
-        tri_groups = character["triangle_groups"] if "triangle_groups" in character else None
-        pivot = tuple(float(v) for v in character.meta.get("pivot", (0.0, 0.0, 0.0)))
-        mesh = MorphMesh(
-            positions=np.asarray(character["neutral"], np.float32),
-            triangles=np.asarray(character["triangles"], np.int32),
-            target_names=char_names,
-            deltas=deltas,
-            triangle_groups=tri_groups,
-            groups=groups,
-            extras={"landmarkVertexIds": [int(i) for i in character["landmark_ids"]], "headPivot": list(pivot)},
-            name="Character",
-        )
-        animation = Animation(times=times, weights=weights, rotation=rotation, translation=translation, pivot=pivot)
-        glb = write_morph_glb(
-            mesh,
-            animation=animation,
-            generator="msflow stages.export.animation",
-            scene_extras={"fps": fps, "take": label},
-        )
-
-        arkit, sources = arkit_weights(weights, char_names)
-        head_angles = quat_to_euler(rotation) if rotation is not None else None
-        if head_angles is not None and params.angle_units == "degrees":
-            head_angles = np.degrees(head_angles)
-        csv = live_link_csv(arkit, fps, head_angles)
-        meta["live_link"] = {
-            "columns_from": sources,
-            "empty_columns": [c for c in ARKIT_NAMES if c not in sources],
-            "angle_units": params.angle_units,
-        }
-        metrics["live_link_columns_filled"] = len(sources)
-
+        mapping = arkit_mapping(names, deltas, params.arkit_aliases)
+        csv, arkit = pack_live_link(perf, mapping, params.angle_units)
+        meta["live_link"], mapping_warnings = live_link_report(mapping, perf.weights, params.angle_units)
+        warnings += mapping_warnings
+        metrics["live_link_columns_filled"] = len(mapping.sources)
+        glb = pack_glb(character_mesh(character, names, deltas), perf, eyes, params.skin, pivot_of(character))
+        metrics["glb_bytes"] = len(glb)
         arrays = {
             "animation": glb,
             "live_link": csv,
-            "weights": weights.astype(np.float32),
+            "weights": perf.weights.astype(np.float32),
             "arkit": arkit.astype(np.float32),
-            "time": times,
+            "time": perf.times,
         }
-        if rotation is not None:
+        if perf.gaze is not None:
+            arrays["gaze"] = perf.gaze.astype(np.float32)
+        if perf.rotation is not None:
             from stages.formats.bvh import head_bvh
 
-            arrays["head_rotation"] = rotation
-            arrays["head_translation"] = translation
-            # BVH convention: centimetres
-            arrays["head_bvh"] = head_bvh(rotation, translation * 100.0, fps).encode("utf-8")
-
+            arrays["head_rotation"] = perf.rotation
+            arrays["head_translation"] = perf.translation
+            arrays["head_bvh"] = head_bvh(perf.rotation, perf.translation * 100.0, perf.fps).encode("utf-8")
         if params.preview:
-            samples = rate = None
-            if audio is not None:
-                samples, rate, audio_info = take_audio(audio, params.sequence, label, fps, frames)
-                meta["audio"] = audio_info
-            video, codec = render_preview(character, weights, rotation, translation, fps, params, samples, rate)
-            arrays["preview"] = video
-            meta["video"] = {
-                "codec": codec,
-                "size": params.video_size // 2 * 2,
-                "framing": params.framing,
-                "audio": samples is not None,
-            }
-        metrics["glb_bytes"] = len(glb)
-        return Result(arrays, meta=meta, metrics=metrics)
-
-
-def render_preview(
-    character, weights: np.ndarray, rotation, translation, fps: float, params, audio=None, audio_rate=None
-) -> tuple[bytes, str]:
-    """Render every frame (stages.geometry.render) and encode the MP4 (frames stream into the encoder one by one)."""
-    from stages.geometry.render import CharacterRenderer
-
-    size = int(params.video_size) // 2 * 2  # yuv420p needs even sides
-    renderer = CharacterRenderer.from_artifact(
-        character, size=size, framing=params.framing, yaw=params.view_yaw, supersample=params.supersample
-    )
-    frames = (
-        renderer(weights[i], None if rotation is None else rotation[i], None if translation is None else translation[i])
-        for i in range(len(weights))
-    )
-    return encode_mp4(frames, fps, (size, size), audio=audio, audio_rate=audio_rate, codec=params.video_codec)
+            jobs = max(1, int(getattr(self, "jobs", 1) or 1))
+            arrays["preview"], video_meta, video_warnings = pack_preview(
+                character, perf, eyes, params, inputs["audio"], jobs
+            )
+            meta.update(video_meta)
+            warnings += video_warnings
+        return Result(arrays, meta=meta, metrics=metrics, warnings=warnings)
 
 
 def plot_curves(view, inputs=None):

@@ -68,97 +68,146 @@ class Bvh:
         return self.motion[:, joint.channel_start + joint.channels.index(channel)]
 
 
-def parse_bvh(text: str, *, source: str | None = None) -> Bvh:
-    """Parse BVH text; malformed files raise UserError naming ``source``."""
+class BvhSyntax:
+    """The HIERARCHY section as a token stream with line numbers, for a small recursive-descent parser."""
 
-    def fail(message: str):
-        raise UserError(f"not a valid BVH file: {message}", file=source)
+    def __init__(self, text: str, source: str | None, first_line: int = 1):
+        self.source = source
+        self.tokens = [
+            (token, number) for number, line in enumerate(text.splitlines(), start=first_line) for token in line.split()
+        ]
+        self.at = 0
 
-    head, sep, motion_text = text.partition("MOTION")
-    if not sep:
-        fail("no MOTION section")
-    tokens = head.split()
-    if not tokens or tokens[0] != "HIERARCHY":
-        fail("does not start with HIERARCHY")
-    joints: list[BvhJoint] = []
-    stack: list[int] = []  # joint index per open brace; -2 marks an End Site block
-    pending: BvhJoint | None = None
-    channel_count = 0
-    i = 1
-    try:
-        while i < len(tokens):
-            tok = tokens[i]
-            if tok in ("ROOT", "JOINT"):
-                name = tokens[i + 1]
-                parent = next((s for s in reversed(stack) if s >= 0), -1)
-                if tok == "JOINT" and parent < 0:
-                    fail(f"JOINT {name} outside any ROOT")
-                pending = BvhJoint(name, parent, np.zeros(3), [])
-                i += 2
-            elif tok == "End":  # "End Site"
-                pending = None
-                stack_marker = -2
-                if tokens[i + 2] != "{":
-                    fail("End Site without a block")
-                stack.append(stack_marker)
-                i += 3
-            elif tok == "{":
-                if pending is None:
-                    fail("unexpected '{'")
-                joints.append(pending)
-                stack.append(len(joints) - 1)
-                pending = None
-                i += 1
-            elif tok == "}":
-                if not stack:
-                    fail("unbalanced '}'")
-                stack.pop()
-                i += 1
-            elif tok == "OFFSET":
-                values = np.array([float(v) for v in tokens[i + 1 : i + 4]])
-                if stack and stack[-1] == -2:
-                    owner = next((s for s in reversed(stack) if s >= 0), None)
-                    if owner is not None:
-                        joints[owner].end_site = values
-                elif stack:
-                    joints[stack[-1]].offset = values
-                i += 4
-            elif tok == "CHANNELS":
-                n = int(tokens[i + 1])
-                names = tokens[i + 2 : i + 2 + n]
-                bad = [c for c in names if c not in POSITION_CHANNELS + ROTATION_CHANNELS]
-                if bad or len(names) != n:
-                    fail(f"unknown channels {bad}")
-                joint = joints[stack[-1]]
-                joint.channels = list(names)
-                joint.channel_start = channel_count
-                channel_count += n
-                i += 2 + n
-            else:
-                fail(f"unexpected token {tok!r} in HIERARCHY")
-    except (IndexError, ValueError) as exc:
-        fail(f"truncated or malformed HIERARCHY ({exc})")
-    if stack:
-        fail("unbalanced braces in HIERARCHY")
-    if not joints:
-        fail("no joints")
+    def fail(self, message: str):
+        line = self.tokens[min(self.at, len(self.tokens) - 1)][1] if self.tokens else 1
+        raise UserError(f"not a valid BVH file: {message} (line {line})", file=self.source)
 
-    frames_match = re.search(r"Frames:\s*(\d+)", motion_text)
-    time_match = re.search(r"Frame\s+Time:\s*([0-9.eE+-]+)", motion_text)
+    def peek(self) -> str | None:
+        return self.tokens[self.at][0] if self.at < len(self.tokens) else None
+
+    def take(self, what: str = "a token") -> str:
+        if self.at >= len(self.tokens):
+            self.fail(f"the HIERARCHY ends where {what} was expected")
+        self.at += 1
+        return self.tokens[self.at - 1][0]
+
+    def expect(self, word: str, context: str) -> None:
+        found = self.take(repr(word))
+        if found != word:
+            self.at -= 1
+            self.fail(f"expected {word!r} {context}, found {found!r}")
+
+    def numbers(self, count: int, what: str) -> list[float]:
+        words = [self.take(what) for _ in range(count)]
+        try:
+            return [float(w) for w in words]
+        except ValueError:
+            self.fail(f"{what} needs {count} numbers, got {words}")
+
+
+def parse_joint(syntax: BvhSyntax, joints: list[BvhJoint], parent: int, channel_count: int) -> int:
+    """``ROOT|JOINT name { OFFSET x y z  CHANNELS n ...  (JOINT ... | End Site { OFFSET x y z })* }``: appends
+    the joint, then its children, depth first; returns the channel count after them."""
+    keyword = syntax.take()
+    name = syntax.take("a joint name")
+    joint = BvhJoint(name, parent, np.zeros(3), [])
+    joints.append(joint)
+    index = len(joints) - 1
+    syntax.expect("{", f"after {keyword} {name}")
+    while (token := syntax.peek()) != "}":
+        if token == "OFFSET":
+            syntax.take()
+            joint.offset = np.array(syntax.numbers(3, f"OFFSET of {name}"))
+        elif token == "CHANNELS":
+            joint.channels, joint.channel_start = parse_channels(syntax, name), channel_count
+            channel_count += len(joint.channels)
+        elif token == "JOINT":
+            channel_count = parse_joint(syntax, joints, index, channel_count)
+        elif token == "End":
+            joint.end_site = parse_end_site(syntax, name)
+        elif token is None or token == "MOTION":
+            syntax.fail(f"unbalanced braces: joint {name} is not closed")
+        else:
+            syntax.fail(f"unexpected token {token!r} in joint {name}")
+    syntax.take()
+    return channel_count
+
+
+def parse_channels(syntax: BvhSyntax, owner: str) -> list[str]:
+    """``CHANNELS n name ...`` with known channel names."""
+    syntax.take()
+    count = syntax.take("a channel count")
+    if not count.isdigit():
+        syntax.fail(f"CHANNELS of {owner} needs a count, got {count!r}")
+    names = [syntax.take("a channel name") for _ in range(int(count))]
+    bad = [c for c in names if c not in POSITION_CHANNELS + ROTATION_CHANNELS]
+    if bad:
+        syntax.fail(f"unknown channels {bad} in joint {owner}")
+    return names
+
+
+def parse_end_site(syntax: BvhSyntax, owner: str) -> np.ndarray:
+    """``End Site { OFFSET x y z }`` (an End Site carries no motion: ``CHANNELS 0`` is tolerated, more is not)."""
+    syntax.take()
+    syntax.expect("Site", "after End")
+    syntax.expect("{", f"after End Site of {owner}")
+    offset = np.zeros(3)
+    while (token := syntax.peek()) != "}":
+        if token == "OFFSET":
+            syntax.take()
+            offset = np.array(syntax.numbers(3, f"OFFSET of the End Site of {owner}"))
+        elif token == "CHANNELS":
+            if parse_channels(syntax, f"{owner}'s End Site"):
+                syntax.fail(f"the End Site of {owner} lists channels; an End Site carries no motion")
+        else:
+            syntax.fail(f"unexpected token {token!r} in the End Site of {owner}")
+    syntax.take()
+    return offset
+
+
+def parse_motion(text: str, channel_count: int, fail) -> tuple[float, np.ndarray]:
+    """``Frames: n``, ``Frame Time: dt``, then n rows of ``channel_count`` numbers."""
+    frames_match = re.search(r"Frames:\s*(\d+)", text)
+    time_match = re.search(r"Frame\s+Time:\s*([0-9.eE+-]+)", text)
     if not frames_match or not time_match:
         fail("MOTION lacks 'Frames:' or 'Frame Time:'")
-    n_frames = int(frames_match.group(1))
-    frame_time = float(time_match.group(1))
+    n_frames, frame_time = int(frames_match.group(1)), float(time_match.group(1))
     if not frame_time > 0:
         fail(f"Frame Time must be positive, got {frame_time}")
-    body = motion_text[time_match.end() :]
     try:
-        values = np.array(body.split(), dtype=np.float64)
+        values = np.array(text[time_match.end() :].split(), dtype=np.float64)
     except ValueError:
         fail("non-numeric values in MOTION")
     if values.size != n_frames * channel_count:
         fail(f"MOTION holds {values.size} values, expected Frames {n_frames} x {channel_count} channels")
-    return Bvh(joints, frame_time, values.reshape(n_frames, channel_count), source)
+    return frame_time, values.reshape(n_frames, channel_count)
+
+
+def parse_bvh(text: str, *, source: str | None = None) -> Bvh:
+    """Parse BVH text; malformed files raise UserError naming ``source`` (and the line, in the HIERARCHY).
+
+    The MOTION section starts at the first line holding only the word ``MOTION``, so a joint may be named
+    anything; joints (several ROOTs allowed) are listed depth first, channels numbered in the same order.
+    """
+
+    def fail(message: str):
+        raise UserError(f"not a valid BVH file: {message}", file=source)
+
+    split = re.search(r"^[ \t]*MOTION[ \t]*\r?$", text, re.MULTILINE)
+    if split is None:
+        fail("no MOTION section")
+    syntax = BvhSyntax(text[: split.start()], source)
+    syntax.expect("HIERARCHY", "at the start")
+    joints: list[BvhJoint] = []
+    channel_count = 0
+    while syntax.peek() is not None:
+        if syntax.peek() != "ROOT":
+            syntax.fail(f"expected ROOT, found {syntax.peek()!r}" + (" (unbalanced braces)" if joints else ""))
+        channel_count = parse_joint(syntax, joints, -1, channel_count)
+    if not joints:
+        fail("no joints")
+    frame_time, motion = parse_motion(text[split.end() :], channel_count, fail)
+    return Bvh(joints, frame_time, motion, source)
 
 
 def read_bvh(path, *, field: str | None = None) -> Bvh:

@@ -66,8 +66,10 @@ class Animation:
     """Keyframes sampled at ``times`` (seconds, strictly increasing), played with LINEAR interpolation.
 
     ``weights`` (frames, M) drive the morph targets in the mesh's target order; ``rotation`` (frames, 4) is in the
-    stages.geometry.rotations (w, x, y, z) convention and ``translation`` (frames, 3) in metres: both animate the head node,
-    which turns about ``pivot`` (a point in mesh coordinates, e.g. the top of the neck).
+    stages.geometry.rotations (w, x, y, z) convention and ``translation`` (frames, 3) in metres: both animate the
+    head (the ``Head`` joint of a Skeleton, else a ``Head`` node), which turns about ``pivot`` (a point in mesh
+    coordinates, e.g. the top of the neck; a Skeleton's Head joint position replaces it).
+    ``joint_rotations`` {joint name: (frames, 4)} turn other joints of a Skeleton relative to their parent (eyes).
     """
 
     times: np.ndarray
@@ -75,7 +77,41 @@ class Animation:
     rotation: np.ndarray | None = None
     translation: np.ndarray | None = None
     pivot: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    joint_rotations: dict[str, np.ndarray] = field(default_factory=dict)
     name: str = "performance"
+
+
+@dataclass
+class Skeleton:
+    """Joints of a rigidly skinned mesh: every vertex follows exactly one joint (weight 1).
+
+    ``positions`` (J, 3) are the joints' bind positions in mesh coordinates (their rest orientation is the
+    identity); ``parents[j]`` < j, -1 for the root; ``vertex_joint`` (V,) the joint each vertex follows. The
+    joint named ``HEAD_JOINT`` carries the head motion of an Animation.
+    """
+
+    names: list[str]
+    parents: list[int]
+    positions: np.ndarray
+    vertex_joint: np.ndarray
+
+    def __post_init__(self):
+        self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 3)
+        self.vertex_joint = np.asarray(self.vertex_joint, dtype=np.int64)
+        if not (len(self.names) == len(self.parents) == len(self.positions)):
+            raise ValueError("a skeleton needs one name, parent and position per joint")
+        if any(not (-1 <= p < j) for j, p in enumerate(self.parents)) or self.parents[0] != -1:
+            raise ValueError(f"joint parents must come first and the first joint be the root: {self.parents}")
+        if len(self.vertex_joint) and not (0 <= self.vertex_joint.min() and self.vertex_joint.max() < len(self.names)):
+            raise ValueError("vertex_joint holds an index outside the joints")
+
+    def local_translation(self, j: int) -> np.ndarray:
+        """Bind translation of joint ``j`` relative to its parent."""
+        parent = self.parents[j]
+        return self.positions[j] - (self.positions[parent] if parent >= 0 else 0.0)
+
+
+HEAD_JOINT = "Head"
 
 
 # ----------------------------------------------------------------------------------------------------- reading
@@ -489,6 +525,7 @@ def write_morph_glb(
     mesh: MorphMesh,
     *,
     animation: Animation | None = None,
+    skeleton: Skeleton | None = None,
     sparse_tolerance: float = DEFAULT_SPARSE_TOLERANCE,
     generator: str = "msflow",
     copyright: str | None = None,
@@ -498,80 +535,44 @@ def write_morph_glb(
     """The character as a GLB: one mesh (a primitive per material group, all sharing the vertex and morph
     accessors), morph targets as sparse accessors, names in ``mesh.extras.targetNames``.
 
-    Node layout: ``Head`` (turns about ``animation.pivot``; carries the head rotation and translation) with child
-    ``<mesh.name>`` (offset by -pivot; carries the mesh and its morph-weight animation), so an animator can
-    re-pose the head without touching the face animation.
+    Node layout without a skeleton: ``Head`` (turns about ``animation.pivot``; carries the head rotation and
+    translation) with child ``<mesh.name>`` (offset by -pivot; carries the mesh and its morph-weight animation),
+    so an animator can re-pose the head without touching the face animation.
+    With a ``skeleton``: its joints as a node tree (the first joint the root), and a root node ``<mesh.name>``
+    holding the mesh skinned to them (JOINTS_0/WEIGHTS_0, inverse bind matrices) and the morph-weight
+    animation; head motion goes to the ``Head`` joint, ``animation.joint_rotations`` to the joints they name.
+    Engines that keep morph targets on skinned meshes only (Unreal) need this layout.
     """
     import pygltflib
 
     positions = np.ascontiguousarray(mesh.positions, dtype=np.float32)
-    triangles = np.asarray(mesh.triangles)
-    deltas = np.asarray(mesh.deltas, dtype=np.float32)
     n_vertices, n_targets = len(positions), len(mesh.target_names)
-    if deltas.shape != (n_targets, n_vertices, 3):
-        raise ValueError(f"deltas {deltas.shape} do not match {n_targets} targets x {n_vertices} vertices")
+    if np.asarray(mesh.deltas).shape != (n_targets, n_vertices, 3):
+        raise ValueError(f"deltas {np.shape(mesh.deltas)} do not match {n_targets} targets x {n_vertices} vertices")
     if n_targets == 0:
         raise ValueError("a morph-target character needs at least one target")
+    if skeleton is not None and len(skeleton.vertex_joint) != n_vertices:
+        raise ValueError(f"the skeleton binds {len(skeleton.vertex_joint)} vertices, the mesh has {n_vertices}")
 
     gltf = pygltflib.GLTF2(asset=pygltflib.Asset(generator=generator, copyright=copyright))
     gltf.bufferViews, gltf.accessors = [], []
     bin_ = _BinaryBuilder(gltf)
-    attributes = {"POSITION": bin_.accessor(positions, "VEC3", target=ARRAY_BUFFER, min_max=True, name="positions")}
-    if normals:
-        attributes["NORMAL"] = bin_.accessor(
-            vertex_normals(positions, triangles), "VEC3", target=ARRAY_BUFFER, name="normals"
-        )
-    targets = [
-        pygltflib.Attributes(POSITION=bin_.sparse_accessor(deltas[i], sparse_tolerance, name=mesh.target_names[i]))
-        for i in range(n_targets)
-    ]
-
-    index_dtype = np.uint16 if n_vertices < 65535 else np.uint32  # 65535 is the primitive-restart value
-    groups = np.asarray(mesh.triangle_groups)
-    primitives = []
-    gltf.materials = []
-    for g, group in enumerate(mesh.groups):
-        tris = triangles[groups == g]
-        if len(tris) == 0:
-            continue
-        gltf.materials.append(
-            pygltflib.Material(
-                name=group.name,
-                doubleSided=bool(group.double_sided),
-                alphaMode="BLEND" if group.color[3] < 1.0 else "OPAQUE",
-                pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
-                    baseColorFactor=[float(c) for c in group.color], metallicFactor=0.0, roughnessFactor=0.6
-                ),
-            )
-        )
-        primitives.append(
-            pygltflib.Primitive(
-                attributes=pygltflib.Attributes(**attributes),
-                mode=MODE_TRIANGLES,
-                indices=bin_.accessor(
-                    tris.reshape(-1).astype(index_dtype),
-                    "SCALAR",
-                    target=ELEMENT_ARRAY_BUFFER,
-                    name=f"{group.name} triangles",
-                ),
-                material=len(gltf.materials) - 1,
-                targets=targets,
-            )
-        )
-    extras = {k: v for k, v in mesh.extras.items() if not k.startswith("_")}
-    extras["targetNames"] = list(mesh.target_names)
-    gltf.meshes = [
-        pygltflib.Mesh(name=mesh.name, primitives=primitives, weights=[0.0] * n_targets, extras=_plain(extras))
-    ]
-
+    attributes = _vertex_attributes(bin_, mesh, normals, skeleton)
+    _add_mesh(gltf, bin_, mesh, attributes, sparse_tolerance)
     pivot = [float(v) for v in (animation.pivot if animation is not None else (0.0, 0.0, 0.0))]
-    head = pygltflib.Node(name="Head", children=[1], translation=pivot if any(pivot) else None)
-    body = pygltflib.Node(name=mesh.name, mesh=0, translation=[-v for v in pivot] if any(pivot) else None)
-    gltf.nodes = [head, body]
-    gltf.scenes = [pygltflib.Scene(name="Scene", nodes=[0], extras=_plain(scene_extras or {}))]
+    if skeleton is None:
+        nodes = _plain_nodes(gltf, mesh.name, pivot)
+    else:
+        nodes = _skinned_nodes(gltf, bin_, mesh.name, skeleton)
+        pivot = (
+            [float(v) for v in skeleton.positions[nodes["joints"][HEAD_JOINT]]]
+            if HEAD_JOINT in nodes["joints"]
+            else pivot
+        )
     gltf.scene = 0
+    gltf.scenes = [pygltflib.Scene(name="Scene", nodes=nodes["roots"], extras=_plain(scene_extras or {}))]
     if animation is not None:
-        gltf.animations = [_animation(bin_, animation, n_targets, pivot)]
+        gltf.animations = [_animation(bin_, animation, n_targets, nodes, skeleton, pivot)]
     gltf.buffers = [pygltflib.Buffer(byteLength=0)]
     blob = bin_.blob()
     gltf.buffers[0].byteLength = len(blob)
@@ -579,7 +580,108 @@ def write_morph_glb(
     return b"".join(gltf.save_to_bytes())
 
 
-def _animation(bin_: _BinaryBuilder, anim: Animation, n_targets: int, pivot: list[float]):
+def _vertex_attributes(bin_: _BinaryBuilder, mesh: MorphMesh, normals: bool, skeleton: Skeleton | None) -> dict:
+    positions = np.ascontiguousarray(mesh.positions, dtype=np.float32)
+    attributes = {"POSITION": bin_.accessor(positions, "VEC3", target=ARRAY_BUFFER, min_max=True, name="positions")}
+    if normals:
+        attributes["NORMAL"] = bin_.accessor(
+            vertex_normals(positions, np.asarray(mesh.triangles)), "VEC3", target=ARRAY_BUFFER, name="normals"
+        )
+    if skeleton is not None:
+        # rigid skinning: one influence of weight 1; the unused three point at joint 0 with weight 0
+        joints = np.zeros((len(positions), 4), dtype=np.uint8 if len(skeleton.names) <= 256 else np.uint16)
+        joints[:, 0] = skeleton.vertex_joint
+        weights = np.zeros((len(positions), 4), dtype=np.float32)
+        weights[:, 0] = 1.0
+        attributes["JOINTS_0"] = bin_.accessor(joints, "VEC4", target=ARRAY_BUFFER, name="joints")
+        attributes["WEIGHTS_0"] = bin_.accessor(weights, "VEC4", target=ARRAY_BUFFER, name="skin weights")
+    return attributes
+
+
+def _add_mesh(gltf, bin_: _BinaryBuilder, mesh: MorphMesh, attributes: dict, sparse_tolerance: float) -> None:
+    """The mesh: morph targets as sparse accessors, one primitive and material per non-empty material group."""
+    import pygltflib
+
+    deltas = np.asarray(mesh.deltas, dtype=np.float32)
+    targets = [
+        pygltflib.Attributes(POSITION=bin_.sparse_accessor(deltas[i], sparse_tolerance, name=name))
+        for i, name in enumerate(mesh.target_names)
+    ]
+    triangles = np.asarray(mesh.triangles)
+    index_dtype = np.uint16 if len(mesh.positions) < 65535 else np.uint32  # 65535 is the primitive-restart value
+    groups = np.asarray(mesh.triangle_groups)
+    primitives = []
+    gltf.materials = []
+    for g, group in enumerate(mesh.groups):
+        tris = triangles[groups == g]
+        if len(tris) == 0:
+            continue
+        gltf.materials.append(_material(group))
+        indices = bin_.accessor(
+            tris.reshape(-1).astype(index_dtype), "SCALAR", target=ELEMENT_ARRAY_BUFFER, name=f"{group.name} triangles"
+        )
+        primitives.append(
+            pygltflib.Primitive(
+                attributes=pygltflib.Attributes(**attributes),
+                mode=MODE_TRIANGLES,
+                indices=indices,
+                material=len(gltf.materials) - 1,
+                targets=targets,
+            )
+        )
+    extras = {k: v for k, v in mesh.extras.items() if not k.startswith("_")}
+    extras["targetNames"] = list(mesh.target_names)
+    weights = [0.0] * len(mesh.target_names)
+    gltf.meshes = [pygltflib.Mesh(name=mesh.name, primitives=primitives, weights=weights, extras=_plain(extras))]
+
+
+def _material(group: MaterialGroup):
+    import pygltflib
+
+    return pygltflib.Material(
+        name=group.name,
+        doubleSided=bool(group.double_sided),
+        alphaMode="BLEND" if group.color[3] < 1.0 else "OPAQUE",
+        pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
+            baseColorFactor=[float(c) for c in group.color], metallicFactor=0.0, roughnessFactor=0.6
+        ),
+    )
+
+
+def _plain_nodes(gltf, name: str, pivot: list[float]) -> dict:
+    """Head node at the pivot with the mesh node as its child, offset back by -pivot."""
+    import pygltflib
+
+    head = pygltflib.Node(name=HEAD_JOINT, children=[1], translation=pivot if any(pivot) else None)
+    body = pygltflib.Node(name=name, mesh=0, translation=[-v for v in pivot] if any(pivot) else None)
+    gltf.nodes = [head, body]
+    return {"roots": [0], "mesh": 1, "joints": {HEAD_JOINT: 0}}
+
+
+def _skinned_nodes(gltf, bin_: _BinaryBuilder, name: str, skeleton: Skeleton) -> dict:
+    """Joint nodes 0..J-1 (identity rest rotations, bind translations), then the skinned mesh node J."""
+    import pygltflib
+
+    count = len(skeleton.names)
+    gltf.nodes = [
+        pygltflib.Node(
+            name=joint,
+            translation=[float(v) for v in skeleton.local_translation(j)] or None,
+            children=[c for c in range(count) if skeleton.parents[c] == j] or None,
+        )
+        for j, joint in enumerate(skeleton.names)
+    ]
+    # inverse bind matrix of a joint at p with identity rotation: translate by -p (column-major storage)
+    inverse_bind = np.tile(np.eye(4, dtype=np.float32), (count, 1, 1))
+    inverse_bind[:, :3, 3] = -skeleton.positions
+    ibm = bin_.accessor(np.ascontiguousarray(inverse_bind.transpose(0, 2, 1)), "MAT4", name="inverse bind matrices")
+    gltf.skins = [pygltflib.Skin(name="Skeleton", joints=list(range(count)), skeleton=0, inverseBindMatrices=ibm)]
+    gltf.nodes.append(pygltflib.Node(name=name, mesh=0, skin=0))
+    return {"roots": [0, count], "mesh": count, "joints": {joint: j for j, joint in enumerate(skeleton.names)}}
+
+
+def _animation(bin_: _BinaryBuilder, anim: Animation, n_targets: int, nodes: dict, skeleton, pivot: list[float]):
+    """Samplers and channels: morph weights on the mesh node, head motion on the head, joint rotations."""
     import pygltflib
 
     times = np.asarray(anim.times, dtype=np.float32)
@@ -591,37 +693,45 @@ def _animation(bin_: _BinaryBuilder, anim: Animation, n_targets: int, pivot: lis
     time_acc = bin_.accessor(times, "SCALAR", min_max=True, name="time")
 
     def channel(values: np.ndarray, kind: str, node: int, path: str, name: str) -> None:
-        out.samplers.append(
-            pygltflib.AnimationSampler(
-                input=time_acc, output=bin_.accessor(values, kind, name=name), interpolation="LINEAR"
-            )
+        sampler = pygltflib.AnimationSampler(
+            input=time_acc, output=bin_.accessor(values, kind, name=name), interpolation="LINEAR"
         )
-        out.channels.append(
-            pygltflib.AnimationChannel(
-                sampler=len(out.samplers) - 1, target=pygltflib.AnimationChannelTarget(node=node, path=path)
-            )
-        )
+        out.samplers.append(sampler)
+        target = pygltflib.AnimationChannelTarget(node=node, path=path)
+        out.channels.append(pygltflib.AnimationChannel(sampler=len(out.samplers) - 1, target=target))
 
+    frames = len(times)
     if anim.weights is not None:
         w = np.asarray(anim.weights, dtype=np.float32)
-        if w.shape != (len(times), n_targets):
-            raise ValueError(f"animation weights {w.shape}, expected {(len(times), n_targets)}")
-        channel(w.reshape(-1), "SCALAR", 1, "weights", "morph weights")
+        if w.shape != (frames, n_targets):
+            raise ValueError(f"animation weights {w.shape}, expected {(frames, n_targets)}")
+        channel(w.reshape(-1), "SCALAR", nodes["mesh"], "weights", "morph weights")
+    head = nodes["joints"].get(HEAD_JOINT)
+    rotations = dict(anim.joint_rotations)
     if anim.rotation is not None:
-        from stages.geometry.rotations import quat_continuous, quat_normalize
-
-        q = quat_continuous(quat_normalize(np.asarray(anim.rotation, dtype=np.float64)))
-        if q.shape != (len(times), 4):
-            raise ValueError(f"animation rotation {q.shape}, expected {(len(times), 4)}")
-        xyzw = q[:, [1, 2, 3, 0]].astype(np.float32)
-        xyzw /= np.linalg.norm(xyzw, axis=1, keepdims=True)
-        channel(xyzw, "VEC4", 0, "rotation", "head rotation")
+        rotations[HEAD_JOINT] = anim.rotation
+    for joint, rotation in rotations.items():
+        if joint not in nodes["joints"]:
+            raise ValueError(f"animation turns joint {joint!r}, which the file does not have")
+        channel(_gltf_quaternions(rotation, frames), "VEC4", nodes["joints"][joint], "rotation", f"{joint} rotation")
     if anim.translation is not None:
         t = np.asarray(anim.translation, dtype=np.float64)
-        if t.shape != (len(times), 3):
-            raise ValueError(f"animation translation {t.shape}, expected {(len(times), 3)}")
-        channel((t + np.asarray(pivot)).astype(np.float32), "VEC3", 0, "translation", "head translation")
+        if t.shape != (frames, 3):
+            raise ValueError(f"animation translation {t.shape}, expected {(frames, 3)}")
+        rest = skeleton.local_translation(head) if skeleton is not None else np.asarray(pivot)
+        channel((t + rest).astype(np.float32), "VEC3", head, "translation", "head translation")
     return out
+
+
+def _gltf_quaternions(rotation: np.ndarray, frames: int) -> np.ndarray:
+    """(w, x, y, z) rotations as glTF's unit (x, y, z, w) float32, signs made continuous for interpolation."""
+    from stages.geometry.rotations import quat_continuous, quat_normalize
+
+    q = quat_continuous(quat_normalize(np.asarray(rotation, dtype=np.float64)))
+    if q.shape != (frames, 4):
+        raise ValueError(f"animation rotation {q.shape}, expected {(frames, 4)}")
+    xyzw = q[:, [1, 2, 3, 0]].astype(np.float32)
+    return xyzw / np.linalg.norm(xyzw, axis=1, keepdims=True)
 
 
 # ----------------------------------------------------------------------------------------------------- validation
@@ -639,28 +749,45 @@ validator.validateBytes(new Uint8Array(data), {maxIssues: 100}).then((r) => {
 """
 
 
-def validate_glb(data: bytes, *, project_root: Path | None = None, timeout: float = 120.0) -> dict:
+def node_modules_folder(node_modules: str | Path | None = None, package: str = "gltf-validator") -> Path:
+    """The node_modules folder holding ``package``: the one given, else $MSFLOW_NODE_MODULES, else the project
+    root's. Raises RuntimeError with the install command when the package is in none of them."""
+    import os
+
+    from stages.data import PROJECT_ROOT
+
+    candidates = [Path(p) for p in (node_modules, os.environ.get("MSFLOW_NODE_MODULES")) if p]
+    candidates.append(PROJECT_ROOT / "node_modules")
+    for folder in candidates:
+        if (folder / package).is_dir():
+            return folder
+    raise RuntimeError(
+        f"{package} is not installed in {[str(c) for c in candidates]}; install it in a folder and point "
+        f"MSFLOW_NODE_MODULES at its node_modules, e.g. in the project root: {VALIDATOR_INSTALL}"
+    )
+
+
+def validate_glb(data: bytes, *, node_modules: str | Path | None = None, timeout: float = 120.0) -> dict:
     """Run the Khronos glTF Validator (npm ``gltf-validator``, via node) on GLB bytes; returns its issue summary
-    (numErrors, numWarnings, numInfos, numHints, messages). The package is looked up in ``node_modules`` of the
-    project root (install it there with VALIDATOR_INSTALL)."""
+    (numErrors, numWarnings, numInfos, numHints, messages, validatorVersion). The package is looked up by
+    ``node_modules_folder`` (install it with VALIDATOR_INSTALL)."""
     import json
     import os
     import shutil
     import subprocess
 
-    from stages.data import PROJECT_ROOT
-
-    root = Path(project_root) if project_root else PROJECT_ROOT
     node = shutil.which("node")
     if node is None:
         raise RuntimeError("node (Node.js) is not installed; the glTF validator needs it")
-    if not (root / "node_modules" / "gltf-validator").is_dir():
-        raise RuntimeError(
-            f"gltf-validator is not installed in {root / 'node_modules'}; run in {root}: {VALIDATOR_INSTALL}"
-        )
-    env = dict(os.environ, NODE_PATH=str(root / "node_modules"))
+    modules = node_modules_folder(node_modules)
+    env = dict(os.environ, NODE_PATH=str(modules))
     proc = subprocess.run(
-        [node, "-e", _VALIDATOR_JS], input=bytes(data), capture_output=True, cwd=root, env=env, timeout=timeout
+        [node, "-e", _VALIDATOR_JS],
+        input=bytes(data),
+        capture_output=True,
+        cwd=modules.parent,
+        env=env,
+        timeout=timeout,
     )
     if proc.returncode != 0:
         raise RuntimeError(f"glTF validator failed: {proc.stderr.decode(errors='replace')[:2000]}")

@@ -289,8 +289,11 @@ class CharacterRenderer:
         pivot: np.ndarray | None = None,
         view: View | None = None,
         supersample: int = 1,
+        eyes: list[tuple[np.ndarray, np.ndarray]] | None = None,
     ):
         self.neutral = np.asarray(neutral, dtype=np.float32)
+        #: (vertex ids, centre) of each eyeball, turned by ``eye_rotations`` about its centre
+        self.eyes = [(np.asarray(ids), np.asarray(c, dtype=np.float32)) for ids, c in (eyes or [])]
         self.triangles = np.asarray(triangles, dtype=np.int64)
         self.deltas = np.asarray(deltas, dtype=np.float32).reshape(len(deltas), -1)
         self.size = size
@@ -329,18 +332,25 @@ class CharacterRenderer:
         weights: np.ndarray | None = None,
         rotation: np.ndarray | None = None,
         translation: np.ndarray | None = None,
+        eye_rotations: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Posed vertices: neutral + weights . deltas, then turned by ``rotation`` (w, x, y, z) about the pivot
-        and moved by ``translation``."""
+        """Posed vertices: neutral + weights . deltas, each eyeball turned by its ``eye_rotations`` (n_eyes, 4)
+        about its centre, then all turned by ``rotation`` (w, x, y, z) about the pivot and moved by
+        ``translation``."""
+        from stages.geometry.rotations import quat_to_matrix
+
         v = self.neutral
         if weights is not None:
             w = np.asarray(weights, dtype=np.float32)
             active = np.flatnonzero(np.abs(w) > 1e-6)
             if active.size:
                 v = v + (w[active] @ self.deltas[active]).reshape(-1, 3)
+        if eye_rotations is not None and self.eyes:
+            v = np.array(v, copy=True)
+            for (ids, center), q in zip(self.eyes, np.asarray(eye_rotations, dtype=np.float64)):
+                r = quat_to_matrix(q).astype(np.float32)
+                v[ids] = (v[ids] - center) @ r.T + center
         if rotation is not None:
-            from stages.geometry.rotations import quat_to_matrix
-
             r = quat_to_matrix(np.asarray(rotation, dtype=np.float64)).astype(np.float32)
             v = (v - self.pivot.astype(np.float32)) @ r.T + self.pivot.astype(np.float32)
         if translation is not None:
@@ -352,9 +362,10 @@ class CharacterRenderer:
         weights: np.ndarray | None = None,
         rotation: np.ndarray | None = None,
         translation: np.ndarray | None = None,
+        eye_rotations: np.ndarray | None = None,
     ) -> np.ndarray:
         return render(
-            self.vertices(weights, rotation, translation),
+            self.vertices(weights, rotation, translation, eye_rotations),
             self.triangles,
             self.size,
             self.view,

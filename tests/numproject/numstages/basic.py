@@ -200,3 +200,62 @@ class Takes(Stage):
         takes = inputs["takes"]
         sizes = np.array([path.stat().st_size for path in takes.values()], dtype=np.int64)
         return Result({"sizes": sizes}, meta={"labels": list(takes), "fields": takes.fields})
+
+
+def hold_if_asked(name):
+    """A deterministic kill point: with NUMSTAGES_HOLD=<folder>, write <folder>/ready and wait until
+    <folder>/release exists (tests kill the process while it waits)."""
+    folder = os.environ.get("NUMSTAGES_HOLD")
+    if not folder:
+        return
+    with open(os.path.join(folder, "ready"), "w") as fh:
+        fh.write(f"{name} {os.getpid()}\n")
+    while not os.path.exists(os.path.join(folder, "release")):
+        time.sleep(0.01)
+
+
+def stream_block(seed, index, rows, width):
+    """Block ``index`` of the Stream stage's output: deterministic, different per block."""
+    return np.random.default_rng([seed, index]).standard_normal((rows, width), dtype=np.float32)
+
+
+class Stream(Stage):
+    """A long frames-first output written block by block through an output sink (``whole``: returned whole)."""
+
+    class Params(Stage.Params):
+        blocks: int = 8
+        rows: int = 1000
+        width: int = 16
+        seed: int = 0
+        whole: bool = False
+
+    outputs = {"frames": Output.array("f", shape=("frames", None)), "norms": Output.array("f", shape=("frames",))}
+
+    def run(self, params, inputs):
+        log_execution(f"{self.name} jobs={self.jobs}")
+        blocks = (stream_block(params.seed, i, params.rows, params.width) for i in range(params.blocks))
+        if params.whole:
+            frames = np.concatenate(list(blocks)) if params.blocks else np.zeros((0, params.width), np.float32)
+            return Result({"frames": frames, "norms": np.linalg.norm(frames, axis=1)})
+        frames = self.sink("frames", dtype=np.float32, row_shape=(params.width,))
+        norms = self.sink("norms", dtype=np.float32)
+        for index, block in enumerate(blocks):
+            frames.append(block)
+            norms.append(np.linalg.norm(block, axis=1))
+            if index == params.blocks // 2:
+                hold_if_asked(self.name)
+        return Result({"frames": frames, "norms": norms})
+
+
+class BlockSum(Stage):
+    """Sums a lazy input block by block (iter_blocks)."""
+
+    inputs = {"x": Input.array("f", lazy=True)}
+    outputs = {"total": Output.array("f", shape=())}
+
+    def run(self, params, inputs):
+        from msflow import iter_blocks
+
+        log_execution(self.name)
+        total = sum(float(block.astype(np.float64).sum()) for block in iter_blocks(inputs["x"]))
+        return Result({"total": np.array(total)})

@@ -1,0 +1,138 @@
+"""The preview video: the character rendered (stages.geometry.render) frame by frame and encoded as H.264 MP4 with
+PyAV, the take's audio muxed in.
+
+Frames are rendered in blocks and handed to the encoder as they come, so memory does not grow with the take; with
+``jobs`` > 1 the blocks are rendered by a pool of threads (the rasteriser's numpy work releases the GIL) and
+encoded in order. A frame's pixels depend on its pose only, so the video is the same whatever ``jobs`` is.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Iterator
+from dataclasses import dataclass
+from fractions import Fraction
+
+import numpy as np
+
+from msflow import UserError
+
+
+def video_codec_name(requested: str = "auto") -> str:
+    """libx264 when PyAV's FFmpeg has it, else the built-in MPEG-4 Part 2 encoder."""
+    import av
+
+    available = av.codecs_available
+    if requested != "auto":
+        if requested not in available:
+            raise UserError(f"video codec '{requested}' is not available in PyAV's FFmpeg", field="params.video_codec")
+        return requested
+    return "libx264" if "libx264" in available else "mpeg4"
+
+
+def encode_mp4(
+    frames,
+    fps: float,
+    size: tuple[int, int],
+    *,
+    audio: np.ndarray | None = None,
+    audio_rate: int | None = None,
+    codec: str = "auto",
+    crf: int = 20,
+) -> tuple[bytes, str]:
+    """Encode RGB uint8 frames (an iterable of (H, W, 3)) and optional mono float audio into MP4 bytes."""
+    import av
+
+    codec = video_codec_name(codec)
+    buffer = io.BytesIO()
+    rate = Fraction(fps).limit_denominator(1001)
+    with av.open(buffer, mode="w", format="mp4") as container:
+        video = container.add_stream(codec, rate=rate)
+        video.width, video.height = size
+        video.pix_fmt = "yuv420p"
+        video.codec_context.thread_count = 1  # one core, and byte-identical output from run to run
+        if codec == "libx264":
+            video.options = {"crf": str(crf), "preset": "medium"}
+        else:
+            video.codec_context.bit_rate = 2_000_000
+        astream = None
+        if audio is not None and len(audio):
+            astream = container.add_stream("aac", rate=int(audio_rate))
+            astream.layout = "mono"
+        for index, rgb in enumerate(frames):
+            frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
+            # explicit timestamps: without them x264's rate control sees undefined frame times and the output
+            # varies from run to run
+            frame.pts = index
+            frame.time_base = 1 / rate
+            for packet in video.encode(frame):
+                container.mux(packet)
+        for packet in video.encode(None):
+            container.mux(packet)
+        if astream is not None:
+            # explicit timestamps let the encoder mark its priming samples, which the MP4 edit list then skips:
+            # the first audio sample plays with the first video frame
+            if not astream.codec_context.is_open:
+                astream.codec_context.open()
+            step = astream.codec_context.frame_size or 1024
+            samples = np.asarray(audio, np.float32).reshape(1, -1)
+            for start in range(0, samples.shape[1], step):
+                chunk = av.AudioFrame.from_ndarray(
+                    np.ascontiguousarray(samples[:, start : start + step]), format="flt", layout="mono"
+                )
+                chunk.sample_rate = int(audio_rate)
+                chunk.pts = start
+                chunk.time_base = Fraction(1, int(audio_rate))
+                for packet in astream.encode(chunk):
+                    container.mux(packet)
+            for packet in astream.encode(None):
+                container.mux(packet)
+    return buffer.getvalue(), codec
+
+
+@dataclass
+class Poses:
+    """The character's pose per output frame: morph weights, head rotation (w, x, y, z) and translation (metres)
+    about the renderer's pivot, and eye rotations relative to the head (frames, 2, 4); None where absent."""
+
+    weights: np.ndarray
+    rotation: np.ndarray | None = None
+    translation: np.ndarray | None = None
+    eyes: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.weights)
+
+    def frame(self, i: int) -> dict:
+        return {
+            "weights": self.weights[i],
+            "rotation": None if self.rotation is None else self.rotation[i],
+            "translation": None if self.translation is None else self.translation[i],
+            "eye_rotations": None if self.eyes is None else self.eyes[i],
+        }
+
+
+def render_block(renderer, poses: Poses, start: int, stop: int) -> list[np.ndarray]:
+    """Frames start..stop-1 as (H, W, 3) uint8 images."""
+    return [renderer(**poses.frame(i)) for i in range(start, stop)]
+
+
+def rendered_frames(renderer, poses: Poses, *, jobs: int = 1, block: int = 8) -> Iterator[np.ndarray]:
+    """Every frame in order, rendered ``block`` frames at a time by ``jobs`` threads; at most 2 * jobs blocks
+    wait for the encoder, so memory stays bounded whatever the take's length."""
+    starts = range(0, len(poses), block)
+    if jobs <= 1:
+        for start in starts:
+            yield from render_block(renderer, poses, start, min(start + block, len(poses)))
+        return
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        pending: deque = deque()
+        for start in starts:
+            pending.append(pool.submit(render_block, renderer, poses, start, min(start + block, len(poses))))
+            if len(pending) >= 2 * jobs:
+                yield from pending.popleft().result()
+        while pending:
+            yield from pending.popleft().result()
