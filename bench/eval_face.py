@@ -48,7 +48,9 @@ def run(args) -> list[dict]:
 
 
 def print_training_sets(rows: list[dict]) -> None:
-    print("| training expressions | k-fold accuracy | nearest-frame baseline | chance | edit landmarks (edited / neutral) |")
+    print(
+        "| training expressions | k-fold accuracy | nearest-frame baseline | chance | edit landmarks (edited / neutral) |"
+    )
     print("|---|---|---|---|---|")
     for row in rows:
         m = row["metrics"]
@@ -59,8 +61,10 @@ def print_training_sets(rows: list[dict]) -> None:
 
 
 def print_unseen(rows: list[dict], expressions: list[str]) -> None:
-    print("\n| unseen take | training expressions | analysed as (fraction of frames) | edit landmarks (edited / unedited) "
-          "| edit texture (edited / unedited) | residual |")
+    print(
+        "\n| unseen take | training expressions | analysed as (fraction of frames) | edit landmarks (edited / unedited) "
+        "| edit texture (edited / unedited) | residual |"
+    )
     print("|---|---|---|---|---|---|")
     for unseen in expressions:
         for row in rows:

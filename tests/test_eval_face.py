@@ -88,7 +88,9 @@ def test_folds_partition_the_takes_and_the_guard_band_keeps_neighbours_out():
 def crema_d():
     """The six CREMA-D takes of actor 1001 with the fields their file names give."""
     view = tracked(*CLIPS)
-    fields = {label: {"speaker": "1001", "sentence": "DFA", "expression": CLIPS[label]} for label in view.meta["labels"]}
+    fields = {
+        label: {"speaker": "1001", "sentence": "DFA", "expression": CLIPS[label]} for label in view.meta["labels"]
+    }
     return artifact({k: view[k] for k in view.names}, {**view.meta, "fields": fields})
 
 
