@@ -486,11 +486,31 @@ def test_edit_by_blocks_of_frames_equals_the_whole_take():
     params = EditParams(mix={"happy": 0.5, "angry": 0.5})
     analysis = analyse_frames(take.bilinear, take.model.n_shape, whole.y, take.sequence, params)
     targets = edit_targets(params, take.bilinear.labels, take.times)
-    one = render_edits(take, whole, analysis.content, targets, video=True, block=n)
-    many = render_edits(take, whole, analysis.content, targets, video=True, block=7)
-    for name in ("y", "shapes", "crop_shapes", "frames"):
+    one_frames, many_frames = [], []
+    one = render_edits(take, whole, analysis.content, targets, True, one_frames.append, block=n)
+    many = render_edits(take, whole, analysis.content, targets, True, many_frames.append, block=7)
+    assert len(one_frames) == 1 and len(many_frames) == -(-n // 7)
+    np.testing.assert_array_equal(np.concatenate(many_frames), one_frames[0])
+    for name in ("y", "shapes", "crop_shapes"):
         np.testing.assert_array_equal(getattr(many, name), getattr(one, name))
     assert many.video == one.video  # the encoder is deterministic, whatever the blocks
+
+
+def test_the_edit_streams_its_crops_through_output_sinks(tmp_path):
+    """In a store run the edited crops are written chunk by chunk (sinks); the stored artifact holds the same crops
+    as the stage renders in memory."""
+    from stages.face.edit import check_edit_inputs
+
+    params = {"mix": {"happy": 0.5, "angry": 0.5}, "video": False}
+    stage = ExpressionEdit("edit")
+    result = stage.run(ExpressionEdit.Params(**params), edit_inputs())
+    assert set(stage.sinks) == {"frames", "mixed_frames"}
+    frames = stage.sinks["frames"].to_array()
+    n = len(check_edit_inputs(edit_inputs()).landmarks)
+    assert frames.shape[:2] == (n, 3) and result.arrays["frames"] is stage.sinks["frames"]
+    stored = run_stage(ExpressionEdit, params, edit_inputs(), store=tmp_path)
+    np.testing.assert_array_equal(stored.arrays["frames"], frames)
+    np.testing.assert_array_equal(stored.arrays["mixed_frames"], stage.sinks["mixed_frames"].to_array())
 
 
 def test_an_unconverged_analysis_warns_naming_the_take_and_its_residual():

@@ -430,12 +430,11 @@ def project_by_blocks(model: AamModel, take: TestTake, block: int = BLOCK_FRAMES
 
 @dataclass
 class RenderedEdits:
-    """Eq 7 for every edit, back through Eq 3-1 to shapes and face crops."""
+    """Eq 7 for every edit, back through Eq 3-1 to shapes (the edited crops go to ``render_edits``' ``emit``)."""
 
     y: np.ndarray  # (E, F, K) edited configuration vectors
     shapes: np.ndarray  # (E, F, 68, 2) float32, mean-shape frame
     crop_shapes: np.ndarray  # (E, F, 68, 2) float32, crop pixels
-    frames: np.ndarray  # (F, E, H, W) uint8 edited crops, frames first (written block by block)
     video: bytes | None  # input | edits side by side
 
 
@@ -445,32 +444,32 @@ def render_edits(
     content: np.ndarray,
     targets: EditTargets,
     video: bool,
+    emit,
     block: int = BLOCK_FRAMES,
 ) -> RenderedEdits:
-    """Eq 7 and the edited crops for every edit, ``block`` frames at a time (the video is encoded as they come)."""
+    """Eq 7 and the edited crops for every edit, ``block`` frames at a time: each block's crops (b, E, H, W) go to
+    ``emit`` (an output sink's append) and into the video as they come, so no whole-take image array is held."""
+    from msflow.sinks import iter_blocks
+
     bilinear, model = take.bilinear, take.model
     n_edits, n_frames = targets.weights.shape[:2]
     y = np.zeros((n_edits, n_frames, bilinear.w.shape[2]))
     shapes = np.zeros((n_edits, n_frames, 68, 2), dtype=np.float32)
     crop_shapes = np.zeros_like(shapes)
-    frames = None
     encoder = Mp4Encoder(take.fps) if video else None
-    for a in range(0, n_frames, block):
-        b = min(a + block, n_frames)
-        crops = np.asarray(take.crops[a:b])
-        if frames is None:
-            frames = np.zeros((n_frames, n_edits) + crops.shape[1:], dtype=np.uint8)
+    for a, crops in zip(range(0, n_frames, block), iter_blocks(take.crops, block)):
+        b = a + len(crops)
+        frames = np.zeros((b - a, n_edits) + crops.shape[1:], dtype=np.uint8)
         for e in range(n_edits):
             y[e, a:b] = edit_configuration(bilinear.w, bilinear.style, targets.weights[e, a:b], content[a:b])
             shapes[e, a:b] = model.reconstruct_shapes(model.split(y[e, a:b])[0])
-            frames[a:b, e], crop_shapes[e, a:b] = edited_crops(
+            frames[:, e], crop_shapes[e, a:b] = edited_crops(
                 model, y[e, a:b], crops, proj.crop_similarity[a:b], proj.texture_offset[a:b], proj.texture_scale[a:b]
             )
+        emit(frames)
         if encoder is not None:
-            encoder.write(side_by_side([crops, *frames[a:b].transpose(1, 0, 2, 3)], ["input", *targets.names]))
-    if frames is None:
-        frames = np.zeros((n_frames, n_edits, 0, 0), dtype=np.uint8)
-    return RenderedEdits(y, shapes, crop_shapes, frames, encoder.close() if encoder is not None else None)
+            encoder.write(side_by_side([crops, *frames.transpose(1, 0, 2, 3)], ["input", *targets.names]))
+    return RenderedEdits(y, shapes, crop_shapes, encoder.close() if encoder is not None else None)
 
 
 def render_strip(params, labels: list[str], take: TestTake, proj: AamProjection, content: np.ndarray) -> bytes:
@@ -519,13 +518,32 @@ class ExpressionEdit(Stage):
         targets = edit_targets(params, labels, take.times)
         proj = project_by_blocks(take.model, take)
         analysis = analyse_frames(take.bilinear, take.model.n_shape, proj.y, take.sequence, params)
-        edits = render_edits(take, proj, analysis.content, targets, params.video)
+        frames, emit = self.frame_sinks(targets, tuple(take.crops.shape[1:]))
+        edits = render_edits(take, proj, analysis.content, targets, params.video, emit)
         strip = render_strip(params, labels, take, proj, analysis.content)
-        return pack_edit(params, take, targets, analysis, edits, strip)
+        return pack_edit(params, take, targets, analysis, edits, strip, frames)
+
+    def frame_sinks(self, targets: EditTargets, size: tuple[int, int]):
+        """Output sinks for the edited crops of the targets and of the mixes, and the function that fills them
+        from each rendered block (b, E, H, W)."""
+        n = targets.n_targets
+        sinks = {"frames": self.sink("frames", dtype="uint8", row_shape=(n, *size))}
+        if len(targets.names) > n:
+            sinks["mixed_frames"] = self.sink("mixed_frames", dtype="uint8", row_shape=(len(targets.names) - n, *size))
+
+        def emit(block):
+            sinks["frames"].append(block[:, :n])
+            if "mixed_frames" in sinks:
+                sinks["mixed_frames"].append(block[:, n:])
+
+        return sinks, emit
 
 
-def pack_edit(params, take: TestTake, targets: EditTargets, analysis: FrameAnalysis, edits: RenderedEdits, strip):
-    """The ExpressionEdit artifact: analysis per frame, edits split into pure targets and mixes, metrics, warnings."""
+def pack_edit(
+    params, take: TestTake, targets: EditTargets, analysis: FrameAnalysis, edits: RenderedEdits, strip, frames: dict
+):
+    """The ExpressionEdit artifact: analysis per frame, edits split into pure targets and mixes (their crops in the
+    ``frames`` sinks), metrics, warnings."""
     labels = take.bilinear.labels
     n = targets.n_targets
     arrays = {
@@ -543,7 +561,7 @@ def pack_edit(params, take: TestTake, targets: EditTargets, analysis: FrameAnaly
         "y": edits.y[:n],
         "shapes": edits.shapes[:n],
         "crop_shapes": edits.crop_shapes[:n],
-        "frames": edits.frames[:, :n],
+        **frames,
     }
     if len(targets.names) > n:
         arrays.update(
@@ -551,7 +569,6 @@ def pack_edit(params, take: TestTake, targets: EditTargets, analysis: FrameAnaly
             mixed_y=edits.y[n:],
             mixed_shapes=edits.shapes[n:],
             mixed_crop_shapes=edits.crop_shapes[n:],
-            mixed_frames=edits.frames[:, n:],
         )
     if edits.video is not None:
         arrays["video"] = edits.video
