@@ -141,7 +141,7 @@ def smooth_trajectory(rng, frames: int, dim: int, centre: np.ndarray, amplitude:
 def bilinear_takes(
     n_styles: int = 3,
     takes_per_style: int = 3,
-    frames: int = 40,
+    frames: int = 30,
     style_spread: float = 1.0,
     content_spread: float = 0.3,
     seed: int = 0,

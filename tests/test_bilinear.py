@@ -198,12 +198,12 @@ def test_the_fit_learns_each_takes_expression_from_its_field():
     assert meta["labels"] == ["E0", "E1", "E2"] and meta["takes"] == view.meta["labels"]
     assert meta["take_expression"]["s2_r1"] == "E2" and meta["reference"] == "E0"
     assert meta["sets"] == [[f"s{s}_r{r}" for s in range(3)] for r in range(3)]
-    assert a["style"].shape == (3, 3) and a["content"].shape == (3 * 40, 3)
+    assert a["style"].shape == (3, 3) and a["content"].shape == (3 * 30, 3)
     sequence = aam.arrays["sequence"]
     takes = np.asarray(view.meta["labels"])[sequence[a["aligned_frames"]]]
     for s in range(3):  # row s holds frames of expression s only, set by set
         assert all(label.startswith(f"s{s}_") for label in takes[s])
-    np.testing.assert_array_equal(a["content_set"], np.repeat(np.arange(3), 40))
+    np.testing.assert_array_equal(a["content_set"], np.repeat(np.arange(3), 30))
     assert run.metrics["train_error"] < 0.01
     assert meta["params"]["content_dim"] == 3 and meta["params"]["align"] == "mouth"
 

@@ -33,7 +33,7 @@ def test_known_styles_are_recovered_by_every_protocol():
     assert m["accuracy"] >= 0.97 and m["take_accuracy"] >= 0.95 and m["takes_left_out"] == 9
     assert m["residual"] < 0.01 and m["unconverged"] == 0
     confusion = run.arrays["confusion"]
-    assert confusion.sum() == 9 * 40 and np.trace(confusion) >= 0.97 * confusion.sum()
+    assert confusion.sum() == 9 * 30 and np.trace(confusion) >= 0.97 * confusion.sum()
     # every frame of every take is held out by exactly one fold
     assert np.all(run.arrays["kfold_fold"] >= 0) and set(run.arrays["kfold_fold"]) == set(range(5))
     assert run.meta["styles"] == ["E0", "E1", "E2"] and len(run.meta["sets"]) == 3
@@ -41,10 +41,11 @@ def test_known_styles_are_recovered_by_every_protocol():
 
 def test_shuffled_labels_score_chance():
     """Control: each expression label names one take of every true style (a Latin square), so no model can learn a
-    label; left-out takes then score at or below chance."""
-    run = evaluate(expression_of=lambda s, r: f"E{(s + r) % 3}")
-    assert run.metrics["take_accuracy"] <= 1 / 3 + 0.1
-    assert run.metrics["take_baseline_accuracy"] <= 1 / 3 + 0.1
+    label; left-out takes then score no better than chance. Within takes (k-fold) the nearest-frame baseline still
+    scores high: it recognises the take, not an expression, which is why it is reported beside the model."""
+    m = evaluate(expression_of=lambda s, r: f"E{(s + r) % 3}").metrics
+    assert m["take_accuracy"] <= 1 / 3 + 0.1 and m["take_baseline_accuracy"] <= 1 / 3 + 0.1
+    assert m["baseline_accuracy"] >= 0.75
 
 
 def test_the_baseline_fails_where_only_a_model_generalises():

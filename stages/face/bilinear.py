@@ -1,6 +1,6 @@
 """Symmetric bilinear model of expression (style) and speech (content), paper Sec 3.2 Eq 4:
 y_k(s, c) = e_s' W_k c_c, fitted with Tenenbaum & Freeman's (2000) SVD-based alternating algorithm
-(see docs/bilinear.md for the stacked notation and the vector transpose).
+(see docs/face.md for the stacked notation and the vector transpose).
 
 Arrays here use a 3-D layout instead of the stacked matrices: observations Y[s, c, k], basis W[i, j, k],
 style vectors as rows style[s] (= a^s), content vectors as rows content[c] (= b^c). ``vector_transpose``
@@ -10,7 +10,8 @@ The stage first time-aligns the training takes (stages.face.alignment, DTW) so t
 content in every expression, then fits the model. One addition to the paper: the configuration vectors are centred
 PCA coordinates, so the model also sees the mean face as a constant extra component (``BilinearModel``,
 ``mean_weight``); without it, frames near the mean face have no defined style and the out-of-sample analysis
-collapses (bench/eval_face.py --mean-weight 0 shows it).
+collapses (with mean_weight 0 the synthetic known-answer takes of tests/test_eval_face.py are classified at
+chance).
 """
 
 from __future__ import annotations

@@ -601,9 +601,13 @@ def pack_edit(
 
 
 def default_strip_path(labels: list[str]) -> list[str]:
-    """happy -> neutral -> angry when trained on those, else the training expressions in order."""
-    wanted = ["happy", "neutral", "angry"]
-    return wanted if all(w in labels for w in wanted) else list(labels)
+    """Every training expression once, the neutral one in the middle (happy -> neutral -> angry for those three),
+    so the strip passes through neutral as the paper's Fig. 2 does."""
+    from stages.face.alignment import neutral_index
+
+    others = [label for i, label in enumerate(labels) if i != neutral_index(labels)]
+    half = (len(others) + 1) // 2
+    return [*others[:half], labels[neutral_index(labels)], *others[half:]]
 
 
 def first_number(value, default: float) -> float:
