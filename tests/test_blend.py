@@ -220,20 +220,27 @@ def test_round_trip_through_the_store_and_figures(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "alpha, message, field",
+    "alpha, message",
     [
-        ({"happy": 0.7, "neutral": 0.5}, "sum to 1.*1.2", "params.alpha"),
-        ({"happy": 1.2, "neutral": -0.2}, r"must be >= 0.*-0.2", "params.alpha"),
-        ({"happy": 0.5, "surprised": 0.5}, r"unknown expressions \['surprised'\].*neutral", "params.alpha"),
-        ({"keyframes": {0.0: {"happy": 1.0}, 1.0: {"happy": 0.5}}}, "sum to 1", "params.alpha.keyframes.1"),
-        ({"keyframes": {}}, "empty", "params.alpha.keyframes"),
+        ({"happy": 0.7, "neutral": 0.5}, "sum to 1.*1.2"),
+        ({"happy": 1.2, "neutral": -0.2}, r"must be >= 0.*-0.2"),
+        ({"keyframes": {0.0: {"happy": 1.0}, 1.0: {"happy": 0.5}}}, "keyframe 1: .*sum to 1"),
+        ({"keyframes": {}}, "empty"),
     ],
 )
-def test_bad_alpha_is_a_user_error(alpha, message, field):
+def test_bad_alpha_is_rejected_with_the_params(alpha, message):
+    """Checked up front (msflow status and run reject a bad -S before any stage runs), not inside run()."""
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match=message):
+        Blend.Params(alpha=alpha)
+
+
+def test_unknown_expression_in_alpha_is_a_user_error():
     keyshapes, keymorphs = retarget_inputs()
-    with pytest.raises(UserError, match=message) as err:
-        run_stage(Blend, {"alpha": alpha}, {"keyshapes": keyshapes, "keymorphs": keymorphs})
-    assert err.value.field == field
+    with pytest.raises(UserError, match=r"unknown expressions \['surprised'\].*neutral") as err:
+        run_stage(Blend, {"alpha": {"happy": 0.5, "surprised": 0.5}}, {"keyshapes": keyshapes, "keymorphs": keymorphs})
+    assert err.value.field == "params.alpha"
 
 
 def test_alpha_sum_tolerance():
@@ -345,3 +352,172 @@ def test_several_test_takes_keep_their_own_clock():
     np.testing.assert_array_equal(out.arrays["sequence"], sequence)
     assert out.meta["labels"] == ["sad", "fear"]
     np.testing.assert_allclose(out.arrays["alpha"][12], [1, 0, 0])  # the second take starts at its own t = 0
+
+
+# ------------------------------------------------------------------------------------------- regions, lips, eyes
+
+
+def test_each_morph_follows_its_own_regions_keyshape_weights():
+    keyshapes, keymorphs = retarget_inputs(frames=6)
+    rng = np.random.default_rng(7)
+    w = keyshapes["weights"]
+    region_weights = np.stack([w * rng.random(w.shape), w * rng.random(w.shape)], axis=2).astype(np.float32)
+    regions = {"mouth": [48, 49], "brows": [17, 18]}
+    by_region = artifact(
+        {name: keyshapes[name] for name in keyshapes.names} | {"region_weights": region_weights},
+        meta=dict(keyshapes.meta, regions=regions),
+    )
+    morph_regions = {"jawOpen": "mouth", "mouthSmile_L": "mouth", "browDown_L": "brows"}  # the others: whole face
+    tagged = artifact(
+        {"keymorph_weights": keymorphs["keymorph_weights"]}, meta=dict(keymorphs.meta, morph_regions=morph_regions)
+    )
+    out = run_stage(Blend, {"alpha": {"happy": 1.0}}, {"keyshapes": by_region, "keymorphs": tagged})
+    G = keymorphs["keymorph_weights"].astype(np.float64)
+    expected = np.einsum("tfk,km->tfm", w.astype(np.float64), G)
+    for m, name in enumerate(MORPHS):
+        if name in morph_regions:
+            r = list(regions).index(morph_regions[name])
+            expected[..., m] = np.einsum("tfk,k->tf", region_weights[:, :, r].astype(np.float64), G[:, m])
+    np.testing.assert_allclose(out.arrays["expression_weights"], expected, atol=1e-5)
+    assert out.meta["regions"] == "by region"
+    whole = run_stage(Blend, {"alpha": {"happy": 1.0}, "regions": False}, {"keyshapes": by_region, "keymorphs": tagged})
+    np.testing.assert_allclose(whole.arrays["expression_weights"], per_expression(keyshapes, keymorphs), atol=1e-5)
+
+
+@pytest.fixture(scope="module")
+def ict():
+    from stages.retarget.character import GltfCharacter
+
+    return run_stage(GltfCharacter, {}, {"mesh": {"path": "data/characters/ict-facekit.glb"}}).view()
+
+
+def single_target_inputs(weights, names, lip_gap=None):
+    """Keyshapes and keymorphs whose blend is exactly ``weights`` (one target, one keyshape per frame)."""
+    frames = len(weights)
+    arrays = {
+        "weights": np.eye(frames, dtype=np.float32)[None],
+        "keyshape_expression": np.zeros(frames, np.int32),
+    }
+    if lip_gap is not None:
+        arrays["lip_gap"] = np.asarray(lip_gap, np.float32)[None]  # (1, frames, [gap, rest gap])
+    keyshapes = artifact(arrays, meta={"labels": ["performance"], "targets": ["performance"], "fps": FPS})
+    keymorphs = artifact({"keymorph_weights": np.asarray(weights, np.float32)}, meta={"target_names": names})
+    return keyshapes, keymorphs
+
+
+def test_lip_seal_closes_the_characters_lips_where_the_performers_close(ict):
+    from stages.retarget.blend import character_landmarks
+    from stages.retarget.lips import lip_gap_model
+
+    names = ict.meta["target_names"]
+    weights = np.zeros((6, len(names)))
+    weights[:, names.index("jawOpen")] = 0.3
+    weights[:, names.index("mouthFunnel")] = 0.2
+    weights[:, names.index("mouthSmile_L")] = 0.4
+    gap = np.array([0.02, 0.015, 0.2, 0.2, 0.035, 0.02])  # closed, closed, open, open, just above, closed
+    rest = 0.015  # the performer's closed mouth: the tracked inner lips of a closed mouth are this far apart
+    keyshapes, keymorphs = single_target_inputs(weights, names, np.stack([gap, np.full(6, rest)], axis=1))
+    out = run_stage(Blend, {"eyes": "keyshapes"}, {"keyshapes": keyshapes, "keymorphs": keymorphs, "character": ict})
+    sealed = out.arrays["weights"].astype(np.float64)
+    g0, slopes = lip_gap_model(*character_landmarks(ict))
+    achieved = g0 + sealed @ slopes
+    for f in (0, 1, 5):  # the character's closed mouth, opened as far as the performer's is beyond their rest
+        assert achieved[f] <= g0 + (gap[f] - rest) + 1e-4, (f, achieved[f])
+    assert achieved[1] == pytest.approx(g0, abs=1e-4)
+    np.testing.assert_allclose(sealed[[2, 3]], weights[[2, 3]], atol=1e-6)  # open frames untouched
+    assert np.all(sealed <= weights + 1e-6)  # the seal only lowers weights ...
+    smile = names.index("mouthSmile_L")
+    np.testing.assert_allclose(sealed[:, smile], weights[:, smile], atol=1e-6)  # ... and only those that open the lips
+    assert g0 + gap[4] - rest < achieved[4] < g0 + weights[4] @ slopes  # above seal_gap the seal fades out
+    assert out.metrics["closed_frames"] == 3
+    plain = run_stage(
+        Blend,
+        {"eyes": "keyshapes", "lip_seal": False},
+        {"keyshapes": keyshapes, "keymorphs": keymorphs, "character": ict},
+    )
+    np.testing.assert_allclose(plain.arrays["weights"], weights, atol=1e-6)
+    assert any("lip seal off" in w for w in warnings_of(Blend, {"eyes": "keyshapes"}, keyshapes, keymorphs))
+
+
+def warnings_of(cls, params, keyshapes, keymorphs):
+    """The warnings a stage attaches to its result (msflow.testing.run_stage does not return them)."""
+    from msflow.testing import prepare_inputs
+
+    inputs = prepare_inputs(cls, {"keyshapes": keyshapes, "keymorphs": keymorphs})
+    return cls("blend").run(cls.Params(**params), inputs).warnings
+
+
+def test_seal_is_the_nearest_weights_that_meet_the_bound():
+    from stages.retarget.lips import seal_lips
+
+    rng = np.random.default_rng(3)
+    slopes = np.array([0.3, 0.1, -0.2, 0.05])
+    u0 = rng.random((1, 4))
+    bound = np.array([0.02 + u0[0] @ slopes - 0.05])
+    sealed = seal_lips(u0, 0.02, slopes, bound)
+    assert 0.02 + sealed[0] @ slopes == pytest.approx(bound[0], abs=1e-9)
+    # brute force over lowered weights meeting the bound: none is nearer
+    candidates = u0 * rng.random((200000, 4))
+    feasible = candidates[0.02 + candidates @ slopes <= bound[0]]
+    assert np.linalg.norm(sealed - u0) <= np.linalg.norm(feasible - u0, axis=1).min() + 1e-9
+
+
+def tracking_with_eyes(frames, aperture=None, gaze=None):
+    arrays = {"landmarks": np.zeros((frames, 68, 2), np.float32)}
+    if aperture is not None:
+        arrays["eye_aperture"] = np.asarray(aperture, np.float32)
+    if gaze is not None:
+        arrays["gaze"] = np.asarray(gaze, np.float32)
+    return artifact(arrays, meta={"labels": ["take"], "fps": [FPS]})
+
+
+def test_blinks_and_gaze_come_from_tracking(ict):
+    """A synthetic blink in the performer's eyelid aperture closes the character's eyes by the same fraction; gaze
+    turns into eyeLook weights (synthetic inputs in tracking's contract-3 shapes)."""
+    from stages.retarget.blend import character_landmarks
+    from stages.retarget.eyes import blink_curve, eye_aperture_2d
+
+    names = ict.meta["target_names"]
+    frames = 20
+    aperture = np.full((frames, 2), 0.3)
+    aperture[8:11] = [[0.03, 0.03], [0.02, 0.02], [0.15, 0.15]]  # a blink, both eyes
+    gaze = np.zeros((frames, 2, 2))
+    gaze[12:15, :, 0] = 15.0  # looking to the performer's left: out for the left eye, in for the right
+    gaze[15:17, :, 1] = -30.0  # down
+    keyshapes, keymorphs = single_target_inputs(np.zeros((frames, len(names))), names)
+    out = run_stage(
+        Blend,
+        {},
+        {
+            "keyshapes": keyshapes,
+            "keymorphs": keymorphs,
+            "character": ict,
+            "tracks": tracking_with_eyes(frames, aperture, gaze),
+        },
+    )
+    w = out.arrays["weights"]
+    blink = w[:, [names.index("eyeBlink_L"), names.index("eyeBlink_R")]]
+    assert np.all(blink[8:10] > 0.8) and np.all(blink[:8] < 0.01) and np.all(blink[11:] < 0.01)
+    rest, deltas = character_landmarks(ict)
+    shapes = rest[None] + np.einsum("fm,mpc->fpc", w.astype(np.float64), deltas)
+    relative = eye_aperture_2d(shapes) / eye_aperture_2d(rest[None])
+    # the same fraction closed, as far as the character's blink closes (ICT's lids stop at 13% of open)
+    tightest = blink_curve(rest, deltas[names.index("eyeBlink_L")])[1][-1]
+    np.testing.assert_allclose(relative[8:11], np.maximum(aperture[8:11] / 0.3, tightest), atol=0.01)
+    assert w[12, names.index("eyeLookOut_L")] == pytest.approx(0.5, abs=1e-6)
+    assert w[12, names.index("eyeLookIn_R")] == pytest.approx(0.5, abs=1e-6)
+    assert w[12, names.index("eyeLookIn_L")] == 0 and w[12, names.index("eyeLookOut_R")] == 0
+    assert w[15, names.index("eyeLookDown_L")] == pytest.approx(1.0) and w[15, names.index("eyeLookUp_R")] == 0
+    np.testing.assert_allclose(out.arrays["gaze"], gaze, atol=1e-6)
+    assert out.meta["eyes"]["blink_source"] == "tracking eye_aperture"
+    keyed = run_stage(
+        Blend,
+        {"eyes": "keyshapes"},
+        {
+            "keyshapes": keyshapes,
+            "keymorphs": keymorphs,
+            "character": ict,
+            "tracks": tracking_with_eyes(frames, aperture, gaze),
+        },
+    )
+    assert not keyed.arrays["weights"].any() and "gaze" not in keyed.arrays

@@ -448,6 +448,110 @@ def test_rig_maps_keyshapes_into_character_units(character):
     np.testing.assert_allclose(rig.keymorph_landmarks(truth), keyshapes["keyshapes"], atol=1e-4)
 
 
+# ---------------------------------------------------------------------------------------------- 3D, by region
+
+#: open vowels and rounded lips, alone and mixed, plus a blink and brows
+POSES_3D = [
+    ("neutral", {}),
+    ("neutral", {"jawOpen": 0.5}),
+    ("neutral", {"mouthFunnel": 0.6}),
+    ("neutral", {"jawOpen": 0.3, "mouthFunnel": 0.4}),
+    ("happy", {"jawOpen": 0.25, "mouthSmile_L": 0.6, "mouthSmile_R": 0.6}),
+    ("happy", {"mouthPucker": 0.7}),
+    ("angry", {"browDown_L": 0.7, "browDown_R": 0.7, "eyeBlink_L": 0.8, "eyeBlink_R": 0.8}),
+    ("angry", {"jawOpen": 0.6, "browDown_L": 0.5, "browDown_R": 0.5}),
+]
+
+
+def keyshapes3d_from_weights(character, poses):
+    """A keyshapes artifact whose 3D keyshapes are the character's landmark vertices under known weights, carried
+    into another frame (inter-ocular distance 1, turned 11 and 6 degrees, shifted) as the head-frame FaceMesh would
+    be; the rest pose is the neutral face in that frame."""
+    from stages.geometry.rotations import euler_to_quat, quat_to_matrix
+    from stages.retarget.shapes3d import front_view
+
+    keyshapes, truth = keyshapes_from_weights(character, poses)
+    ids = character["landmark_ids"]
+    rest = character["neutral"][ids].astype(np.float64)
+    posed = rest + np.einsum("km,mpc->kpc", truth, character["deltas"][:, ids])
+    turn = quat_to_matrix(euler_to_quat(np.array(0.2), np.array(0.1), np.array(0.0)))
+    scale = 1.0 / inter_ocular_distance(rest)
+
+    def performer(points):
+        return scale * points @ turn.T + [0.3, -0.1, 2.0]
+
+    arrays = {name: keyshapes[name] for name in keyshapes.names}
+    arrays.update(
+        keyshapes3d=performer(posed).astype(np.float32),
+        keyshape_rest3d=np.repeat(performer(rest)[None], len(poses), axis=0).astype(np.float32),
+        keyshapes=front_view(performer(posed)).astype(np.float32),
+        rest_shape=front_view(performer(rest)).astype(np.float32),
+    )
+    return artifact(arrays, meta=keyshapes.meta), truth
+
+
+@pytest.fixture(scope="module")
+def fitted_3d(character):
+    keyshapes, truth = keyshapes3d_from_weights(character, POSES_3D)
+    out = run_stage(KeymorphFit, {"contact_sheet": False}, {"keyshapes": keyshapes, "character": character})
+    return keyshapes, truth, out
+
+
+def test_3d_fit_tells_jaw_drop_from_lip_rounding(fitted_3d, character):
+    """Known answer (issue 13.1): keyshapes made by jawOpen, by mouthFunnel and by both are told apart."""
+    _, truth, out = fitted_3d
+    names = character.meta["target_names"]
+    w = out.arrays["keymorph_weights"]
+    assert out.meta["space"] == "3d"
+    jaw, funnel = names.index("jawOpen"), names.index("mouthFunnel")
+    for k, (_, pose) in enumerate(POSES_3D):
+        for m in (jaw, funnel):
+            assert w[k, m] == pytest.approx(truth[k, m], abs=0.08), (k, names[m], w[k, m], truth[k, m])
+    # an open vowel is carried by the jaw, rounded lips by the funnel
+    assert w[1, jaw] > 0.4 and w[1, funnel] < 0.05
+    assert w[2, funnel] > 0.5 and w[2, jaw] < 0.05
+    assert out.metrics["landmark_error_rms_iod"] < 0.01
+    assert not w[0].any()
+
+
+def test_3d_fit_recovers_every_known_weight(fitted_3d, character):
+    _, truth, out = fitted_3d
+    names = character.meta["target_names"]
+    w = out.arrays["keymorph_weights"]
+    for k, (_, pose) in enumerate(POSES_3D):
+        for name, value in pose.items():
+            assert value * 0.75 <= w[k, names.index(name)] <= value + 0.08, (k, name, w[k, names.index(name)])
+    # each morph is credited to the decomposition region that will drive it in the blend
+    regions = out.meta["morph_regions"]
+    assert regions["jawOpen"] == regions["mouthFunnel"] == "mouth"
+    assert regions["eyeBlink_L"] == "eyes" and regions["browDown_R"] == "brows"
+    assert "eyeLookIn_L" not in regions
+
+
+def test_mouth_close_never_exceeds_the_jaw(character):
+    """ARKit's mouthClose is a corrective on top of jawOpen: the 3D fit bounds it by the fitted jaw."""
+    poses = [("neutral", {}), ("neutral", {"jawOpen": 0.4, "mouthClose": 0.35}), ("happy", {}), ("angry", {})]
+    keyshapes, _ = keyshapes3d_from_weights(character, poses)
+    names = character.meta["target_names"]
+    w = run_stage(KeymorphFit, {"contact_sheet": False}, {"keyshapes": keyshapes, "character": character}).arrays[
+        "keymorph_weights"
+    ]
+    assert w[1, names.index("jawOpen")] == pytest.approx(0.4, abs=0.06)
+    assert 0.2 < w[1, names.index("mouthClose")] <= w[1, names.index("jawOpen")] + 1e-6
+
+
+def test_space_2d_is_the_front_view_fit(character):
+    keyshapes, _ = keyshapes3d_from_weights(character, POSES_3D)
+    out = run_stage(
+        KeymorphFit, {"contact_sheet": False, "space": "2d"}, {"keyshapes": keyshapes, "character": character}
+    )
+    assert out.meta["space"] == "2d"
+    no_depth, _ = keyshapes_from_weights(character, POSES_3D)
+    with pytest.raises(UserError, match="space: 3d needs keyshapes in 3D") as err:
+        run_stage(KeymorphFit, {"contact_sheet": False, "space": "3d"}, {"keyshapes": no_depth, "character": character})
+    assert err.value.field == "params.space"
+
+
 # ------------------------------------------------------------------------------------------- real data (CREMA-D)
 
 

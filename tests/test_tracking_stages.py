@@ -1,10 +1,9 @@
 """The tracking stages on the six real CREMA-D clips (FaceMesh run once per module, round-tripped through zarr)
 and on synthetic videos made from them (blanked frames, no audio, truncated files)."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from tracking_media import CLIPS, write_video
 
 from msflow import UserError
 from msflow.testing import run_stage
@@ -17,9 +16,6 @@ from stages.tracking.landmarks68 import IBUG68_MIRROR
 from stages.tracking.shape_model import similarity_fit
 from stages.tracking.trackfile import format_pts, write_openface_csv
 from stages.tracking.video import read_frames
-
-ROOT = Path(__file__).resolve().parents[1]
-CLIPS = {e: ROOT / "data" / "crema-d" / f"1001_DFA_{e}_XX.flv" for e in ("NEU", "HAP", "ANG", "SAD", "DIS", "FEA")}
 
 
 @pytest.fixture(scope="module")
@@ -39,34 +35,6 @@ def neutral_frames():
 
 def rows_of(run, label):
     return np.flatnonzero(run.arrays["sequence"] == run.meta["labels"].index(label))
-
-
-def write_video(path, frames, fps=30, audio=None, rate=16000):
-    """Encode BGR frames (MPEG-4 part 2) and optional mono float audio (AAC) with PyAV."""
-    import av
-
-    with av.open(str(path), "w") as out:
-        video = out.add_stream("mpeg4", rate=fps)
-        video.height, video.width = frames[0].shape[:2]
-        video.pix_fmt = "yuv420p"
-        video.bit_rate = 2_000_000
-        sound = out.add_stream("aac", rate=rate) if audio is not None else None
-        for frame in frames:
-            for packet in video.encode(av.VideoFrame.from_ndarray(frame, format="bgr24")):
-                out.mux(packet)
-        for packet in video.encode():
-            out.mux(packet)
-        if sound is not None:
-            for k in range(0, len(audio), 1024):
-                chunk = av.AudioFrame.from_ndarray(
-                    audio[None, k : k + 1024].astype(np.float32), format="flt", layout="mono"
-                )
-                chunk.sample_rate = rate
-                for packet in sound.encode(chunk):
-                    out.mux(packet)
-            for packet in sound.encode():
-                out.mux(packet)
-    return path
 
 
 # ---------------------------------------------------------------- FaceMesh on CREMA-D
@@ -93,6 +61,8 @@ def test_outputs_follow_the_schema(facemesh):
     assert a["rotation"].shape == (n, 4) and a["translation"].shape == (n, 3)
     np.testing.assert_allclose(np.linalg.norm(a["rotation"], axis=1), 1.0, atol=1e-9)
     assert meta["landmark_scheme"] == "ibug68" and meta["translation_units"] == "cm"
+    assert meta["fields"] == {label: {} for label in CLIPS}  # plain labels: no fields
+    assert meta["audio_sources"] == [p.name for p in CLIPS.values()]
     assert meta["frame_size"] == [[480, 360]] * 6 and meta["focal_length"] == [480.0] * 6
     for s in range(6):
         t = a["time"][a["sequence"] == s]

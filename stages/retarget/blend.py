@@ -14,6 +14,17 @@ alpha(t): barycentric coordinates over the expressions, from the params:
   the simplex (paper Sec 4.3: "the user-chosen barycentric coordinates of the desired output expression in
   terms of the basic expression vectors found during training").
 
+Beyond the paper (each behind a param):
+
+- region by region (``regions``, default on when the keyshapes and keymorphs carry regions): each morph is driven
+  by the keyshape weights of its own decomposition region (mouth with jaw, eyes, brows), H_m(t) = sum_j alpha_j
+  sum_i w_i^(j, r(m))(t) G_im^(j);
+- lip seal (``lip_seal``, needs the character): where the decomposed shapes' lips close, the weights that open the
+  character's lips are lowered until its gap is the performer's (stages.retarget.lips);
+- eyes (``eyes: tracking``, needs the performer's tracking of the animated take): blink morphs from the eyelid
+  aperture and eyeLook morphs from the gaze (stages.retarget.eyes); the gaze itself is the optional ``gaze``
+  output, for eye joints and Live Link eye angles.
+
 The result is clipped to [0, 1] (the range of a morph-target slider); how much was clipped is a metric.
 """
 
@@ -22,7 +33,7 @@ from __future__ import annotations
 from typing import Literal, Union
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from msflow import Input, Output, Result, Stage, UserError
 
@@ -38,6 +49,23 @@ class AlphaKeyframes(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
     keyframes: dict[float, dict[str, float]]
     interpolation: Literal["linear", "step", "smooth"] = "linear"
+
+    @field_validator("keyframes")
+    @classmethod
+    def _not_empty(cls, keyframes):
+        if not keyframes:
+            raise ValueError("alpha keyframes are empty")
+        return keyframes
+
+
+def check_barycentric(weights: dict[str, float], tolerance: float, where: str) -> None:
+    """Alpha weights are >= 0 and sum to 1 (within ``tolerance``): a ValueError naming ``where`` otherwise."""
+    negative = {name: w for name, w in weights.items() if w < 0}
+    if negative:
+        raise ValueError(f"{where}: alpha weights must be >= 0, got {negative}")
+    total = float(sum(weights.values()))
+    if abs(total - 1.0) > tolerance:
+        raise ValueError(f"{where}: alpha weights must sum to 1 (barycentric), they sum to {total:g}: {weights}")
 
 
 # ------------------------------------------------------------------------------------------------------ maths
@@ -99,13 +127,15 @@ def interpolate_keyframes(
     return key_values[seg] * (1.0 - u)[:, None] + key_values[seg + 1] * u[:, None]
 
 
-def frame_times(sequence: np.ndarray, fps: float) -> np.ndarray:
-    """Seconds since the first frame of each frame's own take (takes are concatenated along frames)."""
+def frame_times(sequence: np.ndarray, fps) -> np.ndarray:
+    """Seconds since the first frame of each frame's own take (takes are concatenated along frames); ``fps`` one
+    rate, or one per take (indexed by the sequence value)."""
     sequence = np.asarray(sequence)
     index = np.arange(len(sequence))
     starts = np.r_[0, np.flatnonzero(np.diff(sequence) != 0) + 1]
     first = starts[np.searchsorted(starts, index, side="right") - 1]
-    return (index - first) / float(fps)
+    rate = np.asarray(fps, np.float64)
+    return (index - first) / (rate[sequence] if rate.ndim else float(rate))
 
 
 def smooth_in_time(values: np.ndarray, sigma_frames: float) -> np.ndarray:
@@ -117,9 +147,23 @@ def smooth_in_time(values: np.ndarray, sigma_frames: float) -> np.ndarray:
     return gaussian_filter1d(values, sigma_frames, axis=0, mode="nearest")
 
 
-def retarget_expressions(keyshape_weights: np.ndarray, keymorph_weights: np.ndarray) -> np.ndarray:
-    """sum_i w_i^(j)(t) G_i^(j) for every target expression j: (targets, frames, total_k) x (total_k, M)."""
-    return np.einsum("tfk,km->tfm", np.asarray(keyshape_weights, np.float64), np.asarray(keymorph_weights, np.float64))
+def retarget_expressions(
+    keyshape_weights: np.ndarray,
+    keymorph_weights: np.ndarray,
+    region_weights: np.ndarray | None = None,
+    morph_region: np.ndarray | None = None,
+) -> np.ndarray:
+    """sum_i w_i^(j)(t) G_i^(j) for every target expression j: (targets, frames, total_k) x (total_k, M).
+
+    With ``region_weights`` (targets, frames, regions, total_k) and ``morph_region`` (M,) (region index, -1 none),
+    each morph takes its own region's keyshape weights; morphs of no region the whole-face ones."""
+    G = np.asarray(keymorph_weights, np.float64)
+    out = np.einsum("tfk,km->tfm", np.asarray(keyshape_weights, np.float64), G)
+    if region_weights is not None and morph_region is not None:
+        for r in range(region_weights.shape[2]):
+            columns = np.flatnonzero(np.asarray(morph_region) == r)
+            out[..., columns] = np.einsum("tfk,km->tfm", np.asarray(region_weights[:, :, r], np.float64), G[:, columns])
+    return out
 
 
 def blend_expressions(per_expression: np.ndarray, alpha: np.ndarray) -> np.ndarray:
@@ -181,7 +225,7 @@ BLEND_OUTPUTS = {
         "f",
         shape=("frames", "morphs"),
         dtype="float32",
-        doc="morph-target weights per frame in [0, 1] (meta['target_names'])",
+        doc="morph-target weights per frame in [0, 1] (meta['target_names']), blink and gaze morphs included",
     ),
     "alpha": Output.array(
         "f",
@@ -202,6 +246,14 @@ BLEND_OUTPUTS = {
         dtype="int32",
         doc="test take of each frame, index into meta['labels'] (several takes concatenated)",
     ),
+    "gaze": Output.array(
+        "f",
+        shape=("frames", 2, 2),
+        dtype="float32",
+        optional=True,
+        doc="eye directions, degrees [eye (0 = left)][yaw (> 0 to the performer's left), pitch (> 0 up)], "
+        "from tracking: for eye joints and Live Link eye angles",
+    ),
     "vertices": Output.array(
         "f",
         shape=("frames", None, 3),
@@ -212,33 +264,53 @@ BLEND_OUTPUTS = {
 }
 
 
+class BlendParams(Stage.Params):
+    #: "from_analysis", constant weights {expression: weight}, or {keyframes: {seconds: {expression: w}},
+    #: interpolation: linear|step|smooth}; weights must be >= 0 and sum to 1
+    alpha: Union[Literal["from_analysis"], dict[str, float], AlphaKeyframes] = "from_analysis"
+    #: Gaussian smoothing of alpha over time, sigma in seconds (the analysed e(t) jitters, paper Sec 7)
+    alpha_smoothing: float = Field(0.0, ge=0)
+    #: allowed deviation of the alpha sum from 1
+    tolerance: float = Field(1e-3, gt=0)
+    #: drive each morph by its own region's keyshape weights when the keyshapes and keymorphs carry regions
+    regions: bool = True
+    #: close the character's lips where the performer's close (needs the character and keyshapes lip_gap)
+    lip_seal: bool = True
+    #: the seal acts below this inner-lip gap (IOD) and fades out above it
+    seal_gap: float = Field(0.03, gt=0)
+    #: blinks and gaze from the performer's tracking (needs the tracks input), or from the keymorphs alone
+    eyes: Literal["tracking", "keyshapes"] = "tracking"
+    #: gaze angle (degrees) that an eyeLook weight of 1 stands for
+    gaze_full_degrees: float = Field(30.0, gt=0)
+    #: also output posed vertices per frame (needs the character input)
+    vertices: bool = False
+
+    @field_validator("alpha", mode="before")
+    @classmethod
+    def _alpha_form(cls, value):
+        # one clear message instead of pydantic's per-branch union errors
+        if isinstance(value, str) and value != "from_analysis":
+            raise ValueError(ALPHA_FORMS)
+        if isinstance(value, dict) and "keyframes" not in value:
+            bad = {k: v for k, v in value.items() if isinstance(v, bool) or not isinstance(v, (int, float))}
+            if bad:
+                raise ValueError(f"{ALPHA_FORMS}; these weights are not numbers: {bad}")
+        return value
+
+    @model_validator(mode="after")
+    def _alpha_is_barycentric(self):
+        if isinstance(self.alpha, AlphaKeyframes):
+            for t, weights in self.alpha.keyframes.items():
+                check_barycentric(weights, self.tolerance, f"keyframe {t:g}")
+        elif isinstance(self.alpha, dict):
+            check_barycentric(self.alpha, self.tolerance, "alpha")
+        return self
+
+
 class Blend(Stage):
     """Blend the per-expression retargeted animations with barycentric expression weights (paper Eq 9)."""
 
-    class Params(Stage.Params):
-        #: "from_analysis", constant weights {expression: weight}, or {keyframes: {seconds: {expression: w}},
-        #: interpolation: linear|step|smooth}; weights must be >= 0 and sum to 1
-        alpha: Union[Literal["from_analysis"], dict[str, float], AlphaKeyframes] = "from_analysis"
-
-        @field_validator("alpha", mode="before")
-        @classmethod
-        def _alpha_form(cls, value):
-            # one clear message instead of pydantic's per-branch union errors
-            if isinstance(value, str) and value != "from_analysis":
-                raise ValueError(ALPHA_FORMS)
-            if isinstance(value, dict) and "keyframes" not in value:
-                bad = {k: v for k, v in value.items() if isinstance(v, bool) or not isinstance(v, (int, float))}
-                if bad:
-                    raise ValueError(f"{ALPHA_FORMS}; these weights are not numbers: {bad}")
-            return value
-
-        #: Gaussian smoothing of alpha over time, sigma in seconds (the analysed e(t) jitters, paper Sec 7)
-        alpha_smoothing: float = 0.0
-        #: allowed deviation of the alpha sum from 1
-        tolerance: float = 1e-3
-        #: also output posed vertices per frame (needs the character input)
-        vertices: bool = False
-
+    Params = BlendParams
     inputs = {
         "keyshapes": Input.artifact("weights", "keyshape_expression", doc="keyshapes artifact (Eq 8 weights)"),
         "keymorphs": Input.artifact("keymorph_weights", doc="keymorphs artifact (G per keyshape)"),
@@ -248,12 +320,31 @@ class Blend(Stage):
         "bilinear": Input.artifact(
             "style", optional=True, doc="bilinear artifact: training style vectors for alpha from_analysis"
         ),
-        "character": Input.artifact("neutral", "deltas", optional=True, doc="character, for params.vertices"),
+        "character": Input.artifact(
+            "neutral", "deltas", optional=True, doc="character: lip seal, blink mapping and params.vertices"
+        ),
+        "tracks": Input.artifact(
+            "landmarks",
+            optional=True,
+            doc="tracking of the performance the blend animates: eyelid aperture (eye_aperture, else the landmarks) "
+            "and gaze",
+        ),
     }
     outputs = BLEND_OUTPUTS
     figures = {"weights": figure_weights, "alpha": figure_alpha}
 
     def run(self, params, inputs):
+        data = self._validate(params, inputs)
+        alpha, alpha_meta = self._alpha(params, inputs, data)
+        per_expression = retarget_expressions(
+            data["w"], data["G"], data["region_weights"], data["morph_region"] if params.regions else None
+        )
+        raw = blend_expressions(per_expression, alpha)
+        result = finish_weights(params, data, raw, alpha)
+        return self._pack(params, inputs, data, result, alpha, alpha_meta, per_expression, raw)
+
+    # ---------------------------------------------------------------------------------------------- validate
+    def _validate(self, params, inputs) -> dict:
         keyshapes, keymorphs, edit = inputs["keyshapes"], inputs["keymorphs"], inputs.get("edit")
         labels = list(keyshapes.meta.get("labels", []))
         targets = list(keyshapes.meta.get("targets", labels))
@@ -263,55 +354,61 @@ class Blend(Stage):
         self._check_consistency(keyshapes, keymorphs, w, G, names, targets)
         n_frames = w.shape[1]
         fps = self._fps(keyshapes, edit, n_frames)
-        sequence, take_labels = self._takes(edit, n_frames)
-        time = frame_times(sequence, fps)
-
-        alpha, alpha_meta = self._alpha(params, inputs, targets, time, fps, sequence)
-        per_expression = retarget_expressions(w, G)
-        raw = blend_expressions(per_expression, alpha)
-        weights = np.clip(raw, 0.0, 1.0)
-        excess = np.abs(raw - weights)
-        arrays = {
-            "weights": weights.astype(np.float32),
-            "alpha": alpha.astype(np.float32),
-            "expression_weights": per_expression.astype(np.float32),
+        sequence, take_labels = self._takes(keyshapes, edit, n_frames)
+        take_fps = keyshapes.meta.get("take_fps")
+        time = frame_times(sequence, take_fps if take_fps and len(take_fps) > sequence.max(initial=0) else fps)
+        character = inputs.get("character")
+        if character is not None and len(character["deltas"]) != len(names):
+            raise UserError(
+                f"the character has {len(character['deltas'])} morph targets but the keymorphs were made for "
+                f"{len(names)}",
+                field="inputs.character",
+            )
+        tracks = inputs.get("tracks")
+        if tracks is not None and len(tracks["landmarks"]) != n_frames:
+            raise UserError(
+                f"the tracking has {len(tracks['landmarks'])} frames, the keyshape weights {n_frames}: wire the "
+                "tracking of the take the blend animates",
+                field="inputs.tracks",
+            )
+        return {
+            "w": w,
+            "G": G,
+            "names": names,
+            "targets": targets,
+            "fps": fps,
+            "sequence": sequence,
+            "take_labels": take_labels,
             "time": time,
-            "sequence": sequence.astype(np.int32),
+            "character": character,
+            "tracks": tracks,
+            "target_gap": np.asarray(keyshapes["lip_gap"], np.float64) if "lip_gap" in keyshapes else None,
+            **self._regions(keyshapes, keymorphs, names),
         }
-        if params.vertices:
-            character = inputs.get("character")
-            if character is None:
-                raise UserError("params.vertices needs the character input", field="inputs.character")
-            deltas = np.asarray(character["deltas"], np.float32)
-            if len(deltas) != len(names):
-                raise UserError(
-                    f"the character has {len(deltas)} morph targets but the keymorphs were made for {len(names)}",
-                    field="inputs.character",
-                )
-            neutral = np.asarray(character["neutral"], np.float32)
-            arrays["vertices"] = neutral[None] + np.tensordot(weights.astype(np.float32), deltas, axes=1)
-        metrics = {
-            "clipped_fraction": float((excess > 1e-6).mean()) if excess.size else 0.0,
-            "clipped_amount": float(excess.mean()) if excess.size else 0.0,
-            "max_weight_unclipped": float(raw.max(initial=0.0)),
-            "min_weight_unclipped": float(raw.min(initial=0.0)),
-        }
-        for j, name in enumerate(targets):
-            metrics[f"mean_alpha_{name}"] = float(alpha[:, j].mean()) if n_frames else 0.0
-        meta = {"target_names": names, "fps": fps, "expressions": targets, "labels": take_labels, **alpha_meta}
-        return Result(arrays, meta=meta, metrics=metrics)
 
     @staticmethod
-    def _takes(edit, n_frames) -> tuple[np.ndarray, list[str]]:
-        """Which test take each frame belongs to (the edit may analyse several, concatenated)."""
+    def _regions(keyshapes, keymorphs, names) -> dict:
+        """Region weights and each morph's region index, when both artifacts carry regions."""
+        regions = list((keyshapes.meta.get("regions") or {}).keys())
+        morph_regions = keymorphs.meta.get("morph_regions") or {}
+        if "region_weights" not in keyshapes or not regions or not morph_regions:
+            return {"region_weights": None, "morph_region": None}
+        index = np.array([regions.index(morph_regions[n]) if morph_regions.get(n) in regions else -1 for n in names])
+        return {"region_weights": np.asarray(keyshapes["region_weights"], np.float64), "morph_region": index}
+
+    @staticmethod
+    def _takes(keyshapes, edit, n_frames) -> tuple[np.ndarray, list[str]]:
+        """Which take each frame belongs to (the edit may analyse several, concatenated; capture keyshapes
+        decompose every tracked take)."""
+        for source in (edit, keyshapes):
+            if source is not None and "sequence" in source:
+                sequence = np.asarray(source["sequence"]).astype(np.int64)
+                labels = list(source.meta.get("test_labels", []))
+                if len(sequence) == n_frames:
+                    return sequence, labels or [f"take{i}" for i in range(int(sequence.max(initial=0)) + 1)]
         labels = list(edit.meta.get("test_labels", [])) if edit is not None else []
-        if edit is not None and "sequence" in edit:
-            sequence = np.asarray(edit["sequence"]).astype(np.int64)
-            if len(sequence) == n_frames:
-                return sequence, labels or [f"take{i}" for i in range(int(sequence.max(initial=0)) + 1)]
         return np.zeros(n_frames, dtype=np.int64), labels[:1] or ["take"]
 
-    # ---------------------------------------------------------------------------------------------- checks
     @staticmethod
     def _check_consistency(keyshapes, keymorphs, w, G, names, targets):
         if w.ndim != 3:
@@ -371,52 +468,42 @@ class Blend(Stage):
         return float(fps)
 
     # ----------------------------------------------------------------------------------------------- alpha
-    def _alpha(self, params, inputs, targets, time, fps, sequence):
-        spec = params.alpha
+    def _alpha(self, params, inputs, data):
+        spec, targets, time = params.alpha, data["targets"], data["time"]
         if spec == "from_analysis":
             alpha, meta = self._alpha_from_analysis(inputs, targets)
         elif isinstance(spec, AlphaKeyframes):
-            if not spec.keyframes:
-                raise UserError("alpha keyframes are empty", field="params.alpha.keyframes")
             key_times = np.array(sorted(spec.keyframes), dtype=np.float64)
             key_values = np.stack(
-                [
-                    self._weights_vector(spec.keyframes[t], targets, params.tolerance, f"params.alpha.keyframes.{t:g}")
-                    for t in key_times
-                ]
+                [self._weights_vector(spec.keyframes[t], targets, f"params.alpha.keyframes.{t:g}") for t in key_times]
             )
             alpha = interpolate_keyframes(time, key_times, key_values, spec.interpolation)
             meta = {"alpha_mode": "keyframes", "alpha_interpolation": spec.interpolation}
         else:
-            vector = self._weights_vector(spec, targets, params.tolerance, "params.alpha")
+            vector = self._weights_vector(spec, targets, "params.alpha")
             alpha = np.repeat(vector[None], len(time), axis=0)
             meta = {"alpha_mode": "constant", "alpha_constant": dict(zip(targets, vector.tolist()))}
-        if params.alpha_smoothing < 0:
-            raise UserError("alpha_smoothing must be >= 0 (seconds)", field="params.alpha_smoothing")
+        sequence = data["sequence"]
         for take in np.unique(sequence):  # smooth within each take, never across a cut
             rows = sequence == take
-            alpha[rows] = smooth_in_time(alpha[rows], params.alpha_smoothing * fps)
+            alpha[rows] = smooth_in_time(alpha[rows], params.alpha_smoothing * data["fps"])
         return alpha, meta
 
     @staticmethod
-    def _weights_vector(weights: dict[str, float], targets: list[str], tolerance: float, field: str) -> np.ndarray:
+    def _weights_vector(weights: dict[str, float], targets: list[str], field: str) -> np.ndarray:
+        """The alpha vector over the edited expressions (the params already checked it is barycentric)."""
         unknown = [name for name in weights if name not in targets]
         if unknown:
             raise UserError(f"unknown expressions {unknown}; the edited expressions are {targets}", field=field)
         vector = np.array([float(weights.get(name, 0.0)) for name in targets])
-        if not np.isfinite(vector).all():
-            raise UserError("alpha weights must be finite numbers", field=field)
-        negative = {name: weights[name] for name in weights if weights[name] < 0}
-        if negative:
-            raise UserError(f"alpha weights must be >= 0, got {negative}", field=field)
-        total = float(vector.sum())
-        if abs(total - 1.0) > tolerance:
-            raise UserError(f"alpha weights must sum to 1 (barycentric), they sum to {total:g}: {weights}", field=field)
-        return vector / total
+        return vector / vector.sum()
 
     @staticmethod
     def _alpha_from_analysis(inputs, targets):
         edit, bilinear = inputs.get("edit"), inputs.get("bilinear")
+        if len(targets) == 1 and edit is None:  # one animation (performance capture): nothing to analyse
+            n_frames = len(np.asarray(inputs["keyshapes"]["weights"])[0])
+            return np.ones((n_frames, 1)), {"alpha_mode": "single target"}
         if edit is None or bilinear is None:
             missing = [n for n, v in (("edit", edit), ("bilinear", bilinear)) if v is None]
             raise UserError(
@@ -450,3 +537,142 @@ class Blend(Stage):
         alpha = np.zeros((len(style), len(targets)))
         alpha[:, [targets.index(name) for name in usable]] = coords
         return alpha, {"alpha_mode": "from_analysis", "alpha_basis": usable}
+
+    # ---------------------------------------------------------------------------------------------- pack
+    @staticmethod
+    def _pack(params, inputs, data, result, alpha, alpha_meta, per_expression, raw) -> Result:
+        weights = result["weights"]
+        excess = np.abs(raw - np.clip(raw, 0.0, 1.0))
+        arrays = {
+            "weights": weights.astype(np.float32),
+            "alpha": alpha.astype(np.float32),
+            "expression_weights": per_expression.astype(np.float32),
+            "time": data["time"],
+            "sequence": data["sequence"].astype(np.int32),
+        }
+        if result.get("gaze") is not None:
+            arrays["gaze"] = result["gaze"].astype(np.float32)
+        if params.vertices:
+            character = data["character"]
+            if character is None:
+                raise UserError("params.vertices needs the character input", field="inputs.character")
+            deltas = np.asarray(character["deltas"], np.float32)
+            neutral = np.asarray(character["neutral"], np.float32)
+            arrays["vertices"] = neutral[None] + np.tensordot(weights.astype(np.float32), deltas, axes=1)
+        metrics = {
+            "clipped_fraction": float((excess > 1e-6).mean()) if excess.size else 0.0,
+            "clipped_amount": float(excess.mean()) if excess.size else 0.0,
+            "max_weight_unclipped": float(raw.max(initial=0.0)),
+            "min_weight_unclipped": float(raw.min(initial=0.0)),
+            **result["metrics"],
+        }
+        for j, name in enumerate(data["targets"]):
+            metrics[f"mean_alpha_{name}"] = float(alpha[:, j].mean()) if len(alpha) else 0.0
+        meta = {
+            "target_names": data["names"],
+            "fps": data["fps"],
+            "expressions": data["targets"],
+            "labels": data["take_labels"],
+            "regions": "by region" if params.regions and data["morph_region"] is not None else "whole face",
+            **alpha_meta,
+            **result["meta"],
+        }
+        return Result(arrays, meta=meta, metrics=metrics, warnings=result["warnings"])
+
+
+# ------------------------------------------------------------------------------------------------ lips and eyes
+
+
+def finish_weights(params, data, raw: np.ndarray, alpha: np.ndarray) -> dict:
+    """Clip to [0, 1], then the lip seal and the eyes (each when asked for and its inputs are there)."""
+    weights = np.clip(raw, 0.0, 1.0)
+    out = {"metrics": {}, "meta": {}, "warnings": [], "gaze": None}
+    character, tracks, names = data["character"], data["tracks"], data["names"]
+    if params.lip_seal:
+        if character is None or data["target_gap"] is None:
+            out["warnings"].append(
+                "lip seal off: it needs the character input and the keyshapes' lip_gap (re-run keyshapes)"
+            )
+        else:
+            weights, seal = apply_lip_seal(weights, character, data["target_gap"], alpha, params.seal_gap)
+            out["metrics"].update(seal)
+    if params.eyes == "tracking":
+        if tracks is None:
+            out["warnings"].append("eyes from tracking: no tracks input, blinks and gaze come from the keymorphs only")
+        else:
+            weights, gaze, eyes_meta, eyes_warnings = apply_eyes(
+                weights, names, character, tracks, data["sequence"], params.gaze_full_degrees
+            )
+            out["gaze"], out["meta"]["eyes"] = gaze, eyes_meta
+            out["warnings"] += eyes_warnings
+    out["weights"] = weights
+    return out
+
+
+def character_landmarks(character) -> tuple[np.ndarray, np.ndarray]:
+    """The character's 68 landmark vertices (68, 3) and their morph deltas (M, 68, 3)."""
+    ids = np.asarray(character["landmark_ids"], dtype=np.int64)
+    return np.asarray(character["neutral"], np.float64)[ids], np.asarray(character["deltas"], np.float64)[:, ids]
+
+
+def apply_lip_seal(weights, character, target_gap, alpha, seal_gap) -> tuple[np.ndarray, dict]:
+    """The sealed weights and how much the seal did (stages.retarget.lips); ``target_gap`` (targets, frames, 2):
+    the decomposed shapes' gap and their rest's."""
+    from stages.retarget.lips import lip_gap_model, seal_bound, seal_lips
+
+    if "landmark_ids" not in character:
+        raise UserError("the lip seal needs the character's landmark_ids", field="inputs.character")
+    g0, slopes = lip_gap_model(*character_landmarks(character))
+    gap = np.einsum("ft,tf->f", alpha, target_gap[..., 0])  # the blended performer's gap ...
+    rest = np.einsum("ft,tf->f", alpha, target_gap[..., 1])  # ... and their rest's
+    sealed = seal_lips(weights, g0, slopes, seal_bound(gap, rest, g0, seal_gap))
+    before, after = g0 + weights @ slopes, g0 + sealed @ slopes
+    closed = gap < seal_gap
+    return sealed, {
+        "sealed_frames": int((np.abs(sealed - weights).max(axis=1) > 1e-6).sum()),
+        "closed_frames": int(closed.sum()),
+        "lip_gap_at_closures_before": float(before[closed].mean()) if closed.any() else 0.0,
+        "lip_gap_at_closures_after": float(after[closed].mean()) if closed.any() else 0.0,
+        "performer_gap_at_closures": float(gap[closed].mean()) if closed.any() else 0.0,
+    }
+
+
+def apply_eyes(weights, names, character, tracks, sequence, full_degrees):
+    """Blink morphs from the eyelid aperture, eyeLook morphs from the gaze; returns (weights, gaze or None,
+    meta, warnings)."""
+    from stages.retarget.eyes import blink_curve, blink_weights, closure, eye_aperture_2d, gaze_morphs, gaze_weights
+    from stages.retarget.regions import find_side_morph
+
+    weights = weights.copy()
+    meta, warnings = {}, []
+    blinks = [find_side_morph(names, "eyeBlink", side) for side in ("L", "R")]
+    if "eye_aperture" in tracks:
+        aperture, meta["blink_source"] = np.asarray(tracks["eye_aperture"], np.float64), "tracking eye_aperture"
+    else:
+        aperture, meta["blink_source"] = eye_aperture_2d(tracks["landmarks"]), "tracking landmarks"
+    if character is None or "landmark_ids" not in character:
+        warnings.append("blinks from tracking need the character input (its eyelid landmarks); blinks left as keyed")
+    elif any(b is None for b in blinks):
+        warnings.append("the character has no eyeBlink_L/R morphs: the performer's blinks are dropped")
+    else:
+        rest, deltas = character_landmarks(character)
+        c = closure(aperture, sequence)
+        weights[:, blinks] = 0.0
+        # how open each eye is with everything but the blink (squint, brows, cheeks), relative to the neutral
+        others = eye_aperture_2d(rest[None] + np.einsum("fm,mpc->fpc", weights, deltas)) / eye_aperture_2d(rest[None])
+        for eye, m in enumerate(blinks):
+            weights[:, m] = blink_weights(c[:, eye], blink_curve(rest, deltas[m]), others[:, eye])
+        meta["blink_peak"] = [float(weights[:, m].max(initial=0.0)) for m in blinks]
+    gaze = np.asarray(tracks["gaze"], np.float64) if "gaze" in tracks else None
+    if gaze is None:
+        meta["gaze_source"] = "none (tracking has no gaze)"
+        return weights, None, meta, warnings
+    morphs = gaze_morphs(names)
+    if morphs:
+        looked = gaze_weights(gaze, morphs, full_degrees, len(names))
+        columns = list(morphs.values())
+        weights[:, columns] = looked[:, columns]
+    else:
+        warnings.append("the character has no eyeLook morphs: gaze goes to the blend's gaze output only")
+    meta["gaze_source"] = "tracking gaze"
+    return weights, gaze, meta, warnings

@@ -24,12 +24,15 @@ import re
 import textwrap
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
 from stages.geometry.nnls import solve_box_qp
 from stages.retarget.keyshapes import IBUG68_CONTOURS, inter_ocular_distance
+from stages.retarget.regions import RIGID
 
 #: landmarks that fix the similarity between actor and character: eyes (36-47) and nose (27-35) barely move
 #: with expression, unlike the jaw line, brows and lips
@@ -48,12 +51,12 @@ def project_front(points: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class Similarity2D:
-    """p -> scale * rotation @ p + translation."""
+class Similarity:
+    """p -> scale * rotation @ p + translation, in 2D or 3D."""
 
     scale: float
-    rotation: np.ndarray  # (2, 2)
-    translation: np.ndarray  # (2,)
+    rotation: np.ndarray  # (d, d)
+    translation: np.ndarray  # (d,)
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         return self.scale * np.asarray(points) @ self.rotation.T + self.translation
@@ -65,19 +68,26 @@ class Similarity2D:
         return np.asarray(vectors) @ self.rotation / self.scale
 
 
-def fit_similarity(source: np.ndarray, target: np.ndarray) -> Similarity2D:
-    """Least-squares 2D similarity (Umeyama 1991) mapping source points (n, 2) onto target points (n, 2)."""
+#: the 2D name the keymorph fit has always used
+Similarity2D = Similarity
+
+
+def fit_similarity(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None) -> Similarity:
+    """Least-squares similarity (Umeyama 1991) mapping source points (n, d) onto target points (n, d), d = 2 or 3;
+    optional non-negative per-point ``weights``. A reflection is never returned."""
     source = np.asarray(source, np.float64)
     target = np.asarray(target, np.float64)
-    mu_s, mu_t = source.mean(0), target.mean(0)
+    w = np.ones(len(source)) if weights is None else np.asarray(weights, np.float64)
+    w = w / w.sum()
+    mu_s, mu_t = w @ source, w @ target
     s, t = source - mu_s, target - mu_t
-    u, sigma, vt = np.linalg.svd(t.T @ s)
-    d = np.ones(2)
+    u, sigma, vt = np.linalg.svd((t * w[:, None]).T @ s)
+    d = np.ones(source.shape[1])
     d[-1] = np.sign(np.linalg.det(u @ vt)) or 1.0
     rotation = u @ np.diag(d) @ vt
-    var = (s**2).sum()
+    var = float(w @ (s**2).sum(axis=1))
     scale = float((sigma * d).sum() / var) if var > 0 else 1.0
-    return Similarity2D(scale, rotation, mu_t - scale * rotation @ mu_s)
+    return Similarity(scale, rotation, mu_t - scale * rotation @ mu_s)
 
 
 def symmetric_pairs(names: list[str]) -> list[tuple[int, int]]:
@@ -202,13 +212,37 @@ def fit_keymorph_weights(
     ``exclude`` stay 0; ``pose`` (K, 68, 2) removes what head rotation explains (``LandmarkRig.pose_effects``).
     All keyshapes share the Hessian, so they are solved as one batched box QP.
     """
-    M = len(names)
     landmark_weight = np.ones(68)
     landmark_weight[list(JAW_CONTOUR)] = contour_weight
     root = np.sqrt(landmark_weight)[None, :, None]
-    J = (rig.deltas * root).reshape(M, -1).T  # (136, M)
+    J = (rig.deltas * root).reshape(len(names), -1).T  # (136, M)
     targets = (rig.target_deformation(keyshapes, pose) * root).reshape(len(keyshapes), -1)
-    usable = ~matching_targets(names, exclude) & (np.abs(J).max(axis=0) > 0)
+    usable = ~matching_targets(names, exclude)
+    return bounded_fit(
+        J, targets, names, usable, l2=l2, l1=l1, symmetry=symmetry, antagonists=antagonists,
+        antagonism=antagonism, rtol=rtol,
+    )  # fmt: skip
+
+
+def bounded_fit(
+    J: np.ndarray,
+    targets: np.ndarray,
+    names: list[str],
+    usable: np.ndarray,
+    *,
+    l2: float,
+    l1: float,
+    symmetry: float,
+    antagonists: list[tuple[str, str]] = (),
+    antagonism: float = 0.0,
+    upper: float | np.ndarray = 1.0,
+    rtol: float = 1e-7,
+) -> tuple[np.ndarray, dict]:
+    """The regularised bounded least squares of ``fit_keymorph_weights`` for a Jacobian J (D, M) of the morphs'
+    landmark motion and target motions (K, D): weights (K, M) in [0, ``upper``] (a number or (K, M) bounds), 0 for
+    morphs not ``usable`` or that move none of the landmarks."""
+    M = len(names)
+    usable = np.asarray(usable, bool) & (np.abs(J).max(axis=0, initial=0.0) > 0)
     energy = float((J[:, usable] ** 2).sum(axis=0).mean()) if usable.any() else 1.0
     H = J.T @ J + l2 * energy * np.eye(M)
     column_energy = (J**2).sum(axis=0)
@@ -223,12 +257,13 @@ def fit_keymorph_weights(
         H[j, i] += 0.5 * strength
     F = targets @ J - l1 * energy
     idx = np.flatnonzero(usable)
-    weights = np.zeros((len(keyshapes), M))
+    weights = np.zeros((len(targets), M))
     if idx.size:
-        sub, iterations, kkt = solve_box_qp(H[np.ix_(idx, idx)], F[:, idx], lower=0.0, upper=1.0, rtol=rtol)
+        bound = upper if np.isscalar(upper) else np.asarray(upper, np.float64)[:, idx]
+        sub, iterations, kkt = solve_box_qp(H[np.ix_(idx, idx)], F[:, idx], lower=0.0, upper=bound, rtol=rtol)
         weights[:, idx] = sub
     else:
-        iterations, kkt = 0, np.zeros(len(keyshapes))
+        iterations, kkt = 0, np.zeros(len(targets))
     return weights, {
         "iterations": int(iterations),
         "kkt_max": float(np.max(kkt, initial=0.0)),
@@ -243,6 +278,181 @@ def landmark_errors(
     """Per keyshape RMS landmark distance between keyshape and keymorph (keyshape frame) / ``scale``."""
     diff = rig.keymorph_landmarks(weights, pose) - np.asarray(keyshapes, np.float64)
     return np.sqrt((diff**2).sum(-1).mean(-1)) / scale
+
+
+# ------------------------------------------------------------------------------------ 3D, region by region
+
+
+class FitRegion(BaseModel):
+    """One region of the 3D keymorph fit: the landmarks that show it and the morphs (fnmatch patterns,
+    case-insensitive) that move it; ``decomposition`` names the keyshape-decomposition region whose weights
+    drive these morphs in the blend (``stages.retarget.keyshapes.DECOMPOSITION_REGIONS``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    name: str
+    landmarks: list[int] = Field(min_length=1)
+    morphs: list[str] = Field(min_length=1)
+    decomposition: Literal["mouth", "eyes", "brows"]
+
+    @field_validator("landmarks")
+    @classmethod
+    def _ibug_ids(cls, landmarks):
+        bad = [i for i in landmarks if not 0 <= i < 68]
+        if bad:
+            raise ValueError(f"landmark ids must lie in 0..67 (iBUG-68), got {bad}")
+        return landmarks
+
+
+#: The mouth (jaw and lips together, on the chin and the lips), then eyelids, brows, and cheeks and nose with what
+#: the eyelids left (the lower lids are the eyes' before they are the cheeks'). Jaw and lips are one region: lips
+#: parted by a dropped jaw and by rounded lips look alike from the front, and apart in 3D only jointly (the jaw
+#: moves the chin down and back and the lower lip with it, rounding pushes both lips forward and the corners in,
+#: never the chin); fitted one after the other, the jaw's landmarks already move with the lips' morphs. The chin's
+#: sides (iBUG 4, 5, 11, 12) and the face contour are left out: FaceMesh's contour there follows the cheeks and the
+#: silhouette more than the jaw.
+DEFAULT_FIT_REGIONS = [
+    FitRegion(
+        name="mouth",
+        landmarks=[6, 7, 8, 9, 10, *range(48, 68)],
+        morphs=["jaw*", "mouth*", "cheekPuff*"],
+        decomposition="mouth",
+    ),
+    FitRegion(
+        name="eyes", landmarks=list(range(36, 48)), morphs=["eyeBlink*", "eyeSquint*", "eyeWide*"], decomposition="eyes"
+    ),
+    FitRegion(name="brows", landmarks=list(range(17, 27)), morphs=["brow*"], decomposition="brows"),
+    FitRegion(
+        name="cheeks", landmarks=[31, 32, 33, 34, 35, 40, 41, 46, 47], morphs=["cheek*", "nose*"], decomposition="mouth"
+    ),
+]
+
+
+def matching_any_case(names: list[str], patterns: list[str]) -> np.ndarray:
+    """Boolean mask of the names matching any fnmatch pattern, ignoring case."""
+    return np.array([any(fnmatch.fnmatchcase(n.lower(), p.lower()) for p in patterns) for n in names], dtype=bool)
+
+
+@dataclass
+class Rig3D:
+    """The character's 68 landmark vertices in 3D (its own units and axes) and their morph deltas."""
+
+    rest: np.ndarray  # (68, 3)
+    deltas: np.ndarray  # (M, 68, 3)
+
+    @classmethod
+    def build(cls, neutral, deltas, landmark_ids) -> Rig3D:
+        ids = np.asarray(landmark_ids, dtype=np.int64)
+        return cls(np.asarray(neutral, np.float64)[ids], np.asarray(deltas, np.float64)[:, ids])
+
+    @property
+    def iod(self) -> float:
+        return float(inter_ocular_distance(self.rest))
+
+    def to_character(self, rest: np.ndarray) -> Similarity:
+        """The 3D similarity carrying a performer's rest shape (head frame) onto the character (rigid points)."""
+        return fit_similarity(np.asarray(rest)[list(RIGID)], self.rest[list(RIGID)])
+
+    def deformations(self, keyshapes: np.ndarray, rests: np.ndarray) -> np.ndarray:
+        """Each keyshape's deformation from its performer's rest, in character units and axes (K, 68, 3)."""
+        keyshapes, rests = np.asarray(keyshapes, np.float64), np.asarray(rests, np.float64)
+        out = np.empty_like(keyshapes)
+        unique, inverse = np.unique(rests.reshape(len(rests), -1), axis=0, return_inverse=True)
+        for u, rest in enumerate(unique.reshape(-1, 68, 3)):
+            rows = np.flatnonzero(inverse.reshape(-1) == u)
+            out[rows] = self.to_character(rest).apply_linear(keyshapes[rows] - rest)
+        return out
+
+    def motion(self, weights: np.ndarray) -> np.ndarray:
+        """Landmark motion (K, 68, 3) of morph weights (K, M)."""
+        return np.einsum("km,mpc->kpc", np.asarray(weights, np.float64), self.deltas)
+
+
+def corrective_pairs(names: list[str], correctives) -> list[tuple[int, int]]:
+    """(corrective, base) morph index pairs the character has, e.g. (mouthClose, jawOpen)."""
+    lower = [n.lower() for n in names]
+    return [
+        (lower.index(c.lower()), lower.index(b.lower()))
+        for c, b in correctives
+        if c.lower() in lower and b.lower() in lower
+    ]
+
+
+def fit_region(
+    rig: Rig3D, targets: np.ndarray, points: list[int], columns: np.ndarray, names, pairs, regularisers, passes=8
+):
+    """One region's bounded fit (``bounded_fit``) with correctives bounded by their base morph: a first pass
+    without the correctives gives the base weights, each further pass bounds every corrective by its base's weight
+    from the pass before (a joint bound u_c <= u_b is not a box), until the weights settle; a corrective is
+    finally clipped to its base's final weight."""
+    K = len(targets)
+    J = rig.deltas[columns][:, points].reshape(len(columns), -1).T
+    local = {int(c): i for i, c in enumerate(columns)}
+    sub_names = [names[c] for c in columns]
+    mine = [(local[c], local.get(b)) for c, b in pairs if c in local]
+    upper = np.ones((K, len(columns)))
+    for c, _ in mine:
+        upper[:, c] = 0.0
+    sub, info = bounded_fit(J, targets, sub_names, np.ones(len(columns), bool), upper=upper, **regularisers)
+    if not mine:
+        return sub, info
+    for _ in range(passes):  # the bound u_c <= u_b, fixed from the last pass, until the base stops moving
+        upper = np.ones((K, len(columns)))
+        for c, b in mine:
+            upper[:, c] = sub[:, b] if b is not None else 0.0
+        previous = sub
+        sub, info = bounded_fit(J, targets, sub_names, np.ones(len(columns), bool), upper=upper, **regularisers)
+        if np.abs(sub - previous).max(initial=0.0) < 1e-3:
+            break
+    for c, b in mine:
+        sub[:, c] = np.minimum(sub[:, c], sub[:, b] if b is not None else 0.0)
+    return sub, info
+
+
+def fit_regions_3d(
+    rig: Rig3D,
+    deformation: np.ndarray,
+    names: list[str],
+    regions: list[FitRegion],
+    *,
+    exclude: list[str],
+    correctives: list[tuple[str, str]] = (),
+    **regularisers,
+) -> tuple[np.ndarray, dict]:
+    """Keymorph weights fitted in 3D, region by region (issue 13.1), each region's morphs to its landmarks'
+    deformation less what the regions fitted before it already move there (``fit_region``, all keyshapes at
+    once). A morph belongs to the first region whose patterns match it; a corrective whose base is fitted in an
+    earlier region is bounded by the base's weight there. Returns weights (K, M) and per region the morphs it
+    fitted."""
+    K = len(deformation)
+    weights = np.zeros((K, len(names)))
+    explained = np.zeros_like(deformation)
+    assigned = matching_any_case(names, exclude)
+    pairs = corrective_pairs(names, correctives)
+    info = {"regions": {}, "morph_regions": {}, "iterations": 0, "kkt_max": 0.0}
+    for region in regions:
+        columns = np.flatnonzero(matching_any_case(names, region.morphs) & ~assigned)
+        assigned[columns] = True
+        if not columns.size:
+            info["regions"][region.name] = []
+            continue
+        points = list(region.landmarks)
+        targets = (deformation - explained)[:, points].reshape(K, -1)
+        # a base fitted earlier acts as a fixed bound: pass it in as a pseudo-column the region does not fit
+        region_pairs = [(c, b) for c, b in pairs if c in columns and (b in columns or assigned[b])]
+        sub, sub_info = fit_region(
+            rig, targets, points, columns, names, [p for p in region_pairs if p[1] in columns], regularisers
+        )
+        for c, b in region_pairs:
+            if b not in columns:
+                i = list(columns).index(c)
+                sub[:, i] = np.minimum(sub[:, i], weights[:, b])
+        weights[:, columns] = sub
+        explained += np.einsum("km,mpc->kpc", sub, rig.deltas[columns])
+        info["regions"][region.name] = sub_info["usable_targets"]
+        info["morph_regions"].update({names[c]: region.decomposition for c in columns})
+        info["iterations"] = max(info["iterations"], sub_info["iterations"])
+        info["kkt_max"] = max(info["kkt_max"], sub_info["kkt_max"])
+    return weights, info
 
 
 # ------------------------------------------------------------------------------------------------------ YAML
@@ -569,13 +779,19 @@ def figure_contact_sheet(view, inputs):
 
 
 def figure_landmark_fit(view, inputs):
-    """Keyshape landmarks (black) against the landmarks the keymorph gives the character (red), per keyshape."""
+    """Keyshape landmarks (black) against the landmarks the keymorph gives the character (red), per keyshape
+    (the 3D fit: both in the head frame, seen from the front)."""
     from stages.retarget.keyshapes import plot_keyshape_grid
 
     keyshapes = inputs["keyshapes"]
+    reference = keyshapes["keyshapes"]
+    if view.meta.get("space") == "3d" and "keyshapes3d" in keyshapes:
+        from stages.retarget.shapes3d import front_view
+
+        reference = front_view(keyshapes["keyshapes3d"])
     errors = view["landmark_error"]
     return plot_keyshape_grid(
-        [(keyshapes["keyshapes"], {"color": "k", "lw": 0.7}), (view["keymorph_landmarks"], {"color": "r", "lw": 0.7})],
+        [(reference, {"color": "k", "lw": 0.7}), (view["keymorph_landmarks"], {"color": "r", "lw": 0.7})],
         keyshapes["keyshape_expression"],
         list(keyshapes.meta["labels"]),
         "Keyshape (black) vs keymorph landmarks (red), RMS error % inter-ocular",
@@ -624,33 +840,96 @@ _INPUTS = {
 }
 
 
+def morph_decomposition_regions(names: list[str], regions: list[FitRegion], exclude: list[str]) -> dict[str, str]:
+    """Morph name -> the decomposition region whose keyshape weights drive it in the blend (first region whose
+    patterns match; excluded and unmatched morphs are left out: the whole-face weights drive them)."""
+    out: dict[str, str] = {}
+    free = ~matching_any_case(names, exclude)
+    for region in regions:
+        for m in np.flatnonzero(matching_any_case(names, region.morphs) & free):
+            out.setdefault(names[m], region.decomposition)
+    return out
+
+
 @dataclass
-class _Prepared:
+class Prepared:
+    """What a keymorph stage compares keymorphs with: in 3D (head frame, per-region fit) when the keyshapes carry
+    FaceMesh depth, else the 2D front projection (with the optional head-rotation correction)."""
+
+    space: str
     rig: LandmarkRig
-    shapes: np.ndarray
+    shapes: np.ndarray  # (K, 68, 2) keyshapes, keyshape frame
     scale: float
-    pose: np.ndarray | None
-    pose_note: str
+    pose: np.ndarray | None = None
+    pose_note: str = "off (params.pose_correction)"
+    rig3d: Rig3D | None = None
+    deformation: np.ndarray | None = None  # (K, 68, 3) character units
+    keyshapes3d: np.ndarray | None = None
+    rests3d: np.ndarray | None = None
+
+    def errors(self, weights: np.ndarray) -> np.ndarray:
+        """Per keyshape RMS landmark distance keyshape vs keymorph / inter-ocular distance."""
+        if self.space == "3d":
+            diff = self.rig3d.motion(weights) - self.deformation
+            return np.sqrt((diff**2).sum(-1).mean(-1)) / self.rig3d.iod
+        return landmark_errors(self.rig, self.shapes, weights, self.scale, self.pose)
+
+    def landmarks(self, weights: np.ndarray) -> np.ndarray:
+        """The character's landmarks under each keymorph in the keyshapes' frame (3D: head frame from the front)."""
+        if self.space != "3d":
+            return self.rig.keymorph_landmarks(weights, self.pose)
+        from stages.retarget.shapes3d import front_view
+
+        motion = self.rig3d.motion(weights)
+        out = np.empty_like(motion)
+        for k, rest in enumerate(self.rests3d):
+            out[k] = rest + self.rig3d.to_character(rest).inverse_linear(motion[k])
+        return front_view(out)
+
+    def reference(self) -> np.ndarray:
+        """The keyshapes as ``landmarks`` draws them."""
+        if self.space != "3d":
+            return self.shapes
+        from stages.retarget.shapes3d import front_view
+
+        return front_view(self.keyshapes3d)
 
 
 class _KeymorphStage(Stage):
     outputs = KEYMORPHS_OUTPUTS
     figures = {"contact_sheet": figure_contact_sheet, "landmark_fit": figure_landmark_fit}
 
-    def _prepare(self, params, inputs) -> _Prepared:
+    def _prepare(self, params, inputs) -> Prepared:
         keyshapes, character = inputs["keyshapes"], inputs["character"]
         rig = self._rig(keyshapes, character)
         shapes = np.asarray(keyshapes["keyshapes"], np.float64)
         scale = float(inter_ocular_distance(keyshapes["rest_shape"]))
-        pose, pose_note = None, "off (params.pose_correction)"
+        has_3d = "keyshapes3d" in keyshapes and "keyshape_rest3d" in keyshapes
+        if params.space == "3d" and not has_3d:
+            raise UserError(
+                "space: 3d needs keyshapes in 3D: give the keyshapes stage the training tracking with its FaceMesh "
+                "(inputs.tracks), or use space: 2d",
+                field="params.space",
+            )
+        if has_3d and params.space != "2d":
+            rig3d = Rig3D.build(character["neutral"], character["deltas"], character["landmark_ids"])
+            shapes3d = np.asarray(keyshapes["keyshapes3d"], np.float64)
+            rests3d = np.asarray(keyshapes["keyshape_rest3d"], np.float64)
+            return Prepared(
+                "3d", rig, shapes, scale, None, "not needed: the 3D keyshapes are in the head's frame", rig3d,
+                rig3d.deformations(shapes3d, rests3d), shapes3d, rests3d,
+            )  # fmt: skip
+        prepared = Prepared("2d", rig, shapes, scale)
         tracks = inputs.get("tracks")
         if params.pose_correction:
             if tracks is None or "rotation" not in tracks or "rest_frames" not in keyshapes:
-                pose_note = "not applied: needs the tracks input with head rotations (and keyshapes rest_frames)"
+                prepared.pose_note = (
+                    "not applied: needs the tracks input with head rotations (and keyshapes rest_frames)"
+                )
             else:
-                pose = self._pose_effects(rig, character, keyshapes, tracks["rotation"])
-                pose_note = "applied"
-        return _Prepared(rig, shapes, scale, pose, pose_note)
+                prepared.pose = self._pose_effects(rig, character, keyshapes, tracks["rotation"])
+                prepared.pose_note = "applied"
+        return prepared
 
     @staticmethod
     def _pose_effects(rig: LandmarkRig, character, keyshapes, rotation: np.ndarray) -> np.ndarray:
@@ -671,16 +950,15 @@ class _KeymorphStage(Stage):
         return rig.pose_effects(np.asarray(character["neutral"], np.float64)[ids], relative)
 
     def _common(
-        self, params, inputs, prepared: _Prepared, weights: np.ndarray, yaml_text: str, metrics: dict, meta: dict
+        self, params, inputs, prepared: Prepared, weights: np.ndarray, yaml_text: str, metrics: dict, meta: dict
     ) -> Result:
         keyshapes, character = inputs["keyshapes"], inputs["character"]
         names = list(character.meta["target_names"])
-        rig, shapes, scale, pose = prepared.rig, prepared.shapes, prepared.scale, prepared.pose
-        errors = landmark_errors(rig, shapes, weights, scale, pose)
-        baseline = landmark_errors(rig, shapes, np.zeros_like(weights), scale, pose)
+        errors = prepared.errors(weights)
+        baseline = prepared.errors(np.zeros_like(weights))
         arrays = {
             "keymorph_weights": weights.astype(np.float32),
-            "keymorph_landmarks": rig.keymorph_landmarks(weights, pose).astype(np.float32),
+            "keymorph_landmarks": prepared.landmarks(weights).astype(np.float32),
             "landmark_error": errors.astype(np.float32),
             "keymorphs": yaml_text.encode("utf-8"),
         }
@@ -694,17 +972,17 @@ class _KeymorphStage(Stage):
         metrics["landmark_error_rms_iod"] = float(np.sqrt(np.mean(errors**2)))
         metrics["landmark_error_neutral_rms_iod"] = float(np.sqrt(np.mean(baseline**2)))
         metrics["mean_active_targets"] = float((weights > 0).sum(axis=1).mean())
-        if pose is not None:
-            metrics["pose_effect_rms_iod"] = float(
-                np.sqrt(np.mean((rig.to_character.inverse_linear(pose) ** 2).sum(-1)) / scale**2)
-            )
+        if prepared.pose is not None:
+            pose = prepared.rig.to_character.inverse_linear(prepared.pose)
+            metrics["pose_effect_rms_iod"] = float(np.sqrt(np.mean((pose**2).sum(-1)) / prepared.scale**2))
         meta = dict(
             meta,
             target_names=names,
             labels=labels,
+            space=prepared.space,
             pose_correction=prepared.pose_note,
             keyshape_ids=[f"{labels[e]}/{int(i)}" for e, i in zip(expression, keyshapes["keyshape_index"])],
-            similarity_scale=rig.to_character.scale,
+            similarity_scale=prepared.rig.to_character.scale,
         )
         return Result(arrays, meta=meta, metrics=metrics)
 
@@ -736,66 +1014,60 @@ class _KeymorphStage(Stage):
         return comments
 
 
+class KeymorphFitParams(Stage.Params):
+    #: L2 penalty on the weights, relative to the mean landmark energy of a morph target
+    l2: float = Field(0.005, ge=0)
+    #: L1 penalty (sparsity: only the needed targets move), same units
+    l1: float = Field(0.02, ge=0)
+    #: coupling of left/right pairs (x_L, x_R): penalty on their difference
+    symmetry: float = Field(0.2, ge=0)
+    #: penalty on using opposing targets together (product of their weights), per side of the face
+    antagonism: float = Field(1.0, ge=0)
+    antagonists: list[tuple[str, str]] = [
+        ("browDown", "browInnerUp"),
+        ("browDown", "browOuterUp"),
+        ("mouthSmile", "mouthFrown"),
+        ("eyeWide", "eyeBlink"),
+        ("eyeWide", "eyeSquint"),
+        ("jawLeft", "jawRight"),
+        ("mouthLeft", "mouthRight"),
+        ("mouthPucker", "mouthStretch"),
+    ]
+    #: 2D fit: weight of the jaw-line landmarks (0-16) relative to the others (2D trackers place it least well)
+    contour_weight: float = Field(0.5, ge=0)
+    #: targets the fit leaves at 0 (fnmatch patterns): gaze and pupils do not show in landmarks
+    exclude: list[str] = ["eyeLook*", "PupilDilate*"]
+    #: (corrective, base) pairs: the corrective's weight never exceeds the base's (ARKit's mouthClose closes the
+    #: lips of an opened jaw only). The 3D fit bounds it; the 2D fit, solved jointly, leaves correctives at 0
+    correctives: list[tuple[str, str]] = [("mouthClose", "jawOpen")]
+    #: fit in 3D region by region when the keyshapes carry FaceMesh depth (auto), or always on the 2D front view
+    space: Literal["auto", "3d", "2d"] = "auto"
+    #: the regions of the 3D fit, in order (the blend drives each region's morphs with its decomposition region's
+    #: keyshape weights); morphs matching no region are not fitted in 3D
+    regions: list[FitRegion] = DEFAULT_FIT_REGIONS
+    #: decimals of the weights in the YAML (the output weights are exactly the YAML's)
+    decimals: int = Field(3, ge=0)
+    #: 2D fit: discount the landmark motion that the actor's head rotation explains (needs the tracks input)
+    pose_correction: bool = True
+    contact_sheet: bool = True
+    tile_size: int = Field(128, ge=16)
+
+
 class KeymorphFit(_KeymorphStage):
     """Automatic first-draft keymorphs: bounded [0, 1] morph weights whose landmark deformation matches each
-    keyshape's (see ``fit_keymorph_weights``); writes the YAML an artist can edit and load with KeymorphFile."""
+    keyshape's (``fit_regions_3d`` in 3D, ``fit_keymorph_weights`` in 2D); writes the YAML an artist can edit and
+    load with KeymorphFile."""
 
-    class Params(Stage.Params):
-        #: L2 penalty on the weights, relative to the mean landmark energy of a morph target
-        l2: float = 0.005
-        #: L1 penalty (sparsity: only the needed targets move), same units
-        l1: float = 0.02
-        #: coupling of left/right pairs (x_L, x_R): penalty on their difference
-        symmetry: float = 0.2
-        #: penalty on using opposing targets together (product of their weights), per side of the face
-        antagonism: float = 1.0
-        antagonists: list[tuple[str, str]] = [
-            ("browDown", "browInnerUp"),
-            ("browDown", "browOuterUp"),
-            ("mouthSmile", "mouthFrown"),
-            ("eyeWide", "eyeBlink"),
-            ("eyeWide", "eyeSquint"),
-            ("jawLeft", "jawRight"),
-            ("mouthLeft", "mouthRight"),
-            ("mouthPucker", "mouthStretch"),
-        ]
-        #: weight of the jaw-line landmarks (0-16) relative to the others
-        contour_weight: float = 0.5
-        #: targets the fit leaves at 0 (fnmatch patterns): gaze and pupils are not in 2D landmarks, and ARKit's
-        #: mouthClose is a corrective meant only on top of jawOpen
-        exclude: list[str] = ["eyeLook*", "PupilDilate*", "mouthClose"]
-        #: decimals of the weights in the YAML (the output weights are exactly the YAML's)
-        decimals: int = 3
-        #: discount the landmark motion that the actor's head rotation explains (needs the tracks input)
-        pose_correction: bool = True
-        contact_sheet: bool = True
-        tile_size: int = 128
-
+    Params = KeymorphFitParams
     inputs = _INPUTS
 
     def run(self, params, inputs):
         keyshapes, character = inputs["keyshapes"], inputs["character"]
         names = list(character.meta["target_names"])
-        for field in ("l2", "l1", "symmetry", "contour_weight", "antagonism"):
-            if getattr(params, field) < 0:
-                raise UserError(f"{field} must be >= 0", field=f"params.{field}")
-        unknown = [p for p in params.exclude if not matching_targets(names, [p]).any()]
         prepared = self._prepare(params, inputs)
-        weights, info = fit_keymorph_weights(
-            prepared.rig,
-            prepared.shapes,
-            names,
-            l2=params.l2,
-            l1=params.l1,
-            symmetry=params.symmetry,
-            exclude=list(params.exclude),
-            contour_weight=params.contour_weight,
-            antagonists=[tuple(p) for p in params.antagonists],
-            antagonism=params.antagonism,
-            pose=prepared.pose,
-        )
+        weights, info = self._fit(params, prepared, names)
         weights = rounded_weights(weights, params.decimals)
-        errors = landmark_errors(prepared.rig, prepared.shapes, weights, prepared.scale, prepared.pose)
+        errors = prepared.errors(weights)
         header = (
             "Keymorphs: expression -> keyshape id -> {morph target: weight in [0, 1]} (paper Sec 4.3).\n"
             "First draft fitted by KeymorphFit to the keyshapes' landmarks: edit freely and load it with\n"
@@ -812,14 +1084,49 @@ class KeymorphFit(_KeymorphStage):
             header=header,
             decimals=params.decimals,
         )
+        unknown = [p for p in params.exclude if not matching_targets(names, [p]).any()]
         meta = {
             "fit": {
                 "usable_targets": info["usable_targets"],
+                "regions": info.get("regions", {}),
                 "iterations": info["iterations"],
                 "unmatched_exclude_patterns": unknown,
-            }
+            },
+            "morph_regions": info.get("morph_regions")
+            or morph_decomposition_regions(names, list(params.regions), list(params.exclude)),
         }
         return self._common(params, inputs, prepared, weights, yaml_text, {"fit_kkt_max": info["kkt_max"]}, meta)
+
+    @staticmethod
+    def _fit(params, prepared: Prepared, names: list[str]) -> tuple[np.ndarray, dict]:
+        regularisers = {
+            "l2": params.l2,
+            "l1": params.l1,
+            "symmetry": params.symmetry,
+            "antagonists": [tuple(p) for p in params.antagonists],
+            "antagonism": params.antagonism,
+        }
+        if prepared.space == "3d":
+            weights, info = fit_regions_3d(
+                prepared.rig3d,
+                prepared.deformation,
+                names,
+                list(params.regions),
+                exclude=list(params.exclude),
+                correctives=[tuple(p) for p in params.correctives],
+                **regularisers,
+            )
+            info["usable_targets"] = [n for region in info["regions"].values() for n in region]
+            return weights, info
+        return fit_keymorph_weights(
+            prepared.rig,
+            prepared.shapes,
+            names,
+            exclude=list(params.exclude) + [c for c, _ in params.correctives],
+            contour_weight=params.contour_weight,
+            pose=prepared.pose,
+            **regularisers,
+        )
 
 
 class KeymorphFile(_KeymorphStage):
@@ -828,10 +1135,14 @@ class KeymorphFile(_KeymorphStage):
     class Params(Stage.Params):
         #: keyshapes the file does not mention get the neutral face instead of an error
         allow_missing: bool = False
-        #: measure the landmark error net of the actor's head rotation (needs the tracks input)
+        #: measure the landmark error in 3D when the keyshapes have it (auto), or on the 2D front view
+        space: Literal["auto", "3d", "2d"] = "auto"
+        #: measure the landmark error net of the actor's head rotation (2D; needs the tracks input)
         pose_correction: bool = True
+        #: which morphs each decomposition region drives in the blend (see KeymorphFit)
+        regions: list[FitRegion] = DEFAULT_FIT_REGIONS
         contact_sheet: bool = True
-        tile_size: int = 128
+        tile_size: int = Field(128, ge=16)
 
     inputs = dict(_INPUTS, keymorphs=Input.files(doc="the keymorph YAML"))
 
@@ -860,6 +1171,5 @@ class KeymorphFile(_KeymorphStage):
             header=f"Keymorphs read from {path.name}",
             decimals=None,
         )
-        return self._common(
-            params, inputs, self._prepare(params, inputs), weights, yaml_text, {}, {"source": path.name}
-        )
+        meta = {"source": path.name, "morph_regions": morph_decomposition_regions(names, list(params.regions), [])}
+        return self._common(params, inputs, self._prepare(params, inputs), weights, yaml_text, {}, meta)

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+from pydantic import Field, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
 from stages.geometry.nnls import batched_nnls
@@ -167,6 +168,144 @@ def rest_shape(shapes: np.ndarray, quantile: float = 0.1) -> np.ndarray:
     return shapes[rest_frames(shapes, quantile)].mean(axis=0)
 
 
+#: the regions decomposed apart (Eq 8 per region, ``regions: true``). The mouth region holds the jaw line and the
+#: nostrils with the lips, so the jaw and the lips share one set of weights: a lip keymorph was fitted with its own
+#: keyshape's jaw
+DECOMPOSITION_REGIONS: dict[str, tuple[int, ...]] = {
+    "mouth": tuple(range(0, 17)) + tuple(range(31, 36)) + tuple(range(48, 68)),
+    "eyes": tuple(range(36, 48)),
+    "brows": tuple(range(17, 27)),
+}
+
+
+@dataclass
+class KeyshapeSet:
+    """The keyshapes of every expression (or take): source frames and where each comes from."""
+
+    frames: np.ndarray  # (K,) frame index into the shapes given
+    expression: np.ndarray  # (K,) group (expression or take) index
+    index: np.ndarray  # (K,) id within the group
+    axes: np.ndarray  # (K,) PCA axis
+    extremes: np.ndarray  # (K,) +1 / -1
+    dropped: dict  # label -> duplicates dropped (frame indices global)
+    variance_covered: dict  # label -> fraction of the group's variance on the axes used
+
+
+def select_all_keyshapes(
+    shapes: np.ndarray,
+    groups: np.ndarray,
+    labels: list[str],
+    counts: dict[str, int],
+    usable: np.ndarray,
+    *,
+    dedupe_threshold: float,
+    scale: float,
+    refill: bool,
+) -> KeyshapeSet:
+    """``select_keyshapes`` for every group (expression or take) of frames; frames not ``usable`` are never
+    keyshapes. Returns global frame indices."""
+    parts = {key: [] for key in ("frames", "expression", "index", "axes", "extremes")}
+    dropped, covered = {}, {}
+    for s, label in enumerate(labels):
+        frames = np.flatnonzero((groups == s) & usable)
+        if frames.size == 0:
+            raise ValueError(f"expression '{label}' has no usable frames")
+        selection = select_keyshapes(
+            shapes[frames], counts[label], dedupe_threshold=dedupe_threshold, scale=scale, refill=refill
+        )
+        parts["frames"].append(frames[selection.frames])
+        parts["expression"].append(np.full(len(selection.frames), s))
+        parts["index"].append(np.arange(len(selection.frames)))
+        parts["axes"].append(selection.axes)
+        parts["extremes"].append(selection.extremes)
+        dropped[label] = [
+            dict(d, frame=int(frames[d["frame"]]), duplicate_of=int(frames[d["duplicate_of"]]))
+            for d in selection.dropped
+        ]
+        total = selection.explained_variance.sum()
+        used = int(selection.axes.max()) + 1
+        covered[label] = float(selection.explained_variance[:used].sum() / total) if total else 1.0
+    joined = {key: np.concatenate(value).astype(np.int64) for key, value in parts.items()}
+    return KeyshapeSet(**joined, dropped=dropped, variance_covered=covered)
+
+
+@dataclass
+class Decomposition:
+    """Eq 8 for a set of frames: whole-face weights, optional per-region weights, and the reconstruction."""
+
+    weights: np.ndarray  # (F, K)
+    region_weights: np.ndarray | None  # (F, R, K)
+    reconstruction: np.ndarray  # (F, 68, d)
+    kkt: float
+
+
+def decompose_groups(
+    shapes: np.ndarray,
+    groups: np.ndarray,
+    keyshapes: np.ndarray,
+    keyshape_group: np.ndarray,
+    points: tuple[int, ...] | None = None,
+    **nnls_options,
+) -> tuple[np.ndarray, float]:
+    """Eq 8 for frames that each use their own group's keyshapes: weights (F, K), zero outside the frame's group;
+    ``points`` restricts the fit to those landmarks. Returns the weights and the largest KKT violation."""
+    points = list(points) if points is not None else slice(None)
+    weights = np.zeros((len(shapes), len(keyshapes)))
+    kkt = 0.0
+    for g in np.unique(groups):
+        rows, mine = np.flatnonzero(groups == g), np.flatnonzero(keyshape_group == g)
+        w, _, result = decompose_into_keyshapes(shapes[rows][:, points], keyshapes[mine][:, points], **nnls_options)
+        weights[np.ix_(rows, mine)] = w
+        if not nnls_options.get("smoothing"):
+            kkt = max(kkt, float(result.kkt.max(initial=0.0)))
+    return weights, kkt
+
+
+def decompose(
+    shapes: np.ndarray,
+    groups: np.ndarray,
+    keyshapes: np.ndarray,
+    keyshape_group: np.ndarray,
+    regions: dict[str, tuple[int, ...]] | None = None,
+    **nnls_options,
+) -> Decomposition:
+    """Eq 8, whole-face and (given ``regions``) region by region. A landmark in a region is reconstructed from
+    its region's weights, any other from the whole-face weights."""
+    weights, kkt = decompose_groups(shapes, groups, keyshapes, keyshape_group, **nnls_options)
+    reconstruction = np.einsum("fk,kpc->fpc", weights, keyshapes)
+    if not regions:
+        return Decomposition(weights, None, reconstruction, kkt)
+    by_region = np.zeros((len(shapes), len(regions), len(keyshapes)))
+    for r, points in enumerate(regions.values()):
+        by_region[:, r], region_kkt = decompose_groups(
+            shapes, groups, keyshapes, keyshape_group, points, **nnls_options
+        )
+        kkt = max(kkt, region_kkt)
+        reconstruction[:, list(points)] = np.einsum("fk,kpc->fpc", by_region[:, r], keyshapes[:, list(points)])
+    return Decomposition(weights, by_region, reconstruction, kkt)
+
+
+def level(shapes: np.ndarray) -> np.ndarray:
+    """Image landmarks (..., 68, 2) turned about their eye line's midpoint so the eye line is horizontal."""
+    shapes = np.asarray(shapes, np.float64)
+    eye = shapes[..., 45, :] - shapes[..., 36, :]
+    angle = np.arctan2(eye[..., 1], eye[..., 0])[..., None]
+    c, s = np.cos(-angle), np.sin(-angle)
+    d = shapes - 0.5 * (shapes[..., 45:46, :] + shapes[..., 36:37, :])
+    return np.stack([c * d[..., 0] - s * d[..., 1], s * d[..., 0] + c * d[..., 1]], axis=-1)
+
+
+def lip_gap_iod(shapes: np.ndarray) -> np.ndarray:
+    """Vertical inner-lip gap / inter-ocular distance of (..., 68, 2) shapes in image convention (y down), the
+    eye line about level: mean over the pairs 61-67, 62-66, 63-65 of lower y minus upper y (negative when the lips
+    press into each other). Vertical, because the lip seal's model of the character's gap is (stages.retarget.lips):
+    at a closure the inner-lip points are a millimetre apart sideways and in depth, which a distance would count."""
+    shapes = np.asarray(shapes, np.float64)
+    upper = shapes[..., [a for a, _ in INNER_LIP_PAIRS], 1]
+    lower = shapes[..., [b for _, b in INNER_LIP_PAIRS], 1]
+    return (lower - upper).mean(axis=-1) / inter_ocular_distance(shapes)
+
+
 # ---------------------------------------------------------------------------------------------------- figures
 
 
@@ -282,7 +421,8 @@ KEYSHAPES_OUTPUTS = {
         "f",
         shape=("total_k", 68, 2),
         dtype="float32",
-        doc="keyshape landmark shapes in the aam mean-shape frame, grouped by expression",
+        doc="keyshape landmark shapes in the aam mean-shape frame (or the head frame seen from the front), "
+        "grouped by expression",
     ),
     "keyshape_expression": Output.array(
         "i", shape=("total_k",), dtype="int32", doc="index into meta['labels'] of each keyshape's expression"
@@ -309,6 +449,13 @@ KEYSHAPES_OUTPUTS = {
         dtype="float32",
         doc="non-negative weights per edited frame (zero outside the target's own keyshapes)",
     ),
+    "region_weights": Output.array(
+        "f",
+        shape=("targets", "frames", "regions", "total_k"),
+        dtype="float32",
+        optional=True,
+        doc="the same, solved region by region (meta['regions']; params.regions)",
+    ),
     "reconstruction": Output.array(
         "f",
         shape=("targets", "frames", 68, 2),
@@ -321,6 +468,14 @@ KEYSHAPES_OUTPUTS = {
         dtype="float32",
         doc="per-frame RMS landmark error of the decomposition / inter-ocular distance",
     ),
+    "lip_gap": Output.array(
+        "f",
+        shape=("targets", "frames", 2),
+        dtype="float32",
+        optional=True,
+        doc="[..., 0] vertical inner-lip gap / inter-ocular distance of the decomposed shapes, [..., 1] the gap of "
+        "their performer's rest pose (the blend's lip seal follows the first above the second)",
+    ),
     "rest_shape": Output.array(
         "f",
         shape=(68, 2),
@@ -330,45 +485,239 @@ KEYSHAPES_OUTPUTS = {
     "rest_frames": Output.array(
         "i", shape=("rest",), dtype="int32", doc="frames (aam/tracking axis) averaged into rest_shape"
     ),
+    "keyshape_rest": Output.array(
+        "f",
+        shape=("total_k", 68, 2),
+        dtype="float32",
+        optional=True,
+        doc="each keyshape's own rest pose, when the keyshapes come from several performers",
+    ),
+    "keyshapes3d": Output.array(
+        "f",
+        shape=("total_k", 68, 3),
+        dtype="float32",
+        optional=True,
+        doc="the keyshapes in 3D from the tracked FaceMesh, head frame (pose removed), IOD units",
+    ),
+    "keyshape_rest3d": Output.array(
+        "f",
+        shape=("total_k", 68, 3),
+        dtype="float32",
+        optional=True,
+        doc="each keyshape's rest pose in 3D (same frame)",
+    ),
     "expression_mean": Output.array(
         "f", shape=("labels", 68, 2), dtype="float32", doc="mean training shape per expression"
     ),
+    "sequence": Output.array(
+        "i", shape=("frames",), dtype="int32", optional=True, doc="take of each decomposed frame (meta test_labels)"
+    ),
 }
+
+
+class KeyshapeParams(Stage.Params):
+    """Keyshape selection and decomposition settings shared by both implementations."""
+
+    #: keyshapes per expression (paper: about 20); a mapping gives each expression its own count
+    k: int | dict[str, int] = 20
+    #: drop a candidate whose mean squared landmark distance to a chosen keyshape, in units of the squared
+    #: inter-ocular distance, is below this (1e-4: 1% of the inter-ocular distance RMS)
+    dedupe_threshold: float = Field(1e-4, ge=0)
+    #: keep searching further PCA axes until k keyshapes are found (the paper stops at k/2 axes)
+    refill: bool = False
+    #: NNLS solver: exact vectorised active set, or FISTA with a KKT stopping rule
+    solver: Literal["active_set", "fista"] = "active_set"
+    #: soft sum-to-one prior on the weights (0 = off, the paper's plain NNLS)
+    sum_to_one: float = Field(0.0, ge=0)
+    #: temporal smoothing of the weights across frames (0 = off)
+    smoothing: float = Field(0.0, ge=0)
+    #: also decompose region by region (mouth with jaw, eyes, brows): each region gets its own weights, so a
+    #: mouth shape is not traded against an eyebrow (false: the paper's whole-face Eq 8 only)
+    regions: bool = True
+    #: expression whose closed-mouth frames define the rest pose (falls back to all frames if absent)
+    rest_expression: str = "neutral"
+
+    @field_validator("k")
+    @classmethod
+    def _positive_counts(cls, k):
+        counts = {"k": k} if isinstance(k, int) else dict(k)
+        bad = {name: count for name, count in counts.items() if count < 1}
+        if bad:
+            raise ValueError(f"k must be at least 1 for every expression, got {bad}")
+        return k
+
+
+def keyshape_counts(k, labels: list[str]) -> dict[str, int]:
+    """Keyshapes per expression from params.k (one count, or one per expression: all and only the labels)."""
+    if isinstance(k, int):
+        return {label: k for label in labels}
+    unknown = sorted(set(k) - set(labels))
+    if unknown:
+        raise UserError(
+            f"k names unknown expressions {unknown}; the training expressions are {labels}", field="params.k"
+        )
+    missing = [label for label in labels if label not in k]
+    if missing:
+        raise UserError(
+            f"k gives no count for {missing}; give every expression of {labels} a count or use one integer",
+            field="params.k",
+        )
+    return {label: int(k[label]) for label in labels}
+
+
+def with_rest_gap(gap: np.ndarray, rest_gap) -> np.ndarray:
+    """The ``lip_gap`` output: (targets, frames, 2) = [gap, the rest pose's gap], float32."""
+    gap = np.asarray(gap, np.float64)
+    return np.stack([gap, np.broadcast_to(rest_gap, gap.shape)], axis=-1).astype(np.float32)
+
+
+def nnls_options(params) -> dict:
+    return {"method": params.solver, "sum_to_one": params.sum_to_one, "smoothing": params.smoothing}
+
+
+def keyshape_arrays(selection: KeyshapeSet, shapes: np.ndarray) -> dict[str, np.ndarray]:
+    """The selection as output arrays (the keyshapes' own shapes from ``shapes``)."""
+    return {
+        "keyshapes": shapes[selection.frames].astype(np.float32),
+        "keyshape_expression": selection.expression.astype(np.int32),
+        "keyshape_index": selection.index.astype(np.int32),
+        "keyshape_frame": selection.frames.astype(np.int32),
+        "keyshape_axis": selection.axes.astype(np.int32),
+        "keyshape_extreme": selection.extremes.astype(np.int8),
+    }
+
+
+def selection_meta(selection: KeyshapeSet, labels: list[str], scale: float) -> dict:
+    return {
+        "labels": labels,
+        "keyshape_counts": [int((selection.expression == s).sum()) for s in range(len(labels))],
+        "keyshape_ids": [f"{labels[e]}/{i}" for e, i in zip(selection.expression, selection.index)],
+        "inter_ocular_distance": scale,
+        "dropped": selection.dropped,
+        "variance_covered": selection.variance_covered,
+    }
+
+
+def decomposition_metrics(residual: np.ndarray, targets: list[str], kkt: float, selection: KeyshapeSet) -> dict:
+    metrics = {
+        "residual_rms_iod": float(np.sqrt(np.mean(residual**2))) if residual.size else 0.0,
+        "residual_max_iod": float(residual.max(initial=0.0)),
+        "keyshapes": int(len(selection.frames)),
+        "duplicates_dropped": int(sum(len(v) for v in selection.dropped.values())),
+        "kkt_max": kkt,
+    }
+    for t, name in enumerate(targets):
+        metrics[f"residual_rms_iod_{name}"] = float(np.sqrt(np.mean(residual[t] ** 2)))
+    return metrics
+
+
+def decompose_targets(targets: np.ndarray, groups: np.ndarray, keyshapes: np.ndarray, selection, params, scale):
+    """Eq 8 for every target sequence (T, F, 68, d) with per-frame groups (T, F): weights, region weights (or
+    None), reconstruction, residual / IOD, the largest KKT violation."""
+    regions = DECOMPOSITION_REGIONS if params.regions else None
+    parts = [
+        decompose(target, group, keyshapes, selection.expression, regions, **nnls_options(params))
+        for target, group in zip(targets, groups)
+    ]
+    reconstruction = np.stack([p.reconstruction for p in parts])
+    residual = relative_rms_error(reconstruction, targets, scale)
+    region_weights = np.stack([p.region_weights for p in parts]) if params.regions else None
+    return np.stack([p.weights for p in parts]), region_weights, reconstruction, residual, max(p.kkt for p in parts)
+
+
+def head_frame_keyshapes(tracks, frames: np.ndarray, rests: np.ndarray) -> dict[str, np.ndarray]:
+    """3D keyshapes and their rest poses from the tracked FaceMesh at the keyshapes' source frames; ``rests``
+    (K, n) lists each keyshape's rest frames (-1 = unused). Empty without a mesh."""
+    if tracks is None or "mesh" not in tracks:
+        return {}
+    from stages.retarget.shapes3d import head_frame_shapes
+
+    mesh = np.asarray(tracks["mesh"], np.float64)
+    if max(frames.max(initial=0), rests.max(initial=0)) >= len(mesh):
+        raise UserError(
+            f"keyshape source frames reach {int(max(frames.max(), rests.max()))} but the tracking input has "
+            f"{len(mesh)} frames: wire the training tracking the aam was built from",
+            field="inputs.tracks",
+        )
+    shapes = head_frame_shapes(mesh)
+    rest = np.stack([shapes[r[r >= 0]].mean(axis=0) for r in rests])
+    return {"keyshapes3d": shapes[frames].astype(np.float32), "keyshape_rest3d": rest.astype(np.float32)}
 
 
 class Keyshapes(Stage):
     """Keyshapes per training expression (PCA extremes, Sec 4.1) and NNLS weights of the edited sequences (Eq 8).
 
     Inputs: ``aam`` (aligned_shapes, sequence, meta labels) gives the training shapes of each expression;
-    ``edit`` (shapes (targets, frames, 68, 2), meta targets) the sequences edited towards each expression.
-    Each edited target is decomposed into the keyshapes of the training expression of the same name.
+    ``edit`` (shapes (targets, frames, 68, 2), meta targets) the sequences edited towards each expression; optional
+    ``tracks``, the training tracking with its FaceMesh, gives the keyshapes in 3D for the keymorph fit. Each
+    edited target is decomposed into the keyshapes of the training expression of the same name.
+
+    The edited frames stay 2D: the edit re-expresses 2D shapes, and their depth is the one their keyshape
+    combination implies (each keyshape is a real tracked frame with FaceMesh depth, and its keymorph was fitted
+    in 3D), so no 2D-to-3D regression is learned.
     """
 
-    class Params(Stage.Params):
-        #: keyshapes per expression (paper: about 20); a mapping gives each expression its own count
-        k: int | dict[str, int] = 20
-        #: drop a candidate whose mean squared landmark distance to a chosen keyshape, in units of the squared
-        #: inter-ocular distance, is below this (1e-4: 1% of the inter-ocular distance RMS)
-        dedupe_threshold: float = 1e-4
-        #: keep searching further PCA axes until k keyshapes are found (the paper stops at k/2 axes)
-        refill: bool = False
-        #: NNLS solver: exact vectorised active set, or FISTA with a KKT stopping rule
-        solver: Literal["active_set", "fista"] = "active_set"
-        #: soft sum-to-one prior on the weights (0 = off, the paper's plain NNLS)
-        sum_to_one: float = 0.0
-        #: temporal smoothing of the weights across frames (0 = off)
-        smoothing: float = 0.0
-        #: expression whose closed-mouth frames define the rest pose (falls back to all frames if absent)
-        rest_expression: str = "neutral"
-
+    Params = KeyshapeParams
     inputs = {
         "aam": Input.artifact("aligned_shapes", "sequence", doc="aam artifact of the training takes"),
         "edit": Input.artifact("shapes", doc="edit artifact: shapes (targets, frames, 68, 2), meta targets"),
+        "tracks": Input.artifact(
+            "mesh", optional=True, doc="training tracking (FaceMesh): 3D keyshapes for the keymorph fit"
+        ),
     }
     outputs = KEYSHAPES_OUTPUTS
 
     def run(self, params, inputs):
-        aam, edit = inputs["aam"], inputs["edit"]
+        aligned, sequence, labels, usable, scale = self._training(inputs["aam"])
+        targets, edited = self._edited(inputs["edit"], labels)
+        counts = keyshape_counts(params.k, labels)
+        try:
+            selection = select_all_keyshapes(
+                aligned, sequence, labels, counts, usable,
+                dedupe_threshold=params.dedupe_threshold, scale=scale, refill=params.refill,
+            )  # fmt: skip
+        except ValueError as exc:
+            raise UserError(str(exc), field="inputs.aam") from None
+        keyshapes = aligned[selection.frames]
+        groups = np.repeat(np.array([labels.index(t) for t in targets])[:, None], edited.shape[1], axis=1)
+        weights, region_weights, reconstruction, residual, kkt = decompose_targets(
+            edited, groups, keyshapes, selection, params, scale
+        )
+        train = decompose(aligned[usable], sequence[usable], keyshapes, selection.expression)
+        train_residual = relative_rms_error(train.reconstruction, aligned[usable], scale)
+        rest_label = params.rest_expression if params.rest_expression in labels else None
+        candidates = np.flatnonzero(usable & ((sequence == labels.index(rest_label)) if rest_label else True))
+        rest_idx = candidates[rest_frames(aligned[candidates])]
+        arrays = keyshape_arrays(selection, aligned)
+        arrays.update(
+            weights=weights.astype(np.float32),
+            reconstruction=reconstruction.astype(np.float32),
+            residual=residual.astype(np.float32),
+            lip_gap=with_rest_gap(lip_gap_iod(edited), lip_gap_iod(aligned[rest_idx].mean(axis=0))),
+            rest_shape=aligned[rest_idx].mean(axis=0).astype(np.float32),
+            rest_frames=rest_idx.astype(np.int32),
+            expression_mean=np.stack([aligned[(sequence == s) & usable].mean(0) for s in range(len(labels))]).astype(
+                np.float32
+            ),
+            **head_frame_keyshapes(inputs.get("tracks"), selection.frames, np.tile(rest_idx, (len(keyshapes), 1))),
+        )
+        if region_weights is not None:
+            arrays["region_weights"] = region_weights.astype(np.float32)
+        metrics = decomposition_metrics(residual, targets, kkt, selection)
+        metrics["train_residual_rms_iod"] = float(np.sqrt(np.mean(train_residual**2)))
+        meta = selection_meta(selection, labels, scale)
+        meta.update(
+            targets=targets,
+            target_expression=[labels.index(name) for name in targets],
+            rest_expression=rest_label,
+            regions={name: list(points) for name, points in DECOMPOSITION_REGIONS.items()} if params.regions else {},
+            fps=inputs["edit"].meta.get("fps", inputs["aam"].meta.get("fps")),
+            space="2d",
+        )
+        return Result(arrays, meta=meta, metrics=metrics)
+
+    @staticmethod
+    def _training(aam):
         labels = [str(x) for x in aam.meta.get("labels", [])]
         aligned = np.asarray(aam["aligned_shapes"], np.float64)
         sequence = np.asarray(aam["sequence"]).astype(np.int64)
@@ -379,137 +728,10 @@ class Keyshapes(Stage):
         usable = np.isfinite(aligned).all(axis=(1, 2))
         if "valid" in aam:
             usable &= np.asarray(aam["valid"]).astype(bool)
-        counts = self._counts(params.k, labels)
-        if params.dedupe_threshold < 0:
-            raise UserError("dedupe_threshold must be >= 0", field="params.dedupe_threshold")
         scale = float(inter_ocular_distance(aligned[usable].mean(axis=0)))
         if not scale > 0:
             raise UserError("the mean training shape has zero inter-ocular distance", field="inputs.aam")
-
-        keyshape_frames, keyshape_expr, keyshape_axis, keyshape_ext, keyshape_idx = [], [], [], [], []
-        dropped, variance_covered, expression_means = {}, {}, []
-        for s, label in enumerate(labels):
-            frames = np.flatnonzero((sequence == s) & usable)
-            if frames.size == 0:
-                raise UserError(f"expression '{label}' has no usable training frames", field="inputs.aam")
-            expression_means.append(aligned[frames].mean(axis=0))
-            selection = select_keyshapes(
-                aligned[frames],
-                counts[label],
-                dedupe_threshold=params.dedupe_threshold,
-                scale=scale,
-                refill=params.refill,
-            )
-            keyshape_frames += frames[selection.frames].tolist()
-            keyshape_expr += [s] * len(selection.frames)
-            keyshape_idx += list(range(len(selection.frames)))
-            keyshape_axis += selection.axes.tolist()
-            keyshape_ext += selection.extremes.tolist()
-            dropped[label] = [
-                dict(d, frame=int(frames[d["frame"]]), duplicate_of=int(frames[d["duplicate_of"]]))
-                for d in selection.dropped
-            ]
-            used_axes = int(selection.axes.max()) + 1
-            total = selection.explained_variance.sum()
-            variance_covered[label] = float(selection.explained_variance[:used_axes].sum() / total) if total else 1.0
-        keyshape_frames = np.asarray(keyshape_frames, dtype=np.int64)
-        keyshape_expr = np.asarray(keyshape_expr, dtype=np.int64)
-        keyshapes = aligned[keyshape_frames]
-
-        targets, edited = self._edited(edit, labels)
-        n_frames = edited.shape[1]
-        weights = np.zeros((len(targets), n_frames, len(keyshapes)))
-        reconstruction = np.zeros_like(edited)
-        kkt = 0.0
-        for t, name in enumerate(targets):
-            mine = np.flatnonzero(keyshape_expr == labels.index(name))
-            w, recon, result = decompose_into_keyshapes(
-                edited[t],
-                keyshapes[mine],
-                method=params.solver,
-                sum_to_one=params.sum_to_one,
-                smoothing=params.smoothing,
-            )
-            weights[t][:, mine] = w
-            reconstruction[t] = recon
-            kkt = max(kkt, float(result.kkt.max(initial=0.0)) if params.smoothing == 0 else 0.0)
-        residual = relative_rms_error(reconstruction, edited, scale)
-
-        train_residual = []
-        for s, label in enumerate(labels):  # how well each expression's own training frames are represented
-            frames = np.flatnonzero((sequence == s) & usable)
-            mine = np.flatnonzero(keyshape_expr == s)
-            _, recon, _ = decompose_into_keyshapes(aligned[frames], keyshapes[mine])
-            train_residual.append(relative_rms_error(recon, aligned[frames], scale))
-        train_residual = np.concatenate(train_residual)
-
-        rest_label = params.rest_expression if params.rest_expression in labels else None
-        candidates = np.flatnonzero(usable & ((sequence == labels.index(rest_label)) if rest_label else True))
-        rest_idx = candidates[rest_frames(aligned[candidates])]
-        rest = aligned[rest_idx].mean(axis=0)
-
-        metrics = {
-            "residual_rms_iod": float(np.sqrt(np.mean(residual**2))) if residual.size else 0.0,
-            "residual_max_iod": float(residual.max(initial=0.0)),
-            "train_residual_rms_iod": float(np.sqrt(np.mean(train_residual**2))),
-            "keyshapes": int(len(keyshapes)),
-            "duplicates_dropped": int(sum(len(v) for v in dropped.values())),
-            "kkt_max": kkt,
-        }
-        for t, name in enumerate(targets):
-            metrics[f"residual_rms_iod_{name}"] = float(np.sqrt(np.mean(residual[t] ** 2)))
-        meta = {
-            "labels": labels,
-            "targets": targets,
-            "target_expression": [labels.index(name) for name in targets],
-            "keyshape_counts": [int((keyshape_expr == s).sum()) for s in range(len(labels))],
-            "keyshape_ids": [f"{labels[e]}/{i}" for e, i in zip(keyshape_expr, keyshape_idx)],
-            "inter_ocular_distance": scale,
-            "dropped": dropped,
-            "variance_covered": variance_covered,
-            "rest_expression": rest_label,
-            "fps": edit.meta.get("fps", aam.meta.get("fps")),
-        }
-        return Result(
-            {
-                "keyshapes": keyshapes.astype(np.float32),
-                "keyshape_expression": keyshape_expr.astype(np.int32),
-                "keyshape_index": np.asarray(keyshape_idx, dtype=np.int32),
-                "keyshape_frame": keyshape_frames.astype(np.int32),
-                "keyshape_axis": np.asarray(keyshape_axis, dtype=np.int32),
-                "keyshape_extreme": np.asarray(keyshape_ext, dtype=np.int8),
-                "weights": weights.astype(np.float32),
-                "reconstruction": reconstruction.astype(np.float32),
-                "residual": residual.astype(np.float32),
-                "rest_shape": rest.astype(np.float32),
-                "rest_frames": rest_idx.astype(np.int32),
-                "expression_mean": np.asarray(expression_means, dtype=np.float32),
-            },
-            meta=meta,
-            metrics=metrics,
-        )
-
-    @staticmethod
-    def _counts(k, labels: list[str]) -> dict[str, int]:
-        if isinstance(k, int):
-            counts = {label: k for label in labels}
-        else:
-            unknown = sorted(set(k) - set(labels))
-            if unknown:
-                raise UserError(
-                    f"k names unknown expressions {unknown}; the training expressions are {labels}", field="params.k"
-                )
-            missing = [label for label in labels if label not in k]
-            if missing:
-                raise UserError(
-                    f"k gives no count for {missing}; give every expression of {labels} a count or use one integer",
-                    field="params.k",
-                )
-            counts = {label: int(k[label]) for label in labels}
-        bad = {label: c for label, c in counts.items() if c < 1}
-        if bad:
-            raise UserError(f"k must be at least 1 for every expression, got {bad}", field="params.k")
-        return counts
+        return aligned, sequence, labels, usable, scale
 
     @staticmethod
     def _edited(edit, labels: list[str]) -> tuple[list[str], np.ndarray]:
@@ -536,3 +758,149 @@ class Keyshapes(Stage):
         return targets, shapes
 
     figures = {"keyshapes": figure_keyshapes, "residual": figure_residual, "weights": figure_weights}
+
+
+# ------------------------------------------------------------------------------------------ performance capture
+
+
+def speaker_groups(labels: list[str], fields: dict) -> list[str]:
+    """Who performs each take: the take's ``speaker`` field, else the take itself."""
+    return [str((fields.get(label) or {}).get("speaker", f"take:{label}")) for label in labels]
+
+
+def capture_rest_frames(
+    shapes: np.ndarray, sequence: np.ndarray, usable: np.ndarray, labels: list[str], fields: dict, rest_expression: str
+) -> list[np.ndarray]:
+    """Per take, the rest frames of its performer: the closed-mouth frames of the performer's take whose
+    ``expression`` field is ``rest_expression`` when there is one, else of all the performer's takes."""
+    speakers = speaker_groups(labels, fields)
+    out = []
+    for s in range(len(labels)):
+        mine = [i for i, speaker in enumerate(speakers) if speaker == speakers[s]]
+        neutral = [i for i in mine if (fields.get(labels[i]) or {}).get("expression") == rest_expression]
+        candidates = np.flatnonzero(np.isin(sequence, neutral or mine) & usable)
+        out.append(candidates[rest_frames(shapes[candidates])])
+    return out
+
+
+class CaptureKeyshapes(Stage):
+    """Performance capture without the edit: keyshapes of each tracked take (PCA extremes, Sec 4.1) and every
+    tracked frame decomposed into its own take's keyshapes (Eq 8), in 3D when the tracking has a FaceMesh (head
+    frame, pose removed; ``stages.retarget.shapes3d``), else on the 2D landmarks aligned by similarity.
+
+    One target, ``performance``: all takes' frames in tracking order. Each take's keymorphs measure deformation
+    from its performer's rest (``speaker`` field of the takes; the ``rest_expression`` take of a performer when
+    the takes carry ``expression`` fields).
+    """
+
+    class Params(KeyshapeParams):
+        #: fit in 3D from the FaceMesh (auto: when the tracking has one) or on the 2D landmarks
+        space: Literal["auto", "3d", "2d"] = "auto"
+
+    inputs = {
+        "tracks": Input.artifact("landmarks", "sequence", doc="tracking artifact of the takes to animate"),
+    }
+    outputs = KEYSHAPES_OUTPUTS
+    figures = {"keyshapes": figure_keyshapes, "residual": figure_residual, "weights": figure_weights}
+
+    def run(self, params, inputs):
+        tracks = inputs["tracks"]
+        shapes, flat, sequence, labels, usable, space = self._shapes(params, tracks)
+        fields = dict(tracks.meta.get("fields") or {})
+        counts = keyshape_counts(params.k, labels)
+        try:
+            selection = select_all_keyshapes(
+                shapes, sequence, labels, counts, usable,
+                dedupe_threshold=params.dedupe_threshold, scale=1.0, refill=params.refill,
+            )  # fmt: skip
+        except ValueError as exc:
+            raise UserError(f"{exc} (no tracked face)", field="inputs.tracks") from None
+        keyshapes = shapes[selection.frames]
+        weights, region_weights, reconstruction, residual, kkt = decompose_targets(
+            shapes[None], sequence[None], keyshapes, selection, params, 1.0
+        )
+        rests = capture_rest_frames(shapes, sequence, usable, labels, fields, params.rest_expression)
+        arrays = self._pack_arrays(selection, shapes, flat, space, rests, sequence)
+        arrays.update(
+            weights=weights.astype(np.float32),
+            reconstruction=flat_view(reconstruction, space).astype(np.float32),
+            residual=residual.astype(np.float32),
+            lip_gap=capture_lip_gap(tracks["landmarks"], rests, sequence),
+        )
+        if region_weights is not None:
+            arrays["region_weights"] = region_weights.astype(np.float32)
+        fps = [float(f) for f in (tracks.meta.get("fps") or [30.0])]
+        meta = selection_meta(selection, labels, 1.0)
+        meta.update(
+            targets=["performance"],
+            target_expression=[-1],
+            test_labels=labels,
+            rest_expression=params.rest_expression,
+            regions={name: list(points) for name, points in DECOMPOSITION_REGIONS.items()} if params.regions else {},
+            fps=fps[0],
+            take_fps=fps,
+            space=space,
+            fields=fields,
+        )
+        metrics = decomposition_metrics(residual, ["performance"], kkt, selection)
+        metrics["invalid_frames"] = int((~usable).sum())
+        return Result(arrays, meta=meta, metrics=metrics)
+
+    @staticmethod
+    def _shapes(params, tracks):
+        """(shapes (F, 68, d) in IOD units, their 2D front view, sequence, labels, usable, space)."""
+        from stages.retarget.shapes3d import front_view, head_frame_shapes, remove_pose
+
+        landmarks = np.asarray(tracks["landmarks"], np.float64)
+        sequence = np.asarray(tracks["sequence"]).astype(np.int64)
+        labels = [str(x) for x in tracks.meta.get("labels") or []] or [
+            f"take{i}" for i in range(int(sequence.max(initial=0)) + 1)
+        ]
+        if params.space == "3d" and "mesh" not in tracks:
+            raise UserError(
+                "space: 3d needs the tracking's FaceMesh (output 'mesh'); use FaceMesh tracking or space: 2d",
+                field="params.space",
+            )
+        space = "3d" if params.space != "2d" and "mesh" in tracks else "2d"
+        usable = np.asarray(tracks["valid"]).astype(bool) if "valid" in tracks else np.ones(len(landmarks), bool)
+        usable &= np.isfinite(landmarks).all(axis=(1, 2))
+        if space == "3d":
+            shapes = head_frame_shapes(np.asarray(tracks["mesh"], np.float64))
+            return shapes, front_view(shapes), sequence, labels, usable, space
+        shapes = remove_pose(landmarks)
+        return shapes, shapes, sequence, labels, usable, space
+
+    @staticmethod
+    def _pack_arrays(selection, shapes, flat, space, rests, sequence) -> dict:
+        arrays = keyshape_arrays(selection, flat)
+        rest_of_take = [shapes[r].mean(axis=0) for r in rests]
+        keyshape_rest = np.stack([rest_of_take[e] for e in selection.expression])
+        arrays["keyshape_rest"] = flat_view(keyshape_rest, space).astype(np.float32)
+        if space == "3d":
+            arrays["keyshapes3d"] = shapes[selection.frames].astype(np.float32)
+            arrays["keyshape_rest3d"] = keyshape_rest.astype(np.float32)
+        all_rest = np.concatenate(rests)
+        arrays["rest_shape"] = flat[all_rest].mean(axis=0).astype(np.float32)
+        arrays["rest_frames"] = all_rest.astype(np.int32)
+        arrays["expression_mean"] = np.stack([flat[sequence == s].mean(0) for s in range(len(rests))]).astype(
+            np.float32
+        )
+        arrays["sequence"] = sequence.astype(np.int32)
+        return arrays
+
+
+def capture_lip_gap(landmarks: np.ndarray, rests: list[np.ndarray], sequence: np.ndarray) -> np.ndarray:
+    """The ``lip_gap`` output of captured takes, from the tracked image landmarks (eye line levelled), as the
+    evaluation measures it: each frame's gap and its take's rest gap (mean over the rest frames)."""
+    gap = lip_gap_iod(level(landmarks))
+    rest = np.array([gap[r].mean() for r in rests])
+    return with_rest_gap(gap[None], rest[sequence][None])
+
+
+def flat_view(shapes: np.ndarray, space: str) -> np.ndarray:
+    """2D shapes for drawing and the 2D outputs: 3D head-frame shapes seen from the front, 2D ones as they are."""
+    if space != "3d":
+        return shapes
+    from stages.retarget.shapes3d import front_view
+
+    return front_view(shapes)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import Field
@@ -17,6 +17,9 @@ from stages.tracking.crops import apply_transforms, similarity_transform, simila
 from stages.tracking.face3d import DEFAULT_FACE3D, Face3D, load_face3d
 from stages.tracking.landmarks68 import NOSE_BRIDGE_TOP
 from stages.tracking.pose import camera_matrix, solve_head_pose
+from stages.tracking.takes import AudioSource, TakeAudio, load_take_audio
+
+NonNegativeSeconds = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 
 
 class TrackingParams(Params):
@@ -52,6 +55,14 @@ class TrackingParams(Params):
         "'optional' goes without, 'none' skips audio",
     )
     audio_rate: int = Field(16000, ge=4000, le=192000, description="audio sample rate of the 'audio' output (Hz)")
+    audio_offset: NonNegativeSeconds | dict[str, NonNegativeSeconds] = Field(
+        0.0,
+        description="where each take's video starts in its separate audio file (inputs.audio), in seconds from "
+        "the file's first sample: one number for every take or {label: seconds}",
+    )
+    audio_tolerance: NonNegativeSeconds = Field(
+        0.25, description="seconds the audio may end before the video does; more is an error naming the file"
+    )
 
 
 @dataclass
@@ -70,7 +81,8 @@ class SequenceTrack:
     mesh: np.ndarray | None = None  # (n, 468, 3)
     crops: np.ndarray | None = None  # (n, c, c) uint8
     crop_transforms: np.ndarray | None = None
-    video: Path | None = None  # where the audio comes from
+    video: Path | None = None  # the tracked video, when there is one
+    audio_source: AudioSource | None = None  # where the take's audio comes from (stages.tracking.takes)
     rotation: np.ndarray | None = None  # pose from the track file, when used
     translation: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
@@ -139,31 +151,6 @@ def pose_point_indices(params: TrackingParams, face3d: Face3D) -> np.ndarray | N
     return np.asarray(face3d.rigid, dtype=np.int64)
 
 
-def load_audio(seq: SequenceTrack, params: TrackingParams):
-    """DecodedAudio of the sequence's video, or None (audio 'none', or 'optional' and there is none)."""
-    from stages.formats.audio import decode_audio
-
-    if params.audio == "none":
-        return None
-    if seq.video is None:
-        if params.audio == "required":
-            raise UserError(
-                "audio is required but no video was given for this sequence (set params.audio to 'optional' or 'none')",
-                field=seq.field,
-            )
-        return None
-    if params.audio == "optional":
-        import av
-
-        try:
-            with av.open(str(seq.video)) as container:
-                if not container.streams.audio:
-                    return None
-        except (av.error.FFmpegError, OSError):
-            return None
-    return decode_audio(seq.video, params.audio_rate, field=seq.field)
-
-
 def rotation_steps_deg(q: np.ndarray) -> np.ndarray:
     """Angle (degrees) between consecutive rotations."""
     if len(q) < 2:
@@ -201,6 +188,134 @@ def sequence_stats(seq: SequenceTrack, rotation: np.ndarray, rms: np.ndarray) ->
     }
 
 
+def pose_of(
+    seq: SequenceTrack, params: TrackingParams, face3d: Face3D
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """(rotation, translation, reprojection RMS, focal length) of one sequence: solvePnP of its landmarks, or
+    the pose its track file carried (the RMS still measures how well the 3D face fits the landmarks)."""
+    w, h = seq.frame_size
+    camera = camera_matrix(w, h, params.focal_length)
+    rot, trans, rms = solve_head_pose(seq.landmarks, face3d.neutral, camera, pose_point_indices(params, face3d))
+    if seq.rotation is not None:
+        rot, trans = seq.rotation, seq.translation
+    return rot, trans, rms, float(camera[0, 0])
+
+
+def video_end(seq: SequenceTrack) -> float:
+    """End of the sequence's last frame, seconds from its first (the last frame lasts one frame period)."""
+    n = len(seq.time)
+    if n == 0:
+        return 0.0
+    period = 1.0 / seq.fps if seq.fps else float(np.median(np.diff(seq.time))) if n > 1 else 0.0
+    return float(seq.time[-1] + period)
+
+
+def frame_arrays(sequences: list[SequenceTrack], poses: list[tuple], params: TrackingParams) -> dict:
+    """The per-frame outputs of all sequences, concatenated along frames."""
+    n_total = sum(len(s.valid) for s in sequences)
+    arrays = {
+        "landmarks": np.concatenate([s.landmarks for s in sequences]).astype(np.float32),
+        "confidence": np.concatenate([s.confidence for s in sequences]).astype(np.float32),
+        "valid": np.concatenate([s.valid for s in sequences]).astype(bool),
+        "time": np.concatenate([s.time for s in sequences]).astype(np.float64),
+        "sequence": np.concatenate([np.full(len(s.valid), i, dtype=np.int32) for i, s in enumerate(sequences)]),
+        "rotation": np.concatenate([p[0] for p in poses]).astype(np.float64),
+        "translation": np.concatenate([p[1] for p in poses]).astype(np.float64),
+        "pose_rms": np.concatenate([p[2] for p in poses]).astype(np.float32),
+    }
+    transforms = [
+        s.crop_transforms
+        if s.crop_transforms is not None
+        else similarity_transforms(s.landmarks, params.crop_size, params.crop_eye_distance, params.crop_eye_height)
+        for s in sequences
+    ]
+    arrays["crop_transforms"] = np.concatenate(transforms).astype(np.float64)
+    arrays["crop_landmarks"] = apply_transforms(
+        arrays["landmarks"].astype(np.float64), arrays["crop_transforms"]
+    ).astype(np.float32)
+    if all(s.crops is not None for s in sequences):
+        arrays["crops"] = np.concatenate([s.crops for s in sequences])
+    else:
+        arrays["crops"] = np.zeros((n_total, 0, 0), dtype=np.uint8)
+    if all(s.mesh is not None for s in sequences):
+        arrays["mesh"] = np.concatenate([s.mesh for s in sequences]).astype(np.float32)
+    return arrays
+
+
+def audio_arrays(audios: list[TakeAudio | None]) -> dict:
+    """``audio`` (all takes' samples end to end) and ``audio_bounds`` ([start, stop) per take; empty for a
+    silent take); nothing when no take has audio."""
+    if all(a is None for a in audios):
+        return {}
+    lengths = np.array([0 if a is None else len(a.samples) for a in audios], dtype=np.int64)
+    stops = np.cumsum(lengths)
+    samples = [a.samples for a in audios if a is not None]
+    return {
+        "audio": np.concatenate(samples).astype(np.float32),
+        "audio_bounds": np.stack([stops - lengths, stops], axis=1),
+    }
+
+
+def tracking_meta(
+    sequences: list[SequenceTrack],
+    audios: list[TakeAudio | None],
+    focal: list[float],
+    params: TrackingParams,
+    face3d_name: str,
+    implementation: str,
+    fields: dict,
+) -> dict:
+    """Strict-JSON metadata: per-sequence lists in sequence order, then the settings that shaped the outputs."""
+    has_audio = [a is not None for a in audios]
+    crops_present = all(s.crops is not None for s in sequences)
+    per_sequence_extra = sorted({k for s in sequences for k in s.meta})
+    return {
+        "implementation": implementation,
+        "labels": [s.label for s in sequences],
+        "fields": {s.label: dict(fields.get(s.label, {})) for s in sequences},
+        "sources": [s.source for s in sequences],
+        "frames": [int(len(s.valid)) for s in sequences],
+        "fps": [float(s.fps) for s in sequences],
+        "frame_size": [[int(s.frame_size[0]), int(s.frame_size[1])] for s in sequences],
+        "audio_rate": int(params.audio_rate) if any(has_audio) else None,
+        "audio_offset": [None if a is None else a.offset_to_video for a in audios],
+        "audio_sources": [None if a is None else a.source for a in audios],
+        "has_audio": has_audio,
+        "landmark_scheme": "ibug68",
+        "focal_length": focal,
+        "pose_landmarks": params.pose_landmarks,
+        "pose_model": face3d_name,
+        "translation_units": "cm",
+        "has_crops": crops_present,
+        "crop_size": params.crop_size if crops_present else 0,
+        "crop_eye_distance": params.crop_eye_distance,
+        "crop_eye_height": params.crop_eye_height,
+        "max_gap_frames": params.max_gap_frames,
+        **{k: [s.meta.get(k) for s in sequences] for k in per_sequence_extra},
+    }
+
+
+def tracking_metrics(stats: dict, valid: np.ndarray) -> dict:
+    """Scalar quality metrics over all sequences (frame-weighted means, worst cases)."""
+    all_stats = list(stats.values())
+    frames = np.array([st["frames"] for st in all_stats], dtype=np.float64)
+
+    def mean(key: str) -> float:
+        return float(np.average([st[key] for st in all_stats], weights=frames))
+
+    return {
+        "frames": float(len(valid)),
+        "valid_fraction": float(valid.mean()) if len(valid) else 0.0,
+        "interpolated_frames": float(sum(st["interpolated_frames"] for st in all_stats)),
+        "nose_step_px": mean("nose_step_px"),
+        "nose_jitter_px": mean("nose_jitter_px"),
+        "max_abs_yaw_deg": max(st["max_abs_yaw_deg"] for st in all_stats),
+        "max_abs_pitch_deg": max(st["max_abs_pitch_deg"] for st in all_stats),
+        "max_pose_step_deg": max(st["max_pose_step_deg"] for st in all_stats),
+        "pose_rms_px": mean("pose_rms_px"),
+    }
+
+
 def assemble(
     sequences: list[SequenceTrack],
     params: TrackingParams,
@@ -209,103 +324,18 @@ def assemble(
     implementation: str,
     extra_meta: dict | None = None,
     extra_metrics: dict | None = None,
+    fields: dict | None = None,
 ) -> Result:
-    """Head pose and audio for every sequence, then the concatenated TRACKING_OUTPUTS result."""
-    rotations, translations, rms_all, audio_chunks, bounds = [], [], [], [], []
-    audio_offsets, has_audio, focal, stats = [], [], [], {}
-    pose_points = pose_point_indices(params, face3d)
-    total_samples = 0
-    for seq in sequences:
-        w, h = seq.frame_size
-        camera = camera_matrix(w, h, params.focal_length)
-        focal.append(float(camera[0, 0]))
-        rot, trans, rms = solve_head_pose(seq.landmarks, face3d.neutral, camera, pose_points)
-        if seq.rotation is not None:
-            rot, trans = seq.rotation, seq.translation
-        rotations.append(rot)
-        translations.append(trans)
-        rms_all.append(rms)
-        audio = load_audio(seq, params)
-        if audio is None:
-            audio_offsets.append(None)
-            has_audio.append(False)
-            bounds.append((total_samples, total_samples))
-        else:
-            audio_chunks.append(audio.samples)
-            audio_offsets.append(float(audio.offset_to_video))
-            has_audio.append(True)
-            bounds.append((total_samples, total_samples + len(audio.samples)))
-            total_samples += len(audio.samples)
-        stats[seq.label] = sequence_stats(seq, rot, rms)
+    """Head pose and audio for every sequence, then the concatenated TRACKING_OUTPUTS result.
 
-    n_total = sum(len(s.valid) for s in sequences)
-    size = params.crop_size
-    crops_present = all(s.crops is not None for s in sequences)
-    arrays = {
-        "landmarks": np.concatenate([s.landmarks for s in sequences]).astype(np.float32),
-        "confidence": np.concatenate([s.confidence for s in sequences]).astype(np.float32),
-        "valid": np.concatenate([s.valid for s in sequences]).astype(bool),
-        "time": np.concatenate([s.time for s in sequences]).astype(np.float64),
-        "sequence": np.concatenate([np.full(len(s.valid), i, dtype=np.int32) for i, s in enumerate(sequences)]),
-        "rotation": np.concatenate(rotations).astype(np.float64),
-        "translation": np.concatenate(translations).astype(np.float64),
-        "pose_rms": np.concatenate(rms_all).astype(np.float32),
-    }
-    transforms = [
-        s.crop_transforms
-        if s.crop_transforms is not None
-        else similarity_transforms(s.landmarks, size, params.crop_eye_distance, params.crop_eye_height)
-        for s in sequences
-    ]
-    arrays["crop_transforms"] = np.concatenate(transforms).astype(np.float64)
-    arrays["crop_landmarks"] = apply_transforms(
-        arrays["landmarks"].astype(np.float64), arrays["crop_transforms"]
-    ).astype(np.float32)
-    arrays["crops"] = (
-        np.concatenate([s.crops for s in sequences]) if crops_present else np.zeros((n_total, 0, 0), dtype=np.uint8)
-    )
-    if all(s.mesh is not None for s in sequences):
-        arrays["mesh"] = np.concatenate([s.mesh for s in sequences]).astype(np.float32)
-    if any(has_audio):
-        arrays["audio"] = (np.concatenate(audio_chunks) if audio_chunks else np.zeros(0)).astype(np.float32)
-        arrays["audio_bounds"] = np.array(bounds, dtype=np.int64).reshape(-1, 2)
-
-    meta = {
-        "implementation": implementation,
-        "labels": [s.label for s in sequences],
-        "sources": [s.source for s in sequences],
-        "frames": [int(len(s.valid)) for s in sequences],
-        "fps": [float(s.fps) for s in sequences],
-        "frame_size": [[int(s.frame_size[0]), int(s.frame_size[1])] for s in sequences],
-        "audio_rate": int(params.audio_rate) if any(has_audio) else None,
-        "audio_offset": audio_offsets,
-        "has_audio": has_audio,
-        "landmark_scheme": "ibug68",
-        "focal_length": focal,
-        "pose_landmarks": params.pose_landmarks,
-        "pose_model": face3d_name,
-        "translation_units": "cm",
-        "has_crops": crops_present,
-        "crop_size": size if crops_present else 0,
-        "crop_eye_distance": params.crop_eye_distance,
-        "crop_eye_height": params.crop_eye_height,
-        "max_gap_frames": params.max_gap_frames,
-        "sequence_stats": stats,
-        **{k: [s.meta.get(k) for s in sequences] for k in sorted({k for s in sequences for k in s.meta})},
-        **(extra_meta or {}),
-    }
-    all_stats = list(stats.values())
-    frames = np.array([st["frames"] for st in all_stats], dtype=np.float64)
-    metrics = {
-        "frames": float(n_total),
-        "valid_fraction": float(arrays["valid"].mean()) if n_total else 0.0,
-        "interpolated_frames": float(sum(st["interpolated_frames"] for st in all_stats)),
-        "nose_step_px": float(np.average([st["nose_step_px"] for st in all_stats], weights=frames)),
-        "nose_jitter_px": float(np.average([st["nose_jitter_px"] for st in all_stats], weights=frames)),
-        "max_abs_yaw_deg": max(st["max_abs_yaw_deg"] for st in all_stats),
-        "max_abs_pitch_deg": max(st["max_abs_pitch_deg"] for st in all_stats),
-        "max_pose_step_deg": max(st["max_pose_step_deg"] for st in all_stats),
-        "pose_rms_px": float(np.average([st["pose_rms_px"] for st in all_stats], weights=frames)),
-        **(extra_metrics or {}),
-    }
+    ``fields`` is each label's fields (speaker, expression, ...) from the labelled inputs: ``meta["fields"]``.
+    """
+    poses = [pose_of(seq, params, face3d) for seq in sequences]
+    audios = [load_take_audio(seq.audio_source, video_end(seq), params, seq.field) for seq in sequences]
+    arrays = {**frame_arrays(sequences, poses, params), **audio_arrays(audios)}
+    meta = tracking_meta(sequences, audios, [p[3] for p in poses], params, face3d_name, implementation, fields or {})
+    stats = {seq.label: sequence_stats(seq, pose[0], pose[2]) for seq, pose in zip(sequences, poses)}
+    meta["sequence_stats"] = stats
+    meta.update(extra_meta or {})
+    metrics = {**tracking_metrics(stats, arrays["valid"]), **(extra_metrics or {})}
     return Result(arrays, meta=meta, metrics=metrics)

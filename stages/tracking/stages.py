@@ -18,6 +18,7 @@ from stages.tracking.figures import FIGURES
 from stages.tracking.gaps import fill_face_gaps, interpolate_gaps
 from stages.tracking.landmarks68 import mesh_to_ibug68
 from stages.tracking.schema import TRACKING_OUTPUTS
+from stages.tracking.takes import AudioSource, audio_sources, labels_fields, preflight_audio
 from stages.tracking.video import iter_frames, probe_video
 
 MODELS = DATA / "models" / "mediapipe-face"
@@ -27,6 +28,10 @@ LANDMARK_MODEL = MODELS / "face_landmark.tflite"
 VIDEOS_DOC = "labelled videos (label -> file); any container/codec FFmpeg reads"
 FACE3D_DOC = "optional 3D face for head pose: a JSON file with 'neutral' (68, 3) like data/face3d"
 MODELS_DOC = "optional MediaPipe models: labels 'detector' and 'landmarks' (.tflite); default data/models"
+AUDIO_DOC = (
+    "optional separate audio files (WAV, FLAC, MP3, ...) matched to the takes by label; params.audio_offset "
+    "places each take's first frame in its file"
+)
 
 # default data files the stages read when no input overrides them: hashed into the cache key
 DEFAULT_FACE3D_FILE = DATA / "face3d" / "ict_landmarks68.json"
@@ -47,6 +52,11 @@ def _require_files(files: dict | None, name: str) -> dict:
     if not files:
         raise UserError(f"no files given for '{name}'", field=f"inputs.{name}")
     return files
+
+
+def video_durations(videos: dict) -> dict[str, float]:
+    """Declared duration of each labelled video (0.0 when the container does not say)."""
+    return {label: probe_video(path, field=f"inputs.videos.{label}").duration for label, path in videos.items()}
 
 
 class FaceMeshParams(TrackingParams):
@@ -76,7 +86,9 @@ def new_tracker(params, models: dict | None):
     )
 
 
-def track_facemesh_video(tracker, label: str, path: Path, params: FaceMeshParams) -> SequenceTrack:
+def track_facemesh_video(
+    tracker, label: str, path: Path, params: FaceMeshParams, audio: AudioSource | None = None
+) -> SequenceTrack:
     """Face mesh over one video, crops made while it streams; gaps filled (or refused) afterwards."""
     field = f"inputs.videos.{label}"
     info = probe_video(path, field=field)
@@ -108,6 +120,7 @@ def track_facemesh_video(tracker, label: str, path: Path, params: FaceMeshParams
         crops=crops,
         crop_transforms=transforms,
         video=path,
+        audio_source=audio,
         meta={"detector_runs": tracker.detections},
     )
 
@@ -119,6 +132,7 @@ class FaceMesh(Stage):
     Params = FaceMeshParams
     inputs = {
         "videos": Input.files(doc=VIDEOS_DOC),
+        "audio": Input.files(optional=True, doc=AUDIO_DOC),
         "face3d": Input.files(optional=True, doc=FACE3D_DOC),
         "models": Input.files(optional=True, doc=MODELS_DOC),
     }
@@ -128,10 +142,15 @@ class FaceMesh(Stage):
 
     def run(self, params: FaceMeshParams, inputs: dict) -> Result:
         videos = _require_files(inputs["videos"], "videos")
+        audio = audio_sources(videos, inputs.get("audio"), params)
+        preflight_audio(audio, video_durations(videos), params)
         face3d, face3d_name = resolve_face3d(inputs.get("face3d"))
         tracker = new_tracker(params, inputs.get("models"))
-        sequences = [track_facemesh_video(tracker, label, Path(path), params) for label, path in videos.items()]
-        return assemble(sequences, params, face3d, face3d_name, "FaceMesh")
+        sequences = [
+            track_facemesh_video(tracker, label, Path(path), params, audio[label]) for label, path in videos.items()
+        ]
+        fields = labels_fields(videos, inputs.get("audio"))
+        return assemble(sequences, params, face3d, face3d_name, "FaceMesh", fields=fields)
 
 
 # ---------------------------------------------------------------------------------------------- OpticalFlow
@@ -188,7 +207,13 @@ def initial_shape(init_path: Path, label: str, params: OpticalFlowParams) -> tup
 
 
 def track_flow_video(
-    label: str, path: Path, params: OpticalFlowParams, init: tuple[int, np.ndarray] | None, tracker_factory, model
+    label: str,
+    path: Path,
+    params: OpticalFlowParams,
+    init: tuple[int, np.ndarray] | None,
+    tracker_factory,
+    model,
+    audio: AudioSource | None = None,
 ) -> SequenceTrack:
     from stages.tracking.opticalflow import LucasKanadeTracker
 
@@ -254,6 +279,7 @@ def track_flow_video(
         crops=crops,
         crop_transforms=transforms,
         video=path,
+        audio_source=audio,
         meta={
             "init": "file" if init is not None else "facemesh",
             "fb_error_px": float(np.mean(fb_errors)) if fb_errors else 0.0,
@@ -273,6 +299,7 @@ class OpticalFlow(Stage):
             doc="initial shapes per label (.pts, OpenFace or plain CSV, "
             ".npz): the first valid row starts the tracker at its frame",
         ),
+        "audio": Input.files(optional=True, doc=AUDIO_DOC),
         "face3d": Input.files(optional=True, doc=FACE3D_DOC),
         "models": Input.files(optional=True, doc=MODELS_DOC),
     }
@@ -295,6 +322,8 @@ class OpticalFlow(Stage):
                 "none to start from FaceMesh",
                 field="inputs.init",
             )
+        audio = audio_sources(videos, inputs.get("audio"), params)
+        preflight_audio(audio, video_durations(videos), params)
         face3d_files = inputs.get("face3d")
         face3d, face3d_name = resolve_face3d(face3d_files)
         model = None
@@ -316,9 +345,10 @@ class OpticalFlow(Stage):
         sequences = []
         for label, path in videos.items():
             init = initial_shape(Path(inits[label]), label, params) if label in inits else None
-            sequences.append(track_flow_video(label, Path(path), params, init, factory, model))
+            sequences.append(track_flow_video(label, Path(path), params, init, factory, model, audio[label]))
         extra = {"shape_modes": int(model.basis.shape[1]) if model is not None else 0}
-        return assemble(sequences, params, face3d, face3d_name, "OpticalFlow", extra_meta=extra)
+        fields = labels_fields(videos, inputs.get("init"), inputs.get("audio"))
+        return assemble(sequences, params, face3d, face3d_name, "OpticalFlow", extra_meta=extra, fields=fields)
 
 
 # ---------------------------------------------------------------------------------------------- TrackFile
@@ -389,6 +419,7 @@ class TrackFile(Stage):
     inputs = {
         "tracks": Input.files(doc="labelled track files (label -> file, or a directory of .pts files)"),
         "videos": Input.files(optional=True, doc="the tracked videos, same labels: crops, timing, audio"),
+        "audio": Input.files(optional=True, doc=AUDIO_DOC),
         "face3d": Input.files(optional=True, doc=FACE3D_DOC),
     }
     outputs = TRACKING_OUTPUTS
@@ -405,6 +436,9 @@ class TrackFile(Stage):
             raise UserError(
                 f"video labels {sorted(videos)} do not match track labels {sorted(tracks)}", field="inputs.videos"
             )
+        audio = audio_sources(
+            {label: videos.get(label) for label in tracks}, inputs.get("audio"), params, "inputs.tracks"
+        )
         face3d, face3d_name = resolve_face3d(inputs.get("face3d"))
         sequences = []
         for label, path in tracks.items():
@@ -467,12 +501,14 @@ class TrackFile(Stage):
                     crops=crops,
                     crop_transforms=transforms,
                     video=video,
+                    audio_source=audio[label],
                     rotation=rotation,
                     translation=translation,
                     meta={"track_format": track.format},
                 )
             )
-        return assemble(sequences, params, face3d, face3d_name, "TrackFile")
+        fields = labels_fields(tracks, videos, inputs.get("audio"))
+        return assemble(sequences, params, face3d, face3d_name, "TrackFile", fields=fields)
 
 
 __all__ = ["FaceMesh", "OpticalFlow", "TrackFile"]

@@ -1,0 +1,75 @@
+"""The performer's face in 3D, in the head's own frame (pose removed), from the tracker's FaceMesh.
+
+FaceMesh gives 468 points per frame: x, y in image pixels and a relative depth z in pixels (negative towards the
+camera). The 68 iBUG points are means of mesh vertices (``stages.tracking.landmarks68``), so the same table gives
+them depth. Axes are turned into the head frame of the rest of the project (glTF: x to the viewer's right, y up,
+z towards the viewer): (x, -y, -z).
+
+Pose removal is a generalised Procrustes analysis on the rigid points (eye corners, nose): each frame is carried by
+a 3D similarity (Umeyama) onto a reference, the reference is the mean of the aligned frames, three rounds. Units
+are the reference's inter-ocular distance (IOD = 1). The tracked head rotation (solvePnP of a generic face on the
+2D landmarks) would also remove the pose; on the CREMA-D takes it leaves the rigid points scattered 1.3% IOD RMS
+against 0.8% for the mesh's own 3D alignment, so the latter is used.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stages.retarget.regions import RIGID
+
+#: FaceMesh image axes (x right, y down, z away from the viewer) to the head frame's (x right, y up, z to viewer)
+MESH_TO_HEAD_AXES = np.array([1.0, -1.0, -1.0])
+
+
+def mesh_landmarks(mesh: np.ndarray) -> np.ndarray:
+    """(frames, 468, 3) FaceMesh points to (frames, 68, 3) iBUG points in right-handed head axes (pixels)."""
+    from stages.tracking.landmarks68 import mesh_to_ibug68
+
+    return mesh_to_ibug68(mesh) * MESH_TO_HEAD_AXES
+
+
+def similarity_align(points: np.ndarray, reference: np.ndarray, rigid=RIGID) -> np.ndarray:
+    """Every frame of ``points`` (frames, P, d) carried onto ``reference`` (P, d) by the least-squares similarity
+    of its rigid points (Umeyama 1991), vectorised over frames."""
+    points = np.asarray(points, np.float64)
+    rigid = list(rigid)
+    source, target = points[:, rigid], np.asarray(reference, np.float64)[rigid]
+    mu_s, mu_t = source.mean(axis=1), target.mean(axis=0)
+    s, t = source - mu_s[:, None], target - mu_t
+    u, sigma, vt = np.linalg.svd(np.einsum("pi,fpj->fij", t, s))
+    d = np.ones(sigma.shape)
+    d[:, -1] = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)
+    rotation = u @ (d[..., None] * vt)
+    scale = (sigma * d).sum(axis=1) / np.maximum((s**2).sum(axis=(1, 2)), 1e-300)
+    moved = np.einsum("fij,fpj->fpi", rotation, points - mu_s[:, None]) * scale[:, None, None]
+    return moved + mu_t
+
+
+def inter_ocular(points: np.ndarray) -> np.ndarray:
+    """Outer eye corner distance (iBUG 36-45) of (..., 68, d) shapes."""
+    points = np.asarray(points, np.float64)
+    return np.linalg.norm(points[..., 45, :] - points[..., 36, :], axis=-1)
+
+
+def remove_pose(points: np.ndarray, rigid=RIGID, rounds: int = 3) -> np.ndarray:
+    """Generalised Procrustes on the rigid points: (frames, 68, d) shapes in one head frame, reference IOD = 1,
+    centred on the reference's rigid points."""
+    points = np.asarray(points, np.float64)
+    reference = points[0]
+    for _ in range(max(rounds, 1)):
+        aligned = similarity_align(points, reference, rigid)
+        reference = aligned.mean(axis=0)
+        reference = (reference - reference[list(rigid)].mean(axis=0)) / inter_ocular(reference)
+    return similarity_align(points, reference, rigid)
+
+
+def head_frame_shapes(mesh: np.ndarray) -> np.ndarray:
+    """The tracked FaceMesh as (frames, 68, 3) iBUG shapes, pose removed, IOD units."""
+    return remove_pose(mesh_landmarks(mesh))
+
+
+def front_view(points: np.ndarray) -> np.ndarray:
+    """Head-frame points (..., 3) seen from the front in image convention (x right, y down): (x, -y)."""
+    points = np.asarray(points, np.float64)
+    return np.stack([points[..., 0], -points[..., 1]], axis=-1)

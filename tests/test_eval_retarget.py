@@ -1,0 +1,275 @@
+"""Retargeting evaluation: known answers on a performer who *is* the character (its landmark vertices animated by
+known morph weights, posed and projected like a tracked face), the calibration against a shifted animation, and the
+event and audio metrics on their own."""
+
+import cv2
+import numpy as np
+import pytest
+
+from msflow import UserError
+from msflow.testing import artifact, run_stage
+from stages.eval.retarget import (
+    RetargetEval,
+    align_to_model,
+    audio_envelope,
+    character_landmarks,
+    closure_agreement,
+    event_agreement,
+    eye_aperture,
+    lip_gap,
+    pose_and_project,
+    runs,
+)
+from stages.retarget.character import GltfCharacter
+from stages.tracking.face3d import load_face3d
+
+ICT = "data/characters/ict-facekit.glb"
+FRAMES, FPS, RATE = 90, 30.0, 16000
+CAMERA = np.array([[480.0, 0, 240], [0, 480, 180], [0, 0, 1]])
+
+
+@pytest.fixture(scope="module")
+def character():
+    return run_stage(GltfCharacter, {}, {"mesh": {"path": ICT}}).view()
+
+
+def known_weights(names):
+    """Jaw opening and closing (with a little funnel), lips sealed at frames 40-47, a blink at 60-62."""
+    w = np.zeros((FRAMES, len(names)))
+    t = np.arange(FRAMES)
+    jaw = np.clip(0.6 * np.sin(2 * np.pi * t / 30.0), 0, None)
+    w[:, names.index("jawOpen")] = jaw
+    w[:, names.index("mouthFunnel")] = 0.2 * jaw
+    w[40:48] = 0.0
+    w[60:63, names.index("eyeBlink_L")] = w[60:63, names.index("eyeBlink_R")] = 1.0
+    return w
+
+
+def head_motion():
+    """Small nods and turns, the head 60 cm in front of the camera (rotation quaternions, translation cm)."""
+    from stages.geometry.rotations import euler_to_quat
+
+    t = np.arange(FRAMES) / FPS
+    translation = np.stack([1 + np.sin(t), 2 + 0 * t, -60 + np.cos(t)], axis=1)
+    return euler_to_quat(0.15 * np.sin(1.3 * t), 0.1 * np.sin(0.7 * t + 1), 0.05 * np.sin(t)), translation
+
+
+def opencv_projection(points, rotation, translation):
+    """The same pinhole projection done by OpenCV (camera axes x right, y down, z forward) as a cross-check."""
+    from stages.geometry.rotations import quat_to_matrix
+
+    flip = np.diag([1.0, -1.0, -1.0])
+    out = []
+    for p, q, t in zip(points, rotation, translation):
+        rvec, _ = cv2.Rodrigues(flip @ quat_to_matrix(q))
+        image, _ = cv2.projectPoints(p, rvec, flip @ t, CAMERA, np.zeros(4))
+        out.append(image.reshape(-1, 2))
+    return np.array(out)
+
+
+def performance(character, weights, audio_gain=None):
+    """A tracking artifact of the character itself: landmarks = its landmark vertices under ``weights``."""
+    rotation, translation = head_motion()
+    model = load_face3d().neutral
+    neutral = character_landmarks(character["neutral"], character["deltas"], character["landmark_ids"], weights[:1] * 0)
+    points = align_to_model(neutral[0], model).apply(
+        character_landmarks(character["neutral"], character["deltas"], character["landmark_ids"], weights)
+    )
+    landmarks = opencv_projection(points, rotation, translation)
+    arrays = {
+        "landmarks": landmarks.astype(np.float32),
+        "rotation": rotation,
+        "translation": translation,
+        "sequence": np.zeros(FRAMES, np.int32),
+    }
+    meta = {"labels": ["take"], "fps": [FPS], "frame_size": [[480, 360]], "focal_length": [480.0]}
+    if audio_gain is not None:
+        rng = np.random.default_rng(0)
+        gain = np.repeat(audio_gain, RATE // int(FPS))
+        arrays["audio"] = (gain * rng.normal(size=gain.size)).astype(np.float32)
+        arrays["audio_bounds"] = np.array([[0, gain.size]])
+        meta.update(audio_rate=[RATE], audio_offset=[0.0])
+    return artifact(arrays, meta=meta)
+
+
+def evaluate(character, tracks, weights, **params):
+    blend = artifact({"weights": weights.astype(np.float32)}, meta={"target_names": character.meta["target_names"]})
+    return run_stage(RetargetEval, params, {"tracks": tracks, "blend": blend, "character": character})
+
+
+@pytest.fixture(scope="module")
+def truth(character):
+    names = character.meta["target_names"]
+    weights = known_weights(names)
+    tracks = performance(character, weights, audio_gain=0.05 + weights[:, names.index("jawOpen")])
+    return weights, tracks, evaluate(character, tracks, weights)
+
+
+# ------------------------------------------------------------------------------------------------ known answers
+
+
+def test_projection_matches_opencv(character, truth):
+    weights, tracks, _ = truth
+    rotation, translation = head_motion()
+    points = np.random.default_rng(1).normal(scale=5.0, size=(FRAMES, 7, 3))
+    np.testing.assert_allclose(
+        pose_and_project(points, rotation, translation, CAMERA),
+        opencv_projection(points, rotation, translation),
+        atol=1e-6,
+    )
+
+
+def test_the_characters_own_animation_scores_zero(truth):
+    _, _, out = truth
+    m = out.metrics
+    for region in ("mouth", "eyes", "brows", "jaw"):
+        assert m[f"{region}_error_iod"] < 1e-4, region
+        assert m[f"{region}_motion_error_iod"] < 1e-4, region
+    assert m["pose_rms_px"] < 1e-3
+    # the lips sealed at 40-47 (and at the jaw's closed half-periods) are found and reproduced
+    assert m["closures"] >= 1 and m["closures_reproduced"] == m["closures"]
+    assert any(c["start"] <= 40 and c["stop"] >= 48 for c in out.meta["closures"])
+    # the blink at 60-62 is found in the performer and in the character
+    assert m["blinks"] == 1 and m["blink_recall"] == 1.0 and m["false_blink_rate"] == 0.0
+    assert out.meta["blinks"]["performer"][0][0] in (59, 60, 61)
+    assert m["jaw_over_funnel_fraction"] == 1.0 and m["jaw_minus_funnel"] > 0.3
+    # mouth opening follows an audio envelope made from it, for the performer and the character alike
+    assert m["envelope_r_character"] > 0.8
+    assert abs(m["envelope_r_character"] - m["envelope_r_performer"]) < 1e-6
+    # e.g. the smiles: the mouth moved and they never did; ARKit columns through the export's mapping
+    assert m["dead_morphs"] >= 1 and "mouthSmile_L" in out.meta["dead_morphs"]
+    assert "MouthSmileLeft" in out.meta["dead_arkit_columns"] and "JawOpen" not in out.meta["dead_arkit_columns"]
+    assert "TongueOut" not in out.meta["dead_arkit_columns"]
+
+
+def test_a_shifted_animation_scores_badly(character, truth):
+    """Calibration: the same animation half a take late is far from the performer, on the same data."""
+    weights, tracks, out = truth
+    late = evaluate(character, tracks, np.roll(weights, FRAMES // 2, axis=0))
+    assert late.metrics["mouth_motion_error_iod"] > 0.03
+    assert late.metrics["mouth_motion_error_iod"] == pytest.approx(out.metrics["mouth_motion_error_iod_shifted"])
+    assert late.metrics["blink_recall"] == 0.0 and late.metrics["false_blink_rate"] == 1.0
+    assert late.metrics["envelope_r_character"] < 0.3
+
+
+def test_open_lips_at_a_closure_are_not_a_seal(character, truth):
+    weights, tracks, _ = truth
+    names = character.meta["target_names"]
+    opened = weights.copy()
+    opened[40:48, names.index("jawOpen")] = 0.3
+    out = evaluate(character, tracks, opened)
+    sealed = [c for c in out.meta["closures"] if c["start"] <= 40 and c["stop"] >= 48]
+    assert sealed and not sealed[0]["reproduced"]
+    assert out.metrics["closures_reproduced"] < out.metrics["closures"]
+
+
+def test_funnel_instead_of_jaw_is_caught(character, truth):
+    weights, tracks, _ = truth
+    names = character.meta["target_names"]
+    swapped = weights.copy()
+    swapped[:, names.index("jawOpen")] = 0.2 * weights[:, names.index("jawOpen")]
+    swapped[:, names.index("mouthFunnel")] = weights[:, names.index("jawOpen")]
+    out = evaluate(character, tracks, swapped)
+    assert out.metrics["jaw_over_funnel_fraction"] == 0.0 and out.metrics["jaw_minus_funnel"] < 0
+
+
+def test_tracking_eye_aperture_is_preferred(character, truth):
+    weights, tracks, _ = truth
+    aperture = np.full((FRAMES, 2), 0.3, np.float32)
+    aperture[20:22] = 0.05  # a blink the landmarks do not show
+    arrays = {k: tracks[k] for k in tracks.names}
+    with_aperture = artifact(dict(arrays, eye_aperture=aperture), meta=tracks.meta)
+    out = evaluate(character, with_aperture, weights)
+    assert out.meta["blink_source"] == "tracking eye_aperture"
+    assert out.meta["blinks"]["performer"] == [[20, 22]] or out.meta["blinks"]["performer"] == [(20, 22)]
+    assert out.metrics["blink_recall"] == 0.0 and out.metrics["false_blink_rate"] == 1.0
+
+
+def test_frame_count_mismatch_is_a_user_error(character, truth):
+    weights, tracks, _ = truth
+    with pytest.raises(UserError, match="frames"):
+        evaluate(character, tracks, weights[:-3])
+
+
+# ------------------------------------------------------------------------------------------------ parts
+
+
+def test_runs_stop_at_take_boundaries():
+    mask = np.array([0, 1, 1, 1, 1, 0, 1, 1, 0, 1], bool)
+    sequence = np.array([0, 0, 0, 1, 1, 1, 1, 1, 1, 1])
+    assert runs(mask, sequence) == [(1, 3), (3, 5), (6, 8), (9, 10)]
+    assert runs(mask, sequence, 2) == [(1, 3), (3, 5), (6, 8)]
+
+
+def test_event_agreement_counts_found_and_false():
+    result = event_agreement([(10, 12), (30, 33)], [(12, 13), (50, 52)], tolerance=1)
+    assert result["found"] == 1 and result["false"] == 1
+    assert result["recall"] == 0.5 and result["false_rate"] == 0.5
+    assert event_agreement([], [], 1)["recall"] == 1.0
+
+
+def test_closure_needs_two_frames_and_compares_gaps():
+    performer = np.array([0.1, 0.02, 0.1, 0.02, 0.02, 0.02, 0.1])
+    character = np.array([0.1, 0.0, 0.1, 0.03, 0.03, 0.02, 0.1])
+    closures = closure_agreement(performer, character, np.zeros(7), gap=0.03, frames=2, ratio=1.2)
+    assert [(c["start"], c["stop"]) for c in closures] == [(3, 6)]
+    assert not closures[0]["reproduced"]  # 0.0267 > 1.2 * 0.02
+    assert closure_agreement(performer, character, np.zeros(7), gap=0.03, frames=2, ratio=1.2 * 1.2)[0]["reproduced"]
+
+
+def test_gaps_and_apertures_of_a_drawn_face():
+    shape = np.zeros((1, 68, 2))
+    shape[0, 36], shape[0, 45] = [0, 0], [100, 0]  # IOD 100
+    for a, b in ((61, 67), (62, 66), (63, 65)):
+        shape[0, a], shape[0, b] = [40, 50], [40, 56]
+    for corner_a, corner_b, upper, lower in (
+        ((36, 39), None, (37, 38), (41, 40)),
+        ((42, 45), None, (43, 44), (47, 46)),
+    ):
+        x0 = shape[0, corner_a[0], 0] if corner_a[0] != 42 else 70
+        shape[0, corner_a[0]] = [x0, 0]
+        shape[0, corner_a[1]] = [x0 + 30, 0]
+        for u, lo in zip(upper, lower):
+            shape[0, u], shape[0, lo] = [x0 + 10, -4.5], [x0 + 10, 4.5]
+    shape[0, 45] = [100, 0]
+    assert lip_gap(shape)[0] == pytest.approx(0.06)
+    np.testing.assert_allclose(eye_aperture(shape)[0], [9 / 30, 9 / 30])
+
+
+def test_audio_envelope_is_the_frame_rms():
+    # frame i is centred on sample 100 i and averages the 100 samples around it
+    samples = np.r_[np.full(50, 0.5), np.full(100, 2.0), np.full(100, 1.0)]
+    assert audio_envelope(samples, rate=100.0, offset=0.0, fps=1.0, frames=3) == pytest.approx([0.5, 2.0, 1.0])
+    # audio starting one second after the first frame: frame 0 is silent
+    late = audio_envelope(samples, rate=100.0, offset=1.0, fps=1.0, frames=3)
+    assert late[0] == 0.0 and late[1] == pytest.approx(0.5) and late[2] == pytest.approx(2.0)
+
+
+# ------------------------------------------------------------------------------------------------ the pipeline
+
+
+def test_eval_pipeline_runs_on_a_folder_of_takes(tmp_path):
+    """eval/retarget.yaml from a fresh copy, pointed at another folder by one variable: the capture branch."""
+    import shutil
+    from pathlib import Path
+
+    import msflow
+
+    root = Path(__file__).resolve().parents[1]
+    project = tmp_path / "project"
+    project.mkdir()
+    for name in ("eval", "stages", "data"):
+        shutil.copytree(root / name, project / name, ignore=shutil.ignore_patterns("__pycache__", ".msflow"))
+    shutil.copy2(root / "pyproject.toml", project)
+    takes = tmp_path / "takes"
+    takes.mkdir()
+    shutil.copy2(root / "data" / "crema-d" / "1001_DFA_NEU_XX.flv", takes / "neutral_take.flv")
+    (takes / "notes.txt").write_text("not a video")
+    result = msflow.run(project / "eval" / "retarget.yaml", ["vars.takes=../../takes"], until="capture_eval")
+    view = result.artifact("capture_eval")
+    assert len(view.meta["labels"]) == 1 and "neutral_take" in view.meta["labels"][0]
+    m = view.metrics
+    # a take retargeted onto the character follows its performer far better than the same animation out of time
+    assert m["mouth_motion_error_iod"] < 0.5 * m["mouth_motion_error_iod_shifted"]
+    assert m["keyshape_residual_rms_iod"] < 0.03
+    assert "paper_eval" not in result.executed
