@@ -544,7 +544,6 @@ def pack_edit(
 ):
     """The ExpressionEdit artifact: analysis per frame, edits split into pure targets and mixes (their crops in the
     ``frames`` sinks), metrics, warnings."""
-    labels = take.bilinear.labels
     n = targets.n_targets
     arrays = {
         "style": analysis.style,
@@ -572,11 +571,17 @@ def pack_edit(
         )
     if edits.video is not None:
         arrays["video"] = edits.video
+    warned = convergence_warnings(analysis.residual, analysis.converged, take.sequence, take.labels, params.max_iter)
+    return Result(arrays, edit_meta(params, take, targets, analysis), edit_metrics(take, analysis), warned)
+
+
+def edit_meta(params, take: TestTake, targets: EditTargets, analysis: FrameAnalysis) -> dict:
+    labels = take.bilinear.labels
     counts = np.bincount(analysis.classes, minlength=len(labels))
-    meta = {
+    return {
         "labels": labels,
-        "targets": targets.names[:n],
-        "mixes": targets.names[n:],
+        "targets": targets.names[: targets.n_targets],
+        "mixes": targets.names[targets.n_targets :],
         "fps": take.fps,
         "test_labels": take.labels,
         "smooth": params.smooth,
@@ -588,7 +593,14 @@ def pack_edit(
         "strip_path": params.strip_path if params.strip_path is not None else default_strip_path(labels),
         "classified_as": {labels[s]: int(counts[s]) for s in range(len(labels))},
     }
-    metrics = {
+
+
+def edit_metrics(take: TestTake, analysis: FrameAnalysis) -> dict:
+    """Residual, convergence and jitter of the analysis; the fraction of frames classified as, and the mean weight
+    of, each training expression (how the take reads)."""
+    labels = take.bilinear.labels
+    counts = np.bincount(analysis.classes, minlength=len(labels))
+    return {
         "mean_residual": float(np.mean(analysis.residual)),
         "unconverged_frames": float(np.mean(~analysis.converged)),
         "jitter": jitter(analysis.style),
@@ -596,8 +608,6 @@ def pack_edit(
         **{f"fraction_{labels[s]}": float(counts[s] / len(analysis.classes)) for s in range(len(labels))},
         **{f"weight_{labels[s]}": float(np.mean(analysis.style_weights[:, s])) for s in range(len(labels))},
     }
-    warned = convergence_warnings(analysis.residual, analysis.converged, take.sequence, take.labels, params.max_iter)
-    return Result(arrays, meta=meta, metrics=metrics, warnings=warned)
 
 
 def default_strip_path(labels: list[str]) -> list[str]:
