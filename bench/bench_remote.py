@@ -67,7 +67,7 @@ class RequestCounter:
     """Counts S3 requests made in this process (by API operation)."""
 
     def __init__(self):
-        from msflow.remote_objects import S3Objects
+        from msflow.stores.objects import S3Objects
 
         self.counts: collections.Counter = collections.Counter()
         self._cls = S3Objects

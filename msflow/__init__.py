@@ -4,9 +4,16 @@ Stage authors import ``Stage, Input, Output, Result, UserError`` from here; user
 load on first use so that ``msflow status`` and a no-op ``msflow run`` import as little as possible.
 """
 
-from msflow.errors import StageFailed, UserError
+from __future__ import annotations
 
-__version__ = "0.1.0"
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+from msflow.errors import StageFailed, UserError
+from msflow.version import __version__
+
+if TYPE_CHECKING:
+    from msflow.api import RunResult
 
 _LAZY = {
     "Stage": "msflow.stage",
@@ -20,7 +27,7 @@ _LAZY = {
 }
 
 
-def __getattr__(name):
+def __getattr__(name: str) -> Any:
     if name in _LAZY:
         import importlib
 
@@ -28,11 +35,58 @@ def __getattr__(name):
     raise AttributeError(f"module 'msflow' has no attribute '{name}'")
 
 
-def run(path, overrides=(), **options):
-    """Run a pipeline file and return a ``RunResult`` (see ``msflow.api.run``)."""
-    from msflow.api import run as _run
+def run(path: Any, overrides: Sequence[str] = (), **options: Any) -> RunResult:
+    """Run a pipeline: compute what is missing, reuse everything else, publish, and record the run.
 
-    return _run(path, overrides=overrides, **options)
+    Parameters
+    ----------
+    path : str or Path
+        The pipeline file.
+    overrides : sequence of str
+        ``stage.param=value`` overrides (YAML values), as ``msflow run -S``.
+    jobs : int
+        Stages run at once (worker processes; ``-j``), also given to each stage as ``Stage.jobs``.
+    until : str, optional
+        Run only this stage and what it needs.
+    force : sequence of str
+        Stages to recompute even when cached.
+    executor, scheduler, connect_timeout
+        ``"local"`` (processes) or ``"dask"``; a Dask scheduler address and how long to wait for it.
+    reporter
+        Receives every stage state change (the CLI's progress display).
+    raise_on_failure : bool
+        Raise after the run when a stage failed (otherwise inspect ``RunResult.states``).
+
+    Returns
+    -------
+    RunResult
+        Stage states, the run record, and access to every artifact.
+
+    Raises
+    ------
+    UserError
+        A mistake in the pipeline or its data (nothing is computed for pipeline mistakes).
+    StageFailed
+        A stage crashed (only when ``raise_on_failure``).
+
+    Examples
+    --------
+    >>> import tempfile, msflow
+    >>> from msflow.testing import example_project
+    >>> project = example_project(tempfile.mkdtemp())
+    >>> result = msflow.run(project / "pipeline.yaml")
+    >>> result.executed
+    ['ramp', 'scale']
+    >>> result.load("scale.y")
+    array([0., 3., 6., 9.])
+    >>> msflow.run(project / "pipeline.yaml").executed  # everything is cached
+    []
+    >>> msflow.run(project / "pipeline.yaml", ["scale.factor=4"]).executed
+    ['scale']
+    """
+    from msflow.api import run as run_pipeline
+
+    return run_pipeline(path, overrides=overrides, **options)
 
 
 __all__ = [

@@ -8,8 +8,9 @@ it with ``json`` alone; zarr is imported only to read or write arrays.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from msflow.chunks import array_metadata, chunk_path, encode_chunk
 from msflow.hashing import ArrayHasher, array_hash, array_hash_v1, json_hash
@@ -22,7 +23,12 @@ class ArtifactView:
     """Read access to an artifact: ``view["name"]`` is numpy, ``view.lazy("name")`` the stored (zarr) array."""
 
     def __init__(
-        self, arrays: Mapping[str, Any], meta: dict, metrics: dict, key: str | None = None, manifest: dict | None = None
+        self,
+        arrays: Mapping[str, Any],
+        meta: dict[str, Any],
+        metrics: dict[str, Any],
+        key: str | None = None,
+        manifest: dict[str, Any] | None = None,
     ):
         self._arrays = dict(arrays)
         self._loaded: dict[str, Any] = {}
@@ -43,7 +49,7 @@ class ArtifactView:
     def __contains__(self, name: object) -> bool:
         return name in self._arrays
 
-    def __getitem__(self, name: str):
+    def __getitem__(self, name: str) -> Any:
         if name not in self._loaded:
             import numpy as np
 
@@ -52,20 +58,22 @@ class ArtifactView:
             self._loaded[name] = np.asarray(self._arrays[name][...])
         return self._loaded[name]
 
-    def get(self, name: str, default=None):
+    def get(self, name: str, default: Any = None) -> Any:
         return self[name] if name in self._arrays else default
 
-    def lazy(self, name: str):
+    def lazy(self, name: str) -> Any:
+        """The stored array, unread: slice it (``iter_blocks``) to read blocks of frames."""
         return self._arrays[name]
 
     def bytes(self, name: str) -> bytes:
-        return self[name].tobytes()
+        data: bytes = self[name].tobytes()
+        return data
 
     def __repr__(self) -> str:
         return f"ArtifactView({', '.join(self.names)})"
 
 
-def meta_digest(meta: dict, metrics: dict, warnings: list[str] | None = None) -> str:
+def meta_digest(meta: dict[str, Any], metrics: dict[str, Any], warnings: list[str] | None = None) -> str:
     """Hash of the JSON part of an artifact (warnings enter only when there are some: older hashes hold)."""
     content: dict[str, Any] = {"meta": meta, "metrics": metrics}
     if warnings:
@@ -73,7 +81,7 @@ def meta_digest(meta: dict, metrics: dict, warnings: list[str] | None = None) ->
     return json_hash(content)
 
 
-def output_entry(value: Any) -> dict:
+def output_entry(value: Any) -> dict[str, Any]:
     """Manifest entry of one output: content hash, shape, dtype (of an array, or of a finished output sink)."""
     if isinstance(value, OutputSink):
         return value.finish()
@@ -82,11 +90,11 @@ def output_entry(value: Any) -> dict:
 
 def build_manifest(
     arrays: Mapping[str, Any],
-    meta: dict,
-    metrics: dict,
+    meta: dict[str, Any],
+    metrics: dict[str, Any],
     file_suffixes: Mapping[str, str | None] | None = None,
     warnings: list[str] | None = None,
-) -> dict:
+) -> dict[str, Any]:
     """Content hashes of arrays and metadata; ``content_hash`` identifies the artifact's content."""
     outputs = {}
     for name, arr in arrays.items():
@@ -110,7 +118,7 @@ def build_manifest(
     return manifest
 
 
-def encode_artifact(arrays: Mapping[str, Any], manifest: dict):
+def encode_artifact(arrays: Mapping[str, Any], manifest: dict[str, Any]) -> Iterator[tuple[str, bytes]]:
     """Yield (relative path, bytes) of a complete zarr v3 group holding ``arrays``, manifest in its attributes.
 
     Written directly rather than through zarr's async machinery, which costs ~20 ms per small artifact; the
@@ -145,8 +153,8 @@ def settle_output(value: Any) -> Any:
 
 
 def prepare_manifest(
-    arrays: Mapping[str, Any], manifest_extra: dict, file_suffixes: Mapping[str, str | None] | None = None
-) -> tuple[dict, dict]:
+    arrays: Mapping[str, Any], manifest_extra: dict[str, Any], file_suffixes: Mapping[str, str | None] | None = None
+) -> tuple[dict[str, Any], dict[str, Any]]:
     """(outputs as C-order numpy arrays or finished sinks, manifest); ``manifest_extra`` holds meta, metrics,
     warnings and any other manifest fields (key, stage, ...)."""
 
@@ -162,7 +170,7 @@ def prepare_manifest(
     return arrays, manifest
 
 
-def write_files(path: Path, files) -> None:
+def write_files(path: Path, files: Iterable[tuple[str, bytes]]) -> None:
     """Write (relative path, bytes) pairs under ``path``, creating folders as needed."""
     made: set[Path] = set()
     for rel, data in files:
@@ -175,8 +183,11 @@ def write_files(path: Path, files) -> None:
 
 
 def write_artifact(
-    path: Path, arrays: Mapping[str, Any], manifest_extra: dict, file_suffixes: Mapping[str, str | None] | None = None
-) -> dict:
+    path: Path,
+    arrays: Mapping[str, Any],
+    manifest_extra: dict[str, Any],
+    file_suffixes: Mapping[str, str | None] | None = None,
+) -> dict[str, Any]:
     """Write a new zarr group at ``path`` (which must not exist) and return its manifest."""
     arrays, manifest = prepare_manifest(arrays, manifest_extra, file_suffixes)
     path = Path(path)
@@ -185,10 +196,11 @@ def write_artifact(
     return manifest
 
 
-def read_manifest(path: Path) -> dict:
+def read_manifest(path: Path) -> dict[str, Any]:
     """The manifest alone, without importing zarr."""
     with open(Path(path) / "zarr.json", "rb") as fh:
-        return json.load(fh)["attributes"]["msflow"]
+        manifest: dict[str, Any] = json.load(fh)["attributes"]["msflow"]
+    return manifest
 
 
 def read_artifact(path: Path, key: str | None = None) -> ArtifactView:
@@ -213,7 +225,7 @@ def verify_artifact(path: Path) -> list[str]:
     return check_contents(manifest, view.lazy)
 
 
-def stored_hash(manifest: dict, array: Any) -> str:
+def stored_hash(manifest: dict[str, Any], array: Any) -> str:
     """Content hash of a stored output read block by block (bounded memory), by the manifest format's rule."""
     if manifest.get("format", 1) < 2:
         return array_hash_v1(array[...])
@@ -226,7 +238,7 @@ def stored_hash(manifest: dict, array: Any) -> str:
     return hasher.hexdigest(tuple(array.shape))
 
 
-def check_contents(manifest: dict, lazy) -> list[str]:
+def check_contents(manifest: dict[str, Any], lazy: Callable[[str], Any]) -> list[str]:
     """Problems found recomputing the content hashes recorded in ``manifest``; ``lazy(name)`` opens an output as
     a sliceable array (a zarr array, a remote array, numpy), read here one chunk at a time."""
     problems = []

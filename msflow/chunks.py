@@ -1,7 +1,7 @@
 """The stored form of one array: zarr v3 chunks along the first axis, zstd-compressed, each with a crc32c.
 
 Shared by whole-array writes (msflow.artifact), output sinks (msflow.sinks) and the object-store reader
-(msflow.remote). Chunks carry zarr v3's ``crc32c`` codec: zarr checks it on every read, and so does
+(msflow.stores.remote). Chunks carry zarr v3's ``crc32c`` codec: zarr checks it on every read, and so does
 ``decode_chunk``, so a flipped byte is an error, never a wrong value.
 """
 
@@ -42,7 +42,7 @@ def fill_value(dtype: Any) -> Any:
     return False if kind == "b" else [0.0, 0.0] if kind == "c" else 0.0 if kind == "f" else 0
 
 
-def array_metadata(shape: tuple[int, ...], dtype: Any) -> dict:
+def array_metadata(shape: tuple[int, ...], dtype: Any) -> dict[str, Any]:
     """zarr v3 array metadata: regular chunks along the first axis; codecs bytes (little endian), zstd, then a
     crc32c checksum of every stored chunk, which zarr (and msflow's own reader) checks on every read."""
     import numpy as np

@@ -5,11 +5,15 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import List, Optional
+from typing import TYPE_CHECKING, List, Optional
 
 import typer
 
 from msflow.errors import StageFailed, UserError
+from msflow.jobs import DryStatus, StageStatus
+
+if TYPE_CHECKING:
+    from msflow.artifact import ArtifactView
 
 app = typer.Typer(
     add_completion=False,
@@ -42,11 +46,11 @@ def run(
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address tcp://host:port"),
     connect_timeout: float = typer.Option(10.0, "--connect-timeout", help="seconds to reach the scheduler"),
     quiet: bool = typer.Option(False, "-q", "--quiet", help="no progress display"),
-):
+) -> None:
     """Run the pipeline: compute what is missing, reuse everything else."""
-    from msflow.api import open_session
     from msflow.api import run as run_pipeline
     from msflow.progress import make_reporter
+    from msflow.session import open_session
 
     session = open_session(file, tuple(overrides or ()))
     reporter = make_reporter(list(session.plans), quiet)
@@ -75,7 +79,7 @@ def run(
         _echo(f"{summary or 'nothing selected'} in {result.record['seconds']:.2f}s (run {result.run_id})", err=True)
     _echo_warnings(result.warnings, {n: s.state for n, s in result.states.items()})
     for name, state in result.states.items():
-        if state.state == "failed" and not state.user_error and state.traceback:
+        if state.state is StageStatus.FAILED and not state.user_error and state.traceback:
             _echo(f"\n--- stage '{name}' failed; traceback (also in the run record):", err=True)
             _echo(state.traceback.rstrip(), err=True)
     from msflow.api import raise_for_failures
@@ -87,7 +91,7 @@ def _echo_warnings(warnings: dict[str, list[str]], states: dict[str, str]) -> No
     """Stage warnings, yellow on a terminal; those of reused results say so (they were raised when computed)."""
     colour = sys.stderr.isatty()
     for stage, messages in warnings.items():
-        origin = " (cached result)" if states.get(stage) == "cached" else ""
+        origin = " (cached result)" if states.get(stage) == StageStatus.CACHED else ""
         for message in messages:
             line = f"warning: {stage}{origin}: {message}"
             _echo(f"\033[33m{line}\033[0m" if colour else line, err=True)
@@ -98,24 +102,24 @@ def _echo_warnings(warnings: dict[str, list[str]], states: dict[str, str]) -> No
 def status(
     file: Path = FILE_ARG,
     overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
-):
+) -> None:
     """What a run would do now, and why."""
-    from msflow.api import open_session
     from msflow.inspect import dry_run
+    from msflow.session import open_session
 
     session = open_session(file, tuple(overrides or ()))
     dry = dry_run(session)
     session.save_memo()
     width = max(len(n) for n in dry)
     for name, d in dry.items():
-        label = {"cached": "cached", "run": "will run", "blocked": "waits"}[d.state]
+        label = {DryStatus.CACHED: "cached", DryStatus.RUN: "will run", DryStatus.BLOCKED: "waits"}[d.state]
         _echo(f"{name:<{width}}  {label}")
         for reason in d.reasons:
             _echo(f"{'':<{width}}    - {reason}")
-    counts = {state: sum(1 for d in dry.values() if d.state == state) for state in ("cached", "run", "blocked")}
-    summary = f"{counts['cached']} cached, {counts['run']} to run"
-    if counts["blocked"]:
-        summary += f", {counts['blocked']} waiting on them (rerun only if their inputs change)"
+    counts = {state: sum(1 for d in dry.values() if d.state is state) for state in DryStatus}
+    summary = f"{counts[DryStatus.CACHED]} cached, {counts[DryStatus.RUN]} to run"
+    if counts[DryStatus.BLOCKED]:
+        summary += f", {counts[DryStatus.BLOCKED]} waiting on them (rerun only if their inputs change)"
     _echo(summary)
 
 
@@ -124,26 +128,26 @@ def why(
     stage: str = typer.Argument(..., help="stage name"),
     file: Path = FILE_OPT,
     overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
-):
+) -> None:
     """Which part of STAGE's cache key changed since its last run (code file, param, input)."""
-    from msflow.api import open_session
     from msflow.inspect import RunHistory, dry_run
-    from msflow.spec import _suggest
+    from msflow.session import open_session
+    from msflow.spec import suggest
 
     session = open_session(file, tuple(overrides or ()))
     if stage not in session.pipeline.stages:
         raise UserError(
-            f"unknown stage '{stage}'{_suggest(stage, session.pipeline.stages)}", file=str(file), field="STAGE"
+            f"unknown stage '{stage}'{suggest(stage, session.pipeline.stages)}", file=str(file), field="STAGE"
         )
     history = RunHistory(session)
     d = dry_run(session, history)[stage]
     previous = history.last(stage)
     session.save_memo()
-    if d.state == "cached":
-        _echo(f"{stage}: up to date (key {d.key[:12]})")
+    if d.state is DryStatus.CACHED:
+        _echo(f"{stage}: up to date (key {(d.key or '')[:12]})")
         return
     since = f" since run {previous['run']}" if previous else ""
-    _echo(f"{stage}: {'would run' if d.state == 'run' else 'waits for upstream'}{since}")
+    _echo(f"{stage}: {'would run' if d.state is DryStatus.RUN else 'waits for upstream'}{since}")
     for reason in d.reasons:
         _echo(f"  - {reason}")
 
@@ -152,7 +156,7 @@ def why(
 @app.command()
 def dag(
     file: Path = FILE_ARG, mermaid: bool = typer.Option(False, "--mermaid"), dot: bool = typer.Option(False, "--dot")
-):
+) -> None:
     """Print the stage graph (text, Mermaid or Graphviz dot)."""
     from msflow.dag import render_dot, render_mermaid, render_text
     from msflow.spec import load_pipeline
@@ -163,12 +167,12 @@ def dag(
 
 # ---------------------------------------------------------------------------------------------------------- show / export
 @app.command()
-def show(target: str = typer.Argument(..., help="STAGE or STAGE.output"), file: Path = FILE_OPT):
+def show(target: str = typer.Argument(..., help="STAGE or STAGE.output"), file: Path = FILE_OPT) -> None:
     """Shapes, dtypes, statistics, metadata and metrics of a stage's artifact."""
     import json
 
-    from msflow.api import open_session
     from msflow.inspect import resolve_artifact_key
+    from msflow.session import open_session
 
     stage, _, output = target.partition(".")
     session = open_session(file)
@@ -202,7 +206,7 @@ def show(target: str = typer.Argument(..., help="STAGE or STAGE.output"), file: 
         _echo("meta:\n" + (text if len(text) < 4000 else text[:4000] + "\n  ... (truncated)"))
 
 
-def describe_array(name: str, view) -> str:
+def describe_array(name: str, view: ArtifactView) -> str:
     import numpy as np
 
     entry = view.manifest["outputs"][name]
@@ -224,11 +228,11 @@ def describe_array(name: str, view) -> str:
 @app.command()
 def export(
     target: str = typer.Argument(..., help="STAGE.output"), dest: Path = typer.Argument(...), file: Path = FILE_OPT
-):
+) -> None:
     """Write one output to a file: .npy, .npz, .csv, .json, or a file output's own bytes (GLB, MP4, ...)."""
-    from msflow.api import open_session
     from msflow.exporting import export_output
     from msflow.inspect import resolve_artifact_key
+    from msflow.session import open_session
 
     stage, _, output = target.partition(".")
     if not output:
@@ -246,7 +250,7 @@ def gc(
     file: Path = FILE_ARG,
     keep_runs: int = typer.Option(10, "--keep-runs", help="runs whose artifacts stay"),
     dry_run: bool = typer.Option(False, "--dry-run", help="only list what would go"),
-):
+) -> None:
     """Drop artifacts that none of the most recent runs references; clear leftovers of killed runs."""
     from msflow.gc import collect_garbage
     from msflow.spec import load_pipeline
@@ -260,7 +264,9 @@ def gc(
 
 
 @app.command()
-def verify(file: Path = FILE_ARG, delete: bool = typer.Option(False, "--delete", help="remove corrupt artifacts")):
+def verify(
+    file: Path = FILE_ARG, delete: bool = typer.Option(False, "--delete", help="remove corrupt artifacts")
+) -> None:
     """Recompute every artifact's content hashes; list corrupt ones (exit 1 if any)."""
     from msflow.spec import load_pipeline
 
@@ -291,11 +297,12 @@ def sweep(
     jobs: int = typer.Option(1, "-j", "--jobs", help="stages to run at once across variants"),
     executor: str = typer.Option("local", "--executor", help="local or dask"),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler tcp://host:port"),
+    connect_timeout: float = typer.Option(10.0, "--connect-timeout", help="seconds to reach the scheduler"),
     fmt: str = typer.Option("table", "--format", help="table, md, csv or json"),
     sort: Optional[str] = typer.Option(None, "--sort", help="column to sort by (-column: descending)"),
     metrics: Optional[str] = typer.Option(None, "--metrics", help="stage.metric patterns, comma separated"),
     quiet: bool = typer.Option(False, "-q", "--quiet"),
-):
+) -> None:
     """Run a grid of parameter variants; print variant parameters against stage metrics."""
     from msflow.progress import SweepReporter
     from msflow.sweep import expand_variants, format_table, metric_columns, results_rows, run_sweep
@@ -305,8 +312,16 @@ def sweep(
 
     stage_count = len(load_pipeline(file).stages)
     reporter = None if quiet else SweepReporter(len(variants), stage_count)
-    result = run_sweep(file, variants, jobs=jobs, executor=executor, scheduler=scheduler, reporter=reporter)
-    header, rows = results_rows(result, metric_columns(result, _split([metrics]) if metrics else None), sort)
+    result = run_sweep(
+        file,
+        variants,
+        jobs=jobs,
+        executor=executor,
+        scheduler=scheduler,
+        connect_timeout=connect_timeout,
+        reporter=reporter,
+    )
+    header, rows = results_rows(result, metric_columns(result, list(_split([metrics])) if metrics else None), sort)
     _echo(format_table(header, rows, fmt))
     failed = sum(1 for v in result.variants if not v.ok)
     _echo(
@@ -319,7 +334,7 @@ def sweep(
 
 
 @app.command()
-def runs(file: Path = FILE_ARG, limit: int = typer.Option(20, "--limit", "-n", help="newest N runs")):
+def runs(file: Path = FILE_ARG, limit: int = typer.Option(20, "--limit", "-n", help="newest N runs")) -> None:
     """List runs (newest last): id, time, variant or overrides, stage counts."""
     from msflow.spec import load_pipeline
 
@@ -343,7 +358,7 @@ def compare(
     run_a: str = typer.Argument(..., help="run id (or unique prefix/suffix)"),
     run_b: str = typer.Argument(...),
     file: Path = FILE_OPT,
-):
+) -> None:
     """Differences between two runs: params, cache keys, metrics."""
     from msflow.spec import load_pipeline
 
@@ -385,7 +400,7 @@ def report(
     file: Path = FILE_OPT,
     jobs: int = typer.Option(2, "-j", "--jobs", help="processes rendering figures"),
     metric: Optional[str] = typer.Option(None, "--metric", help="sweeps: stage.metric to plot"),
-):
+) -> None:
     """Write one self-contained HTML page of a run (graph, params, keys, metrics, figures) or of a sweep."""
     from msflow.report import build_report
 
@@ -400,7 +415,7 @@ def report(
 
 
 # ---------------------------------------------------------------------------------------------------------- entry point
-def _usage_error_types() -> tuple[type, ...]:
+def _usage_error_types() -> tuple[type[Exception], ...]:
     """Usage-error classes of the click that typer really uses (typer >= 0.26 vendors it as typer._click)."""
     found = []
     for module in ("typer._click.exceptions", "click.exceptions"):
@@ -430,7 +445,7 @@ def main(argv: list[str] | None = None) -> int:
         _echo("aborted", err=True)
         return 130
     except usage_errors as exc:
-        _echo(f"error: {exc.format_message()}", err=True)
+        _echo(f"error: {getattr(exc, 'format_message', exc.__str__)()}", err=True)
         return 2
     except KeyboardInterrupt:
         _echo("interrupted", err=True)

@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+from msflow.jobs import DryStatus, StageStatus
 from msflow.spec import FilesRef, Pipeline, StageRef, topological_order
 
-STATE_COLOURS = {
-    "cached": "#9ecae1",
-    "ran": "#74c476",
-    "failed": "#fb6a4a",
-    "skipped": "#d9d9d9",
-    "run": "#fdd49e",
-    "blocked": "#fdd49e",
+#: fill colours by stage status (runs) and dry status (msflow status); looked up with plain strings from records too
+STATE_COLOURS: dict[str, str] = {
+    StageStatus.PENDING: "#eeeeee",
+    StageStatus.CACHED: "#9ecae1",
+    StageStatus.RAN: "#74c476",
+    StageStatus.FAILED: "#fb6a4a",
+    StageStatus.SKIPPED: "#d9d9d9",
+    DryStatus.RUN: "#fdd49e",
+    DryStatus.BLOCKED: "#fdd49e",
 }
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import uuid
 from concurrent.futures import Future
+from typing import Any
 
 from msflow.errors import UserError
 from msflow.worker import BLAS_VARS
@@ -51,17 +52,16 @@ class DaskExecutor:
                 )
             self.client = Client(self.cluster, set_as_default=False)
 
-    def submit(self, job_json: str) -> Future:
-        import json
-
+    def submit(self, job_json: str) -> Future[str]:
+        from msflow.jobs import Job
         from msflow.worker import run_job
 
-        job = json.loads(job_json)
-        key = f"msflow-{job['stage']}-{job['key'][:12]}-{uuid.uuid4().hex[:6]}"
+        job = Job.from_json(job_json)
+        key = f"msflow-{job.stage}-{job.key[:12]}-{uuid.uuid4().hex[:6]}"
         task = self.client.submit(run_job, job_json, key=key, pure=False)
-        future: Future = Future()
+        future: Future[str] = Future()
 
-        def transfer(done) -> None:
+        def transfer(done: Any) -> None:
             try:
                 future.set_result(done.result())
             except Exception as exc:

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from typing import Any
+
 
 class UserError(Exception):
     """Something the user can fix: bad config, missing file, unusable data.
@@ -30,14 +33,14 @@ class UserError(Exception):
     def __str__(self) -> str:
         where = []
         if self.file:
-            where.append(str(self.file))
+            where.append(display_path(self.file))
         if self.stage:
             where.append(f"stage '{self.stage}'")
         if self.field:
             where.append(f"field '{self.field}'")
         return (": ".join(where) + ": " if where else "") + self.message
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         return {
             "type": "UserError",
             "message": self.message,
@@ -64,3 +67,20 @@ class InvalidResult(TypeError, ValueError):
 
     A ``TypeError`` and a ``ValueError`` both, as the schema checks raise either; the runner reports it as a
     failed stage without a traceback (the message names the stage and output)."""
+
+
+def display_path(path: str | os.PathLike[str]) -> str:
+    """A path as messages show it: relative to the current folder when inside it, else absolute.
+
+    >>> display_path(os.path.join(os.getcwd(), "pipeline.yaml"))
+    'pipeline.yaml'
+    """
+    text = os.fspath(path)
+    if "://" in text:
+        return text
+    absolute = os.path.abspath(text)
+    try:
+        relative = os.path.relpath(absolute)
+    except ValueError:  # another drive
+        return absolute
+    return absolute if relative.startswith("..") else relative

@@ -6,16 +6,29 @@ one thread; ``dask`` lives in msflow.dask_executor. All produce the same artifac
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from concurrent.futures import Future
+from typing import Protocol
+
+
+class Executor(Protocol):
+    """Runs jobs (``msflow.jobs.Job`` as JSON) and hands back futures of JSON outcomes (``Outcome``)."""
+
+    @property
+    def name(self) -> str: ...
+
+    def submit(self, job_json: str) -> Future[str]: ...
+
+    def shutdown(self) -> None: ...
 
 
 class InlineExecutor:
     name = "inline"
 
-    def submit(self, job_json: str) -> Future:
+    def submit(self, job_json: str) -> Future[str]:
         from msflow.worker import run_job
 
-        future: Future = Future()
+        future: Future[str] = Future()
         future.set_result(run_job(job_json))
         return future
 
@@ -40,7 +53,7 @@ class ProcessExecutor:
             max_workers=jobs, mp_context=multiprocessing.get_context("spawn"), initializer=pin_blas_threads
         )
 
-    def submit(self, job_json: str) -> Future:
+    def submit(self, job_json: str) -> Future[str]:
         from msflow.worker import run_job
 
         return self.pool.submit(run_job, job_json)
@@ -53,16 +66,16 @@ class LazyExecutor:
     """Starts the real executor on the first job: a run whose stages are all cached starts no process pool and
     no Dask cluster. ``on_start`` runs once, just before (e.g. clearing leftovers of killed runs)."""
 
-    def __init__(self, factory, on_start=None):
+    def __init__(self, factory: Callable[[], Executor], on_start: Callable[[], object] | None = None):
         self._factory = factory
         self._on_start = on_start
-        self._executor = None
+        self._executor: Executor | None = None
 
     @property
     def name(self) -> str:
         return self._executor.name if self._executor is not None else "none"
 
-    def submit(self, job_json: str) -> Future:
+    def submit(self, job_json: str) -> Future[str]:
         if self._executor is None:
             if self._on_start is not None:
                 self._on_start()
@@ -75,7 +88,11 @@ class LazyExecutor:
 
 
 def make_executor(
-    kind: str = "local", jobs: int = 1, scheduler: str | None = None, timeout: float = 10.0, on_start=None
+    kind: str = "local",
+    jobs: int = 1,
+    scheduler: str | None = None,
+    timeout: float = 10.0,
+    on_start: Callable[[], object] | None = None,
 ) -> LazyExecutor:
     """Validate the executor options now; start the executor when the first job arrives."""
     from msflow.errors import UserError
@@ -84,13 +101,13 @@ def make_executor(
         raise UserError(f"-j must be at least 1, got {jobs}", field="-j")
     if kind == "dask" or scheduler:
 
-        def factory():
+        def factory() -> Executor:
             from msflow.dask_executor import DaskExecutor
 
             return DaskExecutor(jobs=jobs, scheduler=scheduler, timeout=timeout)
     elif kind in ("local", "inline"):
 
-        def factory():
+        def factory() -> Executor:
             return InlineExecutor() if jobs == 1 or kind == "inline" else ProcessExecutor(jobs)
     else:
         raise UserError(f"unknown executor '{kind}'; choose local or dask", field="--executor")

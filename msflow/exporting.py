@@ -5,50 +5,71 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import IO, TYPE_CHECKING, Any
 
-from msflow.errors import UserError
+from msflow.atomic import write_with
+from msflow.errors import UserError, display_path
+from msflow.sinks import iter_blocks
+
+if TYPE_CHECKING:
+    from msflow.artifact import ArtifactView
+    from msflow.runner import StageState
+    from msflow.session import Session
 
 ARRAY_SUFFIXES = (".npy", ".npz", ".csv", ".json")
 
 
-def export_output(view, output: str, dest: Path) -> None:
-    import numpy as np
-
+def export_output(view: ArtifactView, output: str, dest: Path, *, field: str = "FILE") -> None:
+    """Write one output of an artifact to ``dest`` atomically, in the format its suffix names (a file output:
+    its own bytes, streamed chunk by chunk). ``field`` names the setting that chose ``dest`` in error messages."""
     if output not in view:
         raise UserError(f"no output '{output}'; outputs: {', '.join(view.names)}", field="STAGE.output")
-    entry = view.manifest.get("outputs", {}).get(output, {})
     dest = Path(dest)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dest.with_name(f".{dest.name}.{os.getpid()}.tmp")
+    if dest.is_dir():
+        raise UserError("is a folder; give the file to write", file=display_path(dest), field=field)
+    writer = output_writer(view, output, dest, field)
+    try:
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        write_with(dest, writer)
+    except OSError as exc:
+        raise UserError(f"cannot write: {exc.strerror or exc}", file=display_path(dest), field=field) from None
+
+
+def output_writer(view: ArtifactView, output: str, dest: Path, field: str) -> Callable[[IO[bytes]], object]:
+    """A function writing ``output`` to a binary file in the format ``dest``'s suffix names."""
+    import numpy as np
+
+    entry = view.manifest.get("outputs", {}).get(output, {})
     suffix = dest.suffix.lower()
-    arr = view[output]
     if entry.get("file_suffix"):
-        tmp.write_bytes(arr.tobytes())
-    elif suffix == ".npy":
-        with open(tmp, "wb") as fh:
-            np.save(fh, arr, allow_pickle=False)
-    elif suffix == ".npz":
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **{output: arr})
-    elif suffix == ".csv":
-        tmp.write_text(array_to_csv(arr, output), encoding="utf-8")
-    elif suffix == ".json":
-        data = np.where(np.isfinite(arr), arr, np.nan).tolist() if arr.dtype.kind == "f" else arr.tolist()
-        tmp.write_text(
-            json.dumps({"name": output, "shape": list(arr.shape), "dtype": str(arr.dtype), "data": _nan_to_none(data)}),
-            encoding="utf-8",
-        )
-    else:
+
+        def write_bytes(fh: IO[bytes]) -> None:
+            lazy = view.lazy(output)
+            for block in iter_blocks(lazy) if lazy.shape[0] else ():
+                fh.write(np.ascontiguousarray(block).tobytes())
+
+        return write_bytes
+    if suffix not in ARRAY_SUFFIXES:
         raise UserError(
             f"unsupported export format '{suffix or dest.name}'; use one of {', '.join(ARRAY_SUFFIXES)}",
-            file=str(dest),
-            field="FILE",
+            file=display_path(dest),
+            field=field,
         )
-    os.replace(tmp, dest)
+    arr = view[output]
+    if suffix == ".npy":
+        return lambda fh: np.save(fh, arr, allow_pickle=False)
+    if suffix == ".npz":
+        return lambda fh: np.savez_compressed(fh, **{output: arr})
+    if suffix == ".csv":
+        return lambda fh: fh.write(array_to_csv(arr, output).encode("utf-8"))
+    data = np.where(np.isfinite(arr), arr, np.nan).tolist() if arr.dtype.kind == "f" else arr.tolist()
+    text = json.dumps({"name": output, "shape": list(arr.shape), "dtype": str(arr.dtype), "data": _nan_to_none(data)})
+    return lambda fh: fh.write(text.encode("utf-8"))
 
 
-def array_to_csv(arr, name: str) -> str:
+def array_to_csv(arr: Any, name: str) -> str:
     """Rows = first axis; the remaining axes are flattened into columns named name[i][j]..."""
     import io
 
@@ -70,7 +91,7 @@ def array_to_csv(arr, name: str) -> str:
     return buf.getvalue()
 
 
-def _nan_to_none(value):
+def _nan_to_none(value: Any) -> Any:
     if isinstance(value, list):
         return [_nan_to_none(v) for v in value]
     if isinstance(value, float) and value != value:
@@ -78,18 +99,18 @@ def _nan_to_none(value):
     return value
 
 
-def publish_outputs(session, states) -> list[str]:
+def publish_outputs(session: Session, states: dict[str, StageState]) -> list[str]:
     """Materialise the pipeline's ``publish:`` entries; skip files already holding the same output content."""
     from msflow.hashing import stat_signature
 
     published = session.memo.setdefault("published", {})
-    written = []
+    written: list[str] = []
     for ref, dest in session.pipeline.publish.items():
         stage, _, output = ref.partition(".")
         state = states.get(stage)
-        if state is None or state.state not in ("cached", "ran"):
+        if state is None or not state.state.done:
             continue
-        digest = state.manifest["outputs"].get(output, {}).get("hash")
+        digest = (state.manifest or {}).get("outputs", {}).get(output, {}).get("hash")
         if digest is None:
             raise UserError(
                 f"stage '{stage}' has no output '{output}'", file=str(session.pipeline.path), field=f"publish.{ref}"
@@ -97,7 +118,13 @@ def publish_outputs(session, states) -> list[str]:
         previous = published.get(dest)
         if previous and previous[0] == digest and os.path.exists(dest) and previous[1] == stat_signature(Path(dest)):
             continue
-        export_output(session.store.open(state.key), output, Path(dest))
+        assert state.key is not None
+        try:
+            export_output(session.store.open(state.key), output, Path(dest), field=f"publish.{ref}")
+        except UserError as exc:
+            raise UserError(
+                f"{display_path(dest)}: {exc.message}", file=str(session.pipeline.path), field=f"publish.{ref}"
+            ) from None
         published[dest] = [digest, stat_signature(Path(dest))]
         written.append(dest)
     return written

@@ -13,6 +13,7 @@ import ast
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 from msflow.errors import UserError
 from msflow.hashing import bytes_hash, json_hash, stat_signature
@@ -38,10 +39,10 @@ def strip_docstrings(tree: ast.AST) -> ast.AST:
     return tree
 
 
-def parse_module(source: str | bytes, filename: str) -> tuple[str, list[list]]:
+def parse_module(source: str | bytes, filename: str) -> tuple[str, list[list[Any]]]:
     """(AST digest without docstrings and positions, imports as [module, level, [names]])."""
     tree = ast.parse(source, filename=filename)
-    imports: list[list] = []
+    imports: list[list[Any]] = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             for alias in node.names:
@@ -55,12 +56,11 @@ def parse_module(source: str | bytes, filename: str) -> tuple[str, list[list]]:
 class CodeIndex:
     """Finds project modules under ``root`` and fingerprints import closures, with a JSON-able memo."""
 
-    def __init__(self, root: Path, memo: dict | None = None):
+    def __init__(self, root: Path, memo: dict[str, Any] | None = None):
         self.root = Path(root).resolve()
         self.memo = memo if memo is not None else {}
         self.memo.setdefault("files", {})
-        self.dirty = False
-        self._closures: dict[str, dict] = {}
+        self._closures: dict[str, dict[str, Any]] = {}
 
     # ------------------------------------------------------------------ locating modules
     def project_file(self, dotted: str) -> Path | None:
@@ -80,7 +80,7 @@ class CodeIndex:
         if top in STDLIB or not top:
             return None
         roots = self.memo.setdefault("roots", {})
-        signature = _path_signature()
+        signature = path_signature(self.root)
         if roots.get("sig") != signature:
             roots.clear()
             roots["sig"] = signature
@@ -112,7 +112,7 @@ class CodeIndex:
             return path.relative_to(top.parent).as_posix()
 
     # ------------------------------------------------------------------ parsing with memo
-    def module_info(self, path: Path) -> tuple[str, list[list]]:
+    def module_info(self, path: Path) -> tuple[str, list[list[Any]]]:
         key = self.rel(path)
         sig = stat_signature(path)
         hit = self.memo["files"].get(key)
@@ -123,11 +123,10 @@ class CodeIndex:
         except SyntaxError as exc:
             raise UserError(f"syntax error at line {exc.lineno}: {exc.msg}", file=str(path)) from None
         self.memo["files"][key] = [sig, digest, imports]
-        self.dirty = True
         return digest, imports
 
     # ------------------------------------------------------------------ closure
-    def closure(self, module: str) -> dict:
+    def closure(self, module: str) -> dict[str, Any]:
         """{"modules": {relpath: digest}, "external": sorted top-level third-party names} for a module.
 
         Memoised on the stat signatures of the closure's files and of their package folders (a new module file
@@ -139,7 +138,8 @@ class CodeIndex:
         hit = memo.get(module)
         if hit and self._signature(hit["files"]) == hit["sig"]:
             self._closures[module] = hit["closure"]
-            return hit["closure"]
+            closure: dict[str, Any] = hit["closure"]
+            return closure
         result, files = self._compute_closure(module)
         memo[module] = {"files": files, "sig": self._signature(files), "closure": result}
         self._closures[module] = result
@@ -156,7 +156,7 @@ class CodeIndex:
                 out.append("missing")
         return out
 
-    def _compute_closure(self, module: str) -> tuple[dict, list[str]]:
+    def _compute_closure(self, module: str) -> tuple[dict[str, Any], list[str]]:
         modules: dict[str, str] = {}
         external: set[str] = set()
         seen: set[str] = set()
@@ -251,17 +251,26 @@ def _find_source_root(top: str) -> str | None:
     return str(resolved.parent if locations else resolved.parent)
 
 
-def _path_signature() -> str:
-    return json_hash([[p, _mtime(p)] for p in sys.path])
+def path_signature(project_root: Path | None = None) -> str:
+    """What installed packages and their locations depend on: sys.path, and the mtime of each folder on it (a
+    package installed or removed changes its folder's mtime). The project root and folders inside it count by
+    name only: writing pipeline.lock or a run's outputs there changes no installed package, and the project's own
+    modules are fingerprinted by content instead."""
+    root = str(project_root).rstrip("/") + "/" if project_root is not None else None
+    entries = []
+    for entry in sys.path:
+        inside = root is not None and (os.path.abspath(entry or ".") + "/").startswith(root)
+        entries.append([entry, 0 if inside else _mtime(entry)])
+    return json_hash(entries)
 
 
-def distribution_versions(names: list[str], memo: dict) -> dict[str, str]:
+def distribution_versions(names: list[str], memo: dict[str, Any], project_root: Path | None = None) -> dict[str, str]:
     """Map top-level import names to "dist==version"; memoised on the state of sys.path's directories.
 
     A name with no distribution and no importable module is recorded as absent (an optional dependency that is not
     installed is a fact about the environment, hashed like a version).
     """
-    signature = _path_signature()
+    signature = path_signature(project_root)
     cache = memo.get("dists")
     if not cache or cache.get("sig") != signature:
         cache = {"sig": signature, "map": {}}
@@ -280,7 +289,6 @@ def distribution_versions(names: list[str], memo: dict) -> dict[str, str]:
                 cache["map"][name] = ["absent"]
             else:
                 cache["map"][name] = [f"unpackaged:{_unpackaged_digest(name)}"]
-        memo["dirty"] = True
     return {n: ",".join(cache["map"][n]) for n in names}
 
 

@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
 
-def referenced_keys(store, keep_runs: int) -> set[str]:
+if TYPE_CHECKING:
+    from msflow.stores.base import Store
+
+
+def referenced_keys(store: Store, keep_runs: int) -> set[str]:
     keys: set[str] = set()
     for run_id in store.run_ids()[-keep_runs:] if keep_runs > 0 else []:
         try:
@@ -14,7 +19,7 @@ def referenced_keys(store, keep_runs: int) -> set[str]:
     return keys
 
 
-def collect_garbage(store, *, keep_runs: int = 10, dry_run: bool = False) -> dict:
+def collect_garbage(store: Store, *, keep_runs: int = 10, dry_run: bool = False) -> dict[str, Any]:
     keep = referenced_keys(store, keep_runs)
     doomed = [k for k in store.keys() if k not in keep]
     freed = sum(store.size(k) for k in doomed)

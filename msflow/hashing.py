@@ -101,8 +101,8 @@ class FileHashMemo:
     """Memo of file hashes keyed by (path, size, mtime_ns, inode), persisted as JSON by the caller."""
 
     def __init__(self, entries: dict[str, list[str]] | None = None):
-        self.entries = entries or {}
-        self.dirty = False
+        # the caller's dict itself, even when empty: it is the memo section that gets saved
+        self.entries = entries if entries is not None else {}
 
     def hash(self, path: Path) -> str:
         """Content hash of a file, or of a folder (its files' relative paths and hashes, hidden ones skipped)."""
@@ -122,5 +122,4 @@ class FileHashMemo:
             return hit[1]
         digest = file_hash(path)
         self.entries[key] = [sig, digest]
-        self.dirty = True
         return digest

@@ -2,23 +2,26 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
-from msflow.api import Session
 from msflow.errors import UserError
 from msflow.hashing import FileHashMemo
+from msflow.jobs import DryStatus, StageStatus
 from msflow.runner import StageState, key_parts, stage_key
+from msflow.session import Session
 from msflow.spec import topological_order
 
 
 @dataclass
 class DryState:
     name: str
-    state: str  # cached | run | blocked (an upstream stage must run first)
+    state: DryStatus
     key: str | None = None
-    parts: dict | None = None
+    parts: dict[str, Any] | None = None
     reasons: list[str] = field(default_factory=list)
-    manifest: dict | None = None
+    manifest: dict[str, Any] | None = None
 
 
 class RunHistory:
@@ -27,9 +30,9 @@ class RunHistory:
     def __init__(self, session: Session):
         self.session = session
         self._pending = list(reversed(session.store.run_ids()))
-        self._read: list[tuple[str, dict]] = []
+        self._read: list[tuple[str, dict[str, Any]]] = []
 
-    def _records(self):
+    def _records(self) -> Iterator[tuple[str, dict[str, Any]]]:
         yield from self._read
         while self._pending:
             run_id = self._pending.pop(0)
@@ -41,11 +44,11 @@ class RunHistory:
                 self._read.append((run_id, record))
                 yield run_id, record
 
-    def last(self, stage: str) -> dict | None:
+    def last(self, stage: str) -> dict[str, Any] | None:
         """The newest settled (cached or ran) entry of ``stage``, with its run id."""
         for run_id, record in self._records():
             entry = record.get("stages", {}).get(stage)
-            if entry and entry.get("key_parts") and entry["state"] in ("cached", "ran"):
+            if entry and entry.get("key_parts") and entry["state"] in (StageStatus.CACHED, StageStatus.RAN):
                 return {**entry, "run": run_id}
         return None
 
@@ -58,7 +61,7 @@ def dry_run(session: Session, history: RunHistory | None = None) -> dict[str, Dr
     dry: dict[str, DryState] = {}
     memo = FileHashMemo(session.memo.setdefault("data", {}))
     for name in topological_order(pipeline.stages):
-        blocked = [d for d in pipeline.stages[name].deps if dry[d].state != "cached"]
+        blocked = [d for d in pipeline.stages[name].deps if dry[d].state is not DryStatus.CACHED]
         plan = session.plans[name]
         if blocked:
             reasons = [f"upstream {', '.join(blocked)} must run first; this stage reruns if their outputs change"]
@@ -69,14 +72,14 @@ def dry_run(session: Session, history: RunHistory | None = None) -> dict[str, Dr
                     for r in explain(previous["key_parts"], {**key_parts(plan, {}), "inputs": None})
                     if not r.startswith("input")
                 ]
-            dry[name] = DryState(name, "blocked", reasons=reasons)
-            states[name] = StageState(name, state="pending")
+            dry[name] = DryState(name, DryStatus.BLOCKED, reasons=reasons)
+            states[name] = StageState(name)
             continue
         full, key, _, provenance = stage_key(pipeline, plan, name, states, memo)
         state = StageState(name, key=key, parts=full, inputs=provenance)
         if store.has(key):
-            state.state, state.manifest = "cached", store.manifest(key)
-            dry[name] = DryState(name, "cached", key, full, manifest=state.manifest)
+            state.state, state.manifest = StageStatus.CACHED, store.manifest(key)
+            dry[name] = DryState(name, DryStatus.CACHED, key, full, manifest=state.manifest)
         else:
             previous = history.last(name)
             if previous is None:
@@ -86,12 +89,12 @@ def dry_run(session: Session, history: RunHistory | None = None) -> dict[str, Dr
                     "key unchanged since the last run but its artifact is missing from the store "
                     "(garbage-collected, or a different store)"
                 ]
-            dry[name] = DryState(name, "run", key, full, reasons)
+            dry[name] = DryState(name, DryStatus.RUN, key, full, reasons)
         states[name] = state
     return dry
 
 
-def explain(old: dict, new: dict, provenance: dict | None = None) -> list[str]:
+def explain(old: dict[str, Any], new: dict[str, Any], provenance: dict[str, Any] | None = None) -> list[str]:
     """Human-readable differences between two key-part dicts (code files, versions, params, inputs)."""
     reasons: list[str] = []
     if old.get("scheme") != new.get("scheme"):
@@ -147,7 +150,7 @@ def explain(old: dict, new: dict, provenance: dict | None = None) -> list[str]:
     return reasons
 
 
-def _diff_values(old, new, prefix: str = "") -> list[str]:
+def _diff_values(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:
     out = []
     for k in sorted(set(old) | set(new)):
         a, b = old.get(k, "<unset>"), new.get(k, "<unset>")
@@ -161,17 +164,18 @@ def _diff_values(old, new, prefix: str = "") -> list[str]:
 def resolve_artifact_key(session: Session, stage: str) -> tuple[str, str]:
     """Key of the artifact ``show``/``export`` should use: the current one if present, else the last run's."""
     if stage not in session.pipeline.stages:
-        from msflow.spec import _suggest
+        from msflow.spec import suggest
 
         raise UserError(
-            f"unknown stage '{stage}'{_suggest(stage, session.pipeline.stages)}",
+            f"unknown stage '{stage}'{suggest(stage, session.pipeline.stages)}",
             file=str(session.pipeline.path),
             field="STAGE",
         )
     history = RunHistory(session)
     dry = dry_run(session, history)
-    if dry[stage].state == "cached":
-        return dry[stage].key, "current"
+    key = dry[stage].key
+    if dry[stage].state is DryStatus.CACHED and key is not None:
+        return key, "current"
     previous = history.last(stage)
     if previous and session.store.has(previous["key"]):
         return previous["key"], f"from run {previous['run']} (stale: the pipeline changed since)"

@@ -10,12 +10,15 @@ import importlib
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from msflow.errors import UserError
 from msflow.fingerprint import CodeIndex, distribution_versions
 from msflow.hashing import json_hash
-from msflow.spec import FilesRef, Pipeline, StageRef, _suggest, rel_to
+from msflow.spec import FilesRef, Pipeline, StageRef, rel_to, suggest
+
+if TYPE_CHECKING:
+    from msflow.stage import Stage
 
 PYTHON = f"{sys.version_info.major}.{sys.version_info.minor}"
 
@@ -24,16 +27,16 @@ PYTHON = f"{sys.version_info.major}.{sys.version_info.minor}"
 class StagePlan:
     name: str
     uses: str
-    code: dict  # {"modules": {relpath: digest}, "dists": {name: version}, "python": "3.11"}
+    code: dict[str, Any]  # {"modules": {relpath: digest}, "dists": {name: version}, "python": "3.11"}
     code_digest: str
-    interface: dict  # {"inputs": {...}, "outputs": {...}}
-    params: dict  # canonical: validated, defaults filled in
+    interface: dict[str, Any]  # {"inputs": {...}, "outputs": {...}}
+    params: dict[str, Any]  # canonical: validated, defaults filled in
 
 
 _PROJECT_ROOTS: set[str] = set()
 
 
-def ensure_importable(root) -> None:
+def ensure_importable(root: str | Path) -> None:
     """Put the project root first on sys.path so its stage modules import (also in worker processes)."""
     root = str(root)
     _PROJECT_ROOTS.add(root.rstrip("/") + "/")
@@ -46,7 +49,7 @@ def ensure_importable(root) -> None:
 _IMPORTED: dict[str, str] = {}  # module name -> stat signature of its file when this process imported it
 
 
-def forget_stale_modules(root: str | None = None) -> None:
+def forget_stale_modules(root: str | Path | None = None) -> None:
     """Drop project modules from sys.modules when any project file changed since it was imported.
 
     A long-lived process (a notebook, a Dask worker) would otherwise run yesterday's code under today's key.
@@ -98,7 +101,9 @@ def _remember_project_modules() -> None:
                 pass
 
 
-def import_stage_class(uses: str, *, file: str | None = None, stage: str | None = None, root=None):
+def import_stage_class(
+    uses: str, *, file: str | None = None, stage: str | None = None, root: str | Path | None = None
+) -> type[Stage]:
     """Import ``package.module:Class`` (re-importing edited project modules) and check it is a Stage subclass."""
     from msflow.stage import Stage
 
@@ -134,7 +139,7 @@ def import_stage_class(uses: str, *, file: str | None = None, stage: str | None 
             n for n, v in vars(module).items() if isinstance(v, type) and issubclass(v, Stage) and v is not Stage
         )
         raise UserError(
-            f"module '{module_name}' has no class '{cls_name}'{_suggest(cls_name, classes)}; stages "
+            f"module '{module_name}' has no class '{cls_name}'{suggest(cls_name, classes)}; stages "
             f"there: {classes or 'none'}",
             file=file,
             stage=stage,
@@ -145,7 +150,7 @@ def import_stage_class(uses: str, *, file: str | None = None, stage: str | None 
     return cls
 
 
-def canonical_params(cls, raw: dict, *, file: str, stage: str) -> dict:
+def canonical_params(cls: type[Stage], raw: dict[str, Any], *, file: str, stage: str) -> dict[str, Any]:
     from pydantic import ValidationError
 
     from msflow.stage import to_strict_json
@@ -157,7 +162,7 @@ def canonical_params(cls, raw: dict, *, file: str, stage: str) -> dict:
         loc = ".".join(str(p) for p in err.get("loc", ()))
         if err.get("type") == "extra_forbidden":
             allowed = sorted(cls.Params.model_fields)
-            msg = f"unknown parameter '{loc}'{_suggest(loc, allowed)}; parameters: {', '.join(allowed) or 'none'}"
+            msg = f"unknown parameter '{loc}'{suggest(loc, allowed)}; parameters: {', '.join(allowed) or 'none'}"
         elif err.get("type") == "missing":
             msg = "required parameter is missing"
         else:
@@ -166,12 +171,13 @@ def canonical_params(cls, raw: dict, *, file: str, stage: str) -> dict:
     except TypeError as exc:
         raise UserError(f"invalid params: {exc}", file=file, stage=stage, field="params") from None
     try:
-        return to_strict_json(validated.model_dump(mode="json"), "params")
+        canonical: dict[str, Any] = to_strict_json(validated.model_dump(mode="json"), "params")
+        return canonical
     except ValueError as exc:
         raise UserError(str(exc), file=file, stage=stage, field="params") from None
 
 
-def resolve(pipeline: Pipeline, memo: dict) -> dict[str, StagePlan]:
+def resolve(pipeline: Pipeline, memo: dict[str, Any]) -> dict[str, StagePlan]:
     """Fingerprint, interface and canonical params for every stage; checks every input against its declaration."""
     file = str(pipeline.path)
     index = CodeIndex(pipeline.root, memo.setdefault("code", {}))
@@ -198,7 +204,7 @@ def resolve(pipeline: Pipeline, memo: dict) -> dict[str, StagePlan]:
             closure = {"modules": {}, "external": [top]}
         code = {
             "modules": closure["modules"],
-            "dists": distribution_versions(closure["external"], index.memo),
+            "dists": distribution_versions(closure["external"], index.memo, pipeline.root),
             "python": PYTHON,
         }
         code_digest = json_hash(code)
@@ -234,7 +240,7 @@ def resolve(pipeline: Pipeline, memo: dict) -> dict[str, StagePlan]:
         outputs = plans[stage].interface["outputs"]
         if output not in outputs:
             raise UserError(
-                f"stage '{stage}' has no output '{output}'{_suggest(output, outputs)}; outputs: {', '.join(outputs)}",
+                f"stage '{stage}' has no output '{output}'{suggest(output, outputs)}; outputs: {', '.join(outputs)}",
                 file=file,
                 field=f"publish.{target}",
             )
@@ -248,7 +254,7 @@ def check_inputs(pipeline: Pipeline, plans: dict[str, StagePlan], name: str) -> 
     for input_name in node.inputs:
         if input_name not in declared:
             raise UserError(
-                f"unknown input '{input_name}'{_suggest(input_name, declared)}; "
+                f"unknown input '{input_name}'{suggest(input_name, declared)}; "
                 f"{node.uses} takes: {', '.join(declared) or 'no inputs'}",
                 file=file,
                 stage=name,
@@ -283,7 +289,7 @@ def check_inputs(pipeline: Pipeline, plans: dict[str, StagePlan], name: str) -> 
         upstream = plans[ref.stage].interface["outputs"]
         if ref.output is not None and ref.output not in upstream:
             raise UserError(
-                f"stage '{ref.stage}' has no output '{ref.output}'{_suggest(ref.output, upstream)}; "
+                f"stage '{ref.stage}' has no output '{ref.output}'{suggest(ref.output, upstream)}; "
                 f"outputs: {', '.join(upstream)}",
                 file=file,
                 stage=name,

@@ -7,8 +7,11 @@ import platform
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
+from msflow.atomic import write_atomic
 from msflow.hashing import json_hash
+from msflow.jobs import StageStatus
 from msflow.plan import StagePlan
 from msflow.runner import StageState
 from msflow.spec import Pipeline
@@ -19,11 +22,11 @@ LOCK_HEADER = (
 )
 
 
-def stage_record(plan: StagePlan, state: StageState) -> dict:
+def stage_record(plan: StagePlan, state: StageState) -> dict[str, Any]:
     manifest = state.manifest or {}
     return {
         "uses": plan.uses,
-        "state": state.state,
+        "state": state.state.value,
         "detail": state.detail or None,
         "key": state.key,
         "key_parts": state.parts,
@@ -51,12 +54,12 @@ def build_record(
     executor: str,
     jobs: int,
     argv: list[str] | None = None,
-    label: dict | None = None,
-) -> dict:
+    label: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     dists: dict[str, str] = {}
     for plan in plans.values():
         dists.update(plan.code["dists"])
-    from msflow import __version__
+    from msflow.version import __version__
 
     return {
         "id": run_id,
@@ -64,7 +67,7 @@ def build_record(
         "project": pipeline.root.name,
         "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(started)),
         "seconds": round(finished - started, 6),
-        "ok": all(s.state in ("cached", "ran") for s in states.values()),
+        "ok": all(s.state.done for s in states.values()),
         "executor": executor,
         "jobs": jobs,
         "argv": argv or [],
@@ -80,7 +83,8 @@ def build_record(
         },
         "stages": {name: stage_record(plans[name], state) for name, state in states.items()},
         "counts": {
-            s: sum(1 for st in states.values() if st.state == s) for s in ("cached", "ran", "failed", "skipped")
+            s.value: sum(1 for st in states.values() if st.state is s)
+            for s in (StageStatus.CACHED, StageStatus.RAN, StageStatus.FAILED, StageStatus.SKIPPED)
         },
         "versions": {"msflow": __version__, "python": platform.python_version(), **dists},
         "platform": {
@@ -93,10 +97,10 @@ def build_record(
     }
 
 
-def lock_entries(pipeline: Pipeline, plans: dict[str, StagePlan], states: dict[str, StageState]) -> dict:
+def lock_entries(pipeline: Pipeline, plans: dict[str, StagePlan], states: dict[str, StageState]) -> dict[str, Any]:
     entries = {}
     for name, state in states.items():
-        if state.state not in ("cached", "ran"):
+        if not state.state.done:
             continue
         manifest = state.manifest or {}
         entries[name] = {
@@ -121,7 +125,7 @@ def lock_path(pipeline: Pipeline) -> Path:
     )
 
 
-def read_lock(pipeline: Pipeline) -> dict:
+def read_lock(pipeline: Pipeline) -> dict[str, Any]:
     import yaml
 
     try:
@@ -147,8 +151,5 @@ def update_lock(pipeline: Pipeline, plans: dict[str, StagePlan], states: dict[st
         pass
     dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
     text = LOCK_HEADER.format(name=pipeline.path.name) + yaml.dump(data, Dumper=dumper, sort_keys=True, width=120)
-    path = lock_path(pipeline)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
+    write_atomic(lock_path(pipeline), text)
     return True

@@ -14,13 +14,21 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from msflow.atomic import write_atomic
+from msflow.dag import STATE_COLOURS
 from msflow.errors import UserError
 from msflow.hashing import json_hash
+from msflow.jobs import StageStatus
+
+if TYPE_CHECKING:
+    from msflow.session import Session
+    from msflow.spec import Pipeline
+    from msflow.stores.base import Store
+    from msflow.sweep import SweepResult
 
 FIGURE_SCHEME = 1
-STATE_COLOURS = {"cached": "#9ecae1", "ran": "#74c476", "failed": "#fb6a4a", "skipped": "#d9d9d9", "pending": "#eeeeee"}
 
 
 @dataclass
@@ -61,7 +69,7 @@ def to_media(result: Any) -> tuple[str, bytes]:
     return "image/png", buf.getvalue()
 
 
-def stage_inputs(record: dict, stage: str, store, root: Path) -> dict:
+def stage_inputs(record: dict[str, Any], stage: str, store: Store, root: Path) -> dict[str, Any]:
     """The inputs a stage saw in a run, reopened from the store (artifacts) and the project (files)."""
     entry = record["stages"][stage]
     inputs: dict[str, Any] = {}
@@ -78,13 +86,13 @@ def stage_inputs(record: dict, stage: str, store, root: Path) -> dict:
     return inputs
 
 
-def render_stage_figures(job: dict) -> list[dict]:
+def render_stage_figures(job: dict[str, Any]) -> list[dict[str, Any]]:
     """Render (or fetch from the cache) every figure of one stage. JSON in, JSON out: runs in a worker process."""
     import matplotlib
 
     matplotlib.use("Agg")
     from msflow.plan import ensure_importable, import_stage_class
-    from msflow.store import open_store
+    from msflow.stores import open_store
 
     ensure_importable(job["root"])
     store = open_store(job["store"], job.get("store_options"))
@@ -140,12 +148,12 @@ def _render_job(job_json: str) -> str:
         return json.dumps(render_stage_figures(json.loads(job_json)))
 
 
-def collect_figures(session, record: dict, jobs: int) -> list[Figure]:
+def collect_figures(session: Session, record: dict[str, Any], jobs: int) -> list[Figure]:
     """Figures of every settled stage of a run, rendered in parallel worker processes when ``jobs`` > 1."""
     stages = [
         s
         for s in session.pipeline.stages
-        if record["stages"].get(s, {}).get("state") in ("cached", "ran")
+        if record["stages"].get(s, {}).get("state") in (StageStatus.CACHED, StageStatus.RAN)
         and session.store.has(record["stages"][s]["key"])
     ]
     payloads = {
@@ -160,7 +168,7 @@ def collect_figures(session, record: dict, jobs: int) -> list[Figure]:
         )
         for s in stages
     }
-    results: dict[str, list[dict]] = {}
+    results: dict[str, list[dict[str, Any]]] = {}
     pending = []
     for stage in stages:  # cheap pass: stages whose figures are all cached need no worker
         entry = record["stages"][stage]
@@ -201,7 +209,7 @@ def collect_figures(session, record: dict, jobs: int) -> list[Figure]:
     return figures
 
 
-def _slim(record: dict) -> dict:
+def _slim(record: dict[str, Any]) -> dict[str, Any]:
     """What a figure worker needs of the run record (not the tracebacks and key parts)."""
     return {
         "stages": {n: {k: s.get(k) for k in ("uses", "key", "inputs", "state")} for n, s in record["stages"].items()}
@@ -209,7 +217,7 @@ def _slim(record: dict) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------------------- DAG svg
-def dag_svg(pipeline, record: dict) -> str:
+def dag_svg(pipeline: Pipeline, record: dict[str, Any]) -> str:
     """The stage graph as inline SVG: columns by dependency depth, boxes coloured by state, times inside."""
     from msflow.spec import topological_order
 
@@ -255,9 +263,9 @@ def dag_svg(pipeline, record: dict) -> str:
     for name in order:
         x, y = pos[name]
         entry = record["stages"].get(name, {})
-        state = entry.get("state", "pending")
+        state = entry.get("state", StageStatus.PENDING)
         seconds = entry.get("seconds") or 0.0
-        timing = f"{seconds:.2f}s" if state in ("ran", "failed") else state
+        timing = f"{seconds:.2f}s" if state in (StageStatus.RAN, StageStatus.FAILED) else state
         parts.append(
             f"<g><title>{html.escape(name)}: {html.escape(state)}</title>"
             f'<rect x="{x}" y="{y}" width="{box_w}" height="{box_h}" rx="7" '
@@ -287,10 +295,10 @@ def _state_badge(state: str) -> str:
     return f'<span class="state" style="background:{STATE_COLOURS.get(state, "#eee")}">{html.escape(state)}</span>'
 
 
-def _fmt(value) -> str:
-    if isinstance(value, float):
-        return f"{value:.5g}"
-    return html.escape(str(value))
+def _cell_html(value: object) -> str:
+    from msflow.sweep import format_value
+
+    return html.escape(format_value(value, digits=5))
 
 
 def _media_html(fig: Figure) -> str:
@@ -306,7 +314,7 @@ def _media_html(fig: Figure) -> str:
     )
 
 
-def run_page(session, record: dict, figures: list[Figure]) -> str:
+def run_page(session: Session, record: dict[str, Any], figures: list[Figure]) -> str:
     pipeline = session.pipeline
     from msflow.spec import topological_order
 
@@ -328,12 +336,12 @@ def run_page(session, record: dict, figures: list[Figure]) -> str:
     for name in order:
         for metric, value in (record["stages"][name].get("metrics") or {}).items():
             metric_rows.append(
-                f"<tr><td>{html.escape(name)}</td><td>{html.escape(metric)}</td><td>{_fmt(value)}</td></tr>"
+                f"<tr><td>{html.escape(name)}</td><td>{html.escape(metric)}</td><td>{_cell_html(value)}</td></tr>"
             )
     errors = [
         f"<li><b>{html.escape(n)}</b>: {html.escape(str(record['stages'][n].get('error')))}</li>"
         for n in order
-        if record["stages"][n]["state"] == "failed"
+        if record["stages"][n]["state"] == StageStatus.FAILED
     ]
     warnings = [
         f"<li><b>{html.escape(n)}</b>: {html.escape(w)}</li>"
@@ -352,7 +360,10 @@ def run_page(session, record: dict, figures: list[Figure]) -> str:
                 f"<span class='muted'>{html.escape(entry['uses'])}</span></h3>"
                 + "".join(_media_html(f) for f in by_stage[name])
             )
-    legend = "".join(f"<span>{_state_badge(s)}</span>" for s in ("ran", "cached", "failed", "skipped"))
+    legend = "".join(
+        f"<span>{_state_badge(s)}</span>"
+        for s in (StageStatus.RAN, StageStatus.CACHED, StageStatus.FAILED, StageStatus.SKIPPED)
+    )
     versions = ", ".join(f"{k} {v}" for k, v in sorted(record.get("versions", {}).items()))
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>msflow report: {html.escape(pipeline.path.name)}</title>
@@ -372,7 +383,7 @@ def run_page(session, record: dict, figures: list[Figure]) -> str:
 """
 
 
-def sweep_page(pipeline_name: str, sweep: dict, metric: str | None) -> str:
+def sweep_page(pipeline_name: str, sweep: dict[str, Any], metric: str | None) -> str:
     """Results table of a sweep and a plot of a chosen metric against each swept parameter."""
     from msflow.sweep import SweepResult, VariantOutcome, format_table, metric_columns, results_rows
 
@@ -390,7 +401,7 @@ def sweep_page(pipeline_name: str, sweep: dict, metric: str | None) -> str:
     table = format_table(header, rows, "md")
     body = ["<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>"]
     for row in rows:
-        body.append("<tr>" + "".join(f"<td>{_fmt(c) if c is not None else '-'}</td>" for c in row) + "</tr>")
+        body.append("<tr>" + "".join(f"<td>{_cell_html(c)}</td>" for c in row) + "</tr>")
     body.append("</table>")
     plots = ""
     if metric:
@@ -411,7 +422,7 @@ executions for {result.unique_keys} distinct keys · {result.seconds:.2f}s</p>
 """
 
 
-def metric_plots(result, metric: str) -> dict[str, bytes]:
+def metric_plots(result: SweepResult, metric: str) -> dict[str, bytes]:
     import io
 
     import matplotlib
@@ -419,18 +430,20 @@ def metric_plots(result, metric: str) -> dict[str, bytes]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from msflow.sweep import _metric
+    from msflow.sweep import variant_metric
 
     params = list(dict.fromkeys(t for v in result.variants for t in v.params))
-    plots = {}
+    plots: dict[str, bytes] = {}
     for param in params:
-        points = [(v.params.get(param), _metric(v, metric)) for v in result.variants if v.ok]
-        points = [(x, y) for x, y in points if isinstance(y, (int, float)) and x is not None]
+        pairs = [(v.params.get(param), variant_metric(v, metric)) for v in result.variants if v.ok]
+        points: list[tuple[Any, float]] = [
+            (x, float(y)) for x, y in pairs if isinstance(y, (int, float)) and x is not None
+        ]
         if not points:
             continue
         fig, ax = plt.subplots(figsize=(5, 3.2))
         numeric = all(isinstance(x, (int, float)) for x, _ in points)
-        xs = [x if numeric else str(x) for x, _ in points]
+        xs: list[Any] = [x if numeric else str(x) for x, _ in points]
         ax.plot(xs, [y for _, y in points], "o")
         ax.set_xlabel(param)
         ax.set_ylabel(metric)
@@ -443,7 +456,7 @@ def metric_plots(result, metric: str) -> dict[str, bytes]:
 
 
 # ---------------------------------------------------------------------------------------------------------- entry
-def find_record(session, run: str | None) -> dict:
+def find_record(session: Session, run: str | None) -> dict[str, Any]:
     store = session.store
     if run:
         return store.read_run(run)
@@ -457,14 +470,14 @@ def find_record(session, run: str | None) -> dict:
 
 def build_report(
     path: str | Path, out: str | Path, run: str | None = None, *, jobs: int = 2, metric: str | None = None
-) -> dict:
+) -> dict[str, Any]:
     """Write the report of a run (default: the newest) or, if ``run`` names a sweep, of that sweep."""
-    from msflow.api import open_session
+    from msflow.session import open_session
 
     started = time.perf_counter()
     session = open_session(path)
     store = session.store
-    if run and hasattr(store, "sweep_ids") and any(s == run or s.endswith(run) for s in store.sweep_ids()):
+    if run and any(s == run or s.endswith(run) for s in store.sweep_ids()):
         sweep_id = next(s for s in store.sweep_ids() if s == run or s.endswith(run))
         sweep = store.read_sweep(sweep_id)
         page = sweep_page(session.pipeline.path.name, sweep, metric)
@@ -475,9 +488,7 @@ def build_report(
         page = run_page(session, record, figures)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp")
-    tmp.write_text(page, encoding="utf-8")
-    tmp.replace(out)
+    write_atomic(out, page)
     session.save_memo()
     return {
         "path": str(out),

@@ -7,46 +7,58 @@ special case. Keys never contain paths or times.
 
 from __future__ import annotations
 
-import json
 import uuid
+from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass, field
 from datetime import UTC
-from typing import Any
+from pathlib import Path
+from typing import Any, Protocol
 
 from msflow.errors import UserError
+from msflow.executors import Executor
 from msflow.hashing import FileHashMemo, json_hash
+from msflow.jobs import Job, JobInput, Outcome, StageStatus
 from msflow.plan import StagePlan
-from msflow.spec import FilesRef, Pipeline, rel_to, topological_order
+from msflow.spec import FilesRef, Pipeline, rel_to, suggest, topological_order
+from msflow.stores.base import Store
 
 KEY_SCHEME = 2  # 2: artifact format 2 (streamed array hashes, chunk checksums)
-DONE = ("cached", "ran")
+
+
+class Reporter(Protocol):
+    """Receives every state change of a stage (the progress display)."""
+
+    def update(self, state: StageState) -> None: ...
 
 
 @dataclass
 class StageState:
     name: str
-    state: str = "pending"  # pending, cached, running, ran, failed, skipped
+    state: StageStatus = StageStatus.PENDING
     key: str | None = None
-    parts: dict | None = None
-    manifest: dict | None = None
+    parts: dict[str, Any] | None = None
+    manifest: dict[str, Any] | None = None
     seconds: float = 0.0
     error: str | None = None
-    user_error: dict | None = None
+    user_error: dict[str, Any] | None = None
     traceback: str | None = None
-    inputs: dict = field(default_factory=dict)
+    inputs: dict[str, Any] = field(default_factory=dict)
     detail: str = ""
+
+    def __repr__(self) -> str:
+        key = f", key={self.key[:12]}" if self.key else ""
+        return f"StageState({self.name!r}, {self.state.value}{key})"
 
 
 def select_stages(pipeline: Pipeline, until: str | None) -> list[str]:
+    """The stages a run covers, in topological order: all, or ``until`` and what it needs."""
     order = topological_order(pipeline.stages)
     if until is None:
         return order
     if until not in pipeline.stages:
-        from msflow.spec import _suggest
-
         raise UserError(
-            f"--until: unknown stage '{until}'{_suggest(until, pipeline.stages)}",
+            f"--until: unknown stage '{until}'{suggest(until, pipeline.stages)}",
             file=str(pipeline.path),
             field="--until",
         )
@@ -61,73 +73,87 @@ def select_stages(pipeline: Pipeline, until: str | None) -> list[str]:
 
 
 def input_parts(
-    pipeline: Pipeline, name: str, states: dict[str, StageState], file_memo: FileHashMemo, interface: dict
-) -> tuple[dict, dict, dict]:
-    """(key part, job spec, provenance) of a stage's inputs; upstream stages must be settled."""
+    pipeline: Pipeline,
+    name: str,
+    states: dict[str, StageState],
+    file_memo: FileHashMemo,
+    interface: dict[str, Any],
+) -> tuple[dict[str, Any], dict[str, JobInput | None], dict[str, Any]]:
+    """(key part, job inputs, provenance) of a stage's inputs; upstream stages must be settled."""
     parts: dict[str, Any] = {}
-    job: dict[str, Any] = {}
+    job: dict[str, JobInput | None] = {}
     provenance: dict[str, Any] = {}
     node = pipeline.stages[name]
     for input_name, decl in interface["inputs"].items():
         ref = node.inputs.get(input_name)
         if ref is None:
             parts[input_name] = job[input_name] = None
-            continue
-        if isinstance(ref, FilesRef):
-            hashes = {}
-            for label, path in ref.files:
-                try:
-                    hashes[label] = file_memo.hash(path)
-                except OSError as exc:
+        elif isinstance(ref, FilesRef):
+            parts[input_name], job[input_name], provenance[input_name] = files_part(
+                pipeline, name, input_name, ref, file_memo
+            )
+        else:
+            manifest = states[ref.stage].manifest or {}
+            if ref.output is None:
+                digest = manifest["content_hash"]
+                job[input_name] = JobInput("artifact", key=states[ref.stage].key)
+            else:
+                entry = manifest["outputs"].get(ref.output)
+                if entry is None:  # an optional output the upstream run did not produce
                     raise UserError(
-                        f"cannot read data file: {exc}",
+                        f"stage '{ref.stage}' produced no output '{ref.output}' (it is optional)",
                         file=str(pipeline.path),
                         stage=name,
-                        field=f"inputs.{input_name}.{label}",
-                    ) from None
-            parts[input_name] = {"files": hashes}
-            job[input_name] = {"kind": "files", "files": [list(f) for f in ref.files]}
-            fields = ref.fields_by_label()
-            if fields:  # only when some label has fields: keys of plain file inputs stay as they were
-                parts[input_name]["fields"] = job[input_name]["fields"] = fields
-            provenance[input_name] = {
-                "files": {label: rel_to(path, pipeline.root) for label, path in ref.files},
-                "hashes": hashes,
-            }
-            continue
-        upstream = states[ref.stage]
-        manifest = upstream.manifest or {}
-        if ref.output is None:
-            digest = manifest["content_hash"]
-            job[input_name] = {"kind": "artifact", "key": upstream.key}
-        else:
-            entry = manifest["outputs"].get(ref.output)
-            if entry is None:  # an optional output the upstream run did not produce
-                raise UserError(
-                    f"stage '{ref.stage}' produced no output '{ref.output}' (it is optional)",
-                    file=str(pipeline.path),
-                    stage=name,
-                    field=f"inputs.{input_name}",
-                )
-            digest = entry["hash"]
-            job[input_name] = {
-                "kind": "array",
-                "key": upstream.key,
-                "output": ref.output,
-                "lazy": bool(decl.get("lazy")),
-            }
-        parts[input_name] = {"hash": digest}
-        provenance[input_name] = {"from": ref.describe(), "hash": digest}
+                        field=f"inputs.{input_name}",
+                    )
+                digest = entry["hash"]
+                lazy = bool(decl.get("lazy"))
+                job[input_name] = JobInput("array", key=states[ref.stage].key, output=ref.output, lazy=lazy)
+            parts[input_name] = {"hash": digest}
+            provenance[input_name] = {"from": ref.describe(), "hash": digest}
     return parts, job, provenance
 
 
-def resource_hashes(plan: StagePlan, root, file_memo: FileHashMemo) -> dict:
+def files_part(
+    pipeline: Pipeline, name: str, input_name: str, ref: FilesRef, file_memo: FileHashMemo
+) -> tuple[dict[str, Any], JobInput, dict[str, Any]]:
+    """(key part, job input, provenance) of a data-files input: content hashes (memoised by stat) and fields."""
+    hashes = {}
+    for label, path in ref.files:
+        try:
+            hashes[label] = file_memo.hash(Path(path))
+        except OSError as exc:
+            raise UserError(
+                f"cannot read data file: {exc}",
+                file=str(pipeline.path),
+                stage=name,
+                field=f"inputs.{input_name}.{label}",
+            ) from None
+    part: dict[str, Any] = {"files": hashes}
+    fields = ref.fields_by_label()
+    if fields:  # only when some label has fields: keys of plain file inputs stay as they were
+        part["fields"] = fields
+    job = JobInput("files", files=tuple(ref.files), fields=fields or None)
+    provenance = {"files": {label: rel_to(Path(path), pipeline.root) for label, path in ref.files}, "hashes": hashes}
+    return part, job, provenance
+
+
+def resource_hashes(plan: StagePlan, root: Path, file_memo: FileHashMemo) -> dict[str, str]:
     """Content hashes of the data files a stage's code reads by default (Stage.resources)."""
     return {name: file_memo.hash(root / path) for name, path in plan.interface.get("resources", {}).items()}
 
 
-def key_parts(plan: StagePlan, inputs: dict, resources: dict | None = None) -> dict:
-    parts = {"scheme": KEY_SCHEME, "class": plan.uses, "code": plan.code, "params": plan.params, "inputs": inputs}
+def key_parts(
+    plan: StagePlan, inputs: dict[str, Any] | None, resources: dict[str, str] | None = None
+) -> dict[str, Any]:
+    """What a stage's cache key hashes: scheme, class, code, params, inputs (and resources when it has any)."""
+    parts: dict[str, Any] = {
+        "scheme": KEY_SCHEME,
+        "class": plan.uses,
+        "code": plan.code,
+        "params": plan.params,
+        "inputs": inputs,
+    }
     if resources:
         parts["resources"] = resources
     return parts
@@ -135,7 +161,7 @@ def key_parts(plan: StagePlan, inputs: dict, resources: dict | None = None) -> d
 
 def stage_key(
     pipeline: Pipeline, plan: StagePlan, name: str, states: dict[str, StageState], file_memo: FileHashMemo
-) -> tuple[dict, str, dict, dict]:
+) -> tuple[dict[str, Any], str, dict[str, JobInput | None], dict[str, Any]]:
     """(key parts, key, job inputs, input provenance) of a stage whose upstream stages are settled."""
     inputs, job_inputs, provenance = input_parts(pipeline, name, states, file_memo, plan.interface)
     parts = key_parts(plan, inputs, resource_hashes(plan, pipeline.root, file_memo))
@@ -143,19 +169,23 @@ def stage_key(
 
 
 class Runner:
-    """Runs the selected stages of a resolved pipeline on an executor, reporting state changes."""
+    """Runs the selected stages of a resolved pipeline on an executor, reporting state changes.
+
+    Scheduling is linear in the number of stages and edges: each stage counts its unsettled upstream stages, and
+    settling a stage only visits its own dependents.
+    """
 
     def __init__(
         self,
         pipeline: Pipeline,
         plans: dict[str, StagePlan],
-        store,
-        memo: dict,
+        store: Store,
+        memo: dict[str, Any],
         *,
-        executor,
+        executor: Executor,
         until: str | None = None,
         force: tuple[str, ...] = (),
-        reporter=None,
+        reporter: Reporter | None = None,
         jobs: int = 1,
     ):
         self.pipeline = pipeline
@@ -171,15 +201,34 @@ class Runner:
         self.reporter = reporter
         self.jobs = jobs  # the run's worker count, handed to each stage (Stage.jobs); not part of any key
         self.states = {name: StageState(name) for name in self.selected}
-        self.waiting: list[str] = []
         self.file_memo = FileHashMemo(memo.setdefault("data", {}))
+        self.dependents: dict[str, list[str]] = {name: [] for name in self.selected}
+        self.blocking: dict[str, int] = {}
+        for name in self.selected:
+            deps = pipeline.stages[name].deps
+            self.blocking[name] = len(deps)
+            for dep in deps:
+                self.dependents[dep].append(name)
+        self.queue = deque(name for name in self.selected if not self.blocking[name])
+        self.unsettled = len(self.selected)
 
     def _report(self, state: StageState) -> None:
         if self.reporter is not None:
             self.reporter.update(state)
 
-    def prepare(self, name: str) -> dict | None:
-        """Compute the key; return a job when the stage must run, None when it is cached."""
+    @property
+    def busy(self) -> bool:
+        """Some selected stage is not settled yet."""
+        return self.unsettled > 0
+
+    def take_ready(self) -> list[str]:
+        """Stages whose upstream stages are all done, in the order they became ready."""
+        ready = list(self.queue)
+        self.queue.clear()
+        return ready
+
+    def prepare(self, name: str) -> Job | None:
+        """Compute the key; return a job when the stage must run, None when it is cached (and settled)."""
         state = self.states[name]
         plan = self.plans[name]
         state.parts, state.key, job_inputs, state.inputs = stage_key(
@@ -187,126 +236,125 @@ class Runner:
         )
         if name not in self.force and self.store.has(state.key):
             state.manifest = self.store.manifest(state.key)
-            state.state = "cached"
-            self._report(state)
+            self._finish(state, StageStatus.CACHED)
             return None
-        state.state = "running"
+        state.state = StageStatus.RUNNING
         self._report(state)
-        return {
-            "store": self.store.url,
-            "store_options": self.store.options,
-            "project_root": str(self.pipeline.root),
-            "key": state.key,
-            "stage": name,
-            "uses": plan.uses,
-            "params": plan.params,
-            "inputs": job_inputs,
-            "force": name in self.force,
-            "jobs": self.jobs,
-            "key_parts": state.parts,
-        }
+        return Job(
+            store=self.store.url,
+            store_options=self.store.options,
+            project_root=str(self.pipeline.root),
+            key=state.key,
+            stage=name,
+            uses=plan.uses,
+            params=plan.params,
+            inputs=job_inputs,
+            force=name in self.force,
+            jobs=self.jobs,
+            key_parts=state.parts,
+        )
 
-    def settle(self, name: str, outcome: dict) -> None:
+    def settle(self, name: str, outcome: Outcome) -> None:
+        """Record what became of a stage's job (or of its preparation) and release its dependents."""
         state = self.states[name]
-        state.seconds = outcome.get("seconds", 0.0)
-        if outcome["state"] in DONE:
-            state.manifest = outcome["manifest"]
-            state.state = outcome["state"]
-            if outcome.get("concurrent"):
+        state.seconds = outcome.seconds
+        if outcome.status.done:
+            state.manifest = outcome.manifest
+            if outcome.concurrent:
                 state.detail = "computed by a concurrent run"
-            elif outcome["state"] == "cached" and not state.detail:
+            elif outcome.status is StageStatus.CACHED and not state.detail:
                 state.detail = "computed meanwhile"
         else:
-            state.state = "failed"
-            state.error = outcome.get("error")
-            state.user_error = outcome.get("user_error")
-            state.traceback = outcome.get("traceback")
-        self._report(state)
+            state.error = outcome.error
+            state.user_error = outcome.user_error
+            state.traceback = outcome.traceback
+        self._finish(state, outcome.status if outcome.status.done else StageStatus.FAILED)
 
-    def ready(self) -> list[str]:
-        """Stages whose upstream is settled, removed from the waiting list; marks skips on upstream failure."""
-        out = []
-        for name in list(self.waiting):
-            dep_states = [self.states[d].state for d in self.pipeline.stages[name].deps]
-            if any(s in ("failed", "skipped") for s in dep_states):
-                self.waiting.remove(name)
-                self.states[name].state = "skipped"
-                self.states[name].detail = "an upstream stage failed"
-                self._report(self.states[name])
-                out.append(None)
-            elif all(s in DONE for s in dep_states):
-                self.waiting.remove(name)
-                out.append(name)
-        return out
+    def _finish(self, state: StageState, status: StageStatus) -> None:
+        state.state = status
+        self.unsettled -= 1
+        self._report(state)
+        for child in self.dependents[state.name]:
+            if not status.done:
+                self._skip(child)
+                continue
+            self.blocking[child] -= 1
+            if not self.blocking[child] and self.states[child].state is StageStatus.PENDING:
+                self.queue.append(child)
+
+    def _skip(self, name: str) -> None:
+        state = self.states[name]
+        if state.state is not StageStatus.PENDING:
+            return
+        state.detail = "an upstream stage failed"
+        self._finish(state, StageStatus.SKIPPED)
 
     def run(self) -> dict[str, StageState]:
         schedule([self], self.executor)
         return self.states
 
 
-def schedule(runners: list[Runner], executor) -> None:
+def schedule(runners: list[Runner], executor: Executor) -> None:
     """Advance several runners (one per sweep variant) on one executor until all stages are settled.
 
     A key needed by several runners at the same time is submitted once; the others wait for it and count it as
     cached ("shared"). Across processes and machines the per-key store lock gives the same guarantee.
     """
-    for runner in runners:
-        runner.waiting = list(runner.selected)
     inflight: dict[str, list[tuple[Runner, str]]] = {}
-    running: dict[Future, str] = {}
+    running: dict[Future[str], str] = {}
 
-    def settle(key: str, outcome: dict) -> None:
+    def settle(key: str, outcome: Outcome) -> None:
         waiters = inflight.pop(key)
         first_runner, first_name = waiters[0]
         first_runner.settle(first_name, outcome)
         for runner, name in waiters[1:]:
-            shared = dict(outcome)
-            if shared["state"] == "ran":
-                shared["state"] = "cached"
-                shared["concurrent"] = False
+            shared = Outcome(**{**vars(outcome)})
+            if shared.status is StageStatus.RAN:
+                shared.status = StageStatus.CACHED
+                shared.concurrent = False
                 runner.states[name].detail = f"computed once for several variants ({first_name})"
             runner.settle(name, shared)
 
-    while any(r.waiting for r in runners) or running:
+    def submit(runner: Runner, name: str) -> None:
+        try:
+            job = runner.prepare(name)
+        except UserError as exc:
+            user_error = exc.located(stage=name).to_json()
+            runner.settle(name, Outcome(StageStatus.FAILED, user_error=user_error, error=str(exc)))
+            return
+        if job is None:
+            return
+        if job.key in inflight:
+            inflight[job.key].append((runner, name))
+            return
+        inflight[job.key] = [(runner, name)]
+        future = executor.submit(job.to_json())
+        if future.done():
+            settle(job.key, outcome_of(future))
+        else:
+            running[future] = job.key
+
+    while True:
         progressed = True
         while progressed:
             progressed = False
             for runner in runners:
-                for name in runner.ready():
+                for name in runner.take_ready():
                     progressed = True
-                    if name is None:
-                        continue
-                    try:
-                        job = runner.prepare(name)
-                    except UserError as exc:
-                        runner.settle(
-                            name,
-                            {"state": "failed", "user_error": exc.located(stage=name).to_json(), "error": str(exc)},
-                        )
-                        continue
-                    if job is None:
-                        continue
-                    key = job["key"]
-                    if key in inflight:
-                        inflight[key].append((runner, name))
-                        continue
-                    inflight[key] = [(runner, name)]
-                    future = executor.submit(json.dumps(job, allow_nan=False))
-                    if future.done():
-                        settle(key, _outcome(future))
-                    else:
-                        running[future] = key
-        if running:
-            finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
-            for future in finished:
-                settle(running.pop(future), _outcome(future))
+                    submit(runner, name)
+        if not running:
+            break
+        finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
+        for future in finished:
+            settle(running.pop(future), outcome_of(future))
 
 
-def _outcome(future: Future) -> dict:
+def outcome_of(future: Future[str]) -> Outcome:
+    """The outcome a worker sent back, or a failure when the worker died (SIGKILL, OOM) or the executor broke."""
     try:
-        return json.loads(future.result())
-    except Exception as exc:  # a worker process died (SIGKILL, OOM) or the executor broke
-        return {"state": "failed", "error": f"worker lost: {type(exc).__name__}: {exc}"}
+        return Outcome.from_json(future.result())
+    except Exception as exc:
+        return Outcome.crashed(f"worker lost: {type(exc).__name__}: {exc}")
 
 
 def new_run_id() -> str:

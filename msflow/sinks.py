@@ -40,7 +40,7 @@ class OutputSink:
         self.target = target
         self._rows = 0
         self._hasher = ArrayHasher(self.dtype)
-        self._finished: dict | None = None
+        self._finished: dict[str, Any] | None = None
         self._blocks: list[Any] = []
         self._cap = chunk_rows(self.row_shape, self.dtype.itemsize)
         self._buffer: Any = None
@@ -117,7 +117,7 @@ class OutputSink:
         self._chunks += 1
         self._filled = 0
 
-    def finish(self) -> dict:
+    def finish(self) -> dict[str, Any]:
         """Write the last chunk; return the manifest entry (hash, shape, dtype). Idempotent."""
         if self._finished is None:
             if self._filled:

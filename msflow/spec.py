@@ -9,14 +9,19 @@ from __future__ import annotations
 import difflib
 import glob as globlib
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 
 from msflow.errors import UserError
+
+if TYPE_CHECKING:
+    from msflow.stores.base import Store
 
 FORMAT_VERSION = 1
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
@@ -48,7 +53,7 @@ class StageSpec(BaseModel):
 class PipelineSpec(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    version: Literal[1] = FORMAT_VERSION
+    version: Literal[1] = 1
     store: str | None = None
     store_options: dict[str, Any] = {}
     vars: dict[str, Any] = {}
@@ -92,8 +97,9 @@ class StageNode:
     inputs: dict[str, StageRef | FilesRef]
     description: str | None = None
 
-    @property
+    @cached_property
     def deps(self) -> list[str]:
+        """Upstream stages, sorted (computed once: the scheduler asks for them often)."""
         return sorted({r.stage for r in self.inputs.values() if isinstance(r, StageRef)})
 
 
@@ -107,8 +113,8 @@ class Pipeline:
     overrides: tuple[str, ...] = ()
     store_options: dict[str, Any] = field(default_factory=dict)
 
-    def open_store(self):
-        from msflow.store import open_store
+    def open_store(self) -> Store:
+        from msflow.stores import open_store
 
         return open_store(self.store, self.store_options, self.path.parent / ".msflow" / "cache")
 
@@ -125,11 +131,11 @@ def rel_to(path: Path, root: Path) -> str:
 
 
 # ---------------------------------------------------------------------------------------------------------- yaml
-class _UniqueKeyLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: ignore[misc]
+class UniqueKeyLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: ignore[misc]
     """Safe loader that refuses duplicate mapping keys (PyYAML would silently keep the last)."""
 
 
-def _construct_mapping(loader, node, deep=False):
+def _construct_mapping(loader: Any, node: Any, deep: bool = False) -> Any:
     seen: dict[Any, Any] = {}
     for key_node, _ in node.value:
         key = loader.construct_object(key_node, deep=deep)
@@ -143,13 +149,13 @@ def _construct_mapping(loader, node, deep=False):
     return loader.construct_mapping_plain(node, deep=deep)
 
 
-_UniqueKeyLoader.construct_mapping_plain = yaml.SafeLoader.construct_mapping  # type: ignore[attr-defined]
-_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+UniqueKeyLoader.construct_mapping_plain = yaml.SafeLoader.construct_mapping
+UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
 
 
 def parse_yaml(text: str, file: str) -> Any:
     try:
-        return yaml.load(text, Loader=_UniqueKeyLoader)
+        return yaml.load(text, Loader=UniqueKeyLoader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
@@ -169,7 +175,7 @@ def substitute_vars(value: Any, variables: dict[str, Any], file: str, where: str
         if whole:
             return _lookup_var(whole.group(1), variables, file, where)
 
-        def repl(m: re.Match) -> str:
+        def repl(m: re.Match[str]) -> str:
             got = _lookup_var(m.group(1), variables, file, where)
             if isinstance(got, (dict, list)):
                 raise UserError(
@@ -189,14 +195,15 @@ def substitute_vars(value: Any, variables: dict[str, Any], file: str, where: str
 
 def _lookup_var(name: str, variables: dict[str, Any], file: str, where: str) -> Any:
     if name not in variables:
-        hint = _suggest(name, variables)
+        hint = suggest(name, variables)
         raise UserError(
             f"unknown variable '${{{name}}}'{hint}; defined: {sorted(variables) or 'none'}", file=file, field=where
         )
     return variables[name]
 
 
-def _suggest(name: str, options) -> str:
+def suggest(name: str, options: Iterable[Any]) -> str:
+    """' (did you mean ...?)' for the option closest to ``name``, or ''."""
     close = difflib.get_close_matches(str(name), [str(o) for o in options], n=1)
     return f" (did you mean '{close[0]}'?)" if close else ""
 
@@ -211,14 +218,14 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     if len(parts) < 2 or not all(parts):
         raise UserError(f"bad override '{text}': the target must be stage.param (got '{target}')", field="-S")
     try:
-        value = yaml.load(raw, Loader=_UniqueKeyLoader) if raw.strip() else ""
+        value = yaml.load(raw, Loader=UniqueKeyLoader) if raw.strip() else ""
     except yaml.YAMLError:
         value = raw
     return parts, value
 
 
-def apply_overrides(raw: dict, overrides: tuple[str, ...], file: str) -> None:
-    stages = raw.get("stages") if isinstance(raw.get("stages"), dict) else {}
+def apply_overrides(raw: dict[str, Any], overrides: tuple[str, ...], file: str) -> None:
+    stages: dict[str, Any] = raw["stages"] if isinstance(raw.get("stages"), dict) else {}
     for text in overrides:
         try:
             parts, value = parse_override(text)
@@ -233,7 +240,7 @@ def apply_overrides(raw: dict, overrides: tuple[str, ...], file: str) -> None:
             continue
         if head not in stages:
             raise UserError(
-                f"override '{text}': unknown stage '{head}'{_suggest(head, stages)}; stages: {sorted(stages)}",
+                f"override '{text}': unknown stage '{head}'{suggest(head, stages)}; stages: {sorted(stages)}",
                 file=file,
                 field="-S",
             )
@@ -246,7 +253,7 @@ def apply_overrides(raw: dict, overrides: tuple[str, ...], file: str) -> None:
         _set_path(params, rest, value)
 
 
-def _set_path(container: dict, path: list[str], value: Any) -> None:
+def _set_path(container: dict[str, Any], path: list[str], value: Any) -> None:
     """container[a][b]... = value for path [a, b, ...], creating (or replacing non-mapping) levels."""
     cursor = container
     for key in path[:-1]:
@@ -320,7 +327,7 @@ def load_pipeline(path: str | Path, overrides: tuple[str, ...] | list[str] = ())
         for input_name, ref in node.inputs.items():
             if isinstance(ref, StageRef) and ref.stage not in nodes:
                 raise UserError(
-                    f"refers to unknown stage '{ref.stage}'{_suggest(ref.stage, nodes)}; stages: {sorted(nodes)}",
+                    f"refers to unknown stage '{ref.stage}'{suggest(ref.stage, nodes)}; stages: {sorted(nodes)}",
                     file=file,
                     stage=name,
                     field=f"inputs.{input_name}",
@@ -366,7 +373,7 @@ FIELD_RE = re.compile(r"\{([A-Za-z_][A-Za-z0-9_]*)\}")
 FIELD_CHARS = r"[^_\-.\s/]+"
 
 
-def _file_form(ref: dict, base: Path, root: Path, file: str, stage: str, where: str) -> FilesRef:
+def _file_form(ref: dict[str, Any], base: Path, root: Path, file: str, stage: str, where: str) -> FilesRef:
     """``{path: file}`` or ``{glob: pattern}``, optionally with ``pattern`` (fields from file names) and
     ``label`` (a template of those fields naming each file; default: the file name without its suffix)."""
     spec = ref.get("path", ref.get("glob"))
@@ -404,7 +411,7 @@ def compile_label_pattern(pattern: str) -> re.Pattern[str]:
 
 
 def _labelled_by_pattern(
-    files: list[tuple[str, str]], ref: dict, form: str, file: str, stage: str, where: str
+    files: list[tuple[str, str]], ref: dict[str, Any], form: str, file: str, stage: str, where: str
 ) -> FilesRef:
     pattern, template = ref["pattern"], ref.get("label")
     if not isinstance(pattern, str) or not FIELD_RE.search(pattern):
@@ -453,7 +460,7 @@ def _labelled_by_pattern(
     return FilesRef(tuple(labelled.values()), form, tuple(fields))
 
 
-def _labelled_mapping(ref: dict, base: Path, file: str, stage: str, where: str) -> FilesRef:
+def _labelled_mapping(ref: dict[str, Any], base: Path, file: str, stage: str, where: str) -> FilesRef:
     """``{label: path}`` or ``{label: {path: file, field: value, ...}}``."""
     files, fields = [], []
     for label, value in ref.items():

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, ClassVar, Mapping
 
 from pydantic import BaseModel, ConfigDict
@@ -41,11 +42,33 @@ DTYPE_KINDS = {"f": "float", "i": "signed int", "u": "unsigned int", "b": "bool"
 
 @dataclass(frozen=True)
 class Output:
-    """Schema of one output. ``kind`` lists accepted numpy dtype kinds ("f", "iu", "b").
+    """Schema of one output of a stage, checked against what ``run`` returns (a mismatch fails the stage).
 
-    ``shape`` entries: an int (fixed), None (free) or a name: a named dimension must have one size across all
-    outputs of the stage (e.g. "frames"). ``file`` outputs carry bytes (a GLB, a CSV, a video) stored as a
-    uint8 array; ``msflow export`` writes them back out as files.
+    Build one with ``Output.array(...)`` or ``Output.file(suffix)``. Two implementations of one pipeline step
+    share one ``outputs`` mapping, so ``uses:`` swaps them.
+
+    Attributes
+    ----------
+    kind : str
+        Accepted numpy dtype kinds: "f" float, "i" signed, "u" unsigned, "b" bool, "c" complex ("iu": either).
+    ndim : int or None
+        Number of dimensions, when fixed.
+    shape : tuple or None
+        Per axis: an int (fixed size), None (free) or a name: a named dimension has one size across all outputs
+        of the stage (e.g. "frames").
+    dtype : str or None
+        One exact dtype, when ``kind`` is not enough.
+    optional : bool
+        The stage may leave it out of its ``Result``.
+    file_suffix : str or None
+        A file output (bytes: a GLB, a CSV, a video), stored as uint8; ``msflow export`` writes the file back.
+
+    Examples
+    --------
+    >>> Output.array("f", shape=("frames", 68, 2)).ndim
+    3
+    >>> Output.file(".glb").describe()["file_suffix"]
+    '.glb'
     """
 
     kind: str = "f"
@@ -62,7 +85,7 @@ class Output:
         kind: str = "f",
         *,
         ndim: int | None = None,
-        shape: tuple | None = None,
+        shape: tuple[int | str | None, ...] | None = None,
         dtype: str | None = None,
         optional: bool = False,
         doc: str = "",
@@ -78,7 +101,7 @@ class Output:
     def file(cls, suffix: str, *, optional: bool = False, doc: str = "") -> Output:
         return cls(kind="u", ndim=1, dtype="uint8", optional=optional, file_suffix=suffix, doc=doc)
 
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         return {
             "kind": self.kind,
             "ndim": self.ndim,
@@ -91,7 +114,31 @@ class Output:
 
 @dataclass(frozen=True)
 class Input:
-    """Declaration of one input. ``kind`` is "array", "artifact" or "files"."""
+    """Declaration of one input of a stage; pipeline.yaml connects it, and ``msflow status`` checks the connection
+    before anything runs.
+
+    Attributes
+    ----------
+    kind : str
+        "array": one upstream output (``stage.output``), handed over as numpy, or as a read-only zarr array
+        when ``lazy``; "artifact": a whole upstream artifact (``stage``), an ``ArtifactView``; "files": data
+        files, a ``Files`` mapping label -> Path with each label's fields.
+    optional : bool
+        The pipeline may leave it unconnected (the stage receives None).
+    requires : tuple of str
+        "artifact": outputs the upstream artifact must declare.
+    lazy : bool
+        "array": pass a lazy array (read it in blocks with ``msflow.iter_blocks``).
+    array_kind, ndim
+        "array": documentation of the expected dtype kind and dimensions.
+
+    Examples
+    --------
+    >>> Input.array("f", lazy=True).describe()["kind"]
+    'array'
+    >>> Input.artifact("mesh", "pose").requires
+    ('mesh', 'pose')
+    """
 
     kind: str
     optional: bool = False
@@ -121,7 +168,7 @@ class Input:
     def files(cls, *, optional: bool = False, doc: str = "") -> Input:
         return cls("files", optional=optional, doc=doc)
 
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         return {
             "kind": self.kind,
             "optional": self.optional,
@@ -131,13 +178,13 @@ class Input:
         }
 
 
-class Files(dict):
+class Files(dict[str, Path]):
     """What an ``Input.files`` input receives: label -> absolute ``Path`` in the order written, and ``fields``:
     label -> {field: value}, the labels' fields (parsed from file names by a ``pattern``, or written beside each
     path in pipeline.yaml). Fields enter the cache key with the files' content."""
 
-    def __init__(self, paths: Mapping[str, Any] = (), fields: Mapping[str, Mapping[str, str]] | None = None):
-        super().__init__(paths)
+    def __init__(self, paths: Mapping[str, Any] | None = None, fields: Mapping[str, Mapping[str, str]] | None = None):
+        super().__init__(paths or {})
         self.fields: dict[str, dict[str, str]] = {label: dict((fields or {}).get(label, {})) for label in self}
 
     def field(self, label: str, name: str, default: str | None = None) -> str | None:
@@ -165,12 +212,55 @@ class Params(BaseModel):
 
 
 class Stage:
-    """Base class of pipeline stages. Subclasses set ``Params``, ``inputs``, ``outputs`` and define ``run``."""
+    """Base class of pipeline stages: subclasses declare ``Params``, ``inputs``, ``outputs`` and define ``run``.
+
+    ``run(params, inputs)`` receives validated params (an instance of ``Params``, a frozen pydantic model: put
+    every rule pydantic can express there, so a bad ``-S`` is rejected before anything runs) and the inputs, and
+    returns a ``Result``. Keep it thin: validate, call plain numpy functions, pack. Import heavy modules inside
+    ``run``: a no-op run imports no stage code.
+
+    Attributes
+    ----------
+    Params : type
+        The parameters' pydantic model (unknown keys are errors).
+    inputs : mapping of str to Input
+        Declared inputs.
+    outputs : mapping of str to Output
+        Declared outputs.
+    figures : mapping of str to callable
+        Report figures: ``f(view, inputs)`` returning a matplotlib Figure, PNG or MP4 bytes.
+    resources : mapping of str to path
+        Data files the code reads by default (models): hashed into the cache key.
+    name : str
+        The stage's name in the pipeline (instance attribute).
+    jobs : int
+        The run's worker count (``-j``), for parallelism inside ``run``; not in the key: results must not
+        depend on it (instance attribute).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> class Scale(Stage):
+    ...     \"\"\"Multiply an array by a factor.\"\"\"
+    ...     class Params(Stage.Params):
+    ...         factor: float = 2.0
+    ...     inputs = {"x": Input.array("f")}
+    ...     outputs = {"y": Output.array("f", shape=("n",))}
+    ...     def run(self, params, inputs):
+    ...         return Result({"y": inputs["x"] * params.factor})
+    >>> Scale("scale").run(Scale.Params(factor=3), {"x": np.ones(2)}).arrays["y"]
+    array([3., 3.])
+    >>> Scale.Params(factor="x")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    pydantic_core._pydantic_core.ValidationError: 1 validation error for Params
+    ...
+    """
 
     Params: ClassVar[type[Params]] = Params
     inputs: ClassVar[Mapping[str, Input]] = {}
     outputs: ClassVar[Mapping[str, Output]] = {}
-    #: figures for the run report: name -> function(view: ArtifactView, inputs: dict) returning a matplotlib
+    #: figures for the run report: name -> function(view: ArtifactView, inputs: dict[str, Any]) returning a matplotlib
     #: Figure, PNG bytes or MP4 bytes; rendered from artifacts at report time (import matplotlib inside).
     figures: ClassVar[Mapping[str, Callable[..., Any]]] = {}
     #: data files or folders the stage's code reads by default (models, reference meshes): name -> path. They
@@ -215,10 +305,8 @@ class Stage:
         return dict(self._sinks)
 
     @classmethod
-    def interface(cls) -> dict:
+    def interface(cls) -> dict[str, Any]:
         """JSON description of inputs and outputs, used to check a pipeline without importing the stage."""
-        from pathlib import Path
-
         return {
             "inputs": {k: v.describe() for k, v in cls.inputs.items()},
             "outputs": {k: v.describe() for k, v in cls.outputs.items()},
@@ -257,7 +345,7 @@ def check_output(
     spec: Output,
     dtype: Any,
     shape: tuple[int, ...],
-    dims: dict | None = None,
+    dims: dict[str, Any] | None = None,
     name: str = "",
     frames: bool = True,
 ) -> None:

@@ -24,11 +24,17 @@ import itertools
 import json
 import time
 import uuid
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from msflow.errors import UserError
+from msflow.jobs import StageStatus
+
+if TYPE_CHECKING:
+    from msflow.progress import SweepReporter
+    from msflow.stores.base import Store
 
 GRID_KEYS = {"grid", "zip", "variants"}
 
@@ -37,7 +43,7 @@ def parse_values(text: str) -> tuple[str, list[Any]]:
     """``stage.param=v1,v2`` -> ("stage.param", [v1, v2]); values are YAML (``[1,2],[3,4]`` is two lists)."""
     import yaml
 
-    from msflow.spec import _UniqueKeyLoader
+    from msflow.spec import UniqueKeyLoader
 
     if "=" not in text:
         raise UserError(f"bad sweep parameter '{text}': expected stage.param=value1,value2,...", field="-S")
@@ -46,7 +52,7 @@ def parse_values(text: str) -> tuple[str, list[Any]]:
     if target.count(".") < 1 or not all(target.split(".")):
         raise UserError(f"bad sweep parameter '{text}': the target must be stage.param", field="-S")
     try:
-        values = yaml.load(f"[{raw}]", Loader=_UniqueKeyLoader)
+        values = yaml.load(f"[{raw}]", Loader=UniqueKeyLoader)
     except yaml.YAMLError:
         values = [v.strip() for v in raw.split(",")]
     if not values:
@@ -133,7 +139,7 @@ class VariantOutcome:
     run_id: str | None = None
     ok: bool = False
     error: str | None = None
-    metrics: dict[str, dict] = field(default_factory=dict)
+    metrics: dict[str, dict[str, Any]] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
 
 
@@ -146,7 +152,7 @@ class SweepResult:
     executed: int  # stage executions across all variants
     unique_keys: int  # distinct cache keys across all variants
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         return {
             "id": self.sweep_id,
             "pipeline": self.pipeline,
@@ -161,21 +167,21 @@ def run_sweep(
     path: str | Path,
     variants: list[dict[str, Any]],
     *,
-    base_overrides=(),
+    base_overrides: Sequence[str] = (),
     jobs: int = 1,
     executor: str = "local",
     scheduler: str | None = None,
-    reporter=None,
+    connect_timeout: float = 10.0,
+    reporter: SweepReporter | None = None,
 ) -> SweepResult:
-    """Validate every variant (nothing runs if one is invalid), then run them together on one executor."""
-    from msflow.api import open_session
-    from msflow.executors import make_executor
-    from msflow.records import build_record
-    from msflow.runner import Runner, new_run_id, schedule
-    from msflow.worker import pin_blas_threads
+    """Validate every variant (nothing runs if one is invalid), then run them together on one executor
+    (``msflow.api.run_sessions``, the path of ``msflow run`` too)."""
+    from msflow.api import run_sessions
+    from msflow.runner import new_run_id
+    from msflow.session import Session, open_session
 
     started = time.time()
-    sessions = []
+    sessions: list[Session] = []
     memo = None
     for index, variant in enumerate(variants):
         try:
@@ -186,38 +192,22 @@ def run_sweep(
             ) from None
         memo = session.memo
         sessions.append(session)
-    pin_blas_threads()
-    pool = make_executor(executor, jobs, scheduler, on_start=sessions[0].store.clean_tmp)
-    runners = []
-    for index, session in enumerate(sessions):
-        proxy = reporter.for_variant(index, variants[index]) if reporter is not None else None
-        runners.append(
-            Runner(
-                session.pipeline, session.plans, session.store, session.memo, executor=pool, reporter=proxy, jobs=jobs
-            )
-        )
-    try:
-        schedule(runners, pool)
-    finally:
-        pool.shutdown()
-    sessions[0].save_memo()
+    reporters = [reporter.for_variant(i, v) if reporter is not None else None for i, v in enumerate(variants)]
     sweep_id = new_run_id()
+    executions = run_sessions(
+        sessions,
+        jobs=jobs,
+        executor=executor,
+        scheduler=scheduler,
+        connect_timeout=connect_timeout,
+        reporters=list(reporters),
+        labels=variants,
+        extra={"sweep": sweep_id},
+    )
     outcomes = []
-    for index, (session, runner) in enumerate(zip(sessions, runners)):
-        record = build_record(
-            new_run_id(),
-            session.pipeline,
-            session.plans,
-            runner.states,
-            started=started,
-            finished=time.time(),
-            executor=pool.name,
-            jobs=jobs,
-            label=variants[index],
-        )
-        record["sweep"] = sweep_id
-        session.store.write_run(record)
-        failed = [s for s in runner.states.values() if s.state == "failed"]
+    for index, execution in enumerate(executions):
+        record = execution.record
+        failed = [s for s in execution.states.values() if s.state is StageStatus.FAILED]
         outcomes.append(
             VariantOutcome(
                 index,
@@ -229,17 +219,16 @@ def run_sweep(
                 record["counts"],
             )
         )
-    keys = {s.key for r in runners for s in r.states.values() if s.key}
-    executed = sum(1 for r in runners for s in r.states.values() if s.state == "ran")
+    keys = {s.key for e in executions for s in e.states.values() if s.key}
+    executed = sum(1 for e in executions for s in e.states.values() if s.state is StageStatus.RAN)
     result = SweepResult(sweep_id, sessions[0].pipeline.rel_path, outcomes, time.time() - started, executed, len(keys))
     _write_sweep_record(sessions[0].store, result)
     return result
 
 
-def _write_sweep_record(store, result: SweepResult) -> None:
+def _write_sweep_record(store: Store, result: SweepResult) -> None:
     record = {"id": result.sweep_id, "kind": "sweep", **result.to_json()}
-    if hasattr(store, "write_sweep"):
-        store.write_sweep(record)
+    store.write_sweep(record)
 
 
 # ---------------------------------------------------------------------------------------------------------- tables
@@ -249,17 +238,19 @@ def metric_columns(result: SweepResult, patterns: list[str] | None) -> list[str]
         return [n for n in names if any(fnmatch.fnmatch(n, p) for p in patterns)]
     swept_stages = {t.split(".")[0] for v in result.variants for t in v.params}
     # a metric that only echoes a swept parameter of the same name adds nothing to the table
-    echoes = {n for n in names if all(v.params.get(n, object()) == _metric(v, n) for v in result.variants)}
-    varying = [n for n in names if n not in echoes and len({json.dumps(_metric(v, n)) for v in result.variants}) > 1]
+    echoes = {n for n in names if all(v.params.get(n, object()) == variant_metric(v, n) for v in result.variants)}
+    varying = [
+        n for n in names if n not in echoes and len({json.dumps(variant_metric(v, n)) for v in result.variants}) > 1
+    ]
     return varying or [n for n in names if n.split(".")[0] in swept_stages and n not in echoes]
 
 
-def _metric(variant: VariantOutcome, column: str):
+def variant_metric(variant: VariantOutcome, column: str) -> Any:
     stage, _, name = column.partition(".")
     return variant.metrics.get(stage, {}).get(name)
 
 
-def results_rows(result: SweepResult, metrics: list[str], sort: str | None = None) -> tuple[list[str], list[list]]:
+def results_rows(result: SweepResult, metrics: list[str], sort: str | None = None) -> tuple[list[str], list[list[Any]]]:
     params = list(dict.fromkeys(t for v in result.variants for t in v.params))
     header = ["#", *params, "status", *metrics]
     variants = list(result.variants)
@@ -271,8 +262,8 @@ def results_rows(result: SweepResult, metrics: list[str], sort: str | None = Non
                 f"cannot sort by '{column}': not a column; columns: {', '.join(params + metrics)}", field="--sort"
             )
 
-        def sort_key(v):
-            value = v.params.get(column) if column in params else _metric(v, column)
+        def sort_key(v: VariantOutcome) -> tuple[bool, Any]:
+            value = v.params.get(column) if column in params else variant_metric(v, column)
             return (value is None, -value if descending and isinstance(value, (int, float)) else value)
 
         variants.sort(key=sort_key)
@@ -281,14 +272,14 @@ def results_rows(result: SweepResult, metrics: list[str], sort: str | None = Non
             v.index + 1,
             *[v.params.get(p) for p in params],
             "ok" if v.ok else f"failed: {v.error}",
-            *[_metric(v, m) for m in metrics],
+            *[variant_metric(v, m) for m in metrics],
         ]
         for v in variants
     ]
     return header, rows
 
 
-def format_table(header: list[str], rows: list[list], fmt: str) -> str:
+def format_table(header: list[str], rows: list[list[Any]], fmt: str) -> str:
     if fmt == "json":
         return json.dumps([dict(zip(header, r)) for r in rows], indent=1)
     if fmt == "csv":
@@ -300,7 +291,7 @@ def format_table(header: list[str], rows: list[list], fmt: str) -> str:
         writer.writerow(header)
         writer.writerows(rows)
         return buf.getvalue()
-    cells = [[_fmt(c) for c in r] for r in rows]
+    cells = [[format_value(c) for c in r] for r in rows]
     if fmt == "md":
         lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
         lines += ["| " + " | ".join(r) + " |" for r in cells]
@@ -313,11 +304,16 @@ def format_table(header: list[str], rows: list[list], fmt: str) -> str:
     return "\n".join(lines)
 
 
-def _fmt(value) -> str:
+def format_value(value: object, digits: int = 4) -> str:
+    """A table cell: floats to ``digits`` significant digits, None as "-", anything else as str.
+
+    >>> format_value(3.14159), format_value(None), format_value(12)
+    ('3.142', '-', '12')
+    """
     if value is None:
         return "-"
     if isinstance(value, float):
-        return f"{value:.4g}"
+        return f"{value:.{digits}g}"
     return str(value)
 
 

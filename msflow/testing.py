@@ -4,6 +4,8 @@
     out = run_stage(Scale, {"factor": 3}, {"x": np.arange(4.0)})
     out.arrays["y"]; out.meta; out.view()  # view() feeds the next stage's Input.artifact
 
+``example_project(folder)`` writes a small runnable project (two stages and a pipeline file) for examples.
+
 The same validation as the runner applies (params, inputs, output schema, strict JSON metadata); with
 ``store=path`` the result also round-trips through a real zarr artifact, so serialisation problems show up.
 """
@@ -19,7 +21,9 @@ from msflow.artifact import ArtifactView, settle_output
 from msflow.stage import Files, Stage
 
 
-def artifact(arrays: Mapping[str, Any], meta: dict | None = None, metrics: dict | None = None) -> ArtifactView:
+def artifact(
+    arrays: Mapping[str, Any], meta: dict[str, Any] | None = None, metrics: dict[str, Any] | None = None
+) -> ArtifactView:
     """An in-memory artifact with the interface stages see for ``Input.artifact`` inputs."""
     import numpy as np
 
@@ -31,8 +35,8 @@ class StageRun:
     """What ``run_stage`` returns: the outputs as numpy, meta, metrics and warnings."""
 
     arrays: dict[str, Any]
-    meta: dict
-    metrics: dict
+    meta: dict[str, Any]
+    metrics: dict[str, Any]
     warnings: list[str] = field(default_factory=list)
 
     def view(self) -> ArtifactView:
@@ -93,12 +97,54 @@ def run_stage(
     store: str | Path | None = None,
     jobs: int = 1,
 ) -> StageRun:
-    """Validate params and inputs, run the stage, validate its result; optionally round-trip through zarr.
+    """Run one stage class outside a pipeline, with the runner's validation.
 
-    The stage runs through the same function as in the runner's workers (``msflow.worker.compute``), so a
-    result the runner rejects (a schema violation, non-JSON metadata, non-scalar metrics) raises here too.
-    Output sinks keep their blocks in memory; ``jobs`` is the stage's ``self.jobs``; BLAS threading is the
-    caller's (workers pin it to one thread).
+    The stage runs through the function the runner's workers use (``msflow.worker.compute``), so whatever the
+    runner rejects (a schema violation, non-JSON metadata, non-scalar metrics) raises here too.
+
+    Parameters
+    ----------
+    cls : type of Stage
+        The stage class.
+    params : mapping, optional
+        Raw params, validated by ``cls.Params`` (a ``pydantic.ValidationError`` when invalid).
+    inputs : mapping, optional
+        Input name -> value: a numpy array (``Input.array``), an artifact (``artifact(...)`` or a previous
+        ``StageRun``) for ``Input.artifact``, a path or ``{label: path}`` for ``Input.files``.
+    name : str, optional
+        The stage name (messages); the class name by default.
+    store : str or Path, optional
+        A folder: the result also round-trips through a real zarr artifact there.
+    jobs : int
+        The stage's ``self.jobs``.
+
+    Returns
+    -------
+    StageRun
+        Outputs as numpy arrays (output sinks kept their blocks in memory), meta, metrics, warnings. The stage's
+        warnings are also re-emitted to the caller; BLAS threading is the caller's (workers pin it to one).
+
+    Raises
+    ------
+    UserError
+        The stage rejected its data.
+    TypeError, ValueError
+        Inputs of the wrong kind, or a result the runner would reject (``msflow.errors.InvalidResult``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from msflow import Input, Output, Result, Stage
+    >>> class Scale(Stage):
+    ...     class Params(Stage.Params):
+    ...         factor: float = 2.0
+    ...     inputs = {"x": Input.array("f")}
+    ...     outputs = {"y": Output.array("f", shape=("n",))}
+    ...     def run(self, params, inputs):
+    ...         return Result({"y": inputs["x"] * params.factor}, metrics={"peak": float(inputs["x"].max())})
+    >>> out = run_stage(Scale, {"factor": 3}, {"x": np.arange(3.0)})
+    >>> out.arrays["y"], out.metrics
+    (array([0., 3., 6.]), {'peak': 2.0})
     """
     from msflow.worker import compute
 
@@ -116,3 +162,60 @@ def run_stage(
         view = read_artifact(path)
         arrays = {k: view[k] for k in view.names}
     return StageRun(arrays, done.meta, done.metrics, done.warnings)
+
+
+EXAMPLE_STAGES = """\"\"\"Two example stages: a ramp of numbers and a scaled copy.\"\"\"
+
+import numpy as np
+
+from msflow import Input, Output, Result, Stage
+
+
+class Ramp(Stage):
+    \"\"\"0, 1, ..., n - 1.\"\"\"
+
+    class Params(Stage.Params):
+        n: int = 4
+
+    outputs = {"x": Output.array("f", shape=("n",))}
+
+    def run(self, params, inputs):
+        return Result({"x": np.arange(params.n, dtype=float)}, meta={"n": params.n})
+
+
+class Scale(Stage):
+    \"\"\"The input times a factor.\"\"\"
+
+    class Params(Stage.Params):
+        factor: float = 2.0
+
+    inputs = {"x": Input.array("f")}
+    outputs = {"y": Output.array("f", shape=("n",))}
+
+    def run(self, params, inputs):
+        y = inputs["x"] * params.factor
+        return Result({"y": y}, metrics={"total": float(y.sum())})
+"""
+
+EXAMPLE_PIPELINE = """\
+version: 1
+stages:
+  ramp:
+    uses: example_stages:Ramp
+  scale:
+    uses: example_stages:Scale
+    inputs: {x: ramp.x}
+    params: {factor: 3}
+"""
+
+
+def example_project(folder: str | Path) -> Path:
+    """Write a two-stage example project (``example_stages.py``, ``pipeline.yaml``) into ``folder``; return it.
+
+    For trying msflow and for the documentation's examples: ``msflow.run(example_project(d) / "pipeline.yaml")``.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "example_stages.py").write_text(EXAMPLE_STAGES, encoding="utf-8")
+    (folder / "pipeline.yaml").write_text(EXAMPLE_PIPELINE, encoding="utf-8")
+    return folder

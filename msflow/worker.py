@@ -8,14 +8,20 @@ stage, validates its result, and publishes the artifact atomically before releas
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import time
 import traceback
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from msflow.jobs import Job, JobInput, Outcome, StageStatus
+
+if TYPE_CHECKING:
+    from msflow.stage import Result, Stage
+    from msflow.stores.base import ArtifactWriter, Store
 
 BLAS_VARS = (
     "OPENBLAS_NUM_THREADS",
@@ -32,50 +38,60 @@ def pin_blas_threads() -> None:
         os.environ.setdefault(var, "1")
 
 
-_CONTROLLER = None
+_CONTROLLER: Any = None
 
 
-def single_threaded_blas():
+def single_threaded_blas() -> contextlib.AbstractContextManager[object]:
     """Limit already-loaded BLAS/OpenMP pools to one thread (env vars only reach libraries loaded later)."""
     global _CONTROLLER
     from threadpoolctl import ThreadpoolController
 
     if _CONTROLLER is None:  # scanning the loaded libraries costs milliseconds: once per process
         _CONTROLLER = ThreadpoolController()
-    return _CONTROLLER.limit(limits=1)
+    limited: contextlib.AbstractContextManager[object] = _CONTROLLER.limit(limits=1)
+    return limited
 
 
 def run_job(job_json: str) -> str:
-    """Run one job (JSON) and return its outcome (JSON). Never raises."""
-    job = json.loads(job_json)
+    """Run one job (``Job`` as JSON) and return its ``Outcome`` as JSON. Never raises."""
+    from msflow.errors import UserError
+
+    job = Job.from_json(job_json)
     started = time.perf_counter()
     try:
-        outcome = _run(job)
+        outcome = run_locked(job)
+    except UserError as exc:
+        exc.located(stage=job.stage)
+        outcome = Outcome(StageStatus.FAILED, user_error=exc.to_json(), error=str(exc))
     except Exception as exc:
-        from msflow.errors import UserError
-
-        if isinstance(exc, UserError):
-            exc.located(stage=job["stage"])
-            outcome = {"state": "failed", "user_error": exc.to_json(), "error": str(exc)}
-        else:
-            outcome = {"state": "failed", "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
-    outcome["seconds"] = time.perf_counter() - started
-    outcome["pid"] = os.getpid()
-    return json.dumps(outcome, allow_nan=False)
+        outcome = Outcome.crashed(f"{type(exc).__name__}: {exc}", traceback.format_exc())
+    outcome.seconds = time.perf_counter() - started
+    outcome.pid = os.getpid()
+    return outcome.to_json()
 
 
-def _run(job: dict) -> dict:
+def run_locked(job: Job) -> Outcome:
+    """Under the key's lock: reuse an artifact a concurrent run published meanwhile, or compute and publish."""
     from msflow.plan import ensure_importable
-    from msflow.store import open_store
+    from msflow.stores import open_store
 
-    ensure_importable(job["project_root"])
-    store = open_store(job["store"], job.get("store_options"))
-    key = job["key"]
-    with store.lock(key):
-        if store.has(key) and not job.get("force"):
-            return {"state": "cached", "manifest": store.manifest(key), "concurrent": True}
-        with store.writer(key) as writer:
-            return _execute(job, store, writer)
+    ensure_importable(job.project_root)
+    store = open_store(job.store, job.store_options)
+    with store.lock(job.key, on_wait=lambda holder: report_waiting(job.stage, holder)):
+        if store.has(job.key) and not job.force:
+            return Outcome(StageStatus.CACHED, manifest=store.manifest(job.key), concurrent=True)
+        with store.writer(job.key) as writer:
+            return execute(job, store, writer)
+
+
+def report_waiting(stage: str, holder: dict[str, Any]) -> None:
+    """Tell the user why a stage seems stuck: another run (named by the lock) is computing the same key."""
+    import sys
+
+    who = f"pid {holder.get('pid', '?')} on {holder.get('host', '?')}" if holder else "another process"
+    print(
+        f"msflow: stage '{stage}' is being computed by another run ({who}); waiting for it", file=sys.stderr, flush=True
+    )
 
 
 @dataclass
@@ -93,7 +109,7 @@ class Computed:
 
 
 def compute(
-    cls,
+    cls: type[Stage],
     name: str,
     params: Any,
     inputs: dict[str, Any],
@@ -131,39 +147,39 @@ def compute(
     return Computed(arrays, meta, metrics, stage_warnings, seconds, list(caught))
 
 
-def _execute(job: dict, store, writer) -> dict:
+def execute(job: Job, store: Store, writer: ArtifactWriter) -> Outcome:
+    """Import the stage class, open its inputs, compute, and commit the artifact through ``writer``."""
     from msflow.errors import InvalidResult, StageFailed, UserError
     from msflow.plan import import_stage_class
 
-    name = job["stage"]
-    cls = import_stage_class(job["uses"], stage=name, root=job["project_root"])
-    params = cls.Params(**job["params"])
-    inputs = open_inputs(job["inputs"], store)
+    cls = import_stage_class(job.uses, stage=job.stage, root=job.project_root)
+    params = cls.Params(**job.params)
+    inputs = open_inputs(job.inputs, store)
     try:
-        done = compute(cls, name, params, inputs, jobs=int(job.get("jobs", 1)), chunk_target=writer)
+        done = compute(cls, job.stage, params, inputs, jobs=job.jobs, chunk_target=writer)
     except UserError:
         raise
     except InvalidResult as exc:
-        raise StageFailed(name, str(exc)) from exc
+        raise StageFailed(job.stage, str(exc)) from exc
     except Exception as exc:
-        raise StageFailed(name, f"{type(exc).__name__}: {exc}", traceback.format_exc()) from exc
+        raise StageFailed(job.stage, f"{type(exc).__name__}: {exc}", traceback.format_exc()) from exc
     suffixes = {k: spec.file_suffix for k, spec in cls.outputs.items() if spec.file_suffix}
-    extra = {
+    extra: dict[str, Any] = {
         "meta": done.meta,
         "metrics": done.metrics,
-        "key": job["key"],
-        "stage": name,
-        "uses": job["uses"],
-        "key_parts": job.get("key_parts"),
+        "key": job.key,
+        "stage": job.stage,
+        "uses": job.uses,
+        "key_parts": job.key_parts,
         "created": time.time(),
     }
     if done.warnings:
         extra["warnings"] = done.warnings
-    manifest = writer.commit(done.arrays, extra, suffixes, replace=bool(job.get("force")))
-    return {"state": "ran", "manifest": manifest, "compute_seconds": done.seconds}
+    manifest = writer.commit(done.arrays, extra, suffixes, replace=job.force)
+    return Outcome(StageStatus.RAN, manifest=manifest, compute_seconds=done.seconds)
 
 
-def collect_warnings(result, caught: list) -> list[str]:
+def collect_warnings(result: Result, caught: list[Any]) -> list[str]:
     """The stage's warnings: ``Result.warnings`` then ``UserWarning``s raised in ``run``, in order, each once."""
     messages = list(getattr(result, "warnings", None) or [])
     messages += [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
@@ -172,19 +188,22 @@ def collect_warnings(result, caught: list) -> list[str]:
     return list(dict.fromkeys(messages))
 
 
-def open_inputs(spec: dict, store) -> dict:
-    """Materialise a job's inputs: artifacts as views, single outputs as numpy (or lazy), files as Paths."""
+def open_inputs(spec: Mapping[str, JobInput | None], store: Store) -> dict[str, Any]:
+    """Materialise a job's inputs: artifacts as views, single outputs as numpy (or lazy), files as ``Files``."""
     from msflow.stage import Files
 
-    inputs: dict = {}
+    inputs: dict[str, Any] = {}
     for name, entry in spec.items():
         if entry is None:
             inputs[name] = None
-        elif entry["kind"] == "files":
-            inputs[name] = Files({label: Path(path) for label, path in entry["files"]}, entry.get("fields"))
-        elif entry["kind"] == "artifact":
-            inputs[name] = store.open(entry["key"])
+        elif entry.kind == "files":
+            inputs[name] = Files({label: Path(path) for label, path in entry.files}, entry.fields)
         else:
-            view = store.open(entry["key"])
-            inputs[name] = view.lazy(entry["output"]) if entry.get("lazy") else view[entry["output"]]
+            assert entry.key is not None
+            view = store.open(entry.key)
+            if entry.kind == "artifact":
+                inputs[name] = view
+            else:
+                assert entry.output is not None
+                inputs[name] = view.lazy(entry.output) if entry.lazy else view[entry.output]
     return inputs

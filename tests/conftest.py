@@ -1,9 +1,23 @@
-"""Test-wide settings: one BLAS thread per process (CI has 2 cores), the project root on sys.path."""
+"""Test-wide settings and shared helpers: one BLAS thread per process (CI has 2 cores), the project root on
+sys.path, subprocess helpers for the CLI, and outside tools (npm packages, Chromium) for the tests that need them.
+
+Outside tools (interface for every area's tests):
+
+- ``missing_tool(reason)``: skip with ``reason`` (which must hold the exact install command), or fail when the
+  ``CI`` environment variable is set (CI installs everything; a skip there would hide a broken set-up).
+- ``node_modules`` (session fixture): the ``node_modules`` folder holding the npm packages in ``NPM_PACKAGES``
+  (the Khronos glTF validator, three.js), installed once with npm into a cache folder outside the project
+  (``$XDG_CACHE_HOME/msflow-npm``, default ``~/.cache/msflow-npm``; ``MSFLOW_NPM_CACHE`` overrides) when Node.js
+  is present. It also sets ``MSFLOW_NODE_MODULES`` for the session, so code that looks the validator up by
+  itself (``stages.formats.gltf.validate_glb``) finds it. Request it in any test that validates a GLB.
+- ``chromium`` (session fixture): the path of the Chromium executable (``CHROMIUM``) for Playwright.
+"""
 
 import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -53,6 +67,65 @@ def executions(log_path):
     return [line.split()[0] for line in path.read_text().splitlines()] if path.exists() else []
 
 
+def start_cli(cwd, *args, env=None):
+    """Start ``python -m msflow.cli ARGS`` in the background (stdout and stderr piped, text)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "msflow.cli", *map(str, args)],
+        cwd=cwd,
+        env=cli_env(env),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+class Hold:
+    """A kill point: a numstages stage started with ``env`` (NUMSTAGES_HOLD=folder) writes ``ready`` and then
+    waits for ``release``. Synchronisation by files, never by sleeping a guessed time."""
+
+    def __init__(self, folder):
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.env = {"NUMSTAGES_HOLD": str(self.folder)}
+
+    def wait_ready(self, proc, timeout=120):
+        """Block until the held stage is waiting (fails if ``proc`` exits first); returns the stage's line."""
+        ready = self.folder / "ready"
+        deadline = time.monotonic() + timeout  # a guard against hanging, not a speed assertion
+        while not ready.exists():
+            if proc.poll() is not None:
+                pytest.fail(f"the run ended before reaching the hold point: {proc.communicate()}")
+            if time.monotonic() > deadline:
+                proc.kill()
+                pytest.fail("the run never reached the hold point")
+            time.sleep(0.01)
+        return ready.read_text()
+
+    def release(self):
+        (self.folder / "release").write_text("go")
+
+
+def wait_for_line(proc, text, timeout=120):
+    """Read ``proc``'s stderr until a line containing ``text`` (fails if it ends first); returns the lines read."""
+    import selectors
+
+    lines = []
+    deadline = time.monotonic() + timeout  # a guard against hanging, not a speed assertion
+    with selectors.DefaultSelector() as selector:
+        selector.register(proc.stderr, selectors.EVENT_READ)
+        while time.monotonic() < deadline:
+            if not selector.select(timeout=1.0):
+                continue
+            line = proc.stderr.readline()
+            if not line:
+                pytest.fail(f"stderr ended before {text!r}: {lines}")
+            lines.append(line)
+            if text in line:
+                return lines
+    proc.kill()
+    pytest.fail(f"no line with {text!r} on stderr: {lines}")
+
+
 @pytest.fixture(scope="session")
 def default_run(tmp_path_factory):
     """The repository's default pipeline, run once per session in a copy with its own store."""
@@ -67,3 +140,59 @@ def default_run(tmp_path_factory):
         else:
             shutil.copy2(src, dest / name)
     return dest, msflow.run(dest / "pipeline.yaml")
+
+
+# ------------------------------------------------------------------------------------------------ outside tools
+NPM_PACKAGES = ("gltf-validator@2.0.0-dev.3.10", "three@0.170.0")
+NPM_INSTALL = f"npm install --no-save --no-package-lock {' '.join(NPM_PACKAGES)}"
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_INSTALL = "apt-get update && apt-get install -y chromium"
+
+
+def missing_tool(reason):
+    """Skip for a missing outside tool (``reason`` holds the install command); fail instead when CI is set."""
+    if os.environ.get("CI"):
+        pytest.fail(f"{reason} (CI is set: outside tools must be installed)")
+    pytest.skip(reason)
+
+
+def npm_cache():
+    """Where the npm packages of the tests are installed: outside the project, shared by checkouts."""
+    if os.environ.get("MSFLOW_NPM_CACHE"):
+        return Path(os.environ["MSFLOW_NPM_CACHE"])
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "msflow-npm"
+
+
+def npm_installed(modules):
+    return all((modules / spec.rsplit("@", 1)[0] / "package.json").is_file() for spec in NPM_PACKAGES)
+
+
+@pytest.fixture(scope="session")
+def node_modules():
+    """The node_modules folder with NPM_PACKAGES, installed once into the npm cache folder when Node.js is present;
+    MSFLOW_NODE_MODULES points at it for the rest of the session."""
+    cache = npm_cache()
+    modules = cache / "node_modules"
+    if not npm_installed(modules):
+        if shutil.which("node") is None or shutil.which("npm") is None:
+            missing_tool("Node.js is not installed: apt-get install -y nodejs npm")
+        cache.mkdir(parents=True, exist_ok=True)
+        proc = subprocess.run([*NPM_INSTALL.split(), "--silent"], cwd=cache, capture_output=True, text=True)
+        if proc.returncode != 0 or not npm_installed(modules):
+            missing_tool(f"npm could not install {NPM_PACKAGES} ({proc.stderr[-300:]}); run in {cache}: {NPM_INSTALL}")
+    previous = os.environ.get("MSFLOW_NODE_MODULES")
+    os.environ["MSFLOW_NODE_MODULES"] = str(modules)
+    yield modules
+    if previous is None:
+        os.environ.pop("MSFLOW_NODE_MODULES", None)
+    else:
+        os.environ["MSFLOW_NODE_MODULES"] = previous
+
+
+@pytest.fixture(scope="session")
+def chromium():
+    """The Chromium executable Playwright drives (Debian's package; Playwright downloads no browser)."""
+    pytest.importorskip("playwright", reason='Playwright is not installed: pip install -e ".[test]"')
+    if not os.access(CHROMIUM, os.X_OK):
+        missing_tool(f"Chromium is not installed: {CHROMIUM_INSTALL} ({CHROMIUM})")
+    return CHROMIUM

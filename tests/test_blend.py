@@ -399,7 +399,7 @@ def single_target_inputs(weights, names, lip_gap=None):
         "keyshape_expression": np.zeros(frames, np.int32),
     }
     if lip_gap is not None:
-        arrays["lip_gap"] = np.asarray(lip_gap, np.float32)[None]  # (1, frames, [gap, rest gap])
+        arrays["lip_gap"] = np.asarray(lip_gap, np.float32)[None]
     keyshapes = artifact(arrays, meta={"labels": ["performance"], "targets": ["performance"], "fps": FPS})
     keymorphs = artifact({"keymorph_weights": np.asarray(weights, np.float32)}, meta={"target_names": names})
     return keyshapes, keymorphs
@@ -415,20 +415,18 @@ def test_lip_seal_closes_the_characters_lips_where_the_performers_close(ict):
     weights[:, names.index("mouthFunnel")] = 0.2
     weights[:, names.index("mouthSmile_L")] = 0.4
     gap = np.array([0.02, 0.015, 0.2, 0.2, 0.035, 0.02])  # closed, closed, open, open, just above, closed
-    rest = 0.015  # the performer's closed mouth: the tracked inner lips of a closed mouth are this far apart
-    keyshapes, keymorphs = single_target_inputs(weights, names, np.stack([gap, np.full(6, rest)], axis=1))
+    keyshapes, keymorphs = single_target_inputs(weights, names, gap)
     out = run_stage(Blend, {"eyes": "keyshapes"}, {"keyshapes": keyshapes, "keymorphs": keymorphs, "character": ict})
     sealed = out.arrays["weights"].astype(np.float64)
     g0, slopes = lip_gap_model(*character_landmarks(ict))
     achieved = g0 + sealed @ slopes
-    for f in (0, 1, 5):  # the character's closed mouth, opened as far as the performer's is beyond their rest
-        assert achieved[f] <= g0 + (gap[f] - rest) + 1e-4, (f, achieved[f])
-    assert achieved[1] == pytest.approx(g0, abs=1e-4)
+    for f in (0, 1, 5):  # closed lips: the character's own closed mouth (its neutral gap)
+        assert achieved[f] <= g0 + 1e-4, (f, achieved[f])
     np.testing.assert_allclose(sealed[[2, 3]], weights[[2, 3]], atol=1e-6)  # open frames untouched
     assert np.all(sealed <= weights + 1e-6)  # the seal only lowers weights ...
     smile = names.index("mouthSmile_L")
     np.testing.assert_allclose(sealed[:, smile], weights[:, smile], atol=1e-6)  # ... and only those that open the lips
-    assert g0 + gap[4] - rest < achieved[4] < g0 + weights[4] @ slopes  # above seal_gap the seal fades out
+    assert g0 < achieved[4] <= g0 + 4 * (gap[4] - 0.03) + 1e-6  # above seal_gap the seal fades out
     assert out.metrics["closed_frames"] == 3
     plain = run_stage(
         Blend,
@@ -487,7 +485,7 @@ def test_blinks_and_gaze_come_from_tracking(ict):
     keyshapes, keymorphs = single_target_inputs(np.zeros((frames, len(names))), names)
     out = run_stage(
         Blend,
-        {},
+        {"lip_seal": False},
         {
             "keyshapes": keyshapes,
             "keymorphs": keymorphs,
@@ -512,7 +510,7 @@ def test_blinks_and_gaze_come_from_tracking(ict):
     assert out.meta["eyes"]["blink_source"] == "tracking eye_aperture"
     keyed = run_stage(
         Blend,
-        {"eyes": "keyshapes"},
+        {"eyes": "keyshapes", "lip_seal": False},
         {
             "keyshapes": keyshapes,
             "keymorphs": keymorphs,
@@ -521,3 +519,30 @@ def test_blinks_and_gaze_come_from_tracking(ict):
         },
     )
     assert not keyed.arrays["weights"].any() and "gaze" not in keyed.arrays
+
+
+def test_seal_follows_the_tracked_performer_over_the_edited_shapes(ict):
+    """Lip closures are speech, not expression: with the performer's tracking the seal follows their lips even when
+    the re-expressed shapes have them apart."""
+    names = ict.meta["target_names"]
+    weights = np.zeros((4, len(names)))
+    weights[:, names.index("jawOpen")] = 0.3
+    keyshapes, keymorphs = single_target_inputs(weights, names, np.full(4, 0.2))  # the edit: lips apart
+    from stages.retarget.keyshapes import level, lip_gap_iod
+
+    rng = np.random.default_rng(0)
+    landmarks = rng.normal(size=(4, 68, 2)) * 5 + 100
+    landmarks[:, 36], landmarks[:, 45] = [70, 100], [130, 100]  # eye line level, IOD 60
+    for a, b in ((61, 67), (62, 66), (63, 65)):
+        landmarks[:, a, 1] = 150
+        landmarks[:, b, 1] = [150.6, 150.6, 160, 160]  # closed (0.01 IOD) twice, then open
+    tracks = artifact({"landmarks": landmarks.astype(np.float32)}, meta={"labels": ["take"], "fps": [FPS]})
+    assert lip_gap_iod(level(landmarks))[:2] == pytest.approx(0.01, abs=1e-3)
+    out = run_stage(
+        Blend,
+        {"eyes": "keyshapes"},
+        {"keyshapes": keyshapes, "keymorphs": keymorphs, "character": ict, "tracks": tracks},
+    )
+    jaw = out.arrays["weights"][:, names.index("jawOpen")]
+    assert np.all(jaw[:2] < 0.01) and np.allclose(jaw[2:], 0.3)
+    assert out.meta["lip_seal_source"] == "tracking"

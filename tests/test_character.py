@@ -276,7 +276,7 @@ def synthetic_mesh(n_targets=3, seed=1) -> MorphMesh:
     )
 
 
-def test_glb_round_trip_keeps_geometry_targets_and_landmarks(tmp_path):
+def test_glb_round_trip_keeps_geometry_targets_and_landmarks(tmp_path, node_modules):
     mesh = synthetic_mesh()
     data = write_morph_glb(mesh)
     report = validate_glb(data)
@@ -498,7 +498,7 @@ ICT_EXPRESSIONS = {
 }
 
 
-def test_embedded_character_files_size_and_validity():
+def test_embedded_character_files_size_and_validity(node_modules):
     folder = ICT_GLB.parent
     assert ICT_GLB.stat().st_size <= 10 * 1024 * 1024
     assert "MIT License" in (folder / "LICENSE").read_text()
@@ -551,7 +551,7 @@ def test_embedded_character_identity_mix(ict):
     assert mixed.meta["identity"] == {"identity000": 1.0, "identity003": -0.5}
 
 
-def test_builder_on_an_ict_like_folder(tmp_path):
+def test_builder_on_an_ict_like_folder(tmp_path, node_modules):
     """The builder on a small folder in ICT FaceKit's layout: overlay groups dropped, eye shells removed, the
     eyeball painted, identity targets flagged, landmark ids remapped; the GLB validates."""
     src = tmp_path / "ict"

@@ -242,7 +242,7 @@ def test_edit_in_a_clone_is_seen_although_the_original_is_unchanged(numproject, 
 
 
 def test_memo_keeps_its_newest_entries_only(monkeypatch):
-    from msflow import api
+    from msflow import session as api
 
     monkeypatch.setattr(api, "MEMO_ENTRIES", 3)
     memo = {"params": {f"k{i}": i for i in range(5)}, "code": {"files": {"a": 1}}, "data": {}}

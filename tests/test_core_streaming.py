@@ -14,7 +14,8 @@ import msflow
 from msflow import Output, Result, Stage, iter_blocks
 from msflow.artifact import read_artifact, read_manifest
 from msflow.hashing import array_hash
-from msflow.store import LocalStore, open_store
+from msflow.stores import open_store
+from msflow.stores.local import LocalStore
 from msflow.testing import run_stage
 
 

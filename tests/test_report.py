@@ -5,7 +5,6 @@ import re
 import pytest
 from conftest import run_cli
 
-CHROMIUM = "/usr/bin/chromium"
 ARGS = [
     "--headless=new",
     "--no-sandbox",
@@ -31,11 +30,11 @@ REQUIRED_FIGURES = [  # issue 8: one per paper figure or pipeline step
 ]
 
 
-def open_in_chromium(path, screenshot):
+def open_in_chromium(chromium, path, screenshot):
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        browser = p.chromium.launch(executable_path=chromium, args=ARGS)
         page = browser.new_page(viewport={"width": 1280, "height": 900})
         errors = []
         page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
@@ -65,13 +64,13 @@ def report(default_run, tmp_path_factory):
     return proj, out, first
 
 
-def test_report_is_self_contained_and_renders_in_chromium(report, tmp_path):
+def test_report_is_self_contained_and_renders_in_chromium(report, chromium, tmp_path):
     proj, out, _ = report
     page = out.read_text()
     assert "http://" not in page.replace("http://www.w3.org/2000/svg", "") and "https://" not in page
     for caption in REQUIRED_FIGURES:
         assert caption in page, caption
-    errors, images, durations, requests = open_in_chromium(out, tmp_path / "shot.png")
+    errors, images, durations, requests = open_in_chromium(chromium, out, tmp_path / "shot.png")
     assert errors == []
     assert requests == []  # nothing fetched from the network
     assert len(images) >= len(REQUIRED_FIGURES) - 1
@@ -113,7 +112,7 @@ def test_report_of_a_failed_run_colours_the_failure(numproject, tmp_path):
     assert "<h2>Failures</h2>" in page and "RuntimeError: boom" in page and "#fb6a4a" in page
 
 
-def test_sweep_report_has_table_and_metric_plots(numproject, tmp_path):
+def test_sweep_report_has_table_and_metric_plots(numproject, chromium, tmp_path):
     result = run_cli(numproject, "sweep", "-S", "src.n=3,4,5", "-q")
     assert result.returncode == 0
     sweep_id = re.search(r"sweep (\S+):", result.stderr).group(1)
@@ -122,7 +121,7 @@ def test_sweep_report_has_table_and_metric_plots(numproject, tmp_path):
     assert made.returncode == 0, made.stderr
     page = out.read_text()
     assert "<th>src.n</th>" in page and "total.total vs src.n" in page
-    errors, images, _, _ = open_in_chromium(out, tmp_path / "sweep.png")
+    errors, images, _, _ = open_in_chromium(chromium, out, tmp_path / "sweep.png")
     assert errors == [] and len(images) == 1 and images[0][2] > 0
 
 

@@ -274,7 +274,8 @@ class BlendParams(Stage.Params):
     tolerance: float = Field(1e-3, gt=0)
     #: drive each morph by its own region's keyshape weights when the keyshapes and keymorphs carry regions
     regions: bool = True
-    #: close the character's lips where the performer's close (needs the character and keyshapes lip_gap)
+    #: close the character's lips where the performer's close (needs the character, and the tracks input or the
+    #: keyshapes' lip_gap)
     lip_seal: bool = True
     #: the seal acts below this inner-lip gap (IOD) and fades out above it
     seal_gap: float = Field(0.03, gt=0)
@@ -589,13 +590,15 @@ def finish_weights(params, data, raw: np.ndarray, alpha: np.ndarray) -> dict:
     out = {"metrics": {}, "meta": {}, "warnings": [], "gaze": None}
     character, tracks, names = data["character"], data["tracks"], data["names"]
     if params.lip_seal:
-        if character is None or data["target_gap"] is None:
+        gap, source = performer_lip_gap(tracks, data["target_gap"], alpha)
+        if character is None or gap is None:
             out["warnings"].append(
-                "lip seal off: it needs the character input and the keyshapes' lip_gap (re-run keyshapes)"
+                "lip seal off: it needs the character input, and the performer's tracking or the keyshapes' lip_gap"
             )
         else:
-            weights, seal = apply_lip_seal(weights, character, data["target_gap"], alpha, params.seal_gap)
+            weights, seal = apply_lip_seal(weights, character, gap, params.seal_gap)
             out["metrics"].update(seal)
+            out["meta"]["lip_seal_source"] = source
     if params.eyes == "tracking":
         if tracks is None:
             out["warnings"].append("eyes from tracking: no tracks input, blinks and gaze come from the keymorphs only")
@@ -615,17 +618,29 @@ def character_landmarks(character) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(character["neutral"], np.float64)[ids], np.asarray(character["deltas"], np.float64)[:, ids]
 
 
-def apply_lip_seal(weights, character, target_gap, alpha, seal_gap) -> tuple[np.ndarray, dict]:
-    """The sealed weights and how much the seal did (stages.retarget.lips); ``target_gap`` (targets, frames, 2):
-    the decomposed shapes' gap and their rest's."""
+def performer_lip_gap(tracks, target_gap, alpha) -> tuple[np.ndarray | None, str]:
+    """The inner-lip gap (frames,) the seal follows: the tracked performer's, when the blend has the tracking of
+    the take it animates (lip closures are speech, not expression: a re-expressed take keeps its performer's), else
+    the decomposed shapes' (keyshapes ``lip_gap``) blended by alpha."""
+    from stages.retarget.keyshapes import level, lip_gap_iod
+
+    if tracks is not None:
+        with np.errstate(invalid="ignore", divide="ignore"):  # a frame without a face: NaN, never sealed
+            return lip_gap_iod(level(np.asarray(tracks["landmarks"], np.float64))), "tracking"
+    if target_gap is not None:
+        return np.einsum("ft,tf->f", alpha, target_gap), "keyshapes lip_gap"
+    return None, "none"
+
+
+def apply_lip_seal(weights, character, gap, seal_gap) -> tuple[np.ndarray, dict]:
+    """The sealed weights and how much the seal did (stages.retarget.lips); ``gap`` (frames,) the performer's
+    inner-lip gap."""
     from stages.retarget.lips import lip_gap_model, seal_bound, seal_lips
 
     if "landmark_ids" not in character:
         raise UserError("the lip seal needs the character's landmark_ids", field="inputs.character")
     g0, slopes = lip_gap_model(*character_landmarks(character))
-    gap = np.einsum("ft,tf->f", alpha, target_gap[..., 0])  # the blended performer's gap ...
-    rest = np.einsum("ft,tf->f", alpha, target_gap[..., 1])  # ... and their rest's
-    sealed = seal_lips(weights, g0, slopes, seal_bound(gap, rest, g0, seal_gap))
+    sealed = seal_lips(weights, g0, slopes, seal_bound(gap, g0, seal_gap))
     before, after = g0 + weights @ slopes, g0 + sealed @ slopes
     closed = gap < seal_gap
     return sealed, {

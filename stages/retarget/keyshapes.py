@@ -470,11 +470,10 @@ KEYSHAPES_OUTPUTS = {
     ),
     "lip_gap": Output.array(
         "f",
-        shape=("targets", "frames", 2),
+        shape=("targets", "frames"),
         dtype="float32",
         optional=True,
-        doc="[..., 0] vertical inner-lip gap / inter-ocular distance of the decomposed shapes, [..., 1] the gap of "
-        "their performer's rest pose (the blend's lip seal follows the first above the second)",
+        doc="vertical inner-lip gap / inter-ocular distance of the decomposed shapes (the blend's lip seal reads it)",
     ),
     "rest_shape": Output.array(
         "f",
@@ -563,12 +562,6 @@ def keyshape_counts(k, labels: list[str]) -> dict[str, int]:
             field="params.k",
         )
     return {label: int(k[label]) for label in labels}
-
-
-def with_rest_gap(gap: np.ndarray, rest_gap) -> np.ndarray:
-    """The ``lip_gap`` output: (targets, frames, 2) = [gap, the rest pose's gap], float32."""
-    gap = np.asarray(gap, np.float64)
-    return np.stack([gap, np.broadcast_to(rest_gap, gap.shape)], axis=-1).astype(np.float32)
 
 
 def nnls_options(params) -> dict:
@@ -693,7 +686,7 @@ class Keyshapes(Stage):
             weights=weights.astype(np.float32),
             reconstruction=reconstruction.astype(np.float32),
             residual=residual.astype(np.float32),
-            lip_gap=with_rest_gap(lip_gap_iod(edited), lip_gap_iod(aligned[rest_idx].mean(axis=0))),
+            lip_gap=lip_gap_iod(edited).astype(np.float32),
             rest_shape=aligned[rest_idx].mean(axis=0).astype(np.float32),
             rest_frames=rest_idx.astype(np.int32),
             expression_mean=np.stack([aligned[(sequence == s) & usable].mean(0) for s in range(len(labels))]).astype(
@@ -825,7 +818,7 @@ class CaptureKeyshapes(Stage):
             weights=weights.astype(np.float32),
             reconstruction=flat_view(reconstruction, space).astype(np.float32),
             residual=residual.astype(np.float32),
-            lip_gap=capture_lip_gap(tracks["landmarks"], rests, sequence),
+            lip_gap=lip_gap_iod(level(tracks["landmarks"]))[None].astype(np.float32),
         )
         if region_weights is not None:
             arrays["region_weights"] = region_weights.astype(np.float32)
@@ -887,14 +880,6 @@ class CaptureKeyshapes(Stage):
         )
         arrays["sequence"] = sequence.astype(np.int32)
         return arrays
-
-
-def capture_lip_gap(landmarks: np.ndarray, rests: list[np.ndarray], sequence: np.ndarray) -> np.ndarray:
-    """The ``lip_gap`` output of captured takes, from the tracked image landmarks (eye line levelled), as the
-    evaluation measures it: each frame's gap and its take's rest gap (mean over the rest frames)."""
-    gap = lip_gap_iod(level(landmarks))
-    rest = np.array([gap[r].mean() for r in rests])
-    return with_rest_gap(gap[None], rest[sequence][None])
 
 
 def flat_view(shapes: np.ndarray, space: str) -> np.ndarray:

@@ -6,11 +6,11 @@ decomposed shape's inner-lip gap g(t) (IOD units) is small:
 
 - the character's inner-lip gap is linear in the weights, gap(u) = g0 + a.u, with a_m the vertical opening that
   morph m gives the three inner-lip landmark pairs (iBUG 61-67, 62-66, 63-65; mean, character IOD units);
-- the seal asks gap(u) <= b(t) = g0 + max(0, g(t) - r(t)) + 4 max(0, g(t) - seal_gap), r(t) the gap of the
-  performer's rest pose (closed lips): the character's closed mouth plus what the performer's lips are open beyond
-  theirs, below ``seal_gap``; fading out above it (the allowed excess grows four times as fast as the gap) so the
-  seal never snaps on. Gaps relative to the rests, because trackers place the inner lips of a closed mouth some
-  way apart (FaceMesh about 0.02 IOD) where the character's neutral has them touching (ICT FaceKit 0.009);
+- the seal asks gap(u) <= b(t) = g0 + 4 max(0, g(t) - seal_gap): the character's own closed mouth (its neutral
+  gap g0) wherever the performer's lips are closed (gap below ``seal_gap``), the allowed opening growing four times
+  as fast as the performer's gap above it, so the seal fades out instead of snapping off. The performer's gap is
+  not copied: trackers place the inner lips of a closed mouth some way apart (FaceMesh about 0.02 IOD, with the
+  perspective of a close-up), where the character's neutral has them touching (ICT FaceKit 0.009);
 - of all the weights that meet it, the seal takes the nearest to u(t) that only *lowers* weights
   (0 <= u' <= u): min ||u' - u||^2 s.t. a.u' <= b. Its solution is u'(lambda) = clip(u - lambda a, 0, u) for the
   smallest lambda >= 0 that meets the bound (a.u'(lambda) falls as lambda grows), found by bisection for all
@@ -37,12 +37,9 @@ def lip_gap_model(neutral_landmarks: np.ndarray, landmark_deltas: np.ndarray) ->
     return g0, slopes
 
 
-def seal_bound(target_gap: np.ndarray, rest_gap: np.ndarray, g0: float, seal_gap: float) -> np.ndarray:
-    """b(t): the character's closed gap plus the performer's opening beyond their rest, fading out above
-    ``seal_gap`` (see the module docstring)."""
-    target_gap = np.asarray(target_gap, np.float64)
-    opening = np.maximum(target_gap - np.asarray(rest_gap, np.float64), 0.0)
-    return g0 + opening + 4.0 * np.maximum(target_gap - seal_gap, 0.0)
+def seal_bound(target_gap: np.ndarray, g0: float, seal_gap: float) -> np.ndarray:
+    """b(t): the character's closed gap where the performer's lips are closed, fading out above ``seal_gap``."""
+    return g0 + 4.0 * np.maximum(np.asarray(target_gap, np.float64) - seal_gap, 0.0)
 
 
 def seal_lips(

@@ -1,5 +1,7 @@
 """Numeric test stages. NUMSTAGES_LOG (env) names a file that gets one line per execution: a side channel for
-counting executions that is not part of any cache key. NUMSTAGES_SLEEP delays Slow."""
+counting executions that is not part of any cache key. NUMSTAGES_HOLD (env) names a folder: Slow (before
+computing) and Stream (in the middle of its output) write <folder>/ready and wait for <folder>/release, so tests
+can kill or race a run at a known point without sleeping."""
 
 import os
 import time
@@ -68,7 +70,7 @@ class LoadCsv(Stage):
 
 
 class Slow(Stage):
-    """Sleeps, then returns a large array: a window for SIGKILL before and during the artifact write."""
+    """Returns a large array; with NUMSTAGES_HOLD it first waits for a release file (a kill point)."""
 
     class Params(Stage.Params):
         size: int = 2_000_000
@@ -79,7 +81,7 @@ class Slow(Stage):
 
     def run(self, params, inputs):
         log_execution(self.name)
-        time.sleep(float(os.environ.get("NUMSTAGES_SLEEP", "0")))
+        hold_if_asked(self.name)
         rng = np.random.default_rng(params.seed)
         return Result({"big": rng.standard_normal(params.size), "small": np.arange(10)})
 

@@ -20,7 +20,7 @@ release
     Stop the heartbeat, delete the lease if it still has our etag.
 
 Leases make "each stage instance computed once" hold across machines; they are not what keeps the store
-consistent. Publishing is atomic and content-addressed (msflow.remote), so a lost lease costs duplicated work,
+consistent. Publishing is atomic and content-addressed (msflow.stores.remote), so a lost lease costs duplicated work,
 never a torn or mixed artifact.
 """
 
@@ -31,9 +31,10 @@ import os
 import threading
 import time
 import uuid
-from typing import Callable
+from typing import Any, Callable
 
-from msflow.store import HOST, _pid_alive
+from msflow.stores.base import HOST, pid_alive
+from msflow.stores.objects import Objects
 
 DEFAULT_TTL = 60.0
 SKEW = 2.0  # seconds of grace beyond a lease's ttl before it is broken (clock and timestamp granularity)
@@ -47,7 +48,7 @@ def lease_ttl() -> float:
         return DEFAULT_TTL
 
 
-def parse_holder(data: bytes) -> dict:
+def parse_holder(data: bytes) -> dict[str, Any]:
     try:
         holder = json.loads(data)
         return holder if isinstance(holder, dict) else {}
@@ -55,11 +56,12 @@ def parse_holder(data: bytes) -> dict:
         return {}
 
 
-def lease_is_stale(holder: dict, age: float | None, now: float | None = None) -> bool:
+def lease_is_stale(holder: dict[str, Any], age: float | None, now: float | None = None) -> bool:
     """Whether a lease may be broken: its holder on this host is gone, or it was not renewed within its ttl."""
-    if holder.get("host") == HOST and isinstance(holder.get("pid"), int) and not _pid_alive(holder["pid"]):
+    if holder.get("host") == HOST and isinstance(holder.get("pid"), int) and not pid_alive(holder["pid"]):
         return True
-    ttl = holder.get("ttl") if isinstance(holder.get("ttl"), (int, float)) else DEFAULT_TTL
+    raw_ttl = holder.get("ttl")
+    ttl = float(raw_ttl) if isinstance(raw_ttl, (int, float)) else DEFAULT_TTL
     if age is not None:  # server clock: immune to skew between machines
         return age > ttl + SKEW
     renewed = holder.get("renewed")
@@ -69,7 +71,7 @@ def lease_is_stale(holder: dict, age: float | None, now: float | None = None) ->
 
 
 class Lease:
-    def __init__(self, objects, path: str, ttl: float | None = None, settle: float = 0.5):
+    def __init__(self, objects: Objects, path: str, ttl: float | None = None, settle: float = 0.5):
         self.objects = objects
         self.path = path
         self.ttl = ttl or lease_ttl()
@@ -94,7 +96,7 @@ class Lease:
         ).encode()
 
     def acquire(
-        self, on_wait: Callable[[dict], None] | None = None, poll: float = 0.1, timeout: float | None = None
+        self, on_wait: Callable[[dict[str, Any]], None] | None = None, poll: float = 0.1, timeout: float | None = None
     ) -> None:
         self.since = time.time()
         deadline = None if timeout is None else time.monotonic() + timeout
@@ -132,6 +134,8 @@ class Lease:
 
     def _heartbeat(self) -> None:
         while not self._stop.wait(self.ttl / 3):
+            if self.etag is None:
+                return
             try:
                 etag = self.objects.replace_if(self.path, self._body(), self.etag)
             except Exception:

@@ -1,4 +1,4 @@
-"""Object access for remote stores: the handful of primitives msflow.remote needs, and translation of backend
+"""Object access for remote stores: the handful of primitives msflow.stores.remote needs, and translation of backend
 failures (credentials, bucket, network) into UserErrors that name the store.
 
 Two backends:
@@ -10,7 +10,7 @@ Two backends:
     clock (``Date`` minus ``Last-Modified``), so clock skew between machines does not matter.
 ``FsspecObjects``
     Any other fsspec filesystem (``memory://``, ``gcs://`` ...). Conditional operations are emulated by
-    read-compare-write and are not atomic; msflow.remote_leases compensates with a settle delay.
+    read-compare-write and are not atomic; msflow.stores.leases compensates with a settle delay.
 
 Paths given to these methods are relative to the store's root.
 """
@@ -21,10 +21,13 @@ import asyncio
 import hashlib
 import json
 import os
+from collections.abc import Awaitable, Callable, Iterable, Iterator
 from dataclasses import dataclass
-from typing import Iterable
+from typing import Any, Protocol, TypeVar
 
 from msflow.errors import UserError
+
+T = TypeVar("T")
 
 PROBE_SECONDS = 15.0  # the first request to a store gives up after this long (MSFLOW_STORE_TIMEOUT)
 CONCURRENCY = 16  # parallel requests when reading or writing many objects
@@ -57,8 +60,9 @@ class ObjectInfo:
 def _client_error_code(exc: BaseException) -> str | None:
     """The S3 error code behind an exception s3fs translated (it keeps the botocore error as __cause__)."""
     seen = 0
-    while exc is not None and seen < 5:
-        response = getattr(exc, "response", None)
+    current: BaseException | None = exc
+    while current is not None and seen < 5:
+        response = getattr(current, "response", None)
         if isinstance(response, dict):
             error = response.get("Error", {})
             code = error.get("Code")
@@ -67,7 +71,7 @@ def _client_error_code(exc: BaseException) -> str | None:
             status = response.get("ResponseMetadata", {}).get("HTTPStatusCode")
             if status:
                 return str(status)
-        exc = exc.__cause__ or exc.__context__
+        current = current.__cause__ or current.__context__
         seen += 1
     return None
 
@@ -122,10 +126,29 @@ def translate_failure(exc: BaseException, url: str, endpoint: str | None = None)
     return None
 
 
+class Objects(Protocol):
+    """The object primitives a remote store is built on; paths are relative to the store's root."""
+
+    conditional: bool  #: create/replace_if/delete_if are atomic on the server
+
+    def probe(self) -> None: ...
+    def get(self, rel: str) -> bytes | None: ...
+    def get_versioned(self, rel: str) -> Versioned | None: ...
+    def get_many(self, rels: list[str]) -> dict[str, bytes | None]: ...
+    def put(self, rel: str, data: bytes) -> str: ...
+    def put_many(self, items: dict[str, bytes]) -> None: ...
+    def create(self, rel: str, data: bytes) -> str | None: ...
+    def replace_if(self, rel: str, data: bytes, etag: str) -> str | None: ...
+    def delete_if(self, rel: str, etag: str) -> bool: ...
+    def delete(self, rel: str) -> None: ...
+    def list(self, rel_prefix: str) -> list[ObjectInfo]: ...
+    def delete_prefix(self, rel_prefix: str) -> int: ...
+
+
 class S3Objects:
     conditional = True
 
-    def __init__(self, fs, bucket: str, prefix: str, url: str):
+    def __init__(self, fs: Any, bucket: str, prefix: str, url: str):
         self.fs = fs
         self.bucket = bucket
         self.prefix = prefix.strip("/")
@@ -139,21 +162,27 @@ class S3Objects:
     def _rel(self, key: str) -> str:
         return key[len(self.prefix) + 1 :] if self.prefix else key
 
-    def _run(self, coro_fn, *args):
+    def _run(self, coro_fn: Callable[..., Awaitable[T]], *args: Any) -> T:
         from fsspec.asyn import sync
 
         try:
-            return sync(self.fs.loop, coro_fn, *args)
+            result: T = sync(self.fs.loop, coro_fn, *args)
+            return result
         except Exception as exc:
             error = translate_failure(exc, self.url, self.endpoint)
             if error is not None:
                 raise error from None
             raise
 
-    async def _call(self, method: str, **kwargs):
-        return await self.fs._call_s3(method, Bucket=self.bucket, **kwargs)
+    async def _call(self, method: str, **kwargs: Any) -> dict[str, Any]:
+        response: dict[str, Any] = await self.fs._call_s3(method, Bucket=self.bucket, **kwargs)
+        return response
 
-    async def _aget(self, rel: str, versioned: bool = False):
+    async def _aget(self, rel: str) -> bytes | None:
+        got = await self._aget_versioned(rel)
+        return None if got is None else got.data
+
+    async def _aget_versioned(self, rel: str) -> Versioned | None:
         try:
             resp = await self._call("get_object", Key=self._key(rel))
         except FileNotFoundError as exc:
@@ -161,11 +190,9 @@ class S3Objects:
                 raise
             return None
         try:
-            body = await resp["Body"].read()
+            body: bytes = await resp["Body"].read()
         finally:
             resp["Body"].close()
-        if not versioned:
-            return body
         age = None
         date = resp.get("ResponseMetadata", {}).get("HTTPHeaders", {}).get("date")
         if date and resp.get("LastModified") is not None:
@@ -174,20 +201,20 @@ class S3Objects:
             age = (parsedate_to_datetime(date) - resp["LastModified"]).total_seconds()
         return Versioned(body, resp["ETag"], age)
 
-    async def _gather(self, coros):
+    async def _gather(self, coros: list[Awaitable[T]]) -> list[T]:
         semaphore = asyncio.Semaphore(CONCURRENCY)
 
-        async def limited(coro):
+        async def limited(coro: Awaitable[T]) -> T:
             async with semaphore:
                 return await coro
 
-        return await asyncio.gather(*(limited(c) for c in coros))
+        return list(await asyncio.gather(*(limited(c) for c in coros)))
 
     # ------------------------------------------------------------------ primitives
     def probe(self) -> None:
         """One cheap request that fails clearly when the bucket, credentials or endpoint are wrong."""
 
-        async def list_one():
+        async def list_one() -> dict[str, Any]:
             return await asyncio.wait_for(
                 self._call("list_objects_v2", Prefix=self._key(""), MaxKeys=1), probe_seconds()
             )
@@ -198,27 +225,27 @@ class S3Objects:
         return self._run(self._aget, rel)
 
     def get_versioned(self, rel: str) -> Versioned | None:
-        return self._run(self._aget, rel, True)
+        return self._run(self._aget_versioned, rel)
 
     def get_many(self, rels: list[str]) -> dict[str, bytes | None]:
-        async def fetch():
+        async def fetch() -> list[bytes | None]:
             return await self._gather([self._aget(r) for r in rels])
 
         return dict(zip(rels, self._run(fetch)))
 
     def put(self, rel: str, data: bytes) -> str:
-        async def put():
-            return (await self._call("put_object", Key=self._key(rel), Body=data))["ETag"]
+        async def put() -> str:
+            return str((await self._call("put_object", Key=self._key(rel), Body=data))["ETag"])
 
         return self._run(put)
 
     def put_many(self, items: dict[str, bytes]) -> None:
-        async def put_all():
+        async def put_all() -> None:
             await self._gather([self._call("put_object", Key=self._key(r), Body=d) for r, d in items.items()])
 
         self._run(put_all)
 
-    async def _conditional(self, method: str, **kwargs):
+    async def _conditional(self, method: str, **kwargs: Any) -> dict[str, Any] | None:
         try:
             return await self._call(method, **kwargs)
         except (OSError, ValueError) as exc:
@@ -235,29 +262,29 @@ class S3Objects:
     def create(self, rel: str, data: bytes) -> str | None:
         """Write ``rel`` only if no object is there (atomic on the server); its etag, or None if one existed."""
 
-        async def create():
+        async def create() -> str | None:
             resp = await self._conditional("put_object", Key=self._key(rel), Body=data, IfNoneMatch="*")
-            return None if resp is None else resp["ETag"]
+            return None if resp is None else str(resp["ETag"])
 
         return self._run(create)
 
     def replace_if(self, rel: str, data: bytes, etag: str) -> str | None:
         """Overwrite ``rel`` only if it is still at version ``etag``; the new etag, or None."""
 
-        async def replace():
+        async def replace() -> str | None:
             resp = await self._conditional("put_object", Key=self._key(rel), Body=data, IfMatch=etag)
-            return None if resp is None else resp["ETag"]
+            return None if resp is None else str(resp["ETag"])
 
         return self._run(replace)
 
     def delete_if(self, rel: str, etag: str) -> bool:
-        async def delete():
+        async def delete() -> bool:
             return await self._conditional("delete_object", Key=self._key(rel), IfMatch=etag) is not None
 
         return self._run(delete)
 
     def delete(self, rel: str) -> None:
-        async def delete():
+        async def delete() -> None:
             try:
                 await self._call("delete_object", Key=self._key(rel))
             except FileNotFoundError as exc:
@@ -284,7 +311,7 @@ class S3Objects:
         return self._run(self._alist, rel_prefix)
 
     def delete_prefix(self, rel_prefix: str) -> int:
-        async def delete_all():
+        async def delete_all() -> int:
             objects = await self._alist(rel_prefix)
             keys = [self._key(o.path) for o in objects]
             for start in range(0, len(keys), 1000):
@@ -300,7 +327,7 @@ class FsspecObjects:
 
     conditional = False
 
-    def __init__(self, fs, root: str, url: str):
+    def __init__(self, fs: Any, root: str, url: str):
         self.fs = fs
         self.root = root.rstrip("/")
         self.url = url
@@ -308,7 +335,7 @@ class FsspecObjects:
     def _abs(self, rel: str) -> str:
         return f"{self.root}/{rel}"
 
-    def _guard(self, fn, *args, **kwargs):
+    def _guard(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         try:
             return fn(*args, **kwargs)
         except FileNotFoundError:
@@ -328,7 +355,8 @@ class FsspecObjects:
 
     def get(self, rel: str) -> bytes | None:
         try:
-            return self._guard(self.fs.cat_file, self._abs(rel))
+            data: bytes = self._guard(self.fs.cat_file, self._abs(rel))
+            return data
         except (FileNotFoundError, IsADirectoryError):
             return None
 
@@ -403,7 +431,7 @@ class FsspecObjects:
 _FILESYSTEMS: dict[str, object] = {}
 
 
-def make_objects(url: str, options: dict):
+def make_objects(url: str, options: dict[str, Any]) -> Objects:
     """The object backend for ``scheme://bucket/prefix``; raises UserError when fsspec cannot serve the scheme."""
     protocol, _, rest = url.partition("://")
     try:
@@ -445,7 +473,7 @@ def make_objects(url: str, options: dict):
     return FsspecObjects(fs, root if isinstance(root, str) else url, url)
 
 
-def s3_defaults(options: dict) -> dict:
+def s3_defaults(options: dict[str, Any]) -> dict[str, Any]:
     """s3fs options with bounded timeouts and retries unless the user set their own: an unreachable endpoint
     fails within seconds instead of retrying for minutes."""
     opts = dict(options)
@@ -457,11 +485,11 @@ def s3_defaults(options: dict) -> dict:
     return opts
 
 
-def dumps(value) -> bytes:
+def dumps(value: Any) -> bytes:
     return json.dumps(value, allow_nan=False, sort_keys=True).encode()
 
 
-def iter_chunks(items: Iterable[tuple[str, bytes]], limit: int = 64 << 20):
+def iter_chunks(items: Iterable[tuple[str, bytes]], limit: int = 64 << 20) -> Iterator[dict[str, bytes]]:
     """Group (path, bytes) pairs into dicts of at most ~limit bytes: uploads run concurrently, memory stays bounded."""
     batch: dict[str, bytes] = {}
     size = 0

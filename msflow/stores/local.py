@@ -20,39 +20,27 @@ import errno
 import json
 import os
 import shutil
-import socket
 import time
 import uuid
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import TYPE_CHECKING, Any
 
+from msflow.atomic import write_json_atomic
 from msflow.errors import UserError
+from msflow.stores.base import HOST, Json, json_object, pid_alive
 
-HOST = socket.gethostname()
-
-
-def open_store(location: str, options: dict | None = None, cache_dir: str | Path | None = None):
-    """A store for a path or URL: ``file://`` and plain paths here, object stores (``s3://`` ...) through fsspec
-    in msflow.remote. ``options`` are fsspec storage options; ``cache_dir`` holds machine-local memos of
-    remote stores (file stat signatures mean nothing on another machine)."""
-    if location.startswith("file://"):
-        return LocalStore(location[len("file://") :])
-    if "://" in location:
-        from msflow.remote import open_remote_store
-
-        return open_remote_store(location, options or {}, cache_dir)
-    return LocalStore(location)
+if TYPE_CHECKING:
+    from msflow.artifact import ArtifactView
 
 
 class LocalStore:
-    """The store interface every backend implements: has, manifest, open, keys, write, remove, verify, size,
-    clean_tmp, lock, load_memo/save_memo, write_run/run_ids/read_run/remove_run, plus ``url`` and ``options``
-    (what a worker needs to reopen it)."""
+    """A store in a folder (see the module docstring for its layout); implements ``msflow.stores.base.Store``."""
 
     def __init__(self, root: str | Path):
         self.root = Path(root)
         self.url = str(self.root)
-        self.options: dict = {}
+        self.options: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ paths
     @property
@@ -71,12 +59,12 @@ class LocalStore:
     def has(self, key: str) -> bool:
         return (self.artifact_path(key) / "zarr.json").is_file()
 
-    def manifest(self, key: str) -> dict:
+    def manifest(self, key: str) -> Json:
         from msflow.artifact import read_manifest
 
         return read_manifest(self.artifact_path(key))
 
-    def open(self, key: str):
+    def open(self, key: str) -> ArtifactView:
         from msflow.artifact import read_artifact
 
         return read_artifact(self.artifact_path(key), key=key)
@@ -95,8 +83,13 @@ class LocalStore:
         return LocalWriter(self, key)
 
     def write(
-        self, key: str, arrays: dict, extra: dict, file_suffixes: dict | None = None, replace: bool = False
-    ) -> dict:
+        self,
+        key: str,
+        arrays: Mapping[str, Any],
+        extra: Json,
+        file_suffixes: Mapping[str, str | None] | None = None,
+        replace: bool = False,
+    ) -> Json:
         """Write arrays and manifest under tmp/, then publish atomically; returns the manifest."""
         with self.writer(key) as writer:
             return writer.commit(arrays, extra, file_suffixes, replace)
@@ -145,14 +138,14 @@ class LocalStore:
     def clean_tmp(self, *, max_age: float | None = None) -> list[str]:
         """Remove temporary directories whose writer is gone (or older than max_age seconds)."""
         tmp = self.root / "tmp"
-        removed = []
+        removed: list[str] = []
         if not tmp.is_dir():
             return removed
         for entry in tmp.iterdir():
             parts = entry.name.split(".")
             dead = True
             if len(parts) >= 4 and parts[0] != "trash" and parts[-3] == HOST:
-                dead = not _pid_alive(int(parts[-2])) if parts[-2].isdigit() else True
+                dead = not pid_alive(int(parts[-2])) if parts[-2].isdigit() else True
             elif len(parts) >= 4 and parts[0] != "trash":
                 dead = max_age is not None and time.time() - entry.stat().st_mtime > max_age
             if dead:
@@ -162,7 +155,7 @@ class LocalStore:
 
     # ------------------------------------------------------------------ locks
     @contextlib.contextmanager
-    def lock(self, key: str, on_wait: Callable[[dict], None] | None = None, poll: float = 0.05):
+    def lock(self, key: str, on_wait: Callable[[Json], None] | None = None, poll: float = 0.05) -> Iterator[None]:
         """Exclusive per-key lock across processes and concurrent runs.
 
         flock locks belong to the open file description: when the holder dies (even by SIGKILL) the kernel drops
@@ -181,7 +174,7 @@ class LocalStore:
                     break
                 except BlockingIOError:
                     if not waited and on_wait is not None:
-                        on_wait(_read_holder(path))
+                        on_wait(read_holder(path))
                     waited = True
                     time.sleep(poll)
             os.ftruncate(fd, 0)
@@ -193,50 +186,47 @@ class LocalStore:
             os.close(fd)
 
     # ------------------------------------------------------------------ memo, runs
-    def load_memo(self) -> dict:
+    def load_memo(self) -> Json:
         try:
-            with open(self.root / "cache" / "memo.json", "rb") as fh:
-                return json.load(fh)
+            return json_object((self.root / "cache" / "memo.json").read_bytes())
         except (OSError, ValueError):
             return {}
 
-    def save_memo(self, memo: dict) -> None:
+    def save_memo(self, memo: Json) -> None:
         write_json_atomic(self._dir("cache") / "memo.json", memo)
 
-    def write_run(self, record: dict) -> Path:
+    def write_run(self, record: Json) -> str:
         path = self._dir("runs") / f"{record['id']}.json"
         write_json_atomic(path, record, indent=1)
-        return path
+        return str(path)
 
     def run_ids(self) -> list[str]:
         runs = self.root / "runs"
         return sorted(p.stem for p in runs.glob("*.json")) if runs.is_dir() else []
 
-    def read_run(self, run_id: str) -> dict:
+    def read_run(self, run_id: str) -> Json:
         path = self.root / "runs" / f"{run_id}.json"
         if not path.is_file():
             matches = [r for r in self.run_ids() if r.startswith(run_id) or r.endswith(run_id)]
             if len(matches) != 1:
                 raise UserError(f"no single run matches '{run_id}' ({len(matches)} do)", file=str(self.root))
             path = self.root / "runs" / f"{matches[0]}.json"
-        with open(path, "rb") as fh:
-            return json.load(fh)
+        return json_object(path.read_bytes())
 
-    def write_sweep(self, record: dict) -> Path:
+    def write_sweep(self, record: Json) -> str:
         path = self._dir("sweeps") / f"{record['id']}.json"
         write_json_atomic(path, record, indent=1)
-        return path
+        return str(path)
 
     def sweep_ids(self) -> list[str]:
         sweeps = self.root / "sweeps"
         return sorted(p.stem for p in sweeps.glob("*.json")) if sweeps.is_dir() else []
 
-    def read_sweep(self, sweep_id: str) -> dict:
+    def read_sweep(self, sweep_id: str) -> Json:
         path = self.root / "sweeps" / f"{sweep_id}.json"
         if not path.is_file():
             raise UserError(f"no sweep '{sweep_id}'", file=str(self.root))
-        with open(path, "rb") as fh:
-            return json.load(fh)
+        return json_object(path.read_bytes())
 
     def remove_run(self, run_id: str) -> None:
         with contextlib.suppress(FileNotFoundError):
@@ -274,7 +264,13 @@ class LocalWriter:
         with open(target, "wb") as fh:
             fh.write(data)
 
-    def commit(self, arrays: dict, extra: dict, file_suffixes: dict | None = None, replace: bool = False) -> dict:
+    def commit(
+        self,
+        arrays: Mapping[str, Any],
+        extra: Json,
+        file_suffixes: Mapping[str, str | None] | None = None,
+        replace: bool = False,
+    ) -> Json:
         """Write the remaining arrays and the manifest, then publish; returns the manifest."""
         from msflow.artifact import encode_artifact, prepare_manifest
 
@@ -294,25 +290,9 @@ class LocalWriter:
             shutil.rmtree(self.path, ignore_errors=True)
 
 
-def write_json_atomic(path: Path, value: Any, indent: int | None = None) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:6]}")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(value, fh, indent=indent, sort_keys=indent is not None, allow_nan=False)
-    os.replace(tmp, path)
-
-
-def _read_holder(path: Path) -> dict:
+def read_holder(path: Path) -> Json:
+    """The host and pid a lock file names (empty when unreadable)."""
     try:
-        return json.loads(path.read_text() or "{}")
+        return json_object(path.read_text() or "{}")
     except (OSError, ValueError):
         return {}
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True

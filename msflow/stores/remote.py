@@ -5,7 +5,7 @@ Layout under the store's prefix::
     commits/<k[:2]>/<key>.json       commit marker: names the key's data folder and holds its manifest
     artifacts/<k[:2]>/<key>/<wid>/   zarr v3 groups, one folder per writer (wid: time, random)
     pending/<key>.<wid>.json         journal of folders that may become garbage (being written or retired)
-    locks/<key>.lease                per-key leases (msflow.remote_leases)
+    locks/<key>.lease                per-key leases (msflow.stores.leases)
     runs/<id>.json                   one record per run (shared by every machine using the store)
     sweeps/<id>.json                 one record per sweep
 
@@ -28,7 +28,7 @@ Cleanup
 Locks (the rule)
     Any number of runs, on any number of machines, may share a store. Each key has a lease (60 s, or
     MSFLOW_LEASE_SECONDS) renewed by a heartbeat while its stage runs; a lease is broken when it expired or when
-    its holder ran on this host and is dead (see msflow.remote_leases). So each stage instance is computed
+    its holder ran on this host and is dead (see msflow.stores.leases). So each stage instance is computed
     once; a holder stalled past its ttl may see its work duplicated, never a torn or mixed artifact, because
     the commit is conditional. On S3 expiry is judged by the server's clock; on other fsspec backends by the
     machines' clocks (keep them within a second or two).
@@ -49,13 +49,18 @@ import json
 import os
 import time
 import uuid
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import TYPE_CHECKING, Any
 
+from msflow.atomic import write_json_atomic
 from msflow.errors import UserError
-from msflow.remote_leases import Lease, lease_is_stale, parse_holder
-from msflow.remote_objects import dumps, iter_chunks, make_objects
-from msflow.store import HOST, _pid_alive, write_json_atomic
+from msflow.stores.base import HOST, Json, json_object, pid_alive
+from msflow.stores.leases import Lease, lease_is_stale, parse_holder
+from msflow.stores.objects import dumps, iter_chunks, make_objects
+
+if TYPE_CHECKING:
+    from msflow.artifact import ArtifactView
 
 MARKER_FORMAT = 1
 STALE_SECONDS = 3600.0  # a journalled folder of a writer on another host, without a live lease, is gone after this
@@ -64,7 +69,7 @@ RETIRE_SECONDS = 60.0  # a folder replaced by --force stays readable this long f
 _PROBED: set[str] = set()
 
 
-def open_remote_store(url: str, options: dict | None, cache_dir: str | Path | None = None) -> RemoteStore:
+def open_remote_store(url: str, options: dict[str, Any] | None, cache_dir: str | Path | None = None) -> RemoteStore:
     """A RemoteStore for ``url``; the first opening in a process checks bucket, credentials and endpoint."""
     store = RemoteStore(url, options or {}, cache_dir)
     probe_key = json.dumps([url, options or {}], sort_keys=True, default=str)
@@ -80,13 +85,13 @@ def writer_id() -> str:
 
 
 class RemoteStore:
-    def __init__(self, url: str, options: dict, cache_dir: str | Path | None = None):
+    def __init__(self, url: str, options: dict[str, Any], cache_dir: str | Path | None = None):
         protocol, sep, path = url.partition("://")
         self.url = protocol + sep + path.rstrip("/")
         self.options = dict(options)
         self.cache_dir = Path(cache_dir) if cache_dir is not None else None
         self.objects = make_objects(self.url, self.options)
-        self._recent: dict[str, dict] = {}  # markers read by has(), consumed by the manifest() that follows
+        self._recent: dict[str, Json] = {}  # markers read by has(), consumed by the manifest() that follows
 
     # ------------------------------------------------------------------ paths
     @staticmethod
@@ -102,7 +107,7 @@ class RemoteStore:
         return f"pending/{key}.{wid}.json"
 
     # ------------------------------------------------------------------ reading
-    def _marker(self, key: str) -> dict | None:
+    def _marker(self, key: str) -> dict[str, Any] | None:
         data = self.objects.get(self.marker_path(key))
         if data is None:
             return None
@@ -120,19 +125,20 @@ class RemoteStore:
         self._recent[key] = marker
         return True
 
-    def _committed(self, key: str) -> dict:
+    def _committed(self, key: str) -> dict[str, Any]:
         marker = self._recent.pop(key, None) or self._marker(key)
         if marker is None:
             raise FileNotFoundError(f"no artifact {key} in {self.url}")
         return marker
 
-    def manifest(self, key: str) -> dict:
-        return self._committed(key)["manifest"]
+    def manifest(self, key: str) -> dict[str, Any]:
+        manifest: Json = self._committed(key)["manifest"]
+        return manifest
 
-    def open(self, key: str):
+    def open(self, key: str) -> ArtifactView:
         return self._view(key, self._committed(key))
 
-    def _view(self, key: str, marker: dict):
+    def _view(self, key: str, marker: Json) -> ArtifactView:
         from msflow.artifact import ArtifactView
 
         manifest = marker["manifest"]
@@ -188,13 +194,18 @@ class RemoteStore:
         return RemoteWriter(self, key)
 
     def write(
-        self, key: str, arrays: dict, extra: dict, file_suffixes: dict | None = None, replace: bool = False
-    ) -> dict:
+        self,
+        key: str,
+        arrays: Mapping[str, Any],
+        extra: Json,
+        file_suffixes: Mapping[str, str | None] | None = None,
+        replace: bool = False,
+    ) -> Json:
         """Upload the zarr group under a fresh folder, then commit it with the marker; returns the manifest."""
         with self.writer(key) as writer:
             return writer.commit(arrays, extra, file_suffixes, replace)
 
-    def commit_folder(self, key: str, wid: str, manifest: dict, replace: bool) -> dict:
+    def commit_folder(self, key: str, wid: str, manifest: dict[str, Any], replace: bool) -> dict[str, Any]:
         """Write the commit marker naming folder ``wid``; returns the manifest that is committed (another
         writer's, if one won the race)."""
         from msflow.chunks import array_metadata
@@ -289,10 +300,10 @@ class RemoteStore:
                 self.objects.delete_if(info.path, current.etag)
         return removed
 
-    def _writer_alive(self, entry: dict, grace: float) -> bool:
+    def _writer_alive(self, entry: dict[str, Any], grace: float) -> bool:
         pid = entry.get("pid")
         if entry.get("host") == HOST and isinstance(pid, int):
-            return _pid_alive(pid)
+            return pid_alive(pid)
         lease = self.objects.get_versioned(self.lease_path(entry["key"]))
         if lease is not None and not lease_is_stale(parse_holder(lease.data), lease.age):
             return True
@@ -304,8 +315,8 @@ class RemoteStore:
         return f"locks/{key}.lease"
 
     @contextlib.contextmanager
-    def lock(self, key: str, on_wait: Callable[[dict], None] | None = None, poll: float = 0.1):
-        """Exclusive per-key lease across processes and machines (msflow.remote_leases)."""
+    def lock(self, key: str, on_wait: Callable[[Json], None] | None = None, poll: float = 0.1) -> Iterator[Lease]:
+        """Exclusive per-key lease across processes and machines (msflow.stores.leases)."""
         lease = Lease(self.objects, self.lease_path(key))
         lease.acquire(on_wait, poll)
         try:
@@ -314,22 +325,21 @@ class RemoteStore:
             lease.release()
 
     # ------------------------------------------------------------------ memo, runs
-    def load_memo(self) -> dict:
+    def load_memo(self) -> dict[str, Any]:
         if self.cache_dir is None:
             return {}
         try:
-            with open(self.cache_dir / "memo.json", "rb") as fh:
-                return json.load(fh)
+            return json_object((self.cache_dir / "memo.json").read_bytes())
         except (OSError, ValueError):
             return {}
 
-    def save_memo(self, memo: dict) -> None:
+    def save_memo(self, memo: dict[str, Any]) -> None:
         if self.cache_dir is None:
             return
         self.cache_dir.mkdir(parents=True, exist_ok=True)
         write_json_atomic(self.cache_dir / "memo.json", memo)
 
-    def _write_record(self, folder: str, record: dict) -> str:
+    def _write_record(self, folder: str, record: dict[str, Any]) -> str:
         path = f"{folder}/{record['id']}.json"
         self.objects.put(path, json.dumps(record, indent=1, sort_keys=True, allow_nan=False).encode())
         return f"{self.url}/{path}"
@@ -338,13 +348,13 @@ class RemoteStore:
         names = (info.path.rsplit("/", 1)[-1] for info in self.objects.list(f"{folder}/"))
         return sorted(n[: -len(".json")] for n in names if n.endswith(".json"))
 
-    def write_run(self, record: dict) -> str:
+    def write_run(self, record: dict[str, Any]) -> str:
         return self._write_record("runs", record)
 
     def run_ids(self) -> list[str]:
         return self._record_ids("runs")
 
-    def read_run(self, run_id: str) -> dict:
+    def read_run(self, run_id: str) -> dict[str, Any]:
         data = self.objects.get(f"runs/{run_id}.json")
         if data is None:
             matches = [r for r in self.run_ids() if r.startswith(run_id) or r.endswith(run_id)]
@@ -353,22 +363,22 @@ class RemoteStore:
             data = self.objects.get(f"runs/{matches[0]}.json")
             if data is None:
                 raise UserError(f"run '{matches[0]}' vanished from {self.url}", file=self.url)
-        return json.loads(data)
+        return json_object(data)
 
     def remove_run(self, run_id: str) -> None:
         self.objects.delete(f"runs/{run_id}.json")
 
-    def write_sweep(self, record: dict) -> str:
+    def write_sweep(self, record: dict[str, Any]) -> str:
         return self._write_record("sweeps", record)
 
     def sweep_ids(self) -> list[str]:
         return self._record_ids("sweeps")
 
-    def read_sweep(self, sweep_id: str) -> dict:
+    def read_sweep(self, sweep_id: str) -> dict[str, Any]:
         data = self.objects.get(f"sweeps/{sweep_id}.json")
         if data is None:
             raise UserError(f"no sweep '{sweep_id}'", file=self.url)
-        return json.loads(data)
+        return json_object(data)
 
 
 class RemoteWriter:
@@ -399,7 +409,13 @@ class RemoteWriter:
         self._start()
         self.store.objects.put(f"{self.folder}/{rel}", data)
 
-    def commit(self, arrays: dict, extra: dict, file_suffixes: dict | None = None, replace: bool = False) -> dict:
+    def commit(
+        self,
+        arrays: Mapping[str, Any],
+        extra: Json,
+        file_suffixes: Mapping[str, str | None] | None = None,
+        replace: bool = False,
+    ) -> Json:
         """Upload the remaining arrays and the group's zarr.json, then write the marker; returns the manifest."""
         from msflow.artifact import encode_artifact, prepare_manifest
 
@@ -423,13 +439,13 @@ class RemoteWriter:
             self.store.abandon(self.key, self.wid)
 
 
-def _selects_everything(selection) -> bool:
+def _selects_everything(selection: Any) -> bool:
     if isinstance(selection, tuple):
         return selection in ((), (Ellipsis,))
     return selection is Ellipsis or (isinstance(selection, slice) and selection == slice(None))
 
 
-def _row_slice(selection) -> slice | None:
+def _row_slice(selection: Any) -> slice | None:
     """The slice of rows a selection takes when it is a step-1 slice of whole rows (``a[i:j]``), else None."""
     if isinstance(selection, tuple):
         if not selection or not all(
@@ -442,7 +458,7 @@ def _row_slice(selection) -> slice | None:
     return None
 
 
-def _age(entry: dict) -> float:
+def _age(entry: dict[str, Any]) -> float:
     started = entry.get("started")
     return time.time() - started if isinstance(started, (int, float)) else float("inf")
 
@@ -453,7 +469,13 @@ class RemoteArray:
     the store, so lazy inputs behave as zarr arrays do on a local store."""
 
     def __init__(
-        self, store: RemoteStore, folder: str, name: str, entry: dict, chunks: list | None, checksum: bool = True
+        self,
+        store: RemoteStore,
+        folder: str,
+        name: str,
+        entry: dict[str, Any],
+        chunks: list[Any] | None,
+        checksum: bool = True,
     ):
         import numpy as np
 
@@ -464,7 +486,7 @@ class RemoteArray:
         self.dtype = np.dtype(entry["dtype"]).newbyteorder("=")  # stored little endian, read as native
         self._chunks = chunks
         self._checksum = checksum  # chunks carry a crc32c (artifact format 2 on)
-        self._zarr = None
+        self._zarr: Any = None
 
     @property
     def ndim(self) -> int:
@@ -480,18 +502,18 @@ class RemoteArray:
     def __len__(self) -> int:
         if not self.shape:
             raise TypeError("len() of a 0-d array")
-        return self.shape[0]
+        return int(self.shape[0])
 
     def __repr__(self) -> str:
         return f"RemoteArray({self._store.url}/{self._folder}/{self._name}, shape={self.shape}, dtype={self.dtype})"
 
     @property
-    def zarr(self):
+    def zarr(self) -> Any:
         if self._zarr is None:
             import zarr
             from zarr.storage import FsspecStore
 
-            from msflow.remote_objects import s3_defaults
+            from msflow.stores.objects import s3_defaults
 
             protocol = self._store.url.split("://", 1)[0]
             options = s3_defaults(self._store.options) if protocol in ("s3", "s3a") else self._store.options
@@ -510,7 +532,7 @@ class RemoteArray:
 
         return tuple(self._chunks) if self._chunks else chunk_shape(self.shape, self.dtype.itemsize)
 
-    def __getitem__(self, selection):
+    def __getitem__(self, selection: Any) -> Any:
         if _selects_everything(selection):
             return self.read()
         rows = _row_slice(selection)
@@ -518,11 +540,11 @@ class RemoteArray:
             return self.read_rows(*rows.indices(self.shape[0])[:2])
         return self.zarr[selection]
 
-    def __array__(self, dtype=None, copy=None):
+    def __array__(self, dtype: Any = None, copy: bool | None = None) -> Any:
         out = self.read()
         return out if dtype is None else out.astype(dtype)
 
-    def read(self):
+    def read(self) -> Any:
         """The whole array: every chunk object fetched concurrently, decoded (checksum checked), concatenated."""
         import numpy as np
 
@@ -538,7 +560,7 @@ class RemoteArray:
         little = self.dtype.newbyteorder("<") if self.dtype.itemsize > 1 else self.dtype
         return np.array(np.frombuffer(decode_chunk(blob, self._checksum), dtype=little)[0], dtype=self.dtype)
 
-    def read_rows(self, start: int, stop: int):
+    def read_rows(self, start: int, stop: int) -> Any:
         """Rows ``start:stop``: the chunks covering them fetched concurrently and decoded."""
         import numpy as np
 

@@ -1,0 +1,112 @@
+"""The store contract: what the runner, workers and commands need from a place that keeps artifacts and records.
+
+Two backends implement it: ``LocalStore`` (a folder on a local or shared POSIX file system) and ``RemoteStore``
+(an object store: ``s3://``, any fsspec URL). Code that uses a store is typed against ``Store`` and never probes
+for optional methods: every backend implements every method.
+
+Artifacts are immutable once published and addressed by their cache key. Writing goes through an
+``ArtifactWriter``: output sinks ``put`` chunks into it while a stage runs, ``commit`` publishes atomically, and
+leaving its ``with`` block without a commit removes what was written.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import AbstractContextManager
+from typing import TYPE_CHECKING, Any, Protocol
+
+if TYPE_CHECKING:
+    from msflow.artifact import ArtifactView
+
+HOST = socket.gethostname()
+
+Json = dict[str, Any]
+
+
+class ArtifactWriter(Protocol):
+    """One artifact being written under a key (a private folder until committed)."""
+
+    def __enter__(self) -> ArtifactWriter: ...
+
+    def __exit__(self, *exc: object) -> None: ...
+
+    def put(self, rel: str, data: bytes) -> None:
+        """Write one file of the artifact's zarr group now (e.g. a chunk of an output sink)."""
+        ...
+
+    def commit(
+        self,
+        arrays: Mapping[str, Any],
+        extra: Json,
+        file_suffixes: Mapping[str, str | None] | None = None,
+        replace: bool = False,
+    ) -> Json:
+        """Write the remaining arrays and the manifest, publish atomically; return the committed manifest."""
+        ...
+
+    def abort(self) -> None:
+        """Remove whatever was written (nothing once committed)."""
+        ...
+
+
+class Store(Protocol):
+    """Artifacts by cache key, per-key locks, the machine's memo, and run and sweep records."""
+
+    url: str  #: what a worker needs to reopen the store, with ``options``
+    options: Json
+
+    # artifacts
+    def has(self, key: str) -> bool: ...
+    def manifest(self, key: str) -> Json: ...
+    def open(self, key: str) -> ArtifactView: ...
+    def keys(self) -> Iterator[str]: ...
+    def writer(self, key: str) -> ArtifactWriter: ...
+    def write(
+        self,
+        key: str,
+        arrays: Mapping[str, Any],
+        extra: Json,
+        file_suffixes: Mapping[str, str | None] | None = None,
+        replace: bool = False,
+    ) -> Json: ...
+    def verify(self, key: str) -> list[str]: ...
+    def size(self, key: str) -> int: ...
+    def remove(self, key: str) -> None: ...
+    def clean_tmp(self, *, max_age: float | None = None) -> list[str]: ...
+
+    # coordination
+    def lock(self, key: str, on_wait: Callable[[Json], None] | None = None) -> AbstractContextManager[object]: ...
+
+    # memo and records
+    def load_memo(self) -> Json: ...
+    def save_memo(self, memo: Json) -> None: ...
+    def write_run(self, record: Json) -> str: ...
+    def run_ids(self) -> list[str]: ...
+    def read_run(self, run_id: str) -> Json: ...
+    def remove_run(self, run_id: str) -> None: ...
+    def write_sweep(self, record: Json) -> str: ...
+    def sweep_ids(self) -> list[str]: ...
+    def read_sweep(self, sweep_id: str) -> Json: ...
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists on this host (a process of another user counts as alive)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def json_object(data: bytes | str) -> Json:
+    """Parse a JSON object (a record, a manifest, a memo); ValueError when it is not one."""
+    import json
+
+    value = json.loads(data)
+    if not isinstance(value, dict):
+        raise ValueError(f"expected a JSON object, got {type(value).__name__}")
+    return value

@@ -1,0 +1,145 @@
+"""Habits of the codebase, checked: no import cycles in msflow, no private names imported across modules, the
+public API's examples run (doctests), and a no-op import path that stays light."""
+
+import ast
+import doctest
+import importlib
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import cli_env
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def module_name(path: Path, base: Path) -> str:
+    rel = path.relative_to(base).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+def import_graph(base: Path, package: str) -> dict[str, set[str]]:
+    """Module -> the package's modules it imports, at any level (top of the module or inside a function)."""
+    files = {module_name(f, base): f for f in (base / package).rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for name, path in files.items():
+        deps = set()
+        is_package = path.name == "__init__.py"
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                deps.update(a.name for a in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                module = node.module or ""
+                if node.level:
+                    anchor = name if is_package else name.rpartition(".")[0]
+                    for _ in range(node.level - 1):
+                        anchor = anchor.rpartition(".")[0]
+                    module = f"{anchor}.{module}" if module else anchor
+                for alias in node.names:
+                    deps.add(f"{module}.{alias.name}" if f"{module}.{alias.name}" in files else module)
+        graph[name] = {d for d in deps if d in files and d != name}
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        for dep in sorted(graph[node]):
+            if dep not in index:
+                visit(dep)
+                low[node] = min(low[node], low[dep])
+            elif dep in stack:
+                low[node] = min(low[node], index[dep])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                top = stack.pop()
+                component.append(top)
+                if top == node:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return found
+
+
+def test_the_cycle_finder_finds_a_cycle_through_a_function_level_import(tmp_path):
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("from pkg.b import f\n")
+    (pkg / "b.py").write_text("def f():\n    from . import c\n")
+    (pkg / "c.py").write_text("import pkg.a\n")
+    (pkg / "d.py").write_text("import pkg.a\n")
+    assert cycles(import_graph(tmp_path, "pkg")) == [["pkg.a", "pkg.b", "pkg.c"]]
+
+
+def test_msflow_has_no_import_cycles():
+    graph = import_graph(ROOT, "msflow")
+    assert "msflow.stores.remote" in graph and graph["msflow.api"]  # the graph is really built
+    assert cycles(graph) == []
+
+
+@pytest.mark.parametrize("folder", ["msflow", "stages"])
+def test_no_private_name_is_imported_across_modules(folder):
+    offences = []
+    for path in sorted((ROOT / folder).rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom):
+                offences += [
+                    f"{path.relative_to(ROOT)}:{node.lineno} imports {a.name} from {node.module}"
+                    for a in node.names
+                    if a.name.startswith("_") and not a.name.startswith("__")
+                ]
+    assert offences == []
+
+
+PUBLIC_API = [
+    "msflow",
+    "msflow.api",
+    "msflow.stage",
+    "msflow.testing",
+    "msflow.sinks",
+    "msflow.hashing",
+    "msflow.errors",
+]
+
+
+@pytest.mark.parametrize("module", PUBLIC_API)
+def test_documented_examples_run(module):
+    mod = importlib.import_module(module)
+    result = doctest.testmod(mod, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
+    assert result.failed == 0
+
+
+@pytest.mark.parametrize(
+    "target", ["msflow.run", "msflow.Stage", "msflow.Input", "msflow.Output", "msflow.testing.run_stage"]
+)
+def test_public_api_has_numpydoc_sections_and_an_example(target):
+    module, _, name = target.rpartition(".")
+    doc = getattr(importlib.import_module(module), name).__doc__ or ""
+    assert ">>>" in doc, f"{target} has no example"
+    sections = [s for s in ("Parameters", "Returns", "Attributes", "Examples") if f"{s}\n    ---" in doc]
+    assert "Examples" in sections and len(sections) >= 2, f"{target}: numpydoc sections {sections}"
+
+
+def test_importing_msflow_for_a_no_op_loads_no_heavy_module():
+    code = (
+        "import sys, msflow, msflow.cli, msflow.api, msflow.runner; "
+        "print(' '.join(m for m in ('numpy', 'zarr', 'stages', 'dask') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], env=cli_env(), capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == ""
