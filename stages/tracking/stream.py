@@ -208,7 +208,10 @@ def block_arrays(frames: list[FilledFrame], n_points: int, crop: CropSettings) -
         "landmarks": landmarks.astype(np.float32),
         "crops": crops,
         "crop_transforms": transforms,
-        "crop_landmarks": apply_transforms(landmarks, transforms).astype(np.float32),
+        # from the stored (float32) landmarks, so crop_landmarks map exactly what the artifact holds
+        "crop_landmarks": apply_transforms(landmarks.astype(np.float32).astype(np.float64), transforms).astype(
+            np.float32
+        ),
         "time": np.array([f.record.time for f in frames], dtype=np.float64),
         "valid": kinds == TRACKED,
         "confidence": np.array([f.record.score if f.kind == TRACKED else 0.0 for f in frames], dtype=np.float32),
