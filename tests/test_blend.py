@@ -184,8 +184,9 @@ def test_alpha_from_analysis_uses_only_edited_expressions_in_training_order():
     np.testing.assert_allclose(a.arrays["alpha"], b.arrays["alpha"], atol=1e-5)
 
 
-def test_vertices_output_poses_the_character():
-    keyshapes, keymorphs = retarget_inputs(frames=5)
+def test_vertices_output_poses_the_character(tmp_path):
+    """Posed vertices, streamed block by block into an output sink, through a real store."""
+    keyshapes, keymorphs = retarget_inputs(frames=150)
     rng = np.random.default_rng(4)
     character = artifact(
         {
@@ -196,8 +197,9 @@ def test_vertices_output_poses_the_character():
     )
     out = run_stage(
         Blend,
-        {"alpha": {"neutral": 1.0}, "vertices": True},
+        {"alpha": {"neutral": 1.0}, "vertices": True, "lip_seal": False},
         {"keyshapes": keyshapes, "keymorphs": keymorphs, "character": character},
+        store=tmp_path,
     )
     expected = character["neutral"] + np.einsum("fm,mvc->fvc", out.arrays["weights"], character["deltas"])
     np.testing.assert_allclose(out.arrays["vertices"], expected, atol=1e-5)

@@ -33,7 +33,7 @@ from __future__ import annotations
 from typing import Literal, Union
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
 
@@ -265,13 +265,13 @@ BLEND_OUTPUTS = {
 
 
 class BlendParams(Stage.Params):
+    #: allowed deviation of the alpha sum from 1 (before alpha: its check reads it)
+    tolerance: float = Field(1e-3, gt=0)
     #: "from_analysis", constant weights {expression: weight}, or {keyframes: {seconds: {expression: w}},
     #: interpolation: linear|step|smooth}; weights must be >= 0 and sum to 1
     alpha: Union[Literal["from_analysis"], dict[str, float], AlphaKeyframes] = "from_analysis"
     #: Gaussian smoothing of alpha over time, sigma in seconds (the analysed e(t) jitters, paper Sec 7)
     alpha_smoothing: float = Field(0.0, ge=0)
-    #: allowed deviation of the alpha sum from 1
-    tolerance: float = Field(1e-3, gt=0)
     #: drive each morph by its own region's keyshape weights when the keyshapes and keymorphs carry regions
     regions: bool = True
     #: close the character's lips where the performer's close (needs the character, and the tracks input or the
@@ -298,14 +298,16 @@ class BlendParams(Stage.Params):
                 raise ValueError(f"{ALPHA_FORMS}; these weights are not numbers: {bad}")
         return value
 
-    @model_validator(mode="after")
-    def _alpha_is_barycentric(self):
-        if isinstance(self.alpha, AlphaKeyframes):
-            for t, weights in self.alpha.keyframes.items():
-                check_barycentric(weights, self.tolerance, f"keyframe {t:g}")
-        elif isinstance(self.alpha, dict):
-            check_barycentric(self.alpha, self.tolerance, "alpha")
-        return self
+    @field_validator("alpha")
+    @classmethod
+    def _alpha_is_barycentric(cls, alpha, info):
+        tolerance = info.data.get("tolerance", 1e-3)
+        if isinstance(alpha, AlphaKeyframes):
+            for t, weights in alpha.keyframes.items():
+                check_barycentric(weights, tolerance, f"keyframe {t:g}")
+        elif isinstance(alpha, dict):
+            check_barycentric(alpha, tolerance, "alpha")
+        return alpha
 
 
 class Blend(Stage):
@@ -540,8 +542,7 @@ class Blend(Stage):
         return alpha, {"alpha_mode": "from_analysis", "alpha_basis": usable}
 
     # ---------------------------------------------------------------------------------------------- pack
-    @staticmethod
-    def _pack(params, inputs, data, result, alpha, alpha_meta, per_expression, raw) -> Result:
+    def _pack(self, params, inputs, data, result, alpha, alpha_meta, per_expression, raw) -> Result:
         weights = result["weights"]
         excess = np.abs(raw - np.clip(raw, 0.0, 1.0))
         arrays = {
@@ -557,9 +558,7 @@ class Blend(Stage):
             character = data["character"]
             if character is None:
                 raise UserError("params.vertices needs the character input", field="inputs.character")
-            deltas = np.asarray(character["deltas"], np.float32)
-            neutral = np.asarray(character["neutral"], np.float32)
-            arrays["vertices"] = neutral[None] + np.tensordot(weights.astype(np.float32), deltas, axes=1)
+            arrays["vertices"] = self._posed_vertices(character, weights)
         metrics = {
             "clipped_fraction": float((excess > 1e-6).mean()) if excess.size else 0.0,
             "clipped_amount": float(excess.mean()) if excess.size else 0.0,
@@ -579,6 +578,17 @@ class Blend(Stage):
             **result["meta"],
         }
         return Result(arrays, meta=meta, metrics=metrics, warnings=result["warnings"])
+
+    def _posed_vertices(self, character, weights: np.ndarray, block: int = 64):
+        """Posed vertices streamed into an output sink block by block of frames: a long take's (frames, V, 3) never
+        sits in memory whole (26,000 vertices are 0.3 MB a frame)."""
+        deltas = np.asarray(character["deltas"], np.float32)
+        neutral = np.asarray(character["neutral"], np.float32)
+        sink = self.sink("vertices", dtype="float32", row_shape=neutral.shape)
+        for start in range(0, len(weights), block):
+            rows = weights[start : start + block].astype(np.float32)
+            sink.append(neutral[None] + np.tensordot(rows, deltas, axes=1))
+        return sink
 
 
 # ------------------------------------------------------------------------------------------------ lips and eyes
