@@ -425,9 +425,20 @@ def test_lip_seal_closes_the_characters_lips_where_the_performers_close(ict):
     for f in (0, 1, 5):  # closed lips: the character's own closed mouth (its neutral gap)
         assert achieved[f] <= g0 + 1e-4, (f, achieved[f])
     np.testing.assert_allclose(sealed[[2, 3]], weights[[2, 3]], atol=1e-6)  # open frames untouched
-    assert np.all(sealed <= weights + 1e-6)  # the seal only lowers weights ...
+    close, jaw = names.index("mouthClose"), names.index("jawOpen")
+    others = [m for m in range(len(names)) if m != close]
+    assert np.all(sealed[:, others] <= weights[:, others] + 1e-6)  # the seal lowers weights ...
     smile = names.index("mouthSmile_L")
-    np.testing.assert_allclose(sealed[:, smile], weights[:, smile], atol=1e-6)  # ... and only those that open the lips
+    np.testing.assert_allclose(sealed[:, smile], weights[:, smile], atol=1e-6)  # ... only those that open the lips
+    # ... but first raises mouthClose over the lowered jaw, which stays: lips sealed with the jaw down
+    assert np.all(sealed[[0, 1, 5], close] > 0.1) and np.all(sealed[:, close] <= sealed[:, jaw] + 1e-9)
+    np.testing.assert_allclose(sealed[[0, 1, 5], jaw], 0.3, atol=1e-6)
+    no_corrective = run_stage(
+        Blend,
+        {"eyes": "keyshapes", "seal_correctives": []},
+        {"keyshapes": keyshapes, "keymorphs": keymorphs, "character": ict},
+    ).arrays["weights"]
+    assert np.all(no_corrective <= weights + 1e-6) and np.all(no_corrective[[0, 1, 5], jaw] < 0.01)
     assert g0 < achieved[4] <= g0 + 4 * (gap[4] - 0.03) + 1e-6  # above seal_gap the seal fades out
     assert out.metrics["closed_frames"] == 3
     plain = run_stage(
@@ -545,6 +556,10 @@ def test_seal_follows_the_tracked_performer_over_the_edited_shapes(ict):
         {"eyes": "keyshapes"},
         {"keyshapes": keyshapes, "keymorphs": keymorphs, "character": ict, "tracks": tracks},
     )
-    jaw = out.arrays["weights"][:, names.index("jawOpen")]
-    assert np.all(jaw[:2] < 0.01) and np.allclose(jaw[2:], 0.3)
+    from stages.retarget.blend import character_landmarks
+    from stages.retarget.lips import lip_gap_model
+
+    g0, slopes = lip_gap_model(*character_landmarks(ict))
+    gap = g0 + out.arrays["weights"].astype(np.float64) @ slopes
+    assert np.all(gap[:2] <= g0 + 1e-4) and np.all(gap[2:] > g0 + 0.05)  # sealed where the performer's lips met
     assert out.meta["lip_seal_source"] == "tracking"

@@ -279,6 +279,8 @@ class BlendParams(Stage.Params):
     lip_seal: bool = True
     #: the seal acts below this inner-lip gap (IOD) and fades out above it
     seal_gap: float = Field(0.03, gt=0)
+    #: (corrective, base) pairs the seal may raise, each up to its base's weight (lips sealed over a lowered jaw)
+    seal_correctives: list[tuple[str, str]] = [("mouthClose", "jawOpen")]
     #: blinks and gaze from the performer's tracking (needs the tracks input), or from the keymorphs alone
     eyes: Literal["tracking", "keyshapes"] = "tracking"
     #: gaze angle (degrees) that an eyeLook weight of 1 stands for
@@ -606,7 +608,8 @@ def finish_weights(params, data, raw: np.ndarray, alpha: np.ndarray) -> dict:
                 "lip seal off: it needs the character input, and the performer's tracking or the keyshapes' lip_gap"
             )
         else:
-            weights, seal = apply_lip_seal(weights, character, gap, params.seal_gap)
+            correctives = corrective_columns(data["names"], params.seal_correctives)
+            weights, seal = apply_lip_seal(weights, character, gap, params.seal_gap, correctives)
             out["metrics"].update(seal)
             out["meta"]["lip_seal_source"] = source
     if params.eyes == "tracking":
@@ -642,15 +645,27 @@ def performer_lip_gap(tracks, target_gap, alpha) -> tuple[np.ndarray | None, str
     return None, "none"
 
 
-def apply_lip_seal(weights, character, gap, seal_gap) -> tuple[np.ndarray, dict]:
+def corrective_columns(names: list[str], pairs) -> list[tuple[int, int]]:
+    """(corrective, base) morph indices of the pairs the character has."""
+    from stages.retarget.regions import find_morph
+
+    found = [(find_morph(names, c), find_morph(names, b)) for c, b in pairs]
+    return [(c, b) for c, b in found if c is not None and b is not None]
+
+
+def apply_lip_seal(weights, character, gap, seal_gap, correctives=()) -> tuple[np.ndarray, dict]:
     """The sealed weights and how much the seal did (stages.retarget.lips); ``gap`` (frames,) the performer's
-    inner-lip gap."""
-    from stages.retarget.lips import lip_gap_model, seal_bound, seal_lips
+    inner-lip gap; ``correctives`` (corrective, base) columns the seal may raise up to the base's weight."""
+    from stages.retarget.lips import lip_gap_model, raise_correctives, seal_bound, seal_lips
 
     if "landmark_ids" not in character:
         raise UserError("the lip seal needs the character's landmark_ids", field="inputs.character")
     g0, slopes = lip_gap_model(*character_landmarks(character))
-    sealed = seal_lips(weights, g0, slopes, seal_bound(gap, g0, seal_gap))
+    bound = seal_bound(gap, g0, seal_gap)
+    raised, effective = raise_correctives(weights, g0, slopes, bound, list(correctives))
+    sealed = seal_lips(raised, g0, effective, bound)
+    for c, b in correctives:  # a base lowered anyway (net slope > 0) takes its corrective down with it
+        sealed[:, c] = np.minimum(sealed[:, c], sealed[:, b])
     before, after = g0 + weights @ slopes, g0 + sealed @ slopes
     closed = gap < seal_gap
     return sealed, {
