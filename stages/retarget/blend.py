@@ -662,8 +662,8 @@ def apply_lip_seal(weights, character, gap, seal_gap, correctives=()) -> tuple[n
         raise UserError("the lip seal needs the character's landmark_ids", field="inputs.character")
     g0, slopes = lip_gap_model(*character_landmarks(character))
     bound = seal_bound(gap, g0, seal_gap)
-    raised, effective = raise_correctives(weights, g0, slopes, bound, list(correctives))
-    sealed = seal_lips(raised, g0, effective, bound)
+    raised, movable = raise_correctives(weights, g0, slopes, bound, list(correctives))
+    sealed = seal_lips(raised, g0, slopes, bound, movable)
     for c, b in correctives:  # a base lowered anyway (net slope > 0) takes its corrective down with it
         sealed[:, c] = np.minimum(sealed[:, c], sealed[:, b])
     before, after = g0 + weights @ slopes, g0 + sealed @ slopes

@@ -45,29 +45,35 @@ def seal_bound(target_gap: np.ndarray, g0: float, seal_gap: float) -> np.ndarray
 
 
 def seal_lips(
-    weights: np.ndarray, g0: float, slopes: np.ndarray, bound: np.ndarray, iterations: int = 60
+    weights: np.ndarray,
+    g0: float,
+    slopes: np.ndarray,
+    bound: np.ndarray,
+    movable: np.ndarray | None = None,
+    iterations: int = 60,
 ) -> np.ndarray:
     """The weights (frames, M) nearest to ``weights`` u with gap(u') <= ``bound`` (frames,) and 0 <= u' <= u;
-    ``slopes`` (M,) or per frame (frames, M) (a morph with slope 0 in a frame is left as it is there)."""
+    ``movable`` (frames, M) bool: the morphs the seal may lower in each frame (default all)."""
     u0 = np.asarray(weights, np.float64)
-    a = np.broadcast_to(np.asarray(slopes, np.float64), u0.shape)
+    a = np.asarray(slopes, np.float64)
+    step = np.where(np.ones(u0.shape, bool) if movable is None else movable, a[None], 0.0)
     budget = np.asarray(bound, np.float64) - g0
 
-    def gap(lam):
-        return (np.clip(u0 - lam[:, None] * a, 0.0, u0) * a).sum(axis=1)
+    def moved(lam):
+        return np.clip(u0 - lam[:, None] * step, 0.0, u0)
 
-    need = gap(np.zeros(len(u0))) > budget
+    need = moved(np.zeros(len(u0))) @ a > budget
     if not need.any():
         return u0.copy()
-    # bracket: at this lambda every opening morph is at 0 (the most lowering can do)
+    # bracket: at this lambda every movable opening morph is at 0 (the most lowering can do)
     with np.errstate(divide="ignore", invalid="ignore"):
-        hi = np.where(a > 0, u0 / a, 0.0).max(axis=1)
+        hi = np.where(step > 0, u0 / step, 0.0).max(axis=1)
     lo = np.zeros(len(u0))
     for _ in range(iterations):
         mid = 0.5 * (lo + hi)
-        over = gap(mid) > budget
+        over = moved(mid) @ a > budget
         lo, hi = np.where(over, mid, lo), np.where(over, hi, mid)
-    return np.where(need[:, None], np.clip(u0 - hi[:, None] * a, 0.0, u0), u0)
+    return np.where(need[:, None], moved(hi), u0)
 
 
 def raise_correctives(
@@ -75,12 +81,12 @@ def raise_correctives(
 ) -> tuple[np.ndarray, np.ndarray]:
     """First step of the seal with a closing corrective c of a base morph b (mouthClose of jawOpen, a_c < 0):
     raise u_c towards the bound, up to u_b (lips sealed over a lowered jaw, the jaw kept). Returns the weights
-    and the slopes for the lowering step: where the corrective is at its cap, lowering the base would drag the
-    corrective with it, net slope a_b + a_c; when that is not positive, lowering the base cannot help and its
-    slope is 0 there (the jaw stays)."""
+    and which morphs the lowering step may move: where the corrective is at its cap, lowering the base would drag
+    the corrective down with it, net slope a_b + a_c; when that is not positive, lowering the base cannot help,
+    and neither moves there (the jaw stays, sealed)."""
     u = np.array(weights, np.float64)
     a = np.asarray(slopes, np.float64)
-    effective = np.repeat(a[None], len(u), axis=0)
+    movable = np.ones(u.shape, bool)
     for c, b in pairs:
         if a[c] >= 0:
             continue
@@ -88,5 +94,6 @@ def raise_correctives(
         room = np.maximum(u[:, b] - u[:, c], 0.0)
         u[:, c] += np.clip(excess / -a[c], 0.0, room)
         capped = u[:, c] >= u[:, b] - 1e-12
-        effective[capped, b] = max(a[b] + a[c], 0.0)
-    return u, effective
+        movable[capped, c] = False
+        movable[capped, b] = a[b] + a[c] > 0
+    return u, movable
