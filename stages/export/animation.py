@@ -430,9 +430,8 @@ class Export(Stage):
             arrays["head_translation"] = perf.translation
             arrays["head_bvh"] = head_bvh(perf.rotation, perf.translation * 100.0, perf.fps).encode("utf-8")
         if params.preview:
-            jobs = max(1, int(getattr(self, "jobs", 1) or 1))
             arrays["preview"], video_meta, video_warnings = pack_preview(
-                character, perf, eyes, params, inputs["audio"], jobs
+                character, perf, eyes, params, inputs["audio"], self.jobs
             )
             meta.update(video_meta)
             warnings += video_warnings

@@ -402,22 +402,6 @@ def _apply_world_transform(mesh: MorphMesh, gltf, mesh_index: int) -> None:
 # ----------------------------------------------------------------------------------------------------- writing
 
 
-def vertex_normals(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Unit area-weighted vertex normals (float32); vertices without a proper triangle get +z."""
-    p = np.asarray(positions, dtype=np.float64)
-    t = np.asarray(triangles)
-    face = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
-    n = np.zeros_like(p)
-    for corner in range(3):
-        for axis in range(3):
-            n[:, axis] += np.bincount(t[:, corner], weights=face[:, axis], minlength=len(p))
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    n = np.where(length > 1e-20, n / np.maximum(length, 1e-300), np.array([0.0, 0.0, 1.0]))
-    n = n.astype(np.float32)
-    # float32 rounding can leave |n| - 1 above the validator's tolerance for near-degenerate inputs
-    return n / np.linalg.norm(n, axis=1, keepdims=True).astype(np.float32)
-
-
 class _BinaryBuilder:
     """Accumulates the GLB binary chunk and the bufferViews/accessors pointing into it."""
 
@@ -468,12 +452,15 @@ class _BinaryBuilder:
         self.gltf.accessors.append(acc)
         return len(self.gltf.accessors) - 1
 
-    def sparse_accessor(self, values: np.ndarray, tolerance: float, name: str | None = None) -> int:
-        """A VEC3 float accessor of len(values) elements storing only rows with a component above ``tolerance``."""
+    def sparse_accessor(
+        self, values: np.ndarray, tolerance: float, name: str | None = None, moving: np.ndarray | None = None
+    ) -> int:
+        """A VEC3 float accessor of len(values) elements storing only rows with a component above ``tolerance``
+        (``moving``: those rows' mask, when already known)."""
         import pygltflib
 
         values = np.asarray(values, dtype=np.float32)
-        keep = np.flatnonzero(np.abs(values).max(axis=1) > tolerance)
+        keep = np.flatnonzero(moving_rows(values, tolerance) if moving is None else moving)
         index_size = 2 if len(values) <= 65535 else 4
         if len(keep) * (12 + index_size) >= 12 * len(values):  # a dense target (identity shape) is smaller as is
             return self.accessor(values, "VEC3", target=ARRAY_BUFFER, min_max=True, name=name)
@@ -500,6 +487,12 @@ class _BinaryBuilder:
     def blob(self) -> bytes:
         data = b"".join(self.chunks)
         return data + b"\0" * ((-len(data)) % 4)
+
+
+def moving_rows(values: np.ndarray, tolerance: float) -> np.ndarray:
+    """Mask of the (..., 3) rows with a component above ``tolerance`` in absolute value."""
+    a = np.abs(values)
+    return np.maximum(np.maximum(a[..., 0], a[..., 1]), a[..., 2]) > tolerance
 
 
 def _min_max(flat: np.ndarray) -> tuple[list[float], list[float]]:
@@ -584,6 +577,8 @@ def _vertex_attributes(bin_: _BinaryBuilder, mesh: MorphMesh, normals: bool, ske
     positions = np.ascontiguousarray(mesh.positions, dtype=np.float32)
     attributes = {"POSITION": bin_.accessor(positions, "VEC3", target=ARRAY_BUFFER, min_max=True, name="positions")}
     if normals:
+        from stages.geometry.render import vertex_normals
+
         attributes["NORMAL"] = bin_.accessor(
             vertex_normals(positions, np.asarray(mesh.triangles)), "VEC3", target=ARRAY_BUFFER, name="normals"
         )
@@ -603,8 +598,9 @@ def _add_mesh(gltf, bin_: _BinaryBuilder, mesh: MorphMesh, attributes: dict, spa
     import pygltflib
 
     deltas = np.asarray(mesh.deltas, dtype=np.float32)
+    moving = moving_rows(deltas, sparse_tolerance)  # (targets, vertices), all targets at once
     targets = [
-        pygltflib.Attributes(POSITION=bin_.sparse_accessor(deltas[i], sparse_tolerance, name=name))
+        pygltflib.Attributes(POSITION=bin_.sparse_accessor(deltas[i], sparse_tolerance, name=name, moving=moving[i]))
         for i, name in enumerate(mesh.target_names)
     ]
     triangles = np.asarray(mesh.triangles)
