@@ -486,7 +486,7 @@ def test_blinks_and_gaze_come_from_tracking(ict):
     """A synthetic blink in the performer's eyelid aperture closes the character's eyes by the same fraction; gaze
     turns into eyeLook weights (synthetic inputs in tracking's contract-3 shapes)."""
     from stages.retarget.blend import character_landmarks
-    from stages.retarget.eyes import blink_curve, eye_aperture_2d
+    from stages.retarget.eyes import eye_aperture_2d
 
     names = ict.meta["target_names"]
     frames = 20
@@ -513,7 +513,8 @@ def test_blinks_and_gaze_come_from_tracking(ict):
     shapes = rest[None] + np.einsum("fm,mpc->fpc", w.astype(np.float64), deltas)
     relative = eye_aperture_2d(shapes) / eye_aperture_2d(rest[None])
     # the same fraction closed, as far as the character's blink closes (ICT's lids stop at 13% of open)
-    tightest = blink_curve(rest, deltas[names.index("eyeBlink_L")])[1][-1]
+    shut = rest + deltas[names.index("eyeBlink_L")] + deltas[names.index("eyeBlink_R")]
+    tightest = (eye_aperture_2d(shut[None]) / eye_aperture_2d(rest[None]))[0, 0]
     np.testing.assert_allclose(relative[8:11], np.maximum(aperture[8:11] / 0.3, tightest), atol=0.01)
     assert w[12, names.index("eyeLookOut_L")] == pytest.approx(0.5, abs=1e-6)
     assert w[12, names.index("eyeLookIn_R")] == pytest.approx(0.5, abs=1e-6)

@@ -680,7 +680,13 @@ def apply_lip_seal(weights, character, gap, seal_gap, correctives=()) -> tuple[n
 def apply_eyes(weights, names, character, tracks, sequence, full_degrees):
     """Blink morphs from the eyelid aperture, eyeLook morphs from the gaze; returns (weights, gaze or None,
     meta, warnings)."""
-    from stages.retarget.eyes import blink_curve, blink_weights, closure, eye_aperture_2d, gaze_morphs, gaze_weights
+    from stages.retarget.eyes import (
+        blink_for_aperture,
+        closure,
+        eye_aperture_2d,
+        gaze_morphs,
+        gaze_weights,
+    )
     from stages.retarget.regions import find_side_morph
 
     weights = weights.copy()
@@ -698,10 +704,10 @@ def apply_eyes(weights, names, character, tracks, sequence, full_degrees):
         rest, deltas = character_landmarks(character)
         c = closure(aperture, sequence)
         weights[:, blinks] = 0.0
-        # how open each eye is with everything but the blink (squint, brows, cheeks), relative to the neutral
-        others = eye_aperture_2d(rest[None] + np.einsum("fm,mpc->fpc", weights, deltas)) / eye_aperture_2d(rest[None])
+        others = np.einsum("fm,mpc->fpc", weights, deltas)  # everything but the blink: squint, brows, cheeks
+        opened = eye_aperture_2d(rest[None])[0]  # the character's open eye: its neutral's
         for eye, m in enumerate(blinks):
-            weights[:, m] = blink_weights(c[:, eye], blink_curve(rest, deltas[m]), others[:, eye])
+            weights[:, m] = blink_for_aperture(rest, others, deltas[m], eye, opened[eye] * (1.0 - c[:, eye]))
         meta["blink_peak"] = [float(weights[:, m].max(initial=0.0)) for m in blinks]
     gaze = np.asarray(tracks["gaze"], np.float64) if "gaze" in tracks else None
     if gaze is None:
