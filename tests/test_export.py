@@ -8,6 +8,7 @@ from pathlib import Path
 import av
 import numpy as np
 import pytest
+from conftest import run_cli
 
 from msflow import UserError
 from msflow.testing import artifact, prepare_inputs, run_stage
@@ -825,6 +826,15 @@ def test_preview_is_the_same_whatever_the_jobs(character):
     assert Export.Params(preview=True).preview == "full" and Export.Params(preview=False).preview is False
     with pytest.raises(ValueError):
         Export.Params(preview="medium")
+
+
+def test_a_bad_frame_rate_is_refused_before_anything_runs(default_run):
+    """Params hold the rule: `msflow status` names stage and field, exit 2, and runs nothing."""
+    proj, _ = default_run
+    for value in ("0", "-25", "241"):
+        out = run_cli(proj, "status", "-S", f"export.fps={value}")
+        assert out.returncode == 2, out.stderr
+        assert "export" in out.stderr and "fps" in out.stderr and "Traceback" not in out.stderr
 
 
 def test_figures(exported):
