@@ -257,3 +257,9 @@ def test_holdout_speaker_needs_labels_and_another_speaker(phrases):
         run_stage(Trellis, {"holdout": "speaker", "test_speaker": "own"}, {**inputs, "test_pitch": labelled})
     assert err.value.field == "params.k"
     assert angular_speed(np.zeros((5, 3)), 30.0).max() == 0.0
+
+
+def test_beat_alignment_figure(phrases):
+    result = evaluate(synthesis(tracking_artifact(phrases[:4]), holdout="take"))
+    fig = HeadMotionEval.figures["beat_alignment"](artifact(result.arrays, result.meta), {})
+    assert len(fig.axes) == 2 and fig.axes[0].get_xticklabels()[0].get_text() == "synth"

@@ -308,3 +308,20 @@ def test_a_silent_take_cannot_enter_the_database(phrases):
     with pytest.raises(UserError, match="no audio") as err:
         run_stage(TrackedHeadDb, {}, {"tracks": silent})
     assert err.value.field == f"inputs.tracks[{phrases[1].label}]"
+
+
+def test_smoothing_removes_tracking_jitter_and_keeps_the_motion(phrases):
+    from stages.head.measures import angular_acceleration
+
+    clean = tracking_artifact(phrases[:1], fps=30.0)
+    rotation = np.asarray(clean["rotation"]).copy()
+    rng = np.random.default_rng(0)
+    rotation[:, 1:] += rng.normal(0, 0.004, (len(rotation), 3))  # about 0.5 degree of jitter
+    rotation /= np.linalg.norm(rotation, axis=1, keepdims=True)
+    noisy = artifact({**{k: clean[k] for k in clean.names}, "rotation": rotation}, clean.meta)
+    truth = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": clean}).arrays["angles"]
+    raw = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": noisy}).arrays["angles"]
+    smooth = run_stage(TrackedHeadDb, {"mirror": False, "smoothing": 0.05}, {"tracks": noisy}).arrays["angles"]
+    acc = lambda a: np.percentile(angular_acceleration(a, 30.0), 99)
+    assert acc(smooth) < 0.3 * acc(raw)
+    assert np.abs(smooth - truth).mean() < 0.7 * np.abs(raw - truth).mean()  # closer to the motion than the jitter

@@ -116,6 +116,15 @@ def resample_motion(
     return grid, rot, trans
 
 
+def smooth_motion(rotation: np.ndarray, translation: np.ndarray, sd_frames: float) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian smoothing over ``sd_frames`` frames: quaternion components on one hemisphere (valid for the small
+    steps between frames), renormalised; translations alike. Removes tracking jitter, keeps head motion."""
+    from scipy.ndimage import gaussian_filter1d
+
+    q = gaussian_filter1d(quat_continuous(rotation), sd_frames, axis=0, mode="nearest")
+    return quat_normalize(q), gaussian_filter1d(translation, sd_frames, axis=0, mode="nearest")
+
+
 def center_motion(rotation: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Motion relative to the sequence's mean pose, in the mean head's frame: q' = q_mean^* q,
     t' = R_mean^T (t - mean t). Takes with different resting poses can then be stitched."""
@@ -138,6 +147,7 @@ def build_database(
     mirror: bool,
     center: bool,
     max_length_mismatch: float,
+    smoothing: float = 0.0,
     translation_units: str,
 ) -> Result:
     """Resample every recording to ``fps``, optionally centre it and add its mirror image; one artifact."""
@@ -152,6 +162,8 @@ def build_database(
         check_motion_finite(rec)
         check_lengths(rec, max_length_mismatch)
         grid, rot, trans = resample_motion(rec.time, quat_normalize(rec.rotation), rec.translation, fps)
+        if smoothing > 0:
+            rot, trans = smooth_motion(rot, trans, smoothing * fps)
         if center:
             rot, trans = center_motion(rot, trans)
         bounds = (audio_cursor, audio_cursor + len(rec.samples))
@@ -201,6 +213,9 @@ class HeadDbParams(Stage.Params):
     center: bool = Field(True, description="motion relative to each take's mean pose")
     max_length_mismatch: float = Field(
         0.5, ge=0, description="seconds allowed between the audio and motion lengths of a take"
+    )
+    smoothing: float = Field(
+        0.0, ge=0, description="Gaussian smoothing (s, sd) of the motion against tracking jitter (0: none)"
     )
     speaker: str | None = Field(
         None,
@@ -252,6 +267,7 @@ class TrackedHeadDb(Stage):
             mirror=params.mirror,
             center=params.center,
             max_length_mismatch=params.max_length_mismatch,
+            smoothing=params.smoothing,
             translation_units=str(views[0][1].meta.get("translation_units", "unknown")),
         )
 
@@ -396,6 +412,7 @@ class BvhHeadDb(Stage):
             mirror=params.mirror,
             center=params.center,
             max_length_mismatch=params.max_length_mismatch,
+            smoothing=params.smoothing,
             translation_units=params.translation_units,
         )
 
@@ -485,5 +502,6 @@ class CsvHeadDb(Stage):
             mirror=params.mirror,
             center=params.center,
             max_length_mismatch=params.max_length_mismatch,
+            smoothing=params.smoothing,
             translation_units=params.translation_units,
         )
