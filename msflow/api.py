@@ -204,8 +204,8 @@ def run(
         (execution,) = run_sessions([session], **options)
         execution.record.setdefault("repairs", []).insert(0, repair)
         finish_run(execution)
-    if not until and not force and not execution.record.get("repairs"):
-        save_fast_state(execution)
+    if not until and not force and publish_dir is None and not execution.record.get("repairs"):
+        save_fast_state(execution)  # what the next no-op `msflow run` (same file and overrides) answers from
     result = RunResult(session, execution.states, execution.record)
     if raise_on_failure:
         raise_for_failures(execution.states)

@@ -72,6 +72,7 @@ def run(
             argv=sys.argv[1:],
             raise_on_failure=False,
             connect_timeout=connect_timeout,
+            publish_dir=publish_dir,
         )
     finally:
         if reporter:
