@@ -18,7 +18,14 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from msflow import Input, Output, Result, Stage, UserError
 from stages.face.aam import AamModel, AamProjection, apply_similarity, check_landmark_scheme, check_landmarks
-from stages.face.analysis import AnalysisParams, FrameAnalysis, analyse_frames, convergence_warnings, jitter
+from stages.face.analysis import (
+    AnalysisParams,
+    FrameAnalysis,
+    analyse_frames,
+    convergence_warnings,
+    fit_warnings,
+    jitter,
+)
 from stages.face.bilinear import BilinearModel, synthesise
 
 #: frames projected, rendered and encoded at a time: bounds the memory of the image work whatever the take's length
@@ -572,6 +579,7 @@ def pack_edit(
     if edits.video is not None:
         arrays["video"] = edits.video
     warned = convergence_warnings(analysis.residual, analysis.converged, take.sequence, take.labels, params.max_iter)
+    warned += fit_warnings(analysis.residual, take.sequence, take.labels)
     return Result(arrays, edit_meta(params, take, targets, analysis), edit_metrics(take, analysis), warned)
 
 
