@@ -132,10 +132,6 @@ def main(argv=None):
         bench_long_edit(aam.view(), bilinear.view(), sad, seconds)
 
 
-if __name__ == "__main__":
-    main()
-
-
 class Tiled:
     """A frames-first array repeated to ``frames`` rows, read by slices without building it (like a lazy input)."""
 
@@ -195,3 +191,7 @@ def bench_long_edit(aam, bilinear, sad, seconds: float) -> None:
         f"{crop_bytes / 1e6:,.0f} MB; its edited crops: {3 * crop_bytes / 1e6:,.0f} MB); video "
         f"{len(result.arrays['video']) / 1e6:.1f} MB"
     )
+
+
+if __name__ == "__main__":
+    main()

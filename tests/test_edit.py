@@ -534,3 +534,12 @@ def test_a_face_the_model_cannot_express_warns():
     poor = [w for w in run.warnings if "explained poorly" in w]
     assert run.metrics["mean_residual"] > 0.45 and len(poor) == 3 and "take 's0_r0'" in poor[0]
     assert not [w for w in edit_run().warnings if "explained poorly" in w]
+
+
+def test_the_edit_on_two_threads_equals_one():
+    """``-j 2`` pastes the edited faces on two threads; the artifact does not change (it is not in the key)."""
+    params = {"targets": ["happy"], "video": True}
+    one = run_stage(ExpressionEdit, params, edit_inputs())
+    two = run_stage(ExpressionEdit, params, edit_inputs(), jobs=2)
+    for name in ("frames", "crop_shapes", "y", "video"):
+        np.testing.assert_array_equal(np.asarray(two.arrays[name]), np.asarray(one.arrays[name]))
