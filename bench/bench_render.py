@@ -2,14 +2,14 @@
 H.264 encode, stages.export.preview) on the embedded ICT FaceKit character, animated by a smooth random walk of
 its morph weights with head and eye motion.
 
-    python bench/bench_render.py [--frames 600] [--sizes 192 384 512] [--jobs 1 2]
+    python bench/bench_render.py [--frames 600] [--sizes 192 384 512] [--jobs 1 2] [--export-frames 1800]
 
 Prints (1) the rasteriser alone on one core, per image size: CPU milliseconds per frame and frames per CPU
 second, beside OpenCV's fillConvexPoly painter's algorithm (flat shading, no z-buffer) as a reference; (2) the
 preview path for each level ("low": half size, "full") and each thread count: wall-clock frames per second, CPU
 milliseconds per frame (user + sys, all threads) and the load average while it ran (other processes on the
 machine slow the wall clock, not the CPU figure). The frames must be identical whatever the thread count: the
-script checks it.
+script checks it. (3) the export stage end to end on a synthetic one-minute take (1800 frames at 30 fps).
 """
 
 from __future__ import annotations
@@ -135,6 +135,41 @@ def preview_table(character, frames: int, jobs_list: list[int], size: int) -> No
     print(f"(codec {codec}; identical videos for every thread count)")
 
 
+def export_table(character, frames: int, jobs_list: list[int]) -> None:
+    """The export stage end to end (GLB, CSV, BVH, preview with audio) on a synthetic take of ``frames``."""
+    from msflow.testing import artifact, prepare_inputs
+    from stages.export.animation import Export
+
+    names = character.meta["target_names"]
+    poses = animation(frames, names, seed=1)
+    t = np.arange(frames) / 30.0
+    gaze = np.stack([15 * np.sin(0.9 * t), 8 * np.cos(0.6 * t)], axis=-1)[:, None, :].repeat(2, axis=1)
+    rate = 16000
+    audio = (0.1 * np.sin(2 * np.pi * 220 * np.arange(int(frames / 30 * rate)) / rate)).astype(np.float32)
+    inputs = {
+        "character": character,
+        "blend": artifact(
+            {"weights": poses.weights.astype(np.float32), "gaze": gaze.astype(np.float32)},
+            {"target_names": names, "fps": 30.0},
+        ),
+        "head": artifact(
+            {"rotation": poses.rotation, "translation": np.zeros((frames, 3))}, {"fps": 30.0, "translation_units": "m"}
+        ),
+        "audio": artifact(
+            {"audio": audio, "audio_bounds": np.array([[0, len(audio)]])},
+            {"labels": ["take"], "audio_rate": rate, "fps": [30.0], "audio_offset": [0.0]},
+        ),
+    }
+    print(f"\n(3) the export stage (GLB, Live Link CSV, BVH, 384 px preview with audio), {frames} frames")
+    print(f"{'jobs':>4} {'wall s':>7} {'frames/s':>9} {'CPU s':>6} {'load':>5}")
+    for jobs in jobs_list:
+        stage = Export("export", jobs=jobs)
+        wall, cpu = time.perf_counter(), cpu_seconds()
+        stage.run(Export.Params(), prepare_inputs(Export, inputs))
+        wall, cpu = time.perf_counter() - wall, cpu_seconds() - cpu
+        print(f"{jobs:>4} {wall:>7.1f} {frames / wall:>9.1f} {cpu:>6.1f} {os.getloadavg()[0]:>5.1f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=int, default=600, help="frames of the preview path (default 600: 20 s)")
@@ -142,6 +177,7 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--size", type=int, default=384, help="preview size of the 'full' level")
     parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--export-frames", type=int, default=1800, help="frames of the export stage run (0: skip)")
     args = parser.parse_args()
 
     from msflow.testing import run_stage
@@ -152,6 +188,8 @@ def main() -> None:
     print(f"ICT FaceKit: {n_vertices} vertices, {n_triangles} triangles, {len(character.meta['target_names'])} morphs")
     rasteriser_table(character, args.sizes, args.repeats)
     preview_table(character, args.frames, args.jobs, args.size)
+    if args.export_frames:
+        export_table(character, args.export_frames, args.jobs)
 
 
 if __name__ == "__main__":

@@ -7,8 +7,8 @@
 Each row is one run of an evaluation pipeline (stages.eval.head): CREMA-D ``eval/head.yaml`` (leave one take out;
 one speaker), the talking-head clips ``eval/head_talking_heads.yaml`` (leave one speaker out, and leave one take out
 with ``vars.holdout=take``),
-synthetic takes ``eval/head_csv.yaml`` (67 phrases of tests/head_synthetic.py written as CSV + WAV into --work;
-leave one take out). ``-S`` overrides go to every pipeline (stage params and vars). Results are cached in the
+synthetic takes ``eval/head_csv.yaml`` (67 phrases of tests/head_synthetic.py whose head pitch follows the voice's
+pitch, written as CSV + WAV into --work; leave one take out). ``-S`` overrides go to every pipeline (stage params and vars). Results are cached in the
 project's store like any run; ``msflow show -f eval/head.yaml evaluate`` prints every metric.
 """
 
@@ -46,13 +46,15 @@ COLUMNS = [
 
 
 def write_synthetic_takes(folder: Path, phrases: int, seed: int) -> Path:
-    """Synthetic takes (tests/head_synthetic.py) as ``synth_<label>.csv`` (degrees) and ``.wav`` files."""
-    from head_synthetic import synth_database
+    """Synthetic takes (tests/head_synthetic.py) whose head pitch is a known function of the voice (1.5 degrees
+    per semitone above the speaker's base) as ``synth_<label>.csv`` (degrees) and ``.wav`` files: the synthesis
+    of a held-out take must correlate with its real motion, random paths must not."""
+    from head_synthetic import pitch_driven, synth_database
 
     from stages.head.pitch import wav_bytes
 
     folder.mkdir(parents=True, exist_ok=True)
-    for p in synth_database(phrases, seed=seed):
+    for p in pitch_driven(synth_database(phrases, seed=seed)):
         t, angles, translation = p.motion_at(30.0)
         deg = np.degrees(angles)
         rows = np.column_stack([t, deg[:, 1], deg[:, 0], deg[:, 2], translation])  # rx = pitch, ry = yaw, rz = roll
@@ -74,7 +76,8 @@ def runs(args) -> list[tuple[str, str, str, list[str]]]:
         out.append(("talking heads, leave one take out", "eval/head_talking_heads.yaml", "evaluate", take))
     if "synthetic" in args.data:
         takes = write_synthetic_takes(Path(args.work) / "synthetic", args.phrases, args.seed)
-        out.append(("synthetic, leave one take out", "eval/head_csv.yaml", "evaluate", [f"vars.takes={takes}"]))
+        name = "synthetic (head pitch = f(voice pitch)), leave one take out"
+        out.append((name, "eval/head_csv.yaml", "evaluate", [f"vars.takes={takes}"]))
     return out
 
 
@@ -108,7 +111,10 @@ def main(argv=None):
         args.work = args.work or tmp
         rows = []
         for name, pipeline, stage, overrides in runs(args):
-            result = msflow.run(ROOT / pipeline, overrides=overrides + args.set)
+            try:
+                result = msflow.run(ROOT / pipeline, overrides=overrides + args.set)
+            except msflow.UserError as exc:
+                sys.exit(f"error: {exc} (for the shared clips elsewhere: --shared PATH)")
             rows.append((name, result.artifact(stage).metrics))
             print(f"{name}: run {result.run_id}", file=sys.stderr)
     print("| data | " + " | ".join(title for _, title, _ in COLUMNS) + " |")

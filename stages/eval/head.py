@@ -243,11 +243,16 @@ def motion_scores(motion: np.ndarray, real: np.ndarray, fps: float, onsets, acce
 
 
 def pose_correlation(motion: np.ndarray, real: np.ndarray) -> float:
-    """Mean over angles of the Pearson correlation of ``motion`` with ``real`` (angles where either is constant
-    count 0): near 0 when the motion is not a function of the same voice, 1 for the real motion itself."""
+    """Mean over the angles the real motion moves in of the Pearson correlation of ``motion`` with ``real`` (0
+    where ``motion`` is constant): near 0 when the motion is not a function of the same voice, 1 for the real
+    motion itself. 0 when the real motion is still."""
     a, b = motion - motion.mean(axis=0), real - real.mean(axis=0)
+    moves = (b * b).sum(axis=0) > 1e-16
+    if not moves.any():
+        return 0.0
     norm = np.sqrt((a * a).sum(axis=0) * (b * b).sum(axis=0))
-    return float(np.mean(np.where(norm > 1e-20, (a * b).sum(axis=0) / np.maximum(norm, 1e-300), 0.0)))
+    r = np.where(norm > 1e-20, (a * b).sum(axis=0) / np.maximum(norm, 1e-300), 0.0)
+    return float(r[moves].mean())
 
 
 def window_motions(take: Take, a: int, b: int, shifted, paths, db, rng, params) -> dict[str, list[np.ndarray]]:
@@ -299,7 +304,7 @@ class RangeScores:
     """Per speaker (rows) and motion (columns): each angle's p5..p95 against the speaker's real p5..p95."""
 
     speakers: list[str]
-    amplitude: np.ndarray  # (S, M, 3) (p95 - p5) of the motion over (p95 - p5) of the real motion
+    amplitude: np.ndarray  # (S, M, 3) (p95 - p5) of the motion over (p95 - p5) of the real motion (NaN: still)
     inside: np.ndarray  # (S, M, 3) 1 where the motion's [p5, p95] lies inside the real [p5, p95]
     in_range: np.ndarray  # (S, M) fraction of frames (all angles) inside the real [p5, p95]
 
@@ -314,11 +319,12 @@ def range_scores(pooled: dict[str, dict[str, list[np.ndarray]]]) -> RangeScores:
     in_range = np.zeros((len(speakers), len(MOTIONS)))
     for i, speaker in enumerate(speakers):
         real = percentile_range(np.concatenate(pooled[speaker]["real"]))
-        spread = np.maximum(real[1] - real[0], 1e-9)
+        spread = real[1] - real[0]
+        moves = spread > 1e-6  # an angle the real motion never moves in has no amplitude to match (NaN)
         for j, name in enumerate(MOTIONS):
             motion = np.concatenate(pooled[speaker][name])
             p = percentile_range(motion)
-            amplitude[i, j] = (p[1] - p[0]) / spread
+            amplitude[i, j] = np.where(moves, (p[1] - p[0]) / np.where(moves, spread, 1.0), np.nan)
             inside[i, j] = (p[0] >= real[0] - 1e-9) & (p[1] <= real[1] + 1e-9)
             degrees = np.degrees(motion)
             in_range[i, j] = np.mean((degrees >= real[0]) & (degrees <= real[1]))
@@ -442,7 +448,9 @@ def pooled_metrics(w: WindowScores, ranges: RangeScores, per_take: dict, params)
             metrics[f"speed_w1_{m}"] = float(np.nanmean(w.speed_w1[:, i]))
             metrics[f"accel_w1_{m}"] = float(np.nanmean(w.accel_w1[:, i]))
             metrics[f"corr_{m}"] = float(w.correlation[:, i].mean())
-        metrics[f"amplitude_{m}"] = float(ranges.amplitude[:, i].mean())
+        metrics[f"amplitude_{m}"] = (
+            float(np.nanmean(ranges.amplitude[:, i])) if np.isfinite(ranges.amplitude[:, i]).any() else 0.0
+        )
         metrics[f"range_ok_{m}"] = float(ranges.inside[:, i].mean())
         metrics[f"in_range_{m}"] = float(ranges.in_range[:, i].mean())
     drift, joins, p99 = per_take["drift"], per_take["join_acc_max"], per_take["real_acc_p99"]
