@@ -9,7 +9,8 @@ with ``track_test`` reading the long take, its own store under ``--out``, no ``p
 of the default take fills that store with the training branch (track_train, aam, bilinear, character, headdb,
 ...), so every timed run computes exactly the stages that depend on the test take.
 
-Each timed run is ``python -m msflow.cli run <generated pipeline> -j N`` in a subprocess; printed per length:
+Each timed run is ``python -m msflow.cli run <generated pipeline> -j N`` in a subprocess (``--until track_test``:
+tracking alone, no warm-up); printed per length:
 the wall seconds of the tracking (track_test), edit and export stages from the run record, the whole run's wall
 time and CPU time (user + sys of msflow and all its workers), and the peak resident memory of the run: the sum
 over msflow and its worker processes, sampled every 0.1 s with psutil.
@@ -113,15 +114,16 @@ def tree_rss(proc) -> int:
     return total
 
 
-def timed_run(pipeline: Path, jobs: int) -> dict:
+def timed_run(pipeline: Path, jobs: int, until: str | None = None) -> dict:
     """Run the pipeline in a subprocess: wall and CPU seconds (with workers), peak tree RSS, the run record."""
     import psutil
 
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     started = time.perf_counter()
+    extra = ["--until", until] if until else []
     proc = subprocess.Popen(
-        [sys.executable, "-m", "msflow.cli", "run", str(pipeline), "-j", str(jobs)],
+        [sys.executable, "-m", "msflow.cli", "run", str(pipeline), "-j", str(jobs), *extra],
         cwd=ROOT,
         env=env,
         stdout=subprocess.PIPE,
@@ -150,7 +152,8 @@ def latest_record(pipeline: Path) -> dict:
 
 
 def stage_seconds(record: dict, *names: str) -> float:
-    return sum(record["stages"][n]["seconds"] for n in names if record["stages"][n]["state"] == "ran")
+    stages = record["stages"]
+    return sum(stages[n]["seconds"] for n in names if n in stages and stages[n]["state"] == "ran")
 
 
 def main() -> None:
@@ -158,16 +161,18 @@ def main() -> None:
     ap.add_argument("--lengths", default="2s,1min", help="comma list of " + ", ".join(LENGTHS))
     ap.add_argument("-j", "--jobs", type=int, default=2)
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "out" / "long")
+    ap.add_argument("--until", default=None, help="run only up to this stage (e.g. track_test: tracking alone)")
     args = ap.parse_args()
     args.out = args.out.resolve()
     (args.out / "takes").mkdir(parents=True, exist_ok=True)
-    warm = pipeline_for(SOURCE, args.out, "warmup")
-    print(f"warm-up run (training branch into {args.out / 'store'}) ...", flush=True)
-    timed_run(warm, args.jobs)
+    if not args.until:
+        warm = pipeline_for(SOURCE, args.out, "warmup")
+        print(f"warm-up run (training branch into {args.out / 'store'}) ...", flush=True)
+        timed_run(warm, args.jobs)
     rows = []
     for name in args.lengths.split(","):
         take = build_take(args.out / "takes" / f"sad_{name}.mp4", LENGTHS[name])
-        run = timed_run(pipeline_for(take, args.out, name), args.jobs)
+        run = timed_run(pipeline_for(take, args.out, name), args.jobs, args.until)
         record = run["record"]
         frames = LENGTHS[name] * 60
         rows.append(
@@ -183,7 +188,10 @@ def main() -> None:
             )
         )
         print(f"{name}: {run['wall']:.1f} s wall, ran {record['counts']['ran']} stages", flush=True)
-    print(f"\n-j {args.jobs}, {os.cpu_count()} CPUs; stage times are wall seconds from the run record")
+    print(
+        f"\n-j {args.jobs}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}; stage times are wall "
+        f"seconds from the run record{f'; run --until {args.until}' if args.until else ''}"
+    )
     print("| take | frames | tracking | edit | export | whole run, wall | whole run, CPU | peak RSS |")
     print("|---|---|---|---|---|---|---|---|")
     for name, frames, track, edit, export, wall, cpu, rss in rows:

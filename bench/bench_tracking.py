@@ -158,16 +158,18 @@ def speed_high_resolution(heads: Path | None, out: Path) -> None:
         return
     source = heads / "address_us.mp4"
     clips = {"1080p (address_us upscaled)": upscaled_1080p(source, out / "address_us_1080p.mp4"), "720p": source}
-    print("2. FaceMesh stage (default model), 2 workers and 1 worker: frames/s wall (CPU per frame, load average)")
+    print("2. FaceMesh stage, 2 workers and 1 worker: frames/s wall (CPU per frame, load average)")
+    runs = [("default", 2), ("default", 1), ("face_mesh_v1", 2)]
     for name, clip in clips.items():
-        for jobs in (2, 1):
+        for config, jobs in runs:
             started, cpu0 = time.perf_counter(), time.process_time()
-            result = run_stage(FaceMesh, {"audio": "none"}, {"videos": {"c": clip}}, jobs=jobs)
+            params = {**CONFIGS[config], "audio": "none"}
+            result = run_stage(FaceMesh, params, {"videos": {"c": clip}}, jobs=jobs)
             wall, cpu = time.perf_counter() - started, time.process_time() - cpu0
             n = len(result.arrays["valid"])
             load = os.getloadavg()[0]
             print(
-                f"   {name:28s} jobs {jobs}: {n / wall:6.1f} frames/s ({1000 * cpu / n:.1f} ms CPU per frame, "
+                f"   {name:28s} {config:13s} jobs {jobs}: {n / wall:6.1f} frames/s ({1000 * cpu / n:.1f} ms CPU per frame, "
                 f"load {load:.1f})"
             )
 
