@@ -5,9 +5,10 @@
 The takes are built at run time from the embedded CREMA-D sad clip (480x360, 29.97 fps), repeated back to back
 with its own sound cut to the picture, and encoded as H.264 + AAC MP4 under ``--out`` (nothing large is committed;
 a take already built is reused). For each length a pipeline file is generated next to them: ``pipeline.yaml``
-with ``track_test`` reading the long take, its own store under ``--out``, no ``publish:``. A first, untimed run
-of the default take fills that store with the training branch (track_train, aam, bilinear, character, headdb,
-...), so every timed run computes exactly the stages that depend on the test take.
+with ``track_test`` reading the long take, no ``publish:``, and a store of its own under ``--out``: a fresh copy
+of a warm-up store that a first, untimed run of the default take filled with the training branch (track_train,
+aam, bilinear, character, headdb, ...), so every timed run computes exactly the stages that depend on the test
+take, whatever earlier runs left behind.
 
 Each timed run is ``python -m msflow.cli run <generated pipeline> -j N`` in a subprocess (``--until track_test``:
 tracking alone, no warm-up); printed per length:
@@ -79,13 +80,25 @@ def build_take(path: Path, repeat: int) -> Path:
     return path
 
 
-def pipeline_for(take: Path, out: Path, name: str) -> Path:
-    """pipeline.yaml with the test take replaced, its own store, absolute data paths, nothing published."""
+def fresh_store(out: Path, name: str, warm: bool) -> Path:
+    """An empty store for one timed run, or a copy of the warm-up store (training branch already computed), so
+    every stage that depends on the test take runs, whatever earlier runs left behind."""
+    import shutil
+
+    store = out / f"store-{name}"
+    shutil.rmtree(store, ignore_errors=True)
+    if warm:
+        shutil.copytree(out / "store-warm", store)
+    return store
+
+
+def pipeline_for(take: Path, out: Path, name: str, store: Path) -> Path:
+    """pipeline.yaml with the test take replaced, the given store, absolute data paths, nothing published."""
     import yaml
 
     spec = yaml.safe_load((ROOT / "pipeline.yaml").read_text())
     spec["vars"]["clips"] = str(ROOT / "data" / "crema-d")
-    spec["store"] = str(out / "store")
+    spec["store"] = str(store)
     spec["stages"]["track_test"]["inputs"]["videos"] = {"sad": str(take)}
     for stage in spec["stages"].values():
         for key, ref in list(stage.get("inputs", {}).items()):
@@ -166,13 +179,14 @@ def main() -> None:
     args.out = args.out.resolve()
     (args.out / "takes").mkdir(parents=True, exist_ok=True)
     if not args.until:
-        warm = pipeline_for(SOURCE, args.out, "warmup")
-        print(f"warm-up run (training branch into {args.out / 'store'}) ...", flush=True)
+        warm = pipeline_for(SOURCE, args.out, "warmup", args.out / "store-warm")
+        print(f"warm-up run (training branch into {args.out / 'store-warm'}) ...", flush=True)
         timed_run(warm, args.jobs)
     rows = []
     for name in args.lengths.split(","):
         take = build_take(args.out / "takes" / f"sad_{name}.mp4", LENGTHS[name])
-        run = timed_run(pipeline_for(take, args.out, name), args.jobs, args.until)
+        store = fresh_store(args.out, name, warm=not args.until)
+        run = timed_run(pipeline_for(take, args.out, name, store), args.jobs, args.until)
         record = run["record"]
         frames = LENGTHS[name] * 60
         rows.append(
