@@ -14,7 +14,10 @@ from msflow.runner import Reporter, Runner, StageState, new_run_id
 from msflow.session import Session, open_session
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from msflow.artifact import ArtifactView
+    from msflow.shipping import CodeTree
 
 
 @dataclass
@@ -102,7 +105,14 @@ def run_sessions(
 
     started = time.time()
     pin_blas_threads()
-    pool = make_executor(executor, jobs, scheduler, connect_timeout, on_start=sessions[0].store.clean_tmp)
+    pool = make_executor(
+        executor,
+        jobs,
+        scheduler,
+        connect_timeout,
+        on_start=sessions[0].store.clean_tmp,
+        code_trees=code_trees_of(sessions),
+    )
     runners = [
         Runner(
             session.pipeline,
@@ -142,6 +152,20 @@ def run_sessions(
     for session in {id(s.memo): s for s in sessions}.values():  # sessions may share one memo
         session.save_memo()
     return executions
+
+
+def code_trees_of(sessions: list[Session]) -> Callable[[str], CodeTree]:
+    """Project root -> the code its sessions' stages need (``msflow.shipping``), computed when first asked."""
+    from functools import cache
+
+    @cache
+    def tree(root: str) -> CodeTree:
+        from msflow.shipping import code_tree
+
+        plans = [plan for s in sessions if str(s.pipeline.root) == root for plan in s.plans.values()]
+        return code_tree(Path(root), plans)
+
+    return tree
 
 
 def run(
