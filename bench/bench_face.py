@@ -21,15 +21,9 @@ sys.path.insert(0, str(ROOT))
 
 from msflow.testing import run_stage  # noqa: E402
 from stages.face.aam import AamModel, AamPca  # noqa: E402
+from stages.face.analysis import analyse_style_content, analyse_takes, component_weights, initial_content  # noqa: E402
 from stages.face.bilinear import BilinearFit, BilinearModel  # noqa: E402
-from stages.face.edit import (  # noqa: E402
-    ExpressionEdit,
-    analyse_style_content,
-    analyse_takes,
-    component_weights,
-    edited_crops,
-    initial_content,
-)
+from stages.face.edit import ExpressionEdit, edited_crops  # noqa: E402
 
 CLIPS = {"neutral": "NEU", "happy": "HAP", "angry": "ANG", "sad": "SAD"}
 

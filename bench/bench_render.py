@@ -1,37 +1,50 @@
-"""Render speed on one core: the numpy z-buffer of stages.geometry.render against OpenCV fillConvexPoly per triangle in
-back-to-front order (painter's algorithm), on the embedded ICT FaceKit character, plus the whole preview path
-(pose + render + H.264 encode).
+"""Preview speed: the software rasteriser (stages.geometry.render) and the export's whole preview path (pose + render +
+H.264 encode, stages.export.preview) on the embedded ICT FaceKit character, animated by a smooth random walk of
+its morph weights with head and eye motion.
 
-    OPENBLAS_NUM_THREADS=1 python bench/bench_render.py [--frames 60] [--sizes 256 384 512]
+    python bench/bench_render.py [--frames 600] [--sizes 192 384 512] [--jobs 1 2] [--export-frames 1800]
+
+Prints (1) the rasteriser alone on one core, per image size: CPU milliseconds per frame and frames per CPU
+second, beside OpenCV's fillConvexPoly painter's algorithm (flat shading, no z-buffer) as a reference; (2) the
+preview path for each level ("low": half size, "full") and each thread count: wall-clock frames per second, CPU
+milliseconds per frame (user + sys, all threads) and the load average while it ran (other processes on the
+machine slow the wall clock, not the CPU figure). The frames must be identical whatever the thread count: the
+script checks it. (3) the export stage end to end on a synthetic one-minute take (1800 frames at 30 fps).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import resource
 import sys
 import time
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
 
+def cpu_seconds() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
 def painter_render(vertices, triangles, size, view, colors):
-    """OpenCV alternative: cull back faces, sort by depth, fill each triangle with its flat Lambert shade."""
+    """OpenCV reference: cull back faces, sort by depth, fill each triangle with its flat shade."""
     import cv2
 
-    from stages.geometry.render import project, shade_vertices, vertex_normals_fast
+    from stages.geometry.render import project, shade_vertices, vertex_normals
 
     cam, xy = project(vertices, view, size)
     p = xy[triangles]
     area = (p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1]) - (p[:, 2, 0] - p[:, 0, 0]) * (p[:, 1, 1] - p[:, 0, 1])
     front = np.flatnonzero(area < 0)
-    normals = vertex_normals_fast(cam, triangles)
-    diffuse, spec = shade_vertices(normals, view)
+    diffuse, spec = shade_vertices(vertex_normals(cam, triangles, dtype=np.float32), view)
     corners = triangles[front]
     shade = diffuse[corners].mean(axis=1)[:, None] * colors[front] + spec[corners].mean(axis=1)[:, None]
     rgb = (np.clip(shade, 0, 1) * 255).astype(np.uint8)
@@ -44,62 +57,139 @@ def painter_render(vertices, triangles, size, view, colors):
     return image
 
 
-def timed(fn, repeats):
-    """CPU seconds per call of this (single-threaded) process: the cost on one core, not inflated when other
-    processes share the machine (wall-clock figures are printed for the whole preview path)."""
+def cpu_per_call(fn, repeats: int) -> float:
+    """Least CPU seconds of one call over ``repeats`` (the least is the least disturbed by other processes)."""
     fn()  # warm-up
-    start = time.process_time()
+    best = float("inf")
     for _ in range(repeats):
+        start = time.process_time()
         fn()
-    return (time.process_time() - start) / repeats
+        best = min(best, time.process_time() - start)
+    return best
 
 
-def main():
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--frames", type=int, default=30)
-    parser.add_argument("--sizes", type=int, nargs="+", default=[256, 384, 512])
+def animation(frames: int, names: list[str], seed: int = 0):
+    """Smooth random morph weights (a third of the morphs move), head turns and gaze: a Poses of the export."""
+    from stages.export.preview import Poses
+    from stages.export.rig import gaze_rotations
+    from stages.geometry.rotations import euler_to_quat
+
+    rng = np.random.default_rng(seed)
+    moving = rng.uniform(size=len(names)) < 0.33
+    weights = np.clip(np.cumsum(rng.normal(0, 0.04, (frames, len(names))), axis=0), 0, 0.8) * moving
+    t = np.arange(frames) / 30.0
+    head = euler_to_quat(0.25 * np.sin(0.7 * t), 0.1 * np.sin(1.3 * t), 0.05 * np.sin(0.4 * t))
+    gaze = np.stack([15 * np.sin(0.9 * t), 8 * np.cos(0.6 * t)], axis=-1)[:, None, :].repeat(2, axis=1)
+    return Poses(weights, head, np.zeros((frames, 3)), gaze_rotations(gaze))
+
+
+def rasteriser_table(character, sizes: list[int], repeats: int) -> None:
+    from stages.geometry.render import CharacterRenderer, render
+
+    names = character.meta["target_names"]
+    poses = animation(2, names)
+    print(f"\n(1) rasteriser alone, one core: CPU ms per frame (frames per CPU second), least of {repeats}")
+    print(f"{'size':>5} {'numpy z-buffer':>22} {'+2x supersample':>22} {'opencv painter (flat)':>24}")
+    for size in sizes:
+        renderer = CharacterRenderer.from_artifact(character, size=size)
+        verts = renderer.vertices(poses.weights[1], poses.rotation[1])
+        cells = []
+        for fn, reps in (
+            (lambda: render(verts, renderer.triangles, size, renderer.view, colors=renderer.colors), repeats),
+            (
+                lambda: render(verts, renderer.triangles, size, renderer.view, colors=renderer.colors, supersample=2),
+                max(repeats // 4, 3),
+            ),
+            (lambda: painter_render(verts, renderer.triangles, size, renderer.view, renderer.colors), 3),
+        ):
+            seconds = cpu_per_call(fn, reps)
+            cells.append(f"{seconds * 1e3:7.1f} ms ({1 / seconds:6.1f} f/s)")
+        print(f"{size:>5} {cells[0]:>22} {cells[1]:>22} {cells[2]:>24}")
+
+
+def preview_table(character, frames: int, jobs_list: list[int], size: int) -> None:
+    from stages.export.preview import encode_mp4, rendered_frames
+    from stages.export.rig import find_eyes
+    from stages.geometry.render import CharacterRenderer
+
+    groups = [g["name"] for g in character.meta["groups"]]
+    eyes = find_eyes(character["neutral"], character["triangles"], character["triangle_groups"], groups)
+    poses = animation(frames, character.meta["target_names"])
+    print(f"\n(2) preview path (pose + render + H.264 encode), {frames} frames, {os.cpu_count()} CPUs")
+    print(f"{'level':>5} {'px':>4} {'jobs':>4} {'wall f/s':>9} {'CPU ms/frame':>13} {'load':>5} {'MP4 KiB':>8}")
+    for level, side in (("low", size // 2), ("full", size)):
+        renderer = CharacterRenderer.from_artifact(character, size=side, eyes=[(e.vertices, e.center) for e in eyes])
+        reference = None
+        for jobs in jobs_list:
+            wall, cpu = time.perf_counter(), cpu_seconds()
+            data, codec = encode_mp4(rendered_frames(renderer, poses, jobs=jobs), 30.0, (side, side))
+            wall, cpu = time.perf_counter() - wall, cpu_seconds() - cpu
+            if reference is None:
+                reference = data
+            elif data != reference:
+                raise SystemExit(f"preview differs between jobs={jobs_list[0]} and jobs={jobs}")
+            print(
+                f"{level:>5} {side:>4} {jobs:>4} {frames / wall:>9.1f} {cpu / frames * 1e3:>13.1f} "
+                f"{os.getloadavg()[0]:>5.1f} {len(data) / 1024:>8.0f}"
+            )
+    print(f"(codec {codec}; identical videos for every thread count)")
+
+
+def export_table(character, frames: int, jobs_list: list[int]) -> None:
+    """The export stage end to end (GLB, CSV, BVH, preview with audio) on a synthetic take of ``frames``."""
+    from msflow.testing import artifact, prepare_inputs
+    from stages.export.animation import Export
+
+    names = character.meta["target_names"]
+    poses = animation(frames, names, seed=1)
+    t = np.arange(frames) / 30.0
+    gaze = np.stack([15 * np.sin(0.9 * t), 8 * np.cos(0.6 * t)], axis=-1)[:, None, :].repeat(2, axis=1)
+    rate = 16000
+    audio = (0.1 * np.sin(2 * np.pi * 220 * np.arange(int(frames / 30 * rate)) / rate)).astype(np.float32)
+    inputs = {
+        "character": character,
+        "blend": artifact(
+            {"weights": poses.weights.astype(np.float32), "gaze": gaze.astype(np.float32)},
+            {"target_names": names, "fps": 30.0},
+        ),
+        "head": artifact(
+            {"rotation": poses.rotation, "translation": np.zeros((frames, 3))}, {"fps": 30.0, "translation_units": "m"}
+        ),
+        "audio": artifact(
+            {"audio": audio, "audio_bounds": np.array([[0, len(audio)]])},
+            {"labels": ["take"], "audio_rate": rate, "fps": [30.0], "audio_offset": [0.0]},
+        ),
+    }
+    print(f"\n(3) the export stage (GLB, Live Link CSV, BVH, 384 px preview with audio), {frames} frames")
+    print(f"{'jobs':>4} {'wall s':>7} {'frames/s':>9} {'CPU s':>6} {'load':>5}")
+    for jobs in jobs_list:
+        stage = Export("export", jobs=jobs)
+        wall, cpu = time.perf_counter(), cpu_seconds()
+        stage.run(Export.Params(), prepare_inputs(Export, inputs))
+        wall, cpu = time.perf_counter() - wall, cpu_seconds() - cpu
+        print(f"{jobs:>4} {wall:>7.1f} {frames / wall:>9.1f} {cpu:>6.1f} {os.getloadavg()[0]:>5.1f}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--frames", type=int, default=600, help="frames of the preview path (default 600: 20 s)")
+    parser.add_argument("--sizes", type=int, nargs="+", default=[192, 384, 512])
+    parser.add_argument("--jobs", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--size", type=int, default=384, help="preview size of the 'full' level")
+    parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--export-frames", type=int, default=1800, help="frames of the export stage run (0: skip)")
     args = parser.parse_args()
 
     from msflow.testing import run_stage
-    from stages.export.animation import encode_mp4
-    from stages.geometry.render import CharacterRenderer, render
     from stages.retarget.character import GltfCharacter
 
     character = run_stage(GltfCharacter, {}, {"mesh": ROOT / "data" / "characters" / "ict-facekit.glb"}).view()
-    names = character.meta["target_names"]
-    rng = np.random.default_rng(0)
-    weights = rng.uniform(0, 0.6, (args.frames, len(names))) * (rng.uniform(size=len(names)) < 0.3)
-    n_tri = len(character["triangles"])
-    print(
-        f"ICT FaceKit: {len(character['neutral'])} vertices, {n_tri} triangles, {len(names)} targets; "
-        f"{args.frames} frames, one core (CPU time)"
-    )
-    print(f"{'size':>5} {'numpy z-buffer':>16} {'+2x supersample':>16} {'opencv painter':>16} {'pose only':>10}")
-    for size in args.sizes:
-        renderer = CharacterRenderer.from_artifact(character, size=size)
-        verts = renderer.vertices(weights[0])
-        zbuf = timed(
-            lambda: render(verts, renderer.triangles, size, renderer.view, colors=renderer.colors), args.frames
-        )
-        ss = timed(
-            lambda: render(verts, renderer.triangles, size, renderer.view, colors=renderer.colors, supersample=2),
-            max(args.frames // 4, 3),
-        )
-        painter = timed(
-            lambda: painter_render(verts, renderer.triangles, size, renderer.view, renderer.colors),
-            max(args.frames // 4, 3),
-        )
-        pose = timed(lambda: renderer.vertices(weights[1]), args.frames)
-        print(f"{size:>5} {1 / zbuf:>12.1f} f/s {1 / ss:>12.1f} f/s {1 / painter:>12.1f} f/s {pose * 1e3:>7.1f} ms")
-    size = 384
-    renderer = CharacterRenderer.from_artifact(character, size=size)
-    start, cpu = time.perf_counter(), time.process_time()
-    data, codec = encode_mp4((renderer(w) for w in weights), 30.0, (size, size))
-    elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu
-    print(
-        f"preview path at {size} px (pose + render + {codec} encode): {args.frames / cpu:.1f} frames/s of CPU "
-        f"time ({args.frames / elapsed:.1f} wall-clock, load {os.getloadavg()[0]:.1f}), {len(data) / 1024:.0f} KiB"
-    )
+    n_vertices, n_triangles = len(character["neutral"]), len(character["triangles"])
+    print(f"ICT FaceKit: {n_vertices} vertices, {n_triangles} triangles, {len(character.meta['target_names'])} morphs")
+    rasteriser_table(character, args.sizes, args.repeats)
+    preview_table(character, args.frames, args.jobs, args.size)
+    if args.export_frames:
+        export_table(character, args.export_frames, args.jobs)
 
 
 if __name__ == "__main__":

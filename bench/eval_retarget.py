@@ -1,8 +1,11 @@
 """The retargeting evaluation as a table: ``eval/retarget.yaml`` on the embedded CREMA-D takes (the capture branch
-and the default run's paper branch) and, given folders, the capture branch on each.
+and the default run's paper branch) and, given folders, the capture branch on each; with ``--capture``, the
+performance-capture pipeline ``pipelines/capture.yaml`` run on each clip given (GLB, CSV, preview in out/) and
+scored the same way.
 
     python bench/eval_retarget.py [FOLDER ...]          # from the project root
     python bench/eval_retarget.py ../shared/data/talking-heads
+    python bench/eval_retarget.py --capture ../shared/data/talking-heads/{hdtf_kh,retalking_2,vlog_31}.mp4
 
 Prints one markdown row per run (pooled over the takes) and one per take of each folder. Every number is a stage
 metric of ``stages.eval.retarget:RetargetEval``; ``msflow show -f eval/retarget.yaml capture_eval`` shows the same.
@@ -68,6 +71,35 @@ def per_take(view, tracks, keyshapes) -> list[tuple[str, dict]]:
     return out
 
 
+def capture(clips: list[str]) -> None:
+    """pipelines/capture.yaml on each clip, scored against the clip's tracking (RetargetEval on its artifacts)."""
+    import resource
+
+    import msflow
+    from msflow.testing import run_stage
+    from stages.eval.retarget import RetargetEval
+
+    pipeline = ROOT / "pipelines" / "capture.yaml"
+    clips = [Path(c).resolve() for c in clips]
+    os.chdir(ROOT)
+    print("| clip | frames | CPU s | " + " | ".join(c for c, _, _ in COLUMNS) + " | export warnings |")
+    print("|" + "---|" * (len(COLUMNS) + 4))
+    for clip in clips:
+        before = resource.getrusage(resource.RUSAGE_SELF)
+        take = os.path.relpath(clip, pipeline.parent)
+        result = msflow.run(pipeline, [f"vars.take={take}", f"vars.name={clip.stem}_captured"])
+        after = resource.getrusage(resource.RUSAGE_SELF)
+        cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+        inputs = {
+            n: result.artifact(s) for n, s in (("tracks", "track"), ("blend", "blend"), ("character", "character"))
+        }
+        metrics = run_stage(RetargetEval, {}, dict(inputs, keyshapes=result.artifact("keyshapes"))).metrics
+        export = result.artifact("export")
+        frames = len(result.artifact("blend")["weights"])
+        cells = row(clip.name, metrics).rstrip(" |").split(" | ")
+        print(" | ".join([cells[0], str(frames), f"{cpu:.1f}"] + cells[1:]) + f" | {len(export.warnings)} |")
+
+
 def main(folders: list[str]) -> None:
     import msflow
 
@@ -89,4 +121,7 @@ def main(folders: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    if sys.argv[1:2] == ["--capture"]:
+        capture(sys.argv[2:])
+    else:
+        main(sys.argv[1:])

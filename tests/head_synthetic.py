@@ -145,8 +145,11 @@ def synth_database(n_phrases: int = 67, *, seed: int = 0, audio_rate: int = 1600
     ]
 
 
-def tracking_artifact(phrases: list[Phrase], fps: float = 30.0, *, audio_offset: float = 0.0):
-    """A tracking-shaped artifact (rotation, translation, time, sequence, audio, audio_bounds, meta)."""
+def tracking_artifact(
+    phrases: list[Phrase], fps: float = 30.0, *, audio_offset: float = 0.0, speaker: str | None = "synthetic"
+):
+    """A tracking-shaped artifact (rotation, translation, time, sequence, audio, audio_bounds, meta); every take
+    labelled with ``speaker`` in meta ``fields`` (the tracking contract), or unlabelled when None."""
     from msflow.testing import artifact
     from stages.geometry.rotations import euler_to_quat
 
@@ -168,6 +171,7 @@ def tracking_artifact(phrases: list[Phrase], fps: float = 30.0, *, audio_offset:
         "audio_rate": phrases[0].audio_rate,
         "audio_offset": [audio_offset] * len(phrases),
         "translation_units": "mm",
+        "fields": {p.label: ({"speaker": speaker} if speaker else {}) for p in phrases},
     }
     return artifact(
         {
@@ -180,3 +184,21 @@ def tracking_artifact(phrases: list[Phrase], fps: float = 30.0, *, audio_offset:
         },
         meta,
     )
+
+
+def pitch_driven(phrases: list[Phrase], gain_deg_per_semitone: float = 1.5) -> list[Phrase]:
+    """The same phrases with head motion that is a known function of the voice: the head pitch angle is
+    ``gain`` degrees per semitone of f0 above the speaker's base (0 where unvoiced), smoothed over 40 ms; yaw and
+    roll stay still. A database of such takes must give back the function for held-out audio."""
+    from dataclasses import replace
+
+    from scipy.ndimage import gaussian_filter1d
+
+    out = []
+    for p in phrases:
+        st = np.where(np.isfinite(p.f0), 12 * np.log2(np.nan_to_num(p.f0, nan=SPEAKER_BASE) / SPEAKER_BASE), 0.0)
+        nod = gaussian_filter1d(np.radians(gain_deg_per_semitone) * st, 0.04 * CONTROL_RATE)
+        n = len(p.angles)
+        angles = np.stack([np.zeros(n), nod[:n], np.zeros(n)], axis=1)
+        out.append(replace(p, angles=angles, translation=np.zeros((n, 3))))
+    return out

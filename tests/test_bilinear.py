@@ -171,7 +171,7 @@ def test_bilinear_stage_errors():
     )
     with pytest.raises(UserError, match="at least two"):
         run_stage(BilinearFit, {"align": "mouth"}, {"aam": single})
-    with pytest.raises(UserError, match="reference take 'sad'"):
+    with pytest.raises(UserError, match="reference expression 'sad'"):
         run_stage(BilinearFit, {"align": "mouth", "reference": "sad"}, {"aam": view})
     with pytest.raises(ValidationError):
         BilinearFit.Params(align="video")
@@ -181,3 +181,45 @@ def test_bilinear_figure_renders():
     run = bilinear_run()
     for name, fig in BilinearFit.figures.items():
         assert hasattr(fig(run.view(), {}), "savefig"), name
+
+
+def test_the_fit_learns_each_takes_expression_from_its_field():
+    """Nine takes, three expressions (their 'expression' field, not their labels) by three sentences: one style per
+    expression, one set of aligned takes per sentence, and the model explains the takes almost exactly."""
+    from face_fixtures import bilinear_takes
+
+    from stages.face.aam import AamPca
+
+    view, truth = bilinear_takes()
+    aam = run_stage(AamPca, {"n_shape": 3, "n_texture": 8}, {"tracks": view})
+    assert aam.meta["fields"] == view.meta["fields"]
+    run = run_stage(BilinearFit, {"align": "mouth", "content_dim": 3}, {"aam": aam})
+    meta, a = run.meta, run.arrays
+    assert meta["labels"] == ["E0", "E1", "E2"] and meta["takes"] == view.meta["labels"]
+    assert meta["take_expression"]["s2_r1"] == "E2" and meta["reference"] == "E0"
+    assert meta["sets"] == [[f"s{s}_r{r}" for s in range(3)] for r in range(3)]
+    assert a["style"].shape == (3, 3) and a["content"].shape == (3 * 30, 3)
+    sequence = aam.arrays["sequence"]
+    takes = np.asarray(view.meta["labels"])[sequence[a["aligned_frames"]]]
+    for s in range(3):  # row s holds frames of expression s only, set by set
+        assert all(label.startswith(f"s{s}_") for label in takes[s])
+    np.testing.assert_array_equal(a["content_set"], np.repeat(np.arange(3), 30))
+    assert run.metrics["train_error"] < 0.01
+    assert meta["params"]["content_dim"] == 3 and meta["params"]["align"] == "mouth"
+
+
+def test_takes_of_a_sentence_missing_an_expression_are_left_out_and_none_left_is_an_error():
+    from stages.face.alignment import group_takes
+
+    groups = group_takes(["a", "b", "a", "b", "a"], ["x", "x", "y", "y", "z"])
+    assert groups.styles == ["a", "b"] and groups.skipped == ["z"]
+    np.testing.assert_array_equal(groups.sets, [[0, 1], [2, 3]])
+    cycled = group_takes(["a", "b", "a"], ["x", "x", "x"])  # two takes of 'a', one of 'b': b's take is reused
+    np.testing.assert_array_equal(cycled.sets, [[0, 1], [2, 1]])
+    ordered = group_takes(["a", "b", "c"], ["x", "x", "x"], order=["c", "a"], include=np.array([1, 0, 1], bool))
+    assert ordered.styles == ["c", "a"] and ordered.take_style.tolist() == [1, -1, 0]
+    from stages.face.bilinear import TrainingTakes, training_sets
+
+    takes = TrainingTakes(["1", "2"], np.array([0, 1]), ["a", "b"], ["x", "y"])
+    with pytest.raises(UserError, match="no sentence is spoken in every expression"):
+        training_sets(takes)

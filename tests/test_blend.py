@@ -184,8 +184,9 @@ def test_alpha_from_analysis_uses_only_edited_expressions_in_training_order():
     np.testing.assert_allclose(a.arrays["alpha"], b.arrays["alpha"], atol=1e-5)
 
 
-def test_vertices_output_poses_the_character():
-    keyshapes, keymorphs = retarget_inputs(frames=5)
+def test_vertices_output_poses_the_character(tmp_path):
+    """Posed vertices, streamed block by block into an output sink, through a real store."""
+    keyshapes, keymorphs = retarget_inputs(frames=150)
     rng = np.random.default_rng(4)
     character = artifact(
         {
@@ -196,8 +197,9 @@ def test_vertices_output_poses_the_character():
     )
     out = run_stage(
         Blend,
-        {"alpha": {"neutral": 1.0}, "vertices": True},
+        {"alpha": {"neutral": 1.0}, "vertices": True, "lip_seal": False},
         {"keyshapes": keyshapes, "keymorphs": keymorphs, "character": character},
+        store=tmp_path,
     )
     expected = character["neutral"] + np.einsum("fm,mvc->fvc", out.arrays["weights"], character["deltas"])
     np.testing.assert_allclose(out.arrays["vertices"], expected, atol=1e-5)
@@ -423,9 +425,20 @@ def test_lip_seal_closes_the_characters_lips_where_the_performers_close(ict):
     for f in (0, 1, 5):  # closed lips: the character's own closed mouth (its neutral gap)
         assert achieved[f] <= g0 + 1e-4, (f, achieved[f])
     np.testing.assert_allclose(sealed[[2, 3]], weights[[2, 3]], atol=1e-6)  # open frames untouched
-    assert np.all(sealed <= weights + 1e-6)  # the seal only lowers weights ...
+    close, jaw = names.index("mouthClose"), names.index("jawOpen")
+    others = [m for m in range(len(names)) if m != close]
+    assert np.all(sealed[:, others] <= weights[:, others] + 1e-6)  # the seal lowers weights ...
     smile = names.index("mouthSmile_L")
-    np.testing.assert_allclose(sealed[:, smile], weights[:, smile], atol=1e-6)  # ... and only those that open the lips
+    np.testing.assert_allclose(sealed[:, smile], weights[:, smile], atol=1e-6)  # ... only those that open the lips
+    # ... but first raises mouthClose over the lowered jaw, which stays: lips sealed with the jaw down
+    assert np.all(sealed[[0, 1, 5], close] > 0.1) and np.all(sealed[:, close] <= sealed[:, jaw] + 1e-9)
+    np.testing.assert_allclose(sealed[[0, 1, 5], jaw], 0.3, atol=1e-6)
+    no_corrective = run_stage(
+        Blend,
+        {"eyes": "keyshapes", "seal_correctives": []},
+        {"keyshapes": keyshapes, "keymorphs": keymorphs, "character": ict},
+    ).arrays["weights"]
+    assert np.all(no_corrective <= weights + 1e-6) and np.all(no_corrective[[0, 1, 5], jaw] < 0.01)
     assert g0 < achieved[4] <= g0 + 4 * (gap[4] - 0.03) + 1e-6  # above seal_gap the seal fades out
     assert out.metrics["closed_frames"] == 3
     plain = run_stage(
@@ -473,7 +486,7 @@ def test_blinks_and_gaze_come_from_tracking(ict):
     """A synthetic blink in the performer's eyelid aperture closes the character's eyes by the same fraction; gaze
     turns into eyeLook weights (synthetic inputs in tracking's contract-3 shapes)."""
     from stages.retarget.blend import character_landmarks
-    from stages.retarget.eyes import blink_curve, eye_aperture_2d
+    from stages.retarget.eyes import eye_aperture_2d
 
     names = ict.meta["target_names"]
     frames = 20
@@ -500,7 +513,8 @@ def test_blinks_and_gaze_come_from_tracking(ict):
     shapes = rest[None] + np.einsum("fm,mpc->fpc", w.astype(np.float64), deltas)
     relative = eye_aperture_2d(shapes) / eye_aperture_2d(rest[None])
     # the same fraction closed, as far as the character's blink closes (ICT's lids stop at 13% of open)
-    tightest = blink_curve(rest, deltas[names.index("eyeBlink_L")])[1][-1]
+    shut = rest + deltas[names.index("eyeBlink_L")] + deltas[names.index("eyeBlink_R")]
+    tightest = (eye_aperture_2d(shut[None]) / eye_aperture_2d(rest[None]))[0, 0]
     np.testing.assert_allclose(relative[8:11], np.maximum(aperture[8:11] / 0.3, tightest), atol=0.01)
     assert w[12, names.index("eyeLookOut_L")] == pytest.approx(0.5, abs=1e-6)
     assert w[12, names.index("eyeLookIn_R")] == pytest.approx(0.5, abs=1e-6)
@@ -543,6 +557,10 @@ def test_seal_follows_the_tracked_performer_over_the_edited_shapes(ict):
         {"eyes": "keyshapes"},
         {"keyshapes": keyshapes, "keymorphs": keymorphs, "character": ict, "tracks": tracks},
     )
-    jaw = out.arrays["weights"][:, names.index("jawOpen")]
-    assert np.all(jaw[:2] < 0.01) and np.allclose(jaw[2:], 0.3)
+    from stages.retarget.blend import character_landmarks
+    from stages.retarget.lips import lip_gap_model
+
+    g0, slopes = lip_gap_model(*character_landmarks(ict))
+    gap = g0 + out.arrays["weights"].astype(np.float64) @ slopes
+    assert np.all(gap[:2] <= g0 + 1e-4) and np.all(gap[2:] > g0 + 0.05)  # sealed where the performer's lips met
     assert out.meta["lip_seal_source"] == "tracking"

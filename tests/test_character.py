@@ -178,6 +178,13 @@ def test_identity_mix_moves_the_neutral_and_keeps_expression_deltas(obj_folder):
         run_stage(ObjBlendshapes, {"neutral": "neutral", "identity": {"identity999": 1.0}}, inputs)
 
 
+def test_obj_blendshapes_params_are_checked_up_front():
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="greater than 0"):
+        ObjBlendshapes.Params(scale=0)
+
+
 def test_obj_blendshapes_scale_and_dropped_groups_remap_landmarks(obj_folder):
     f = obj_folder
     inputs = {"shapes": shape_files(f["dir"]), "landmarks": f["dir"] / "landmarks.json"}

@@ -10,21 +10,23 @@ from pydantic import ValidationError
 
 from msflow import UserError
 from msflow.testing import artifact, run_stage
-from stages.face.bilinear import fit_symmetric_bilinear, synthesise, synthesise_grid
-from stages.face.edit import (
+from stages.face.analysis import (
     BilinearAnalyser,
-    ExpressionEdit,
-    Keyframe,
     analyse_style_content,
-    check_extrapolation,
     classify_styles,
-    edit_configuration,
     initial_content,
-    interpolation_path,
     jitter,
-    keyframed_weights,
     solve_temporal,
     style_barycentric,
+)
+from stages.face.bilinear import fit_symmetric_bilinear, synthesise, synthesise_grid
+from stages.face.edit import (
+    ExpressionEdit,
+    Keyframe,
+    check_extrapolation,
+    edit_configuration,
+    interpolation_path,
+    keyframed_weights,
     weight_vector,
 )
 
@@ -194,7 +196,7 @@ def test_edit_stage_outputs_follow_the_contract(tmp_path):
     assert labels == ["neutral", "happy", "angry"] and meta["targets"] == labels
     assert a["shapes"].shape == (3, frames, 68, 2) and a["shapes"].dtype == np.float32
     assert a["style"].shape[0] == frames and a["content"].shape[0] == frames
-    assert a["weights"].shape == (3, frames, 3) and a["frames"].shape[:2] == (3, frames)
+    assert a["weights"].shape == (3, frames, 3) and a["frames"].shape[:2] == (frames, 3)
     assert meta["mixes"] == [] and "mixed_shapes" not in a
     np.testing.assert_array_equal(a["sequence"], 0)
     np.testing.assert_allclose(a["time"], tracked("sad")["time"])
@@ -239,7 +241,7 @@ def test_edit_stage_writes_a_side_by_side_video_and_a_strip():
 def test_edited_frames_change_the_face_and_keep_the_background():
     run = edit_run()
     crops = tracked("sad")["crops"].astype(float)
-    happy = run.arrays["frames"][run.meta["targets"].index("happy")].astype(float)
+    happy = run.arrays["frames"][:, run.meta["targets"].index("happy")].astype(float)
     shapes = run.arrays["crop_shapes"][0]
     h, w = crops.shape[1:]
     ys, xs = np.mgrid[0:h, 0:w]
@@ -282,12 +284,29 @@ def test_edit_stage_mix_and_keyframes():
             {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")},
         )
     assert out.meta["extrapolated"] and any("extrapolate" in str(w.message) for w in caught)
-    with pytest.raises(UserError, match="max_extrapolation"):
-        run_stage(
-            ExpressionEdit,
-            {"mix": {"happy": 2.0, "neutral": -1.0}, "video": False},
-            {"model": bilinear_run(), "aam": aam_run(), "tracks": tracked("sad")},
-        )
+    with pytest.raises(ValidationError, match="max_extrapolation"):
+        ExpressionEdit.Params(mix={"happy": 2.0, "neutral": -1.0})
+
+
+@pytest.mark.parametrize(
+    "params, message",
+    [
+        ({"mix": {"happy": 0.5}}, "sum to 1"),
+        ({"mix": {"happy": float("nan"), "angry": 1.0}}, "finite"),
+        ({"keyframes": []}, "at least 1"),
+        ({"keyframes": [{"time": 0.0, "weights": {"happy": 1}}] * 2}, "distinct"),
+        ({"keyframes": [{"time": 0.0, "weights": {"happy": 0.9}}]}, "sum to 1"),
+        ({"keyframes": [{"time": 0.0, "weights": {"happy": 1.8, "angry": -0.8}}]}, "max_extrapolation"),
+        ({"targets": []}, "nothing to synthesise"),
+        ({"strip_path": ["happy"]}, "at least 2"),
+        ({"strip_steps": 1}, "greater than or equal to 2"),
+        ({"strip_frame": -1}, "greater than or equal to 0"),
+    ],
+)
+def test_edit_params_are_checked_before_the_stage_runs(params, message):
+    """Every rule that needs no model is a params rule, so `msflow status` and `run` reject it up front."""
+    with pytest.raises(ValidationError, match=message):
+        ExpressionEdit.Params(**params)
 
 
 def test_edit_stage_errors():
@@ -340,8 +359,8 @@ def test_smoothing_in_the_stage_treats_each_take_as_its_own_sequence():
 
 
 def test_component_weights_and_the_weighted_model():
+    from stages.face.analysis import component_weights
     from stages.face.bilinear import BilinearModel
-    from stages.face.edit import component_weights
 
     np.testing.assert_array_equal(component_weights(2, 5, 0.25), [0.25, 0.25, 1, 1, 1])
     rng = np.random.default_rng(7)
@@ -364,7 +383,7 @@ def test_component_weights_and_the_weighted_model():
 
 def test_weighted_analysis_reads_the_style_from_the_weighted_rows_and_the_content_from_all(synthetic):
     """With the first rows weighted 0, their values cannot change the style; the content is Eq 6 on every row."""
-    from stages.face.edit import analyse_takes, component_weights
+    from stages.face.analysis import analyse_takes, component_weights
 
     fit = synthetic
     model = _model(fit)
@@ -395,7 +414,7 @@ def test_weighted_analysis_reads_the_style_from_the_weighted_rows_and_the_conten
 
 
 def test_classification_by_fit_is_the_maximum_likelihood_style(synthetic):
-    from stages.face.edit import classify_by_fit, style_fit_residuals
+    from stages.face.analysis import classify_by_fit, style_fit_residuals
 
     fit = synthetic
     model = _model(fit)
@@ -440,3 +459,65 @@ def test_edit_stage_analysis_weight_one_is_the_papers_analysis():
         ExpressionEdit.Params(classify="vote")
     with pytest.raises(ValidationError):
         ExpressionEdit.Params(analysis_shape_weight=-1)
+
+
+# ----------------------------------------------------------------------------------------------- blocks, warnings
+
+
+def edit_inputs(*labels):
+    from msflow.testing import prepare_inputs
+
+    tracks = tracked(*labels) if labels else tracked("sad")
+    return prepare_inputs(ExpressionEdit, {"model": bilinear_run(), "aam": aam_run(), "tracks": tracks})
+
+
+def test_edit_by_blocks_of_frames_equals_the_whole_take():
+    """Projection, Eq 7 and the edited crops run block by block; the result does not depend on the block size:
+    the same bytes, except y of the projection, equal to 1e-12 of its scale (BLAS sums in another order)."""
+    from stages.face.analysis import analyse_frames
+    from stages.face.edit import EditParams, check_edit_inputs, edit_targets, project_by_blocks, render_edits
+
+    take = check_edit_inputs(edit_inputs())
+    n = len(take.landmarks)
+    whole, blocks = project_by_blocks(take.model, take, block=n), project_by_blocks(take.model, take, block=7)
+    np.testing.assert_allclose(blocks.y, whole.y, rtol=0, atol=1e-12 * np.abs(whole.y).max())
+    for name in ("crop_similarity", "texture_offset", "texture_scale", "aligned_shapes"):
+        np.testing.assert_array_equal(getattr(blocks, name), getattr(whole, name))
+    params = EditParams(mix={"happy": 0.5, "angry": 0.5})
+    analysis = analyse_frames(take.bilinear, take.model.n_shape, whole.y, take.sequence, params)
+    targets = edit_targets(params, take.bilinear.labels, take.times)
+    one_frames, many_frames = [], []
+    one = render_edits(take, whole, analysis.content, targets, True, one_frames.append, block=n)
+    many = render_edits(take, whole, analysis.content, targets, True, many_frames.append, block=7)
+    assert len(one_frames) == 1 and len(many_frames) == -(-n // 7)
+    np.testing.assert_array_equal(np.concatenate(many_frames), one_frames[0])
+    for name in ("y", "shapes", "crop_shapes"):
+        np.testing.assert_array_equal(getattr(many, name), getattr(one, name))
+    assert many.video == one.video  # the encoder is deterministic, whatever the blocks
+
+
+def test_the_edit_streams_its_crops_through_output_sinks(tmp_path):
+    """In a store run the edited crops are written chunk by chunk (sinks); the stored artifact holds the same crops
+    as the stage renders in memory."""
+    from stages.face.edit import check_edit_inputs
+
+    params = {"mix": {"happy": 0.5, "angry": 0.5}, "video": False}
+    stage = ExpressionEdit("edit")
+    result = stage.run(ExpressionEdit.Params(**params), edit_inputs())
+    assert set(stage.sinks) == {"frames", "mixed_frames"}
+    frames = stage.sinks["frames"].to_array()
+    n = len(check_edit_inputs(edit_inputs()).landmarks)
+    assert frames.shape[:2] == (n, 3) and result.arrays["frames"] is stage.sinks["frames"]
+    stored = run_stage(ExpressionEdit, params, edit_inputs(), store=tmp_path)
+    np.testing.assert_array_equal(stored.arrays["frames"], frames)
+    np.testing.assert_array_equal(stored.arrays["mixed_frames"], stage.sinks["mixed_frames"].to_array())
+
+
+def test_an_unconverged_analysis_warns_naming_the_take_and_its_residual():
+    params = ExpressionEdit.Params(max_iter=1, tol=1e-15, video=False, targets=["happy"])
+    result = ExpressionEdit("edit").run(params, edit_inputs("happy", "sad"))
+    assert len(result.warnings) == 2 and "take 'happy'" in result.warnings[0] and "take 'sad'" in result.warnings[1]
+    assert all("max_iter=1" in w and "relative residual" in w for w in result.warnings)
+    assert result.metrics["unconverged_frames"] > 0 and not result.meta["converged"]
+    settled = ExpressionEdit("edit").run(ExpressionEdit.Params(video=False, targets=["happy"]), edit_inputs())
+    assert settled.warnings == [] and settled.metrics["unconverged_frames"] == 0

@@ -273,3 +273,29 @@ def test_eval_pipeline_runs_on_a_folder_of_takes(tmp_path):
     assert m["mouth_motion_error_iod"] < 0.5 * m["mouth_motion_error_iod_shifted"]
     assert m["keyshape_residual_rms_iod"] < 0.03
     assert "paper_eval" not in result.executed
+
+
+def test_capture_pipeline_turns_a_clip_into_animation_files(tmp_path):
+    """pipelines/capture.yaml from a fresh copy: a clip in, GLB and Live Link CSV out, with the clip's own head
+    motion (the tracking as the head input) and a mouth that follows the clip."""
+    import csv
+    import shutil
+    from pathlib import Path
+
+    import msflow
+
+    root = Path(__file__).resolve().parents[1]
+    project = tmp_path / "project"
+    project.mkdir()
+    for name in ("pipelines", "stages", "data"):
+        shutil.copytree(root / name, project / name, ignore=shutil.ignore_patterns("__pycache__", ".msflow", "*.lock"))
+    shutil.copy2(root / "pyproject.toml", project)
+    result = msflow.run(project / "pipelines" / "capture.yaml", ["vars.name=happy", "export.video_size=96"])
+    rows = list(csv.reader((project / "out" / "happy_live_link.csv").open()))
+    frames = len(result.load("track.landmarks"))
+    assert len(rows) - 1 == frames and (project / "out" / "happy.glb").read_bytes()[:4] == b"glTF"
+    jaw = [float(r[rows[0].index("JawOpen")]) for r in rows[1:]]
+    assert max(jaw) > 0.2 and min(jaw) < 0.05  # the mouth opens and closes
+    yaw = np.array([float(r[rows[0].index("HeadYaw")]) for r in rows[1:]])
+    assert np.ptp(yaw) > 0  # the tracked head moves
+    assert result.artifact("export").meta["head"]["head_fps"] == pytest.approx(result.artifact("blend").meta["fps"])

@@ -3,15 +3,12 @@ stream alignment (frame rates, lengths, audio offset) and the user errors around
 
 import csv
 import io
-import os
-import shutil
-import subprocess
-import tempfile
 from pathlib import Path
 
 import av
 import numpy as np
 import pytest
+from conftest import run_cli
 
 from msflow import UserError
 from msflow.testing import artifact, prepare_inputs, run_stage
@@ -35,8 +32,6 @@ from stages.geometry.rotations import euler_to_quat, quat_to_euler
 from stages.retarget.character import GltfCharacter
 
 ROOT = Path(__file__).resolve().parents[1]
-NPM_PACKAGES = ("gltf-validator@2.0.0-dev.3.10", "three@0.170.0")
-NPM_INSTALL = f"npm install --no-save --no-package-lock {' '.join(NPM_PACKAGES)}"
 ICT_GLB = ROOT / "data" / "characters" / "ict-facekit.glb"
 CLIP = ROOT / "data" / "crema-d" / "1001_DFA_HAP_XX.flv"
 FPS = 30.0
@@ -44,7 +39,6 @@ FRAMES = 45
 DRIVEN = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L", "browInnerUp_R", "eyeBlink_L"]
 
 
-CHROMIUM = "/usr/bin/chromium"
 ORIGIN = "http://msflow.test"
 THREEJS_PAGE = """<!doctype html><html><body><canvas id=c width=128 height=128></canvas>
 <script type="importmap">{"imports": {"three": "/three/build/three.module.js", "three/addons/": "/three/examples/jsm/"}}
@@ -83,7 +77,7 @@ window.ready = true;
 </script></body></html>"""
 
 
-def probe_in_threejs(glb: bytes, node_modules: Path, times: list[float]) -> dict:
+def probe_in_threejs(glb: bytes, node_modules: Path, chromium: str, times: list[float]) -> dict:
     """Load the GLB with three.js in headless Chromium (software WebGL), play it at ``times``, report the state.
 
     Files are served from a made-up origin through Playwright's routing (ES modules do not load from file:)."""
@@ -102,7 +96,7 @@ def probe_in_threejs(glb: bytes, node_modules: Path, times: list[float]) -> dict
 
     args = ["--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=args)
+        browser = p.chromium.launch(executable_path=chromium, args=args)
         page = browser.new_page()
         errors: list[str] = []
         page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
@@ -113,29 +107,6 @@ def probe_in_threejs(glb: bytes, node_modules: Path, times: list[float]) -> dict
         report = page.evaluate("(t) => window.probe(t)", times)
         browser.close()
     return report | {"errors": errors}
-
-
-def missing_tool(reason: str):
-    """Skip for a missing outside tool, with the install command; fail instead under CI."""
-    if os.environ.get("CI"):
-        pytest.fail(reason)
-    pytest.skip(reason)
-
-
-@pytest.fixture(scope="session")
-def node_modules():
-    """A node_modules folder with the Khronos glTF validator and three.js, installed once into a cache folder
-    (never into the project) when Node.js is present."""
-    if shutil.which("node") is None or shutil.which("npm") is None:
-        missing_tool("Node.js is not installed: apt-get install -y nodejs npm")
-    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "msflow-npm"
-    modules = cache / "node_modules"
-    if not all((modules / p.rsplit("@", 1)[0]).is_dir() for p in NPM_PACKAGES):
-        cache.mkdir(parents=True, exist_ok=True)
-        proc = subprocess.run(NPM_INSTALL.split() + ["--silent"], cwd=cache, capture_output=True, text=True)
-        if proc.returncode != 0:
-            missing_tool(f"npm could not install {NPM_PACKAGES} ({proc.stderr[-300:]}); run in {cache}: {NPM_INSTALL}")
-    return modules
 
 
 # ------------------------------------------------------------------------------------------------ Live Link Face
@@ -512,13 +483,13 @@ def test_glb_is_skinned_to_root_head_and_eye_joints(exported, character, tmp_pat
     assert np.allclose(np.abs((left * gaze_rotations(make_gaze())[:, 0]).sum(axis=1)), 1.0, atol=1e-6)
 
 
-def test_gaze_without_eyes_goes_to_the_csv_with_a_warning(character):
+def test_gaze_without_eyes_goes_to_the_csv_with_a_warning(character, tmp_path):
     inputs = {"character": character.view(), "blend": make_blend(gaze=True)}
     result = run_with_warnings({"preview": False, "skin": False}, inputs)
     assert any("gaze goes to the Live Link CSV only" in w for w in result.warnings)
     named = csv_by_name(result.arrays["live_link"])
     assert np.allclose(named["LeftEyeYaw"], np.radians(make_gaze()[:, 0, 0]), atol=1e-6)
-    plain = load_glb(result.arrays["animation"], Path(tempfile.mkdtemp()))
+    plain = load_glb(result.arrays["animation"], tmp_path)
     assert not plain.skins and [n.name for n in plain.nodes] == ["Head", "Character"]
 
 
@@ -544,13 +515,11 @@ def test_output_frame_rate(character):
             Export.Params(fps=bad)
 
 
-def test_threejs_plays_the_glb_in_headless_chromium(exported, node_modules):
+def test_threejs_plays_the_glb_in_headless_chromium(exported, node_modules, chromium):
     """three.js (GLTFLoader + AnimationMixer) in Debian's Chromium: a skinned mesh whose morph influences,
     head rotation and eye rotations follow the animation, and rendered frames that change over time."""
-    if not Path(CHROMIUM).exists():
-        missing_tool(f"Chromium is not installed: apt-get update && apt-get install -y chromium ({CHROMIUM})")
     times = [k / FPS for k in (0, 8, 15, 22, 30, 42)]  # key frames: the jaw is open at 22 only
-    report = probe_in_threejs(exported.arrays["animation"].tobytes(), node_modules, times)
+    report = probe_in_threejs(exported.arrays["animation"].tobytes(), node_modules, chromium, times)
     assert report["errors"] == []
     assert report["bones"] == ["Root", "Head", "LeftEye", "RightEye"] and report["webgl"]
     index = report["morphs"]["jawOpen"]
@@ -811,6 +780,61 @@ def test_a_silent_take_gives_a_silent_preview_with_a_warning(character):
         assert result.meta["video"]["audio"] is False
         with av.open(io.BytesIO(result.arrays["preview"])) as container:
             assert not container.streams.audio and container.streams.video[0].frames == 6
+
+
+def test_h264_encoding_is_deterministic(character):
+    """The same frames give the same MP4 bytes, encode after encode (x264's macroblock tree made them differ)."""
+    from stages.export.preview import encode_mp4
+    from stages.geometry.render import CharacterRenderer
+
+    renderer = CharacterRenderer.from_artifact(character.view(), size=96)
+    names = character.meta["target_names"]
+    base = [renderer(np.eye(len(names))[names.index(n)] * 0.8) for n in DRIVEN]
+    frames = [np.roll(base[i % len(base)], i // 3, axis=1) for i in range(240)]
+    rng = np.random.default_rng(0)
+    outputs = set()
+    for _ in range(8):
+        churn = [rng.bytes(int(n)) for n in rng.integers(100, 300_000, 20)]  # move the heap around
+        outputs.add(encode_mp4(iter(frames), 30.0, (96, 96))[0])
+        del churn
+    assert len(outputs) == 1
+
+
+def test_preview_frames_come_in_order_whatever_the_jobs():
+    """Blocks rendered by a thread pool reach the encoder in frame order (a renderer that draws its frame index)."""
+    from stages.export.preview import Poses, rendered_frames
+
+    class IndexRenderer:
+        def __call__(self, weights, **_):
+            return np.full((2, 2, 3), int(weights[0]), np.uint8)
+
+    poses = Poses(np.arange(37, dtype=float)[:, None])
+    for jobs in (1, 2, 3):
+        for block in (1, 4, 16, 64):
+            frames = list(rendered_frames(IndexRenderer(), poses, jobs=jobs, block=block))
+            assert [int(f[0, 0, 0]) for f in frames] == list(range(37)), (jobs, block)
+
+
+def test_preview_is_the_same_whatever_the_jobs(character):
+    """Contract 6: results do not depend on the run's worker count (threads render blocks of 16 frames)."""
+    inputs = {"character": character.view(), "blend": make_blend(40, gaze=True), "head": make_head(40)}
+    params = Export.Params(video_size=96, preview="full")
+    serial, parallel = (Export("export", jobs=jobs).run(params, prepare_inputs(Export, inputs)) for jobs in (1, 3))
+    assert serial.arrays["preview"] == parallel.arrays["preview"]
+    low = Export("export", jobs=2).run(Export.Params(video_size=96, preview="low"), prepare_inputs(Export, inputs))
+    assert low.meta["video"]["size"] == 48 and low.meta["video"]["level"] == "low"
+    assert Export.Params(preview=True).preview == "full" and Export.Params(preview=False).preview is False
+    with pytest.raises(ValueError):
+        Export.Params(preview="medium")
+
+
+def test_a_bad_frame_rate_is_refused_before_anything_runs(default_run):
+    """Params hold the rule: `msflow status` names stage and field, exit 2, and runs nothing."""
+    proj, _ = default_run
+    for value in ("0", "-25", "241"):
+        out = run_cli(proj, "status", "-S", f"export.fps={value}")
+        assert out.returncode == 2, out.stderr
+        assert "export" in out.stderr and "fps" in out.stderr and "Traceback" not in out.stderr
 
 
 def test_figures(exported):

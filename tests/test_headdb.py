@@ -150,9 +150,11 @@ def write_bvh_and_wav(phrases, folder: Path, order: str, fps: float = 60.0):
 @pytest.mark.parametrize("order", ["ZXY", "XYZ"])
 def test_bvh_database_matches_the_tracking_database(phrases, tracks60, tmp_path, order):
     motion, audio = write_bvh_and_wav(phrases, tmp_path, order)
-    bvh = run_stage(BvhHeadDb, {"joint": "head_jnt", "fps": 30.0}, {"motion": motion, "audio": audio})
+    labelled = {label: {"path": path, "speaker": "synthetic"} for label, path in motion.items()}
+    bvh = run_stage(BvhHeadDb, {"joint": "head_jnt", "fps": 30.0}, {"motion": labelled, "audio": audio})
     tracked = run_stage(TrackedHeadDb, {"fps": 30.0}, {"tracks": tracks60})
     assert bvh.meta["labels"] == tracked.meta["labels"]
+    assert bvh.meta["speakers"] == tracked.meta["speakers"] == ["synthetic"] * len(bvh.meta["labels"])
     np.testing.assert_allclose(bvh.arrays["angles"], tracked.arrays["angles"], atol=1e-5)
     np.testing.assert_allclose(bvh.arrays["translation"], tracked.arrays["translation"], atol=1e-4)
     assert bvh.meta["sources"][0] == "take0.bvh"
@@ -256,8 +258,9 @@ def test_paper_sized_database():
 
 
 def test_crema_d_tracked_database(crema_tracks):
-    run = run_stage(TrackedHeadDb, {}, {"tracks": crema_tracks})
+    run = run_stage(TrackedHeadDb, {"speaker": "1001"}, {"tracks": crema_tracks})
     assert run.meta["labels"] == ["ANG", "ANG~mirror", "HAP", "HAP~mirror", "NEU", "NEU~mirror"]
+    assert run.meta["speakers"] == ["1001"] * 6
     assert run.meta["fps"] == pytest.approx(29.97, abs=0.01) and run.meta["translation_units"] == "cm"
     counts = np.bincount(crema_tracks.arrays["sequence"])
     assert run.meta["frames"][0::2] == list(counts)
@@ -276,3 +279,49 @@ def test_unreadable_audio_names_the_file(phrases, tmp_path):
     with pytest.raises(UserError) as err:
         run_stage(BvhHeadDb, {"joint": "head_jnt"}, {"motion": motion, "audio": {"take0": fake}})
     assert "take0.mp3" in str(err.value)
+
+
+def test_two_corpora_pool_into_one_database_with_their_speakers(phrases):
+    ann = tracking_artifact(phrases[:2], speaker="ann")
+    bob = tracking_artifact(phrases[2:], speaker="bob")
+    run = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": ann, "more_tracks": bob})
+    assert run.meta["labels"] == [p.label for p in phrases] and run.meta["speakers"] == ["ann", "ann", "bob"]
+    alone = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": tracking_artifact(phrases)})
+    np.testing.assert_allclose(run.arrays["angles"], alone.arrays["angles"])
+    # per-speaker pitch: each speaker's median from its own takes only
+    pitch = run_stage(Pitch, {}, {"source": run})
+    bob_alone = run_stage(Pitch, {}, {"source": bob})
+    assert pitch.arrays["speaker_median"][2] == pytest.approx(bob_alone.arrays["speaker_median"][0])
+    assert pitch.arrays["speaker_median"][0] != pitch.arrays["speaker_median"][2]
+    with pytest.raises(UserError, match="both tracking artifacts"):
+        run_stage(TrackedHeadDb, {}, {"tracks": ann, "more_tracks": ann})
+    with pytest.raises(UserError, match="nobody"):
+        run_stage(TrackedHeadDb, {"labels": ["nobody"]}, {"tracks": ann, "more_tracks": bob})
+
+
+def test_a_silent_take_cannot_enter_the_database(phrases):
+    tracks = tracking_artifact(phrases[:2])
+    bounds = np.asarray(tracks["audio_bounds"]).copy()
+    bounds[1, 1] = bounds[1, 0]  # the second take has no audio
+    meta = {**tracks.meta, "has_audio": [True, False]}
+    silent = artifact({**{k: tracks[k] for k in tracks.names}, "audio_bounds": bounds}, meta)
+    with pytest.raises(UserError, match="no audio") as err:
+        run_stage(TrackedHeadDb, {}, {"tracks": silent})
+    assert err.value.field == f"inputs.tracks[{phrases[1].label}]"
+
+
+def test_smoothing_removes_tracking_jitter_and_keeps_the_motion(phrases):
+    from stages.head.measures import angular_acceleration
+
+    clean = tracking_artifact(phrases[:1], fps=30.0)
+    rotation = np.asarray(clean["rotation"]).copy()
+    rng = np.random.default_rng(0)
+    rotation[:, 1:] += rng.normal(0, 0.004, (len(rotation), 3))  # about 0.5 degree of jitter
+    rotation /= np.linalg.norm(rotation, axis=1, keepdims=True)
+    noisy = artifact({**{k: clean[k] for k in clean.names}, "rotation": rotation}, clean.meta)
+    truth = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": clean}).arrays["angles"]
+    raw = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": noisy}).arrays["angles"]
+    smooth = run_stage(TrackedHeadDb, {"mirror": False, "smoothing": 0.05}, {"tracks": noisy}).arrays["angles"]
+    acc = lambda a: np.percentile(angular_acceleration(a, 30.0), 99)
+    assert acc(smooth) < 0.3 * acc(raw)
+    assert np.abs(smooth - truth).mean() < 0.7 * np.abs(raw - truth).mean()  # closer to the motion than the jitter

@@ -7,23 +7,26 @@ import pytest
 from head_synthetic import synth_database, tracking_artifact
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pydantic import ValidationError
 
 from msflow import UserError
-from msflow.testing import artifact, run_stage
+from msflow.testing import artifact, prepare_inputs, run_stage
 from stages.formats.bvh import joint_rotation, joint_translation, parse_bvh
 from stages.head.database import TrackedHeadDb
-from stages.head.motion_blend import (
-    DatabaseMotion,
-    MotionBlend,
-    _reference_angles,
+from stages.head.measures import (
     angular_acceleration,
     angular_speed,
     join_acceleration,
-    join_windows,
     pitch_velocity_correlation,
+    reference_angles,
+    wasserstein_speed,
+)
+from stages.head.motion_blend import (
+    DatabaseMotion,
+    MotionBlend,
+    join_windows,
     segment_weights,
     stitch_segments,
-    wasserstein_speed,
 )
 from stages.head.pitch import Pitch
 from stages.head.trellis import Trellis
@@ -48,19 +51,24 @@ def database(tracks):
 
 
 @pytest.fixture(scope="module")
-def test_pitch(tracks):
+def take_pitch(tracks):
     return run_stage(Pitch, {}, {"source": tracks})
 
 
-def trellis(database, test_pitch, **params):
+def trellis(database, take_pitch, **params):
     return run_stage(
-        Trellis, params, {"database": database[0], "database_pitch": database[1], "test_pitch": test_pitch}
+        Trellis, params, {"database": database[0], "database_pitch": database[1], "test_pitch": take_pitch}
     )
 
 
 @pytest.fixture(scope="module")
-def leave_one_out(database, test_pitch):
-    return trellis(database, test_pitch, exclude_source=True)
+def leave_one_out(database, take_pitch):
+    return trellis(database, take_pitch, holdout="take")
+
+
+def stage_result(cls, params, inputs):
+    """The stage's own Result (with its warnings), inputs prepared as the runner would."""
+    return cls(cls.__name__).run(cls.Params(**params), prepare_inputs(cls, inputs))
 
 
 def line_database(slopes, seconds=4.0, fps=100.0):
@@ -327,10 +335,10 @@ def test_an_utterance_found_in_the_database_gets_its_own_motion_back(phrases, tr
     headdb = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": tracks})
     db_pitch = run_stage(Pitch, {}, {"source": headdb})
     test_tracks = tracking_artifact(phrases[3:4], fps=30.0)
-    test_pitch = run_stage(Pitch, {}, {"source": test_tracks})
-    tr = run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": test_pitch})
-    run = run_stage(MotionBlend, {}, {"trellis": tr, "database": headdb, "reference": test_tracks})
-    real = _reference_angles(test_tracks, phrases[3].label, 1, 30.0)
+    take_pitch = run_stage(Pitch, {}, {"source": test_tracks})
+    tr = run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": take_pitch})
+    run = run_stage(MotionBlend, {"timing": "segment"}, {"trellis": tr, "database": headdb, "reference": test_tracks})
+    real = reference_angles(test_tracks, phrases[3].label, 1, 30.0)
     assert run.arrays["angles"].shape == real.shape
     np.testing.assert_allclose(run.arrays["angles"], real, atol=1e-9)
     assert run.metrics["speed_wasserstein"] < 1e-9
@@ -388,12 +396,18 @@ def test_a_silent_test_take_gives_a_still_head(database):
         {"audio": audio, "audio_bounds": np.array([[0, 24000]])},
         {"labels": ["quiet"], "sources": ["quiet.wav"], "audio_rate": 16000},
     )
-    pitch = run_stage(Pitch, {"on_silence": "still"}, {"source": quiet})
-    tr = run_stage(Trellis, {}, {"database": database[0], "database_pitch": database[1], "test_pitch": pitch})
-    run = run_stage(MotionBlend, {}, {"trellis": tr, "database": database[0]})
+    pitch = stage_result(Pitch, {}, {"source": quiet})
+    assert pitch.warnings and "no voiced speech in 'quiet'" in pitch.warnings[0]
+    tr = run_stage(
+        Trellis,
+        {},
+        {"database": database[0], "database_pitch": database[1], "test_pitch": artifact(pitch.arrays, pitch.meta)},
+    )
+    run = stage_result(MotionBlend, {}, {"trellis": tr, "database": database[0]})
     assert run.meta["frames"] == [45] and run.meta["fps"] == database[0].meta["fps"]
     np.testing.assert_allclose(run.arrays["rotation"], np.tile([1.0, 0, 0, 0], (45, 1)))
     assert len(run.arrays["joins"]) == 0
+    assert run.warnings == ["'quiet' has no voiced speech: its head stays at the rest pose"]
 
 
 @pytest.mark.parametrize(
@@ -404,9 +418,10 @@ def test_a_silent_test_take_gives_a_still_head(database):
         ({"blend_window": -0.1}, "blend_window"),
     ],
 )
-def test_bad_blend_settings(leave_one_out, database, params, field):
-    with pytest.raises(UserError, match=field):
-        run_stage(MotionBlend, params, {"trellis": leave_one_out, "database": database[0]})
+def test_bad_blend_settings_are_rejected_by_the_params(params, field):
+    with pytest.raises(ValidationError) as err:
+        MotionBlend.Params(**params)
+    assert err.value.errors()[0]["loc"] == (field,)
 
 
 def test_trellis_from_another_database_is_an_error(leave_one_out, phrases):
@@ -434,10 +449,10 @@ def crema():
 def test_crema_d_end_to_end(crema):
     """The default pipeline's head branch on real data: three tracked takes in, the sad take's audio drives."""
     train, test = crema
-    headdb = run_stage(TrackedHeadDb, {}, {"tracks": train})
+    headdb = run_stage(TrackedHeadDb, {"speaker": "1001"}, {"tracks": train})
     db_pitch = run_stage(Pitch, {}, {"source": headdb})
-    test_pitch = run_stage(Pitch, {}, {"source": test})
-    tr = run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": test_pitch})
+    take_pitch = run_stage(Pitch, {}, {"source": test})
+    tr = run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": take_pitch})
     run = run_stage(MotionBlend, {}, {"trellis": tr, "database": headdb, "reference": test})
     assert run.meta["fps"] == pytest.approx(test.meta["fps"][0])
     assert run.meta["frames"] == [len(test.arrays["rotation"])]
@@ -449,3 +464,92 @@ def test_crema_d_end_to_end(crema):
         < run.metrics["mean_angular_speed"]
         < 5 * run.metrics["real_mean_angular_speed"]
     )
+
+
+# ------------------------------------------------------------------------------------ beyond the paper
+
+
+def test_timing_knots_move_database_events_onto_test_events():
+    from stages.head.motion_blend import segment_knots, warp_time
+
+    # a 1 s test segment drawn from a 2 s database segment: uniform rate 2
+    knots_t, knots_d = segment_knots(
+        (10.0, 11.0), (4.0, 6.0), np.array([10.35, 10.8]), np.array([4.5, 5.9]), tolerance=0.15, max_stretch=2.0
+    )
+    # 4.5 would land at 10.25: moved onto 10.35; 5.9 would land at 10.95, next to 10.8: too fast a piece after it
+    np.testing.assert_allclose(knots_t, [10.0, 10.35, 11.0])
+    np.testing.assert_allclose(knots_d, [4.0, 4.5, 6.0])
+    t = np.linspace(9.5, 11.5, 201)
+    mapped = warp_time(t, knots_t, knots_d)
+    assert np.all(np.diff(mapped) > 0)  # monotone, continuous
+    np.testing.assert_allclose(warp_time(np.array([10.0, 10.35, 11.0]), knots_t, knots_d), [4.0, 4.5, 6.0])
+    np.testing.assert_allclose(warp_time(np.array([9.5, 11.5]), knots_t, knots_d), [3.0, 7.0])  # beyond: uniform
+    far = segment_knots((10.0, 11.0), (4.0, 6.0), np.array([10.6]), np.array([4.5]), tolerance=0.15, max_stretch=2.0)
+    np.testing.assert_allclose(far[0], [10.0, 11.0])  # 0.35 s away: left alone
+
+
+def test_amplitude_gains_bring_every_speaker_to_the_target_spread():
+    from stages.head.motion_blend import amplitude_gains
+
+    t = np.linspace(0, 4 * np.pi, 400)
+    quiet = np.repeat(np.sin(t)[:, None], 6, axis=1)
+    db = DatabaseMotion(
+        np.concatenate([quiet, 3 * quiet]), np.array([0, 400]), np.array([400, 400]), 100.0, ["ann", "bob"]
+    )
+    np.testing.assert_allclose(amplitude_gains(db, "ann"), [[1.0] * 6, [1 / 3] * 6])
+    np.testing.assert_allclose(amplitude_gains(db, "bob"), [[3.0] * 6, [1.0] * 6])
+    scaled = db.scaled(amplitude_gains(db, None))  # a held-out speaker: both to the database's pooled spread
+    spread = lambda x: np.percentile(x, 95, axis=0) - np.percentile(x, 5, axis=0)
+    np.testing.assert_allclose(spread(scaled.channels[:400]), spread(scaled.channels[400:]))
+
+
+def test_rest_anchor_removes_slow_wander(leave_one_out, database):
+    plain = run_stage(MotionBlend, {}, {"trellis": leave_one_out, "database": database[0]})
+    anchored = run_stage(MotionBlend, {"rest_anchor": 1.0}, {"trellis": leave_one_out, "database": database[0]})
+    from scipy.ndimage import gaussian_filter1d
+
+    slow = lambda run: np.abs(gaussian_filter1d(run.arrays["angles"], 60, axis=0)).mean()
+    assert slow(anchored) < 0.5 * slow(plain)
+    assert anchored.meta["stitch"]["rest_anchor"] == 1.0
+
+
+def test_stroke_timing_puts_head_strokes_on_the_test_onsets():
+    """A database take whose nods stroke at known times, played onto a test segment of the same length whose
+    onsets come 0.1 s later: uniform resampling keeps the strokes 0.1 s early, the stroke timing moves them on."""
+    from scipy.special import erf
+
+    from stages.head.beats import beat_alignment, kinematic_beats
+    from stages.head.motion_blend import database_events, utterance_time_maps
+
+    fps = 100.0
+    t = np.arange(600) / fps
+    strokes = np.array([0.8, 1.6, 2.5, 3.3, 4.2, 5.0])
+    nod = sum(0.05 * (1 + erf((t - s) / (np.sqrt(2) * 0.06))) * (-1) ** k for k, s in enumerate(strokes))
+    channels = np.zeros((600, 6))
+    channels[:, 1] = nod
+    db = DatabaseMotion(channels, np.array([0]), np.array([600]), fps)
+    segment = np.array([[0.0, 5.0, 5.99]])
+    onsets = strokes + 0.1
+    events = database_events(None, db, "strokes")
+    np.testing.assert_allclose(events[0], strokes, atol=0.011)
+    maps = utterance_time_maps(segment, segment, np.array([0]), onsets, events, 0.15, 2.0)
+    times = np.arange(599) / fps
+    uniform = stitch_segments(db, segment, np.array([True]), np.array([0]), segment, times)
+    timed = stitch_segments(db, segment, np.array([True]), np.array([0]), segment, times, time_maps=maps)
+    score = lambda run: beat_alignment(kinematic_beats(run.channels[:, :3], fps, smoothing=0.02), onsets, 0.05)
+    assert score(uniform) == pytest.approx(np.exp(-2.0), abs=0.05)  # 0.1 s off at sigma 0.05 s
+    assert score(timed) > 0.95
+
+
+def test_an_audio_file_alone_drives_the_synthesis(phrases, database, tmp_path):
+    """A test take with no video (an audio file only): pitch from the file, motion at the database's rate."""
+    from stages.head.pitch import wav_bytes
+
+    wav = tmp_path / "line.wav"
+    wav.write_bytes(wav_bytes(phrases[0].audio, phrases[0].audio_rate))
+    pitch = run_stage(Pitch, {}, {"audio": {"line": {"path": wav, "speaker": "synthetic"}}})
+    tr = run_stage(Trellis, {}, {"database": database[0], "database_pitch": database[1], "test_pitch": pitch})
+    run = run_stage(MotionBlend, {}, {"trellis": tr, "database": database[0]})
+    assert run.meta["fps"] == database[0].meta["fps"] and run.meta["labels"] == ["line"]
+    assert run.meta["frames"] == [int(round(phrases[0].duration * run.meta["fps"]))]
+    assert np.ptp(run.arrays["angles"], axis=0).max() > 0  # it moves

@@ -42,24 +42,24 @@ def test_default_pipeline_rerun_is_a_no_op(default_run):
 def test_default_pipeline_publishes_animation_files(default_run):
     proj, result = default_run
     out = proj / "out"
-    glb = (out / "sad_as_happy_to_angry.glb").read_bytes()
+    glb = (out / "sad_as_happy_to_disgust.glb").read_bytes()
     assert glb[:4] == b"glTF"
-    rows = list(csv.reader((out / "sad_as_happy_to_angry_live_link.csv").open()))
+    rows = list(csv.reader((out / "sad_as_happy_to_disgust_live_link.csv").open()))
     assert rows[0][:2] == ["Timecode", "BlendShapeCount"] and len(rows[0]) == 2 + 61
     weights = result.load("blend.weights")
     assert len(rows) - 1 == weights.shape[0] == result.load("track_test.landmarks").shape[0]
     assert (out / "sad_head_motion.bvh").read_text().startswith("HIERARCHY")
-    assert (out / "sad_as_happy_to_angry_preview.mp4").stat().st_size > 10_000
+    assert (out / "sad_as_happy_to_disgust_preview.mp4").stat().st_size > 10_000
     assert np.all((weights >= 0) & (weights <= 1))
 
 
-def test_default_run_swings_the_mood_from_happy_to_angry(default_run):
+def test_default_run_swings_the_mood_from_happy_to_disgust(default_run):
     """The paper's headline: the unseen take re-expressed with alpha keyframed across expressions."""
     _, result = default_run
     blend = result.artifact("blend")
     expressions, names = blend.meta["expressions"], blend.meta["target_names"]
     alpha, weights = blend["alpha"], blend["weights"]
-    assert alpha[0, expressions.index("happy")] == 1.0 and alpha[-1, expressions.index("angry")] == 1.0
+    assert alpha[0, expressions.index("happy")] == 1.0 and alpha[-1, expressions.index("disgust")] == 1.0
     third = len(weights) // 3
 
     def mean(stem, rows):

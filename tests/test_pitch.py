@@ -6,9 +6,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from head_synthetic import synth_phrase, tracking_artifact
+from pydantic import ValidationError
 
 from msflow import UserError
-from msflow.testing import artifact, run_stage
+from msflow.testing import artifact, prepare_inputs, run_stage
 from stages.head.pitch import (
     PHRASE_FEATURES,
     Pitch,
@@ -37,7 +38,7 @@ def phrase_pitch(phrases):
 
 @pytest.fixture(scope="module")
 def crema_pitch():
-    files = {p.name.split("_")[2]: p for p in sorted(CREMA.glob("*.flv"))}
+    files = {p.name.split("_")[2]: {"path": p, "speaker": p.name.split("_")[0]} for p in sorted(CREMA.glob("*.flv"))}
     return run_stage(Pitch, {}, {"audio": files})
 
 
@@ -205,6 +206,7 @@ def test_motion_frame_count_sets_the_utterance_length(phrases):
 def test_crema_d_pitch_and_segments(crema_pitch):
     run = crema_pitch
     assert run.meta["labels"] == ["ANG", "DIS", "FEA", "HAP", "NEU", "SAD"]
+    assert run.meta["speakers"] == ["1001"] * 6 and len(set(run.arrays["speaker_median"])) == 1
     median = run.arrays["speaker_median"][0]
     assert 80 < median < 200  # a male voice
     durations = run.arrays["utterance_duration"]
@@ -244,16 +246,43 @@ def silent_artifact(seconds=1.0):
     )
 
 
-def test_silence_is_an_error_naming_the_file():
+def test_silence_is_an_error_naming_the_file_when_asked():
     with pytest.raises(UserError) as err:
-        run_stage(Pitch, {}, {"source": silent_artifact()})
+        run_stage(Pitch, {"on_silence": "error"}, {"source": silent_artifact()})
     assert err.value.file == "quiet.flv" and "no voiced speech" in str(err.value)
 
 
-def test_silence_with_on_silence_still_gives_no_segments():
-    run = run_stage(Pitch, {"on_silence": "still"}, {"source": silent_artifact()})
-    assert run.arrays["segments"].shape == (0, 3) and run.meta["silent"] == ["quiet"]
-    assert np.isnan(run.arrays["phrase_features"]).all()
+def test_silence_gives_no_segments_and_a_warning():
+    inputs = prepare_inputs(Pitch, {"source": silent_artifact()})
+    result = Pitch("pitch").run(Pitch.Params(), inputs)
+    assert result.arrays["segments"].shape == (0, 3) and result.meta["silent"] == ["quiet"]
+    assert np.isnan(result.arrays["phrase_features"]).all()
+    assert result.warnings == ["no voiced speech in 'quiet' (quiet.flv): no segments, the head stays at rest there"]
+
+
+def test_takes_without_a_speaker_label_are_an_error_when_pitch_is_per_speaker(phrases):
+    unlabelled = tracking_artifact(phrases[:2], speaker=None)
+    with pytest.raises(UserError) as err:
+        run_stage(Pitch, {}, {"source": unlabelled})
+    assert (
+        err.value.file == f"{phrases[0].label}.flv" and err.value.field == f"inputs.source[{phrases[0].label}].speaker"
+    )
+    # one take alone is its own speaker; per utterance needs no labels
+    assert run_stage(Pitch, {}, {"source": tracking_artifact(phrases[:1], speaker=None)}).meta["speakers"] == [None]
+    per_utterance = run_stage(Pitch, {"median_over": "utterance"}, {"source": unlabelled})
+    assert per_utterance.arrays["speaker_median"][0] != per_utterance.arrays["speaker_median"][1]
+
+
+def test_speakers_are_normalised_apart(phrases):
+    two = tracking_artifact(phrases[:2])
+    two.meta["fields"] = {phrases[0].label: {"speaker": "ann"}, phrases[1].label: {"speaker": "bob"}}
+    run = run_stage(Pitch, {}, {"source": two})
+    alone = [run_stage(Pitch, {}, {"source": tracking_artifact([p])}) for p in phrases[:2]]
+    np.testing.assert_allclose(run.arrays["speaker_median"], [a.arrays["speaker_median"][0] for a in alone])
+    np.testing.assert_allclose(run.arrays["speaker_spread"], [a.arrays["speaker_spread"][0] for a in alone])
+    np.testing.assert_allclose(
+        run.arrays["phrase_features"], np.concatenate([a.arrays["phrase_features"] for a in alone])
+    )
 
 
 def test_unsupported_audio_is_a_user_error(tmp_path):
@@ -291,9 +320,30 @@ def test_pitch_figure_renders(phrase_pitch):
     assert len(fig.axes) == 2 and fig.axes[1].get_title().startswith("cleaned")
 
 
-def test_pitch_settings_are_checked(phrases):
-    source = tracking_artifact([phrases[0]])
-    with pytest.raises(UserError, match="analysis_rate"):
-        run_stage(Pitch, {"ceiling": 3000.0}, {"source": source})
-    with pytest.raises(UserError, match="floor"):
-        run_stage(Pitch, {"floor": 600.0, "ceiling": 500.0}, {"source": source})
+@pytest.mark.parametrize(
+    "params, field",
+    [
+        ({"ceiling": 3000.0}, "analysis_rate"),
+        ({"floor": 600.0, "ceiling": 500.0}, "ceiling"),
+        ({"human_range": (800.0, 50.0)}, "human_range"),
+        ({"time_step": 0.0}, "time_step"),
+        ({"on_silence": "still"}, "on_silence"),
+    ],
+)
+def test_pitch_settings_are_checked_by_the_params(params, field):
+    with pytest.raises(ValidationError) as err:
+        Pitch.Params(**params)
+    assert err.value.errors()[0]["loc"] == (field,)
+
+
+def test_a_label_with_quotes_round_trips_through_praat(phrases, tmp_path):
+    import dataclasses
+
+    import parselmouth
+
+    quoted = dataclasses.replace(phrases[0], label='say "hi", twice ""')
+    run = run_stage(Pitch, {}, {"source": tracking_artifact([quoted])})
+    grid = tmp_path / "quoted.TextGrid"
+    grid.write_bytes(run.arrays["textgrid"].tobytes())
+    tg = parselmouth.read(str(grid))
+    assert parselmouth.praat.call(tg, "Get label of interval...", 1, 1) == quoted.label

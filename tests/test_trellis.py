@@ -7,6 +7,7 @@ import pytest
 from head_synthetic import synth_database, tracking_artifact
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pydantic import ValidationError
 
 from msflow import UserError
 from msflow.testing import artifact, run_stage
@@ -14,10 +15,13 @@ from stages.head.database import TrackedHeadDb
 from stages.head.pitch import Pitch
 from stages.head.trellis import (
     Database,
+    SegmentScales,
     SegmentTable,
+    SegmentWeights,
+    SpeakerReference,
     Trellis,
     contour_geometry,
-    references_of_test,
+    reference_for_test,
     segment_distances,
     smoothness_weights,
     transition_costs,
@@ -43,7 +47,7 @@ def plain_database(phrases):
 
 
 @pytest.fixture(scope="module")
-def test_pitch(phrases):
+def take_pitch(phrases):
     return run_stage(Pitch, {}, {"source": tracking_artifact(phrases[:8])})
 
 
@@ -106,9 +110,9 @@ def test_boundary_terms_on_the_common_clock_of_the_pair():
     assert h[0, 0, 0] == pytest.approx(expected)
 
 
-def test_search_records_how_boundaries_were_compared(database, test_pitch):
-    warped = search(database, test_pitch, exclude_source=True)
-    plain = search(database, test_pitch, exclude_source=True, warp_boundaries=False)
+def test_search_records_how_boundaries_were_compared(database, take_pitch):
+    warped = search(database, take_pitch, holdout="take")
+    plain = search(database, take_pitch, holdout="take", warp_boundaries=False)
     assert warped.meta["warp_boundaries"] and not plain.meta["warp_boundaries"]
     assert warped.meta["boundary_window"] == 0.1
     # the same node costs either way; only the transition term differs
@@ -125,22 +129,34 @@ def test_smoothness_terms_each_average_a_third():
         assert w[k] * pairs.mean() == pytest.approx(1 / 3)
 
 
-def table(contours, lengths, voiced=None):
+def table(contours, lengths, voiced=None, energy=None, onset_rate=None):
     contours = np.asarray(contours, dtype=float)
     n = len(contours)
     lengths = np.asarray(lengths, dtype=float)
     voiced = lengths * 0.6 if voiced is None else np.asarray(voiced, dtype=float)
     times = np.stack([np.zeros(n), voiced, lengths], axis=1)
+    energy = np.zeros_like(contours) if energy is None else np.asarray(energy, dtype=float)
+    onset_rate = np.zeros(n) if onset_rate is None else np.asarray(onset_rate, dtype=float)
     return SegmentTable(
-        times, np.arange(n), np.zeros(n, int), np.ones(n, bool), contours, contour_geometry(contours, voiced)
+        times,
+        np.arange(n),
+        np.zeros(n, int),
+        np.ones(n, bool),
+        contours,
+        contour_geometry(contours, voiced),
+        energy,
+        onset_rate,
     )
+
+
+UNIT_SCALES = SegmentScales(np.zeros(6), np.ones(6), 1.0, 1.0)
 
 
 def test_segment_distance_terms():
     base = np.sin(np.linspace(0, 3, 20)) * 2
     test = table([base], [0.4])
     db = table([base, base + 1.5, base], [0.4, 0.4, 0.6])
-    d = segment_distances(test, db, np.arange(3), b=0.05, c=0.3, geometry_mean=np.zeros(6), geometry_sd=np.ones(6))
+    d = segment_distances(test, db, np.arange(3), SegmentWeights(0.05, 0.3), UNIT_SCALES)
     assert d.total[0, 0] == pytest.approx(0.0, abs=1e-9)
     assert d.pitch[0, 1] == pytest.approx(1.5)  # Eq. 10: RMS of a constant offset
     assert d.length[0, 2] == pytest.approx(0.5)  # Eq. 11: |0.6 - 0.4| / 0.4
@@ -150,6 +166,19 @@ def test_segment_distance_terms():
     assert d.total[0, 1] == pytest.approx(expected)
     # G_d sees the offset in min and max
     assert d.geometry[0, 1] == pytest.approx(np.sqrt((1.5**2 * 2) / 6))
+
+
+def test_loudness_and_rhythm_terms_beyond_the_paper():
+    base = np.sin(np.linspace(0, 3, 20)) * 2
+    loud = np.linspace(-6, 0, 20)
+    test = table([base], [0.4], energy=[loud], onset_rate=[5.0])
+    db = table([base, base], [0.4, 0.4], energy=[loud, loud + 3.0], onset_rate=[5.0, 2.0])
+    scales = SegmentScales(np.zeros(6), np.ones(6), 2.0, 1.5)
+    paper = segment_distances(test, db, np.arange(2), SegmentWeights(0.05, 0.3), scales)
+    assert paper.total[0, 0] == paper.total[0, 1] == pytest.approx(0.0, abs=1e-9)  # e = o = 0: Eq. 12 only
+    richer = segment_distances(test, db, np.arange(2), SegmentWeights(0.05, 0.3, e=0.5, o=0.2), scales)
+    assert richer.loudness[0, 1] == pytest.approx(3.0 / 2.0) and richer.rhythm[0, 1] == pytest.approx(3.0 / 1.5)
+    assert richer.total[0, 1] == pytest.approx(0.5 * 1.5 + 0.2 * 2.0) and richer.total[0, 0] == pytest.approx(0.0)
 
 
 def test_contour_geometry_of_lines_and_parabolas():
@@ -163,19 +192,27 @@ def test_contour_geometry_of_lines_and_parabolas():
 
 
 def test_test_speaker_reference():
-    db = Database(None, None, None, None, None, [], [], [], median_hz=100.0)
-    view = artifact({"speaker_median": np.array([200.0])}, {"labels": ["t"]})
-    own, shift_own = references_of_test(view, db, "own")
-    same, shift_same = references_of_test(view, db, "database")
-    assert own[0] == 200.0 and shift_own[0] == 0.0
-    assert same[0] == 100.0 and shift_same[0] == pytest.approx(12.0)
+    reference = SpeakerReference(np.array([100.0, 150.0]), np.array([2.0, 3.0]))
+    db = Database(None, None, None, None, None, ["a", "b"], [], [], ["ann", "bob"], reference)
+    view = artifact(
+        {"speaker_median": np.array([200.0]), "speaker_spread": np.array([4.0])}, {"labels": ["t"], "speakers": ["bob"]}
+    )
+    own, shift_own = reference_for_test(view, db, "own")
+    same, shift_same = reference_for_test(view, db, "database")
+    assert own.median[0] == 200.0 and own.spread[0] == 4.0 and shift_own[0] == 0.0
+    assert same.median[0] == 150.0 and same.spread[0] == 3.0 and shift_same[0] == pytest.approx(12 * np.log2(200 / 150))
+    stranger = artifact({"speaker_median": np.array([200.0])}, {"labels": ["t"], "speakers": ["carl"]})
+    with pytest.raises(UserError, match="test_speaker: own"):
+        reference_for_test(stranger, db, "database")
+    alone = Database(
+        None, None, None, None, None, ["a"], [], [], ["ann"], SpeakerReference(np.array([100.0]), np.ones(1))
+    )
+    unlabelled = artifact({"speaker_median": np.array([200.0])}, {"labels": ["t"]})
+    assert reference_for_test(unlabelled, alone, "database")[0].median[0] == 100.0
 
 
-# ---------------------------------------------------------------------------------------- the stage
-
-
-def test_an_utterance_in_the_database_finds_itself(phrases, plain_database, test_pitch):
-    run = search(plain_database, test_pitch)
+def test_an_utterance_in_the_database_finds_itself(phrases, plain_database, take_pitch):
+    run = search(plain_database, take_pitch)
     db_labels = run.meta["db_labels"]
     for u, phrase in enumerate(phrases[:8]):
         rows = run.arrays["segment_utterance"] == u
@@ -188,8 +225,8 @@ def test_an_utterance_in_the_database_finds_itself(phrases, plain_database, test
     assert run.metrics["consecutive_fraction"] == 1.0 and run.metrics["total_cost"] < 1e-4
 
 
-def test_leave_one_out_never_uses_the_held_out_recording(phrases, database, test_pitch):
-    run = search(database, test_pitch, exclude_source=True)
+def test_leave_one_out_never_uses_the_held_out_recording(phrases, database, take_pitch):
+    run = search(database, take_pitch, holdout="take")
     db_labels = run.meta["db_labels"]
     for u, phrase in enumerate(phrases[:8]):
         rows = run.arrays["segment_utterance"] == u
@@ -201,8 +238,8 @@ def test_leave_one_out_never_uses_the_held_out_recording(phrases, database, test
         assert not run.arrays["phrase_selected"][u, excluded].any()
 
 
-def test_phrase_stage_prefers_the_same_speaking_style(phrases, database, test_pitch):
-    run = search(database, test_pitch, exclude_source=True, top_m=6)
+def test_phrase_stage_prefers_the_same_speaking_style(phrases, database, take_pitch):
+    run = search(database, take_pitch, holdout="take", top_m=6)
     styles = [phrases[int(label.split("_")[0][1:])].style for label in run.meta["db_labels"]]
     hits = []
     for u, phrase in enumerate(phrases[:8]):
@@ -211,8 +248,8 @@ def test_phrase_stage_prefers_the_same_speaking_style(phrases, database, test_pi
     assert np.mean(hits) > 0.6  # chance is 0.25 with four styles
 
 
-def test_candidates_are_the_k_best_and_sorted(database, test_pitch):
-    run = search(database, test_pitch, k=7, exclude_source=True)
+def test_candidates_are_the_k_best_and_sorted(database, take_pitch):
+    run = search(database, take_pitch, k=7, holdout="take")
     cost = run.arrays["candidate_cost"]
     assert cost.shape[1] == 7 and np.all(np.diff(cost, axis=1) >= 0)
     np.testing.assert_array_equal(
@@ -221,8 +258,8 @@ def test_candidates_are_the_k_best_and_sorted(database, test_pitch):
     np.testing.assert_allclose(run.arrays["node_cost"], cost[np.arange(len(cost)), run.arrays["chosen_rank"]])
 
 
-def test_sub_sentences_are_searched_separately(database, test_pitch):
-    run = search(database, test_pitch, exclude_source=True)
+def test_sub_sentences_are_searched_separately(database, take_pitch):
+    run = search(database, take_pitch, holdout="take")
     sub = run.arrays["subsentence_start"]
     assert sub.sum() >= 16  # two or three sentences per phrase
     np.testing.assert_array_equal(run.arrays["transition_cost"][sub], 0.0)
@@ -234,8 +271,8 @@ def test_sub_sentences_are_searched_separately(database, test_pitch):
     # the search beats taking every segment's best match, in total cost per sub-sentence
     greedy = run_stage(
         Trellis,
-        {"exclude_source": True, "w1": 0.0, "w2": 0.0},
-        {"database": database[0], "database_pitch": database[1], "test_pitch": test_pitch},
+        {"holdout": "take", "w1": 0.0, "w2": 0.0},
+        {"database": database[0], "database_pitch": database[1], "test_pitch": take_pitch},
     )
     assert greedy.arrays["chosen_rank"].max() == 0
     assert run.metrics["mean_transition_cost"] < 0.8 * np.mean(
@@ -269,43 +306,86 @@ def _transition_costs_of(run, chosen, database):
     return total[~sub[1:]]
 
 
-def test_top_m_grows_until_it_holds_k_segments(database, test_pitch):
-    run = search(database, test_pitch, top_m=1, k=40, exclude_source=True)
+def test_top_m_grows_until_it_holds_k_segments(database, take_pitch):
+    run = search(database, take_pitch, top_m=1, k=40, holdout="take")
     assert all(m > 1 for m in run.meta["phrases_searched"])
     assert run.arrays["candidates"].shape[1] == 40
 
 
-def test_hz_unit_and_own_reference_run(database, test_pitch):
-    hz = search(database, test_pitch, unit="hz", exclude_source=True)
-    own = search(database, test_pitch, test_speaker="own", exclude_source=True)
+def test_hz_unit_and_own_reference_run(database, take_pitch):
+    hz = search(database, take_pitch, unit="hz", holdout="take")
+    own = search(database, take_pitch, test_speaker="own", holdout="take")
     assert hz.meta["unit"] == "hz" and own.meta["test_speaker"] == "own"
     assert len(hz.arrays["chosen"]) == len(own.arrays["chosen"])
 
 
-def test_fewer_segments_than_k_is_an_error(database, test_pitch):
+def test_fewer_segments_than_k_is_an_error(database, take_pitch):
     with pytest.raises(UserError) as err:
-        search(database, test_pitch, k=100_000)
+        search(database, take_pitch, k=100_000)
     assert "fewer than k" in str(err.value) and err.value.field == "params.k"
 
 
-def test_exclusions_by_label(database, test_pitch):
-    run = search(database, test_pitch, exclude_labels=[database[0].meta["labels"][0]])
+def test_exclusions_by_label(database, take_pitch):
+    run = search(database, take_pitch, exclude_labels=[database[0].meta["labels"][0]])
     assert all(database[0].meta["labels"][0] in ex for ex in run.meta["excluded"])
     with pytest.raises(UserError, match="exclude_labels"):
-        search(database, test_pitch, exclude_labels=["nobody"])
+        search(database, take_pitch, exclude_labels=["nobody"])
 
 
-def test_database_pitch_must_match_the_database(database, plain_database, test_pitch):
+def test_database_pitch_must_match_the_database(database, plain_database, take_pitch):
     with pytest.raises(UserError, match="database_pitch"):
-        run_stage(Trellis, {}, {"database": database[0], "database_pitch": plain_database[1], "test_pitch": test_pitch})
+        run_stage(Trellis, {}, {"database": database[0], "database_pitch": plain_database[1], "test_pitch": take_pitch})
 
 
-def test_bad_weights(database, test_pitch):
-    with pytest.raises(UserError):
-        search(database, test_pitch, b=0.8, c=0.4)
+@pytest.mark.parametrize(
+    "params, field",
+    [
+        ({"b": 0.8, "c": 0.4}, "c"),
+        ({"k": 0}, "k"),
+        ({"top_m": 0}, "top_m"),
+        ({"w1": -1}, "w1"),
+        ({"holdout": "x"}, "holdout"),
+    ],
+)
+def test_bad_settings_are_rejected_by_the_params(params, field):
+    with pytest.raises(ValidationError) as err:
+        Trellis.Params(**params)
+    assert err.value.errors()[0]["loc"] == (field,)
 
 
-def test_trellis_figure_renders(database, test_pitch):
-    run = search(database, test_pitch, exclude_source=True)
+def test_trellis_figure_renders(database, take_pitch):
+    run = search(database, take_pitch, holdout="take")
     fig = Trellis.figures["trellis"](run.view(), {})
     assert fig.axes[0].get_xlabel() == "test segment"
+
+
+def test_a_database_without_voice_is_an_error(take_pitch):
+    quiet = (np.random.default_rng(0).standard_normal(32000) * 1e-4).astype(np.float32)
+    silent = artifact(
+        {
+            "rotation": np.tile([1.0, 0, 0, 0], (60, 1)),
+            "translation": np.zeros((60, 3)),
+            "time": np.arange(60) / 30.0,
+            "sequence": np.zeros(60, np.int32),
+            "audio": quiet,
+            "audio_bounds": np.array([[0, 32000]]),
+        },
+        {"labels": ["quiet"], "sources": ["quiet.wav"], "fps": [30.0], "audio_rate": 16000},
+    )
+    headdb = run_stage(TrackedHeadDb, {"speaker": "ann"}, {"tracks": silent})
+    db_pitch = run_stage(Pitch, {}, {"source": headdb})
+    with pytest.raises(UserError, match="no voiced speech in any take") as err:
+        run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": take_pitch})
+    assert err.value.field == "inputs.database_pitch"
+
+
+def test_a_database_shorter_than_one_phrase_is_an_error(phrases, take_pitch):
+    short = tracking_artifact([phrases[0]])
+    headdb = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": short})
+    db_pitch = run_stage(Pitch, {}, {"source": headdb})
+    segments = db_pitch.metrics["segments"]
+    with pytest.raises(UserError, match=f"has {segments} segments") as err:
+        run_stage(
+            Trellis, {"k": segments + 1}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": take_pitch}
+        )
+    assert err.value.field == "params.k"

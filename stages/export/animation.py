@@ -114,6 +114,9 @@ def head_motion(head, params, label: str | None, frames: int, fps: float, out_fp
     (rotation, translation), head_label = select_take(
         head, ("rotation", "translation"), params.sequence, label, "the head motion"
     )
+    if isinstance(head_fps, (list, tuple)):  # a tracking artifact as the head motion: one rate per take
+        labels = list(head.meta.get("labels") or [])
+        head_fps = head_fps[labels.index(head_label)] if head_label in labels else head_fps[0]
     rotation, translation, info = align_head_motion(
         np.asarray(rotation, np.float64),
         np.asarray(translation, np.float64),
@@ -427,9 +430,8 @@ class Export(Stage):
             arrays["head_translation"] = perf.translation
             arrays["head_bvh"] = head_bvh(perf.rotation, perf.translation * 100.0, perf.fps).encode("utf-8")
         if params.preview:
-            jobs = max(1, int(getattr(self, "jobs", 1) or 1))
             arrays["preview"], video_meta, video_warnings = pack_preview(
-                character, perf, eyes, params, inputs["audio"], jobs
+                character, perf, eyes, params, inputs["audio"], self.jobs
             )
             meta.update(video_meta)
             warnings += video_warnings

@@ -181,7 +181,9 @@ def take_audio(
     rate = int(rate)
     start, stop = (int(v) for v in np.asarray(audio_view["audio_bounds"])[index])
     offset = float(per_take("audio_offset", 0.0) or 0.0)
-    samples = place_audio(np.asarray(audio_view["audio"][start:stop], dtype=np.float32), rate, offset, seconds)
+    # only this take's samples are read (the artifact may hold many takes back to back)
+    samples = np.asarray(audio_view.lazy("audio")[start:stop], dtype=np.float32)
+    samples = place_audio(samples, rate, offset, seconds)
     info = {
         "audio_label": label,
         "audio_rate": rate,

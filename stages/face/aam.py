@@ -520,94 +520,117 @@ AAM_OUTPUTS = {
 }
 
 
+class AamParams(Stage.Params):
+    """How the appearance model is fitted (shared with stages.eval.face's refits)."""
+
+    shape_variance: float = Field(0.98, gt=0, le=1)
+    n_shape: int | None = Field(None, ge=1)
+    texture_variance: float = Field(0.95, gt=0, le=1)
+    n_texture: int | None = Field(None, ge=1)
+    texture_width: int = Field(64, ge=16, le=1024)
+    shape_balance: float = Field(1.0, gt=0)
+    heldout_folds: int = Field(5, ge=2)
+
+
+def fit_options(params: AamParams) -> dict:
+    """Keyword arguments of ``fit_aam`` from the stage params."""
+    return {
+        "shape_variance": params.shape_variance,
+        "n_shape": params.n_shape,
+        "texture_variance": params.texture_variance,
+        "n_texture": params.n_texture,
+        "texture_width": params.texture_width,
+        "shape_balance": params.shape_balance,
+    }
+
+
+def check_training_tracks(view) -> tuple[np.ndarray, list[str], str]:
+    """(sequence, labels, landmark scheme) of a tracking artifact fit for the appearance model, else UserError."""
+    landmarks = view["landmarks"]
+    labels = [str(x) for x in view.meta.get("labels", [])]
+    sequence = np.asarray(view["sequence"], dtype=np.int32)
+    scheme = check_landmark_scheme(landmarks, view.meta, "inputs.tracks.landmarks")
+    check_landmarks(landmarks, sequence, labels, "inputs.tracks.landmarks")
+    check_landmarks(view["crop_landmarks"], sequence, labels, "inputs.tracks.crop_landmarks")
+    if len(landmarks) < 3:
+        raise UserError(
+            f"only {len(landmarks)} training frames; the appearance model needs at least 3", field="inputs.tracks"
+        )
+    return sequence, labels, scheme
+
+
+def heldout_errors(model: AamModel, proj: AamProjection, sequence: np.ndarray, k: int) -> tuple[np.ndarray, ...]:
+    """Held-out relative RMS error of shapes and textures against the number of modes (temporal k-fold)."""
+    folds = temporal_folds(sequence, min(k, int(np.bincount(sequence).max())))
+    folds = [f for f in folds if 0 < len(f) < len(sequence)]
+    shape_err = heldout_pca_error(proj.aligned_shapes.reshape(len(sequence), -1), folds, model.n_shape + 5)
+    texture_err = heldout_pca_error(proj.textures, folds, model.n_texture + 5)
+    return shape_err, texture_err
+
+
 class AamPca(Stage):
     """Active-appearance-style model of the training takes (Eq 1-3): shape and texture PCA, combined y."""
 
-    class Params(Stage.Params):
-        shape_variance: float = Field(0.98, gt=0, le=1)
-        n_shape: int | None = Field(None, ge=1)
-        texture_variance: float = Field(0.95, gt=0, le=1)
-        n_texture: int | None = Field(None, ge=1)
-        texture_width: int = Field(64, ge=16, le=1024)
-        shape_balance: float = Field(1.0, gt=0)
-        heldout_folds: int = Field(5, ge=2)
-
+    Params = AamParams
     inputs = {
         "tracks": Input.artifact(
             "landmarks", "crops", "crop_landmarks", "sequence", doc="tracking artifact of the training takes"
         )
     }
     outputs = AAM_OUTPUTS
+    figures = {"shape_modes": figure_shape_modes, "heldout_error": figure_heldout_error}
 
     def run(self, params, inputs):
         view = inputs["tracks"]
-        landmarks = view["landmarks"]
-        labels = list(view.meta.get("labels", []))
-        sequence = np.asarray(view["sequence"], dtype=np.int32)
-        scheme = check_landmark_scheme(landmarks, view.meta, "inputs.tracks.landmarks")
-        check_landmarks(landmarks, sequence, labels, "inputs.tracks.landmarks")
-        check_landmarks(view["crop_landmarks"], sequence, labels, "inputs.tracks.crop_landmarks")
-        if len(landmarks) < 3:
-            raise UserError(
-                f"only {len(landmarks)} training frames; the appearance model needs at least 3", field="inputs.tracks"
-            )
-        model, proj = fit_aam(
-            landmarks,
-            view["crops"],
-            view["crop_landmarks"],
-            shape_variance=params.shape_variance,
-            n_shape=params.n_shape,
-            texture_variance=params.texture_variance,
-            n_texture=params.n_texture,
-            texture_width=params.texture_width,
-            shape_balance=params.shape_balance,
-        )
-        folds = temporal_folds(sequence, min(params.heldout_folds, int(np.bincount(sequence).max())))
-        folds = [f for f in folds if 0 < len(f) < len(sequence)]
-        shape_err = heldout_pca_error(proj.aligned_shapes.reshape(len(sequence), -1), folds, model.n_shape + 5)
-        texture_err = heldout_pca_error(proj.textures, folds, model.n_texture + 5)
-        arrays = {name: getattr(model, name) for name in AamModel.ARRAYS}
-        arrays["triangles"] = model.triangles.astype(np.int32)
-        arrays.update(
-            texture_mask=model.warp.pixels.mask,
-            b_s=proj.b_s,
-            b_g=proj.b_g,
-            y=proj.y,
-            aligned_shapes=proj.aligned_shapes,
-            similarity=proj.similarity,
-            crop_similarity=proj.crop_similarity,
-            texture_offset=proj.texture_offset,
-            texture_scale=proj.texture_scale,
-            sequence=sequence,
-            heldout_shape_error=shape_err,
-            heldout_texture_error=texture_err,
-        )
-        shape_resid = proj.aligned_shapes - model.reconstruct_shapes(proj.b_s)
-        meta = {
-            "labels": labels,
-            "fps": view.meta.get("fps"),
-            "landmark_scheme": scheme,
-            "shape_weight": model.shape_weight,
-            "shape_balance": params.shape_balance,
-            "texture_width": params.texture_width,
-            "texture_size": list(model.texture_size),
-            "n_shape": model.n_shape,
-            "n_texture": model.n_texture,
-            "shape_frame": "mean-shape frame: centroid 0, eyes level, inter-ocular distance 1, y down",
-        }
-        shape_total = shape_pca_total(proj.aligned_shapes)
-        metrics = {
-            "n_shape": model.n_shape,
-            "n_texture": model.n_texture,
-            "shape_weight": model.shape_weight,
-            "shape_variance_kept": float(model.shape_eigenvalues.sum() / max(shape_total, 1e-300)),
-            "train_shape_rms_iod": float(np.sqrt(np.mean(np.sum(shape_resid**2, -1)))),
-            "heldout_shape_error": float(shape_err[min(model.n_shape, len(shape_err) - 1)]),
-            "heldout_texture_error": float(texture_err[min(model.n_texture, len(texture_err) - 1)]),
-        }
-        return Result(arrays, meta=meta, metrics=metrics)
+        sequence, labels, scheme = check_training_tracks(view)
+        model, proj = fit_aam(view["landmarks"], view["crops"], view["crop_landmarks"], **fit_options(params))
+        shape_err, texture_err = heldout_errors(model, proj, sequence, params.heldout_folds)
+        return pack_aam(params, view.meta, labels, scheme, sequence, model, proj, shape_err, texture_err)
 
-    figures = {"shape_modes": figure_shape_modes, "heldout_error": figure_heldout_error}
+
+def pack_aam(params, tracks_meta, labels, scheme, sequence, model, proj, shape_err, texture_err) -> Result:
+    """The AamPca artifact: the model, the training frames in it, held-out errors; meta keeps the params."""
+    arrays = {name: getattr(model, name) for name in AamModel.ARRAYS}
+    arrays["triangles"] = model.triangles.astype(np.int32)
+    arrays.update(
+        texture_mask=model.warp.pixels.mask,
+        b_s=proj.b_s,
+        b_g=proj.b_g,
+        y=proj.y,
+        aligned_shapes=proj.aligned_shapes,
+        similarity=proj.similarity,
+        crop_similarity=proj.crop_similarity,
+        texture_offset=proj.texture_offset,
+        texture_scale=proj.texture_scale,
+        sequence=sequence,
+        heldout_shape_error=shape_err,
+        heldout_texture_error=texture_err,
+    )
+    meta = {
+        "labels": labels,
+        "fields": dict(tracks_meta.get("fields") or {}),
+        "fps": tracks_meta.get("fps"),
+        "landmark_scheme": scheme,
+        "shape_weight": model.shape_weight,
+        "shape_balance": params.shape_balance,
+        "texture_width": params.texture_width,
+        "texture_size": list(model.texture_size),
+        "n_shape": model.n_shape,
+        "n_texture": model.n_texture,
+        "shape_frame": "mean-shape frame: centroid 0, eyes level, inter-ocular distance 1, y down",
+        "params": params.model_dump(),
+    }
+    shape_resid = proj.aligned_shapes - model.reconstruct_shapes(proj.b_s)
+    metrics = {
+        "n_shape": model.n_shape,
+        "n_texture": model.n_texture,
+        "shape_weight": model.shape_weight,
+        "shape_variance_kept": float(model.shape_eigenvalues.sum() / max(shape_pca_total(proj.aligned_shapes), 1e-300)),
+        "train_shape_rms_iod": float(np.sqrt(np.mean(np.sum(shape_resid**2, -1)))),
+        "heldout_shape_error": float(shape_err[min(model.n_shape, len(shape_err) - 1)]),
+        "heldout_texture_error": float(texture_err[min(model.n_texture, len(texture_err) - 1)]),
+    }
+    return Result(arrays, meta=meta, metrics=metrics)
 
 
 def shape_pca_total(aligned: np.ndarray) -> float:
@@ -617,8 +640,10 @@ def shape_pca_total(aligned: np.ndarray) -> float:
 
 __all__ = [
     "AamModel",
+    "AamParams",
     "AamPca",
     "AamProjection",
+    "fit_options",
     "fit_aam",
     "project",
     "reconstruct",

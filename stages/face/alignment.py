@@ -96,18 +96,10 @@ class ContentAlignment:
 
 def align_takes(features: list[np.ndarray], reference: int, band: float | None = 0.3) -> ContentAlignment:
     """DTW-align each take's per-frame features (n_s, d) to the reference take's."""
-    ref = features[reference]
-    aligned, paths, costs = [], [], []
-    for s, feats in enumerate(features):
-        if s == reference:
-            path = np.column_stack([np.arange(len(ref)), np.arange(len(ref))])
-            total = 0.0
-        else:
-            path, total = dtw_path(dtw_cost_matrix(ref, feats), band)
-        paths.append(path)
-        costs.append(total / len(path))
-        aligned.append(aligned_index(path, len(ref)))
-    return ContentAlignment(reference, np.stack(aligned), paths, np.asarray(costs))
+    pairs = [align_pair(features, reference, s, band) for s in range(len(features))]
+    return ContentAlignment(
+        reference, np.stack([p[0] for p in pairs]), [p[1] for p in pairs], np.asarray([p[2] for p in pairs])
+    )
 
 
 def standardise_per_take(features: np.ndarray) -> np.ndarray:
@@ -176,14 +168,150 @@ def mouth_features(
     return [params[sequence == s] - params[sequence == s].mean(0) for s in range(n_takes)]
 
 
-def check_takes(sequence: np.ndarray, labels: list[str], min_frames: int, why: str, field: str) -> list[np.ndarray]:
-    """Frame indices of each take; UserError naming a take shorter than ``min_frames``."""
+def check_takes(
+    sequence: np.ndarray, labels: list[str], min_frames: int, why: str, field: str, only: list[int] | None = None
+) -> list[np.ndarray]:
+    """Frame indices of each take; UserError naming a take (of ``only``, default all) shorter than ``min_frames``."""
     sequence = np.asarray(sequence)
     takes = [np.flatnonzero(sequence == s) for s in range(len(labels))]
-    for label, frames in zip(labels, takes):
+    for s in range(len(labels)) if only is None else only:
+        label, frames = labels[s], takes[s]
         if len(frames) < min_frames:
             raise UserError(
                 f"take '{label}' has {len(frames)} frames; {why} needs at least {min_frames} frames per take",
                 field=field,
             )
     return takes
+
+
+# ----------------------------------------------------------------------------------------------- takes and sets
+
+#: names under which a take's expression is recognised as the neutral one (the default reference)
+NEUTRAL_NAMES = ("neutral", "neu", "n")
+
+
+def take_expressions(labels: list[str], fields: dict | None) -> list[str]:
+    """Expression (style) of each take: its ``expression`` field when the take has one, else its label."""
+    fields = fields or {}
+    return [str((fields.get(label) or {}).get("expression", label)) for label in labels]
+
+
+def take_sentences(labels: list[str], fields: dict | None) -> list[str]:
+    """Sentence (content) of each take: its ``sentence`` field, else one shared sentence ("")."""
+    fields = fields or {}
+    return [str((fields.get(label) or {}).get("sentence", "")) for label in labels]
+
+
+def neutral_index(styles: list[str]) -> int:
+    """Index of the neutral expression among ``styles`` (by name, case-insensitive), else 0."""
+    lowered = [s.lower() for s in styles]
+    return next((lowered.index(n) for n in NEUTRAL_NAMES if n in lowered), 0)
+
+
+@dataclass
+class TakeSets:
+    """Training takes grouped for the bilinear fit: which take plays which style, set by set.
+
+    A *set* is one take per style saying the same sentence; the set's take of the reference style gives its content
+    axis and the others are time-aligned to it, so the set contributes one column of observations per reference frame.
+    A sentence with several takes of a style gives several sets (the r-th set uses the r-th take of each style,
+    cycling through a style's takes when it has fewer), so every take is used.
+    """
+
+    styles: list[str]  # style (expression) names, in order of first appearance
+    take_style: np.ndarray  # (n_takes,) style index of each take, -1 for takes left out
+    sets: np.ndarray  # (n_sets, S) take index of each style in each set
+    set_sentence: list[str]  # sentence of each set
+    skipped: list[str]  # sentences left out because some style never says them
+
+
+def group_takes(
+    expressions: list[str], sentences: list[str], include: np.ndarray | None = None, order: list[str] | None = None
+) -> TakeSets:
+    """Group takes (their expression and sentence each) into sets; ``include`` (n_takes,) bool selects the takes,
+    ``order`` the styles' order (default: as they first appear)."""
+    n = len(expressions)
+    include = np.ones(n, dtype=bool) if include is None else np.asarray(include, dtype=bool)
+    present = list(dict.fromkeys(e for e, keep in zip(expressions, include) if keep))
+    styles = present if order is None else [s for s in order if s in present]
+    take_style = np.array([styles.index(e) if keep else -1 for e, keep in zip(expressions, include)], dtype=np.int64)
+    sets, set_sentence, skipped = [], [], []
+    for sentence in dict.fromkeys(s for s, keep in zip(sentences, include) if keep):
+        by_style = [
+            [t for t in range(n) if take_style[t] == s and sentences[t] == sentence] for s in range(len(styles))
+        ]
+        if not all(by_style):
+            skipped.append(sentence)
+            continue
+        for r in range(max(len(takes) for takes in by_style)):
+            sets.append([takes[r % len(takes)] for takes in by_style])
+            set_sentence.append(sentence)
+    table = np.asarray(sets, dtype=np.int64).reshape(len(sets), len(styles))
+    return TakeSets(styles, take_style, table, set_sentence, skipped)
+
+
+@dataclass
+class SetAlignment:
+    """Content columns of all sets: each column is one reference frame of one set and the frame of every style's
+    take aligned to it (global frame indices into the tracking/aam frame axis)."""
+
+    frames: np.ndarray  # (S, C) global frame of each style at each content column
+    column_set: np.ndarray  # (C,) set of each column
+    column_position: np.ndarray  # (C,) frame of the set's reference take at each column (within the take)
+    paths: np.ndarray  # (L, 4) int32 rows (set, take, reference frame, take frame)
+    costs: np.ndarray  # (S,) mean DTW cost per path step of each style over the sets
+
+
+def align_pair(
+    features: list[np.ndarray], reference_take: int, take: int, band: float | None, memo: dict | None = None
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """DTW of one take against a reference take: (frame of the take at each reference frame, path (L, 2), mean
+    cost per step). ``memo`` (a dict) keeps pairs already aligned, for protocols that regroup the same takes."""
+    key = (reference_take, take, band)
+    if memo is not None and key in memo:
+        return memo[key]
+    ref = features[reference_take]
+    if take == reference_take:
+        path, total = np.column_stack([np.arange(len(ref)), np.arange(len(ref))]), 0.0
+    else:
+        path, total = dtw_path(dtw_cost_matrix(ref, features[take]), band)
+    result = (aligned_index(path, len(ref)), path, total / len(path))
+    if memo is not None:
+        memo[key] = result
+    return result
+
+
+def align_sets(
+    features: list[np.ndarray],
+    takes: list[np.ndarray],
+    groups: TakeSets,
+    reference: int,
+    band: float | None = 0.3,
+    memo: dict | None = None,
+) -> SetAlignment:
+    """DTW-align, in every set, each style's take to the reference style's take (as ``align_takes`` does for one
+    set). ``features`` per take (n_t, d); ``takes`` the global frame indices of each take; ``memo`` see
+    ``align_pair``."""
+    n_styles = len(groups.styles)
+    frames, column_set, column_position, paths = [], [], [], []
+    costs = np.zeros((max(len(groups.sets), 1), n_styles))
+    for r, members in enumerate(groups.sets):
+        ref_take = int(members[reference])
+        local = []
+        for s, take in enumerate(int(t) for t in members):
+            aligned, path, costs[r, s] = align_pair(features, ref_take, take, band, memo)
+            local.append(takes[take][aligned])
+            paths.append(np.column_stack([np.full(len(path), r), np.full(len(path), take), path]))
+        frames.append(np.stack(local))
+        column_set.append(np.full(len(takes[ref_take]), r))
+        column_position.append(np.arange(len(takes[ref_take])))
+    if not frames:
+        empty = np.zeros(0, np.int64)
+        return SetAlignment(np.zeros((n_styles, 0), np.int64), empty, empty, np.zeros((0, 4), np.int32), costs[0])
+    return SetAlignment(
+        np.concatenate(frames, axis=1),
+        np.concatenate(column_set),
+        np.concatenate(column_position),
+        np.concatenate(paths).astype(np.int32),
+        costs.mean(0),
+    )

@@ -1,6 +1,6 @@
 """Symmetric bilinear model of expression (style) and speech (content), paper Sec 3.2 Eq 4:
 y_k(s, c) = e_s' W_k c_c, fitted with Tenenbaum & Freeman's (2000) SVD-based alternating algorithm
-(see docs/bilinear.md for the stacked notation and the vector transpose).
+(see docs/face.md for the stacked notation and the vector transpose).
 
 Arrays here use a 3-D layout instead of the stacked matrices: observations Y[s, c, k], basis W[i, j, k],
 style vectors as rows style[s] (= a^s), content vectors as rows content[c] (= b^c). ``vector_transpose``
@@ -10,7 +10,8 @@ The stage first time-aligns the training takes (stages.face.alignment, DTW) so t
 content in every expression, then fits the model. One addition to the paper: the configuration vectors are centred
 PCA coordinates, so the model also sees the mean face as a constant extra component (``BilinearModel``,
 ``mean_weight``); without it, frames near the mean face have no defined style and the out-of-sample analysis
-collapses (bench/eval_face.py --mean-weight 0 shows it).
+collapses (with mean_weight 0 the synthetic known-answer takes of tests/test_eval_face.py are classified at
+chance).
 """
 
 from __future__ import annotations
@@ -22,7 +23,17 @@ import numpy as np
 from pydantic import Field
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.face.alignment import align_takes, audio_features, check_takes, mouth_features
+from stages.face.alignment import (
+    TakeSets,
+    align_sets,
+    audio_features,
+    check_takes,
+    group_takes,
+    mouth_features,
+    neutral_index,
+    take_expressions,
+    take_sentences,
+)
 
 # ----------------------------------------------------------------------------------------------- algebra
 
@@ -269,12 +280,17 @@ BILINEAR_OUTPUTS = {
     "aligned_frames": Output.array(
         "i",
         shape=(None, "content"),
-        doc="(S, C) frame index into the aam/tracking frame axis, per take and content position",
+        doc="(S, C) frame index into the aam/tracking frame axis, per expression and content column",
     ),
-    "aligned_local": Output.array("i", shape=(None, "content"), doc="(S, C) frame index within each take"),
-    "dtw_paths": Output.array("i", shape=(None, 3), doc="(take, reference frame, take frame) warping path steps"),
+    "aligned_local": Output.array(
+        "i", shape=(None, "content"), doc="(S, C) the same frames counted within their own take"
+    ),
+    "content_set": Output.array("i", shape=("content",), doc="(C,) set (meta sets) each content column comes from"),
+    "dtw_paths": Output.array(
+        "i", shape=(None, 4), doc="warping path steps (set, take, reference frame, take frame); take: meta takes"
+    ),
     "fit_errors": Output.array("f", ndim=1, doc="relative squared training error per iteration"),
-    "residual_per_take": Output.array("f", ndim=1, doc="(S,) relative squared training error of each take"),
+    "residual_per_style": Output.array("f", ndim=1, doc="(S,) relative squared training error of each expression"),
     "W_mean": Output.array(
         "f", ndim=2, optional=True, doc="(I, J) basis of the constant mean-face component (meta mean_component)"
     ),
@@ -282,23 +298,24 @@ BILINEAR_OUTPUTS = {
 
 
 def figure_alignment(view, inputs=None):
-    """DTW warping paths of every take against the reference take, and the fitted style vectors."""
+    """DTW warping paths of every take against its set's reference take, and the fitted style vectors."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     labels = view.meta["labels"]
+    takes = view.meta.get("takes", labels)
     paths = np.asarray(view["dtw_paths"])
     style = np.asarray(view["style"])
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(9, 3.6), gridspec_kw={"width_ratios": [1.4, 1]})
-    for s, label in enumerate(labels):
-        p = paths[paths[:, 0] == s]
-        ax.plot(p[:, 1], p[:, 2], label=label)
+    for r, t in sorted({(int(r), int(t)) for r, t in paths[:, :2]}):
+        p = paths[(paths[:, 0] == r) & (paths[:, 1] == t)]
+        ax.plot(p[:, 2], p[:, 3], label=takes[t] if len(view.meta.get("sets", [])) < 2 else f"{takes[t]} (set {r})")
     ax.set_xlabel(f"{view.meta['reference']} frame (content axis)")
     ax.set_ylabel("take frame")
     ax.set_title(f"content alignment ({view.meta['align']})")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
     ax.grid(alpha=0.3)
     im = bx.imshow(style, cmap="coolwarm", vmin=-np.abs(style).max(), vmax=np.abs(style).max())
     bx.set_yticks(range(len(labels)), labels)
@@ -310,20 +327,93 @@ def figure_alignment(view, inputs=None):
     return fig
 
 
+class BilinearParams(Stage.Params):
+    """How the training takes are aligned and the bilinear model fitted (shared with stages.eval.face's refits)."""
+
+    align: Literal["audio", "mouth"] = "audio"
+    reference: str | None = None
+    dtw_band: float | None = Field(0.3, gt=0)
+    style_dim: int | None = Field(None, ge=1)
+    content_dim: int | None = Field(None, ge=1)
+    content_variance: float = Field(0.98, gt=0, le=1)
+    mean_weight: float = Field(1.0, ge=0)
+    tol: float = Field(1e-10, gt=0)
+    max_iter: int = Field(500, ge=1)
+
+
+@dataclass
+class TrainingTakes:
+    """The takes of an aam artifact as the bilinear fit sees them: labels, frames, expression and sentence."""
+
+    labels: list[str]
+    sequence: np.ndarray  # (N,) take of each frame
+    expressions: list[str]  # per take: fields["expression"], else the label
+    sentences: list[str]  # per take: fields["sentence"], else ""
+
+    @property
+    def frames(self) -> list[np.ndarray]:
+        return [np.flatnonzero(self.sequence == t) for t in range(len(self.labels))]
+
+    @classmethod
+    def from_views(cls, aam, tracks=None) -> TrainingTakes:
+        labels = [str(x) for x in aam.meta.get("labels", [])]
+        fields = aam.meta.get("fields") or (tracks.meta.get("fields") if tracks is not None else None) or {}
+        return cls(
+            labels, np.asarray(aam["sequence"]), take_expressions(labels, fields), take_sentences(labels, fields)
+        )
+
+
+def training_sets(
+    takes: TrainingTakes, include: np.ndarray | None = None, field: str = "inputs.aam", order: list[str] | None = None
+) -> TakeSets:
+    """The takes grouped into sets (``group_takes``); UserError with fewer than two expressions or no complete set."""
+    groups = group_takes(takes.expressions, takes.sentences, include, order)
+    if len(groups.styles) < 2:
+        raise UserError(
+            f"the bilinear model needs at least two training expressions, got {groups.styles} "
+            f"(takes {takes.labels}; a take's expression is its 'expression' field, else its label)",
+            field=field,
+        )
+    if not len(groups.sets):
+        raise UserError(
+            f"no sentence is spoken in every expression {groups.styles} (sentences {groups.skipped}); the bilinear "
+            "model needs the same content in each expression",
+            field=field,
+        )
+    return groups
+
+
+def fit_options(params: BilinearParams) -> dict:
+    """Keyword arguments of ``fit_bilinear_model`` from the stage params."""
+    return {
+        "style_dim": params.style_dim,
+        "content_dim": params.content_dim,
+        "content_variance": params.content_variance,
+        "mean_weight": params.mean_weight,
+        "tol": params.tol,
+        "max_iter": params.max_iter,
+    }
+
+
+def fit_warning(fit: BilinearSolution, labels: list[str], max_iter: int) -> list[str]:
+    """A warning when the alternation stopped at ``max_iter`` before its error settled."""
+    if fit.converged:
+        return []
+    change = abs(fit.errors[-2] - fit.errors[-1]) if len(fit.errors) > 1 else float("nan")
+    return [
+        f"bilinear fit of {labels} stopped at max_iter={max_iter} before converging (relative training error "
+        f"{fit.error:.4g}, last change {change:.2g}); raise max_iter or lower style_dim/content_dim"
+    ]
+
+
 class BilinearFit(Stage):
-    """Content alignment (DTW on audio MFCCs or mouth shape) and the symmetric bilinear fit (Eq 4)."""
+    """Content alignment (DTW on audio MFCCs or mouth shape) and the symmetric bilinear fit (Eq 4).
 
-    class Params(Stage.Params):
-        align: Literal["audio", "mouth"] = "audio"
-        reference: str | None = None
-        dtw_band: float | None = Field(0.3, gt=0)
-        style_dim: int | None = Field(None, ge=1)
-        content_dim: int | None = Field(None, ge=1)
-        content_variance: float = Field(0.98, gt=0, le=1)
-        mean_weight: float = Field(1.0, ge=0)
-        tol: float = Field(1e-10, gt=0)
-        max_iter: int = Field(500, ge=1)
+    Each take plays the expression its ``expression`` field names (from the tracking artifact's meta fields), else
+    its label; takes of one expression saying the same sentence are aligned set by set (``TakeSets``).
+    """
 
+    Params = BilinearParams
     inputs = {
         "aam": Input.artifact("y", "sequence", "aligned_shapes", doc="appearance model of the training takes"),
         "tracks": Input.artifact(optional=True, doc="tracking artifact of the same takes (audio for align=audio)"),
@@ -332,83 +422,85 @@ class BilinearFit(Stage):
     figures = {"alignment": figure_alignment}
 
     def run(self, params, inputs):
-        aam = inputs["aam"]
-        labels = list(aam.meta.get("labels", []))
-        y_all = np.asarray(aam["y"], dtype=np.float64)
-        sequence = np.asarray(aam["sequence"])
-        if len(labels) < 2:
-            raise UserError(
-                f"the bilinear model needs at least two training expressions, got {labels}", field="inputs.aam"
-            )
+        aam, tracks = inputs["aam"], inputs.get("tracks")
+        takes = TrainingTakes.from_views(aam, tracks)
+        groups = training_sets(takes)
+        reference = reference_index(params.reference, groups.styles)
+        frames = takes_with_frames(takes, groups, params.content_dim)
         features = content_features(
-            params.align, labels, sequence, aligned_shapes=aam["aligned_shapes"], tracks=inputs.get("tracks")
+            params.align, takes.labels, takes.sequence, aligned_shapes=aam["aligned_shapes"], tracks=tracks
         )
-        reference = reference_index(params.reference, labels)
-        style_dim = params.style_dim if params.style_dim is not None else len(labels)
-        min_frames = max(params.content_dim or 2, 2)
-        why = f"content_dim {params.content_dim}" if params.content_dim else "content alignment"
-        takes = check_takes(
-            sequence, labels, min_frames, why, "params.content_dim" if params.content_dim else "inputs.aam"
-        )
-        alignment = align_takes(features, reference, params.dtw_band)
-        aligned_frames = np.stack([takes[s][alignment.aligned_local[s]] for s in range(len(labels))])
-        y = y_all[aligned_frames]  # (S, C, K)
-        model, fit = fit_bilinear_model(
-            y,
-            labels,
-            style_dim=style_dim,
-            content_dim=params.content_dim,
-            content_variance=params.content_variance,
-            mean_weight=params.mean_weight,
-            tol=params.tol,
-            max_iter=params.max_iter,
-        )
-        residual = y - model.synthesise(model.style[:, None, :], model.content[None, :, :])
-        per_take = np.sum(residual**2, axis=(1, 2)) / np.maximum(np.sum(y**2, axis=(1, 2)), 1e-300)
-        content_dim = model.content.shape[1]
-        meta = {
-            "labels": labels,
-            "reference": labels[reference],
-            "align": params.align,
-            "style_dim": style_dim,
-            "content_dim": content_dim,
-            "K": y.shape[2],
-            "converged": fit.converged,
-            "iterations": len(fit.errors),
-            "mean_component": model.mean_component,
-            "mean_weight": params.mean_weight,
-        }
-        metrics = {
-            "train_error": float(np.sum(residual**2) / max(float(np.sum(y**2)), 1e-300)),
-            "iterations": len(fit.errors),
-            "content_dim": content_dim,
-            "style_dim": style_dim,
-            **{f"dtw_cost_{labels[s]}": float(alignment.costs[s]) for s in range(len(labels))},
-        }
-        arrays = {
-            "W": model.w,
-            "style": model.style,
-            "content": model.content,
-            "aligned_frames": aligned_frames.astype(np.int64),
-            "aligned_local": alignment.aligned_local.astype(np.int64),
-            "dtw_paths": alignment.paths_table(),
-            "fit_errors": fit.errors,
-            "residual_per_take": per_take,
-        }
-        if model.w_mean is not None:
-            arrays["W_mean"] = model.w_mean
-        return Result(arrays, meta=meta, metrics=metrics)
+        alignment = align_sets(features, frames, groups, reference, params.dtw_band)
+        y = np.asarray(aam["y"], dtype=np.float64)[alignment.frames]  # (S, C, K)
+        model, fit = fit_bilinear_model(y, groups.styles, **fit_options(params))
+        return pack_bilinear(params, takes, groups, reference, alignment, y, model, fit)
 
 
-def reference_index(reference: str | None, labels: list[str]) -> int:
-    """The take whose frames form the content axis: ``reference``, else 'neutral' if present, else the first."""
+def takes_with_frames(takes: TrainingTakes, groups: TakeSets, content_dim: int | None) -> list[np.ndarray]:
+    """Frames of each take; UserError naming a take in a set shorter than the fit needs."""
+    used = sorted({int(t) for t in groups.sets.reshape(-1)})
+    min_frames = max(content_dim or 2, 2)
+    why = f"content_dim {content_dim}" if content_dim else "content alignment"
+    field = "params.content_dim" if content_dim else "inputs.aam"
+    return check_takes(takes.sequence, takes.labels, min_frames, why, field, only=used)
+
+
+def pack_bilinear(params, takes, groups, reference, alignment, y, model, fit) -> Result:
+    """The BilinearFit artifact: arrays, meta (with the params the eval refits with), metrics, warnings."""
+    residual = y - model.synthesise(model.style[:, None, :], model.content[None, :, :])
+    per_style = np.sum(residual**2, axis=(1, 2)) / np.maximum(np.sum(y**2, axis=(1, 2)), 1e-300)
+    starts = np.array([np.flatnonzero(takes.sequence == t)[0] for t in range(len(takes.labels))])
+    styles = groups.styles
+    meta = {
+        "labels": styles,
+        "takes": takes.labels,
+        "take_expression": {label: takes.expressions[t] for t, label in enumerate(takes.labels)},
+        "sets": [[takes.labels[int(t)] for t in members] for members in groups.sets],
+        "skipped_sentences": groups.skipped,
+        "reference": styles[reference],
+        "align": params.align,
+        "style_dim": model.style.shape[1],
+        "content_dim": model.content.shape[1],
+        "K": y.shape[2],
+        "converged": fit.converged,
+        "iterations": len(fit.errors),
+        "mean_component": model.mean_component,
+        "mean_weight": params.mean_weight,
+        "params": params.model_dump(),
+    }
+    metrics = {
+        "train_error": float(np.sum(residual**2) / max(float(np.sum(y**2)), 1e-300)),
+        "iterations": len(fit.errors),
+        "content_dim": model.content.shape[1],
+        "style_dim": model.style.shape[1],
+        **{f"dtw_cost_{styles[s]}": float(alignment.costs[s]) for s in range(len(styles))},
+    }
+    arrays = {
+        "W": model.w,
+        "style": model.style,
+        "content": model.content,
+        "aligned_frames": alignment.frames.astype(np.int64),
+        "aligned_local": (alignment.frames - starts[takes.sequence[alignment.frames]]).astype(np.int64),
+        "content_set": alignment.column_set.astype(np.int64),
+        "dtw_paths": alignment.paths,
+        "fit_errors": fit.errors,
+        "residual_per_style": per_style,
+    }
+    if model.w_mean is not None:
+        arrays["W_mean"] = model.w_mean
+    return Result(arrays, meta=meta, metrics=metrics, warnings=fit_warning(fit, styles, params.max_iter))
+
+
+def reference_index(reference: str | None, styles: list[str]) -> int:
+    """The expression whose takes form the content axis: ``reference``, else the neutral one, else the first."""
     if reference is None:
-        return labels.index("neutral") if "neutral" in labels else 0
-    if reference not in labels:
+        return neutral_index(styles)
+    if reference not in styles:
         raise UserError(
-            f"reference take '{reference}' is not one of the training takes {labels}", field="params.reference"
+            f"reference expression '{reference}' is not one of the training expressions {styles}",
+            field="params.reference",
         )
-    return labels.index(reference)
+    return styles.index(reference)
 
 
 def content_features(
@@ -418,8 +510,24 @@ def content_features(
     'mouth' (mouth-region shape parameters of the Procrustes-aligned shapes)."""
     if align == "mouth":
         return mouth_features(aligned_shapes, sequence, len(labels))
-    if align != "audio":
-        raise UserError(f"align must be 'audio' or 'mouth', got '{align}'", field="params.align")
+    check_audio_tracks(tracks, labels, sequence)
+    meta = tracks.meta
+    bounds = np.asarray(tracks["audio_bounds"])
+    rate = float(np.ravel([meta["audio_rate"]])[0])
+    offsets = np.broadcast_to(np.asarray(meta.get("audio_offset", 0.0), dtype=np.float64), (len(labels),))
+    times = np.asarray(tracks["time"], dtype=np.float64)
+    frame_times = [times[sequence == s] for s in range(len(labels))]
+    for s, (start, stop) in enumerate(bounds):
+        if stop - start < rate * 0.1:
+            raise UserError(
+                f"take '{labels[s]}' has {stop - start} audio samples (< 0.1 s); use align: mouth",
+                field="inputs.tracks.audio",
+            )
+    return audio_features(tracks["audio"], bounds, rate, frame_times, list(offsets))
+
+
+def check_audio_tracks(tracks, labels: list[str], sequence: np.ndarray) -> None:
+    """UserError unless ``tracks`` is the tracking artifact of these takes, each with audio."""
     if tracks is None or "audio" not in tracks or "audio_bounds" not in tracks:
         raise UserError(
             "align: audio needs the tracking artifact with audio (input 'tracks'); use align: mouth "
@@ -437,18 +545,8 @@ def content_features(
             field="inputs.tracks",
         )
     has_audio = meta.get("has_audio", [True] * len(labels))
+    if isinstance(has_audio, dict):
+        has_audio = [has_audio.get(label, True) for label in labels]
     silent = [label for label, flag in zip(labels, has_audio) if not flag]
     if silent:
         raise UserError(f"take(s) {silent} have no audio; use align: mouth", field="inputs.tracks.audio")
-    bounds = np.asarray(tracks["audio_bounds"])
-    rate = float(np.ravel([meta["audio_rate"]])[0])
-    offsets = np.broadcast_to(np.asarray(meta.get("audio_offset", 0.0), dtype=np.float64), (len(labels),))
-    times = np.asarray(tracks["time"], dtype=np.float64)
-    frame_times = [times[sequence == s] for s in range(len(labels))]
-    for s, (start, stop) in enumerate(bounds):
-        if stop - start < rate * 0.1:
-            raise UserError(
-                f"take '{labels[s]}' has {stop - start} audio samples (< 0.1 s); use align: mouth",
-                field="inputs.tracks.audio",
-            )
-    return audio_features(tracks["audio"], bounds, rate, frame_times, list(offsets))

@@ -127,30 +127,26 @@ class PixelTriangles:
 
 
 def pixels_of_reference(points: np.ndarray, triangles: np.ndarray, size: tuple[int, int]) -> PixelTriangles:
-    """Exact pixel coverage of a reference shape: a pixel centre belongs to the first triangle containing it.
+    """Exact pixel coverage of a reference shape: a pixel centre belongs to the first triangle containing it
+    (barycentric coordinates >= -1e-9; triangles with |2 x area| <= 1e-12 contain nothing).
 
-    Tests every pixel against every triangle at once (done once per reference, a few million numbers).
+    Drawn by the project's one rasteriser (stages.geometry.render.rasterize) in float64, pixel centres at
+    integer coordinates, each triangle at a constant depth that decreases with its index so the first wins.
     """
+    from stages.geometry.render import rasterize
+
     w, h = size
     pts = np.asarray(points, dtype=np.float64)
-    corners = pts[triangles]  # (T, 3, 2)
-    a = corners[:, 0]
-    m = np.stack([corners[:, 1] - a, corners[:, 2] - a], axis=-1)  # (T, 2, 2)
-    det = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
-    usable = np.abs(det) > 1e-12
-    inv = np.zeros_like(m)
-    inv[usable] = np.linalg.inv(m[usable])
-    ys, xs = np.mgrid[0:h, 0:w]
-    xy = np.stack([xs.reshape(-1), ys.reshape(-1)], axis=-1).astype(np.float64)
-    index_map = np.full(h * w, -1, dtype=np.int32)
-    eps = 1e-9
-    for start in range(0, len(xy), 4096):
-        d = xy[start : start + 4096, None, :] - a[None]  # (p, T, 2)
-        l12 = np.einsum("tij,ptj->pti", inv, d)
-        inside = (l12 >= -eps).all(-1) & (l12.sum(-1) <= 1 + eps) & usable[None]
-        hit = inside.any(-1)
-        index_map[start : start + 4096][hit] = np.argmax(inside[hit], axis=-1)
-    return PixelTriangles.from_index_map(pts, triangles, index_map.reshape(h, w))
+    tri = np.asarray(triangles)
+    corners = pts[tri]  # (T, 3, 2)
+    usable = np.flatnonzero(np.abs(2.0 * triangle_signed_areas(corners)) > 1e-12)
+    flat = corners[usable].reshape(-1, 2)  # unshared corners: each triangle gets its own depth
+    depth = -np.repeat(usable, 3).astype(np.float64)
+    local, _ = rasterize(
+        flat, depth, np.arange(len(flat)).reshape(-1, 3), (w, h), cull=False, eps=1e-9, centre=0.0, dtype=np.float64
+    )
+    index_map = np.where(local >= 0, usable[np.maximum(local, 0)], -1).astype(np.int32)
+    return PixelTriangles.from_index_map(pts, triangles, index_map)
 
 
 class PiecewiseAffineWarp:

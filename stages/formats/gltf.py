@@ -284,30 +284,8 @@ def read_morph_mesh(path: str | Path, mesh_name: str | None = None) -> MorphMesh
             f"Draco or meshopt compression); export it again without them",
             file=str(path),
         )
-    meshes = gltf.meshes or []
-    with_targets = [i for i, m in enumerate(meshes) if any(p.targets for p in m.primitives)]
-    if mesh_name is not None:
-        matches = [i for i, m in enumerate(meshes) if m.name == mesh_name]
-        if not matches:
-            raise UserError(
-                f"no mesh named '{mesh_name}'; meshes: {[m.name for m in meshes]}",
-                file=str(path),
-                field="params.mesh_name",
-            )
-        mesh_index = matches[0]
-        if mesh_index not in with_targets:
-            raise UserError(f"mesh '{mesh_name}' has no morph targets", file=str(path), field="params.mesh_name")
-    elif not with_targets:
-        raise UserError(
-            "the character has no morph targets (no mesh primitive lists 'targets'); export the "
-            "blendshapes/shape keys with the mesh",
-            file=str(path),
-        )
-    else:
-        mesh_index = with_targets[0]
-    mesh = meshes[mesh_index]
-    blobs = _buffer_bytes(gltf, path)
-
+    mesh_index = _choose_mesh(gltf.meshes or [], mesh_name, path)
+    mesh = gltf.meshes[mesh_index]
     counts = {len(p.targets or []) for p in mesh.primitives if p.targets}
     if len(counts) != 1:
         raise UserError(
@@ -315,64 +293,95 @@ def read_morph_mesh(path: str | Path, mesh_name: str | None = None) -> MorphMesh
         )
     n_targets = counts.pop()
     names, names_from = _target_names(mesh, n_targets)
+    out = _read_primitives(gltf, _buffer_bytes(gltf, path), mesh, n_targets, path)
+    out.target_names, out.name = names, mesh.name or f"mesh{mesh_index}"
+    out.extras = dict(mesh.extras or {}, _target_names_from=names_from)
+    _apply_world_transform(out, gltf, mesh_index)
+    return out
 
+
+def _choose_mesh(meshes: list, mesh_name: str | None, path: Path) -> int:
+    """The mesh named ``mesh_name`` (it must have morph targets), else the first mesh with morph targets."""
+    with_targets = [i for i, m in enumerate(meshes) if any(p.targets for p in m.primitives)]
+    if mesh_name is None:
+        if not with_targets:
+            raise UserError(
+                "the character has no morph targets (no mesh primitive lists 'targets'); export the "
+                "blendshapes/shape keys with the mesh",
+                file=str(path),
+            )
+        return with_targets[0]
+    matches = [i for i, m in enumerate(meshes) if m.name == mesh_name]
+    if not matches:
+        raise UserError(
+            f"no mesh named '{mesh_name}'; meshes: {[m.name for m in meshes]}",
+            file=str(path),
+            field="params.mesh_name",
+        )
+    if matches[0] not in with_targets:
+        raise UserError(f"mesh '{mesh_name}' has no morph targets", file=str(path), field="params.mesh_name")
+    return matches[0]
+
+
+def _read_primitives(gltf, blobs: list[bytes], mesh, n_targets: int, path: Path) -> MorphMesh:
+    """The mesh's triangle primitives flattened: shared vertex arrays (one block per POSITION accessor), morph
+    deltas, triangles and a material group per triangle (names filled in by the caller)."""
     positions, deltas, triangles, tri_groups = [], [], [], []
     groups: list[MaterialGroup] = []
     group_of_material: dict[Any, int] = {}
     offset_of_position: dict[int, int] = {}
-    n_vertices = 0
     for p_index, prim in enumerate(mesh.primitives):
         mode = MODE_TRIANGLES if prim.mode is None else prim.mode
         if mode not in (MODE_TRIANGLES, MODE_TRIANGLE_STRIP, MODE_TRIANGLE_FAN) or prim.attributes.POSITION is None:
             continue  # points and lines carry no surface
         pos_acc = prim.attributes.POSITION
         if pos_acc not in offset_of_position:
-            pos = read_accessor(gltf, blobs, pos_acc, path).astype(np.float32)
-            offset_of_position[pos_acc] = n_vertices
-            targets = prim.targets or []
-            d = np.zeros((n_targets, len(pos), 3), dtype=np.float32)
-            for t, target in enumerate(targets):
-                t_pos = target.get("POSITION") if isinstance(target, dict) else getattr(target, "POSITION", None)
-                if t_pos is not None:
-                    d[t] = read_accessor(gltf, blobs, t_pos, path)
+            offset_of_position[pos_acc] = sum(len(p) for p in positions)
+            pos, d = _vertices_and_deltas(gltf, blobs, prim, n_targets, path)
             positions.append(pos)
             deltas.append(d)
-            n_vertices += len(pos)
-        base = offset_of_position[pos_acc]
-        count = gltf.accessors[pos_acc].count
-        if prim.indices is None:
-            idx = np.arange(count, dtype=np.int64)
-        else:
-            idx = read_accessor(gltf, blobs, prim.indices, path)[:, 0].astype(np.int64)
-            if idx.size and idx.max() >= count:
-                raise UserError(
-                    f"mesh '{mesh.name}' primitive {p_index}: vertex index {int(idx.max())} out of "
-                    f"range ({count} vertices)",
-                    file=str(path),
-                )
-        tris = _triangulate(idx, mode) + base
-        key = prim.material
-        if key not in group_of_material:
-            group_of_material[key] = len(groups)
-            groups.append(_material_group(gltf, key, p_index))
+        idx = _primitive_indices(gltf, blobs, prim, mesh.name, p_index, path)
+        tris = _triangulate(idx, mode) + offset_of_position[pos_acc]
+        if prim.material not in group_of_material:
+            group_of_material[prim.material] = len(groups)
+            groups.append(_material_group(gltf, prim.material, p_index))
         triangles.append(tris)
-        tri_groups.append(np.full(len(tris), group_of_material[key], dtype=np.int32))
+        tri_groups.append(np.full(len(tris), group_of_material[prim.material], dtype=np.int32))
     if not positions:
         raise UserError(f"mesh '{mesh.name}' has no triangle primitives", file=str(path))
-
-    out = MorphMesh(
+    return MorphMesh(
         positions=np.concatenate(positions),
         triangles=np.concatenate(triangles).astype(np.int32),
-        target_names=names,
+        target_names=[],
         deltas=np.concatenate(deltas, axis=1),
         triangle_groups=np.concatenate(tri_groups),
         groups=groups,
-        extras=dict(mesh.extras or {}),
-        name=mesh.name or f"mesh{mesh_index}",
     )
-    out.extras["_target_names_from"] = names_from
-    _apply_world_transform(out, gltf, mesh_index)
-    return out
+
+
+def _vertices_and_deltas(gltf, blobs: list[bytes], prim, n_targets: int, path: Path):
+    """A primitive's POSITION (V, 3) and its morph targets' POSITION deltas (n_targets, V, 3), float32."""
+    pos = read_accessor(gltf, blobs, prim.attributes.POSITION, path).astype(np.float32)
+    d = np.zeros((n_targets, len(pos), 3), dtype=np.float32)
+    for t, target in enumerate(prim.targets or []):
+        t_pos = target.get("POSITION") if isinstance(target, dict) else getattr(target, "POSITION", None)
+        if t_pos is not None:
+            d[t] = read_accessor(gltf, blobs, t_pos, path)
+    return pos, d
+
+
+def _primitive_indices(gltf, blobs: list[bytes], prim, mesh_name: str, p_index: int, path: Path) -> np.ndarray:
+    """A primitive's vertex indices (all its vertices in order when it has none), checked against its vertices."""
+    count = gltf.accessors[prim.attributes.POSITION].count
+    if prim.indices is None:
+        return np.arange(count, dtype=np.int64)
+    idx = read_accessor(gltf, blobs, prim.indices, path)[:, 0].astype(np.int64)
+    if idx.size and idx.max() >= count:
+        raise UserError(
+            f"mesh '{mesh_name}' primitive {p_index}: vertex index {int(idx.max())} out of range ({count} vertices)",
+            file=str(path),
+        )
+    return idx
 
 
 def _material_group(gltf, material_index, primitive_index: int) -> MaterialGroup:
@@ -400,22 +409,6 @@ def _apply_world_transform(mesh: MorphMesh, gltf, mesh_index: int) -> None:
 
 
 # ----------------------------------------------------------------------------------------------------- writing
-
-
-def vertex_normals(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Unit area-weighted vertex normals (float32); vertices without a proper triangle get +z."""
-    p = np.asarray(positions, dtype=np.float64)
-    t = np.asarray(triangles)
-    face = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
-    n = np.zeros_like(p)
-    for corner in range(3):
-        for axis in range(3):
-            n[:, axis] += np.bincount(t[:, corner], weights=face[:, axis], minlength=len(p))
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    n = np.where(length > 1e-20, n / np.maximum(length, 1e-300), np.array([0.0, 0.0, 1.0]))
-    n = n.astype(np.float32)
-    # float32 rounding can leave |n| - 1 above the validator's tolerance for near-degenerate inputs
-    return n / np.linalg.norm(n, axis=1, keepdims=True).astype(np.float32)
 
 
 class _BinaryBuilder:
@@ -468,12 +461,15 @@ class _BinaryBuilder:
         self.gltf.accessors.append(acc)
         return len(self.gltf.accessors) - 1
 
-    def sparse_accessor(self, values: np.ndarray, tolerance: float, name: str | None = None) -> int:
-        """A VEC3 float accessor of len(values) elements storing only rows with a component above ``tolerance``."""
+    def sparse_accessor(
+        self, values: np.ndarray, tolerance: float, name: str | None = None, moving: np.ndarray | None = None
+    ) -> int:
+        """A VEC3 float accessor of len(values) elements storing only rows with a component above ``tolerance``
+        (``moving``: those rows' mask, when already known)."""
         import pygltflib
 
         values = np.asarray(values, dtype=np.float32)
-        keep = np.flatnonzero(np.abs(values).max(axis=1) > tolerance)
+        keep = np.flatnonzero(moving_rows(values, tolerance) if moving is None else moving)
         index_size = 2 if len(values) <= 65535 else 4
         if len(keep) * (12 + index_size) >= 12 * len(values):  # a dense target (identity shape) is smaller as is
             return self.accessor(values, "VEC3", target=ARRAY_BUFFER, min_max=True, name=name)
@@ -500,6 +496,12 @@ class _BinaryBuilder:
     def blob(self) -> bytes:
         data = b"".join(self.chunks)
         return data + b"\0" * ((-len(data)) % 4)
+
+
+def moving_rows(values: np.ndarray, tolerance: float) -> np.ndarray:
+    """Mask of the (..., 3) rows with a component above ``tolerance`` in absolute value."""
+    a = np.abs(values)
+    return np.maximum(np.maximum(a[..., 0], a[..., 1]), a[..., 2]) > tolerance
 
 
 def _min_max(flat: np.ndarray) -> tuple[list[float], list[float]]:
@@ -584,6 +586,8 @@ def _vertex_attributes(bin_: _BinaryBuilder, mesh: MorphMesh, normals: bool, ske
     positions = np.ascontiguousarray(mesh.positions, dtype=np.float32)
     attributes = {"POSITION": bin_.accessor(positions, "VEC3", target=ARRAY_BUFFER, min_max=True, name="positions")}
     if normals:
+        from stages.geometry.render import vertex_normals
+
         attributes["NORMAL"] = bin_.accessor(
             vertex_normals(positions, np.asarray(mesh.triangles)), "VEC3", target=ARRAY_BUFFER, name="normals"
         )
@@ -603,8 +607,9 @@ def _add_mesh(gltf, bin_: _BinaryBuilder, mesh: MorphMesh, attributes: dict, spa
     import pygltflib
 
     deltas = np.asarray(mesh.deltas, dtype=np.float32)
+    moving = moving_rows(deltas, sparse_tolerance)  # (targets, vertices), all targets at once
     targets = [
-        pygltflib.Attributes(POSITION=bin_.sparse_accessor(deltas[i], sparse_tolerance, name=name))
+        pygltflib.Attributes(POSITION=bin_.sparse_accessor(deltas[i], sparse_tolerance, name=name, moving=moving[i]))
         for i, name in enumerate(mesh.target_names)
     ]
     triangles = np.asarray(mesh.triangles)
@@ -700,27 +705,32 @@ def _animation(bin_: _BinaryBuilder, anim: Animation, n_targets: int, nodes: dic
         target = pygltflib.AnimationChannelTarget(node=node, path=path)
         out.channels.append(pygltflib.AnimationChannel(sampler=len(out.samplers) - 1, target=target))
 
-    frames = len(times)
+    for values, kind, node, path, name in _channels(anim, len(times), n_targets, nodes, skeleton, pivot):
+        channel(values, kind, node, path, name)
+    return out
+
+
+def _channels(anim: Animation, frames: int, n_targets: int, nodes: dict, skeleton, pivot: list[float]):
+    """(values, accessor type, node, path, name) of every animated property, checked against ``frames``."""
     if anim.weights is not None:
         w = np.asarray(anim.weights, dtype=np.float32)
         if w.shape != (frames, n_targets):
             raise ValueError(f"animation weights {w.shape}, expected {(frames, n_targets)}")
-        channel(w.reshape(-1), "SCALAR", nodes["mesh"], "weights", "morph weights")
-    head = nodes["joints"].get(HEAD_JOINT)
+        yield w.reshape(-1), "SCALAR", nodes["mesh"], "weights", "morph weights"
     rotations = dict(anim.joint_rotations)
     if anim.rotation is not None:
         rotations[HEAD_JOINT] = anim.rotation
     for joint, rotation in rotations.items():
         if joint not in nodes["joints"]:
             raise ValueError(f"animation turns joint {joint!r}, which the file does not have")
-        channel(_gltf_quaternions(rotation, frames), "VEC4", nodes["joints"][joint], "rotation", f"{joint} rotation")
+        yield _gltf_quaternions(rotation, frames), "VEC4", nodes["joints"][joint], "rotation", f"{joint} rotation"
     if anim.translation is not None:
         t = np.asarray(anim.translation, dtype=np.float64)
         if t.shape != (frames, 3):
             raise ValueError(f"animation translation {t.shape}, expected {(frames, 3)}")
+        head = nodes["joints"][HEAD_JOINT]
         rest = skeleton.local_translation(head) if skeleton is not None else np.asarray(pivot)
-        channel((t + rest).astype(np.float32), "VEC3", head, "translation", "head translation")
-    return out
+        yield (t + rest).astype(np.float32), "VEC3", head, "translation", "head translation"
 
 
 def _gltf_quaternions(rotation: np.ndarray, frames: int) -> np.ndarray:

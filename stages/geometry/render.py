@@ -107,98 +107,248 @@ def project(vertices: np.ndarray, view: View, size) -> tuple[np.ndarray, np.ndar
     return cam, xy
 
 
-def _next_pow2(n: np.ndarray) -> np.ndarray:
-    return (1 << np.ceil(np.log2(np.maximum(n, 1))).astype(np.int64)).astype(np.int64)
+#: candidate grid sides: a triangle's pixel bounding box side is padded to the next of these, or beyond the
+#: last to the next power of two, and triangles with the same padded box are tested together (few batches,
+#: little padding where most triangles are)
+GRID_SIDES = np.array([1, 2, 3, 4, 6, 8])
+#: side in pixels of the depth tiles of the occlusion test
+TILE = 8
 
 
-def rasterize(xy: np.ndarray, depth: np.ndarray, triangles: np.ndarray, size, *, cull: bool = True):
-    """Visible triangle per pixel: (H, W) int32 triangle ids (-1: background) and (H, W, 3) barycentrics.
+def grid_side(n: np.ndarray) -> np.ndarray:
+    """Candidate grid side for bounding-box sides ``n``: the next of GRID_SIDES, else the next power of two."""
+    pow2 = (1 << np.ceil(np.log2(np.maximum(n, 1))).astype(np.int64)).astype(np.int64)
+    small = GRID_SIDES[np.minimum(np.searchsorted(GRID_SIDES, n), len(GRID_SIDES) - 1)]
+    return np.where(n <= GRID_SIDES[-1], small, pow2)
 
-    ``depth`` grows towards the viewer. With ``cull``, triangles whose screen winding is clockwise (back faces of
-    a counter-clockwise mesh) are skipped.
+
+@dataclass
+class TriangleSetup:
+    """Per-triangle constants of the rasteriser for the triangles that can cover a pixel centre.
+
+    Barycentrics are affine in the pixel position: at pixel (xmin + ox, ymin + oy) the weight of corner 0 is
+    ``b0 = base0 + a0 * ox + c0 * oy``, of corner 1 ``b1 = base1 + a1 * ox + c1 * oy``, of corner 2 1 - b0 - b1,
+    and the depth is ``z2 + b0 * zd0 + b1 * zd1``. ``coef`` rows hold base0, a0, c0, base1, a1, c1, z2, zd0, zd1.
+    """
+
+    ids: np.ndarray  # (n,) triangle indices
+    box: np.ndarray  # (4, n) int64 xmin, ymin, xmax, ymax: the pixels whose centres the box holds
+    coef: np.ndarray  # (9, n)
+
+    def take(self, rows) -> TriangleSetup:
+        return TriangleSetup(self.ids[rows], self.box[:, rows], self.coef[:, rows])
+
+    @property
+    def nearest(self) -> np.ndarray:
+        """Largest depth of each triangle (its corner nearest the viewer)."""
+        return self.coef[6] + np.maximum(np.maximum(self.coef[7], self.coef[8]), 0)
+
+
+def triangle_setup(xy, depth, triangles, size, *, cull: bool, centre: float, dtype) -> TriangleSetup:
+    """Edge-function coefficients of the front-facing (``cull``) triangles whose box holds a pixel centre.
+
+    Pixel (i, j) has its centre at (i + centre, j + centre). Screen y points down, so a counter-clockwise mesh's
+    front faces have negative signed area.
     """
     width, height = _size(size)
+    p = np.asarray(xy, dtype=dtype)
+    px, py = np.ascontiguousarray(p[:, 0]), np.ascontiguousarray(p[:, 1])
     tri = np.asarray(triangles)
-    p = np.asarray(xy, dtype=np.float32)
-    z = np.asarray(depth, dtype=np.float32)
-    x0, y0 = p[tri[:, 0], 0], p[tri[:, 0], 1]
-    x1, y1 = p[tri[:, 1], 0], p[tri[:, 1], 1]
-    x2, y2 = p[tri[:, 2], 0], p[tri[:, 2], 1]
-    area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)  # image y points down: front faces are negative
+    corner = [np.ascontiguousarray(tri[:, k]) for k in range(3)]
+    x0, x1, x2 = (px[k] for k in corner)
+    y0, y1, y2 = (py[k] for k in corner)
+    area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
     keep = area < 0 if cull else area != 0
-    # pixel (i, j) has its centre at (i + 0.5, j + 0.5)
-    xmin = np.maximum(np.ceil(np.minimum(np.minimum(x0, x1), x2) - 0.5), 0).astype(np.int64)
-    xmax = np.minimum(np.floor(np.maximum(np.maximum(x0, x1), x2) - 0.5), width - 1).astype(np.int64)
-    ymin = np.maximum(np.ceil(np.minimum(np.minimum(y0, y1), y2) - 0.5), 0).astype(np.int64)
-    ymax = np.minimum(np.floor(np.maximum(np.maximum(y0, y1), y2) - 0.5), height - 1).astype(np.int64)
+    xmin = np.maximum(np.ceil(np.minimum(np.minimum(x0, x1), x2) - centre), 0).astype(np.int64)
+    xmax = np.minimum(np.floor(np.maximum(np.maximum(x0, x1), x2) - centre), width - 1).astype(np.int64)
+    ymin = np.maximum(np.ceil(np.minimum(np.minimum(y0, y1), y2) - centre), 0).astype(np.int64)
+    ymax = np.minimum(np.floor(np.maximum(np.maximum(y0, y1), y2) - centre), height - 1).astype(np.int64)
     keep &= (xmax >= xmin) & (ymax >= ymin)
     ids = np.flatnonzero(keep)
-    bw, bh = xmax[ids] - xmin[ids] + 1, ymax[ids] - ymin[ids] + 1
-    cw, ch = _next_pow2(bw), _next_pow2(bh)
-    bucket = cw * 65536 + ch
-    order = np.argsort(bucket, kind="stable")
-    ids, bucket = ids[order], bucket[order]
-    starts = np.flatnonzero(np.r_[True, bucket[1:] != bucket[:-1]]) if len(ids) else np.zeros(0, np.int64)
-    ends = np.r_[starts[1:], len(ids)]
-    frag_pix, frag_z, frag_tri, frag_b0, frag_b1 = [], [], [], [], []
-    # barycentrics are affine in the pixel position: b = b(corner) + A * dx + B * dy, evaluated by broadcasting
-    # each triangle's coefficients over its bucket's offsets (no per-fragment gathers)
-    inv = np.zeros_like(area)
-    inv[ids] = 1.0 / area[ids]
-    a0, c0 = (y1 - y2) * inv, (x2 - x1) * inv
-    a1, c1 = (y2 - y0) * inv, (x0 - x2) * inv
-    zd0 = z[tri[:, 0]] - z[tri[:, 2]]
-    zd1 = z[tri[:, 1]] - z[tri[:, 2]]
-    z2 = z[tri[:, 2]]
-    cx, cy = xmin.astype(np.float32) + 0.5, ymin.astype(np.float32) + 0.5
-    base0 = ((x1 - cx) * (y2 - cy) - (x2 - cx) * (y1 - cy)) * inv
-    base1 = ((x2 - cx) * (y0 - cy) - (x0 - cx) * (y2 - cy)) * inv
+    x0, x1, x2, y0, y1, y2 = (v[ids] for v in (x0, x1, x2, y0, y1, y2))
+    inv = (1.0 / area[ids]).astype(dtype)
+    cx, cy = xmin[ids].astype(dtype) + centre, ymin[ids].astype(dtype) + centre
+    z = np.asarray(depth, dtype=dtype)
+    z0, z1, z2 = (z[k[ids]] for k in corner)
+    coef = np.stack(
+        [
+            ((x1 - cx) * (y2 - cy) - (x2 - cx) * (y1 - cy)) * inv,
+            (y1 - y2) * inv,
+            (x2 - x1) * inv,
+            ((x2 - cx) * (y0 - cy) - (x0 - cx) * (y2 - cy)) * inv,
+            (y2 - y0) * inv,
+            (x0 - x2) * inv,
+            z2,
+            z0 - z2,
+            z1 - z2,
+        ]
+    )
+    return TriangleSetup(ids, np.stack([xmin[ids], ymin[ids], xmax[ids], ymax[ids]]), coef)
+
+
+def batch_fragments(
+    setup: TriangleSetup, grid_w: int, grid_h: int, eps: float, width: int, height: int, overflow: bool = True
+):
+    """Fragments of triangles sharing a candidate grid: (flat pixel, depth, row of ``setup``, b0, b1) where
+    the pixel centre is inside (barycentrics >= -eps) and on the image (``overflow``: the grid of some triangle
+    reaches past the image, so the fragments are checked)."""
+    cells = grid_w * grid_h
+    oy, ox = np.divmod(np.arange(cells, dtype=np.int64), grid_w)
+    c = setup.coef
+    oxf, oyf = ox.astype(c.dtype), oy.astype(c.dtype)
+    b0 = c[0][:, None] + c[1][:, None] * oxf + c[2][:, None] * oyf
+    b1 = c[3][:, None] + c[4][:, None] * oxf + c[5][:, None] * oyf
+    hit = np.flatnonzero((b0 >= -eps) & (b1 >= -eps) & (b0 + b1 <= 1 + eps))
+    row, cell = np.divmod(hit, cells)
+    b0, b1 = b0.reshape(-1)[hit], b1.reshape(-1)[hit]
+    depth = c[6][row] + b0 * c[7][row] + b1 * c[8][row]
+    px, py = setup.box[0][row] + ox[cell], setup.box[1][row] + oy[cell]
+    if overflow:
+        on = (px < width) & (py < height)
+        px, py, depth, row, b0, b1 = px[on], py[on], depth[on], row[on], b0[on], b1[on]
+    return py * width + px, depth, row, b0, b1
+
+
+def setup_fragments(setup: TriangleSetup, eps: float, width: int, height: int) -> list[tuple]:
+    """Fragments of every triangle of ``setup`` (rows numbered as in ``setup``), batched by padded box size."""
+    grid_w = grid_side(setup.box[2] - setup.box[0] + 1)
+    grid_h = grid_side(setup.box[3] - setup.box[1] + 1)
+    batch = grid_w * 65536 + grid_h
+    order = np.argsort(batch, kind="stable")
+    batch = batch[order]
+    starts = np.flatnonzero(np.r_[True, batch[1:] != batch[:-1]]) if len(batch) else np.zeros(0, np.int64)
+    ends = np.r_[starts[1:], len(batch)].astype(np.int64)
+    ordered = setup.take(order)  # batches are then contiguous slices (views)
+    # padded grids may reach past the image: only batches holding such a triangle check their fragments
+    overflow = ((setup.box[0] + grid_w > width) | (setup.box[1] + grid_h > height))[order]
+    out = []
     for s, e in zip(starts, ends):
-        t = ids[s:e]
-        gw, gh = int(bucket[s] // 65536), int(bucket[s] % 65536)
-        oy, ox = np.divmod(np.arange(gw * gh, dtype=np.int64), gw)
-        oxf, oyf = ox.astype(np.float32)[None, :], oy.astype(np.float32)[None, :]
-        b0 = base0[t][:, None] + a0[t][:, None] * oxf + c0[t][:, None] * oyf
-        b1 = base1[t][:, None] + a1[t][:, None] * oxf + c1[t][:, None] * oyf
-        inside = (b0 >= -1e-5) & (b1 >= -1e-5) & (b0 + b1 <= 1 + 1e-5)
-        inside &= (xmin[t][:, None] + ox[None, :] < width) & (ymin[t][:, None] + oy[None, :] < height)
-        row, col = np.nonzero(inside)
-        if not len(row):
-            continue
-        tt = t[row]
-        b0, b1 = b0[row, col], b1[row, col]
-        frag_pix.append((ymin[tt] + oy[col]) * width + xmin[tt] + ox[col])
-        frag_tri.append(tt)
-        frag_b0.append(b0)
-        frag_b1.append(b1)
-        frag_z.append(z2[tt] + b0 * zd0[tt] + b1 * zd1[tt])
-    tri_map = np.full(width * height, -1, dtype=np.int32)
-    bary = np.zeros((width * height, 3), dtype=np.float32)
-    if frag_pix:
-        pix = np.concatenate(frag_pix)
-        fz = np.concatenate(frag_z)
-        zbuf = np.full(width * height, -np.inf, dtype=np.float32)
-        np.maximum.at(zbuf, pix, fz)
-        win = fz >= zbuf[pix]
-        pix = pix[win]
-        tri_map[pix] = np.concatenate(frag_tri)[win]
-        b0, b1 = np.concatenate(frag_b0)[win], np.concatenate(frag_b1)[win]
-        bary[pix, 0], bary[pix, 1], bary[pix, 2] = b0, b1, 1.0 - b0 - b1
-    return tri_map.reshape(height, width), bary.reshape(height, width, 3)
+        pix, depth, row, b0, b1 = batch_fragments(
+            ordered.take(slice(s, e)),
+            int(batch[s] // 65536),
+            int(batch[s] % 65536),
+            eps,
+            width,
+            height,
+            bool(overflow[s:e].any()),
+        )
+        out.append((pix, depth, order[s + row], b0, b1))
+    return out
 
 
-def vertex_normals_fast(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (float32), no guard for isolated vertices beyond a zero normal."""
-    p = np.asarray(points, dtype=np.float32)
-    a, b, c = p[triangles[:, 0]], p[triangles[:, 1]], p[triangles[:, 2]]
-    face = np.cross(b - a, c - a)
-    n = np.zeros((len(p), 3), dtype=np.float64)
-    flat = triangles.reshape(-1)
-    face3 = np.repeat(face, 3, axis=0)
-    for axis in range(3):
-        n[:, axis] = np.bincount(flat, weights=face3[:, axis], minlength=len(p))
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
-    return n.astype(np.float32)
+@dataclass
+class Fragments:
+    """The rasterised image, compactly: the covered pixels (flat indices), the triangle seen at each and its
+    barycentric weights of corners 0 and 1 (corner 2 has 1 - b0 - b1)."""
+
+    size: tuple[int, int]
+    pixels: np.ndarray
+    triangle: np.ndarray
+    b0: np.ndarray
+    b1: np.ndarray
+
+    def maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W) triangle ids (-1: background) and (H, W, 3) barycentrics."""
+        width, height = self.size
+        tri_map = np.full(width * height, -1, dtype=np.int32)
+        bary = np.zeros((width * height, 3), dtype=np.float32)
+        tri_map[self.pixels] = self.triangle
+        bary[self.pixels, 0], bary[self.pixels, 1] = self.b0, self.b1
+        bary[self.pixels, 2] = 1.0 - self.b0 - self.b1
+        return tri_map.reshape(height, width), bary.reshape(height, width, 3)
+
+
+def rasterize_fragments(
+    xy: np.ndarray,
+    depth: np.ndarray,
+    triangles: np.ndarray,
+    size,
+    *,
+    cull: bool = True,
+    eps: float = 1e-5,
+    centre: float = 0.5,
+    dtype=np.float32,
+) -> Fragments:
+    """The visible triangle and barycentrics at every covered pixel, compactly (see ``rasterize``)."""
+    width, height = _size(size)
+    setup = triangle_setup(xy, depth, triangles, size, cull=cull, centre=centre, dtype=dtype)
+    frags = setup_fragments(setup, eps, width, height)
+    if not frags:
+        empty = np.zeros(0, np.int64)
+        return Fragments((width, height), empty, empty.astype(np.int32), empty.astype(dtype), empty.astype(dtype))
+    pix, z, rows, b0, b1 = (np.concatenate(parts) for parts in zip(*frags))
+    zbuf = np.full(width * height, -np.inf, dtype=z.dtype)
+    np.maximum.at(zbuf, pix, z)
+    win = np.flatnonzero(z >= zbuf[pix])
+    # of fragments tied at a pixel's depth keep the last one
+    owner = np.full(width * height, -1, dtype=np.int64)
+    owner[pix[win]] = win
+    win = owner[owner >= 0]
+    return Fragments((width, height), pix[win], setup.ids[rows[win]].astype(np.int32), b0[win], b1[win])
+
+
+def rasterize(
+    xy: np.ndarray,
+    depth: np.ndarray,
+    triangles: np.ndarray,
+    size,
+    *,
+    cull: bool = True,
+    eps: float = 1e-5,
+    centre: float = 0.5,
+    dtype=np.float32,
+):
+    """Visible triangle per pixel: (H, W) int32 triangle ids (-1: background) and (H, W, 3) barycentrics.
+
+    ``depth`` grows towards the viewer; the nearest fragment wins a pixel (of equal depths, one of them). With
+    ``cull``, triangles whose screen winding is clockwise (back faces of a counter-clockwise mesh) are skipped.
+    A pixel centre (i + centre, j + centre) belongs to a triangle when its barycentrics are all >= -eps.
+    ``dtype`` is the precision of the edge functions (float64 for exact coverage tests).
+
+    Method: triangles are batched by the padded size of their pixel bounding box (``grid_side``); each batch's
+    candidate pixels are tested at once by broadcasting the barycentric coefficients over the batch's offsets,
+    and ``np.maximum.at`` keeps the nearest fragment per pixel.
+    """
+    return rasterize_fragments(xy, depth, triangles, size, cull=cull, eps=eps, centre=centre, dtype=dtype).maps()
+
+
+def vertex_normals(
+    points: np.ndarray, triangles: np.ndarray, *, dtype=np.float64, incidence=None, isolated=(0.0, 0.0, 1.0)
+) -> np.ndarray:
+    """Unit area-weighted vertex normals (float32): the sum of the (unnormalised) normals of the triangles
+    around each vertex, normalised. A vertex on no proper triangle gets ``isolated``.
+
+    ``dtype``: precision of the sums. ``incidence``: ``vertex_incidence(triangles, len(points))``, reused across
+    calls with the same triangles (one sparse product instead of three weighted counts).
+    """
+    p = np.asarray(points, dtype=dtype)
+    t = np.asarray(triangles)
+    a = p[t[:, 0]]
+    u, w = p[t[:, 1]] - a, p[t[:, 2]] - a
+    face = np.empty_like(u)
+    face[:, 0] = u[:, 1] * w[:, 2] - u[:, 2] * w[:, 1]
+    face[:, 1] = u[:, 2] * w[:, 0] - u[:, 0] * w[:, 2]
+    face[:, 2] = u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]
+    if incidence is None:
+        incidence = vertex_incidence(t, len(p))
+    n = np.asarray(incidence @ face, dtype=dtype)
+    length = np.sqrt(np.einsum("ij,ij->i", n, n))
+    lone = np.flatnonzero(length <= 1e-20)
+    n /= np.maximum(length, 1e-30)[:, None]
+    n[lone] = isolated
+    n = n.astype(np.float32, copy=False)
+    if n.dtype != np.dtype(dtype):  # float32 rounding can leave |n| - 1 above a glTF validator's tolerance
+        n /= np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
+    return n
+
+
+def vertex_incidence(triangles: np.ndarray, n_vertices: int):
+    """Sparse (vertices, triangles) matrix with a 1 where a vertex is a corner of a triangle."""
+    from scipy.sparse import csr_matrix
+
+    t = np.asarray(triangles)
+    cols = np.repeat(np.arange(len(t)), 3)
+    return csr_matrix((np.ones(t.size, np.float32), (t.reshape(-1), cols)), shape=(n_vertices, len(t)))
 
 
 def shade_vertices(normals_cam: np.ndarray, view: View) -> tuple[np.ndarray, np.ndarray]:
@@ -211,6 +361,80 @@ def shade_vertices(normals_cam: np.ndarray, view: View) -> tuple[np.ndarray, np.
     diffuse = view.ambient + view.diffuse * lambert
     spec = view.specular * np.clip(normals_cam @ half, 0.0, None) ** view.shininess * (lambert > 0)
     return diffuse.astype(np.float32), spec.astype(np.float32)
+
+
+def shade_fragments(frags: Fragments, triangles: np.ndarray, diffuse, spec, colors) -> np.ndarray:
+    """(P, 3) colours of the covered pixels: albedo x interpolated diffuse + interpolated specular (Gouraud).
+
+    The per-triangle terms are gathered once per triangle seen, then once per pixel.
+    """
+    present = np.zeros(len(triangles), dtype=bool)
+    present[frags.triangle] = True
+    seen = np.flatnonzero(present)
+    corners = triangles[seen]
+    d, s = diffuse[corners], spec[corners]  # (n, 3 corners)
+    if colors is None:
+        albedo = np.full((len(seen), 3), 0.8, dtype=np.float32)
+    else:
+        colors = np.asarray(colors, dtype=np.float32)
+        albedo = np.broadcast_to(colors, (len(seen), 3)) if colors.ndim == 1 else colors[seen]
+    table = np.concatenate(
+        [
+            albedo,
+            d[:, 2:],
+            d[:, :1] - d[:, 2:],
+            d[:, 1:2] - d[:, 2:],
+            s[:, 2:],
+            s[:, :1] - s[:, 2:],
+            s[:, 1:2] - s[:, 2:],
+        ],
+        axis=1,
+    )
+    local = np.zeros(len(triangles), dtype=np.int32)
+    local[seen] = np.arange(len(seen), dtype=np.int32)
+    table = table[local[frags.triangle]]  # (P, 9)
+    b0, b1 = frags.b0[:, None], frags.b1[:, None]
+    shade = table[:, 3:4] + b0 * table[:, 4:5] + b1 * table[:, 5:6]
+    gloss = table[:, 6:7] + b0 * table[:, 7:8] + b1 * table[:, 8:9]
+    return table[:, :3] * shade + gloss
+
+
+def to_rgb8(values: np.ndarray) -> np.ndarray:
+    return (np.clip(values, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def render_frame(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    size,
+    view: View,
+    *,
+    colors: np.ndarray | None = None,
+    cull: bool = True,
+    supersample: int = 1,
+    incidence=None,
+) -> np.ndarray:
+    """``render`` for a resolved view and int64 triangles; ``incidence`` (``vertex_incidence``) saves its
+    construction when many frames share the triangles."""
+    width, height = _size(size)
+    k = max(1, int(supersample))
+    big = (width * k, height * k)
+    cam, xy = project(vertices, view, big)
+    frags = rasterize_fragments(xy, cam[:, 2], triangles, big, cull=cull)
+    normals = vertex_normals(cam, triangles, dtype=np.float32, incidence=incidence)
+    diffuse, spec = shade_vertices(normals, view)
+    colour = shade_fragments(frags, triangles, diffuse, spec, colors)
+    background = np.asarray(view.background, dtype=np.float32)
+    if k == 1:
+        image = np.empty((height * width, 3), dtype=np.uint8)
+        image[:] = to_rgb8(background)
+        image[frags.pixels] = to_rgb8(colour)
+        return image.reshape(height, width, 3)
+    image = np.empty((big[0] * big[1], 3), dtype=np.float32)
+    image[:] = background
+    image[frags.pixels] = colour
+    image = image.reshape(height, k, width, k, 3).mean(axis=(1, 3))
+    return to_rgb8(image)
 
 
 def render(
@@ -233,30 +457,7 @@ def render(
     vertices = np.asarray(vertices, dtype=np.float32)
     triangles = np.asarray(triangles, dtype=np.int64)
     view = resolve_view(view, vertices)
-    width, height = _size(size)
-    k = max(1, int(supersample))
-    big = (width * k, height * k)
-    cam, xy = project(vertices, view, big)
-    tri_map, bary = rasterize(xy, cam[:, 2], triangles, big, cull=cull)
-    normals = vertex_normals_fast(cam, triangles)
-    diffuse, spec = shade_vertices(normals, view)
-    image = np.empty((big[1], big[0], 3), dtype=np.float32)
-    image[:] = np.asarray(view.background, dtype=np.float32)
-    hit = tri_map >= 0
-    t = tri_map[hit]
-    b = bary[hit]
-    corners = triangles[t]
-    d = (b * diffuse[corners]).sum(axis=1)
-    s = (b * spec[corners]).sum(axis=1)
-    if colors is None:
-        albedo = np.full((len(t), 3), 0.8, dtype=np.float32)
-    else:
-        colors = np.asarray(colors, dtype=np.float32)
-        albedo = np.broadcast_to(colors, (len(t), 3)) if colors.ndim == 1 else colors[t]
-    image[hit] = albedo * d[:, None] + s[:, None]
-    if k > 1:
-        image = image.reshape(height, k, width, k, 3).mean(axis=(1, 3))
-    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    return render_frame(vertices, triangles, size, view, colors=colors, cull=cull, supersample=supersample)
 
 
 def triangle_colors(triangle_groups: np.ndarray, groups: list[dict], *, srgb: bool = True) -> np.ndarray:
@@ -300,6 +501,7 @@ class CharacterRenderer:
         self.supersample = supersample
         self.pivot = np.zeros(3) if pivot is None else np.asarray(pivot, dtype=np.float64)
         self.colors = triangle_colors(triangle_groups, groups or []) if triangle_groups is not None else None
+        self.incidence = vertex_incidence(self.triangles, len(self.neutral))
         if view is None:
             if framing == "face" and landmark_ids is not None:
                 pts = self.neutral[np.asarray(landmark_ids)]
@@ -364,11 +566,13 @@ class CharacterRenderer:
         translation: np.ndarray | None = None,
         eye_rotations: np.ndarray | None = None,
     ) -> np.ndarray:
-        return render(
+        """One frame, (H, W, 3) uint8."""
+        return render_frame(
             self.vertices(weights, rotation, translation, eye_rotations),
             self.triangles,
             self.size,
             self.view,
             colors=self.colors,
             supersample=self.supersample,
+            incidence=self.incidence,
         )

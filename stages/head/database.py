@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from pydantic import Field
 
 from msflow import Input, Output, Result, Stage, UserError
 from stages.geometry.rotations import (
@@ -68,6 +69,7 @@ class Recording:
     audio_rate: int
     audio_offset: float  # time of the first audio sample relative to the first motion frame
     field: str
+    speaker: str | None = None  # the take's speaker label (field "speaker"), None when unlabelled
 
 
 def check_motion_finite(rec: Recording) -> None:
@@ -114,6 +116,15 @@ def resample_motion(
     return grid, rot, trans
 
 
+def smooth_motion(rotation: np.ndarray, translation: np.ndarray, sd_frames: float) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian smoothing over ``sd_frames`` frames: quaternion components on one hemisphere (valid for the small
+    steps between frames), renormalised; translations alike. Removes tracking jitter, keeps head motion."""
+    from scipy.ndimage import gaussian_filter1d
+
+    q = gaussian_filter1d(quat_continuous(rotation), sd_frames, axis=0, mode="nearest")
+    return quat_normalize(q), gaussian_filter1d(translation, sd_frames, axis=0, mode="nearest")
+
+
 def center_motion(rotation: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Motion relative to the sequence's mean pose, in the mean head's frame: q' = q_mean^* q,
     t' = R_mean^T (t - mean t). Takes with different resting poses can then be stitched."""
@@ -136,14 +147,12 @@ def build_database(
     mirror: bool,
     center: bool,
     max_length_mismatch: float,
-    speaker: str,
+    smoothing: float = 0.0,
     translation_units: str,
 ) -> Result:
     """Resample every recording to ``fps``, optionally centre it and add its mirror image; one artifact."""
     if not recordings:
         raise UserError("the database has no recordings", field="inputs")
-    if not fps > 0:
-        raise UserError(f"fps must be positive, got {fps}", field="params.fps")
     rates = {r.audio_rate for r in recordings}
     if len(rates) != 1:
         raise UserError(f"audio rates differ between recordings: {sorted(rates)}", field="inputs")
@@ -153,6 +162,8 @@ def build_database(
         check_motion_finite(rec)
         check_lengths(rec, max_length_mismatch)
         grid, rot, trans = resample_motion(rec.time, quat_normalize(rec.rotation), rec.translation, fps)
+        if smoothing > 0:
+            rot, trans = smooth_motion(rot, trans, smoothing * fps)
         if center:
             rot, trans = center_motion(rot, trans)
         bounds = (audio_cursor, audio_cursor + len(rec.samples))
@@ -182,12 +193,13 @@ def build_database(
         "frames": frames,
         "audio_rate": int(rates.pop()),
         "audio_offset": [float(s[1].audio_offset) for s in sequences],
-        "speakers": [speaker] * len(sequences),
+        "speakers": [s[1].speaker for s in sequences],
         "center": center,
         "translation_units": translation_units,
     }
     metrics = {
         "recordings": len(recordings),
+        "speakers": len({r.speaker for r in recordings}),
         "sequences": len(sequences),
         "motion_seconds": float(sum(frames) / fps),
         "audio_seconds": float(audio_cursor / meta["audio_rate"]),
@@ -196,34 +208,57 @@ def build_database(
 
 
 class HeadDbParams(Stage.Params):
-    fps: float | None = None  # motion rate of the database; None: the first recording's own rate
-    mirror: bool = True  # add each take's mirror image (paper Sec. 6)
-    center: bool = True  # motion relative to each take's mean pose
-    max_length_mismatch: float = 0.5  # seconds allowed between the audio and motion lengths of a take
-    speaker: str = "speaker"  # speaker label (pitch normalises semitones per speaker)
+    fps: float | None = Field(None, gt=0, description="motion rate of the database; None: the first take's own rate")
+    mirror: bool = Field(True, description="add each take's mirror image (paper Sec. 6)")
+    center: bool = Field(True, description="motion relative to each take's mean pose")
+    max_length_mismatch: float = Field(
+        0.5, ge=0, description="seconds allowed between the audio and motion lengths of a take"
+    )
+    smoothing: float = Field(
+        0.0, ge=0, description="Gaussian smoothing (s, sd) of the motion against tracking jitter (0: none)"
+    )
+    speaker: str | None = Field(
+        None,
+        min_length=1,
+        description="speaker of the takes that carry no 'speaker' field (pitch is normalised per speaker); "
+        "None: takes without the field stay unlabelled",
+    )
+
+
+def label_speakers(recordings: list[Recording], fields: dict, default: str | None) -> list[Recording]:
+    """Each recording's speaker: its label's ``speaker`` field (contract: labelled files), else ``default``."""
+    for rec in recordings:
+        rec.speaker = (fields.get(rec.label) or {}).get("speaker") or default
+    return recordings
+
+
+TRACKS_DOC = "tracking artifact (stages/tracking/schema.py) with audio"
 
 
 class TrackedHeadDb(Stage):
-    """Database from tracking outputs: video head pose (rotation, translation) and each video's audio."""
+    """Database from tracking outputs: video head pose (rotation, translation) and each video's audio; the takes
+    of ``tracks`` and, optionally, of a second tracking artifact ``more_tracks`` (say, another corpus)."""
 
     class Params(HeadDbParams):
-        labels: list[str] | None = None  # use only these sequences of the tracking artifact
+        labels: list[str] | None = Field(None, description="use only these sequences of the tracking artifacts")
 
     inputs = {
-        "tracks": Input.artifact(
-            "rotation",
-            "translation",
-            "time",
-            "sequence",
-            doc="tracking artifact (stages/tracking/schema.py) with audio",
-        )
+        "tracks": Input.artifact("rotation", "translation", "time", "sequence", doc=TRACKS_DOC),
+        "more_tracks": Input.artifact("rotation", "translation", "time", "sequence", optional=True, doc=TRACKS_DOC),
     }
     outputs = HEADDB_OUTPUTS
 
     def run(self, params, inputs):
-        view = inputs["tracks"]
-        recordings = recordings_from_tracking(view, params.labels)
-        fps = params.fps or _first(view.meta.get("fps"))
+        views = [(name, inputs[name]) for name in ("tracks", "more_tracks") if inputs.get(name) is not None]
+        recordings = []
+        for name, view in views:
+            wanted = (
+                None if params.labels is None else [x for x in params.labels if x in (view.meta.get("labels") or [])]
+            )
+            found = recordings_from_tracking(view, wanted, field=f"inputs.{name}")
+            recordings += label_speakers(found, view.meta.get("fields") or {}, params.speaker)
+        check_labels(recordings, params.labels)
+        fps = params.fps or _first(views[0][1].meta.get("fps"))
         if not fps:
             fps = 1.0 / float(np.median(np.diff(recordings[0].time)))
         return build_database(
@@ -232,9 +267,20 @@ class TrackedHeadDb(Stage):
             mirror=params.mirror,
             center=params.center,
             max_length_mismatch=params.max_length_mismatch,
-            speaker=params.speaker,
-            translation_units=str(view.meta.get("translation_units", "unknown")),
+            smoothing=params.smoothing,
+            translation_units=str(views[0][1].meta.get("translation_units", "unknown")),
         )
+
+
+def check_labels(recordings: list[Recording], wanted: list[str] | None) -> None:
+    """Every take label once across the tracking artifacts, and every wanted label found."""
+    labels = [r.label for r in recordings]
+    twice = sorted({x for x in labels if labels.count(x) > 1})
+    if twice:
+        raise UserError(f"takes {twice} appear in both tracking artifacts; labels must be unique", field="inputs")
+    missing = [x for x in (wanted or []) if x not in labels]
+    if missing:
+        raise UserError(f"labels {missing} are not in the tracking artifacts ({labels})", field="params.labels")
 
 
 def _first(value):
@@ -268,6 +314,7 @@ def recordings_from_tracking(view, labels: list[str] | None, field: str = "input
 
     sources = per_sequence("sources", None)
     offsets = per_sequence("audio_offset", 0.0)
+    has_audio = per_sequence("has_audio", True)
     rate = int(meta.get("audio_rate") or 16000)
     audio, bounds = view["audio"], np.asarray(view["audio_bounds"]).reshape(-1, 2)
     rotation, translation, time = view["rotation"], view["translation"], view["time"]
@@ -278,6 +325,12 @@ def recordings_from_tracking(view, labels: list[str] | None, field: str = "input
         if not mask.any():
             raise UserError(f"sequence '{label}' has no frames", field=field)
         a, b = bounds[k]
+        if not has_audio[k] or b <= a:
+            raise UserError(
+                f"take '{label}' has no audio (a silent video); the head-motion database pairs motion with speech",
+                file=str(sources[k] or label),
+                field=f"{field}[{label}]",
+            )
         out.append(
             Recording(
                 label,
@@ -311,8 +364,8 @@ def _decode(path, rate: int, label: str):
 
 
 class FileHeadDbParams(HeadDbParams):
-    audio_rate: int = 16000
-    translation_scale: float = 1.0  # multiplies positions (e.g. 10 for cm -> mm)
+    audio_rate: int = Field(16000, ge=4000, le=192000, description="decoding rate of the audio files (Hz)")
+    translation_scale: float = Field(1.0, gt=0, description="multiplies positions (e.g. 10 for cm -> mm)")
     translation_units: str = "unknown"
     audio_offset: dict[str, float] = {}  # per label: start of the audio relative to the first motion frame
 
@@ -352,13 +405,14 @@ class BvhHeadDb(Stage):
                     field,
                 )
             )
+        label_speakers(recordings, {**inputs["audio"].fields, **inputs["motion"].fields}, params.speaker)
         return build_database(
             recordings,
             fps=params.fps or rates[0],
             mirror=params.mirror,
             center=params.center,
             max_length_mismatch=params.max_length_mismatch,
-            speaker=params.speaker,
+            smoothing=params.smoothing,
             translation_units=params.translation_units,
         )
 
@@ -438,6 +492,7 @@ class CsvHeadDb(Stage):
                     field,
                 )
             )
+        label_speakers(recordings, {**inputs["audio"].fields, **inputs["motion"].fields}, params.speaker)
         fps = params.fps or (rates[0] if rates else None)
         if not fps:
             raise UserError("cannot tell the motion rate (CSV with fewer than two rows); set fps", field="params.fps")
@@ -447,6 +502,6 @@ class CsvHeadDb(Stage):
             mirror=params.mirror,
             center=params.center,
             max_length_mismatch=params.max_length_mismatch,
-            speaker=params.speaker,
+            smoothing=params.smoothing,
             translation_units=params.translation_units,
         )

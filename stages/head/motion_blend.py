@@ -31,9 +31,18 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from pydantic import Field
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.geometry.rotations import euler_to_quat, quat_to_euler
+from stages.geometry.rotations import euler_to_quat
+from stages.head.measures import (
+    JOIN_MEASURE_WINDOW,
+    angular_acceleration,
+    angular_speed,
+    join_acceleration,
+    reference_angles,
+    wasserstein_speed,
+)
 
 
 @dataclass
@@ -42,6 +51,7 @@ class DatabaseMotion:
     first: np.ndarray  # (sequences,) first frame of each sequence
     frames: np.ndarray  # (sequences,) frame count
     fps: float
+    speakers: list | None = None  # (sequences,) speaker labels, when known
 
     def sample(self, sequence: int, times: np.ndarray) -> np.ndarray:
         """Channels of ``sequence`` at ``times`` (seconds), linearly interpolated, held beyond the take."""
@@ -60,6 +70,30 @@ class DatabaseMotion:
             if n >= 3:
                 values.append(angular_acceleration(self.channels[first : first + n, :3], self.fps))
         return float(np.median(np.concatenate(values))) if values else 0.0
+
+    def sequence_of_frames(self) -> np.ndarray:
+        return np.repeat(np.arange(len(self.frames)), self.frames)
+
+    def scaled(self, gains: np.ndarray) -> DatabaseMotion:
+        """The database with each sequence's channels multiplied by its row of ``gains`` (sequences, channels)."""
+        channels = self.channels * gains[self.sequence_of_frames()]
+        return DatabaseMotion(channels, self.first, self.frames, self.fps, self.speakers)
+
+
+def amplitude_gains(db: DatabaseMotion, target: str | None) -> np.ndarray:
+    """Per sequence and channel, the gain that gives its speaker's motion the spread (p95 - p5 over all of that
+    speaker's sequences) of the ``target`` speaker's in the database, or of the whole database when the target
+    is not in it (a held-out speaker): every source speaker then moves about as much as the typical one."""
+    speakers = list(db.speakers or [None] * len(db.frames))
+    owner = np.array([speakers.index(x) for x in speakers])[db.sequence_of_frames()]  # first sequence of each speaker
+
+    def spread(mask):
+        values = db.channels[mask]
+        return np.maximum(np.percentile(values, 95, axis=0) - np.percentile(values, 5, axis=0), 1e-12)
+
+    wanted = spread(owner == speakers.index(target)) if target in speakers else spread(np.ones(len(owner), bool))
+    by_speaker = {x: spread(owner == speakers.index(x)) for x in set(speakers)}
+    return np.stack([wanted / by_speaker[x] for x in speakers])
 
 
 JOIN_BUDGET_OF_MEDIAN = 0.5  # default acceleration a join's velocity step may add, as a fraction of the
@@ -156,6 +190,52 @@ def segment_weights(x: np.ndarray, k: int, left: np.ndarray, right: np.ndarray, 
     return np.clip(ramp(k) - ramp(k + 1), 0.0, 1.0)
 
 
+def warp_time(t: np.ndarray, test_knots: np.ndarray, db_knots: np.ndarray) -> np.ndarray:
+    """Database time of output times ``t`` under a piecewise-linear map through the knots (test time -> database
+    time), continued beyond the first and last knot at the segment's average rate."""
+    t = np.asarray(t, dtype=np.float64)
+    rate = (db_knots[-1] - db_knots[0]) / max(test_knots[-1] - test_knots[0], 1e-9)
+    inside = np.interp(t, test_knots, db_knots)
+    before = db_knots[0] + (t - test_knots[0]) * rate
+    after = db_knots[-1] + (t - test_knots[-1]) * rate
+    return np.where(t < test_knots[0], before, np.where(t > test_knots[-1], after, inside))
+
+
+def segment_knots(
+    test_segment: tuple[float, float],
+    db_segment: tuple[float, float],
+    test_events: np.ndarray,
+    db_events: np.ndarray,
+    *,
+    tolerance: float,
+    max_stretch: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Knots of a time map that keeps the segment's ends (Sec. 5.4: onset to onset) and moves each database event
+    inside it onto the nearest test event, when that is within ``tolerance`` seconds of where uniform resampling
+    would put it and no piece of the map plays faster or slower than ``max_stretch`` times the uniform rate.
+    Events are matched in time order, each test event at most once."""
+    (a, e), (da, de) = test_segment, db_segment
+    rate = (de - da) / max(e - a, 1e-9)
+    knots_t, knots_d = [a], [da]
+    free = np.sort(np.asarray(test_events, dtype=np.float64))
+    for tau in np.sort(np.asarray(db_events, dtype=np.float64)):
+        if not da < tau < de:
+            continue
+        uniform = a + (tau - da) / rate
+        options = free[(free > knots_t[-1]) & (free < e) & (np.abs(free - uniform) <= tolerance)]
+        if not len(options):
+            continue
+        t = float(options[np.argmin(np.abs(options - uniform))])
+        before = (tau - knots_d[-1]) / max(t - knots_t[-1], 1e-9)
+        after = (de - tau) / max(e - t, 1e-9)
+        if all(rate / max_stretch <= r <= rate * max_stretch for r in (before, after)):
+            knots_t.append(t)
+            knots_d.append(float(tau))
+    knots_t.append(e)
+    knots_d.append(de)
+    return np.array(knots_t), np.array(knots_d)
+
+
 def stitch_segments(
     db: DatabaseMotion,
     test_segments: np.ndarray,
@@ -172,6 +252,7 @@ def stitch_segments(
     max_blend_window: float = 0.5,
     preserve_speed: bool = False,
     boundary_window: float = 0.1,
+    time_maps: list[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> Stitched:
     """Sec. 5.4 for one utterance. ``test_segments`` (N, 3) and the chosen database segments' sequence (N,) and
     times (N, 3); ``times`` the output frame times (increasing). Returns the blended channels on ``times``.
@@ -207,74 +288,142 @@ def stitch_segments(
     if smoothing != "velocity":
         raise ValueError(f"unknown join smoothing {smoothing!r}")
     times = np.asarray(times, dtype=np.float64)
-    n = len(test_segments)
-    channels = db.channels.shape[1]
-    out = np.zeros((len(times), channels))
-    if n == 0:
+    out = np.zeros((len(times), db.channels.shape[1]))
+    if len(test_segments) == 0:
         return Stitched(out, np.zeros(0), np.zeros((0, 2)), np.zeros(0))
-    a, e = test_segments[:, 0], test_segments[:, 2]
-    da, de = db_segments[:, 0], db_segments[:, 2]
-    scale = (de - da) / np.maximum(e - a, 1e-9)  # database seconds per output second
-    sequence = np.asarray(db_sequence, dtype=np.int64)
-
-    def raw(k: int, t: np.ndarray) -> np.ndarray:
-        return db.sample(int(sequence[k]), da[k] + (t - a[k]) * scale[k])
-
+    chosen = ChosenMotion(db, test_segments, db_segments, np.asarray(db_sequence, dtype=np.int64), time_maps)
     starts = np.asarray(subsentence_start, dtype=bool).copy()
     starts[0] = True
-    joins = a[1:].copy()
-    dv = join_velocity_mismatch(
-        db, sequence[:-1], de[:-1], scale[:-1], sequence[1:], da[1:], scale[1:], boundary_window
+    joins, left, right, dv_deg = velocity_blend_windows(
+        chosen, starts, blend_window, break_blend_window, acceleration_budget, max_blend_window, boundary_window
     )
+    windows = np.stack([left, right], axis=1)
+    if len(times) < 2:
+        out[:1] = chosen.raw(0, times)[:1]
+        return Stitched(out, joins, windows, dv_deg)
+    base, drift = blended_increments(chosen, times, starts, left, right, joins, preserve_speed)
+    out = anchor_subsentences(chosen, times, starts, base, drift, drift_correction)
+    return Stitched(out, joins, windows, dv_deg)
+
+
+@dataclass
+class ChosenMotion:
+    """The chosen database segments of one utterance, each resampled onto its test segment (Sec. 5.4)."""
+
+    db: DatabaseMotion
+    test_segments: np.ndarray  # (N, 3) start, voiced end, end (output seconds)
+    db_segments: np.ndarray  # (N, 3) the same in database seconds
+    sequence: np.ndarray  # (N,) database sequence of each
+    time_maps: list | None = None  # per segment (test knots, database knots); None: uniform
+
+    @property
+    def scale(self) -> np.ndarray:
+        """Database seconds per output second of each segment's uniform resampling."""
+        return (self.db_segments[:, 2] - self.db_segments[:, 0]) / np.maximum(
+            self.test_segments[:, 2] - self.test_segments[:, 0], 1e-9
+        )
+
+    def raw(self, k: int, t: np.ndarray) -> np.ndarray:
+        """Channels of segment ``k``'s database motion at output times ``t`` (continued beyond its ends)."""
+        if self.time_maps is None:
+            db_time = self.db_segments[k, 0] + (t - self.test_segments[k, 0]) * self.scale[k]
+        else:
+            db_time = warp_time(t, *self.time_maps[k])
+        return self.db.sample(int(self.sequence[k]), db_time)
+
+
+def velocity_blend_windows(
+    chosen: ChosenMotion,
+    starts: np.ndarray,
+    blend_window: float,
+    break_blend_window: float,
+    acceleration_budget: float | None,
+    max_blend_window: float,
+    boundary_window: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Join times (each segment's start after the first), their blend windows (left, right) sized from the
+    velocity step each join absorbs (``join_windows``), and that step (deg/s)."""
+    a, da, de, scale, seq = (
+        chosen.test_segments[:, 0],
+        chosen.db_segments[:, 0],
+        chosen.db_segments[:, 2],
+        chosen.scale,
+        chosen.sequence,
+    )
+    joins = a[1:].copy()
+    dv = join_velocity_mismatch(chosen.db, seq[:-1], de[:-1], scale[:-1], seq[1:], da[1:], scale[1:], boundary_window)
     dv_deg = np.degrees(np.linalg.norm(dv[:, :3], axis=1))
     half = np.where(starts[1:], break_blend_window, blend_window)
     left, right = join_windows(joins, half, dv_deg, acceleration_budget=acceleration_budget, max_half=max_blend_window)
-    windows = np.stack([left, right], axis=1)
-    if len(times) == 0:
-        return Stitched(out, joins, windows, dv_deg)
-    if len(times) == 1:
-        out[0] = raw(0, times)[0]
-        return Stitched(out, joins, windows, dv_deg)
+    return joins, left, right, dv_deg
 
+
+def blended_increments(
+    chosen: ChosenMotion,
+    times: np.ndarray,
+    starts: np.ndarray,
+    left: np.ndarray,
+    right: np.ndarray,
+    joins: np.ndarray,
+    preserve_speed: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The integrated blend of the segments' own frame-to-frame increments, weighted by a smoothstep partition of
+    unity over the join windows (``base``, frames x channels, 0 at the first frame), and per sub-sentence the
+    integrated time its weight was active (``drift``, frames x sub-sentences: what a constant drift velocity of that
+    sub-sentence adds by each frame)."""
     mid = 0.5 * (times[1:] + times[:-1])
     step = np.diff(times)
+    channels = chosen.db.channels.shape[1]
     group = np.cumsum(starts) - 1
-    n_groups = int(group[-1]) + 1
     increments = np.zeros((len(mid), channels))
-    group_weight = np.zeros((len(mid), n_groups))  # time each group's drift velocity acts in each step
+    group_weight = np.zeros((len(mid), int(group[-1]) + 1))
     bounds_lo = np.concatenate([[-np.inf], left])
     bounds_hi = np.concatenate([right, [np.inf]])
     parts = []  # (first step, weights, increments) per segment
-    for k in range(n):
+    for k in range(len(chosen.sequence)):
         idx = np.flatnonzero((mid >= bounds_lo[k]) & (mid <= bounds_hi[k]))
         if len(idx) == 0:
             parts.append((0, np.zeros(0), np.zeros((0, channels))))
             continue
         w = segment_weights(mid[idx], k, left, right, joins)
-        delta = raw(k, times[idx + 1]) - raw(k, times[idx])
+        delta = chosen.raw(k, times[idx + 1]) - chosen.raw(k, times[idx])
         parts.append((int(idx[0]), w, delta))
         increments[idx] += w[:, None] * delta
         group_weight[idx, group[k]] += w * step[idx]
     if preserve_speed:
         increments *= speed_preserving_gain(parts, len(mid))[:, None]
     base = np.concatenate([np.zeros((1, channels)), np.cumsum(increments, axis=0)])
-    drift = np.concatenate([np.zeros((1, n_groups)), np.cumsum(group_weight, axis=0)])
+    drift = np.concatenate([np.zeros((1, group_weight.shape[1])), np.cumsum(group_weight, axis=0)])
+    return base, drift
+
+
+def anchor_subsentences(
+    chosen: ChosenMotion,
+    times: np.ndarray,
+    starts: np.ndarray,
+    base: np.ndarray,
+    drift: np.ndarray,
+    drift_correction: bool,
+) -> np.ndarray:
+    """Place the integrated blend so that every sub-sentence starts at its first segment's recorded pose: with
+    ``drift_correction``, x = c + base + sum_g d_g drift_g, one constant and one drift velocity per sub-sentence
+    but the last (Sec. 5.4's linear warp, as a velocity); without it, each sub-sentence is offset on its own and the
+    head jumps between sub-sentences."""
+    n_groups = drift.shape[1]
     first_of = np.flatnonzero(starts)
-    anchor_t = a[first_of]
-    target = np.stack([raw(k, a[k : k + 1])[0] for k in first_of])  # recorded pose at each sub-sentence start
-    at = lambda curve: np.stack([np.interp(anchor_t, times, curve[:, c]) for c in range(curve.shape[1])], axis=1)
+    anchor_t = chosen.test_segments[first_of, 0]
+    target = np.stack([chosen.raw(k, anchor_t[i : i + 1])[0] for i, k in enumerate(first_of)])
+
+    def at(curve):
+        return np.stack([np.interp(anchor_t, times, curve[:, c]) for c in range(curve.shape[1])], axis=1)
+
     base_at = at(base)
     if drift_correction:
-        # x = c + base + sum_g d_g drift_g: one constant, one drift velocity per sub-sentence but the last,
-        # such that every sub-sentence starts at its recorded pose
         system = np.concatenate([np.ones((n_groups, 1)), at(drift)[:, : n_groups - 1]], axis=1)
         solution = np.linalg.lstsq(system, target - base_at, rcond=None)[0]  # (groups, channels)
-        out = solution[0][None, :] + base + drift[:, : n_groups - 1] @ solution[1:]
-    else:
-        # each sub-sentence starts at its recorded pose and is not warped: the head jumps between sub-sentences
-        frame_group = np.clip(np.searchsorted(anchor_t, times, side="right") - 1, 0, n_groups - 1)
-        out = base + (target - base_at)[frame_group]
-    return Stitched(out, joins, windows, dv_deg)
+        return solution[0][None, :] + base + drift[:, : n_groups - 1] @ solution[1:]
+    frame_group = np.clip(np.searchsorted(anchor_t, times, side="right") - 1, 0, n_groups - 1)
+    return base + (target - base_at)[frame_group]
 
 
 def speed_preserving_gain(parts: list[tuple[int, np.ndarray, np.ndarray]], steps: int) -> np.ndarray:
@@ -400,61 +549,6 @@ def crossfade_segments(
     return Stitched(out, a[1:].copy(), windows, np.full(n - 1, np.nan))
 
 
-# ---------------------------------------------------------------------------------- evaluation measures
-
-JOIN_MEASURE_WINDOW = 0.15  # seconds either side of a join over which join acceleration is measured (fixed, so
-#                              that every smoothing method and parameter is measured alike)
-
-
-def angular_speed(angles: np.ndarray, fps: float) -> np.ndarray:
-    """Angular speed (frames - 1,) in degrees per second from (yaw, pitch, roll) angles in radians."""
-    from stages.geometry.rotations import angular_velocity
-
-    q = euler_to_quat(angles[:, 0], angles[:, 1], angles[:, 2])
-    return np.degrees(np.linalg.norm(angular_velocity(q, fps), axis=1))
-
-
-def angular_acceleration(angles: np.ndarray, fps: float) -> np.ndarray:
-    """Magnitude of angular acceleration (frames - 2,) in degrees per second^2."""
-    from stages.geometry.rotations import angular_velocity
-
-    q = euler_to_quat(angles[:, 0], angles[:, 1], angles[:, 2])
-    w = angular_velocity(q, fps)
-    return np.degrees(np.linalg.norm(np.diff(w, axis=0) * fps, axis=1))
-
-
-def join_acceleration(angles: np.ndarray, fps: float, joins: np.ndarray, window: float) -> np.ndarray:
-    """Largest angular acceleration within +-``window`` seconds of each join (deg/s^2), one value per join."""
-    acc = angular_acceleration(angles, fps)
-    if len(acc) == 0 or len(joins) == 0:
-        return np.zeros(0)
-    t = (np.arange(len(acc)) + 1) / fps
-    inside = np.abs(t[None, :] - np.asarray(joins)[:, None]) <= window
-    return np.where(inside, acc[None, :], 0.0).max(axis=1)
-
-
-def wasserstein_speed(angles_a: np.ndarray, angles_b: np.ndarray, fps: float) -> float:
-    """Wasserstein-1 distance (deg/s) between the angular-speed distributions of two motions."""
-    from scipy.stats import wasserstein_distance
-
-    return float(wasserstein_distance(angular_speed(angles_a, fps), angular_speed(angles_b, fps)))
-
-
-def pitch_velocity_correlation(angles: np.ndarray, fps: float, f0_time: np.ndarray, f0_semitones: np.ndarray) -> float:
-    """Pearson correlation between the voice pitch (semitones, voiced frames only) and the head-pitch velocity
-    at the same times. NaN when fewer than 3 voiced frames overlap the motion."""
-    velocity = np.gradient(angles[:, 1]) * fps
-    t = np.arange(len(angles)) / fps
-    ok = np.isfinite(f0_semitones) & (f0_time >= t[0]) & (f0_time <= t[-1])
-    if ok.sum() < 3:
-        return float("nan")
-    v = np.interp(f0_time[ok], t, velocity)
-    p = f0_semitones[ok]
-    if v.std() < 1e-12 or p.std() < 1e-12:
-        return 0.0
-    return float(np.corrcoef(p, v)[0, 1])
-
-
 # ---------------------------------------------------------------------------------------------- the stage
 
 MOTION_BLEND_OUTPUTS = {
@@ -480,34 +574,6 @@ MOTION_BLEND_OUTPUTS = {
 }
 
 
-def _reference_angles(view, label: str, n_labels: int, fps: float) -> np.ndarray | None:
-    """The real head motion of ``label`` from a tracking or headdb artifact, centred like the database and
-    resampled to ``fps``; None when it has no such sequence."""
-    from stages.head.database import center_motion, resample_motion
-
-    labels = list(view.meta.get("labels") or [])
-    if label in labels:
-        k = labels.index(label)
-    elif len(labels) <= 1 and n_labels == 1:
-        k = 0
-    else:
-        return None
-    mask = np.asarray(view["sequence"]) == k
-    rotation = np.asarray(view["rotation"])[mask]
-    translation = np.asarray(view["translation"])[mask] if "translation" in view else np.zeros((mask.sum(), 3))
-    if "time" in view:
-        time = np.asarray(view["time"])[mask]
-    else:
-        src_fps = view.meta.get("fps")
-        src_fps = src_fps[k] if isinstance(src_fps, list) else src_fps
-        time = np.arange(mask.sum()) / float(src_fps or fps)
-    if len(time) < 2:
-        return None
-    _, rot, trans = resample_motion(time, rotation, translation, fps)
-    rot, _ = center_motion(rot, trans)
-    return quat_to_euler(rot)
-
-
 def _plot_head_angles(view, inputs=None):
     """Head yaw, pitch and roll over time: synthesised (and real, when a reference was given); joins marked."""
     import matplotlib
@@ -522,7 +588,7 @@ def _plot_head_angles(view, inputs=None):
     t = view["time"][mask]
     reference = None
     if inputs and inputs.get("reference") is not None and labels:
-        ref = _reference_angles(inputs["reference"], labels[0], len(labels), fps)
+        ref = reference_angles(inputs["reference"], labels[0], len(labels), fps)
         reference = None if ref is None else np.degrees(ref)
     joins = view["joins"][view["join_utterance"] == 0]
     windows = view["join_window"][view["join_utterance"] == 0] if "join_window" in view else np.zeros((0, 2))
@@ -544,25 +610,56 @@ def _plot_head_angles(view, inputs=None):
     return fig
 
 
+class MotionBlendParams(Stage.Params):
+    fps: float | None = Field(
+        None, gt=0, description="output rate; None: the test take's video rate, else the database's"
+    )
+    join_smoothing: Literal["velocity", "crossfade"] = Field(
+        "velocity",
+        description="velocity-domain blend, or the earlier position crossfade (overshoots the velocity inside its "
+        "window)",
+    )
+    blend_window: float = Field(0.15, ge=0, description="seconds either side of a join to blend over (at least)")
+    break_blend_window: float = Field(0.25, ge=0, description="the same at joins between sub-sentences")
+    max_blend_window: float = Field(0.5, ge=0, description="widest half-window a large velocity step may get")
+    join_acceleration: float | None = Field(
+        None,
+        ge=0,
+        description="deg/s^2 a join's velocity step may add (sets its window); None: half the database's median "
+        "angular acceleration; 0: fixed windows",
+    )
+    preserve_speed: bool = Field(False, description="keep the blended velocity as fast as the joined segments' own")
+    timing: Literal["segment", "onsets", "strokes"] = Field(
+        "strokes",
+        description="resampling of each chosen segment onto its test segment: 'segment', uniform from onset to onset "
+        "(the paper); or piecewise, moving the segment's head strokes ('strokes') or its audio onsets ('onsets') "
+        "onto the test's audio onsets",
+    )
+    timing_tolerance: float = Field(0.15, gt=0, description="farthest (s) the timing warp moves an event")
+    amplitude: Literal["database", "speaker"] = Field(
+        "database",
+        description="motion amplitude as recorded, or each source speaker's scaled to the test speaker's spread "
+        "(the whole database's when the test speaker is not in it)",
+    )
+    rest_anchor: float = Field(
+        0.0, ge=0, description="remove wander slower than this many seconds, back to the rest pose (0: off)"
+    )
+    max_stretch: float = Field(
+        2.0, ge=1, description="fastest or slowest a piece of the warp plays, x the uniform rate"
+    )
+    drift_correction: bool = Field(True, description="warp each sub-sentence to meet the next")
+    translation: bool = Field(True, description="False: rotation only (translation zero)")
+    bvh_joint: str = Field("Head", min_length=1)
+    bvh_order: Literal["XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX"] = Field(
+        "ZXY", description="Euler channel order written to the BVH"
+    )
+
+
 class MotionBlend(Stage):
     """Stitch, drift-correct and smooth the joins of the chosen database motion (Sec. 5.4); head rotation,
     translation and a BVH of the head joint at the output rate."""
 
-    class Params(Stage.Params):
-        fps: float | None = None  # output rate; None: the test take's video rate, else the database's
-        join_smoothing: Literal["velocity", "crossfade"] = "velocity"  # velocity-domain blend, or the earlier
-        #                                   position crossfade (overshoots the velocity inside its window)
-        blend_window: float = 0.15  # seconds either side of a join to blend over (at least)
-        break_blend_window: float = 0.25  # the same at joins between sub-sentences (breath pauses)
-        max_blend_window: float = 0.5  # widest half-window a large velocity step may get
-        join_acceleration: float | None = None  # deg/s^2 a join's velocity step may add (sets its window);
-        #                                   None: half the database's median angular acceleration; 0: fixed windows
-        preserve_speed: bool = False  # keep the blended velocity as fast as the joined segments' own
-        drift_correction: bool = True  # warp each sub-sentence to meet the next
-        translation: bool = True  # False: rotation only (translation zero)
-        bvh_joint: str = "Head"
-        bvh_order: str = "ZXY"  # Euler channel order written to the BVH
-
+    Params = MotionBlendParams
     inputs = {
         "trellis": Input.artifact("segments", "chosen", "db_segments", "db_segment_sequence"),
         "database": Input.artifact("angles", "translation", "sequence", doc="the headdb artifact searched"),
@@ -577,74 +674,107 @@ class MotionBlend(Stage):
     figures = {"head_angles": _plot_head_angles}
 
     def run(self, params, inputs):
-        from stages.formats.bvh import head_bvh
-
         trellis, database = inputs["trellis"], inputs["database"]
-        db_labels = list(database.meta.get("labels") or [])
-        if trellis.meta.get("db_labels") is not None and list(trellis.meta["db_labels"]) != db_labels:
-            raise UserError(
-                "the trellis was searched over a different database than the one given", field="inputs.database"
-            )
-        if params.blend_window < 0 or params.break_blend_window < 0:
-            raise UserError("blend_window must be >= 0", field="params.blend_window")
-        if params.max_blend_window < 0:
-            raise UserError("max_blend_window must be >= 0", field="params.max_blend_window")
-        if params.join_acceleration is not None and params.join_acceleration < 0:
-            raise UserError("join_acceleration must be >= 0 (0: fixed windows)", field="params.join_acceleration")
+        check_same_database(trellis, database)
         db = database_motion(database, use_translation=params.translation)
-        budget = (
-            JOIN_BUDGET_OF_MEDIAN * db.typical_acceleration()
-            if params.join_acceleration is None
-            else params.join_acceleration
-        )
+        options = stitch_options(params, db, trellis)
+        fps = output_rate(params, trellis, db)
+        synth = synthesise(trellis, db, fps, **options)
+        arrays = pack_motion(synth, fps, params)
         labels = list(trellis.meta.get("labels") or [])
-        test_fps = [f for f in (trellis.meta.get("fps") or []) if f]
-        fps = float(params.fps or (test_fps[0] if test_fps else db.fps))
-        if not fps > 0:
-            raise UserError(f"fps must be positive, got {fps}", field="params.fps")
-        synth = synthesise(
-            trellis,
-            db,
-            fps,
-            smoothing=params.join_smoothing,
-            blend_window=params.blend_window,
-            break_blend_window=params.break_blend_window,
-            max_blend_window=params.max_blend_window,
-            acceleration_budget=budget or None,
-            preserve_speed=params.preserve_speed,
-            drift_correction=params.drift_correction,
-        )
-        angles = np.concatenate([s.channels[:, :3] for s in synth]) if synth else np.zeros((0, 3))
-        translation = np.concatenate([s.channels[:, 3:] for s in synth]) if synth else np.zeros((0, 3))
-        rotation = euler_to_quat(angles[:, 0], angles[:, 1], angles[:, 2])
-        arrays = {
-            "rotation": rotation,
-            "translation": translation,
-            "angles": angles,
-            "time": np.concatenate([np.arange(len(s.channels)) / fps for s in synth]),
-            "sequence": np.concatenate([np.full(len(s.channels), u, np.int32) for u, s in enumerate(synth)]),
-            "joins": np.concatenate([s.joins for s in synth]),
-            "join_utterance": np.concatenate([np.full(len(s.joins), u, np.int32) for u, s in enumerate(synth)]),
-            "join_window": np.concatenate([s.windows for s in synth]).reshape(-1, 2),
-            "join_velocity_step": np.concatenate([s.velocity_mismatch for s in synth]),
-            "bvh": head_bvh(rotation, translation, fps, joint=params.bvh_joint, order=params.bvh_order).encode(),
-        }
         metrics = motion_metrics(arrays, fps, JOIN_MEASURE_WINDOW, inputs.get("reference"), labels)
-        steps = arrays["join_velocity_step"][np.isfinite(arrays["join_velocity_step"])]
-        if len(steps):
-            widths = np.diff(arrays["join_window"], axis=1)[:, 0]
-            metrics.update({"mean_join_velocity_step": float(steps.mean()), "mean_join_window": float(widths.mean())})
+        metrics.update(join_metrics(arrays))
         meta = {
             "fps": fps,
             "labels": labels,
             "frames": [len(s.channels) for s in synth],
             "join_smoothing": params.join_smoothing,
-            "join_acceleration_budget": float(budget),
+            "join_acceleration_budget": float(options["acceleration_budget"] or 0.0),
+            "stitch": options,
             "translation_units": database.meta.get("translation_units", "unknown"),
             "bvh_joint": params.bvh_joint,
-            "db_labels": db_labels,
+            "db_labels": list(database.meta.get("labels") or []),
         }
-        return Result(arrays, meta, metrics)
+        return Result(arrays, meta, metrics, rest_warnings(trellis, labels))
+
+
+def check_same_database(trellis, database) -> None:
+    db_labels = list(database.meta.get("labels") or [])
+    if trellis.meta.get("db_labels") is not None and list(trellis.meta["db_labels"]) != db_labels:
+        raise UserError(
+            "the trellis was searched over a different database than the one given", field="inputs.database"
+        )
+
+
+def stitch_options(params, db: DatabaseMotion, trellis) -> dict:
+    """Keyword arguments of ``stitch_segments`` from the stage's params (JSON, kept in the artifact's meta so the
+    evaluation can stitch its baselines exactly alike)."""
+    budget = (
+        JOIN_BUDGET_OF_MEDIAN * db.typical_acceleration()
+        if params.join_acceleration is None
+        else params.join_acceleration
+    )
+    return {
+        "smoothing": params.join_smoothing,
+        "blend_window": params.blend_window,
+        "break_blend_window": params.break_blend_window,
+        "max_blend_window": params.max_blend_window,
+        "acceleration_budget": float(budget) or None,
+        "preserve_speed": params.preserve_speed,
+        "drift_correction": params.drift_correction,
+        "boundary_window": float(trellis.meta.get("boundary_window", 0.1)),
+        "timing": params.timing,
+        "timing_tolerance": params.timing_tolerance,
+        "max_stretch": params.max_stretch,
+        "amplitude": params.amplitude,
+        "rest_anchor": params.rest_anchor,
+    }
+
+
+def output_rate(params, trellis, db: DatabaseMotion) -> float:
+    test_fps = [f for f in (trellis.meta.get("fps") or []) if f]
+    return float(params.fps or (test_fps[0] if test_fps else db.fps))
+
+
+def pack_motion(synth: list, fps: float, params) -> dict:
+    """The blend's arrays: angles, rotation, translation, per-frame time and utterance, joins, BVH."""
+    from stages.formats.bvh import head_bvh
+
+    def cat(parts, empty):
+        return np.concatenate(parts) if parts else empty
+
+    angles = cat([s.channels[:, :3] for s in synth], np.zeros((0, 3)))
+    translation = cat([s.channels[:, 3:] for s in synth], np.zeros((0, 3)))
+    rotation = euler_to_quat(angles[:, 0], angles[:, 1], angles[:, 2])
+    return {
+        "rotation": rotation,
+        "translation": translation,
+        "angles": angles,
+        "time": cat([np.arange(len(s.channels)) / fps for s in synth], np.zeros(0)),
+        "sequence": cat([np.full(len(s.channels), u, np.int32) for u, s in enumerate(synth)], np.zeros(0, np.int32)),
+        "joins": cat([s.joins for s in synth], np.zeros(0)),
+        "join_utterance": cat([np.full(len(s.joins), u, np.int32) for u, s in enumerate(synth)], np.zeros(0, np.int32)),
+        "join_window": cat([s.windows for s in synth], np.zeros((0, 2))).reshape(-1, 2),
+        "join_velocity_step": cat([s.velocity_mismatch for s in synth], np.zeros(0)),
+        "bvh": head_bvh(rotation, translation, fps, joint=params.bvh_joint, order=params.bvh_order).encode(),
+    }
+
+
+def join_metrics(arrays: dict) -> dict:
+    """Mean velocity step the joins absorbed (deg/s) and mean blend window (s); none for the crossfade."""
+    steps = arrays["join_velocity_step"][np.isfinite(arrays["join_velocity_step"])]
+    if not len(steps):
+        return {}
+    widths = np.diff(arrays["join_window"], axis=1)[:, 0]
+    return {"mean_join_velocity_step": float(steps.mean()), "mean_join_window": float(widths.mean())}
+
+
+def rest_warnings(trellis, labels: list[str]) -> list[str]:
+    """A warning per test utterance with no voiced segment: its head stays at the rest pose."""
+    counts = np.bincount(np.asarray(trellis["segment_utterance"], dtype=np.int64), minlength=len(labels))
+    return [
+        f"'{label}' has no voiced speech: its head stays at the rest pose" for label, n in zip(labels, counts) if n == 0
+    ]
 
 
 def database_motion(view, *, use_translation: bool = True) -> DatabaseMotion:
@@ -658,42 +788,148 @@ def database_motion(view, *, use_translation: bool = True) -> DatabaseMotion:
     )
     if not np.isfinite(channels).all():
         raise UserError("NaN in the database motion", field="inputs.database")
-    return DatabaseMotion(channels, np.concatenate([[0], np.cumsum(frames)[:-1]]), frames, float(view.meta["fps"]))
+    first = np.concatenate([[0], np.cumsum(frames)[:-1]])
+    return DatabaseMotion(channels, first, frames, float(view.meta["fps"]), view.meta.get("speakers"))
 
 
-def synthesise(trellis, db: DatabaseMotion, fps: float, **blend) -> list[Stitched]:
-    """The stitched motion of each test utterance of a trellis artifact (a still head where silent); ``blend``:
-    keyword arguments of ``stitch_segments``."""
-    labels = list(trellis.meta.get("labels") or [])
-    durations = trellis.meta.get("durations") or []
-    if blend.get("smoothing", "velocity") == "velocity":
-        # velocity steps measured like the trellis's H measured them
-        blend.setdefault("boundary_window", float(trellis.meta.get("boundary_window", 0.1)))
-    test_fps = trellis.meta.get("fps") or [None] * len(labels)
-    test_frames = trellis.meta.get("frames") or [None] * len(labels)
-    segments = np.asarray(trellis["segments"]).reshape(-1, 3)
-    seg_utt = np.asarray(trellis["segment_utterance"])
-    chosen = np.asarray(trellis["chosen"], dtype=np.int64)
-    db_seq = np.asarray(trellis["db_segment_sequence"], dtype=np.int64)
-    db_segments = np.asarray(trellis["db_segments"]).reshape(-1, 3)
+def database_events(trellis, db: DatabaseMotion, timing: str) -> list[np.ndarray]:
+    """Per database sequence, the events the timing warp moves: its audio onsets (``timing="onsets"``) or the
+    strokes of its head motion (``"strokes"``: maxima of the smoothed angular speed, stages.head.beats)."""
+    from stages.head.beats import kinematic_beats
+
+    if timing == "strokes":
+        return [
+            kinematic_beats(db.channels[first : first + n, :3], db.fps, kind="peaks", smoothing=0.1)
+            for first, n in zip(db.first, db.frames)
+        ]
+    times = np.asarray(trellis["db_onsets"]) if "db_onsets" in trellis else np.zeros(0)
+    owner = np.asarray(trellis["db_onset_sequence"]) if "db_onset_sequence" in trellis else np.zeros(0, int)
+    return [times[owner == k] for k in range(len(db.frames))]
+
+
+def utterance_time_maps(
+    test_segments: np.ndarray,
+    db_segments: np.ndarray,
+    db_sequence: np.ndarray,
+    test_events: np.ndarray,
+    db_events: list[np.ndarray],
+    tolerance: float,
+    max_stretch: float,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``segment_knots`` of every chosen segment of one utterance."""
+    return [
+        segment_knots(
+            (test_segments[k, 0], test_segments[k, 2]),
+            (db_segments[k, 0], db_segments[k, 2]),
+            test_events,
+            db_events[int(db_sequence[k])],
+            tolerance=tolerance,
+            max_stretch=max_stretch,
+        )
+        for k in range(len(test_segments))
+    ]
+
+
+@dataclass
+class TrellisPath:
+    """What the blend reads from a trellis artifact: test segments, the chosen database segments, onsets."""
+
+    labels: list[str]
+    speakers: list
+    segments: np.ndarray  # (N, 3) test segments
+    utterance: np.ndarray  # (N,)
+    subsentence_start: np.ndarray  # (N,)
+    db_sequence: np.ndarray  # (N,) database sequence of the chosen segment
+    db_segments: np.ndarray  # (N, 3) its times
+    onsets: np.ndarray  # test audio onsets
+    onset_utterance: np.ndarray
+
+    @classmethod
+    def of(cls, trellis) -> TrellisPath:
+        labels = list(trellis.meta.get("labels") or [])
+        chosen = np.asarray(trellis["chosen"], dtype=np.int64)
+        has_onsets = "test_onsets" in trellis and "test_onset_utterance" in trellis
+        return cls(
+            labels,
+            list(trellis.meta.get("speakers") or [None] * len(labels)),
+            np.asarray(trellis["segments"]).reshape(-1, 3),
+            np.asarray(trellis["segment_utterance"]),
+            np.asarray(trellis["subsentence_start"], dtype=bool),
+            np.asarray(trellis["db_segment_sequence"], dtype=np.int64)[chosen],
+            np.asarray(trellis["db_segments"]).reshape(-1, 3)[chosen],
+            np.asarray(trellis["test_onsets"]) if has_onsets else np.zeros(0),
+            np.asarray(trellis["test_onset_utterance"]) if has_onsets else np.zeros(0, int),
+        )
+
+
+def utterance_frames(trellis, u: int, fps: float) -> int:
+    """Output frames of test utterance ``u``: its own frame count at its own rate, else its duration at ``fps``."""
+    test_fps = (trellis.meta.get("fps") or [None] * (u + 1))[u]
+    test_frames = (trellis.meta.get("frames") or [None] * (u + 1))[u]
+    if test_frames and test_fps and abs(float(test_fps) - fps) < 1e-6:
+        return int(test_frames)
+    return int(round(float(trellis.meta["durations"][u]) * fps))
+
+
+def synthesise(
+    trellis,
+    db: DatabaseMotion,
+    fps: float,
+    *,
+    timing: str = "segment",
+    timing_tolerance: float = 0.15,
+    max_stretch: float = 2.0,
+    amplitude: str = "database",
+    rest_anchor: float = 0.0,
+    **blend,
+) -> list[Stitched]:
+    """The stitched motion of each test utterance of a trellis artifact (a still head where silent). ``timing``:
+    each chosen segment resampled uniformly onto its test segment (``"segment"``, the paper), or with its audio
+    onsets (``"onsets"``) or its head strokes (``"strokes"``) moved onto the test's audio onsets
+    (``segment_knots``). ``amplitude="speaker"`` scales every source speaker's motion to the test speaker's
+    spread (``amplitude_gains``); ``rest_anchor`` > 0 removes wander slower than that many seconds (a Gaussian
+    low-pass of that sd), so the head keeps returning to its rest pose. ``blend``: keyword arguments of
+    ``stitch_segments``."""
+    path = TrellisPath.of(trellis)
+    events = database_events(trellis, db, timing) if timing != "segment" else None
     out = []
-    for u in range(len(labels)):
-        if test_frames[u] and test_fps[u] and abs(float(test_fps[u]) - fps) < 1e-6:
-            n_frames = int(test_frames[u])
-        else:
-            n_frames = int(round(float(durations[u]) * fps))
-        rows = np.flatnonzero(seg_utt == u)
+    for u in range(len(path.labels)):
+        source = db.scaled(amplitude_gains(db, path.speakers[u])) if amplitude == "speaker" else db
+        rows = np.flatnonzero(path.utterance == u)
+        maps = None
+        if events is not None:
+            onsets = path.onsets[path.onset_utterance == u]
+            maps = utterance_time_maps(
+                path.segments[rows],
+                path.db_segments[rows],
+                path.db_sequence[rows],
+                onsets,
+                events,
+                timing_tolerance,
+                max_stretch,
+            )
+        times = np.arange(utterance_frames(trellis, u, fps)) / fps
         stitched = stitch_segments(
-            db,
-            segments[rows],
-            np.asarray(trellis["subsentence_start"])[rows],
-            db_seq[chosen[rows]],
-            db_segments[chosen[rows]],
-            np.arange(n_frames) / fps,
+            source,
+            path.segments[rows],
+            path.subsentence_start[rows],
+            path.db_sequence[rows],
+            path.db_segments[rows],
+            times,
+            time_maps=maps,
             **blend,
         )
+        if rest_anchor > 0 and len(stitched.channels) > 1:
+            stitched.channels = stitched.channels - low_pass(stitched.channels, rest_anchor * fps)
         out.append(stitched)
     return out
+
+
+def low_pass(channels: np.ndarray, sd_frames: float) -> np.ndarray:
+    """Gaussian low-pass along frames (edges extended with the end values)."""
+    from scipy.ndimage import gaussian_filter1d
+
+    return gaussian_filter1d(channels, sd_frames, axis=0, mode="nearest")
 
 
 def motion_metrics(arrays: dict, fps: float, window: float, reference, labels: list[str]) -> dict:
@@ -710,7 +946,7 @@ def motion_metrics(arrays: dict, fps: float, window: float, reference, labels: l
             join_acceleration(angles, fps, arrays["joins"][arrays["join_utterance"] == u], max(window, 1.0 / fps))
         )
         if reference is not None:
-            real = _reference_angles(reference, labels[u], len(labels), fps)
+            real = reference_angles(reference, labels[u], len(labels), fps)
             if real is not None and len(real) >= 3:
                 ref_speed.append(angular_speed(real, fps))
                 ref_acc99.append(np.percentile(angular_acceleration(real, fps), 99))

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from pydantic import Field, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
 
@@ -72,6 +73,18 @@ def praat_pitch(
     f0 = pitch.selected_array["frequency"].astype(np.float64)
     times = pitch.x1 + pitch.dx * np.arange(pitch.n_frames)
     return times, np.where(f0 > 0, f0, np.nan)
+
+
+def frame_energy(samples: np.ndarray, rate: int, times: np.ndarray, window: float = 0.04) -> np.ndarray:
+    """Loudness in dB (20 log10 of the RMS, floored at -100 dB) of ``window``-second frames of a mono signal
+    centred at ``times`` (seconds from the first sample). Vectorised over frames through a cumulative sum."""
+    x = np.asarray(samples, dtype=np.float64)
+    power = np.concatenate([[0.0], np.cumsum(x * x)])
+    half = max(1, int(round(window * rate / 2)))
+    centre = np.round(np.asarray(times) * rate).astype(np.int64)
+    lo, hi = np.clip(centre - half, 0, len(x)), np.clip(centre + half, 0, len(x))
+    mean = (power[hi] - power[lo]) / np.maximum(hi - lo, 1)
+    return 10.0 * np.log10(np.maximum(mean, 1e-10))
 
 
 def voiced_runs(voiced: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -176,6 +189,11 @@ def _num(value) -> str:
     return repr(float(value))
 
 
+def praat_string(text: str) -> str:
+    """A string literal of Praat's text formats: in double quotes, each double quote inside doubled."""
+    return '"' + str(text).replace('"', '""') + '"'
+
+
 def _interval_tier(name: str, xmax: float, intervals: list[tuple[float, float, str]]) -> list[str]:
     """Lines of a long-format IntervalTier; gaps between the (sorted, disjoint) intervals become empty ones."""
     filled: list[tuple[float, float, str]] = []
@@ -192,7 +210,7 @@ def _interval_tier(name: str, xmax: float, intervals: list[tuple[float, float, s
         filled.append((cursor, xmax, ""))
     lines = [
         '        class = "IntervalTier"',
-        f'        name = "{name}"',
+        f"        name = {praat_string(name)}",
         "        xmin = 0",
         f"        xmax = {_num(xmax)}",
         f"        intervals: size = {len(filled)}",
@@ -202,7 +220,7 @@ def _interval_tier(name: str, xmax: float, intervals: list[tuple[float, float, s
             f"        intervals [{k}]:",
             f"            xmin = {_num(a)}",
             f"            xmax = {_num(b)}",
-            f'            text = "{label}"',
+            f"            text = {praat_string(label)}",
         ]
     return lines
 
@@ -269,7 +287,7 @@ class Utterance:
     duration: float  # length of the sequence clock to cover (motion length if known, else audio end)
     fps: float | None
     frames: int | None
-    speaker: str
+    speaker: str | None  # the take's speaker label; None when unlabelled
     audio_key: tuple  # utterances sharing audio (mirrored database copies) share this key
     field: str
 
@@ -301,7 +319,7 @@ def utterances_from_artifact(view, field: str = "inputs.source") -> list[Utteran
     sources = _per_sequence(meta.get("sources"), n, None)
     offsets = _per_sequence(meta.get("audio_offset"), n, 0.0)
     fps = _per_sequence(meta.get("fps"), n, None)
-    speakers = _per_sequence(meta.get("speakers"), n, "speaker")
+    speakers = artifact_speakers(meta, labels)
     frames = [None] * n
     if "sequence" in view:
         counts = np.bincount(np.asarray(view["sequence"], dtype=np.int64), minlength=n)
@@ -325,7 +343,7 @@ def utterances_from_artifact(view, field: str = "inputs.source") -> list[Utteran
                 duration,
                 rate_k,
                 n_frames,
-                str(speakers[k]),
+                speakers[k],
                 (int(a), int(b), offset),
                 f"{field}[{label}]",
             )
@@ -333,8 +351,22 @@ def utterances_from_artifact(view, field: str = "inputs.source") -> list[Utteran
     return out
 
 
-def utterances_from_files(files: dict, rate: int, field: str = "inputs.audio") -> list[Utterance]:
+def artifact_speakers(meta: dict, labels: list[str]) -> list[str | None]:
+    """Speaker label per sequence: a headdb artifact's ``speakers`` list, else a tracking artifact's ``fields``
+    (label -> {field: value}, the labelled-files contract), else None."""
+    listed = meta.get("speakers")
+    if isinstance(listed, list) and len(listed) == len(labels):
+        return [None if x is None else str(x) for x in listed]
+    fields = meta.get("fields") or {}
+    return [(fields.get(label) or {}).get("speaker") for label in labels]
+
+
+def utterances_from_files(files, rate: int, field: str = "inputs.audio") -> list[Utterance]:
+    """Audio files (WAV, FLAC, MP3 or any container PyAV decodes) as utterances; speakers from the files'
+    ``speaker`` fields."""
     from stages.formats.audio import decode_audio
+
+    fields = getattr(files, "fields", {})
 
     out = []
     for label, path in files.items():
@@ -349,7 +381,7 @@ def utterances_from_files(files: dict, rate: int, field: str = "inputs.audio") -
                 decoded.duration,
                 None,
                 None,
-                "speaker",
+                (fields.get(label) or {}).get("speaker"),
                 (str(path),),
                 f"{field}.{label}",
             )
@@ -361,6 +393,7 @@ PITCH_OUTPUTS = {
     "f0": Output.array("f", shape=("pitch_frames",), dtype="float32", doc="cleaned f0 in Hz, NaN where unvoiced"),
     "f0_raw": Output.array("f", shape=("pitch_frames",), dtype="float32", doc="Praat's f0 in Hz, NaN unvoiced"),
     "pitch_time": Output.array("f", shape=("pitch_frames",), dtype="float64", doc="seconds on the sequence clock"),
+    "energy": Output.array("f", shape=("pitch_frames",), dtype="float32", doc="loudness (dB) of 40 ms frames"),
     "pitch_utterance": Output.array("i", shape=("pitch_frames",), dtype="int32", doc="index into meta labels"),
     "segments": Output.array(
         "f",
@@ -377,6 +410,13 @@ PITCH_OUTPUTS = {
         doc="meta feature_names; NaN rows for utterances without voice",
     ),
     "speaker_median": Output.array("f", shape=("utterances",), dtype="float64", doc="Hz, reference of semitones"),
+    "onsets": Output.array(
+        "f", shape=("onsets",), dtype="float64", doc="audio onsets (spectral-flux peaks), sequence clock seconds"
+    ),
+    "onset_utterance": Output.array("i", shape=("onsets",), dtype="int32", doc="index into meta labels"),
+    "speaker_spread": Output.array(
+        "f", shape=("utterances",), dtype="float64", doc="standard deviation of the speaker's pitch in semitones"
+    ),
     "utterance_duration": Output.array("f", shape=("utterances",), dtype="float64"),
     "textgrid": Output.file(
         ".TextGrid", doc="Praat TextGrid over the 'sound' file: utterance, segment, voiced, subsentence tiers"
@@ -415,29 +455,69 @@ def _plot_pitch_segments(view, inputs=None, utterance: int = 0):
     return fig
 
 
+class PitchParams(Stage.Params):
+    method: Literal["ac", "cc"] = Field("ac", description="Praat's autocorrelation or cross-correlation tracker")
+    time_step: float = Field(0.01, gt=0, le=0.1, description="seconds between pitch frames")
+    floor: float = Field(60.0, gt=0, description="lowest f0 Praat looks for (Hz)")
+    ceiling: float = Field(
+        500.0, gt=0, validate_default=True, description="highest f0 Praat looks for (Hz); above floor"
+    )
+    voicing_threshold: float = Field(0.45, ge=0, le=1)
+    silence_threshold: float = Field(0.03, ge=0, le=1)
+    human_range: tuple[float, float] = Field((50.0, 800.0), description="f0 outside (Hz) is dropped (Sec. 5.1)")
+    max_deviation: float | None = Field(
+        10.0, gt=0, description="semitones from the utterance's median beyond which f0 is an octave error"
+    )
+    max_gap: float = Field(0.03, ge=0, description="unvoiced gaps shorter than this (s) are filled")
+    min_voiced: float = Field(0.05, ge=0, description="voiced islands shorter than this (s) are dropped")
+    breath_pause: float = Field(0.3, gt=0, description="a pause at least this long (s) starts a sub-sentence")
+    median_over: Literal["speaker", "utterance"] = Field(
+        "speaker", description="semitone reference: the median f0 of each speaker's takes, or of each utterance"
+    )
+    on_silence: Literal["error", "warn"] = Field(
+        "warn", description="an utterance without voiced speech: an error, or a warning and no segments (a still head)"
+    )
+    onset_delta: float = Field(0.15, ge=0, le=1, description="onset peak height above the local mean (flux in 0..1)")
+    onset_min_gap: float = Field(0.1, ge=0, description="shortest time (s) between two audio onsets")
+    audio_rate: int = Field(16000, ge=4000, le=192000, description="decoding rate of audio files (Hz)")
+    analysis_rate: int = Field(
+        8000,
+        ge=1000,
+        validate_default=True,
+        description="audio above this rate is resampled to it for Praat (speed; f0 << 4 kHz)",
+    )
+
+    @field_validator("human_range")
+    @classmethod
+    def _ordered_range(cls, value):
+        if not 0 < value[0] < value[1]:
+            raise ValueError(f"need 0 < low < high (got {list(value)})")
+        return value
+
+    @field_validator("ceiling")
+    @classmethod
+    def _ceiling_above_floor(cls, value, info):
+        floor = info.data.get("floor")
+        if floor is not None and not value > floor:
+            raise ValueError(f"ceiling {value} Hz must be above floor {floor} Hz")
+        return value
+
+    @field_validator("analysis_rate")
+    @classmethod
+    def _rate_for_ceiling(cls, value, info):
+        ceiling = info.data.get("ceiling")
+        if ceiling is not None and value < 4 * ceiling:
+            raise ValueError(f"{value} Hz is too low for a pitch ceiling of {ceiling} Hz (needs at least 4x)")
+        return value
+
+
 class Pitch(Stage):
     """Praat pitch, Sec. 5.1 cleaning, onset-to-onset segments, sub-sentence breaks, phrase features."""
 
-    class Params(Stage.Params):
-        method: Literal["ac", "cc"] = "ac"
-        time_step: float = 0.01
-        floor: float = 60.0
-        ceiling: float = 500.0
-        voicing_threshold: float = 0.45
-        silence_threshold: float = 0.03
-        human_range: tuple[float, float] = (50.0, 800.0)
-        max_deviation: float | None = 10.0
-        max_gap: float = 0.03
-        min_voiced: float = 0.05
-        breath_pause: float = 0.3
-        median_over: Literal["speaker", "utterance"] = "speaker"
-        on_silence: Literal["error", "still"] = "error"
-        audio_rate: int = 16000  # decoding rate of audio files
-        analysis_rate: int = 8000  # audio above this rate is resampled to it for Praat (speed; f0 << 4 kHz)
-
+    Params = PitchParams
     inputs = {
         "source": Input.artifact(optional=True, doc="tracking or headdb artifact with audio per sequence"),
-        "audio": Input.files(optional=True, doc="labelled audio files (any container PyAV decodes)"),
+        "audio": Input.files(optional=True, doc="labelled audio files: WAV, FLAC, MP3 or any container PyAV decodes"),
     }
     outputs = PITCH_OUTPUTS
     figures = {"pitch_segments": _plot_pitch_segments}
@@ -451,14 +531,6 @@ class Pitch(Stage):
             utterances = utterances_from_files(inputs["audio"], params.audio_rate)
         if not utterances:
             raise UserError("no utterances to analyse", field="inputs")
-        if params.analysis_rate < 4 * params.ceiling:
-            raise UserError(
-                f"analysis_rate {params.analysis_rate} Hz is too low for a pitch ceiling of "
-                f"{params.ceiling} Hz (needs at least 4x)",
-                field="params.analysis_rate",
-            )
-        if not 0 < params.floor < params.ceiling:
-            raise UserError(f"need 0 < floor < ceiling (got {params.floor}, {params.ceiling})", field="params.floor")
         return pitch_result(utterances, params)
 
 
@@ -474,68 +546,108 @@ def analysis_signal(samples: np.ndarray, rate: int, analysis_rate: int) -> tuple
     return resample_poly(np.asarray(samples, dtype=np.float64), analysis_rate // g, rate // g), int(analysis_rate)
 
 
+def analyse_audio(utt: Utterance, params) -> tuple[np.ndarray, ...]:
+    """Praat pitch (raw and cleaned, on the sequence clock, NaN outside the utterance), audio onsets and loudness
+    (dB, at the pitch frames) of one utterance's audio."""
+    from stages.head.beats import audio_onsets
+
+    if len(utt.samples) < int(0.1 * utt.rate):
+        raise UserError(
+            f"audio of '{utt.label}' is too short to analyse ({len(utt.samples)} samples)",
+            file=utt.source,
+            field=utt.field,
+        )
+    samples, rate = analysis_signal(utt.samples, utt.rate, params.analysis_rate)
+    tau, raw = praat_pitch(
+        samples,
+        rate,
+        method=params.method,
+        time_step=params.time_step,
+        floor=params.floor,
+        ceiling=params.ceiling,
+        voicing_threshold=params.voicing_threshold,
+        silence_threshold=params.silence_threshold,
+    )
+    times = tau + utt.offset
+    raw = np.where((times < 0) | (times > utt.duration), np.nan, raw)
+    clean = clean_pitch(
+        raw,
+        params.time_step,
+        human_range=params.human_range,
+        max_deviation=params.max_deviation,
+        max_gap=params.max_gap,
+        min_voiced=params.min_voiced,
+    )
+    onsets = audio_onsets(
+        utt.samples, utt.rate, offset=utt.offset, delta=params.onset_delta, min_gap=params.onset_min_gap
+    )
+    energy = frame_energy(utt.samples, utt.rate, times - utt.offset)
+    return times, raw, clean, onsets[(onsets >= 0) & (onsets < utt.duration)], energy
+
+
 def analyse_utterances(utterances: list[Utterance], params) -> list[dict]:
-    """Pitch, cleaning and segmentation per utterance; utterances sharing audio are analysed once."""
+    """Pitch, cleaning, segmentation and onsets per utterance; utterances sharing audio are analysed once."""
     cache: dict[tuple, tuple] = {}
     analyses = []
     for utt in utterances:
         if utt.audio_key not in cache:
-            if len(utt.samples) < int(0.1 * utt.rate):
-                raise UserError(
-                    f"audio of '{utt.label}' is too short to analyse ({len(utt.samples)} samples)",
-                    file=utt.source,
-                    field=utt.field,
-                )
-            samples, rate = analysis_signal(utt.samples, utt.rate, params.analysis_rate)
-            tau, raw = praat_pitch(
-                samples,
-                rate,
-                method=params.method,
-                time_step=params.time_step,
-                floor=params.floor,
-                ceiling=params.ceiling,
-                voicing_threshold=params.voicing_threshold,
-                silence_threshold=params.silence_threshold,
-            )
-            times = tau + utt.offset
-            outside = (times < 0) | (times > utt.duration)
-            raw = np.where(outside, np.nan, raw)
-            clean = clean_pitch(
-                raw,
-                params.time_step,
-                human_range=params.human_range,
-                max_deviation=params.max_deviation,
-                max_gap=params.max_gap,
-                min_voiced=params.min_voiced,
-            )
-            cache[utt.audio_key] = (times, raw, clean)
-        times, raw, clean = cache[utt.audio_key]
+            cache[utt.audio_key] = analyse_audio(utt, params)
+        times, raw, clean, onsets, energy = cache[utt.audio_key]
         if not np.isfinite(clean).any() and params.on_silence == "error":
             raise UserError(
                 f"no voiced speech found in '{utt.label}' (pitch floor {params.floor} Hz, ceiling "
-                f"{params.ceiling} Hz); set on_silence: still for a still head",
+                f"{params.ceiling} Hz); set on_silence: warn to go on with no segments (a still head)",
                 file=utt.source,
                 field=utt.field,
             )
         seg = segment_pitch(times, clean, utt.duration, time_step=params.time_step, breath_pause=params.breath_pause)
-        analyses.append({"times": times, "raw": raw, "clean": clean, "segmentation": seg})
+        analyses.append(
+            {"times": times, "raw": raw, "clean": clean, "segmentation": seg, "onsets": onsets, "energy": energy}
+        )
     return analyses
 
 
-def speaker_medians(utterances: list[Utterance], analyses: list[dict], median_over: str) -> np.ndarray:
-    """Median f0 (Hz) per utterance's speaker (all its utterances pooled) or per utterance."""
-    keys = [u.speaker if median_over == "speaker" else str(k) for k, u in enumerate(utterances)]
-    medians = {}
+def speaker_keys(utterances: list[Utterance], median_over: str) -> list[str]:
+    """The group whose pitch each utterance's semitone reference pools: its speaker, or itself.
+
+    Per speaker, every take must carry a speaker label unless there is only one take (mirrored copies share their
+    original's audio): pooling unlabelled takes of several speakers would give them one median."""
+    if median_over == "utterance":
+        return [f"utterance {k}" for k in range(len(utterances))]
+    takes = {u.audio_key for u in utterances}
+    unlabelled = [u for u in utterances if u.speaker is None]
+    if unlabelled and len(takes) > 1:
+        first = unlabelled[0]
+        raise UserError(
+            f"take '{first.label}' has no speaker label, and pitch is normalised per speaker over {len(takes)} "
+            "takes (median_over: speaker): label every take with a speaker (a {speaker} field in the input's "
+            "file pattern, 'speaker:' beside its path, or the headdb stage's speaker param), or set "
+            "median_over: utterance",
+            file=first.source,
+            field=f"{first.field}.speaker",
+        )
+    return [u.speaker or "" for u in utterances]
+
+
+def speaker_statistics(keys: list[str], analyses: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    """Median f0 (Hz) and spread (standard deviation of semitones relative to that median) of each utterance's
+    group (``speaker_keys``), every utterance of the group pooled; NaN for a group without voice."""
+    stats = {}
     for key in set(keys):
         pooled = np.concatenate([a["clean"] for k, a in zip(keys, analyses) if k == key])
         pooled = pooled[np.isfinite(pooled)]
-        medians[key] = float(np.median(pooled)) if len(pooled) else np.nan
-    return np.array([medians[k] for k in keys])
+        if len(pooled) == 0:
+            stats[key] = (np.nan, np.nan)
+            continue
+        median = float(np.median(pooled))
+        stats[key] = (median, float(np.std(semitones(pooled, median))))
+    return np.array([stats[k][0] for k in keys]), np.array([stats[k][1] for k in keys])
 
 
 def pitch_result(utterances: list[Utterance], params) -> Result:
+    keys = speaker_keys(utterances, params.median_over)
     analyses = analyse_utterances(utterances, params)
-    medians = speaker_medians(utterances, analyses, params.median_over)
+    medians, spreads = speaker_statistics(keys, analyses)
     features = np.stack(
         [phrase_features(a["times"], a["clean"], a["segmentation"].segments, m) for a, m in zip(analyses, medians)]
     )
@@ -543,6 +655,7 @@ def pitch_result(utterances: list[Utterance], params) -> Result:
     arrays = {
         "f0": np.concatenate([a["clean"] for a in analyses]).astype(np.float32),
         "f0_raw": np.concatenate([a["raw"] for a in analyses]).astype(np.float32),
+        "energy": np.concatenate([a["energy"] for a in analyses]).astype(np.float32),
         "pitch_time": np.concatenate([a["times"] for a in analyses]),
         "pitch_utterance": np.concatenate([np.full(len(a["times"]), k, np.int32) for k, a in enumerate(analyses)]),
         "segments": np.concatenate([a["segmentation"].segments for a in analyses]).reshape(-1, 3),
@@ -550,6 +663,9 @@ def pitch_result(utterances: list[Utterance], params) -> Result:
         "subsentence_start": np.concatenate([a["segmentation"].subsentence_start for a in analyses]).astype(bool),
         "phrase_features": features,
         "speaker_median": medians,
+        "speaker_spread": spreads,
+        "onsets": np.concatenate([a["onsets"] for a in analyses]),
+        "onset_utterance": np.concatenate([np.full(len(a["onsets"]), k, np.int32) for k, a in enumerate(analyses)]),
         "utterance_duration": np.array([u.duration for u in utterances]),
     }
     arrays.update(praat_exports(utterances, analyses))
@@ -567,7 +683,7 @@ def pitch_result(utterances: list[Utterance], params) -> Result:
         "time_step": params.time_step,
         "method": params.method,
         "breath_pause": params.breath_pause,
-        "silent": [label for label, n in zip([u.label for u in utterances], seg_counts) if n == 0],
+        "silent": [u.label for u, n in zip(utterances, seg_counts) if n == 0],
     }
     metrics = {
         "segments": int(sum(seg_counts)),
@@ -578,7 +694,12 @@ def pitch_result(utterances: list[Utterance], params) -> Result:
         else 0.0,
         "subsentences": int(arrays["subsentence_start"].sum()),
     }
-    return Result(arrays, meta, metrics)
+    warnings = [
+        f"no voiced speech in '{u.label}' ({u.source}): no segments, the head stays at rest there"
+        for u, n in zip(utterances, seg_counts)
+        if n == 0
+    ]
+    return Result(arrays, meta, metrics, warnings)
 
 
 def praat_exports(utterances: list[Utterance], analyses: list[dict]) -> dict[str, bytes]:

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from pydantic import Field, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
 from stages.head.pitch import semitones
@@ -31,6 +32,14 @@ GEOMETRY_FEATURES = ("min", "max", "range", "min_slope", "max_slope", "curvature
 
 
 # ------------------------------------------------------------------------------------------ segment features
+
+
+@dataclass
+class SpeakerReference:
+    """Per utterance: the median f0 (Hz) and the spread (semitones) of its speaker, the reference of the unit."""
+
+    median: np.ndarray
+    spread: np.ndarray
 
 
 @dataclass
@@ -43,6 +52,11 @@ class SegmentTable:
     subsentence_start: np.ndarray  # (n,) bool
     contour: np.ndarray  # (n, L) voiced pitch resampled to L points, in the matching unit
     geometry: np.ndarray  # (n, 6) GEOMETRY_FEATURES of the contour
+    energy: np.ndarray  # (n, L) loudness (dB re the take's median voiced loudness), onset to next onset
+    onset_rate: np.ndarray  # (n,) audio onsets per second inside the segment
+
+    def rows(self, index: np.ndarray) -> SegmentTable:
+        return SegmentTable(*(getattr(self, f)[index] for f in self.__dataclass_fields__))
 
     def __len__(self) -> int:
         return len(self.times)
@@ -103,16 +117,24 @@ def contour_geometry(contour: np.ndarray, voiced_length: np.ndarray) -> np.ndarr
     return np.stack([lo, hi, hi - lo, slopes.min(axis=1), slopes.max(axis=1), curvature], axis=1)
 
 
-def segment_table(view, reference_hz: np.ndarray, unit: str, length: int) -> SegmentTable:
-    """Segments of a pitch artifact with contours in ``unit`` (semitones re ``reference_hz`` per utterance,
-    or Hz)."""
-    f0 = np.asarray(view["f0"], dtype=np.float64)
+def pitch_in_unit(f0_hz: np.ndarray, unit: str, reference_hz: np.ndarray, spread: np.ndarray) -> np.ndarray:
+    """Pitch in the matching unit: Hz; semitones relative to the speaker's median (``reference_hz``, per frame);
+    or z-scores per speaker (those semitones divided by the speaker's ``spread``, semitones)."""
+    if unit == "hz":
+        return np.asarray(f0_hz, dtype=np.float64)
+    st = semitones(f0_hz, reference_hz)
+    return st / np.maximum(spread, 1e-6) if unit == "zscore" else st
+
+
+def segment_table(view, reference: SpeakerReference, unit: str, length: int) -> SegmentTable:
+    """Segments of a pitch artifact with contours in ``unit`` (``pitch_in_unit``, each utterance relative to its
+    entry of ``reference``), loudness contours and onset rates."""
     utt = np.asarray(view["pitch_utterance"], dtype=np.int64)
-    if unit == "semitones":
-        f0 = semitones(f0, reference_hz[utt])
+    f0 = pitch_in_unit(np.asarray(view["f0"], dtype=np.float64), unit, reference.median[utt], reference.spread[utt])
     segments = np.asarray(view["segments"], dtype=np.float64).reshape(-1, 3)
     seg_utt = np.asarray(view["segment_utterance"], dtype=np.int64)
-    contour = voiced_contours(f0, np.asarray(view["pitch_time"]), utt, segments, seg_utt, length)
+    pitch_time = np.asarray(view["pitch_time"])
+    contour = voiced_contours(f0, pitch_time, utt, segments, seg_utt, length)
     position = np.zeros(len(segments), dtype=np.int64)
     if len(segments):
         starts = np.flatnonzero(np.concatenate([[True], seg_utt[1:] != seg_utt[:-1]]))
@@ -124,7 +146,38 @@ def segment_table(view, reference_hz: np.ndarray, unit: str, length: int) -> Seg
         np.asarray(view["subsentence_start"], dtype=bool),
         contour,
         contour_geometry(contour, segments[:, 1] - segments[:, 0]),
+        loudness_contours(view, segments, seg_utt, length),
+        onset_rates(view, segments, seg_utt),
     )
+
+
+def loudness_contours(view, segments: np.ndarray, seg_utt: np.ndarray, length: int) -> np.ndarray:
+    """Loudness of each segment from onset to next onset resampled to ``length`` points, in dB relative to its
+    take's median loudness over voiced frames (recording levels differ between takes); zeros without ``energy``."""
+    if "energy" not in view or not len(segments):
+        return np.zeros((len(segments), length))
+    utt = np.asarray(view["pitch_utterance"], dtype=np.int64)
+    energy = np.asarray(view["energy"], dtype=np.float64)
+    voiced = np.isfinite(np.asarray(view["f0"], dtype=np.float64))
+    n_utt = int(utt.max()) + 1
+    level = np.array([np.median(energy[(utt == u) & voiced]) if np.any((utt == u) & voiced) else 0.0
+                      for u in range(n_utt)])  # fmt: skip
+    span = np.stack([segments[:, 0], segments[:, 2], segments[:, 2]], axis=1)
+    return voiced_contours(energy - level[utt], np.asarray(view["pitch_time"]), utt, span, seg_utt, length)
+
+
+def onset_rates(view, segments: np.ndarray, seg_utt: np.ndarray) -> np.ndarray:
+    """Audio onsets per second inside each segment (onset to next onset); zeros without ``onsets``."""
+    if "onsets" not in view or not len(segments):
+        return np.zeros(len(segments))
+    onsets = np.asarray(view["onsets"], dtype=np.float64)
+    owner = np.asarray(view["onset_utterance"], dtype=np.int64)
+    inside = (
+        (owner[None, :] == seg_utt[:, None])
+        & (onsets[None, :] >= segments[:, :1])
+        & (onsets[None, :] < segments[:, 2:3])
+    )
+    return inside.sum(axis=1) / np.maximum(segments[:, 2] - segments[:, 0], 1e-6)
 
 
 # -------------------------------------------------------------------------------------------- distances
@@ -148,38 +201,71 @@ def phrase_distances(
 
 @dataclass
 class SegmentDistance:
-    total: np.ndarray  # (N, S) D of Eq. 12
+    total: np.ndarray  # (N, S) D of Eq. 12 (plus the loudness and rhythm terms when weighted)
     geometry: np.ndarray  # G_d
     pitch: np.ndarray  # P_d, Eq. 10
     length: np.ndarray  # L_d, Eq. 11
+    loudness: np.ndarray  # E_d (beyond the paper)
+    rhythm: np.ndarray  # O_d (beyond the paper)
+
+
+@dataclass
+class SegmentWeights:
+    """Weights of the segment distance: b, c of Eq. 12 (L_d gets 1 - b - c), and e, o of the loudness and rhythm
+    terms added beyond the paper (0: the paper's distance)."""
+
+    b: float
+    c: float
+    e: float = 0.0
+    o: float = 0.0
+
+
+@dataclass
+class SegmentScales:
+    """Database statistics that put the terms on comparable scales."""
+
+    geometry_mean: np.ndarray
+    geometry_sd: np.ndarray
+    loudness_sd: float
+    rhythm_sd: float
+
+
+def segment_scales(db: SegmentTable) -> SegmentScales:
+    """z-normalisation of the geometric features, and the spread of loudness values and of onset rates."""
+    mean, sd = zscore_stats(db.geometry) if len(db) else (np.zeros(6), np.ones(6))
+    loud = float(np.std(db.energy)) if db.energy.size else 1.0
+    rhythm = float(np.std(db.onset_rate)) if len(db) else 1.0
+    return SegmentScales(mean, sd, loud if loud > 1e-9 else 1.0, rhythm if rhythm > 1e-9 else 1.0)
+
+
+def rms_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """RMS difference (N, S) between every row of ``a`` (N, L) and of ``b`` (S, L), without the (N, S, L)
+    temporary: |a - b|^2 = |a|^2 + |b|^2 - 2 a.b."""
+    sq = (a**2).sum(1)[:, None] + (b**2).sum(1)[None, :] - 2 * a @ b.T
+    return np.sqrt(np.maximum(sq, 0.0) / a.shape[1])
 
 
 def segment_distances(
-    test: SegmentTable,
-    db: SegmentTable,
-    candidates: np.ndarray,
-    *,
-    b: float,
-    c: float,
-    geometry_mean: np.ndarray,
-    geometry_sd: np.ndarray,
+    test: SegmentTable, db: SegmentTable, candidates: np.ndarray, weights: SegmentWeights, scales: SegmentScales
 ) -> SegmentDistance:
-    """D = b G_d + c P_d + (1 - b - c) L_d between every test segment and the ``candidates`` database segments.
+    """D = b G_d + c P_d + (1 - b - c) L_d (+ e E_d + o O_d) between every test segment and the ``candidates``
+    database segments.
 
     G_d: RMS difference of the z-normalised geometric features; P_d = RMS(P_test - P_template) of the
     length-normalised contours (Eq. 10); L_d = |len_template - len_test| / len_test (Eq. 11), lengths onset to
-    next onset.
+    next onset. Beyond the paper: E_d, the RMS difference of the length-normalised loudness contours over the
+    database's loudness spread; O_d, the difference of onset rates over the database's spread of onset rates.
     """
-    zt = (test.geometry - geometry_mean) / geometry_sd
-    zd = (db.geometry[candidates] - geometry_mean) / geometry_sd
-    g = np.sqrt(np.mean((zt[:, None, :] - zd[None, :, :]) ** 2, axis=2))
-    ct, cd = test.contour, db.contour[candidates]
-    # RMS of the difference without the (N, S, L) temporary: |a - b|^2 = |a|^2 + |b|^2 - 2 a.b
-    sq = (ct**2).sum(1)[:, None] + (cd**2).sum(1)[None, :] - 2 * ct @ cd.T
-    p = np.sqrt(np.maximum(sq, 0.0) / ct.shape[1])
+    zt = (test.geometry - scales.geometry_mean) / scales.geometry_sd
+    zd = (db.geometry[candidates] - scales.geometry_mean) / scales.geometry_sd
+    g = np.sqrt(np.mean((zt[:, None, :] - zd[None, :, :]) ** 2, axis=2))  # 6 features: the direct form is exact
+    p = rms_rows(test.contour, db.contour[candidates])
     lt = test.length[:, None]
     ld = np.abs(db.length[candidates][None, :] - lt) / np.maximum(lt, 1e-6)
-    return SegmentDistance(b * g + c * p + (1 - b - c) * ld, g, p, ld)
+    e = rms_rows(test.energy, db.energy[candidates]) / scales.loudness_sd
+    o = np.abs(test.onset_rate[:, None] - db.onset_rate[candidates][None, :]) / scales.rhythm_sd
+    w = weights
+    return SegmentDistance(w.b * g + w.c * p + (1 - w.b - w.c) * ld + w.e * e + w.o * o, g, p, ld, e, o)
 
 
 # ----------------------------------------------------------------------------------- motion at boundaries
@@ -302,7 +388,31 @@ class Database:
     labels: list[str]
     sources: list[str]
     recordings: list[str]
-    median_hz: float  # pooled speaker median (reference for test_speaker: database)
+    speakers: list[str | None]  # per sequence
+    reference: SpeakerReference  # per sequence: its speaker's median f0 and spread
+
+    def speaker_reference(self, speaker: str | None) -> tuple[float, float] | None:
+        """Median (Hz) and spread (semitones) of ``speaker`` in the database; the only speaker's when the
+        database holds one and ``speaker`` is unlabelled; None when not found."""
+        known = {s for s in self.speakers}
+        if speaker is None and len(known) == 1:
+            speaker = next(iter(known))
+        if speaker not in known:
+            return None
+        k = self.speakers.index(speaker)
+        return float(self.reference.median[k]), float(self.reference.spread[k])
+
+
+@dataclass
+class SearchSettings:
+    """What one utterance's search needs from the stage's params."""
+
+    top_m: int
+    k: int
+    weights: SegmentWeights
+    w1: float
+    w2: float
+    warp_boundaries: bool
 
 
 @dataclass
@@ -316,26 +426,13 @@ class SearchResult:
     repeat: np.ndarray  # (N,) w2 R into each segment
     phrase_distance: np.ndarray  # (U,) NaN where excluded or unusable
     phrase_selected: np.ndarray  # (U,) bool
-    distances: SegmentDistance | None = None
 
 
-def search_utterance(
-    test: SegmentTable,
-    test_features: np.ndarray,
-    db: Database,
-    *,
-    allowed: np.ndarray,
-    top_m: int,
-    k: int,
-    b: float,
-    c: float,
-    w1: float,
-    w2: float,
-    warp_boundaries: bool = True,
-    geometry_stats: tuple[np.ndarray, np.ndarray],
-    feature_stats: tuple[np.ndarray, np.ndarray],
-) -> SearchResult:
-    """Phrase stage, segment stage and per-sub-sentence Viterbi for one test utterance's segments."""
+def select_phrases(
+    test_features: np.ndarray, db: Database, allowed: np.ndarray, top_m: int, k: int, feature_stats
+) -> tuple[np.ndarray, np.ndarray]:
+    """Phrase stage (Sec. 5.2): distance of every usable database phrase to the test phrase; the top M of them,
+    extended until they hold at least K segments. Returns (distance (U,), NaN where unusable; selected (U,))."""
     n_db = len(db.labels)
     seg_count = np.bincount(db.segments.utterance, minlength=n_db)
     usable = allowed & np.isfinite(db.features).all(axis=1) & (seg_count > 0)
@@ -349,12 +446,80 @@ def search_utterance(
     distance = np.full(n_db, np.nan)
     distance[usable] = phrase_distances(test_features, db.features[usable], *feature_stats)
     order = np.flatnonzero(usable)[np.argsort(distance[usable], kind="stable")]
-    # top M phrases, extended until they hold at least K segments
     cumulative = np.cumsum(seg_count[order])
     m = max(min(top_m, len(order)), int(np.searchsorted(cumulative, k)) + 1)
     selected = np.zeros(n_db, dtype=bool)
     selected[order[:m]] = True
-    pool = np.flatnonzero(selected[db.segments.utterance])
+    return distance, selected
+
+
+def top_candidates(dist: SegmentDistance, pool: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The K database segments of ``pool`` nearest each test segment, best first: (indices, their D)."""
+    n = dist.total.shape[0]
+    if pool.size > k:
+        top = np.argpartition(dist.total, k - 1, axis=1)[:, :k]
+    else:
+        top = np.tile(np.arange(pool.size), (n, 1))
+    top = np.take_along_axis(top, np.argsort(np.take_along_axis(dist.total, top, 1), axis=1, kind="stable"), 1)
+    return pool[top], np.take_along_axis(dist.total, top, 1)
+
+
+def subsentence_bounds(subsentence_start: np.ndarray) -> np.ndarray:
+    """First segment of each sub-sentence (the first segment always starts one)."""
+    starts = np.flatnonzero(subsentence_start)
+    if len(starts) == 0 or starts[0] != 0:
+        starts = np.concatenate([[0], starts])
+    return starts
+
+
+def path_search(
+    test: SegmentTable, db: Database, candidates: np.ndarray, candidate_cost: np.ndarray, settings: SearchSettings
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Viterbi over the trellis of candidates (Eq. 13-15), one search per sub-sentence (Sec. 5.4).
+    Returns the chosen column per test segment and the w1 H and w2 R paid into it (0 at sub-sentence starts)."""
+    n = len(test)
+    # each candidate plays at its own speed once resampled to its test segment's length (Sec. 5.4)
+    scale = None
+    if settings.warp_boundaries:
+        scale = db.segments.length[candidates] / np.maximum(test.length, 1e-6)[:, None]
+    h, r = transition_costs(
+        candidates[:-1],
+        candidates[1:],
+        db.end,
+        db.start,
+        db.segments.utterance,
+        db.segments.position,
+        db.weights,
+        settings.w1,
+        settings.w2,
+        None if scale is None else scale[:-1],
+        None if scale is None else scale[1:],
+    )
+    rank = np.zeros(n, dtype=np.int64)
+    starts = subsentence_bounds(test.subsentence_start)
+    for a, z in zip(starts, np.append(starts[1:], n)):
+        rank[a:z], _ = viterbi(candidate_cost[a:z], h[a : z - 1] + r[a : z - 1])
+    smooth, repeat = np.zeros(n), np.zeros(n)
+    steps = np.arange(1, n)
+    smooth[1:] = h[steps - 1, rank[:-1], rank[1:]]
+    repeat[1:] = r[steps - 1, rank[:-1], rank[1:]]
+    smooth[starts] = 0.0
+    repeat[starts] = 0.0
+    return rank, smooth, repeat
+
+
+def search_utterance(
+    test: SegmentTable,
+    test_features: np.ndarray,
+    db: Database,
+    allowed: np.ndarray,
+    settings: SearchSettings,
+    scales: SegmentScales,
+    feature_stats: tuple[np.ndarray, np.ndarray],
+) -> SearchResult:
+    """Phrase stage, segment stage and per-sub-sentence Viterbi for one test utterance's segments."""
+    k = settings.k
+    distance, selected = select_phrases(test_features, db, allowed, settings.top_m, k, feature_stats)
     n = len(test)
     if n == 0:
         empty = np.zeros(0)
@@ -369,67 +534,44 @@ def search_utterance(
             distance,
             selected,
         )
-    dist = segment_distances(
-        test, db.segments, pool, b=b, c=c, geometry_mean=geometry_stats[0], geometry_sd=geometry_stats[1]
-    )
-    top = np.argpartition(dist.total, k - 1, axis=1)[:, :k] if pool.size > k else np.tile(np.arange(pool.size), (n, 1))
-    top = np.take_along_axis(top, np.argsort(np.take_along_axis(dist.total, top, 1), axis=1, kind="stable"), 1)
-    candidates = pool[top]
-    candidate_cost = np.take_along_axis(dist.total, top, 1)
-    # each candidate plays at its own speed once resampled to its test segment's length (Sec. 5.4)
-    scale = db.segments.length[candidates] / np.maximum(test.length, 1e-6)[:, None] if warp_boundaries else None
-    h, r = transition_costs(
-        candidates[:-1],
-        candidates[1:],
-        db.end,
-        db.start,
-        db.segments.utterance,
-        db.segments.position,
-        db.weights,
-        w1,
-        w2,
-        None if scale is None else scale[:-1],
-        None if scale is None else scale[1:],
-    )
-    rank = np.zeros(n, dtype=np.int64)
-    starts = np.flatnonzero(test.subsentence_start)
-    if len(starts) == 0 or starts[0] != 0:
-        starts = np.concatenate([[0], starts])
-    for a, z in zip(starts, np.append(starts[1:], n)):
-        rank[a:z], _ = viterbi(candidate_cost[a:z], h[a : z - 1] + r[a : z - 1])
-    chosen = candidates[np.arange(n), rank]
-    smooth, repeat = np.zeros(n), np.zeros(n)
-    steps = np.arange(1, n)
-    smooth[1:] = h[steps - 1, rank[:-1], rank[1:]]
-    repeat[1:] = r[steps - 1, rank[:-1], rank[1:]]
-    smooth[starts] = 0.0
-    repeat[starts] = 0.0
+    pool = np.flatnonzero(selected[db.segments.utterance])
+    dist = segment_distances(test, db.segments, pool, settings.weights, scales)
+    candidates, candidate_cost = top_candidates(dist, pool, k)
+    rank, smooth, repeat = path_search(test, db, candidates, candidate_cost, settings)
+    rows = np.arange(n)
     return SearchResult(
-        chosen,
+        candidates[rows, rank],
         rank,
         candidates,
         candidate_cost,
-        candidate_cost[np.arange(n), rank],
+        candidate_cost[rows, rank],
         smooth,
         repeat,
         distance,
         selected,
-        dist,
     )
 
 
-def reference_medians(view, fallback: float | None = None) -> np.ndarray:
-    """Speaker median f0 per utterance; silent utterances (no median) take the others' or ``fallback``."""
+def sequence_reference(view, field: str, *, required: bool = True) -> SpeakerReference:
+    """Speaker median f0 and spread per utterance of a pitch artifact; utterances of a silent speaker take the
+    others' median (their contours are empty anyway). No voice anywhere: an error when ``required`` (the
+    database), else NaN (a silent test, which gets no segments)."""
     median = np.asarray(view["speaker_median"], dtype=np.float64)
+    spread = np.asarray(view["speaker_spread"], dtype=np.float64) if "speaker_spread" in view else np.ones_like(median)
     if not np.isfinite(median).any():
-        if fallback is None:
-            raise UserError("no voiced speech anywhere in the database's pitch", field="inputs.database_pitch")
-        return np.full_like(median, fallback)
-    return np.where(np.isfinite(median), median, np.nanmedian(median))
+        if not required:
+            return SpeakerReference(median, np.ones_like(median))
+        raise UserError(
+            "no voiced speech in any take of the database: nothing to match the test's pitch against", field=field
+        )
+    return SpeakerReference(
+        np.where(np.isfinite(median), median, np.nanmedian(median)),
+        np.where(np.isfinite(spread), spread, np.nanmedian(spread)),
+    )
 
 
-def build_database(db_view, db_pitch, *, unit: str, length: int | None, window: float) -> tuple[Database, int]:
-    """Segments, phrase features and boundary kinematics of the database; returns it and the contour length."""
+def check_pitch_of_database(db_view, db_pitch) -> list[str]:
+    """The database's sequence labels, checked against those its pitch was computed from."""
     labels = list(db_view.meta.get("labels") or [])
     pitch_labels = list(db_pitch.meta.get("labels") or [])
     if labels != pitch_labels:
@@ -438,41 +580,55 @@ def build_database(db_view, db_pitch, *, unit: str, length: int | None, window: 
             f"{pitch_labels[:4]}... vs {labels[:4]}...); run pitch on the headdb artifact",
             field="inputs.database_pitch",
         )
-    medians = reference_medians(db_pitch)
-    step = float(db_pitch.meta.get("time_step", 0.01))
-    segs = np.asarray(db_pitch["segments"]).reshape(-1, 3)
-    if length is None:
-        voiced = segs[:, 1] - segs[:, 0]
-        length = max(2, int(round(voiced.mean() / step))) if len(segs) else 2
-    table = segment_table(db_pitch, medians, unit, length)
-    fps = float(db_view.meta["fps"])
+    return labels
+
+
+def sequence_layout(db_view, n_labels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Motion angles of the database (checked finite) and each sequence's first frame and frame count."""
     sequence = np.asarray(db_view["sequence"], dtype=np.int64)
-    frames = np.bincount(sequence, minlength=len(labels))
+    frames = np.bincount(sequence, minlength=n_labels)
     first = np.concatenate([[0], np.cumsum(frames)[:-1]])
     angles = np.asarray(db_view["angles"], dtype=np.float64)
     if not np.isfinite(angles).all():
         raise UserError("NaN in the database motion", field="inputs.database")
-    seq = table.utterance
-    start = boundary_kinematics(angles, first, frames, fps, seq, table.times[:, 0], window)
-    end = boundary_kinematics(angles, first, frames, fps, seq, table.times[:, 2], window)
-    weights = smoothness_weights(start, end) if len(table) else np.ones(3)
+    return angles, first, frames
+
+
+def build_database(db_view, db_pitch, *, unit: str, length: int | None, window: float) -> tuple[Database, int]:
+    """Segments, phrase features and boundary kinematics of the database; returns it and the contour length."""
+    labels = check_pitch_of_database(db_view, db_pitch)
+    reference = sequence_reference(db_pitch, "inputs.database_pitch")
+    segs = np.asarray(db_pitch["segments"]).reshape(-1, 3)
+    if length is None:
+        step = float(db_pitch.meta.get("time_step", 0.01))
+        length = max(2, int(round((segs[:, 1] - segs[:, 0]).mean() / step))) if len(segs) else 2
+    table = segment_table(db_pitch, reference, unit, length)
+    angles, first, frames = sequence_layout(db_view, len(labels))
+    fps = float(db_view.meta["fps"])
+    start = boundary_kinematics(angles, first, frames, fps, table.utterance, table.times[:, 0], window)
+    end = boundary_kinematics(angles, first, frames, fps, table.utterance, table.times[:, 2], window)
     meta = db_view.meta
-    pooled = float(np.median(medians))
+    speakers = list(meta.get("speakers") or db_pitch.meta.get("speakers") or [None] * len(labels))
     return Database(
         table,
         np.asarray(db_pitch["phrase_features"], dtype=np.float64),
         start,
         end,
-        weights,
+        smoothness_weights(start, end) if len(table) else np.ones(3),
         labels,
         list(meta.get("sources") or labels),
         list(meta.get("recordings") or labels),
-        pooled,
+        speakers,
+        reference,
     ), length
 
 
 TRELLIS_OUTPUTS = {
     "segments": Output.array("f", shape=("segments", 3), dtype="float64", doc="test segments (start, voiced end, end)"),
+    "test_onsets": Output.array("f", shape=("test_onsets",), dtype="float64", doc="audio onsets of the test (s)"),
+    "test_onset_utterance": Output.array("i", shape=("test_onsets",), dtype="int32"),
+    "db_onsets": Output.array("f", shape=("db_onsets",), dtype="float64", doc="audio onsets of the database (s)"),
+    "db_onset_sequence": Output.array("i", shape=("db_onsets",), dtype="int32"),
     "segment_utterance": Output.array("i", shape=("segments",), dtype="int32", doc="index into meta labels"),
     "subsentence_start": Output.array("b", shape=("segments",)),
     "chosen": Output.array("i", shape=("segments",), dtype="int32", doc="database segment per test segment"),
@@ -562,27 +718,54 @@ def _plot_trellis(view, inputs=None, utterance: int = 0, max_segments: int = 40)
     return fig
 
 
+class TrellisParams(Stage.Params):
+    top_m: int = Field(20, ge=1, description="phrases searched (database sequences, mirrors included)")
+    k: int = Field(
+        3, ge=1, description="candidates per test segment (the paper gives no value; 3 tuned on the shared clips)"
+    )
+    b: float = Field(0.05, ge=0, le=1, description="weight of G_d (Eq. 12)")
+    c: float = Field(0.3, ge=0, le=1, validate_default=True, description="weight of P_d; L_d gets 1 - b - c")
+    e: float = Field(0.0, ge=0, description="weight of the loudness-contour distance E_d (beyond the paper; 0: off)")
+    o: float = Field(0.0, ge=0, description="weight of the onset-rate distance O_d (beyond the paper; 0: off)")
+    w1: float = Field(1.0, ge=0, description="weight of H (Eq. 15)")
+    w2: float = Field(1.0, ge=0, description="weight of R (Eq. 15)")
+    unit: Literal["semitones", "zscore", "hz"] = Field(
+        "semitones",
+        description="pitch unit of P_d and G_d: semitones relative to the speaker's median, those divided by the "
+        "speaker's spread (z-scores per speaker), or Hz",
+    )
+    test_speaker: Literal["own", "database"] = Field(
+        "database",
+        description="reference of the test's pitch: its own speaker's median (from the test takes), or that "
+        "speaker's median in the database (the test's speaker label, or the database's only speaker)",
+    )
+    contour_length: int | None = Field(None, ge=2, description="None: the database's mean voiced length in frames")
+    boundary_window: float = Field(0.1, gt=0, description="seconds either side for P, V, A at segment boundaries")
+    warp_boundaries: bool = Field(
+        True,
+        description="H as the blend joins: V, A of each candidate scaled by its resampling to the test segment's "
+        "length (False: on the recordings' own clocks)",
+    )
+    holdout: Literal["none", "take", "speaker"] = Field(
+        "none",
+        description="leave out of the database, for each test take: nothing; the take itself (its source file, "
+        "mirror included); or every take of its speaker",
+    )
+    exclude_labels: list[str] = Field([], description="database recordings (labels) to leave out")
+
+    @field_validator("c")
+    @classmethod
+    def _weights_sum(cls, value, info):
+        b = info.data.get("b")
+        if b is not None and b + value > 1 + 1e-12:
+            raise ValueError(f"b + c must be at most 1 (got b={b}, c={value}); L_d gets 1 - b - c")
+        return value
+
+
 class Trellis(Stage):
     """Two-stage pitch matching and Viterbi path search (Sec. 5.2-5.3) from test pitch to database segments."""
 
-    class Params(Stage.Params):
-        top_m: int = 20  # phrases (database sequences, mirrors included)
-        k: int = 10  # candidates per test segment
-        b: float = 0.05  # weight of G_d (Eq. 12)
-        c: float = 0.3  # weight of P_d; L_d gets 1 - b - c
-        w1: float = 1.0  # weight of H (Eq. 15)
-        w2: float = 1.0  # weight of R
-        unit: Literal["semitones", "hz"] = "semitones"  # contours for P_d and G_d
-        test_speaker: Literal["own", "database"] = "database"  # semitone reference of the test: its own median or the
-        #                                                   database speaker's (same speaker in test and database)
-        contour_length: int | None = None  # None: the database's mean voiced length in frames
-        boundary_window: float = 0.1  # seconds either side for P, V, A at segment boundaries
-        warp_boundaries: bool = True  # H on the output clock: V, A of each candidate scaled by
-        #                                                   its resampling to the test segment's length (False: on
-        #                                                   the recordings' own clocks)
-        exclude_source: bool = False  # leave the test's own recording out of the database
-        exclude_labels: list[str] = []  # database recordings (labels) to leave out
-
+    Params = TrellisParams
     inputs = {
         "database": Input.artifact("angles", "sequence", doc="headdb artifact (motion)"),
         "database_pitch": Input.artifact("segments", "f0", "phrase_features", doc="pitch of the headdb artifact"),
@@ -592,10 +775,6 @@ class Trellis(Stage):
     figures = {"trellis": _plot_trellis}
 
     def run(self, params, inputs):
-        if params.k < 1 or params.top_m < 1:
-            raise UserError("k and top_m must be at least 1", field="params.k")
-        if not (0 <= params.b and 0 <= params.c and params.b + params.c <= 1):
-            raise UserError(f"need b, c >= 0 and b + c <= 1 (got b={params.b}, c={params.c})", field="params.b")
         db, length = build_database(
             inputs["database"],
             inputs["database_pitch"],
@@ -603,85 +782,138 @@ class Trellis(Stage):
             length=params.contour_length,
             window=params.boundary_window,
         )
-        return search(db, inputs["test_pitch"], params, length, inputs["database"].meta)
+        result = search(db, inputs["test_pitch"], params, length, inputs["database"].meta)
+        result.arrays.update(onsets_of("test", inputs["test_pitch"]) | onsets_of("db", inputs["database_pitch"]))
+        return result
 
 
-def references_of_test(test_view, db: Database, test_speaker: str) -> tuple[np.ndarray, np.ndarray]:
-    """Semitone reference per test utterance and the shift of its level phrase features (semitones)."""
-    own = reference_medians(test_view, fallback=db.median_hz)
-    if test_speaker == "database":
-        return np.full_like(own, db.median_hz), semitones(own, db.median_hz)
-    return own, np.zeros_like(own)
+def onsets_of(prefix: str, pitch) -> dict[str, np.ndarray]:
+    """A pitch artifact's audio onsets and their utterance, carried through for the blend's timing (empty when the
+    artifact predates onsets)."""
+    has = "onsets" in pitch and "onset_utterance" in pitch
+    times = np.asarray(pitch["onsets"], dtype=np.float64) if has else np.zeros(0)
+    owner = np.asarray(pitch["onset_utterance"], dtype=np.int32) if has else np.zeros(0, np.int32)
+    return {f"{prefix}_onsets": times, f"{prefix}_onset_{'utterance' if prefix == 'test' else 'sequence'}": owner}
 
 
-def search(db: Database, test_view, params, length: int, db_meta: dict) -> Result:
-    test_labels = list(test_view.meta.get("labels") or [])
-    reference, shift = references_of_test(test_view, db, params.test_speaker)
-    test = segment_table(test_view, reference, params.unit, length)
-    features = np.asarray(test_view["phrase_features"], dtype=np.float64).copy()
-    names = list(test_view.meta.get("feature_names") or [])
-    level = [names.index(f) for f in test_view.meta.get("level_features", []) if f in names]
-    features[:, level] += shift[:, None]
-    n_db = len(db.labels)
-    unknown = [x for x in params.exclude_labels if x not in db.labels and x not in db.recordings]
-    if unknown:
-        raise UserError(f"exclude_labels {unknown} are not database labels", field="params.exclude_labels")
-    base_allowed = np.array(
+def reference_for_test(test_view, db: Database, test_speaker: str) -> tuple[SpeakerReference, np.ndarray]:
+    """Per test utterance: the reference of its pitch unit, and the shift (semitones) that re-expresses its level
+    phrase features (computed relative to its own speaker's median) relative to that reference."""
+    own = sequence_reference(test_view, "inputs.test_pitch", required=False)
+    if test_speaker == "own":
+        return own, np.zeros(len(own.median))
+    speakers = list(test_view.meta.get("speakers") or [None] * len(own.median))
+    found = [db.speaker_reference(s) for s in speakers]
+    missing = [s for s, f in zip(speakers, found) if f is None]
+    if missing:
+        raise UserError(
+            f"test speaker {missing[0]!r} is not in the database, so its pitch has no database reference; set "
+            "test_speaker: own (or label the test take with a database speaker)",
+            field="params.test_speaker",
+        )
+    reference = SpeakerReference(np.array([f[0] for f in found]), np.array([f[1] for f in found]))
+    return reference, semitones(own.median, reference.median)
+
+
+def allowed_sequences(db: Database, params, test_source: str, test_speaker: str | None, label: str) -> np.ndarray:
+    """Database sequences one test utterance may use: not in exclude_labels, nor held out (``params.holdout``)."""
+    allowed = np.array(
         [
             lab not in params.exclude_labels and rec not in params.exclude_labels
             for lab, rec in zip(db.labels, db.recordings)
         ]
     )
+    if params.holdout == "take":
+        allowed &= np.array([src != test_source for src in db.sources])
+    elif params.holdout == "speaker":
+        if test_speaker is None:
+            raise UserError(
+                f"holdout: speaker needs the test take's speaker, and '{label}' has no speaker label",
+                field="params.holdout",
+            )
+        allowed &= np.array([spk != test_speaker for spk in db.speakers])
+    return allowed
+
+
+def test_phrase_features(test_view, shift: np.ndarray) -> np.ndarray:
+    """The test's phrase features with their pitch-level features moved onto the matching reference."""
+    features = np.asarray(test_view["phrase_features"], dtype=np.float64).copy()
+    names = list(test_view.meta.get("feature_names") or [])
+    level = [names.index(f) for f in test_view.meta.get("level_features", []) if f in names]
+    features[:, level] += shift[:, None]
+    return features
+
+
+def search(db: Database, test_view, params, length: int, db_meta: dict) -> Result:
+    """The search for every test utterance, packed as the trellis artifact."""
+    unknown = [x for x in params.exclude_labels if x not in db.labels and x not in db.recordings]
+    if unknown:
+        raise UserError(f"exclude_labels {unknown} are not database labels", field="params.exclude_labels")
+    test_labels = list(test_view.meta.get("labels") or [])
     test_sources = list(test_view.meta.get("sources") or test_labels)
-    geometry_stats = zscore_stats(db.segments.geometry) if len(db.segments) else (np.zeros(6), np.ones(6))
+    test_speakers = list(test_view.meta.get("speakers") or [None] * len(test_labels))
+    reference, shift = reference_for_test(test_view, db, params.test_speaker)
+    test = segment_table(test_view, reference, params.unit, length)
+    features = test_phrase_features(test_view, shift)
+    weights = SegmentWeights(params.b, params.c, params.e, params.o)
+    settings = SearchSettings(params.top_m, params.k, weights, params.w1, params.w2, params.warp_boundaries)
+    scales = segment_scales(db.segments)
     results, excluded = [], []
-    for u in range(len(test_labels)):
-        allowed = base_allowed.copy()
-        if params.exclude_source:
-            allowed &= np.array([src != test_sources[u] for src in db.sources])
+    for u, label in enumerate(test_labels):
+        allowed = allowed_sequences(db, params, test_sources[u], test_speakers[u], label)
         excluded.append([db.labels[i] for i in np.flatnonzero(~allowed)])
-        feature_stats = zscore_stats(db.features[allowed])
-        rows = np.flatnonzero(test.utterance == u)
-        sub = SegmentTable(
-            test.times[rows],
-            test.utterance[rows],
-            test.position[rows],
-            test.subsentence_start[rows],
-            test.contour[rows],
-            test.geometry[rows],
-        )
         results.append(
             search_utterance(
-                sub,
+                test.rows(np.flatnonzero(test.utterance == u)),
                 features[u],
                 db,
-                allowed=allowed,
-                top_m=params.top_m,
-                k=params.k,
-                b=params.b,
-                c=params.c,
-                w1=params.w1,
-                w2=params.w2,
-                warp_boundaries=params.warp_boundaries,
-                geometry_stats=geometry_stats,
-                feature_stats=feature_stats,
+                allowed,
+                settings,
+                scales,
+                zscore_stats(db.features[allowed]),
             )
         )
-    cat = lambda name: np.concatenate([getattr(r, name) for r in results]) if results else np.zeros(0)
-    k = params.k
-    candidates = np.concatenate([r.candidates for r in results]) if results else np.zeros((0, k))
-    candidate_cost = np.concatenate([r.candidate_cost for r in results]) if results else np.zeros((0, k))
-    smooth, repeat = cat("smoothness"), cat("repeat")
+    meta = {
+        "labels": test_labels,
+        "sources": test_sources,
+        "speakers": test_speakers,
+        "durations": [float(x) for x in np.asarray(test_view["utterance_duration"])],
+        "fps": list(test_view.meta.get("fps") or [None] * len(test_labels)),
+        "frames": list(test_view.meta.get("frames") or [None] * len(test_labels)),
+        "db_labels": db.labels,
+        "db_fps": float(db_meta["fps"]),
+        "k": params.k,
+        "contour_length": length,
+        "boundary_window": float(params.boundary_window),
+        "warp_boundaries": bool(params.warp_boundaries),
+        "unit": params.unit,
+        "test_speaker": params.test_speaker,
+        "holdout": params.holdout,
+        "smoothness_weights": db.weights.tolist(),
+        "phrases_searched": [int(r.phrase_selected.sum()) for r in results],
+        "excluded": excluded,
+    }
+    return pack_search(test, db, results, params, meta)
+
+
+def pack_search(test: SegmentTable, db: Database, results: list[SearchResult], params, meta: dict) -> Result:
+    """Arrays and metrics of the trellis artifact from the per-utterance results."""
+    k, n_db = params.k, len(db.labels)
+
+    def cat(name, empty):
+        return np.concatenate([getattr(r, name) for r in results]) if results else empty
+
+    smooth, repeat = cat("smoothness", np.zeros(0)), cat("repeat", np.zeros(0))
     seg = db.segments
     arrays = {
         "segments": test.times,
         "segment_utterance": test.utterance.astype(np.int32),
         "subsentence_start": test.subsentence_start.astype(bool),
-        "chosen": cat("chosen").astype(np.int32),
-        "chosen_rank": cat("rank").astype(np.int32),
-        "candidates": candidates.astype(np.int32),
-        "candidate_cost": candidate_cost.astype(np.float64),
-        "node_cost": cat("node_cost").astype(np.float64),
+        "chosen": cat("chosen", np.zeros(0)).astype(np.int32),
+        "chosen_rank": cat("rank", np.zeros(0)).astype(np.int32),
+        "candidates": cat("candidates", np.zeros((0, k))).astype(np.int32),
+        "candidate_cost": cat("candidate_cost", np.zeros((0, k))).astype(np.float64),
+        "node_cost": cat("node_cost", np.zeros(0)).astype(np.float64),
         "transition_cost": (smooth + repeat).astype(np.float64),
         "transition_smoothness": smooth.astype(np.float64),
         "transition_repeat": repeat.astype(np.float64),
@@ -691,42 +923,27 @@ def search(db: Database, test_view, params, length: int, db_meta: dict) -> Resul
         "phrase_distance": np.stack([r.phrase_distance for r in results]) if results else np.zeros((0, n_db)),
         "phrase_selected": np.stack([r.phrase_selected for r in results]) if results else np.zeros((0, n_db), bool),
     }
+    return Result(arrays, meta, search_metrics(arrays, seg, test.subsentence_start, params.w2))
+
+
+def search_metrics(arrays: dict, seg: SegmentTable, subsentence_start: np.ndarray, w2: float) -> dict:
+    """Costs of the chosen path, and how often it continues a database take or repeats a segment."""
     chosen = arrays["chosen"]
     n = len(chosen)
-    joins = ~test.subsentence_start
+    joins = ~np.asarray(subsentence_start, dtype=bool)
     consecutive = np.zeros(n, dtype=bool)
     if n > 1:
         consecutive[1:] = (seg.utterance[chosen[1:]] == seg.utterance[chosen[:-1]]) & (
             seg.position[chosen[1:]] == seg.position[chosen[:-1]] + 1
         )
     consecutive &= joins
-    meta = {
-        "labels": test_labels,
-        "sources": test_sources,
-        "durations": [float(x) for x in np.asarray(test_view["utterance_duration"])],
-        "fps": list(test_view.meta.get("fps") or [None] * len(test_labels)),
-        "frames": list(test_view.meta.get("frames") or [None] * len(test_labels)),
-        "db_labels": db.labels,
-        "db_fps": float(db_meta["fps"]),
-        "k": k,
-        "contour_length": length,
-        "boundary_window": float(params.boundary_window),
-        "warp_boundaries": bool(params.warp_boundaries),
-        "unit": params.unit,
-        "test_speaker": params.test_speaker,
-        "smoothness_weights": db.weights.tolist(),
-        "phrases_searched": [int(r.phrase_selected.sum()) for r in results],
-        "excluded": excluded,
-    }
-    metrics = {
+    repeats = arrays["transition_repeat"][joins] == 2 * w2
+    return {
         "segments": n,
         "db_segments": len(seg),
         "total_cost": float(arrays["node_cost"].sum() + arrays["transition_cost"].sum()),
         "mean_node_cost": float(arrays["node_cost"].mean()) if n else 0.0,
         "mean_transition_cost": float(arrays["transition_cost"][joins].mean()) if joins.any() else 0.0,
         "consecutive_fraction": float(consecutive[joins].mean()) if joins.any() else 0.0,
-        "repeat_fraction": float((arrays["transition_repeat"][joins] == 2 * params.w2).mean())
-        if joins.any() and params.w2 > 0
-        else 0.0,
+        "repeat_fraction": float(repeats.mean()) if joins.any() and w2 > 0 else 0.0,
     }
-    return Result(arrays, meta, metrics)

@@ -33,7 +33,7 @@ from __future__ import annotations
 from typing import Literal, Union
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
 
@@ -265,13 +265,13 @@ BLEND_OUTPUTS = {
 
 
 class BlendParams(Stage.Params):
+    #: allowed deviation of the alpha sum from 1 (before alpha: its check reads it)
+    tolerance: float = Field(1e-3, gt=0)
     #: "from_analysis", constant weights {expression: weight}, or {keyframes: {seconds: {expression: w}},
     #: interpolation: linear|step|smooth}; weights must be >= 0 and sum to 1
     alpha: Union[Literal["from_analysis"], dict[str, float], AlphaKeyframes] = "from_analysis"
     #: Gaussian smoothing of alpha over time, sigma in seconds (the analysed e(t) jitters, paper Sec 7)
     alpha_smoothing: float = Field(0.0, ge=0)
-    #: allowed deviation of the alpha sum from 1
-    tolerance: float = Field(1e-3, gt=0)
     #: drive each morph by its own region's keyshape weights when the keyshapes and keymorphs carry regions
     regions: bool = True
     #: close the character's lips where the performer's close (needs the character, and the tracks input or the
@@ -279,6 +279,8 @@ class BlendParams(Stage.Params):
     lip_seal: bool = True
     #: the seal acts below this inner-lip gap (IOD) and fades out above it
     seal_gap: float = Field(0.03, gt=0)
+    #: (corrective, base) pairs the seal may raise, each up to its base's weight (lips sealed over a lowered jaw)
+    seal_correctives: list[tuple[str, str]] = [("mouthClose", "jawOpen")]
     #: blinks and gaze from the performer's tracking (needs the tracks input), or from the keymorphs alone
     eyes: Literal["tracking", "keyshapes"] = "tracking"
     #: gaze angle (degrees) that an eyeLook weight of 1 stands for
@@ -298,14 +300,16 @@ class BlendParams(Stage.Params):
                 raise ValueError(f"{ALPHA_FORMS}; these weights are not numbers: {bad}")
         return value
 
-    @model_validator(mode="after")
-    def _alpha_is_barycentric(self):
-        if isinstance(self.alpha, AlphaKeyframes):
-            for t, weights in self.alpha.keyframes.items():
-                check_barycentric(weights, self.tolerance, f"keyframe {t:g}")
-        elif isinstance(self.alpha, dict):
-            check_barycentric(self.alpha, self.tolerance, "alpha")
-        return self
+    @field_validator("alpha")
+    @classmethod
+    def _alpha_is_barycentric(cls, alpha, info):
+        tolerance = info.data.get("tolerance", 1e-3)
+        if isinstance(alpha, AlphaKeyframes):
+            for t, weights in alpha.keyframes.items():
+                check_barycentric(weights, tolerance, f"keyframe {t:g}")
+        elif isinstance(alpha, dict):
+            check_barycentric(alpha, tolerance, "alpha")
+        return alpha
 
 
 class Blend(Stage):
@@ -540,8 +544,7 @@ class Blend(Stage):
         return alpha, {"alpha_mode": "from_analysis", "alpha_basis": usable}
 
     # ---------------------------------------------------------------------------------------------- pack
-    @staticmethod
-    def _pack(params, inputs, data, result, alpha, alpha_meta, per_expression, raw) -> Result:
+    def _pack(self, params, inputs, data, result, alpha, alpha_meta, per_expression, raw) -> Result:
         weights = result["weights"]
         excess = np.abs(raw - np.clip(raw, 0.0, 1.0))
         arrays = {
@@ -557,9 +560,7 @@ class Blend(Stage):
             character = data["character"]
             if character is None:
                 raise UserError("params.vertices needs the character input", field="inputs.character")
-            deltas = np.asarray(character["deltas"], np.float32)
-            neutral = np.asarray(character["neutral"], np.float32)
-            arrays["vertices"] = neutral[None] + np.tensordot(weights.astype(np.float32), deltas, axes=1)
+            arrays["vertices"] = self._posed_vertices(character, weights)
         metrics = {
             "clipped_fraction": float((excess > 1e-6).mean()) if excess.size else 0.0,
             "clipped_amount": float(excess.mean()) if excess.size else 0.0,
@@ -580,6 +581,17 @@ class Blend(Stage):
         }
         return Result(arrays, meta=meta, metrics=metrics, warnings=result["warnings"])
 
+    def _posed_vertices(self, character, weights: np.ndarray, block: int = 64):
+        """Posed vertices streamed into an output sink block by block of frames: a long take's (frames, V, 3) never
+        sits in memory whole (26,000 vertices are 0.3 MB a frame)."""
+        deltas = np.asarray(character["deltas"], np.float32)
+        neutral = np.asarray(character["neutral"], np.float32)
+        sink = self.sink("vertices", dtype="float32", row_shape=neutral.shape)
+        for start in range(0, len(weights), block):
+            rows = weights[start : start + block].astype(np.float32)
+            sink.append(neutral[None] + np.tensordot(rows, deltas, axes=1))
+        return sink
+
 
 # ------------------------------------------------------------------------------------------------ lips and eyes
 
@@ -596,7 +608,8 @@ def finish_weights(params, data, raw: np.ndarray, alpha: np.ndarray) -> dict:
                 "lip seal off: it needs the character input, and the performer's tracking or the keyshapes' lip_gap"
             )
         else:
-            weights, seal = apply_lip_seal(weights, character, gap, params.seal_gap)
+            correctives = corrective_columns(data["names"], params.seal_correctives)
+            weights, seal = apply_lip_seal(weights, character, gap, params.seal_gap, correctives)
             out["metrics"].update(seal)
             out["meta"]["lip_seal_source"] = source
     if params.eyes == "tracking":
@@ -632,15 +645,27 @@ def performer_lip_gap(tracks, target_gap, alpha) -> tuple[np.ndarray | None, str
     return None, "none"
 
 
-def apply_lip_seal(weights, character, gap, seal_gap) -> tuple[np.ndarray, dict]:
+def corrective_columns(names: list[str], pairs) -> list[tuple[int, int]]:
+    """(corrective, base) morph indices of the pairs the character has."""
+    from stages.retarget.regions import find_morph
+
+    found = [(find_morph(names, c), find_morph(names, b)) for c, b in pairs]
+    return [(c, b) for c, b in found if c is not None and b is not None]
+
+
+def apply_lip_seal(weights, character, gap, seal_gap, correctives=()) -> tuple[np.ndarray, dict]:
     """The sealed weights and how much the seal did (stages.retarget.lips); ``gap`` (frames,) the performer's
-    inner-lip gap."""
-    from stages.retarget.lips import lip_gap_model, seal_bound, seal_lips
+    inner-lip gap; ``correctives`` (corrective, base) columns the seal may raise up to the base's weight."""
+    from stages.retarget.lips import lip_gap_model, raise_correctives, seal_bound, seal_lips
 
     if "landmark_ids" not in character:
         raise UserError("the lip seal needs the character's landmark_ids", field="inputs.character")
     g0, slopes = lip_gap_model(*character_landmarks(character))
-    sealed = seal_lips(weights, g0, slopes, seal_bound(gap, g0, seal_gap))
+    bound = seal_bound(gap, g0, seal_gap)
+    raised, movable = raise_correctives(weights, g0, slopes, bound, list(correctives))
+    sealed = seal_lips(raised, g0, slopes, bound, movable)
+    for c, b in correctives:  # a base lowered anyway (net slope > 0) takes its corrective down with it
+        sealed[:, c] = np.minimum(sealed[:, c], sealed[:, b])
     before, after = g0 + weights @ slopes, g0 + sealed @ slopes
     closed = gap < seal_gap
     return sealed, {
@@ -655,7 +680,13 @@ def apply_lip_seal(weights, character, gap, seal_gap) -> tuple[np.ndarray, dict]
 def apply_eyes(weights, names, character, tracks, sequence, full_degrees):
     """Blink morphs from the eyelid aperture, eyeLook morphs from the gaze; returns (weights, gaze or None,
     meta, warnings)."""
-    from stages.retarget.eyes import blink_curve, blink_weights, closure, eye_aperture_2d, gaze_morphs, gaze_weights
+    from stages.retarget.eyes import (
+        blink_for_aperture,
+        closure,
+        eye_aperture_2d,
+        gaze_morphs,
+        gaze_weights,
+    )
     from stages.retarget.regions import find_side_morph
 
     weights = weights.copy()
@@ -673,10 +704,10 @@ def apply_eyes(weights, names, character, tracks, sequence, full_degrees):
         rest, deltas = character_landmarks(character)
         c = closure(aperture, sequence)
         weights[:, blinks] = 0.0
-        # how open each eye is with everything but the blink (squint, brows, cheeks), relative to the neutral
-        others = eye_aperture_2d(rest[None] + np.einsum("fm,mpc->fpc", weights, deltas)) / eye_aperture_2d(rest[None])
+        others = np.einsum("fm,mpc->fpc", weights, deltas)  # everything but the blink: squint, brows, cheeks
+        opened = eye_aperture_2d(rest[None])[0]  # the character's open eye: its neutral's
         for eye, m in enumerate(blinks):
-            weights[:, m] = blink_weights(c[:, eye], blink_curve(rest, deltas[m]), others[:, eye])
+            weights[:, m] = blink_for_aperture(rest, others, deltas[m], eye, opened[eye] * (1.0 - c[:, eye]))
         meta["blink_peak"] = [float(weights[:, m].max(initial=0.0)) for m in blinks]
     gaze = np.asarray(tracks["gaze"], np.float64) if "gaze" in tracks else None
     if gaze is None:

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import Field
 
 from msflow import Input, Output, Result, Stage, UserError
 from stages.data import DATA
@@ -555,7 +556,7 @@ class ObjBlendshapes(Stage):
         identity_prefix: str = "identity"
         identity: dict[str, float] = {}
         #: multiply coordinates into metres (ICT FaceKit is in centimetres: 0.01)
-        scale: float = 1.0
+        scale: float = Field(1.0, gt=0)
         #: material groups (OBJ usemtl names) to leave out, e.g. transparent overlay shells
         drop_groups: list[str] = []
 
@@ -566,8 +567,6 @@ class ObjBlendshapes(Stage):
     outputs = CHARACTER_OUTPUTS
 
     def run(self, params, inputs):
-        if params.scale <= 0:
-            raise UserError("scale must be positive", field="params.scale")
         files = inputs["shapes"]
         mtl = next((Path(p) for p in files.values() if Path(p).name.lower().endswith(".mtl")), None)
         mesh, identities = load_obj_blendshapes(files, params.neutral, params.identity_prefix, mtl)

@@ -5,11 +5,11 @@ from tracking directly:
 
 - the performer's closure c(t) = clip(1 - a(t) / a_open, 0, 1) per eye, a(t) the aperture (lid gap / eye width:
   tracking ``eye_aperture``, or the same ratio from the 68 landmarks) and a_open its 90th percentile over the take;
-- the character's eye is to be open by the same fraction of its neutral opening, 1 - c(t), all its morphs
-  together: the expression's squint, a lowered brow and the blink. With its other morphs applied the eye is open
-  R(t) = A_others(t) / A(0) (landmark vertices, front view); the blink morph supplies the rest of the closure,
-  1 - A(w) / A(0) = max(0, R(t) - (1 - c(t))), A(w) its own aperture under blink weight w (sampled on [0, 1],
-  made monotone and inverted by interpolation). The blink morph follows the aperture alone, replacing what the
+- the character's eye is to be open by the same fraction of its neutral opening A(0), 1 - c(t), all its morphs
+  together: the expression's squint, a lowered or raised brow and the blink. The blink weight w solves
+  A(u_others + w e_blink) = A(0) (1 - c(t)) per frame and eye (A: the eye's aperture on the landmark vertices,
+  front view; bisection on [0, 1], the aperture falling as w grows); 0 where the other morphs already close the
+  eye that far. The blink morph follows the aperture alone, replacing what the
   keymorphs gave it: the keyshape decomposition of the eye region already follows the lids part of the way, so
   adding the two would close the character's eyes twice for every dip of the performer's.
 
@@ -42,39 +42,42 @@ def eye_aperture_2d(shapes: np.ndarray) -> np.ndarray:
     return np.stack([one(LEFT_EYE), one(RIGHT_EYE)], axis=-1)
 
 
-def closure(aperture: np.ndarray, sequence: np.ndarray, open_quantile: float = 0.9) -> np.ndarray:
-    """c(t) per eye (frames, 2): how far each eye is from its open aperture in its take, 0 open .. 1 shut."""
+def open_level(aperture: np.ndarray, sequence: np.ndarray, open_quantile: float = 0.9) -> np.ndarray:
+    """Each frame's open aperture (frames, 2): its take's 90th percentile, per eye."""
     aperture = np.asarray(aperture, np.float64)
     out = np.zeros_like(aperture)
     for take in np.unique(sequence):
         rows = sequence == take
-        opened = np.quantile(aperture[rows], open_quantile, axis=0)
-        out[rows] = np.clip(1.0 - aperture[rows] / np.maximum(opened, 1e-9), 0.0, 1.0)
+        out[rows] = np.quantile(aperture[rows], open_quantile, axis=0)
     return out
 
 
-def blink_curve(
-    rest_landmarks: np.ndarray, blink_deltas: np.ndarray, samples: int = 21
-) -> tuple[np.ndarray, np.ndarray]:
-    """The character's aperture of one eye against its blink weight: weights (samples,), apertures relative to
-    the open eye (samples,), made monotone so it can be inverted. ``blink_deltas`` (68, 3) at the landmarks."""
-    w = np.linspace(0.0, 1.0, samples)
-    shapes = np.asarray(rest_landmarks, np.float64)[None] + w[:, None, None] * np.asarray(blink_deltas)[None]
-    aperture = eye_aperture_2d(shapes)
-    side = int(np.argmax(np.abs(aperture[-1] - aperture[0])))  # the eye this morph closes
-    relative = aperture[:, side] / max(aperture[0, side], 1e-12)
-    return w, np.minimum.accumulate(relative)
+def closure(aperture: np.ndarray, sequence: np.ndarray, open_quantile: float = 0.9) -> np.ndarray:
+    """c(t) per eye (frames, 2): how far each eye is from its open aperture in its take, 0 open .. 1 shut."""
+    aperture = np.asarray(aperture, np.float64)
+    opened = open_level(aperture, sequence, open_quantile)
+    return np.clip(1.0 - aperture / np.maximum(opened, 1e-9), 0.0, 1.0)
 
 
-def blink_weights(closure_of_eye: np.ndarray, curve: tuple[np.ndarray, np.ndarray], others=None) -> np.ndarray:
-    """Blink weight w with 1 - A(w)/A(0) = max(0, R - (1 - c)): the closure the other morphs leave to the blink;
-    ``others`` R, the eye's relative opening with the other morphs applied (1 when None)."""
-    w, relative = curve
-    closure_of_eye = np.asarray(closure_of_eye, np.float64)
-    others = np.ones_like(closure_of_eye) if others is None else np.asarray(others, np.float64)
-    needed = np.maximum(others - (1.0 - closure_of_eye), 0.0)
-    # np.interp needs increasing x: the relative aperture falls with the weight
-    return np.interp(-(1.0 - needed), -relative, w)
+def blink_for_aperture(
+    rest: np.ndarray, others: np.ndarray, blink: np.ndarray, eye: int, target: np.ndarray, iterations: int = 30
+) -> np.ndarray:
+    """Blink weights w (frames,) with the eye's aperture of rest + others + w blink equal to ``target`` (frames,)
+    (bisection on [0, 1]): ``rest`` (68, 3) landmark vertices, ``others`` (frames, 68, 3) the other morphs' motion,
+    ``blink`` (68, 3) the blink morph's, ``eye`` 0 = left."""
+    base = np.asarray(rest, np.float64)[None] + np.asarray(others, np.float64)
+    blink = np.asarray(blink, np.float64)
+    target = np.asarray(target, np.float64)
+
+    def aperture(w):
+        return eye_aperture_2d(base + w[:, None, None] * blink[None])[:, eye]
+
+    lo, hi = np.zeros(len(base)), np.ones(len(base))
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        too_open = aperture(mid) > target
+        lo, hi = np.where(too_open, mid, lo), np.where(too_open, hi, mid)
+    return np.where(aperture(np.zeros(len(base))) <= target, 0.0, hi)
 
 
 def gaze_morphs(names: list[str]) -> dict[tuple[int, str], int]:

@@ -11,7 +11,9 @@ decomposed shape's inner-lip gap g(t) (IOD units) is small:
   as fast as the performer's gap above it, so the seal fades out instead of snapping off. The performer's gap is
   not copied: trackers place the inner lips of a closed mouth some way apart (FaceMesh about 0.02 IOD, with the
   perspective of a close-up), where the character's neutral has them touching (ICT FaceKit 0.009);
-- of all the weights that meet it, the seal takes the nearest to u(t) that only *lowers* weights
+- a closing corrective rises first, up to its base's weight (``raise_correctives``: ARKit's mouthClose up to
+  jawOpen seals the lips over a lowered jaw, which keeps the jaw where the performer's chin is);
+- then, of all the weights that meet the bound, the seal takes the nearest that only *lowers* weights
   (0 <= u' <= u): min ||u' - u||^2 s.t. a.u' <= b. Its solution is u'(lambda) = clip(u - lambda a, 0, u) for the
   smallest lambda >= 0 that meets the bound (a.u'(lambda) falls as lambda grows), found by bisection for all
   frames at once. Only opening morphs (a_m > 0) move; nothing is pushed into the other lip.
@@ -43,26 +45,55 @@ def seal_bound(target_gap: np.ndarray, g0: float, seal_gap: float) -> np.ndarray
 
 
 def seal_lips(
-    weights: np.ndarray, g0: float, slopes: np.ndarray, bound: np.ndarray, iterations: int = 60
+    weights: np.ndarray,
+    g0: float,
+    slopes: np.ndarray,
+    bound: np.ndarray,
+    movable: np.ndarray | None = None,
+    iterations: int = 60,
 ) -> np.ndarray:
-    """The weights (frames, M) nearest to ``weights`` with gap(u) <= ``bound`` (frames,), lowering weights only."""
+    """The weights (frames, M) nearest to ``weights`` u with gap(u') <= ``bound`` (frames,) and 0 <= u' <= u;
+    ``movable`` (frames, M) bool: the morphs the seal may lower in each frame (default all)."""
     u0 = np.asarray(weights, np.float64)
     a = np.asarray(slopes, np.float64)
+    step = np.where(np.ones(u0.shape, bool) if movable is None else movable, a[None], 0.0)
     budget = np.asarray(bound, np.float64) - g0
 
-    def gap(lam):
-        return np.clip(u0 - lam[:, None] * a, 0.0, u0) @ a
+    def moved(lam):
+        return np.clip(u0 - lam[:, None] * step, 0.0, u0)
 
-    need = gap(np.zeros(len(u0))) > budget
+    need = moved(np.zeros(len(u0))) @ a > budget
     if not need.any():
         return u0.copy()
-    # bracket: at lambda = 1 / min positive slope every opening morph is at 0 (the most the seal can do)
-    positive = a[a > 0]
-    hi = np.full(len(u0), 1.0 / positive.min() if positive.size else 0.0)
+    # bracket: at this lambda every movable opening morph is at 0 (the most lowering can do)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        hi = np.where(step > 0, u0 / step, 0.0).max(axis=1)
     lo = np.zeros(len(u0))
     for _ in range(iterations):
         mid = 0.5 * (lo + hi)
-        over = gap(mid) > budget
+        over = moved(mid) @ a > budget
         lo, hi = np.where(over, mid, lo), np.where(over, hi, mid)
-    out = np.clip(u0 - hi[:, None] * a, 0.0, u0)
-    return np.where(need[:, None], out, u0)
+    return np.where(need[:, None], moved(hi), u0)
+
+
+def raise_correctives(
+    weights: np.ndarray, g0: float, slopes: np.ndarray, bound: np.ndarray, pairs: list[tuple[int, int]]
+) -> tuple[np.ndarray, np.ndarray]:
+    """First step of the seal with a closing corrective c of a base morph b (mouthClose of jawOpen, a_c < 0):
+    raise u_c towards the bound, up to u_b (lips sealed over a lowered jaw, the jaw kept). Returns the weights
+    and which morphs the lowering step may move: where the corrective is at its cap, lowering the base would drag
+    the corrective down with it, net slope a_b + a_c; when that is not positive, lowering the base cannot help,
+    and neither moves there (the jaw stays, sealed)."""
+    u = np.array(weights, np.float64)
+    a = np.asarray(slopes, np.float64)
+    movable = np.ones(u.shape, bool)
+    for c, b in pairs:
+        if a[c] >= 0:
+            continue
+        excess = u @ a + g0 - np.asarray(bound, np.float64)
+        room = np.maximum(u[:, b] - u[:, c], 0.0)
+        u[:, c] += np.clip(excess / -a[c], 0.0, room)
+        capped = u[:, c] >= u[:, b] - 1e-12
+        movable[capped, c] = False
+        movable[capped, b] = a[b] + a[c] > 0
+    return u, movable
