@@ -6,22 +6,15 @@ every numpy temporary above 128 KiB is then mapped and unmapped again, and its p
 msflow's numpy-heavy stages ran 2-2.5x slower (CPU time) on such workers. As a nanny preload this module removes
 the variable before the nanny spawns (and respawns) its worker, so workers run with glibc's defaults, as local runs do.
 
-``tune_malloc`` is the safety net for workers started without the preload: run once per worker process before
-its first job, it restores large mmap and trim thresholds (the values glibc's adaptive rule reaches for large
-arrays) when the variable holds the nanny's default.
+``msflow.worker.tune_malloc`` is the safety net for workers started without the preload: run once per worker
+process before its first job, it restores large mmap and trim thresholds (the values glibc's adaptive rule reaches
+for large arrays) when the variable holds the nanny's default.
 """
 
 from __future__ import annotations
 
 import os
-import sys
 from typing import Any
-
-NANNY_DEFAULT = "65536"
-MMAP_THRESHOLD = 32 << 20  # glibc's largest adaptive mmap threshold on 64-bit (DEFAULT_MMAP_THRESHOLD_MAX)
-TRIM_THRESHOLD = 2 * MMAP_THRESHOLD  # what the adaptive rule sets beside it
-
-_TUNED = False
 
 
 def dask_setup(nanny: Any) -> None:
@@ -35,19 +28,3 @@ def dask_setup(nanny: Any) -> None:
     if isinstance(getattr(nanny, "env", None), dict):
         for var in BLAS_VARS:
             nanny.env.setdefault(var, "1")
-
-
-def tune_malloc() -> bool:
-    """Undo the nanny's malloc-trim default in this process (glibc only, once); True when it did."""
-    global _TUNED
-    if _TUNED or os.environ.get("MALLOC_TRIM_THRESHOLD_") != NANNY_DEFAULT or not sys.platform.startswith("linux"):
-        return False
-    _TUNED = True
-    import ctypes
-
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:  # not glibc (musl): the variable means nothing there
-        return False
-    m_trim_threshold, m_mmap_threshold = -1, -3  # <malloc.h>
-    return bool(libc.mallopt(m_mmap_threshold, MMAP_THRESHOLD)) and bool(libc.mallopt(m_trim_threshold, TRIM_THRESHOLD))

@@ -22,8 +22,7 @@ from msflow.jobs import Job, JobInput, Outcome, StageStatus
 from msflow.plan import StagePlan
 from msflow.spec import FilesRef, Pipeline, rel_to, suggest, topological_order
 from msflow.stores.base import Store
-
-KEY_SCHEME = 2  # 2: artifact format 2 (streamed array hashes, chunk checksums)
+from msflow.version import KEY_SCHEME  # defined in a leaf module: workers check it too
 
 
 class Reporter(Protocol):

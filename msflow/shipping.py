@@ -296,7 +296,7 @@ def check_environment(job: Job) -> None:
     """Refuse a job whose key was made for another environment: key scheme, Python version, distributions."""
     from msflow.fingerprint import distribution_versions
     from msflow.plan import PYTHON
-    from msflow.runner import KEY_SCHEME
+    from msflow.version import KEY_SCHEME
 
     parts = job.key_parts or {}
     code = parts.get("code") or {}

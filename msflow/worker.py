@@ -41,6 +41,29 @@ def pin_blas_threads() -> None:
 
 _CONTROLLER: Any = None
 
+NANNY_MALLOC_TRIM = "65536"  #: the MALLOC_TRIM_THRESHOLD_ a Dask nanny sets for its workers (msflow.dask_setup)
+MMAP_THRESHOLD = 32 << 20  # glibc's largest adaptive mmap threshold on 64-bit (DEFAULT_MMAP_THRESHOLD_MAX)
+TRIM_THRESHOLD = 2 * MMAP_THRESHOLD  # what the adaptive rule sets beside it
+_TUNED = False
+
+
+def tune_malloc() -> bool:
+    """Undo the nanny's malloc-trim default in this process (glibc only, once); True when it did."""
+    import sys
+
+    global _TUNED
+    if _TUNED or os.environ.get("MALLOC_TRIM_THRESHOLD_") != NANNY_MALLOC_TRIM or not sys.platform.startswith("linux"):
+        return False
+    _TUNED = True
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:  # not glibc (musl): the variable means nothing there
+        return False
+    m_trim_threshold, m_mmap_threshold = -1, -3  # <malloc.h>
+    return bool(libc.mallopt(m_mmap_threshold, MMAP_THRESHOLD)) and bool(libc.mallopt(m_trim_threshold, TRIM_THRESHOLD))
+
 
 def single_threaded_blas() -> contextlib.AbstractContextManager[object]:
     """Limit already-loaded BLAS/OpenMP pools to one thread (env vars only reach libraries loaded later)."""
@@ -55,7 +78,6 @@ def single_threaded_blas() -> contextlib.AbstractContextManager[object]:
 
 def run_job(job_json: str) -> str:
     """Run one job (``Job`` as JSON) and return its ``Outcome`` as JSON. Never raises."""
-    from msflow.dask_setup import tune_malloc
     from msflow.errors import UserError
 
     tune_malloc()  # a Dask nanny's malloc-trim default slows numpy-heavy stages 2x
