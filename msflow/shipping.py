@@ -153,16 +153,28 @@ def code_tree(root: Path, plans: Iterable[StagePlan]) -> CodeTree:
         for rel in plan.code["modules"]:
             sources[rel] = module_source(index, root, rel)
         for name, rel in plan.interface.get("resources", {}).items():
+            path = root / rel
             if Path(rel).is_absolute() or rel.startswith("../"):
-                raise UserError(
-                    f"{plan.uses} reads the data file {rel} (resource '{name}') from outside the project, so it "
-                    "cannot be shipped to the Dask workers: move it into the project",
-                    stage=plan.name,
-                    field="uses",
-                )
-            sources[rel] = root / rel
+                path, rel = Path(rel).resolve(), resource_rel(plan, name, Path(rel).resolve())
+            sources[rel] = path
     files = {rel: file_hash(path) for rel, path in sorted(sources.items())}
     return CodeTree(files, sources)
+
+
+def resource_rel(plan: StagePlan, name: str, path: Path) -> str:
+    """Where a resource outside the project root sits in the code tree: relative to the folder its stage's modules
+    were imported from (a development package's folder), found as the nearest folder above it that holds them;
+    stages locate resources relative to their own modules, so the tree must keep that layout."""
+    anchor = next(iter(plan.code["modules"]), None)
+    for parent in path.parents:
+        if anchor is not None and (parent / anchor).is_file():
+            return path.relative_to(parent).as_posix()
+    raise UserError(
+        f"{plan.uses} reads the data file {path} (resource '{name}') from outside its code's folder, so it cannot "
+        "be shipped to the Dask workers: keep resources beside the stage's package",
+        stage=plan.name,
+        field="uses",
+    )
 
 
 def module_source(index: Any, root: Path, rel: str) -> Path:
@@ -290,6 +302,21 @@ def worker_name() -> str:
 
 _ENVIRONMENT_MEMO: dict[str, Any] = {}
 _CHECKED_CODE: set[tuple[str, str]] = set()
+
+
+def check_store(job: Job) -> None:
+    """A store folder must exist here too: a project's ``.msflow`` is on the machine that started the run."""
+    location = job.store[len("file://") :] if job.store.startswith("file://") else job.store
+    if "://" in location:
+        return
+    if not os.path.isdir(location) or not os.access(location, os.W_OK | os.X_OK):
+        raise UserError(
+            f"worker {worker_name()} cannot use the store folder {location} (missing or not writable there): with "
+            "--scheduler, use a store every machine reaches (s3://..., or a folder on a file system mounted at the "
+            "same path everywhere)",
+            stage=job.stage,
+            field="store",
+        )
 
 
 def check_environment(job: Job) -> None:

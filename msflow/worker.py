@@ -104,8 +104,9 @@ def code_root(job: Job) -> str:
     if job.code is None:
         ensure_importable(job.project_root)
         return job.project_root
-    from msflow.shipping import check_environment, shipped_code
+    from msflow.shipping import check_environment, check_store, shipped_code
 
+    check_store(job)
     check_environment(job)
     return str(shipped_code(job))
 

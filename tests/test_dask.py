@@ -206,6 +206,15 @@ def test_a_worker_with_other_package_versions_refuses_the_job(numproject, tmp_pa
     assert not store.has(job.key)
 
 
+def test_a_store_folder_the_worker_cannot_reach_is_named(numproject, tmp_path):
+    from dataclasses import replace
+
+    job, _ = shipped(numproject, tmp_path)
+    outcome = run_in_fresh_process(replace(job, store=str(tmp_path / "elsewhere" / ".msflow")), tmp_path)
+    assert outcome.status == "failed" and outcome.user_error
+    assert f"cannot use the store folder {tmp_path / 'elsewhere' / '.msflow'}" in outcome.user_error["message"]
+
+
 def test_code_edited_after_the_key_is_refused(numproject, tmp_path):
     def edit(project):
         path = project / "numstages" / "basic.py"
