@@ -223,3 +223,10 @@ def test_takes_of_a_sentence_missing_an_expression_are_left_out_and_none_left_is
     takes = TrainingTakes(["1", "2"], np.array([0, 1]), ["a", "b"], ["x", "y"])
     with pytest.raises(UserError, match="no sentence is spoken in every expression"):
         training_sets(takes)
+
+
+def test_a_fit_stopped_at_max_iter_warns_with_its_error():
+    run = run_stage(BilinearFit, {"max_iter": 2, "tol": 1e-300, "align": "mouth"}, {"aam": aam_run()})
+    assert not run.meta["converged"] and run.meta["iterations"] == 2
+    assert len(run.warnings) == 1 and "max_iter=2" in run.warnings[0] and "relative training error" in run.warnings[0]
+    assert bilinear_run("mouth").warnings == []

@@ -521,3 +521,25 @@ def test_an_unconverged_analysis_warns_naming_the_take_and_its_residual():
     assert result.metrics["unconverged_frames"] > 0 and not result.meta["converged"]
     settled = ExpressionEdit("edit").run(ExpressionEdit.Params(video=False, targets=["happy"]), edit_inputs())
     assert settled.warnings == [] and settled.metrics["unconverged_frames"] == 0
+
+
+def test_a_face_the_model_cannot_express_warns():
+    """The CREMA-D model analysing a synthetic face (another 'person'): a large residual, and a warning naming the
+    take; the actor's own unseen take does not warn."""
+    from face_fixtures import bilinear_takes
+
+    stranger, _ = bilinear_takes(takes_per_style=1, frames=20)
+    inputs = {"model": bilinear_run(), "aam": aam_run(), "tracks": stranger}
+    run = run_stage(ExpressionEdit, {"video": False, "targets": ["happy"]}, inputs)
+    poor = [w for w in run.warnings if "explained poorly" in w]
+    assert run.metrics["mean_residual"] > 0.45 and len(poor) == 3 and "take 's0_r0'" in poor[0]
+    assert not [w for w in edit_run().warnings if "explained poorly" in w]
+
+
+def test_the_edit_on_two_threads_equals_one():
+    """``-j 2`` pastes the edited faces on two threads; the artifact does not change (it is not in the key)."""
+    params = {"targets": ["happy"], "video": True}
+    one = run_stage(ExpressionEdit, params, edit_inputs())
+    two = run_stage(ExpressionEdit, params, edit_inputs(), jobs=2)
+    for name in ("frames", "crop_shapes", "y", "video"):
+        np.testing.assert_array_equal(np.asarray(two.arrays[name]), np.asarray(one.arrays[name]))

@@ -13,17 +13,15 @@ from msflow import UserError
 from msflow.testing import artifact, prepare_inputs, run_stage
 from stages.eval.face import FaceEval, fold_partition, guarded_training
 
-#: the synthetic takes' true appearance model (3 shape modes, 8 texture patterns) and content dimension, given to
-#: the evaluation as the params of the pipeline's aam and bilinear stages
-SYNTHETIC_AAM = artifact({}, {"params": {"n_shape": 3, "n_texture": 8}})
-SYNTHETIC_BILINEAR = artifact({}, {"params": {"align": "mouth", "content_dim": 3}})
+#: the synthetic takes' true appearance model (3 shape modes, 8 texture patterns) and content dimension; they have
+#: no audio, so they are aligned by mouth shape
+SYNTHETIC = {"aam": {"n_shape": 3, "n_texture": 8}, "bilinear": {"align": "mouth", "content_dim": 3}}
 
 
 @cache
-def evaluate(params=(), **takes):
+def evaluate(**takes):
     view, _ = bilinear_takes(**takes)
-    inputs = {"tracks": view, "aam": SYNTHETIC_AAM, "bilinear": SYNTHETIC_BILINEAR}
-    return run_stage(FaceEval, dict(params), inputs)
+    return run_stage(FaceEval, SYNTHETIC, {"tracks": view})
 
 
 def test_known_styles_are_recovered_by_every_protocol():
@@ -62,12 +60,9 @@ def test_folds_partition_the_takes_and_the_guard_band_keeps_neighbours_out():
     from stages.eval.face import Takes, align_sets, model_config, ordered_sets, read_takes, training_mask
 
     view, _ = bilinear_takes()
-    inputs = prepare_inputs(FaceEval, {"tracks": view, "aam": SYNTHETIC_AAM, "bilinear": SYNTHETIC_BILINEAR})
-    params = FaceEval.Params(folds=4, guard=3)
-    from stages.face.bilinear import BilinearParams
-
-    takes: Takes = read_takes(inputs["tracks"], BilinearParams(align="mouth"))
-    config = model_config(params, inputs["aam"], inputs["bilinear"], takes)
+    params = FaceEval.Params(folds=4, guard=3, **SYNTHETIC)
+    takes: Takes = read_takes(prepare_inputs(FaceEval, {"tracks": view})["tracks"], params.bilinear)
+    config = model_config(params, takes)
     groups = ordered_sets(takes, config, training_mask(takes, config))
     alignment = align_sets(takes.features, takes.frames, groups, config.reference)
     fold = fold_partition(takes, groups, alignment, config.reference, 4)
@@ -140,13 +135,17 @@ def test_evaluation_errors_name_the_field():
         FaceEval.Params(folds=1)
     with pytest.raises(ValidationError):
         FaceEval.Params(guard=-1)
+    with pytest.raises(ValidationError):  # the model params are the stages' own, checked up front too
+        FaceEval.Params(bilinear={"align": "video"})
+    with pytest.raises(ValidationError):
+        FaceEval.Params(aam={"texture_width": 4})
 
 
 # ----------------------------------------------------------------------------------------------- pipeline
 
 
 def test_a_sweep_prints_the_evaluation_metrics_as_columns(tmp_path):
-    """eval/face.yaml from a fresh copy of the project: `msflow sweep` over a bilinear param gives a table with the
+    """eval/face.yaml from a fresh copy of the project: `msflow sweep` over a model param gives a table with the
     evaluation's metrics, the baseline's too although it does not vary with the swept param (three takes and two
     folds, to keep the test short)."""
     import shutil
@@ -161,7 +160,7 @@ def test_a_sweep_prints_the_evaluation_metrics_as_columns(tmp_path):
         "sweep",
         "eval/face.yaml",
         "-S",
-        "bilinear.content_dim=4,8",
+        "face.bilinear.content_dim=4,8",
         "-S",
         "vars.videos=1001_DFA_[NHA]*.flv",
         "-S",
@@ -175,7 +174,7 @@ def test_a_sweep_prints_the_evaluation_metrics_as_columns(tmp_path):
     assert out.returncode == 0, out.stderr
     table = [line for line in out.stdout.splitlines() if line.startswith("|")]
     header = [cell.strip() for cell in table[0].strip("|").split("|")]
-    assert "bilinear.content_dim" in header and "face.accuracy" in header and "face.baseline_accuracy" in header
+    assert "face.bilinear.content_dim" in header and "face.accuracy" in header and "face.baseline_accuracy" in header
     rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in table[2:]]
-    assert [row[header.index("bilinear.content_dim")] for row in rows] == ["4", "8"]
+    assert [row[header.index("face.bilinear.content_dim")] for row in rows] == ["4", "8"]
     assert all(0 <= float(row[header.index("face.accuracy")]) <= 1 for row in rows)

@@ -1,9 +1,9 @@
 """Evaluation of the face analysis (paper Sec 3: appearance model, bilinear model, analysis and edit) on labelled takes.
 
-The stage refits the appearance and bilinear models inside each protocol with the params of the pipeline's own
-``aam`` and ``bilinear`` stages (read from their artifacts' meta), so a sweep over those params is evaluated as the
-pipeline would fit them. Each take plays the expression its ``expression`` field names (else its label); ``train``
-chooses the expressions the models learn, every other take is *unseen*.
+The stage fits the appearance and bilinear models inside each protocol with its ``aam`` and ``bilinear`` params, the
+params of the pipeline's ``AamPca`` and ``BilinearFit`` stages (``-S face.bilinear.content_dim=4,8`` sweeps one). Each
+take plays the expression its ``expression`` field names (else its label); ``train`` chooses the expressions the models
+learn, every other take is *unseen*.
 
 Protocols (docs/face.md explains each number):
 
@@ -126,13 +126,9 @@ def speech_onsets(tracks, labels: list[str], sequence: np.ndarray, below_peak_db
     return onsets
 
 
-def model_config(params, aam_view, bilinear_view, takes: Takes) -> Config:
-    """The params the pipeline's aam and bilinear stages were run with (defaults without them), the training
-    expressions (``params.train``, default all) and the reference expression."""
-    aam = AamParams(**(aam_view.meta.get("params") or {})) if aam_view is not None else AamParams()
-    bilinear = (
-        BilinearParams(**(bilinear_view.meta.get("params") or {})) if bilinear_view is not None else BilinearParams()
-    )
+def model_config(params, takes: Takes) -> Config:
+    """The training expressions (``params.train``, default all) and the reference expression, with the params the
+    models are fitted with."""
     present = list(dict.fromkeys(takes.expressions))
     styles = present if params.train is None else list(dict.fromkeys(params.train))
     missing = [s for s in styles if s not in present]
@@ -142,7 +138,8 @@ def model_config(params, aam_view, bilinear_view, takes: Takes) -> Config:
         )
     if len(styles) < 2:
         raise UserError(f"the evaluation needs at least two training expressions, got {styles}", field="params.train")
-    return Config(aam, bilinear, params, styles, reference_index(bilinear.reference, styles))
+    reference = reference_index(params.bilinear.reference, styles)
+    return Config(params.aam, params.bilinear, params, styles, reference)
 
 
 def training_mask(takes: Takes, config: Config) -> np.ndarray:
@@ -489,12 +486,15 @@ def unseen_fidelity(models, takes, config, groups, alignment, take, frames, anal
 
 
 class FaceEvalParams(AnalysisParams):
-    """The evaluation protocol, and how frames are analysed (``AnalysisParams``, as in the edit stage)."""
+    """The evaluation protocol; how frames are analysed (``AnalysisParams``, as in the edit stage); how the models
+    are fitted (``aam`` and ``bilinear``: the params of the AamPca and BilinearFit stages)."""
 
     train: list[str] | None = Field(None, min_length=2)
     folds: int = Field(5, ge=2)
     guard: int = Field(5, ge=0)
     leave_one_take_out: bool = True
+    aam: AamParams = AamParams()
+    bilinear: BilinearParams = BilinearParams()
 
 
 FACE_EVAL_OUTPUTS = {
@@ -521,16 +521,12 @@ class FaceEval(Stage):
         "tracks": Input.artifact(
             "landmarks", "crops", "crop_landmarks", "sequence", doc="tracking artifact of the labelled takes"
         ),
-        "aam": Input.artifact(optional=True, doc="the pipeline's aam artifact: its params are refitted per fold"),
-        "bilinear": Input.artifact(optional=True, doc="the pipeline's bilinear artifact: its params, likewise"),
     }
     outputs = FACE_EVAL_OUTPUTS
 
     def run(self, params, inputs):
-        bilinear_view = inputs.get("bilinear")
-        defaults = BilinearParams(**(bilinear_view.meta.get("params") or {})) if bilinear_view else BilinearParams()
-        takes = read_takes(inputs["tracks"], defaults)
-        config = model_config(params, inputs.get("aam"), bilinear_view, takes)
+        takes = read_takes(inputs["tracks"], params.bilinear)
+        config = model_config(params, takes)
         include = training_mask(takes, config)
         groups = ordered_sets(takes, config, include)
         memo: dict = {}

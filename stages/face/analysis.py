@@ -411,6 +411,11 @@ def jitter(style: np.ndarray) -> float:
 
 # ----------------------------------------------------------------------------------------------- analysis of a take
 
+#: mean relative residual of a take above which the analysis warns that the model does not explain the face.
+#: Calibrated with eval/face.yaml on CREMA-D 1001 and seven talking-head clips of other people, the model trained on
+#: three of 1001's expressions: the actor's own unseen expressions 0.10-0.38, other people's faces 0.51-0.76.
+POOR_FIT_RESIDUAL = 0.45
+
 
 class AnalysisParams(Stage.Params):
     """How a take is analysed (Eq 5-6); shared by the edit stage and the face evaluation."""
@@ -504,4 +509,20 @@ def convergence_warnings(
             f"frames unconverged (relative residual of those frames: mean {resid.mean():.3g}, worst "
             f"{resid.max():.3g}); raise max_iter or check the take against the training takes"
         )
+    return out
+
+
+def fit_warnings(residual: np.ndarray, sequence: np.ndarray, labels: list[str]) -> list[str]:
+    """One warning per take whose frames the model explains poorly (mean relative residual above
+    ``POOR_FIT_RESIDUAL``): typically another person's face, which the model of the training takes cannot express."""
+    out = []
+    sequence = np.asarray(sequence)
+    for take in np.unique(sequence):
+        mean = float(np.mean(np.asarray(residual)[sequence == take]))
+        if mean > POOR_FIT_RESIDUAL:
+            label = labels[int(take)] if int(take) < len(labels) else str(int(take))
+            out.append(
+                f"take '{label}' is explained poorly by the model (mean relative residual {mean:.2f}, above "
+                f"{POOR_FIT_RESIDUAL}): is it the performer of the training takes? Its reading and edits are unreliable"
+            )
     return out

@@ -18,7 +18,14 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from msflow import Input, Output, Result, Stage, UserError
 from stages.face.aam import AamModel, AamProjection, apply_similarity, check_landmark_scheme, check_landmarks
-from stages.face.analysis import AnalysisParams, FrameAnalysis, analyse_frames, convergence_warnings, jitter
+from stages.face.analysis import (
+    AnalysisParams,
+    FrameAnalysis,
+    analyse_frames,
+    convergence_warnings,
+    fit_warnings,
+    jitter,
+)
 from stages.face.bilinear import BilinearModel, synthesise
 
 #: frames projected, rendered and encoded at a time: bounds the memory of the image work whatever the take's length
@@ -161,27 +168,44 @@ def edited_crops(
     texture_offset: np.ndarray,
     texture_scale: np.ndarray,
     feather: float = 1.5,
+    jobs: int = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Invert Eq 3-1 for y (F, K), warp each texture onto its shape in the frame's crop, paste over the crop.
 
     The frame's own similarity (mean frame -> crop) and photometric offset/scale place the synthesised face
-    where the input face was. Returns (edited crops (F, H, W) uint8, shapes in crop pixels (F, 68, 2)).
+    where the input face was. Returns (edited crops (F, H, W) uint8, shapes in crop pixels (F, 68, 2)). Frames are
+    independent: ``jobs`` > 1 pastes them on that many threads (OpenCV releases the GIL), with the same result.
     """
-    import cv2
-
     shapes, textures = model.reconstruct(y)
     crop_shapes = apply_similarity(shapes, crop_similarity)
     images = model.warp.fill_outside(model.texture_images(textures, texture_offset, texture_scale))
-    h, w = crops.shape[1:]
     out = np.empty_like(crops)
-    for f in range(len(y)):
-        drawn, covered = model.warp.draw_on_shape(images[f], crop_shapes[f], (w, h))
-        alpha = covered.astype(np.float32)
-        if feather > 0:
-            alpha = cv2.GaussianBlur(cv2.erode(alpha, np.ones((3, 3), np.uint8)), (0, 0), feather)
-        blended = alpha * drawn + (1 - alpha) * crops[f].astype(np.float32)
-        out[f] = np.clip(np.round(blended), 0, 255).astype(np.uint8)
+
+    def paste(f: int) -> None:
+        out[f] = paste_face(model, images[f], crop_shapes[f], crops[f], feather)
+
+    if jobs > 1 and len(y) > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(jobs) as pool:
+            list(pool.map(paste, range(len(y))))
+    else:
+        for f in range(len(y)):
+            paste(f)
     return out, crop_shapes
+
+
+def paste_face(model: AamModel, texture_image: np.ndarray, shape: np.ndarray, crop: np.ndarray, feather: float):
+    """One texture drawn onto its shape (inverse warp) and blended into the crop with a feathered mask."""
+    import cv2
+
+    h, w = crop.shape
+    drawn, covered = model.warp.draw_on_shape(texture_image, shape, (w, h))
+    alpha = covered.astype(np.float32)
+    if feather > 0:
+        alpha = cv2.GaussianBlur(cv2.erode(alpha, np.ones((3, 3), np.uint8)), (0, 0), feather)
+    blended = alpha * drawn + (1 - alpha) * crop.astype(np.float32)
+    return np.clip(np.round(blended), 0, 255).astype(np.uint8)
 
 
 def label_panel(image: np.ndarray, text: str) -> np.ndarray:
@@ -422,7 +446,7 @@ def project_by_blocks(model: AamModel, take: TestTake, block: int = BLOCK_FRAMES
     for a in range(0, len(take.landmarks), block):
         b = min(a + block, len(take.landmarks))
         part = model.project(take.landmarks[a:b], np.asarray(take.crops[a:b]), take.crop_landmarks[a:b])
-        part.textures = part.textures[:, :0]
+        part.textures = np.empty((b - a, 0))  # not a view: that would keep the block's textures alive
         parts.append(part)
     fields = AamProjection.__dataclass_fields__
     return AamProjection(**{name: np.concatenate([getattr(p, name) for p in parts]) for name in fields})
@@ -446,6 +470,7 @@ def render_edits(
     video: bool,
     emit,
     block: int = BLOCK_FRAMES,
+    jobs: int = 1,
 ) -> RenderedEdits:
     """Eq 7 and the edited crops for every edit, ``block`` frames at a time: each block's crops (b, E, H, W) go to
     ``emit`` (an output sink's append) and into the video as they come, so no whole-take image array is held."""
@@ -464,7 +489,13 @@ def render_edits(
             y[e, a:b] = edit_configuration(bilinear.w, bilinear.style, targets.weights[e, a:b], content[a:b])
             shapes[e, a:b] = model.reconstruct_shapes(model.split(y[e, a:b])[0])
             frames[:, e], crop_shapes[e, a:b] = edited_crops(
-                model, y[e, a:b], crops, proj.crop_similarity[a:b], proj.texture_offset[a:b], proj.texture_scale[a:b]
+                model,
+                y[e, a:b],
+                crops,
+                proj.crop_similarity[a:b],
+                proj.texture_offset[a:b],
+                proj.texture_scale[a:b],
+                jobs=jobs,
             )
         emit(frames)
         if encoder is not None:
@@ -519,7 +550,7 @@ class ExpressionEdit(Stage):
         proj = project_by_blocks(take.model, take)
         analysis = analyse_frames(take.bilinear, take.model.n_shape, proj.y, take.sequence, params)
         frames, emit = self.frame_sinks(targets, tuple(take.crops.shape[1:]))
-        edits = render_edits(take, proj, analysis.content, targets, params.video, emit)
+        edits = render_edits(take, proj, analysis.content, targets, params.video, emit, jobs=self.jobs)
         strip = render_strip(params, labels, take, proj, analysis.content)
         return pack_edit(params, take, targets, analysis, edits, strip, frames)
 
@@ -572,6 +603,7 @@ def pack_edit(
     if edits.video is not None:
         arrays["video"] = edits.video
     warned = convergence_warnings(analysis.residual, analysis.converged, take.sequence, take.labels, params.max_iter)
+    warned += fit_warnings(analysis.residual, take.sequence, take.labels)
     return Result(arrays, edit_meta(params, take, targets, analysis), edit_metrics(take, analysis), warned)
 
 
