@@ -56,6 +56,9 @@ def run(path: Any, overrides: Sequence[str] = (), **options: Any) -> RunResult:
         Receives every stage state change (the CLI's progress display).
     raise_on_failure : bool
         Raise after the run when a stage failed (otherwise inspect ``RunResult.states``).
+    publish_dir : str or Path, optional
+        Where the ``publish:`` entries go (relative to it); by default they are relative to the pipeline file and
+        must stay inside the project folder.
 
     Returns
     -------

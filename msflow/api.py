@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from msflow.errors import StageFailed, UserError
+from msflow.errors import CorruptArtifact, StageFailed, UserError
 from msflow.jobs import StageStatus
-from msflow.runner import Reporter, Runner, StageState, new_run_id
+from msflow.runner import Reporter, Runner, StageState
 from msflow.session import Session, open_session
+from msflow.stores.base import new_run_id
 
 if TYPE_CHECKING:
     from msflow.artifact import ArtifactView
@@ -76,6 +78,7 @@ class Execution:
     session: Session
     states: dict[str, StageState]
     record: dict[str, Any]
+    seen: dict[str, str] = field(default_factory=dict)  #: stat signatures of the data files and folders read
 
 
 def run_sessions(
@@ -137,11 +140,29 @@ def run_sessions(
             label=label,
         )
         record.update(extra or {})
-        session.store.write_run(record)
-        executions.append(Execution(session, runner.states, record))
+        if runner.repairs:
+            record["repairs"] = runner.repairs
+        write_record(session, record, noop=not runner.repairs and not force)
+        executions.append(Execution(session, runner.states, record, runner.file_memo.seen))
     for session in {id(s.memo): s for s in sessions}.values():  # sessions may share one memo
         session.save_memo()
     return executions
+
+
+def write_record(session: Session, record: dict[str, Any], noop: bool) -> None:
+    """Write a run record. A pure no-op (everything cached) whose stages, keys and outputs equal those of a full
+    record already written only gets a small record pointing at it (``same_as``): no-ops do not grow the store by a
+    full copy each. Readers see the full record either way (``Store.read_run`` expands it)."""
+    from msflow.records import record_digest, small_record
+
+    digest = record_digest(record)
+    known = session.memo.setdefault("records", {})
+    all_cached = all(s["state"] == StageStatus.CACHED and not s.get("detail") for s in record["stages"].values())
+    if noop and all_cached and digest in known:
+        session.store.write_run(small_record(record, known[digest]))
+        return
+    session.store.write_run(record)
+    known[digest] = record["id"]
 
 
 def run(
@@ -159,11 +180,11 @@ def run(
     label: dict[str, Any] | None = None,
     session: Session | None = None,
     connect_timeout: float = 10.0,
+    publish_dir: str | Path | None = None,
 ) -> RunResult:
     """Run a pipeline (``msflow.run``, documented there with an example); the CLI's ``run`` too."""
-    session = session or open_session(path, overrides)
-    (execution,) = run_sessions(
-        [session],
+    session = session or open_session(path, overrides, publish_dir=publish_dir)
+    options: dict[str, Any] = dict(
         jobs=jobs,
         executor=executor,
         scheduler=scheduler,
@@ -174,7 +195,17 @@ def run(
         labels=[label] if label else None,
         argv=argv,
     )
-    finish_run(execution)
+    (execution,) = run_sessions([session], **options)
+    try:
+        finish_run(execution)
+    except CorruptArtifact as exc:  # an artifact to publish failed its integrity check: recompute, publish again
+        where = session.store.quarantine(exc.key or "", f"publishing: {exc.problem}")
+        repair = {"stage": exc.stage or "", "key": exc.key or "", "problem": exc.problem, "moved_to": where}
+        (execution,) = run_sessions([session], **options)
+        execution.record.setdefault("repairs", []).insert(0, repair)
+        finish_run(execution)
+    if not until and not force and publish_dir is None and not execution.record.get("repairs"):
+        save_fast_state(execution)  # what the next no-op `msflow run` (same file and overrides) answers from
     result = RunResult(session, execution.states, execution.record)
     if raise_on_failure:
         raise_for_failures(execution.states)
@@ -192,6 +223,73 @@ def finish_run(execution: Execution) -> None:
 
         publish_outputs(session, execution.states)
         session.save_memo()
+
+
+def save_fast_state(execution: Execution) -> None:
+    """After a run where every stage is done on a local store, save what a no-op answer depends on (see
+    msflow.fastpath): signatures of the pipeline, lock, code, data, artifacts and published files."""
+    from msflow.fastpath import save_state, signature
+    from msflow.records import lock_path
+    from msflow.stores.local import LocalStore
+
+    session = execution.session
+    store, pipeline = session.store, session.pipeline
+    if not isinstance(store, LocalStore) or not all(s.state.done for s in execution.states.values()):
+        return
+    watch = watched_code(session)
+    if watch is None or any(ref.listed is None for ref in pipeline.files_refs()):
+        return
+    watch.update(execution.seen)
+    watch[str(pipeline.path)] = pipeline.source_signature
+    watch[str(lock_path(pipeline))] = signature(str(lock_path(pipeline)))
+    for ref in pipeline.files_refs():
+        watch.update({folder: signature(folder) for folder in ref.listed or ()})
+    for state in execution.states.values():
+        assert state.key is not None
+        folder = store.artifact_path(state.key)
+        watch[str(folder)] = signature(str(folder))
+        watch[str(folder / "zarr.json")] = signature(str(folder / "zarr.json"))
+    for dest in pipeline.publish.values():
+        watch[dest] = signature(dest)
+    known = session.memo.get("records", {})
+    from msflow.records import record_digest
+
+    same_as = known.get(record_digest(execution.record), execution.record["id"])
+    save_state(
+        str(pipeline.path),
+        list(pipeline.overrides),
+        str(pipeline.root),
+        watch,
+        list(execution.states),
+        {
+            n: list((s.manifest or {}).get("warnings", []))
+            for n, s in execution.states.items()
+            if (s.manifest or {}).get("warnings")
+        },
+        same_as,
+        str(store.root / "runs"),
+        pipeline.rel_path,
+    )
+
+
+def watched_code(session: Session) -> dict[str, str] | None:
+    """Signatures of the files and folders of every stage's import closure, as recorded when the closure was
+    computed (None when a closure is not memoised: then the state is not saved)."""
+    from msflow.fastpath import listing
+
+    closures = session.memo.get("code", {}).get("closures", {})
+    root = session.pipeline.root
+    watch: dict[str, str] = {}
+    for plan in session.plans.values():
+        if not plan.code["modules"]:
+            continue  # an installed stage module: versioned (the environment digest covers it)
+        hit = closures.get(plan.uses.partition(":")[0])
+        if not hit:
+            return None
+        for path, sig in zip(hit["files"], hit["sig"]):
+            full = path if os.path.isabs(path) else str(root / path)
+            watch[full] = listing(full) if os.path.isdir(full) else sig
+    return watch
 
 
 def raise_for_failures(states: dict[str, StageState]) -> None:

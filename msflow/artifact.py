@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from msflow.chunks import array_metadata, chunk_path, encode_chunk
+from msflow.errors import READ_DAMAGE, CorruptArtifact
 from msflow.hashing import ArrayHasher, array_hash, array_hash_v1, json_hash
 from msflow.sinks import OutputSink, iter_blocks
 
@@ -20,7 +21,11 @@ FORMAT = 2  # 2: incremental array hash (hashing.ArrayHasher), crc32c on every c
 
 
 class ArtifactView:
-    """Read access to an artifact: ``view["name"]`` is numpy, ``view.lazy("name")`` the stored (zarr) array."""
+    """Read access to an artifact: ``view["name"]`` is numpy, ``view.lazy("name")`` the stored array, unread.
+
+    Reads are checked: a chunk whose checksum does not match, or that is missing, raises ``CorruptArtifact``
+    naming the artifact, never a wrong value.
+    """
 
     def __init__(
         self,
@@ -51,26 +56,58 @@ class ArtifactView:
 
     def __getitem__(self, name: str) -> Any:
         if name not in self._loaded:
-            import numpy as np
-
             if name not in self._arrays:
                 raise KeyError(f"artifact has no output '{name}'; it has {sorted(self._arrays)}")
-            self._loaded[name] = np.asarray(self._arrays[name][...])
+            self._loaded[name] = self.lazy(name)[...]
         return self._loaded[name]
 
     def get(self, name: str, default: Any = None) -> Any:
         return self[name] if name in self._arrays else default
 
-    def lazy(self, name: str) -> Any:
+    def lazy(self, name: str) -> CheckedArray:
         """The stored array, unread: slice it (``iter_blocks``) to read blocks of frames."""
-        return self._arrays[name]
+        return CheckedArray(self._arrays[name], self.key, name)
 
     def bytes(self, name: str) -> bytes:
         data: bytes = self[name].tobytes()
         return data
 
     def __repr__(self) -> str:
-        return f"ArtifactView({', '.join(self.names)})"
+        key = f"{self.key[:12]}: " if self.key else ""
+        return f"ArtifactView({key}{', '.join(self.names)})"
+
+
+class CheckedArray:
+    """A stored array (zarr, remote, numpy) whose reads turn damage into ``CorruptArtifact``; otherwise it behaves
+    as the array it wraps (``shape``, ``dtype``, ``chunks``, slicing, ``np.asarray``)."""
+
+    def __init__(self, array: Any, key: str | None, name: str):
+        self._array = array
+        self._key = key
+        self._name = name
+
+    def __getitem__(self, selection: Any) -> Any:
+        import numpy as np
+
+        try:
+            return np.asarray(self._array[selection])
+        except READ_DAMAGE as exc:
+            raise CorruptArtifact(self._key, f"output '{self._name}': {type(exc).__name__}: {exc}") from None
+
+    def __array__(self, dtype: Any = None, copy: bool | None = None) -> Any:
+        out = self[...]
+        return out if dtype is None else out.astype(dtype)
+
+    def __len__(self) -> int:
+        return len(self._array)
+
+    def __getattr__(self, attr: str) -> Any:
+        if attr.startswith("_"):
+            raise AttributeError(attr)
+        return getattr(self._array, attr)
+
+    def __repr__(self) -> str:
+        return f"CheckedArray({self._name}, shape={tuple(self._array.shape)}, dtype={self._array.dtype})"
 
 
 def meta_digest(meta: dict[str, Any], metrics: dict[str, Any], warnings: list[str] | None = None) -> str:
@@ -197,18 +234,75 @@ def write_artifact(
 
 
 def read_manifest(path: Path) -> dict[str, Any]:
-    """The manifest alone, without importing zarr."""
-    with open(Path(path) / "zarr.json", "rb") as fh:
-        manifest: dict[str, Any] = json.load(fh)["attributes"]["msflow"]
-    return manifest
+    """The manifest alone, without importing zarr; ``CorruptArtifact`` when it is missing, truncated or malformed."""
+    path = Path(path)
+    try:
+        with open(path / "zarr.json", "rb") as fh:
+            manifest = json.load(fh)["attributes"]["msflow"]
+    except FileNotFoundError:
+        raise CorruptArtifact(path.name, "its manifest (zarr.json) is missing") from None
+    except (ValueError, KeyError, TypeError) as exc:
+        raise CorruptArtifact(
+            path.name, f"its manifest (zarr.json) is unreadable: {type(exc).__name__}: {exc}"
+        ) from None
+    check_manifest(path.name, manifest)
+    checked: dict[str, Any] = manifest
+    return checked
+
+
+def check_manifest(key: str | None, manifest: Any) -> None:
+    """Raise CorruptArtifact unless ``manifest`` has the fields readers rely on."""
+    try:
+        outputs = manifest["outputs"]
+        ok = isinstance(outputs, dict) and all(
+            isinstance(e["hash"], str) and isinstance(e["shape"], list) and isinstance(e["dtype"], str)
+            for e in outputs.values()
+        )
+        ok = ok and isinstance(manifest["content_hash"], str)
+    except (KeyError, TypeError):
+        ok = False
+    if not ok:
+        raise CorruptArtifact(key, "its manifest lacks output hashes, shapes or dtypes")
+
+
+def missing_chunks(path: Path, manifest: dict[str, Any]) -> list[str]:
+    """Chunk files an artifact's outputs need that are not there (zarr would read them as zeros)."""
+    import os
+
+    from msflow.chunks import chunk_shape, prod
+
+    missing = []
+    for name, entry in manifest["outputs"].items():
+        shape = tuple(entry["shape"])
+        if not prod(shape):
+            continue
+        if not shape:
+            paths = [chunk_path(name, None, 0)]
+        else:
+            import numpy as np
+
+            rows = chunk_shape(shape, np.dtype(entry["dtype"]).itemsize)[0]
+            paths = [chunk_path(name, i, len(shape)) for i in range(-(-shape[0] // rows))]
+        missing += [p for p in paths if not os.path.isfile(path / p)]
+    return missing
 
 
 def read_artifact(path: Path, key: str | None = None) -> ArtifactView:
+    """Open a local artifact: its manifest is checked and every chunk must be present; chunk checksums are checked
+    as they are read. ``CorruptArtifact`` otherwise."""
     import zarr
 
+    path = Path(path)
+    key = key or path.name
     manifest = read_manifest(path)
-    group = zarr.open_group(str(path), mode="r")
-    arrays = {name: group[name] for name in manifest["outputs"]}
+    missing = missing_chunks(path, manifest)
+    if missing:
+        raise CorruptArtifact(key, f"{len(missing)} chunk file(s) missing, e.g. {missing[0]}")
+    try:
+        group = zarr.open_group(str(path), mode="r")
+        arrays = {name: group[name] for name in manifest["outputs"]}
+    except (*READ_DAMAGE, TypeError) as exc:
+        raise CorruptArtifact(key, f"its arrays cannot be opened: {type(exc).__name__}: {exc}") from None
     return ArtifactView(arrays, manifest.get("meta", {}), manifest.get("metrics", {}), key=key, manifest=manifest)
 
 
@@ -216,12 +310,9 @@ def verify_artifact(path: Path) -> list[str]:
     """Recompute every content hash of an artifact; return a list of problems (empty when intact)."""
     try:
         manifest = read_manifest(path)
-    except Exception as exc:  # unreadable zarr.json is itself the finding
-        return [f"manifest unreadable: {exc}"]
-    try:
         view = read_artifact(path)
-    except Exception as exc:
-        return [f"unreadable: {type(exc).__name__}: {exc}"]
+    except CorruptArtifact as exc:
+        return [exc.problem]
     return check_contents(manifest, view.lazy)
 
 

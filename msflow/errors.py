@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 from typing import Any
 
 
@@ -62,6 +63,37 @@ class StageFailed(Exception):
         self.traceback = traceback
 
 
+class CorruptArtifact(Exception):
+    """A stored artifact failed an integrity check on read: a chunk whose checksum does not match, a missing chunk,
+    an unreadable manifest. Exit code 1. ``msflow run`` moves such an artifact aside and recomputes it."""
+
+    exit_code = 1
+
+    def __init__(self, key: str | None, problem: str, stage: str | None = None):
+        super().__init__(problem)
+        self.key = key
+        self.problem = problem
+        self.stage = stage
+
+    def located(self, *, stage: str | None = None) -> CorruptArtifact:
+        self.stage = self.stage or stage
+        return self
+
+    def __str__(self) -> str:
+        what = f"the artifact {self.key}" if self.key else "an artifact"
+        if self.stage:
+            what += f" of stage '{self.stage}'"
+        return (
+            f"{what} is corrupt: {self.problem}. `msflow verify` lists corrupt artifacts; `msflow run` moves an "
+            "artifact it finds corrupt aside and recomputes it (or remove them all: `msflow verify --delete`)"
+        )
+
+
+#: what reading a damaged artifact raises (zarr's checksum and decoding errors, a missing chunk); anything else
+#: (a network failure, a UserError naming the store) is not corruption
+READ_DAMAGE = (ValueError, RuntimeError, FileNotFoundError, EOFError, KeyError)
+
+
 class InvalidResult(TypeError, ValueError):
     """What a stage's ``run`` returned breaks its declared outputs or the strict-JSON rules (a bug in the stage).
 
@@ -84,3 +116,27 @@ def display_path(path: str | os.PathLike[str]) -> str:
     except ValueError:  # another drive
         return absolute
     return absolute if relative.startswith("..") else relative
+
+
+#: the member tags pydantic puts into error locations of union-typed fields: "int", "literal['a','b']",
+#: "function-after[...]", "list[float]" ... (a user's field is never named like these)
+PYDANTIC_TAG = re.compile(
+    r"^(?:int|float|str|bool|bytes|none|list|dict|tuple|set|frozenset|decimal|date|datetime|time|timedelta|"
+    r"uuid|url|path|json-or-python|[a-z][a-z0-9_-]*\[.*\])$"
+)
+
+
+def field_path(loc: tuple[object, ...] | list[object]) -> str:
+    """A pydantic error location as a dotted field path, without pydantic's union member tags.
+
+    >>> field_path(("k", "int"))
+    'k'
+    >>> field_path(("alpha", "literal['a','b']", "keyframes", 0))
+    'alpha.keyframes.0'
+    """
+    return ".".join(strip_tags(loc))
+
+
+def strip_tags(loc: tuple[object, ...] | list[object]) -> list[str]:
+    """The parts of a pydantic error location that name fields, keys and indices (union member tags dropped)."""
+    return [str(p) for p in loc if not (isinstance(p, str) and PYDANTIC_TAG.match(p))]

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
 from msflow.atomic import write_with
-from msflow.errors import UserError, display_path
+from msflow.errors import CorruptArtifact, UserError, display_path
 from msflow.sinks import iter_blocks
 
 if TYPE_CHECKING:
@@ -121,6 +121,8 @@ def publish_outputs(session: Session, states: dict[str, StageState]) -> list[str
         assert state.key is not None
         try:
             export_output(session.store.open(state.key), output, Path(dest), field=f"publish.{ref}")
+        except CorruptArtifact as exc:
+            raise exc.located(stage=stage) from None
         except UserError as exc:
             raise UserError(
                 f"{display_path(dest)}: {exc.message}", file=str(session.pipeline.path), field=f"publish.{ref}"

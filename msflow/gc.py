@@ -9,6 +9,7 @@ if TYPE_CHECKING:
 
 
 def referenced_keys(store: Store, keep_runs: int) -> set[str]:
+    """Stage keys the newest ``keep_runs`` run records reference."""
     keys: set[str] = set()
     for run_id in store.run_ids()[-keep_runs:] if keep_runs > 0 else []:
         try:
@@ -19,9 +20,20 @@ def referenced_keys(store: Store, keep_runs: int) -> set[str]:
     return keys
 
 
+def figure_of(store: Store, key: str, keep: set[str]) -> bool:
+    """Whether ``key`` is a cached report figure of a kept stage artifact (figures name their stage's key)."""
+    try:
+        meta = store.manifest(key).get("meta")
+    except Exception:  # a corrupt artifact is no figure to keep
+        return False
+    return isinstance(meta, dict) and meta.get("stage_key") in keep
+
+
 def collect_garbage(store: Store, *, keep_runs: int = 10, dry_run: bool = False) -> dict[str, Any]:
+    """Remove artifacts that none of the newest ``keep_runs`` runs references (report figures of the artifacts
+    they reference stay too), and leftovers of killed writers."""
     keep = referenced_keys(store, keep_runs)
-    doomed = [k for k in store.keys() if k not in keep]
+    doomed = [k for k in store.keys() if k not in keep and not figure_of(store, k, keep)]
     freed = sum(store.size(k) for k in doomed)
     tmp: list[str] = []
     if not dry_run:

@@ -103,12 +103,16 @@ class FileHashMemo:
     def __init__(self, entries: dict[str, list[str]] | None = None):
         # the caller's dict itself, even when empty: it is the memo section that gets saved
         self.entries = entries if entries is not None else {}
+        #: stat signatures of every file and folder consulted: what the hashes depend on (the no-op fast path
+        #: watches them)
+        self.seen: dict[str, str] = {}
 
     def hash(self, path: Path) -> str:
         """Content hash of a file, or of a folder (its files' relative paths and hashes, hidden ones skipped)."""
         if os.path.isdir(path):
             entries = {}
             for dirpath, dirnames, files in os.walk(path):
+                self.seen[dirpath] = stat_signature(Path(dirpath))
                 dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
                 for name in sorted(files):
                     if not name.startswith("."):
@@ -117,6 +121,7 @@ class FileHashMemo:
             return json_hash({"folder": entries})
         key = str(path)
         sig = stat_signature(path)
+        self.seen[key] = sig
         hit = self.entries.get(key)
         if hit is not None and hit[0] == sig:
             return hit[1]

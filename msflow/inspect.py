@@ -6,7 +6,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
-from msflow.errors import UserError
+from msflow.errors import CorruptArtifact, UserError
 from msflow.hashing import FileHashMemo
 from msflow.jobs import DryStatus, StageStatus
 from msflow.runner import StageState, key_parts, stage_key
@@ -22,6 +22,7 @@ class DryState:
     parts: dict[str, Any] | None = None
     reasons: list[str] = field(default_factory=list)
     manifest: dict[str, Any] | None = None
+    corrupt: CorruptArtifact | None = None  #: its artifact exists but failed its integrity check
 
 
 class RunHistory:
@@ -77,9 +78,18 @@ def dry_run(session: Session, history: RunHistory | None = None) -> dict[str, Dr
             continue
         full, key, _, provenance = stage_key(pipeline, plan, name, states, memo)
         state = StageState(name, key=key, parts=full, inputs=provenance)
+        corrupt = None
         if store.has(key):
-            state.state, state.manifest = StageStatus.CACHED, store.manifest(key)
+            try:
+                state.state, state.manifest = StageStatus.CACHED, store.manifest(key)
+            except CorruptArtifact as exc:
+                corrupt = exc.located(stage=name)
+        if state.state is StageStatus.CACHED:
             dry[name] = DryState(name, DryStatus.CACHED, key, full, manifest=state.manifest)
+        elif corrupt is not None:
+            reason = f"its artifact is corrupt ({corrupt.problem}): a run moves it aside and recomputes it"
+            state.state = StageStatus.PENDING
+            dry[name] = DryState(name, DryStatus.RUN, key, full, [reason], corrupt=corrupt)
         else:
             previous = history.last(name)
             if previous is None:
@@ -174,6 +184,9 @@ def resolve_artifact_key(session: Session, stage: str) -> tuple[str, str]:
     history = RunHistory(session)
     dry = dry_run(session, history)
     key = dry[stage].key
+    corrupt = dry[stage].corrupt
+    if corrupt is not None:
+        raise corrupt
     if dry[stage].state is DryStatus.CACHED and key is not None:
         return key, "current"
     previous = history.last(stage)

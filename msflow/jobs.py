@@ -98,6 +98,7 @@ class Outcome:
     error: str | None = None
     user_error: dict[str, Any] | None = field(default=None)
     traceback: str | None = None
+    corrupt: dict[str, str] | None = None  #: an input artifact failed its integrity check: {"key", "problem"}
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), allow_nan=False)

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from msflow.errors import UserError
-from msflow.fingerprint import CodeIndex, distribution_versions
+from msflow.errors import UserError, field_path
+from msflow.fingerprint import STDLIB, CodeIndex, distribution_versions
 from msflow.hashing import json_hash
 from msflow.spec import FilesRef, Pipeline, StageRef, rel_to, suggest
 
@@ -159,7 +159,7 @@ def canonical_params(cls: type[Stage], raw: dict[str, Any], *, file: str, stage:
         validated = cls.Params(**raw)
     except ValidationError as exc:
         err = exc.errors()[0]
-        loc = ".".join(str(p) for p in err.get("loc", ()))
+        loc = field_path(err.get("loc", ()))
         if err.get("type") == "extra_forbidden":
             allowed = sorted(cls.Params.model_fields)
             msg = f"unknown parameter '{loc}'{suggest(loc, allowed)}; parameters: {', '.join(allowed) or 'none'}"
@@ -189,11 +189,21 @@ def resolve(pipeline: Pipeline, memo: dict[str, Any]) -> dict[str, StagePlan]:
         module_name = node.uses.partition(":")[0]
         in_project = index.project_file(module_name)
         if in_project is not None:
-            closure = index.closure(module_name)
+            try:
+                closure = index.closure(module_name)
+            except UserError as exc:
+                raise exc.located(file=file, stage=name, field="uses") from None
         else:
             import importlib.util
 
             top = module_name.split(".")[0]
+            if top in STDLIB:
+                raise UserError(
+                    f"'{node.uses}' is not a msflow Stage subclass: '{top}' is Python's standard library",
+                    file=file,
+                    stage=name,
+                    field="uses",
+                )
             if importlib.util.find_spec(top) is None:
                 raise UserError(
                     f"unknown stage module '{module_name}' (not in the project at {pipeline.root} and not installed)",
@@ -202,11 +212,11 @@ def resolve(pipeline: Pipeline, memo: dict[str, Any]) -> dict[str, StagePlan]:
                     field="uses",
                 )
             closure = {"modules": {}, "external": [top]}
-        code = {
-            "modules": closure["modules"],
-            "dists": distribution_versions(closure["external"], index.memo, pipeline.root),
-            "python": PYTHON,
-        }
+        try:
+            dists = distribution_versions(closure["external"], index.memo, pipeline.root)
+        except UserError as exc:
+            raise exc.located(file=file, stage=name, field="uses") from None
+        code = {"modules": closure["modules"], "dists": dists, "python": PYTHON}
         code_digest = json_hash(code)
         iface_key = json_hash([node.uses, code_digest])
         interface = interfaces.get(iface_key)

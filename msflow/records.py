@@ -97,6 +97,26 @@ def build_record(
     }
 
 
+#: the fields of a run record that a small (no-op) record carries itself; the rest come from its ``same_as``
+SMALL_FIELDS = ("id", "pipeline", "started", "seconds", "ok", "executor", "jobs", "argv", "overrides", "variant")
+
+
+def record_digest(record: dict[str, Any]) -> str:
+    """What two runs must share for one's record to stand for the other's: configuration, keys, outputs, versions."""
+    stages = {n: [s.get("key"), s.get("content_hash"), s.get("warnings")] for n, s in record["stages"].items()}
+    stable = {k: record.get(k) for k in ("pipeline", "config", "versions", "overrides", "variant", "sweep")}
+    return json_hash({**stable, "stages": stages})
+
+
+def small_record(record: dict[str, Any], same_as: str) -> dict[str, Any]:
+    """The record of a pure no-op: when, how, and the run whose full record describes the same state."""
+    small = {k: record[k] for k in SMALL_FIELDS if k in record}
+    small.update({"same_as": same_as, "counts": record["counts"]})
+    if "sweep" in record:
+        small["sweep"] = record["sweep"]
+    return small
+
+
 def lock_entries(pipeline: Pipeline, plans: dict[str, StagePlan], states: dict[str, StageState]) -> dict[str, Any]:
     entries = {}
     for name, state in states.items():

@@ -133,7 +133,7 @@ def render_stage_figures(job: dict[str, Any]) -> list[dict[str, Any]]:
                 store.write(
                     key,
                     {"data": np.frombuffer(data, np.uint8)},
-                    {"meta": {"media": media, "stage": stage, "figure": name}},
+                    {"meta": {"media": media, "stage": stage, "figure": name, "stage_key": entry["key"]}},
                 )
         out.append(
             {"name": name, "key": key, "media": media, "cached": False, "seconds": time.perf_counter() - started}

@@ -7,15 +7,13 @@ special case. Keys never contain paths or times.
 
 from __future__ import annotations
 
-import uuid
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass, field
-from datetime import UTC
 from pathlib import Path
 from typing import Any, Protocol
 
-from msflow.errors import UserError
+from msflow.errors import CorruptArtifact, UserError
 from msflow.executors import Executor
 from msflow.hashing import FileHashMemo, json_hash
 from msflow.jobs import Job, JobInput, Outcome, StageStatus
@@ -211,6 +209,8 @@ class Runner:
                 self.dependents[dep].append(name)
         self.queue = deque(name for name in self.selected if not self.blocking[name])
         self.unsettled = len(self.selected)
+        self.repaired: set[str] = set()  # keys of corrupt artifacts moved aside (each repaired once)
+        self.repairs: list[dict[str, str]] = []  # what was moved aside, for the record and the CLI
 
     def _report(self, state: StageState) -> None:
         if self.reporter is not None:
@@ -235,9 +235,13 @@ class Runner:
             self.pipeline, plan, name, self.states, self.file_memo
         )
         if name not in self.force and self.store.has(state.key):
-            state.manifest = self.store.manifest(state.key)
-            self._finish(state, StageStatus.CACHED)
-            return None
+            try:
+                state.manifest = self.store.manifest(state.key)
+            except CorruptArtifact as exc:  # a damaged artifact is never used: move it aside, compute anew
+                self._quarantine(name, state.key, exc.problem)
+            else:
+                self._finish(state, StageStatus.CACHED)
+                return None
         state.state = StageStatus.RUNNING
         self._report(state)
         return Job(
@@ -257,6 +261,8 @@ class Runner:
     def settle(self, name: str, outcome: Outcome) -> None:
         """Record what became of a stage's job (or of its preparation) and release its dependents."""
         state = self.states[name]
+        if outcome.corrupt and self._repair(name, outcome.corrupt["key"], outcome.corrupt["problem"]):
+            return
         state.seconds = outcome.seconds
         if outcome.status.done:
             state.manifest = outcome.manifest
@@ -281,6 +287,42 @@ class Runner:
             self.blocking[child] -= 1
             if not self.blocking[child] and self.states[child].state is StageStatus.PENDING:
                 self.queue.append(child)
+
+    def _quarantine(self, stage: str, key: str, problem: str) -> None:
+        where = self.store.quarantine(key, f"stage '{stage}': {problem}")
+        self.repaired.add(key)
+        self.repairs.append({"stage": stage, "key": key, "problem": problem, "moved_to": where})
+        self.states[stage].detail = "recomputed: its artifact was corrupt"
+
+    def _repair(self, name: str, key: str, problem: str) -> bool:
+        """An input of ``name`` failed its integrity check: move the upstream artifact aside, recompute it, then
+        run ``name`` again. False when the key is not an upstream stage's (then ``name`` fails)."""
+        upstream = [d for d in self.pipeline.stages[name].deps if self.states[d].key == key]
+        if not upstream:
+            return False
+        if key not in self.repaired:
+            for up in upstream:
+                self._quarantine(up, key, problem)
+                self._reopen(up)
+        state = self.states[name]
+        state.state = StageStatus.PENDING
+        self._report(state)
+        if self.states[upstream[0]].state.done:  # recomputed meanwhile: run again now
+            self.queue.append(name)
+        else:
+            self.blocking[name] += 1  # wait for the recomputed upstream artifact
+        return True
+
+    def _reopen(self, name: str) -> None:
+        """Make a settled stage pending again (its artifact is gone) and hold back its pending dependents."""
+        state = self.states[name]
+        state.state, state.manifest = StageStatus.PENDING, None
+        self.unsettled += 1
+        self.queue.append(name)
+        self._report(state)
+        for child in self.dependents[name]:
+            if self.states[child].state is StageStatus.PENDING:
+                self.blocking[child] += 1
 
     def _skip(self, name: str) -> None:
         state = self.states[name]
@@ -355,10 +397,3 @@ def outcome_of(future: Future[str]) -> Outcome:
         return Outcome.from_json(future.result())
     except Exception as exc:
         return Outcome.crashed(f"worker lost: {type(exc).__name__}: {exc}")
-
-
-def new_run_id() -> str:
-    """Sortable by start time to the microsecond (records of one second must still order newest last)."""
-    from datetime import datetime
-
-    return datetime.now(UTC).strftime("%Y%m%dT%H%M%S.%f") + "-" + uuid.uuid4().hex[:6]

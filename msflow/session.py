@@ -18,7 +18,7 @@ MEMO_ENTRIES = 2000  # per memo section; an evicted entry is only recomputed (on
 def trim_memo(memo: dict[str, Any]) -> None:
     """Keep each growing memo section to its newest entries: every code edit adds fingerprints, interfaces and
     params that later runs never ask for again, and the memo is read by every no-op run."""
-    sections = [memo.get("interfaces"), memo.get("params"), memo.get("data"), memo.get("published")]
+    sections = [memo.get(k) for k in ("interfaces", "params", "data", "published", "records")]
     code = memo.get("code") or {}
     sections += [code.get("files"), code.get("closures")]
     for section in sections:
@@ -51,9 +51,15 @@ class Session:
             self.memo_digest = digest
 
 
-def open_session(path: str | Path, overrides: Sequence[str] = (), memo: dict[str, Any] | None = None) -> Session:
-    """Load and resolve a pipeline; ``memo`` shares one memo between sessions (sweep variants)."""
-    pipeline = load_pipeline(path, tuple(overrides))
+def open_session(
+    path: str | Path,
+    overrides: Sequence[str] = (),
+    memo: dict[str, Any] | None = None,
+    publish_dir: str | Path | None = None,
+) -> Session:
+    """Load and resolve a pipeline; ``memo`` shares one memo between sessions (sweep variants); ``publish_dir``
+    is where ``publish:`` entries go instead of the pipeline's folder."""
+    pipeline = load_pipeline(path, tuple(overrides), publish_dir)
     store = pipeline.open_store()
     memo = store.load_memo() if memo is None else memo
     digest = json_hash(memo)

@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import difflib
 import glob as globlib
+import os
 import re
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -18,7 +19,8 @@ from typing import TYPE_CHECKING, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 
-from msflow.errors import UserError
+from msflow.errors import UserError, display_path, strip_tags
+from msflow.hashing import stat_signature
 
 if TYPE_CHECKING:
     from msflow.stores.base import Store
@@ -81,6 +83,8 @@ class FilesRef:
     files: tuple[tuple[str, str], ...]
     form: str  # "path" | "glob" | "mapping"
     fields: tuple[tuple[str, tuple[tuple[str, str], ...]], ...] = ()
+    #: glob: the folders whose listing chose the files (a file added there changes the input); None: too many
+    listed: tuple[str, ...] | None = ()
 
     def describe(self) -> str:
         return ", ".join(p for _, p in self.files)
@@ -112,6 +116,7 @@ class Pipeline:
     publish: dict[str, str] = field(default_factory=dict)
     overrides: tuple[str, ...] = ()
     store_options: dict[str, Any] = field(default_factory=dict)
+    source_signature: str = ""  #: stat signature of the pipeline file when it was read
 
     def open_store(self) -> Store:
         from msflow.stores import open_store
@@ -121,6 +126,10 @@ class Pipeline:
     @property
     def rel_path(self) -> str:
         return rel_to(self.path, self.root)
+
+    def files_refs(self) -> list[FilesRef]:
+        """Every data-files input of every stage."""
+        return [ref for node in self.stages.values() for ref in node.inputs.values() if isinstance(ref, FilesRef)]
 
 
 def rel_to(path: Path, root: Path) -> str:
@@ -272,8 +281,11 @@ def find_root(pipeline_dir: Path) -> Path:
     return pipeline_dir
 
 
-def load_pipeline(path: str | Path, overrides: tuple[str, ...] | list[str] = ()) -> Pipeline:
-    """Read, substitute, override and validate a pipeline file; resolve data-file refs (not stage classes)."""
+def load_pipeline(
+    path: str | Path, overrides: tuple[str, ...] | list[str] = (), publish_dir: str | Path | None = None
+) -> Pipeline:
+    """Read, substitute, override and validate a pipeline file; resolve data-file refs (not stage classes).
+    ``publish_dir``: publish entries are relative to it (and may leave the project), not to the pipeline file."""
     path = Path(path)
     file = str(path)
     if not path.exists():
@@ -281,6 +293,7 @@ def load_pipeline(path: str | Path, overrides: tuple[str, ...] | list[str] = ())
     if path.is_dir():
         raise UserError("is a directory, expected a pipeline YAML file", file=file)
     try:
+        signature = stat_signature(path)
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise UserError(f"cannot read: {exc}", file=file) from None
@@ -337,8 +350,39 @@ def load_pipeline(path: str | Path, overrides: tuple[str, ...] | list[str] = ())
         if not m or not m.group("output") or m.group("stage") not in nodes:
             raise UserError(f"'{target}' is not stage.output of a known stage", file=file, field=f"publish.{target}")
     check_cycles(nodes, file)
-    publish = {k: str((pipeline_dir / v).resolve()) for k, v in spec.publish.items()}
-    return Pipeline(path.resolve(), root, store, nodes, publish, overrides, spec.store_options)
+    publish = publish_targets(spec.publish, root, pipeline_dir, publish_dir, file)
+    return Pipeline(path.resolve(), root, store, nodes, publish, overrides, spec.store_options, signature)
+
+
+def publish_targets(
+    entries: dict[str, str], root: Path, pipeline_dir: Path, publish_dir: str | Path | None, file: str
+) -> dict[str, str]:
+    """Absolute destinations of ``publish:`` entries. They must stay inside the project folder (or inside
+    ``publish_dir``, the explicit way to publish elsewhere: ``msflow run --publish-dir DIR``), name files, not
+    folders, and name each file once."""
+    base = Path(publish_dir).resolve() if publish_dir is not None else pipeline_dir
+    fence = base if publish_dir is not None else root
+    where = f"--publish-dir {display_path(base)}" if publish_dir is not None else "the project folder"
+    targets: dict[str, str] = {}
+    for ref, value in entries.items():
+        dest = (base / value).resolve()
+        field_name = f"publish.{ref}"
+        if dest != fence and fence not in dest.parents:
+            raise UserError(
+                f"'{value}' is outside {where} ({display_path(fence)}); publish inside it, or choose a folder "
+                "explicitly with msflow run --publish-dir DIR",
+                file=file,
+                field=field_name,
+            )
+        if dest.is_dir():
+            raise UserError(f"'{value}' is a folder; name the file to write", file=file, field=field_name)
+        clash = next((other for other, done in targets.items() if done == str(dest)), None)
+        if clash is not None:
+            raise UserError(
+                f"'{value}' is also published by '{clash}': each file can hold one output", file=file, field=field_name
+            )
+        targets[ref] = str(dest)
+    return targets
 
 
 def parse_ref(ref: Any, base: Path, root: Path, file: str, stage: str, where: str) -> StageRef | FilesRef:
@@ -385,15 +429,33 @@ def _file_form(ref: dict[str, Any], base: Path, root: Path, file: str, stage: st
         if not matches:
             raise UserError(f"the glob '{spec}' matches no files", file=file, stage=stage, field=where)
         files, form = [(rel_to(Path(m), root), m) for m in matches], "glob"
+        listed = glob_folders(base, spec)
     else:
         files, form = [(spec, _existing_file(base, spec, file, stage, where))], "path"
+        listed = ()
     if "pattern" not in ref:
         if "label" in ref:
             raise UserError(
                 "'label' needs a 'pattern' whose fields it uses", file=file, stage=stage, field=f"{where}.label"
             )
-        return FilesRef(tuple(files), form)
-    return _labelled_by_pattern(files, ref, form, file, stage, where)
+        return FilesRef(tuple(files), form, listed=listed)
+    return replace(_labelled_by_pattern(files, ref, form, file, stage, where), listed=listed)
+
+
+def glob_folders(base: Path, pattern: str, limit: int = 1000) -> tuple[str, ...] | None:
+    """The folders whose listings decide what a glob matches: the folder before its first wildcard and, when
+    a folder part is a wildcard too, every folder below it. None when there are more than ``limit``."""
+    parts = Path(pattern).parts
+    fixed = next((i for i, part in enumerate(parts) if GLOB_CHARS & set(part)), len(parts) - 1)
+    top = (base / Path(*parts[:fixed])) if fixed else base
+    if fixed == len(parts) - 1:
+        return (str(top.resolve()),)
+    folders = []
+    for dirpath, _, _ in os.walk(top):
+        folders.append(str(Path(dirpath).resolve()))
+        if len(folders) > limit:
+            return None
+    return tuple(folders)
 
 
 def compile_label_pattern(pattern: str) -> re.Pattern[str]:
@@ -538,12 +600,12 @@ def topological_order(nodes: dict[str, StageNode]) -> list[str]:
 
 def _user_error_from_validation(exc: ValidationError, file: str) -> UserError:
     err = exc.errors()[0]
-    loc = [str(p) for p in err.get("loc", ())]
+    loc = strip_tags(err.get("loc", ()))
     stage = None
     if len(loc) >= 2 and loc[0] == "stages":
         stage = loc[1]
         loc = loc[2:]
-    field_path = ".".join(loc) or None
+    where = ".".join(loc) or None
     msg = err.get("msg", "invalid")
     if err.get("type") == "extra_forbidden":
         allowed = sorted(StageSpec.model_fields if stage else PipelineSpec.model_fields)
@@ -552,4 +614,4 @@ def _user_error_from_validation(exc: ValidationError, file: str) -> UserError:
         msg = "required key is missing"
     elif err.get("type") == "literal_error" and loc == ["version"]:
         msg = f"unsupported format version {err.get('input')!r}; this msflow reads version {FORMAT_VERSION}"
-    return UserError(msg, file=file, stage=stage, field=field_path)
+    return UserError(msg, file=file, stage=stage, field=where)

@@ -177,8 +177,8 @@ def run_sweep(
     """Validate every variant (nothing runs if one is invalid), then run them together on one executor
     (``msflow.api.run_sessions``, the path of ``msflow run`` too)."""
     from msflow.api import run_sessions
-    from msflow.runner import new_run_id
     from msflow.session import Session, open_session
+    from msflow.stores.base import new_run_id
 
     started = time.time()
     sessions: list[Session] = []

@@ -54,12 +54,15 @@ def single_threaded_blas() -> contextlib.AbstractContextManager[object]:
 
 def run_job(job_json: str) -> str:
     """Run one job (``Job`` as JSON) and return its ``Outcome`` as JSON. Never raises."""
-    from msflow.errors import UserError
+    from msflow.errors import CorruptArtifact, UserError
 
     job = Job.from_json(job_json)
     started = time.perf_counter()
     try:
         outcome = run_locked(job)
+    except CorruptArtifact as exc:  # an input failed its integrity check: the runner repairs and retries
+        corrupt = {"key": exc.key or "", "problem": exc.problem}
+        outcome = Outcome(StageStatus.FAILED, error=str(exc), corrupt=corrupt)
     except UserError as exc:
         exc.located(stage=job.stage)
         outcome = Outcome(StageStatus.FAILED, user_error=exc.to_json(), error=str(exc))
@@ -149,7 +152,7 @@ def compute(
 
 def execute(job: Job, store: Store, writer: ArtifactWriter) -> Outcome:
     """Import the stage class, open its inputs, compute, and commit the artifact through ``writer``."""
-    from msflow.errors import InvalidResult, StageFailed, UserError
+    from msflow.errors import CorruptArtifact, InvalidResult, StageFailed, UserError
     from msflow.plan import import_stage_class
 
     cls = import_stage_class(job.uses, stage=job.stage, root=job.project_root)
@@ -157,7 +160,7 @@ def execute(job: Job, store: Store, writer: ArtifactWriter) -> Outcome:
     inputs = open_inputs(job.inputs, store)
     try:
         done = compute(cls, job.stage, params, inputs, jobs=job.jobs, chunk_target=writer)
-    except UserError:
+    except (UserError, CorruptArtifact):
         raise
     except InvalidResult as exc:
         raise StageFailed(job.stage, str(exc)) from exc

@@ -151,6 +151,36 @@ CASES = {
     "top_level_not_mapping": ("- a\n- b\n", [], ["top level must be a mapping"]),
     "empty_file": ("", [], ["empty"]),
     "stage_not_mapping": ("version: 1\nstages:\n  src: numstages.basic:Source\n", [], ["stage 'src'"]),
+    "uses_a_standard_library_function": (
+        "version: 1\nstages:\n  src:\n    uses: os:getcwd\n",
+        [],
+        ["stage 'src'", "field 'uses'", "'os:getcwd' is not a msflow Stage subclass", "standard library"],
+    ),
+    "union_param_wrong_type": (
+        "version: 1\nstages:\n  t:\n    uses: numstages.basic:Tagged\n    params: {k: many}\n",
+        [],
+        ["stage 't'", "field 'params.k'", "valid integer"],
+    ),
+    "publish_outside_the_project": (
+        "version: 1\nstages:" + GOOD_STAGES + "publish:\n  scaled.y: ../../../tmp/x.npy\n",
+        [],
+        ["field 'publish.scaled.y'", "is outside the project folder", "--publish-dir"],
+    ),
+    "publish_to_an_absolute_path": (
+        "version: 1\nstages:" + GOOD_STAGES + "publish:\n  scaled.y: /etc/x.npy\n",
+        [],
+        ["field 'publish.scaled.y'", "'/etc/x.npy' is outside the project folder"],
+    ),
+    "publish_onto_a_folder": (
+        "version: 1\nstages:" + GOOD_STAGES + "publish:\n  scaled.y: data\n",
+        [],
+        ["field 'publish.scaled.y'", "'data' is a folder"],
+    ),
+    "publish_one_file_twice": (
+        "version: 1\nstages:" + GOOD_STAGES + "publish:\n  scaled.y: out/a.npy\n  src.x: out/./a.npy\n",
+        [],
+        ["field 'publish.src.x'", "also published by 'scaled.y'"],
+    ),
 }
 
 
@@ -164,6 +194,7 @@ def test_user_error_exit_2_named_location_no_traceback_nothing_written(numprojec
     assert "bad.yaml" in result.stderr
     for fragment in expected:
         assert fragment in result.stderr, (fragment, result.stderr)
+    assert "params.k.int" not in result.stderr  # pydantic's type tags are no field names
     assert not (numproject / ".msflow").exists()  # nothing written
     assert not (numproject / "bad.lock").exists()
 
@@ -309,3 +340,39 @@ def test_cli_usage_errors_exit_2_without_traceback(numproject, args, fragment):
     result = run_cli(numproject, *args)
     assert result.returncode == 2, result.stderr
     assert fragment in result.stderr and "Traceback" not in result.stderr
+
+
+# ------------------------------------------------------------------------------------------------ publishing, corruption
+def test_publishing_onto_a_folder_made_after_loading_is_a_user_error_leaving_no_temporary_file(numproject):
+    text = (numproject / "pipeline.yaml").read_text()
+    (numproject / "pipeline.yaml").write_text(text + "publish:\n  scaled.y: out/scaled.npy\n")
+    from msflow.session import open_session
+
+    session = open_session(numproject / "pipeline.yaml")  # loaded while out/scaled.npy is not a folder
+    (numproject / "out" / "scaled.npy").mkdir(parents=True)
+    import msflow
+
+    with pytest.raises(UserError, match=r"out/scaled.npy: is a folder") as err:
+        msflow.run(numproject / "pipeline.yaml", session=session)
+    assert err.value.field == "publish.scaled.y"
+    leftovers = [p.name for p in numproject.rglob("*.tmp")]
+    assert leftovers == [] and list((numproject / "out" / "scaled.npy").iterdir()) == []
+
+
+@pytest.mark.parametrize("command", ["show", "export"])
+def test_show_and_export_of_a_corrupt_artifact_exit_1_naming_it(numproject, tmp_path, command):
+    assert run_cli(numproject, "run", "-q").returncode == 0
+    lock = yaml.safe_load((numproject / "pipeline.lock").read_text())
+    key = lock["stages"]["scaled"]["key"]
+    manifest = numproject / ".msflow" / "artifacts" / key[:2] / key / "zarr.json"
+    manifest.write_bytes(manifest.read_bytes()[:100])
+    args = ["show", "scaled"] if command == "show" else ["export", "scaled.y", tmp_path / "y.csv"]
+    result = run_cli(numproject, *args)
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert f"the artifact {key} of stage 'scaled' is corrupt" in result.stderr and "msflow verify" in result.stderr
+
+
+def test_error_messages_name_files_relative_to_the_current_folder(numproject):
+    result = run_cli(numproject, "run", str(numproject / "pipeline.yaml"), "-S", "src.n=many")
+    assert result.returncode == 2
+    assert result.stderr.startswith("error: pipeline.yaml: stage 'src': field 'params.n'"), result.stderr

@@ -240,6 +240,26 @@ def test_output_sinks_stream_to_s3_with_the_hashes_of_whole_arrays(numproject, s
     assert store.objects.list("pending/") == []
 
 
+def test_a_corrupt_chunk_on_s3_is_caught_on_read_and_repaired(numproject, s3):
+    bucket = s3.bucket()
+    on_s3(numproject, s3, bucket)
+    assert run_cli(numproject, "run", "-q").returncode == 0
+    store = s3.store(bucket, "num")
+    record = store.read_run(store.run_ids()[-1])
+    key = record["stages"]["src"]["key"]
+    folder = store.data_path(key, json.loads(store.objects.get(store.marker_path(key)))["data"])
+    chunk = f"{folder}/x/c/0"
+    data = bytearray(store.objects.get(chunk))
+    data[len(data) // 2] ^= 0x10
+    store.objects.put(chunk, bytes(data))
+    shown = run_cli(numproject, "show", "src.x")
+    assert shown.returncode == 1 and key in shown.stderr and "Traceback" not in shown.stderr, shown.stderr
+    run = run_cli(numproject, "run", "-q", "-S", "scaled.factor=5")
+    assert run.returncode == 0 and "was corrupt" in run.stderr, run.stderr
+    assert [o.path for o in store.objects.list("corrupt/")] and store.verify(key) == []
+    assert np.array_equal(msflow.run(numproject / "pipeline.yaml").load("src.x"), np.arange(6.0))
+
+
 # ------------------------------------------------------------------------------------------- store contract
 @pytest.fixture(params=["s3", "memory"])
 def any_store(request, s3):

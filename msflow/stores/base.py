@@ -74,6 +74,7 @@ class Store(Protocol):
     def verify(self, key: str) -> list[str]: ...
     def size(self, key: str) -> int: ...
     def remove(self, key: str) -> None: ...
+    def quarantine(self, key: str, reason: str) -> str: ...
     def clean_tmp(self, *, max_age: float | None = None) -> list[str]: ...
 
     # coordination
@@ -110,3 +111,25 @@ def json_object(data: bytes | str) -> Json:
     if not isinstance(value, dict):
         raise ValueError(f"expected a JSON object, got {type(value).__name__}")
     return value
+
+
+def expand_record(record: Json, read_raw: Callable[[str], Json]) -> Json:
+    """A run record as readers use it: a small no-op record (``same_as``) merged into the full record it points
+    at, every stage cached. A record whose full record is gone stays small (with ``missing_full_record``)."""
+    target = record.get("same_as")
+    if not isinstance(target, str):
+        return record
+    try:
+        full = read_raw(target)
+    except (OSError, ValueError, KeyError):
+        return {**record, "missing_full_record": True, "stages": {}, "config": {}}
+    stages = {n: {**e, "state": "cached", "detail": None, "seconds": 0.0} for n, e in full.get("stages", {}).items()}
+    return {**full, **record, "stages": stages}
+
+
+def new_run_id() -> str:
+    """A run (or sweep) id, sortable by start time to the microsecond (records of one second still order)."""
+    import uuid
+    from datetime import UTC, datetime
+
+    return datetime.now(UTC).strftime("%Y%m%dT%H%M%S.%f") + "-" + uuid.uuid4().hex[:6]

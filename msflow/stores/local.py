@@ -5,6 +5,7 @@ Layout under the store root::
     artifacts/<k[:2]>/<key>/   one published zarr group per cache key (never modified once published)
     tmp/                       artifacts being written: <key>.<host>.<pid>.<nonce>; invisible to readers
     locks/<key>.lock           per-key flock; the kernel releases it when its holder dies, however it dies
+    corrupt/<key>.<time>       artifacts found damaged on read, moved aside for inspection (with a .reason.txt)
     runs/<id>.json             one record per run
     cache/memo.json            memoised file hashes, code fingerprints and stage interfaces
 
@@ -28,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 from msflow.atomic import write_json_atomic
 from msflow.errors import UserError
-from msflow.stores.base import HOST, Json, json_object, pid_alive
+from msflow.stores.base import HOST, Json, expand_record, json_object, pid_alive
 
 if TYPE_CHECKING:
     from msflow.artifact import ArtifactView
@@ -57,7 +58,9 @@ class LocalStore:
 
     # ------------------------------------------------------------------ artifacts
     def has(self, key: str) -> bool:
-        return (self.artifact_path(key) / "zarr.json").is_file()
+        """Whether something is published under ``key`` (a damaged artifact counts: reading it raises
+        CorruptArtifact, and the runner moves it aside)."""
+        return self.artifact_path(key).is_dir()
 
     def manifest(self, key: str) -> Json:
         from msflow.artifact import read_manifest
@@ -111,9 +114,12 @@ class LocalStore:
         try:
             os.rename(tmp, target)
         except OSError as exc:
-            if exc.errno in (errno.ENOTEMPTY, errno.EEXIST) and self.has(key):
+            if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+                raise
+            if (target / "zarr.json").is_file():
                 return  # published meanwhile by another writer of the same key: same content by construction
-            raise
+            self.quarantine(key, "an incomplete artifact folder was in the way of a new one")
+            os.rename(tmp, target)
 
     def verify(self, key: str) -> list[str]:
         from msflow.artifact import verify_artifact
@@ -127,6 +133,17 @@ class LocalStore:
                 with contextlib.suppress(OSError):
                     total += os.path.getsize(os.path.join(dirpath, name))
         return total
+
+    def quarantine(self, key: str, reason: str) -> str:
+        """Move a corrupt artifact aside to corrupt/<key>.<time> (kept for inspection, with the reason beside it);
+        the key becomes free to recompute. Returns where it went."""
+        target = self.artifact_path(key)
+        if not target.exists():
+            return ""
+        aside = self._dir("corrupt") / f"{key}.{time.strftime('%Y%m%dT%H%M%S')}.{uuid.uuid4().hex[:6]}"
+        os.rename(target, aside)
+        aside.with_name(aside.name + ".reason.txt").write_text(reason + "\n", encoding="utf-8")
+        return str(aside)
 
     def remove(self, key: str) -> None:
         target = self.artifact_path(key)
@@ -211,7 +228,10 @@ class LocalStore:
             if len(matches) != 1:
                 raise UserError(f"no single run matches '{run_id}' ({len(matches)} do)", file=str(self.root))
             path = self.root / "runs" / f"{matches[0]}.json"
-        return json_object(path.read_bytes())
+        return expand_record(json_object(path.read_bytes()), self._read_raw_run)
+
+    def _read_raw_run(self, run_id: str) -> Json:
+        return json_object((self.root / "runs" / f"{run_id}.json").read_bytes())
 
     def write_sweep(self, record: Json) -> str:
         path = self._dir("sweeps") / f"{record['id']}.json"

@@ -53,9 +53,10 @@ from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from msflow.artifact import check_manifest
 from msflow.atomic import write_json_atomic
-from msflow.errors import UserError
-from msflow.stores.base import HOST, Json, json_object, pid_alive
+from msflow.errors import CorruptArtifact, UserError
+from msflow.stores.base import HOST, Json, expand_record, json_object, pid_alive
 from msflow.stores.leases import Lease, lease_is_stale, parse_holder
 from msflow.stores.objects import dumps, iter_chunks, make_objects
 
@@ -107,28 +108,29 @@ class RemoteStore:
         return f"pending/{key}.{wid}.json"
 
     # ------------------------------------------------------------------ reading
-    def _marker(self, key: str) -> dict[str, Any] | None:
+    def _marker(self, key: str) -> Json | None:
+        """The key's valid commit marker, or None (absent or unreadable)."""
         data = self.objects.get(self.marker_path(key))
-        if data is None:
-            return None
-        try:
-            marker = json.loads(data)
-        except ValueError:
-            return None
-        return marker if isinstance(marker, dict) and "data" in marker and "manifest" in marker else None
+        return None if data is None else parse_marker(key, data)
 
     def has(self, key: str) -> bool:
-        marker = self._marker(key)
-        if marker is None:
+        """Whether a commit marker exists for ``key`` (an unreadable one counts: reading it raises CorruptArtifact)."""
+        data = self.objects.get(self.marker_path(key))
+        if data is None:
             self._recent.pop(key, None)
             return False
-        self._recent[key] = marker
+        self._recent[key] = parse_marker(key, data) or {"corrupt": "its commit marker is unreadable"}
         return True
 
-    def _committed(self, key: str) -> dict[str, Any]:
-        marker = self._recent.pop(key, None) or self._marker(key)
+    def _committed(self, key: str) -> Json:
+        marker = self._recent.pop(key, None)
         if marker is None:
-            raise FileNotFoundError(f"no artifact {key} in {self.url}")
+            data = self.objects.get(self.marker_path(key))
+            if data is None:
+                raise FileNotFoundError(f"no artifact {key} in {self.url}")
+            marker = parse_marker(key, data) or {"corrupt": "its commit marker is unreadable"}
+        if "corrupt" in marker:
+            raise CorruptArtifact(key, marker["corrupt"])
         return marker
 
     def manifest(self, key: str) -> dict[str, Any]:
@@ -258,6 +260,18 @@ class RemoteStore:
             {"key": key, "data": wid, "action": action, "host": HOST, "pid": os.getpid(), "started": time.time()}
         )
 
+    def quarantine(self, key: str, reason: str) -> str:
+        """Move a corrupt artifact aside: its marker goes to corrupt/ with the reason (the data folder it names
+        stays for inspection); the key becomes free to recompute. Returns where it went."""
+        data = self.objects.get(self.marker_path(key))
+        self._recent.pop(key, None)
+        if data is None:
+            return ""
+        path = f"corrupt/{key}.{writer_id()}.json"
+        self.objects.put(path, dumps({"key": key, "reason": reason, "marker": data.decode("utf-8", "replace")}))
+        self.objects.delete(self.marker_path(key))
+        return f"{self.url}/{path}"
+
     def remove(self, key: str) -> None:
         marker = self._marker(key)
         if marker is None:
@@ -363,6 +377,12 @@ class RemoteStore:
             data = self.objects.get(f"runs/{matches[0]}.json")
             if data is None:
                 raise UserError(f"run '{matches[0]}' vanished from {self.url}", file=self.url)
+        return expand_record(json_object(data), self._read_raw_run)
+
+    def _read_raw_run(self, run_id: str) -> Json:
+        data = self.objects.get(f"runs/{run_id}.json")
+        if data is None:
+            raise FileNotFoundError(f"runs/{run_id}.json")
         return json_object(data)
 
     def remove_run(self, run_id: str) -> None:
@@ -437,6 +457,18 @@ class RemoteWriter:
         """Best effort after a failed write (nothing once committed); clean_tmp does the rest from the journal."""
         if self.journal is not None and not self.committed:
             self.store.abandon(self.key, self.wid)
+
+
+def parse_marker(key: str, data: bytes) -> Json | None:
+    """A commit marker's JSON when it is complete and names a manifest readers can use, else None."""
+    try:
+        marker = json_object(data)
+        if "data" not in marker:
+            return None
+        check_manifest(key, marker["manifest"])
+    except (ValueError, KeyError, CorruptArtifact):
+        return None
+    return marker
 
 
 def _selects_everything(selection: Any) -> bool:

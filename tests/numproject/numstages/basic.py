@@ -261,3 +261,37 @@ class BlockSum(Stage):
         log_execution(self.name)
         total = sum(float(block.astype(np.float64).sum()) for block in iter_blocks(inputs["x"]))
         return Result({"total": np.array(total)})
+
+
+def tiny_png(view, inputs):
+    """A report figure without matplotlib: a 1x1 grey PNG."""
+    import base64
+
+    return base64.b64decode(
+        "iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAAAAAA6fptVAAAACklEQVR4nGNoAAAAggCBd81ytgAAAABJRU5ErkJggg=="
+    )
+
+
+class Pictured(Stage):
+    """A stage with a report figure."""
+
+    class Params(Stage.Params):
+        size: int = 2
+
+    outputs = {"x": Output.array("f", ndim=1)}
+    figures = {"dot": tiny_png}
+
+    def run(self, params, inputs):
+        return Result({"x": np.zeros(params.size)})
+
+
+class Tagged(Stage):
+    """A param whose type is a union (pydantic tags its errors with the member types)."""
+
+    class Params(Stage.Params):
+        k: int | list[int] = 1
+
+    outputs = {"x": Output.array("f", ndim=1)}
+
+    def run(self, params, inputs):
+        return Result({"x": np.zeros(1)})

@@ -1,0 +1,432 @@
+"""The ``msflow`` commands (typer); ``msflow.cli.main`` is the entry point that runs them."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING, List, Optional
+
+import typer
+
+from msflow.errors import UserError, display_path
+from msflow.jobs import DryStatus, StageStatus
+
+if TYPE_CHECKING:
+    from msflow.artifact import ArtifactView
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="msflow: cached dataflow pipelines (Mood Swings expressive speech animation).",
+)
+
+FILE_ARG = typer.Argument(Path("pipeline.yaml"), help="pipeline file", show_default=True)
+FILE_OPT = typer.Option(Path("pipeline.yaml"), "-f", "--file", help="pipeline file")
+
+
+def echo(text: str = "", err: bool = False) -> None:
+    print(text, file=sys.stderr if err else sys.stdout, flush=True)
+
+
+def _split(values: list[str] | None) -> tuple[str, ...]:
+    return tuple(v for item in values or () for v in item.split(",") if v)
+
+
+# ---------------------------------------------------------------------------------------------------------- run
+@app.command()
+def run(
+    file: Path = FILE_ARG,
+    until: Optional[str] = typer.Option(None, "--until", help="run only this stage and what it needs"),
+    force: Optional[List[str]] = typer.Option(None, "--force", help="rerun these stages even if cached"),
+    overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
+    jobs: int = typer.Option(1, "-j", "--jobs", help="stages to run at once (processes)"),
+    executor: str = typer.Option("local", "--executor", help="local or dask"),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address tcp://host:port"),
+    connect_timeout: float = typer.Option(10.0, "--connect-timeout", help="seconds to reach the scheduler"),
+    quiet: bool = typer.Option(False, "-q", "--quiet", help="no progress display"),
+    publish_dir: Optional[Path] = typer.Option(
+        None, "--publish-dir", help="publish into this folder (may be outside the project) instead of beside the file"
+    ),
+) -> None:
+    """Run the pipeline: compute what is missing, reuse everything else."""
+    from msflow.api import run as run_pipeline
+    from msflow.progress import make_reporter
+    from msflow.session import open_session
+
+    session = open_session(file, tuple(overrides or ()), publish_dir=publish_dir)
+    reporter = make_reporter(list(session.plans), quiet)
+    if reporter:
+        reporter.start()
+    try:
+        result = run_pipeline(
+            file,
+            session=session,
+            jobs=jobs,
+            until=until,
+            force=_split(force),
+            executor=executor,
+            scheduler=scheduler,
+            reporter=reporter,
+            argv=sys.argv[1:],
+            raise_on_failure=False,
+            connect_timeout=connect_timeout,
+            publish_dir=publish_dir,
+        )
+    finally:
+        if reporter:
+            reporter.stop()
+    counts = result.record["counts"]
+    summary = ", ".join(f"{v} {k}" for k, v in counts.items() if v)
+    if not quiet:
+        echo(f"{summary or 'nothing selected'} in {result.record['seconds']:.2f}s (run {result.run_id})", err=True)
+    _echo_warnings(result.warnings, {n: s.state for n, s in result.states.items()})
+    for repair in result.record.get("repairs", []):
+        where = f"; moved aside to {display_path(repair['moved_to'])}" if repair.get("moved_to") else ""
+        echo(
+            f"warning: {repair['stage']}: its artifact {repair['key'][:12]} was corrupt ({repair['problem']}){where}; "
+            "recomputed",
+            err=True,
+        )
+    for name, state in result.states.items():
+        if state.state is StageStatus.FAILED and not state.user_error and state.traceback:
+            echo(f"\n--- stage '{name}' failed; traceback (also in the run record):", err=True)
+            echo(state.traceback.rstrip(), err=True)
+    from msflow.api import raise_for_failures
+
+    raise_for_failures(result.states)
+
+
+def _echo_warnings(warnings: dict[str, list[str]], states: dict[str, str]) -> None:
+    """Stage warnings, yellow on a terminal; those of reused results say so (they were raised when computed)."""
+    colour = sys.stderr.isatty()
+    for stage, messages in warnings.items():
+        origin = " (cached result)" if states.get(stage) == StageStatus.CACHED else ""
+        for message in messages:
+            line = f"warning: {stage}{origin}: {message}"
+            echo(f"\033[33m{line}\033[0m" if colour else line, err=True)
+
+
+# ---------------------------------------------------------------------------------------------------------- status / why
+@app.command()
+def status(
+    file: Path = FILE_ARG,
+    overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
+) -> None:
+    """What a run would do now, and why."""
+    from msflow.inspect import dry_run
+    from msflow.session import open_session
+
+    session = open_session(file, tuple(overrides or ()))
+    dry = dry_run(session)
+    session.save_memo()
+    width = max(len(n) for n in dry)
+    for name, d in dry.items():
+        label = {DryStatus.CACHED: "cached", DryStatus.RUN: "will run", DryStatus.BLOCKED: "waits"}[d.state]
+        echo(f"{name:<{width}}  {label}")
+        for reason in d.reasons:
+            echo(f"{'':<{width}}    - {reason}")
+    counts = {state: sum(1 for d in dry.values() if d.state is state) for state in DryStatus}
+    summary = f"{counts[DryStatus.CACHED]} cached, {counts[DryStatus.RUN]} to run"
+    if counts[DryStatus.BLOCKED]:
+        summary += f", {counts[DryStatus.BLOCKED]} waiting on them (rerun only if their inputs change)"
+    echo(summary)
+
+
+@app.command()
+def why(
+    stage: str = typer.Argument(..., help="stage name"),
+    file: Path = FILE_OPT,
+    overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
+) -> None:
+    """Which part of STAGE's cache key changed since its last run (code file, param, input)."""
+    from msflow.inspect import RunHistory, dry_run
+    from msflow.session import open_session
+    from msflow.spec import suggest
+
+    session = open_session(file, tuple(overrides or ()))
+    if stage not in session.pipeline.stages:
+        raise UserError(
+            f"unknown stage '{stage}'{suggest(stage, session.pipeline.stages)}", file=str(file), field="STAGE"
+        )
+    history = RunHistory(session)
+    d = dry_run(session, history)[stage]
+    previous = history.last(stage)
+    session.save_memo()
+    if d.state is DryStatus.CACHED:
+        echo(f"{stage}: up to date (key {(d.key or '')[:12]})")
+        return
+    since = f" since run {previous['run']}" if previous else ""
+    echo(f"{stage}: {'would run' if d.state is DryStatus.RUN else 'waits for upstream'}{since}")
+    for reason in d.reasons:
+        echo(f"  - {reason}")
+
+
+# ---------------------------------------------------------------------------------------------------------- dag
+@app.command()
+def dag(
+    file: Path = FILE_ARG, mermaid: bool = typer.Option(False, "--mermaid"), dot: bool = typer.Option(False, "--dot")
+) -> None:
+    """Print the stage graph (text, Mermaid or Graphviz dot)."""
+    from msflow.dag import render_dot, render_mermaid, render_text
+    from msflow.spec import load_pipeline
+
+    pipeline = load_pipeline(file)
+    echo(render_mermaid(pipeline) if mermaid else render_dot(pipeline) if dot else render_text(pipeline))
+
+
+# ---------------------------------------------------------------------------------------------------------- show / export
+@app.command()
+def show(
+    target: str = typer.Argument(..., help="STAGE or STAGE.output"),
+    file: Path = FILE_OPT,
+    overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
+) -> None:
+    """Shapes, dtypes, statistics, metadata and metrics of a stage's artifact."""
+    import json
+
+    from msflow.inspect import resolve_artifact_key
+    from msflow.session import open_session
+
+    stage, _, output = target.partition(".")
+    session = open_session(file, tuple(overrides or ()))
+    key, origin = resolve_artifact_key(session, stage)
+    view = session.store.open(key)
+    session.save_memo()
+    echo(f"{stage}  {session.plans[stage].uses}\nkey {key}  ({origin})")
+    names = [output] if output else list(view.names)
+    if output and output not in view:
+        raise UserError(
+            f"stage '{stage}' has no output '{output}'; outputs: {', '.join(view.names)}", field="STAGE.output"
+        )
+    for name in names:
+        echo("  " + describe_array(name, view))
+    if output:
+        import numpy as np
+
+        with np.printoptions(threshold=200, edgeitems=3, precision=5, suppress=True):
+            echo(str(view[output]))
+        return
+    if view.warnings:
+        echo("warnings:")
+        for message in view.warnings:
+            echo(f"  {message}")
+    if view.metrics:
+        echo("metrics:")
+        for k, v in view.metrics.items():
+            echo(f"  {k} = {v:.6g}" if isinstance(v, float) else f"  {k} = {v}")
+    if view.meta:
+        text = json.dumps(view.meta, indent=1)
+        echo("meta:\n" + (text if len(text) < 4000 else text[:4000] + "\n  ... (truncated)"))
+
+
+def describe_array(name: str, view: ArtifactView) -> str:
+    import numpy as np
+
+    entry = view.manifest["outputs"][name]
+    if entry.get("file_suffix"):
+        return f"{name:<18} file {entry['file_suffix']}  {entry['shape'][0]:,} bytes"
+    arr = view[name]
+    text = f"{name:<18} {entry['dtype']:<8} {tuple(entry['shape'])}"
+    if arr.size and arr.dtype.kind in "fiub":
+        vals = arr.astype(np.float64)
+        finite = np.isfinite(vals)
+        if finite.any():
+            v = vals[finite]
+            text += f"  min {v.min():.4g} max {v.max():.4g} mean {v.mean():.4g} std {v.std():.4g}"
+        if (~finite).any():
+            text += f"  non-finite {int((~finite).sum())}"
+    return text
+
+
+@app.command()
+def export(
+    target: str = typer.Argument(..., help="STAGE.output"),
+    dest: Path = typer.Argument(...),
+    file: Path = FILE_OPT,
+    overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
+) -> None:
+    """Write one output to a file: .npy, .npz, .csv, .json, or a file output's own bytes (GLB, MP4, ...)."""
+    from msflow.exporting import export_output
+    from msflow.inspect import resolve_artifact_key
+    from msflow.session import open_session
+
+    stage, _, output = target.partition(".")
+    if not output:
+        raise UserError(f"'{target}' names no output: write STAGE.output", field="STAGE.output")
+    session = open_session(file, tuple(overrides or ()))
+    key, origin = resolve_artifact_key(session, stage)
+    export_output(session.store.open(key), output, dest)
+    session.save_memo()
+    echo(f"wrote {dest} ({stage}.{output}, {origin})", err=True)
+
+
+# ---------------------------------------------------------------------------------------------------------- gc / verify
+@app.command()
+def gc(
+    file: Path = FILE_ARG,
+    keep_runs: int = typer.Option(10, "--keep-runs", help="runs whose artifacts stay"),
+    dry_run: bool = typer.Option(False, "--dry-run", help="only list what would go"),
+) -> None:
+    """Drop artifacts that none of the most recent runs references; clear leftovers of killed runs."""
+    from msflow.gc import collect_garbage
+    from msflow.spec import load_pipeline
+
+    report = collect_garbage(load_pipeline(file).open_store(), keep_runs=keep_runs, dry_run=dry_run)
+    verb = "would remove" if dry_run else "removed"
+    echo(
+        f"{verb} {len(report['artifacts'])} artifacts ({report['bytes'] / 1e6:.1f} MB), kept {report['kept']}, "
+        f"cleared {len(report['tmp'])} temporary directories"
+    )
+
+
+@app.command()
+def verify(
+    file: Path = FILE_ARG, delete: bool = typer.Option(False, "--delete", help="remove corrupt artifacts")
+) -> None:
+    """Recompute every artifact's content hashes; list corrupt ones (exit 1 if any)."""
+    from msflow.spec import load_pipeline
+
+    store = load_pipeline(file).open_store()
+    bad = 0
+    total = 0
+    for key in store.keys():
+        total += 1
+        problems = store.verify(key)
+        if problems:
+            bad += 1
+            echo(f"corrupt {key}: " + "; ".join(problems))
+            if delete:
+                store.remove(key)
+    echo(f"verified {total} artifacts: {bad} corrupt" + (" (removed)" if delete and bad else ""))
+    if bad:
+        raise typer.Exit(1)
+
+
+# ---------------------------------------------------------------------------------------------------------- sweeps, runs
+@app.command()
+def sweep(
+    file: Path = FILE_ARG,
+    values: Optional[List[str]] = typer.Option(
+        None, "-S", "--set", help="stage.param=v1,v2,... (comma lists form a grid)"
+    ),
+    grid: Optional[Path] = typer.Option(None, "--grid", help="grid file: grid / zip / variants"),
+    jobs: int = typer.Option(1, "-j", "--jobs", help="stages to run at once across variants"),
+    executor: str = typer.Option("local", "--executor", help="local or dask"),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler tcp://host:port"),
+    connect_timeout: float = typer.Option(10.0, "--connect-timeout", help="seconds to reach the scheduler"),
+    fmt: str = typer.Option("table", "--format", help="table, md, csv or json"),
+    sort: Optional[str] = typer.Option(None, "--sort", help="column to sort by (-column: descending)"),
+    metrics: Optional[str] = typer.Option(None, "--metrics", help="stage.metric patterns, comma separated"),
+    quiet: bool = typer.Option(False, "-q", "--quiet"),
+) -> None:
+    """Run a grid of parameter variants; print variant parameters against stage metrics."""
+    from msflow.progress import SweepReporter
+    from msflow.sweep import expand_variants, format_table, metric_columns, results_rows, run_sweep
+
+    variants = expand_variants(list(values or ()), grid)
+    from msflow.spec import load_pipeline
+
+    stage_count = len(load_pipeline(file).stages)
+    reporter = None if quiet else SweepReporter(len(variants), stage_count)
+    result = run_sweep(
+        file,
+        variants,
+        jobs=jobs,
+        executor=executor,
+        scheduler=scheduler,
+        connect_timeout=connect_timeout,
+        reporter=reporter,
+    )
+    header, rows = results_rows(result, metric_columns(result, list(_split([metrics])) if metrics else None), sort)
+    echo(format_table(header, rows, fmt))
+    failed = sum(1 for v in result.variants if not v.ok)
+    echo(
+        f"sweep {result.sweep_id}: {len(result.variants)} variants, {result.executed} stage executions for "
+        f"{result.unique_keys} distinct keys, {failed} failed, {result.seconds:.2f}s",
+        err=True,
+    )
+    if failed:
+        raise typer.Exit(1)
+
+
+@app.command()
+def runs(file: Path = FILE_ARG, limit: int = typer.Option(20, "--limit", "-n", help="newest N runs")) -> None:
+    """List runs (newest last): id, time, variant or overrides, stage counts."""
+    from msflow.spec import load_pipeline
+
+    store = load_pipeline(file).open_store()
+    ids = store.run_ids()[-limit:]
+    for run_id in ids:
+        record = store.read_run(run_id)
+        counts = ", ".join(f"{v} {k}" for k, v in record.get("counts", {}).items() if v)
+        label = record.get("variant") or record.get("overrides") or ""
+        sweep = f" sweep {record['sweep']}" if record.get("sweep") else ""
+        echo(
+            f"{run_id}  {'ok    ' if record.get('ok') else 'FAILED'}  {record.get('seconds', 0):7.2f}s  "
+            f"{counts}{sweep}  {json.dumps(label) if label else ''}"
+        )
+    if not ids:
+        echo("no runs yet")
+
+
+@app.command()
+def compare(
+    run_a: str = typer.Argument(..., help="run id (or unique prefix/suffix)"),
+    run_b: str = typer.Argument(...),
+    file: Path = FILE_OPT,
+) -> None:
+    """Differences between two runs: params, cache keys, metrics."""
+    from msflow.spec import load_pipeline
+
+    store = load_pipeline(file).open_store()
+    a, b = store.read_run(run_a), store.read_run(run_b)
+    echo(f"A = {a['id']}\nB = {b['id']}")
+    for stage in sorted(set(a["stages"]) | set(b["stages"])):
+        sa, sb = a["stages"].get(stage), b["stages"].get(stage)
+        if sa is None or sb is None:
+            echo(f"{stage}: only in {'B' if sa is None else 'A'}")
+            continue
+        lines = []
+        pa = (a["config"].get(stage) or {}).get("params", {})
+        pb = (b["config"].get(stage) or {}).get("params", {})
+        for name in sorted(set(pa) | set(pb)):
+            if pa.get(name) != pb.get(name):
+                lines.append(f"  param {name}: {pa.get(name)!r} -> {pb.get(name)!r}")
+        if sa.get("key") != sb.get("key"):
+            lines.append(f"  key {str(sa.get('key'))[:12]} -> {str(sb.get('key'))[:12]}")
+        ma, mb = sa.get("metrics") or {}, sb.get("metrics") or {}
+        for name in sorted(set(ma) | set(mb)):
+            va, vb = ma.get(name), mb.get(name)
+            if va != vb:
+                delta = f" ({vb - va:+.4g})" if isinstance(va, (int, float)) and isinstance(vb, (int, float)) else ""
+                lines.append(f"  metric {name}: {va} -> {vb}{delta}")
+        if lines:
+            echo(f"{stage}:")
+            for line in lines:
+                echo(line)
+    same = [s for s in a["stages"] if s in b["stages"] and a["stages"][s].get("key") == b["stages"][s].get("key")]
+    echo(f"{len(same)} stages identical (same key)")
+
+
+# ---------------------------------------------------------------------------------------------------------- report
+@app.command()
+def report(
+    run: Optional[str] = typer.Argument(None, help="run or sweep id (default: the newest run)"),
+    out: Path = typer.Option(Path("report.html"), "-o", "--out", help="HTML file to write"),
+    file: Path = FILE_OPT,
+    jobs: int = typer.Option(2, "-j", "--jobs", help="processes rendering figures"),
+    metric: Optional[str] = typer.Option(None, "--metric", help="sweeps: stage.metric to plot"),
+) -> None:
+    """Write one self-contained HTML page of a run (graph, params, keys, metrics, figures) or of a sweep."""
+    from msflow.report import build_report
+
+    summary = build_report(file, out, run, jobs=jobs, metric=metric)
+    echo(
+        f"wrote {summary['path']} ({summary['bytes'] / 1e6:.1f} MB, {summary['figures']} figures, "
+        f"{summary['rendered']} rendered) in {summary['seconds']:.2f}s",
+        err=True,
+    )
+    for failure in summary["failed"]:
+        echo(f"figure failed: {failure}", err=True)
