@@ -237,12 +237,16 @@ def capture(clips: list[str]) -> None:
     clips = [Path(c).resolve() for c in clips]
     os.chdir(ROOT)
     print(header("clip").replace("| clip |", "| clip | frames | CPU s |", 1).replace("|---|", "|---|---|---|", 1))
+
+    def cpu_seconds():  # this process and the FFmpeg processes it waited for (decoding, the preview's encoder)
+        usage = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
+        return sum(u.ru_utime + u.ru_stime for u in usage)
+
     for clip in clips:
-        before = resource.getrusage(resource.RUSAGE_SELF)
+        before = cpu_seconds()
         take = os.path.relpath(clip, pipeline.parent)
         result = msflow.run(pipeline, [f"vars.take={take}", f"vars.name={clip.stem}_captured"])
-        after = resource.getrusage(resource.RUSAGE_SELF)
-        cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+        cpu = cpu_seconds() - before
         inputs = {
             n: result.artifact(s) for n, s in (("tracks", "track"), ("blend", "blend"), ("character", "character"))
         }
