@@ -1,6 +1,6 @@
-"""Long takes end to end: the default pipeline with its test take replaced by 2 s, 1 min and 10 min takes.
+"""Long takes end to end (issue 14): the default pipeline with its test take replaced by 2 s, 1 min and 10 min takes.
 
-    python bench/bench_long.py [--lengths 2s,1min,10min] [-j 2] [--out bench/out/long]
+    python bench/bench_long.py [--lengths 2s,1min,10min] [-j 2] [--out bench/out/long] [--until STAGE] [--per-stage]
 
 The takes are built at run time from the embedded CREMA-D sad clip (480x360, 29.97 fps), repeated back to back
 with its own sound cut to the picture, and encoded as H.264 + AAC MP4 under ``--out`` (nothing large is committed;
@@ -11,10 +11,13 @@ aam, bilinear, character, headdb, ...), so every timed run computes exactly the 
 take, whatever earlier runs left behind.
 
 Each timed run is ``python -m msflow.cli run <generated pipeline> -j N`` in a subprocess (``--until track_test``:
-tracking alone, no warm-up); printed per length:
-the wall seconds of the tracking (track_test), edit and export stages from the run record, the whole run's wall
-time and CPU time (user + sys of msflow and all its workers), and the peak resident memory of the run: the sum
-over msflow and its worker processes, sampled every 0.1 s with psutil.
+tracking alone, no warm-up). Printed per length, the issue's table: the wall (and CPU) seconds of the tracking
+(track_test), edit and export stages from the run record, the whole run's wall time and CPU time (user + sys of
+msflow and all its workers), the peak resident memory of the run (the sum over msflow and its worker processes,
+sampled every 0.1 s with psutil), the load average; then the 10 min / 1 min ratios against the goals (linear:
+10x +- 15%; peak RSS <= 1.5 GB), and, per run, the peak RSS of the worker running each stage while it ran.
+``--per-stage``: each test-dependent stage alone in its own ``msflow run`` (wall, CPU, peak RSS per stage).
+Wall-clock figures depend on the machine's load (printed); CPU seconds and memory much less.
 """
 
 from __future__ import annotations
