@@ -13,8 +13,11 @@ DIR defaults to ../shared/data/talking-heads beside the project (skipped when ab
    converted to BGR by FFmpeg) with the same model (face_mesh_v1), and Face Landmarker v2 against face_mesh_v1;
    nose-bridge jitter (mean second difference) of both models;
 4. eyes: blinks found by ``eyes.detect_blinks`` on each configuration's eye aperture (face_mesh_v1 alone: its
-   own lids, measured the same way) against blinks marked by hand, frame by frame, on contact sheets of the eye region (``HAND_BLINKS``); the rest
-   position of the iris in the eye (median over every clip's open-eye frames; ``eyes.REST_OFFSET``).
+   own lids, measured the same way) against blinks marked by hand, frame by frame, on contact sheets of the eye
+   region (``HAND_BLINKS``), with the open and closed aperture levels; for each eye pass (``EYE_PASSES``: Face
+   Landmarker v2, the iris model) the rest position of the iris in the eye (median over every clip's open-eye
+   frames; ``eyes.REST_OFFSETS``); the iris pass's gaze against the v2 pass's; the CPU per frame of each pass
+   alone. ``--sections 4`` runs only this section.
 
 Tracks are cached per clip and model under --out/tracks (``--fresh`` recomputes them).
 """
