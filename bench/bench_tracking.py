@@ -1,11 +1,22 @@
-"""Tracking speed and quality on the six CREMA-D clips (plain script; figures for the issue report).
+"""Tracking speed and quality: FaceMesh with either landmark model, on CREMA-D and on talking-head footage.
 
-    OPENBLAS_NUM_THREADS=1 python bench/bench_tracking.py [--out DIR] [--repeat N]
+    python bench/bench_tracking.py [--talking-heads DIR] [--out DIR] [--fresh]
 
-Speed is per core (cv2.setNumThreads(1)): FaceMesh tracking alone (decode + detector/mesh per frame), the whole
-FaceMesh stage (plus crops, head pose, audio), OpticalFlow and TrackFile. Quality: frames with a face, nose-bridge
-steps between consecutive frames, OpticalFlow's distance to FaceMesh's 68 points per clip (normalised by the
-outer-eye-corner distance), head-pose ranges and steps. With --out, writes the contact sheet and pose plot.
+DIR defaults to ../shared/data/talking-heads beside the project (skipped when absent). Printed:
+
+1. speed per core (one OpenCV thread, one decoder thread; CPU seconds, so other load matters little) of the whole
+   FaceMesh stage (decode, landmarks, crops, head pose, eyes, audio) in each configuration (``CONFIGS``: the
+   default, face_mesh_v1 landmarks with eyes from a Face Landmarker v2 pass; v2 alone; v1 alone) on CREMA-D;
+2. 1080p and 720p speed with 2 workers (``jobs`` = 2: decoder threads and OpenCV threads): a 1920x1080 clip made
+   by upscaling 20 s of ``address_us.mp4`` with PyAV (written under --out), and ``address_us.mp4`` itself;
+3. landmark agreement, per clip: the streaming pipeline (Y'CbCr planes) against the previous one (whole frames
+   converted to BGR by FFmpeg) with the same model (face_mesh_v1), and Face Landmarker v2 against face_mesh_v1;
+   nose-bridge jitter (mean second difference) of both models;
+4. eyes: blinks found by ``eyes.detect_blinks`` on each configuration's eye aperture (face_mesh_v1 alone: its
+   own lids, measured the same way) against blinks marked by hand, frame by frame, on contact sheets of the eye region (``HAND_BLINKS``); the rest
+   position of the iris in the eye (median over every clip's open-eye frames; ``eyes.REST_OFFSET``).
+
+Tracks are cached per clip and model under --out/tracks (``--fresh`` recomputes them).
 """
 
 from __future__ import annotations
@@ -24,131 +35,214 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from msflow.testing import run_stage  # noqa: E402
-from stages.geometry.rotations import quat_to_euler  # noqa: E402
-from stages.tracking import FaceMesh, OpticalFlow, TrackFile  # noqa: E402
+from stages.tracking import FaceMesh  # noqa: E402
 from stages.tracking.assemble import inter_ocular  # noqa: E402
-from stages.tracking.facemesh import FaceMeshTracker  # noqa: E402
-from stages.tracking.stages import DETECTOR_MODEL, LANDMARK_MODEL  # noqa: E402
-from stages.tracking.trackfile import write_openface_csv  # noqa: E402
-from stages.tracking.video import iter_frames  # noqa: E402
+from stages.tracking.eyes import detect_blinks, eye_aperture, eye_offsets  # noqa: E402
 
-EMOTIONS = ("NEU", "HAP", "ANG", "SAD", "DIS", "FEA")
-VIDEOS = {e: ROOT / "data" / "crema-d" / f"1001_DFA_{e}_XX.flv" for e in EMOTIONS}
+CREMA = sorted((ROOT / "data" / "crema-d").glob("*.flv"))
+#: FaceMesh configurations compared: the default (face_mesh_v1 landmarks, eyes from a Face Landmarker v2 pass on
+#: the same face region), Face Landmarker v2 as the landmark model, face_mesh_v1 alone
+CONFIGS = {
+    "default": {},
+    "face_landmarker_v2": {"model": "face_landmarker_v2"},
+    "face_mesh_v1": {"eyes": False},
+}
+#: blinks marked by hand on eye-region contact sheets: clip -> (frames looked at, or None for all;
+#: [first, last] closed-or-closing frames, inclusive)
+HAND_BLINKS = {
+    "1001_DFA_ANG_XX": (None, []),
+    "1001_DFA_DIS_XX": (None, []),
+    "1001_DFA_FEA_XX": (None, [(0, 4)]),
+    "1001_DFA_HAP_XX": (None, [(5, 8)]),
+    "1001_DFA_NEU_XX": (None, [(7, 10)]),
+    "1001_DFA_SAD_XX": (None, [(6, 8)]),
+    "hdtf_aoc": (
+        None,
+        [(9, 12), (25, 27), (33, 37), (56, 59), (80, 82), (96, 98), (110, 112), (129, 131), (150, 152), (177, 179)],
+    ),
+    "retalking_3": (None, [(11, 14), (27, 29), (35, 37), (57, 61), (81, 84), (98, 100), (112, 113)]),
+    "vlog_31": (
+        200,
+        [
+            (23, 27),
+            (37, 39),
+            (44, 46),
+            (50, 52),
+            (62, 63),
+            (69, 71),
+            (99, 102),
+            (112, 115),
+            (120, 124),
+            (143, 146),
+            (159, 161),
+            (193, 196),
+        ],
+    ),  # fmt: skip
+}
 
 
-def best_of(repeat: int, fn):
-    times, result = [], None
-    for _ in range(repeat):
-        t = time.perf_counter()
-        result = fn()
-        times.append(time.perf_counter() - t)
-    return min(times), result
+def track(clip: Path, config: str, cache: Path, fresh: bool) -> dict:
+    """FaceMesh arrays of one clip with one of CONFIGS (cached), with the CPU seconds it took."""
+    path = cache / f"{clip.stem}.{config}.npz"
+    if path.exists() and not fresh:
+        return dict(np.load(path))
+    started = time.process_time()
+    out = run_stage(FaceMesh, {**CONFIGS[config], "audio": "none"}, {"videos": {clip.stem: clip}})
+    keep = ("mesh", "landmarks", "valid", "time", "iris", "eye_aperture", "gaze")
+    arrays = {k: np.asarray(out.arrays[k]) for k in keep if k in out.arrays}
+    arrays["cpu"] = np.array(time.process_time() - started)
+    np.savez(path, **arrays)
+    return arrays
 
 
-def tracking_only() -> int:
+def previous_pipeline_landmarks(clip: Path) -> np.ndarray:
+    """face_mesh_v1 landmarks as the tracker made them before streaming: whole frames converted to BGR."""
+    from stages.tracking.facemesh import FaceMeshTracker
+    from stages.tracking.landmarks68 import mesh_to_ibug68
+    from stages.tracking.stages import DETECTOR_MODEL, LANDMARK_MODEL
+    from stages.tracking.video import iter_frames
+
     tracker = FaceMeshTracker(DETECTOR_MODEL, LANDMARK_MODEL)
-    frames = 0
-    for path in VIDEOS.values():
-        tracker.reset()
-        for _, frame in iter_frames(path):
-            tracker.step(frame)
-            frames += 1
-    return frames
+    out = []
+    for _, frame in iter_frames(clip):
+        points, _ = tracker.step(frame)
+        out.append(np.full((68, 2), np.nan) if points is None else mesh_to_ibug68(points[:, :2]))
+    return np.array(out)
+
+
+def rms(a: np.ndarray, b: np.ndarray) -> float:
+    d = np.linalg.norm(a - b, axis=-1)
+    return float(np.sqrt(np.nanmean(d**2)))
+
+
+def jitter(landmarks: np.ndarray) -> float:
+    nose = landmarks[:, 27]
+    return float(np.mean(np.linalg.norm(nose[2:] - 2 * nose[1:-1] + nose[:-2], axis=1) / 2))
+
+
+def speed_per_core(out: Path) -> None:
+    print("1. FaceMesh stage on the six CREMA-D clips, one core (CPU time):")
+    videos = {c.stem: c for c in CREMA}
+    for config, params in CONFIGS.items():
+        run_stage(FaceMesh, params, {"videos": {"w": CREMA[0]}})  # warm-up: imports, model load
+        started = time.process_time()
+        result = run_stage(FaceMesh, params, {"videos": videos})
+        cpu = time.process_time() - started
+        n = len(result.arrays["valid"])
+        print(f"   {config:20s} {n / cpu:6.1f} frames/s per core ({1000 * cpu / n:.1f} ms CPU per frame)")
+
+
+def upscaled_1080p(source: Path, path: Path, seconds: float = 20.0) -> Path:
+    """``seconds`` of ``source`` scaled to 1920x1080 (bicubic) and encoded with libx264 (CRF 18)."""
+    import av
+
+    if path.exists():
+        return path
+    with av.open(str(source)) as inp, av.open(str(path), "w") as dst:
+        stream = inp.streams.video[0]
+        enc = dst.add_stream("libx264", rate=stream.average_rate)
+        enc.width, enc.height, enc.pix_fmt = 1920, 1080, "yuv420p"
+        enc.options = {"preset": "veryfast", "crf": "18"}
+        for frame in inp.decode(stream):
+            if frame.time > seconds:
+                break
+            for packet in enc.encode(frame.reformat(1920, 1080, "yuv420p", interpolation="BICUBIC")):
+                dst.mux(packet)
+        for packet in enc.encode():
+            dst.mux(packet)
+    return path
+
+
+def speed_high_resolution(heads: Path | None, out: Path) -> None:
+    if heads is None:
+        return
+    source = heads / "address_us.mp4"
+    clips = {"1080p (address_us upscaled)": upscaled_1080p(source, out / "address_us_1080p.mp4"), "720p": source}
+    print("2. FaceMesh stage (default model), 2 workers and 1 worker: frames/s wall (CPU per frame, load average)")
+    for name, clip in clips.items():
+        for jobs in (2, 1):
+            started, cpu0 = time.perf_counter(), time.process_time()
+            result = run_stage(FaceMesh, {"audio": "none"}, {"videos": {"c": clip}}, jobs=jobs)
+            wall, cpu = time.perf_counter() - started, time.process_time() - cpu0
+            n = len(result.arrays["valid"])
+            load = os.getloadavg()[0]
+            print(
+                f"   {name:28s} jobs {jobs}: {n / wall:6.1f} frames/s ({1000 * cpu / n:.1f} ms CPU per frame, "
+                f"load {load:.1f})"
+            )
+
+
+def agreement(clips: list[Path], cache: Path, fresh: bool) -> None:
+    print("3. landmarks (68 points), RMS px and % of the outer-eye-corner distance (IOD):")
+    print("   clip                 IOD px | streaming vs previous (v1) | v2 vs v1        | jitter v2 / v1 px")
+    for clip in clips:
+        v2, v1 = track(clip, "face_landmarker_v2", cache, fresh), track(clip, "face_mesh_v1", cache, fresh)
+        before = previous_pipeline_landmarks(clip)
+        iod = float(np.mean(inter_ocular(v1["landmarks"])))
+        same, models = rms(v1["landmarks"], before), rms(v2["landmarks"], v1["landmarks"])
+        print(
+            f"   {clip.stem:20s} {iod:6.1f} | {same:5.2f} px ({100 * same / iod:4.2f}%)       "
+            f"| {models:4.2f} px ({100 * models / iod:4.2f}%) | {jitter(v2['landmarks']):.2f} / "
+            f"{jitter(v1['landmarks']):.2f}"
+        )
+
+
+def eyes(clips: list[Path], cache: Path, fresh: bool) -> None:
+    print("4. blinks against the hand-marked ones (a hand blink is found when a detected one overlaps it):")
+    by_stem = {c.stem: c for c in clips}
+    for config in CONFIGS:
+        marked = found = detected = false = 0
+        for stem, (limit, hand) in HAND_BLINKS.items():
+            if stem not in by_stem:
+                continue
+            arrays = track(by_stem[stem], config, cache, fresh)
+            n = limit or len(arrays["valid"])
+            # face_mesh_v1 alone has no eye outputs: its own lids, measured the same way
+            aperture = arrays["eye_aperture"][:n] if "eye_aperture" in arrays else eye_aperture(arrays["mesh"][:n])
+            blinks = [(a, b - 1) for a, b in detect_blinks(aperture, arrays["valid"][:n])]
+
+            def overlaps(x, y):
+                return x[0] <= y[1] and y[0] <= x[1]
+
+            marked += len(hand)
+            found += sum(any(overlaps(h, b) for b in blinks) for h in hand)
+            detected += len(blinks)
+            false += sum(not any(overlaps(b, h) for h in hand) for b in blinks)
+        print(
+            f"   {config:20s} recall {found}/{marked} = {found / max(marked, 1):.0%}, "
+            f"false blinks {false}/{detected} = {false / max(detected, 1):.0%}"
+        )
+    medians = []
+    for clip in clips:
+        arrays = track(clip, "face_landmarker_v2", cache, fresh)
+        points = np.concatenate([arrays["mesh"], arrays["iris"]], axis=1).astype(np.float64)
+        aperture = eye_aperture(points).mean(axis=1)
+        open_eyes = arrays["valid"] & (aperture > 0.6 * np.median(aperture))
+        e = np.median(eye_offsets(points)[open_eyes], axis=0)
+        medians.append([e[0, 0], -e[1, 0], e[0, 1], e[1, 1]])  # temporal L, R; up L, R
+    m = np.array(medians)
+    print(
+        f"   iris rest position over {len(clips)} clips (median of per-clip medians, eye widths): towards the "
+        f"outer corner {np.median(m[:, :2]):.3f}, up {np.median(m[:, 2:]):.3f} (eyes.REST_OFFSET)"
+    )
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--out", type=Path, default=None)
-    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--talking-heads", type=Path, default=ROOT.parent / "shared" / "data" / "talking-heads")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "out" / "tracking")
+    ap.add_argument("--fresh", action="store_true", help="recompute cached tracks")
     args = ap.parse_args()
+    cache = args.out / "tracks"
+    cache.mkdir(parents=True, exist_ok=True)
+    heads = args.talking_heads if args.talking_heads.is_dir() else None
+    clips = CREMA + (sorted(heads.glob("*.mp4")) if heads else [])
     cv2.setNumThreads(1)
-    videos = {k: str(v) for k, v in VIDEOS.items()}
-
-    tracking_only()  # warm-up: model loading, imports
-    t_track, frames = best_of(args.repeat, tracking_only)
-    t_stage, fm = best_of(args.repeat, lambda: run_stage(FaceMesh, {}, {"videos": videos}))
-    t_flow, flow = best_of(args.repeat, lambda: run_stage(OpticalFlow, {}, {"videos": videos}))
-    print(f"frames: {frames} in {len(videos)} clips")
-    print(f"FaceMesh tracking only (decode + detector/mesh): {frames / t_track:7.1f} frames/s per core")
-    print(
-        f"FaceMesh stage (+ crops, pose, audio):            {frames / t_stage:7.1f} frames/s per core "
-        f"(crops+pose+audio add {100 * (t_stage / t_track - 1):.1f}%)"
-    )
-    print(f"OpticalFlow stage (FaceMesh start, LK + shape model): {frames / t_flow:7.1f} frames/s per core")
-
-    lm, seq, valid = fm.arrays["landmarks"], fm.arrays["sequence"], fm.arrays["valid"]
-    print(
-        f"\nFaceMesh: frames with a face {int(valid.sum())}/{len(valid)}; "
-        f"detector runs per clip {fm.meta['detector_runs']}"
-    )
-    euler = np.degrees(quat_to_euler(fm.arrays["rotation"]))
-    print(
-        "clip  IOD px  nose step px (mean/p95)  nose jitter px  |yaw|max |pitch|max |roll|max  max pose step deg"
-        "  flow/FaceMesh mean (max) IOD"
-    )
-    for s, label in enumerate(fm.meta["labels"]):
-        rows = seq == s
-        st = fm.meta["sequence_stats"][label]
-        steps = np.linalg.norm(np.diff(lm[rows, 27], axis=0), axis=1)
-        iod = inter_ocular(lm[rows])
-        dist = np.linalg.norm(flow.arrays["landmarks"][rows] - lm[rows], axis=2).mean(axis=1) / iod
-        e = np.abs(euler[rows])
-        print(
-            f"{label:4s} {iod.mean():7.1f}  {steps.mean():8.2f} / {np.percentile(steps, 95):5.2f}"
-            f"      {st['nose_jitter_px']:8.2f}       {e[:, 0].max():6.1f}   {e[:, 1].max():6.1f}   "
-            f"{e[:, 2].max():6.1f}      {st['max_pose_step_deg']:6.2f}           "
-            f"{100 * dist.mean():5.2f}% ({100 * dist.max():5.2f}%)"
-        )
-
-    # head pose: the default rigid landmark subset against all 68 points
-    from stages.tracking.assemble import rotation_steps_deg
-    from stages.tracking.face3d import load_face3d
-    from stages.tracking.pose import camera_matrix, solve_head_pose
-
-    face3d = load_face3d()
-    cam = camera_matrix(480, 360)
-    for name, points in (("rigid (default)", np.array(face3d.rigid)), ("all 68", None)):
-        worst = []
-        for s in range(len(fm.meta["labels"])):
-            q, _, rms = solve_head_pose(lm[seq == s].astype(np.float64), face3d.neutral, cam, points)
-            e = np.degrees(quat_to_euler(q))
-            worst.append((np.abs(e[:, 0]).max(), np.abs(e[:, 1]).max(), rotation_steps_deg(q).max(), rms.mean()))
-        w = np.array(worst)
-        print(
-            f"pose landmarks {name:16s}: max |yaw| {w[:, 0].max():4.1f} deg, max |pitch| {w[:, 1].max():4.1f} deg,"
-            f" max step {w[:, 2].max():4.2f} deg/frame, mean reprojection RMS {w[:, 3].mean():4.2f} px"
-        )
-
-    # TrackFile round trip of a synthetic OpenFace CSV with success = 0 rows
-    import tempfile
-
-    rows = seq == 0
-    truth = lm[rows].astype(np.float64)
-    success = np.ones(len(truth), dtype=bool)
-    success[[3, 4, 5, 20]] = False
-    with tempfile.TemporaryDirectory() as tmp:
-        csv = Path(tmp) / "neutral.csv"
-        csv.write_text(write_openface_csv(truth, time=fm.arrays["time"][rows], success=success))
-        t_file, tf = best_of(
-            args.repeat,
-            lambda: run_stage(TrackFile, {}, {"tracks": {"NEU": str(csv)}, "videos": {"NEU": videos["NEU"]}}),
-        )
-    err = np.abs(tf.arrays["landmarks"] - truth)
-    print(
-        f"\nTrackFile OpenFace round trip: max error on success rows {err[success].max():.2e} px; "
-        f"{int((~tf.arrays['valid']).sum())} success=0 rows flagged and interpolated "
-        f"(max {err[~success].max():.2f} px from FaceMesh); {len(truth) / t_file:.0f} frames/s with crops+audio"
-    )
-
-    if args.out:
-        from stages.tracking.figures import contact_sheet_png, head_pose_figure
-
-        args.out.mkdir(parents=True, exist_ok=True)
-        view = fm.view()
-        (args.out / "tracking_contact_sheet.png").write_bytes(contact_sheet_png(view, {"videos": videos}))
-        head_pose_figure(view).savefig(args.out / "tracking_head_pose.png", dpi=100)
-        (args.out / "tracking_flow_contact_sheet.png").write_bytes(contact_sheet_png(flow.view(), {"videos": videos}))
-        print(f"figures written to {args.out}")
+    speed_per_core(args.out)
+    speed_high_resolution(heads, args.out)
+    cv2.setNumThreads(1)
+    agreement(clips, cache, args.fresh)
+    eyes(clips, cache, args.fresh)
 
 
 if __name__ == "__main__":

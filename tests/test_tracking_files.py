@@ -203,10 +203,13 @@ def test_frames_must_increase_and_gaps_over_the_limit_fail(tmp_path):
     path = tmp_path / "gap.csv"
     path.write_text(write_openface_csv(shapes, success=success))
     with pytest.raises(UserError, match="frames 10-29") as err:
-        run_stage(TrackFile, {"frame_size": (480, 360)}, {"tracks": {"g": path}})
+        run_stage(TrackFile, {"frame_size": (480, 360), "long_gaps": "error"}, {"tracks": {"g": path}})
     assert err.value.field == "inputs.tracks.g"
     out = run_stage(TrackFile, {"frame_size": (480, 360), "max_gap_frames": 20}, {"tracks": {"g": path}})
     assert not out.arrays["valid"][10:30].any()
+    held = run_stage(TrackFile, {"frame_size": (480, 360)}, {"tracks": {"g": path}})  # long_gaps: hold
+    np.testing.assert_array_equal(held.arrays["landmarks"][10:30], np.repeat(held.arrays["landmarks"][9:10], 20, 0))
+    assert held.meta["gaps"] == [[[10, 30]]] and "frames 10-29" in held.warnings[0]
 
 
 def test_a_custom_3d_face_scales_the_head_distance(tmp_path):

@@ -8,14 +8,14 @@ from tracking_media import CLIPS, write_video
 from msflow import UserError
 from msflow.testing import run_stage
 from stages.geometry.rotations import quat_to_euler
+from stages.geometry.similarity import fit_similarity
 from stages.tracking import FaceMesh, OpticalFlow, TrackFile
 from stages.tracking.assemble import inter_ocular, rotation_steps_deg
 from stages.tracking.crops import eye_centres
 from stages.tracking.figures import FIGURES, contact_sheet_png
 from stages.tracking.landmarks68 import IBUG68_MIRROR
-from stages.tracking.shape_model import similarity_fit
 from stages.tracking.trackfile import format_pts, write_openface_csv
-from stages.tracking.video import read_frames
+from stages.tracking.video import iter_planes, read_frames
 
 
 @pytest.fixture(scope="module")
@@ -103,12 +103,18 @@ def test_crops_are_the_frames_warped_eyes_level(facemesh, neutral_frames):
     rows = rows_of(facemesh, "NEU")
     times, frames = neutral_frames
     np.testing.assert_allclose(a["time"][rows], times)
+    planes = [image for _, image in iter_planes(CLIPS["NEU"])]
     for i in (0, 30, 60):
+        # the crop is the frame's luma plane warped, mapped to full-range gray: exactly
+        np.testing.assert_array_equal(a["crops"][rows[i]], planes[i].warp_gray(a["crop_transforms"][rows[i]], 128))
+        # ...which is OpenCV's gray of the BGR frame (FFmpeg's fast converter made it ~1.4 levels darker) up to
+        # rounding and the converters' chroma handling at edges
         gray = cv2.cvtColor(frames[i], cv2.COLOR_BGR2GRAY)
         expect = cv2.warpAffine(
             gray, a["crop_transforms"][rows[i]], (128, 128), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
         )
-        assert np.abs(expect.astype(int) - a["crops"][rows[i]]).max() <= 1
+        diff = a["crops"][rows[i]].astype(int) - expect
+        assert np.abs(diff).max() <= 12 and 0 <= diff.mean() < 2.5
     right, left = eye_centres(a["crop_landmarks"].astype(np.float64))
     np.testing.assert_allclose(right, np.tile([128 * 0.35, 128 * 0.33], (len(right), 1)), atol=0.01)
     np.testing.assert_allclose(left, np.tile([128 * 0.65, 128 * 0.33], (len(left), 1)), atol=0.01)
@@ -139,7 +145,7 @@ def test_mapping_table_is_symmetric_and_evenly_spaced_on_real_faces(facemesh):
     residuals = []
     for shape, d in zip(lm[::5], iod[::5]):
         mirrored = shape[IBUG68_MIRROR] * np.array([-1.0, 1.0])
-        t = similarity_fit(mirrored, shape)
+        t = fit_similarity(mirrored, shape)
         residuals.append(np.linalg.norm(mirrored @ t[:, :2].T + t[:, 2] - shape, axis=1) / d)
     per_point = np.mean(residuals, axis=0)
     assert per_point.max() < 0.06 and per_point.mean() < 0.03  # a face is nearly symmetric; a wrong pair is not
@@ -158,7 +164,7 @@ def test_mapping_table_is_symmetric_and_evenly_spaced_on_real_faces(facemesh):
     ]
     for contour in contours:
         seg = np.linalg.norm(np.diff(lm[:, list(contour)], axis=1), axis=2).mean(axis=0)
-        assert seg.max() < 2.2 * seg.min(), list(contour)
+        assert seg.max() < 2.4 * seg.min(), list(contour)  # the brows: about 2.1 (tip segments are long)
 
 
 def test_contact_sheet_and_figures(facemesh):
@@ -171,7 +177,7 @@ def test_contact_sheet_and_figures(facemesh):
     assert image.shape == (6 * 200, max(per_clip) * 200, 3)
     from_crops = cv2.imdecode(np.frombuffer(contact_sheet_png(view, {}), np.uint8), cv2.IMREAD_COLOR)
     assert from_crops.shape == image.shape
-    for name in ("head_pose", "confidence"):
+    for name in ("head_pose", "confidence", "eyes"):
         fig = FIGURES[name](view, {"videos": CLIPS})
         assert len(fig.axes) >= 2
     assert FaceMesh.figures is FIGURES
@@ -260,7 +266,7 @@ def test_short_gaps_are_flagged_and_interpolated(gap_video):
 
 def test_long_gaps_fail_with_the_frame_range(gap_video):
     with pytest.raises(UserError, match=r"no face in frames 20-29 \(10 frames") as err:
-        run_stage(FaceMesh, {"max_gap_frames": 5}, {"videos": {"gap": gap_video}})
+        run_stage(FaceMesh, {"max_gap_frames": 5, "long_gaps": "error"}, {"videos": {"gap": gap_video}})
     assert err.value.file == str(gap_video) and err.value.field == "inputs.videos.gap"
 
 

@@ -55,7 +55,7 @@ def track(params, videos, audio=None, **more):
     inputs = {"videos": videos, **more}
     if audio is not None:
         inputs["audio"] = audio
-    return run_stage(FaceMesh, {"output_mesh": False, **params}, inputs)
+    return run_stage(FaceMesh, {"output_mesh": False, "eyes": False, **params}, inputs)
 
 
 def take_audio(out, label):

@@ -6,6 +6,7 @@ import pytest
 
 from msflow import UserError
 from stages.geometry.rotations import euler_to_quat, quat_to_euler, quat_to_matrix
+from stages.geometry.similarity import apply_similarity, fit_similarity, invert_similarity, similarity_parameters
 from stages.tracking.blazeface import (
     ANCHORS,
     box_iou,
@@ -20,7 +21,7 @@ from stages.tracking.facemesh import Roi, invert_affine, roi_from_mesh, square_r
 from stages.tracking.gaps import fill_face_gaps, find_gaps, interpolate_gaps
 from stages.tracking.landmarks68 import IBUG68_MIRROR, MAPPING_MATRIX, MESH_TO_IBUG68, mesh_to_ibug68
 from stages.tracking.pose import camera_matrix, openface_pose_to_gltf, project_face, solve_head_pose
-from stages.tracking.shape_model import build_shape_model, fit_shape, similarity_fit
+from stages.tracking.shape_model import build_shape_model, fit_shape
 
 
 @pytest.fixture(scope="module")
@@ -251,5 +252,18 @@ def test_weighted_similarity_fit_is_exact_for_similar_shapes():
     src = rng.normal(size=(20, 2))
     m = np.array([[1.5, -0.4], [0.4, 1.5]])
     dst = src @ m.T + [3, -2]
-    t = similarity_fit(src, dst, rng.uniform(0.1, 1, 20))
+    t = fit_similarity(src, dst, rng.uniform(0.1, 1, 20))
     np.testing.assert_allclose(t, np.column_stack([m, [3, -2]]), atol=1e-12)
+    # batched, with noise: each fit is the least-squares optimum (no small change of it does better)
+    noisy = np.stack([dst + rng.normal(scale=0.05, size=dst.shape) for _ in range(3)])
+    fits = fit_similarity(np.broadcast_to(src, noisy.shape), noisy)
+    assert fits.shape == (3, 2, 3)
+    for fit, target in zip(fits, noisy):
+        best = np.sum((apply_similarity(fit, src) - target) ** 2)
+        for delta in np.eye(4) * 1e-4:
+            a, b, tx, ty = fit[0, 0] + delta[0], fit[1, 0] + delta[1], fit[0, 2] + delta[2], fit[1, 2] + delta[3]
+            other = np.array([[a, -b, tx], [b, a, ty]])
+            assert np.sum((apply_similarity(other, src) - target) ** 2) > best
+    scale, angle, tx, ty = similarity_parameters(t)
+    np.testing.assert_allclose([scale, angle, tx, ty], [np.hypot(1.5, 0.4), np.arctan2(0.4, 1.5), 3, -2])
+    np.testing.assert_allclose(apply_similarity(invert_similarity(t), dst), src, atol=1e-12)

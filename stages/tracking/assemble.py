@@ -13,7 +13,7 @@ from pydantic import Field
 from msflow import Result, UserError
 from msflow.stage import Params
 from stages.geometry.rotations import quat_conjugate, quat_multiply, quat_to_euler, quat_to_rotvec
-from stages.tracking.crops import apply_transforms, similarity_transform, similarity_transforms, warp_crop
+from stages.tracking.crops import apply_transforms, similarity_transform, similarity_transforms
 from stages.tracking.face3d import DEFAULT_FACE3D, Face3D, load_face3d
 from stages.tracking.landmarks68 import NOSE_BRIDGE_TOP
 from stages.tracking.pose import camera_matrix, solve_head_pose
@@ -28,8 +28,13 @@ class TrackingParams(Params):
     max_gap_frames: int = Field(
         15,
         ge=0,
-        description="longest run of frames without a face that is "
-        "interpolated; longer runs are an error naming the frames",
+        description="longest run of frames without a face that is interpolated; longer runs are held (see long_gaps)",
+    )
+    long_gaps: Literal["hold", "error"] = Field(
+        "hold",
+        description="a run of frames without a face longer than max_gap_frames: 'hold' keeps the last tracked "
+        "face (landmarks, pose, crop) through it, marked valid = False and listed in meta['gaps'] with a warning; "
+        "'error' fails naming the frames",
     )
     focal_length: float | None = Field(
         None,
@@ -85,13 +90,14 @@ class SequenceTrack:
     audio_source: AudioSource | None = None  # where the take's audio comes from (stages.tracking.takes)
     rotation: np.ndarray | None = None  # pose from the track file, when used
     translation: np.ndarray | None = None
+    gaps: list = field(default_factory=list)  # long gaps held: [start, stop) frame ranges
     meta: dict = field(default_factory=dict)
 
 
 class CropCollector:
     """Face crops made while the video streams past: a frame with landmarks is cropped at once; a frame without
-    waits (kept in memory) until the gap is filled. Runs longer than ``max_pending`` are not kept: they fail
-    gap filling anyway."""
+    waits (kept in memory) until the gap is filled. Runs longer than ``max_pending`` are not kept: a long gap
+    holds the crop of the frame it holds."""
 
     def __init__(self, params: TrackingParams, max_pending: int):
         self.size = params.crop_size
@@ -106,10 +112,11 @@ class CropCollector:
     def transform(self, landmarks: np.ndarray) -> np.ndarray:
         return similarity_transform(landmarks, self.size, self.eye_distance, self.eye_height)
 
-    def add(self, gray: np.ndarray, landmarks: np.ndarray | None) -> None:
+    def add(self, image, landmarks: np.ndarray | None) -> None:
+        """Next frame (``planes.FramePlanes``, or anything with ``warp_gray``) and its landmarks (None: no face)."""
         if landmarks is not None:
             m = self.transform(landmarks)
-            self.crops.append(warp_crop(gray, m, self.size))
+            self.crops.append(image.warp_gray(m, self.size))
             self.transforms.append(m)
             self.run = 0
             return
@@ -117,17 +124,23 @@ class CropCollector:
         self.transforms.append(None)
         self.run += 1
         if self.run <= self.max_pending:
-            self.pending[len(self.crops) - 1] = gray
+            from stages.tracking.stream import luma_copy
 
-    def finish(self, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(crops (n, c, c) uint8, transforms (n, 2, 3)) once every frame has (filled) landmarks."""
+            self.pending[len(self.crops) - 1] = luma_copy(image)
+
+    def finish(self, landmarks: np.ndarray, sources: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(crops (n, c, c) uint8, transforms (n, 2, 3)) once every frame has (filled) landmarks. A frame of a
+        long gap (no picture kept) copies the crop of the frame it holds (``sources``, from gaps.gap_plan)."""
         if len(landmarks) != len(self.crops):
             raise ValueError(f"{len(landmarks)} landmark frames for {len(self.crops)} video frames")
         for i, crop in enumerate(self.crops):
-            if crop is None:
+            if crop is None and i in self.pending:
                 m = self.transform(landmarks[i])
-                self.crops[i] = warp_crop(self.pending.pop(i), m, self.size)
+                self.crops[i] = self.pending.pop(i).warp_gray(m, self.size)
                 self.transforms[i] = m
+        for i, crop in enumerate(self.crops):
+            if crop is None:
+                self.crops[i], self.transforms[i] = self.crops[sources[i]], self.transforms[sources[i]]
         n = len(self.crops)
         return (
             np.array(self.crops, dtype=np.uint8).reshape(n, self.size, self.size),
@@ -164,13 +177,14 @@ def inter_ocular(landmarks: np.ndarray) -> np.ndarray:
     return np.linalg.norm(landmarks[..., 36, :] - landmarks[..., 45, :], axis=-1)
 
 
-def sequence_stats(seq: SequenceTrack, rotation: np.ndarray, rms: np.ndarray) -> dict:
+def sequence_stats(seq: TakeTrack) -> dict:
     nose = seq.landmarks[:, NOSE_BRIDGE_TOP]
     both = seq.valid[1:] & seq.valid[:-1]
     steps = np.linalg.norm(np.diff(nose, axis=0), axis=1)[both]
     second = np.linalg.norm(nose[2:] - 2 * nose[1:-1] + nose[:-2], axis=1) / 2
     second = second[seq.valid[2:] & seq.valid[1:-1] & seq.valid[:-2]]
     iod = float(np.mean(inter_ocular(seq.landmarks)))
+    rotation, rms = seq.rotation, seq.pose_rms
     euler = np.degrees(quat_to_euler(rotation))
     pose_steps = rotation_steps_deg(rotation)
     return {
@@ -201,7 +215,7 @@ def pose_of(
     return rot, trans, rms, float(camera[0, 0])
 
 
-def video_end(seq: SequenceTrack) -> float:
+def video_end(seq: TakeTrack) -> float:
     """End of the sequence's last frame, seconds from its first (the last frame lasts one frame period)."""
     n = len(seq.time)
     if n == 0:
@@ -210,36 +224,94 @@ def video_end(seq: SequenceTrack) -> float:
     return float(seq.time[-1] + period)
 
 
-def frame_arrays(sequences: list[SequenceTrack], poses: list[tuple], params: TrackingParams) -> dict:
-    """The per-frame outputs of all sequences, concatenated along frames."""
-    n_total = sum(len(s.valid) for s in sequences)
+class FrameOutputs:
+    """The stage's per-frame outputs, appended take by take in blocks of frames.
+
+    With ``sink`` (the stage's ``Stage.sink``) every output is an output sink: in a store run its chunks are
+    written as blocks come, so no whole-take array is held; without it, blocks are concatenated at the end.
+    """
+
+    def __init__(self, sink=None, schema: dict | None = None):
+        self.sink, self.schema = sink, schema or {}
+        self.outputs: dict = {}
+
+    def append(self, arrays: dict) -> None:
+        for name, block in arrays.items():
+            if name not in self.outputs:
+                spec = self.schema.get(name)
+                dtype = spec.dtype if spec is not None and spec.dtype else block.dtype
+                self.outputs[name] = self._open(name, dtype, block.shape[1:])
+            self.outputs[name].append(block)
+
+    def _open(self, name: str, dtype, row_shape: tuple):
+        if self.sink is not None:
+            return self.sink(name, dtype=dtype, row_shape=row_shape)
+        return _Blocks(dtype)
+
+    def arrays(self) -> dict:
+        """Output name -> sink (or array, when there is no sink)."""
+        return {name: out if self.sink is not None else out.array() for name, out in self.outputs.items()}
+
+
+class _Blocks:
+    def __init__(self, dtype):
+        self.dtype, self.blocks = np.dtype(dtype), []
+
+    def append(self, block: np.ndarray) -> None:
+        self.blocks.append(np.asarray(block, dtype=self.dtype))
+
+    def array(self) -> np.ndarray:
+        return np.concatenate(self.blocks)
+
+
+@dataclass
+class TakeTrack:
+    """One take once its frames went to the outputs: what the metadata, metrics and audio need."""
+
+    label: str
+    source: str
+    field: str
+    fps: float
+    frame_size: tuple[int, int]
+    focal_length: float
+    time: np.ndarray
+    valid: np.ndarray
+    landmarks: np.ndarray
+    rotation: np.ndarray
+    pose_rms: np.ndarray
+    audio_source: AudioSource | None = None
+    gaps: list = field(default_factory=list)  # long gaps held: [start, stop) frame ranges
+    meta: dict = field(default_factory=dict)
+
+
+def write_sequence(seq: SequenceTrack, params: TrackingParams, face3d: Face3D, outputs: FrameOutputs) -> TakeTrack:
+    """Head pose and crop landmarks of a whole-sequence track; its per-frame arrays appended to ``outputs``."""
+    rot, trans, rms, focal = pose_of(seq, params, face3d)
+    n = len(seq.valid)
+    transforms = seq.crop_transforms
+    if transforms is None:
+        transforms = similarity_transforms(
+            seq.landmarks, params.crop_size, params.crop_eye_distance, params.crop_eye_height
+        )
     arrays = {
-        "landmarks": np.concatenate([s.landmarks for s in sequences]).astype(np.float32),
-        "confidence": np.concatenate([s.confidence for s in sequences]).astype(np.float32),
-        "valid": np.concatenate([s.valid for s in sequences]).astype(bool),
-        "time": np.concatenate([s.time for s in sequences]).astype(np.float64),
-        "sequence": np.concatenate([np.full(len(s.valid), i, dtype=np.int32) for i, s in enumerate(sequences)]),
-        "rotation": np.concatenate([p[0] for p in poses]).astype(np.float64),
-        "translation": np.concatenate([p[1] for p in poses]).astype(np.float64),
-        "pose_rms": np.concatenate([p[2] for p in poses]).astype(np.float32),
+        "landmarks": seq.landmarks.astype(np.float32),
+        "confidence": np.asarray(seq.confidence, dtype=np.float32),
+        "valid": np.asarray(seq.valid, dtype=bool),
+        "time": np.asarray(seq.time, dtype=np.float64),
+        "rotation": rot.astype(np.float64),
+        "translation": trans.astype(np.float64),
+        "pose_rms": rms.astype(np.float32),
+        "crop_transforms": transforms.astype(np.float64),
+        "crop_landmarks": apply_transforms(seq.landmarks.astype(np.float64), transforms).astype(np.float32),
+        "crops": seq.crops if seq.crops is not None else np.zeros((n, 0, 0), dtype=np.uint8),
     }
-    transforms = [
-        s.crop_transforms
-        if s.crop_transforms is not None
-        else similarity_transforms(s.landmarks, params.crop_size, params.crop_eye_distance, params.crop_eye_height)
-        for s in sequences
-    ]
-    arrays["crop_transforms"] = np.concatenate(transforms).astype(np.float64)
-    arrays["crop_landmarks"] = apply_transforms(
-        arrays["landmarks"].astype(np.float64), arrays["crop_transforms"]
-    ).astype(np.float32)
-    if all(s.crops is not None for s in sequences):
-        arrays["crops"] = np.concatenate([s.crops for s in sequences])
-    else:
-        arrays["crops"] = np.zeros((n_total, 0, 0), dtype=np.uint8)
-    if all(s.mesh is not None for s in sequences):
-        arrays["mesh"] = np.concatenate([s.mesh for s in sequences]).astype(np.float32)
-    return arrays
+    if seq.mesh is not None:
+        arrays["mesh"] = seq.mesh.astype(np.float32)
+    outputs.append(arrays)
+    return TakeTrack(
+        seq.label, seq.source, seq.field, seq.fps, seq.frame_size, focal, seq.time, seq.valid, seq.landmarks, rot, rms,
+        seq.audio_source, seq.gaps, seq.meta,
+    )  # fmt: skip
 
 
 def audio_arrays(audios: list[TakeAudio | None]) -> dict:
@@ -257,9 +329,8 @@ def audio_arrays(audios: list[TakeAudio | None]) -> dict:
 
 
 def tracking_meta(
-    sequences: list[SequenceTrack],
+    sequences: list[TakeTrack],
     audios: list[TakeAudio | None],
-    focal: list[float],
     params: TrackingParams,
     face3d_name: str,
     implementation: str,
@@ -267,7 +338,6 @@ def tracking_meta(
 ) -> dict:
     """Strict-JSON metadata: per-sequence lists in sequence order, then the settings that shaped the outputs."""
     has_audio = [a is not None for a in audios]
-    crops_present = all(s.crops is not None for s in sequences)
     per_sequence_extra = sorted({k for s in sequences for k in s.meta})
     return {
         "implementation": implementation,
@@ -282,15 +352,15 @@ def tracking_meta(
         "audio_sources": [None if a is None else a.source for a in audios],
         "has_audio": has_audio,
         "landmark_scheme": "ibug68",
-        "focal_length": focal,
+        "focal_length": [s.focal_length for s in sequences],
         "pose_landmarks": params.pose_landmarks,
         "pose_model": face3d_name,
         "translation_units": "cm",
-        "has_crops": crops_present,
-        "crop_size": params.crop_size if crops_present else 0,
         "crop_eye_distance": params.crop_eye_distance,
         "crop_eye_height": params.crop_eye_height,
         "max_gap_frames": params.max_gap_frames,
+        "long_gaps": params.long_gaps,
+        "gaps": [[[int(a), int(b)] for a, b in s.gaps] for s in sequences],
         **{k: [s.meta.get(k) for s in sequences] for k in per_sequence_extra},
     }
 
@@ -316,26 +386,47 @@ def tracking_metrics(stats: dict, valid: np.ndarray) -> dict:
     }
 
 
+def gap_warnings(takes: list[TakeTrack], max_gap: int) -> list[str]:
+    """One warning per take with long gaps held (``long_gaps: hold``)."""
+    out = []
+    for take in takes:
+        if take.gaps:
+            spans = ", ".join(
+                f"frames {a}-{b - 1} ({take.time[a]:.2f}-{take.time[b - 1]:.2f} s)" for a, b in take.gaps[:5]
+            )
+            more = f" and {len(take.gaps) - 5} more" if len(take.gaps) > 5 else ""
+            out.append(
+                f"take '{take.label}': no face in {spans}{more}, longer than max_gap_frames = {max_gap}: the last "
+                "tracked face is held there (valid = False; meta gaps)"
+            )
+    return out
+
+
 def assemble(
-    sequences: list[SequenceTrack],
+    takes: list[TakeTrack],
+    outputs: FrameOutputs,
     params: TrackingParams,
-    face3d: Face3D,
     face3d_name: str,
     implementation: str,
     extra_meta: dict | None = None,
     extra_metrics: dict | None = None,
     fields: dict | None = None,
 ) -> Result:
-    """Head pose and audio for every sequence, then the concatenated TRACKING_OUTPUTS result.
+    """Audio of every take, then the TRACKING_OUTPUTS result: ``outputs`` (every take's frames, in order) plus
+    ``sequence``, the audio, metadata and metrics.
 
     ``fields`` is each label's fields (speaker, expression, ...) from the labelled inputs: ``meta["fields"]``.
     """
-    poses = [pose_of(seq, params, face3d) for seq in sequences]
-    audios = [load_take_audio(seq.audio_source, video_end(seq), params, seq.field) for seq in sequences]
-    arrays = {**frame_arrays(sequences, poses, params), **audio_arrays(audios)}
-    meta = tracking_meta(sequences, audios, [p[3] for p in poses], params, face3d_name, implementation, fields or {})
-    stats = {seq.label: sequence_stats(seq, pose[0], pose[2]) for seq, pose in zip(sequences, poses)}
+    audios = [load_take_audio(take.audio_source, video_end(take), params, take.field) for take in takes]
+    arrays = outputs.arrays()
+    arrays["sequence"] = np.concatenate([np.full(len(t.valid), i, dtype=np.int32) for i, t in enumerate(takes)])
+    arrays.update(audio_arrays(audios))
+    meta = tracking_meta(takes, audios, params, face3d_name, implementation, fields or {})
+    meta["has_crops"] = arrays["crops"].shape[1] > 0
+    meta["crop_size"] = params.crop_size if meta["has_crops"] else 0
+    stats = {take.label: sequence_stats(take) for take in takes}
     meta["sequence_stats"] = stats
     meta.update(extra_meta or {})
-    metrics = {**tracking_metrics(stats, arrays["valid"]), **(extra_metrics or {})}
-    return Result(arrays, meta=meta, metrics=metrics)
+    valid = np.concatenate([t.valid for t in takes])
+    metrics = {**tracking_metrics(stats, valid), **(extra_metrics or {})}
+    return Result(arrays, meta=meta, metrics=metrics, warnings=gap_warnings(takes, params.max_gap_frames))

@@ -135,19 +135,17 @@ class BlazeFaceDetector:
         self.min_score = min_score
         self.iou_threshold = iou_threshold
 
-    def detect(self, bgr: np.ndarray, max_faces: int | None = None) -> Detections:
+    def detect(self, frame, max_faces: int | None = None) -> Detections:
+        """Faces in a frame: a BGR array, or anything with ``shape`` and ``warp_bgr`` (``planes.FramePlanes``)."""
         import cv2
 
-        height, width = bgr.shape[:2]
+        if not hasattr(frame, "warp_bgr"):
+            from stages.tracking.planes import BgrImage
+
+            frame = BgrImage(np.asarray(frame))
+        height, width = frame.shape[:2]
         to_input = letterbox_transform(width, height)
-        square = cv2.warpAffine(
-            bgr,
-            to_input,
-            (INPUT_SIZE, INPUT_SIZE),
-            flags=cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=(0, 0, 0),
-        )
+        square = frame.warp_bgr(to_input, INPUT_SIZE)  # black padding
         # the detector was trained on RGB in [-1, 1]
         blob = cv2.dnn.blobFromImage(square, 1 / 127.5, mean=(127.5, 127.5, 127.5), swapRB=True)
         logits, regressors = self.net.forward(blob)

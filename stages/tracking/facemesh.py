@@ -1,11 +1,21 @@
-"""MediaPipe face mesh (468 points) on a rotated square region of interest, with tracking and re-detection.
+"""MediaPipe face landmarks on a rotated square region of interest, with tracking and re-detection.
 
-Per frame: the 192x192 model input is the frame warped from a square ROI that is rotated so the eyes lie level;
-the model returns 468 points (x, y in input pixels, z relative depth) and a face-presence logit. In tracking
-mode the next frame's ROI comes from the current points (their bounding box, scaled 1.5x, squared, rotated by
-the eye line: MediaPipe's face_landmark_landmarks_to_roi); BlazeFace runs only on the first frame and whenever
-the presence score falls below the threshold. Kartynnik et al., "Real-time Facial Surface Geometry from
-Monocular Video on Mobile GPUs", 2019.
+Two landmark models, one interface (``LANDMARK_MODELS``):
+
+- ``face_mesh_v1`` (``face_landmark.tflite``): the 468-point face mesh, 192x192 input (Kartynnik et al.,
+  "Real-time Facial Surface Geometry from Monocular Video on Mobile GPUs", 2019);
+- ``face_landmarker_v2`` (``face_landmarks_detector.tflite``): MediaPipe Face Landmarker v2, 256x256 input, the same
+  468 mesh points plus 10 iris points (468-472: centre then rim of the eye with corners 33/133, the subject's
+  right; 473-477 the same for the eye with corners 263/362, the subject's left); its eyelids close on blinks.
+
+Per frame: the model input is the frame warped from a square ROI that is rotated so the eyes lie level; the model
+returns the points (x, y in input pixels, z relative depth in the same units) and a face-presence logit. In
+tracking mode the next frame's ROI comes from the current points (their bounding box, scaled 1.5x, squared,
+rotated by the eye line: MediaPipe's face_landmark_landmarks_to_roi); BlazeFace runs only on the first frame and
+whenever the presence score falls below the threshold.
+
+Frames are anything with ``warp_bgr(affine, size)`` (``stages.tracking.planes``: a decoded frame converted only
+where the patch reads it, or a BGR image).
 """
 
 from __future__ import annotations
@@ -20,6 +30,7 @@ from stages.tracking.blazeface import BlazeFaceDetector, Detections, sigmoid
 
 MESH_INPUT = 192
 ROI_SCALE = 1.5
+MESH_POINTS = 468
 #: mesh vertices used for the ROI's rotation: outer corners of the subject's right and left eye
 RIGHT_EYE_OUTER, LEFT_EYE_OUTER = 33, 263
 
@@ -73,40 +84,60 @@ def roi_from_detection(detections: Detections, index: int = 0) -> Roi:
 
 
 def roi_from_mesh(points: np.ndarray) -> Roi:
-    """The next frame's ROI from this frame's 468 points (tracking mode)."""
-    xy = points[:, :2]
+    """The next frame's ROI from this frame's points (tracking mode): the bounding box of the 468 mesh points
+    (the iris points of v2 lie inside it)."""
+    xy = points[:MESH_POINTS, :2]
     lo, hi = xy.min(axis=0), xy.max(axis=0)
     return square_roi(lo[0], lo[1], hi[0], hi[1], roll_angle(xy[RIGHT_EYE_OUTER], xy[LEFT_EYE_OUTER]))
 
 
-class FaceMeshModel:
-    """The 468-point landmark model (``face_landmark.tflite``) through OpenCV's DNN module."""
+@dataclass(frozen=True)
+class LandmarkModelSpec:
+    """A face landmark model: its file, input side, output names (points, presence logit) and point count."""
 
-    def __init__(self, model_path: str | Path):
+    file: str
+    input_size: int
+    outputs: tuple[str, str]
+    points: int
+
+
+LANDMARK_MODELS = {
+    "face_mesh_v1": LandmarkModelSpec("face_landmark.tflite", 192, ("conv2d_21", "conv2d_31"), 468),
+    "face_landmarker_v2": LandmarkModelSpec("face_landmarks_detector.tflite", 256, ("Identity", "Identity_1"), 478),
+}
+
+
+def as_image(frame):
+    """Frames given as BGR arrays get the planes' interface; anything with ``warp_bgr`` passes through."""
+    if hasattr(frame, "warp_bgr"):
+        return frame
+    from stages.tracking.planes import BgrImage
+
+    return BgrImage(np.asarray(frame))
+
+
+class FaceMeshModel:
+    """A face landmark model (``LANDMARK_MODELS``) through OpenCV's DNN module."""
+
+    def __init__(self, model_path: str | Path, spec: LandmarkModelSpec = LANDMARK_MODELS["face_mesh_v1"]):
         from stages.tracking.tflite import TfliteNet
 
-        self.net = TfliteNet(model_path, ("conv2d_21", "conv2d_31"))
+        self.spec = spec
+        self.net = TfliteNet(model_path, spec.outputs)
 
-    def infer(self, bgr: np.ndarray, roi: Roi) -> tuple[np.ndarray, float]:
-        """(468, 3) points (x, y image pixels; z depth in pixels, same scale as x) and the presence score."""
+    def infer(self, frame, roi: Roi) -> tuple[np.ndarray, float]:
+        """(points, 3) landmarks (x, y image pixels; z depth in pixels, same scale as x) and the presence score."""
         import cv2
 
-        to_input = roi.image_to_input()
-        patch = cv2.warpAffine(
-            bgr,
-            to_input,
-            (MESH_INPUT, MESH_INPUT),
-            flags=cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=(0, 0, 0),
-        )
-        blob = cv2.dnn.blobFromImage(patch, 1 / 255.0, swapRB=True)
+        size = self.spec.input_size
+        patch = as_image(frame).warp_bgr(roi.image_to_input(size), size)
+        blob = cv2.dnn.blobFromImage(patch, 1 / 255.0, swapRB=True)  # RGB in 0..1
         raw, presence = self.net.forward(blob)
-        local = raw.reshape(468, 3).astype(np.float64)
-        to_image = roi.input_to_image()
+        local = raw.reshape(self.spec.points, 3).astype(np.float64)
+        to_image = roi.input_to_image(size)
         points = np.empty_like(local)
         points[:, :2] = local[:, :2] @ to_image[:, :2].T + to_image[:, 2]
-        points[:, 2] = local[:, 2] * roi.size / MESH_INPUT
+        points[:, 2] = local[:, 2] * roi.size / size
         return points, float(sigmoid(float(np.clip(presence.reshape(-1)[0], -100, 100))))
 
 
@@ -121,9 +152,13 @@ class FaceMeshTracker:
         min_detection_score: float = 0.5,
         min_presence: float = 0.5,
         redetect_every: int = 0,
+        model: str = "face_mesh_v1",
+        eye_model_path: str | Path | None = None,
     ):
         self.detector = BlazeFaceDetector(detector_path, min_score=min_detection_score)
-        self.mesh = FaceMeshModel(landmark_path)
+        self.mesh = FaceMeshModel(landmark_path, LANDMARK_MODELS[model])
+        #: a second, 478-point model run on the same ROI for the eyes (when the landmark model has no iris)
+        self.eyes = FaceMeshModel(eye_model_path, LANDMARK_MODELS["face_landmarker_v2"]) if eye_model_path else None
         self.min_presence = min_presence
         self.redetect_every = redetect_every
         self.reset()
@@ -135,38 +170,56 @@ class FaceMeshTracker:
         self.detections = 0
         self.detector_scores: list[float] = []
 
-    def step(self, frame: np.ndarray) -> tuple[np.ndarray | None, float]:
-        """(468, 3) points and presence score for the next BGR frame; (None, 0.0) when no face is found.
+    @property
+    def points(self) -> int:
+        """Points per frame ``step`` returns: the landmark model's, then the eye model's when there is one."""
+        return self.mesh.spec.points + (self.eyes.spec.points if self.eyes is not None else 0)
+
+    @property
+    def eye_offset(self) -> int | None:
+        """Where a 478-point (Face Landmarker v2) layout starts in ``step``'s points; None: no eyes."""
+        if self.eyes is not None:
+            return self.mesh.spec.points
+        return 0 if self.mesh.spec.points >= 478 else None
+
+    def step(self, frame) -> tuple[np.ndarray | None, float]:
+        """(``points``, 3) landmarks and presence score for the next frame (BGR array or ``planes.FramePlanes``);
+        (None, 0.0) when no face is found. With an eye model its 478 points follow the landmark model's.
 
         The ROI comes from the previous frame's points; the detector runs when there is none, when the presence
         score drops below ``min_presence`` (the tracked face was lost) or every ``redetect_every`` frames.
         """
+        frame = as_image(frame)
         if self.redetect_every and self.since_detection >= self.redetect_every:
             self.roi = None
-        points, score = None, 0.0
-        if self.roi is not None:
-            points, score = self.mesh.infer(frame, self.roi)
-        if self.roi is None or score < self.min_presence:
+        roi, points, score = self.roi, None, 0.0
+        if roi is not None:
+            points, score = self.mesh.infer(frame, roi)
+        if roi is None or score < self.min_presence:
             found = self.detector.detect(frame, max_faces=1)
             self.detections += 1
             self.since_detection = 0
-            points, score = None, 0.0
+            roi, points, score = None, None, 0.0
             if len(found):
                 self.detector_scores.append(float(found.scores[0]))
-                points, score = self.mesh.infer(frame, roi_from_detection(found))
+                roi = roi_from_detection(found)
+                points, score = self.mesh.infer(frame, roi)
         self.since_detection += 1
         if points is None or score < self.min_presence:
             self.roi = None
             return None, 0.0
         self.roi = roi_from_mesh(points)
+        if self.eyes is not None:  # the same ROI: both models see the same face region
+            points = np.concatenate([points, self.eyes.infer(frame, roi)[0]])
         return points, score
 
-    def track(self, frames: Iterable[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """All frames at once: (points (n, 468, 3) with NaN where no face, presence scores (n,))."""
+    def track(self, frames: Iterable) -> tuple[np.ndarray, np.ndarray]:
+        """All frames at once: (points (n, points, 3) with NaN where no face, presence scores (n,))."""
         self.reset()
+        n_points = self.points
         points, scores = [], []
         for frame in frames:
             p, s = self.step(frame)
-            points.append(np.full((468, 3), np.nan) if p is None else p)
+            points.append(np.full((n_points, 3), np.nan) if p is None else p)
             scores.append(s)
-        return np.array(points).reshape(-1, 468, 3), np.array(scores)
+        return np.array(points).reshape(-1, n_points, 3), np.array(scores)

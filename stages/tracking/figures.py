@@ -97,9 +97,12 @@ def _video_paths(inputs: dict | None) -> dict:
     return {str(k): Path(v) for k, v in videos.items()}
 
 
-def contact_sheet_png(view, inputs: dict | None = None, *, every: int = 10, columns: int = 7, size: int = 200) -> bytes:
-    """PNG contact sheet of a tracking artifact: every ``every``-th frame of each sequence with its 68 points,
-    drawn on the video frame when the video is among ``inputs['videos']``, else on the stored face crop."""
+def contact_sheet_png(
+    view, inputs: dict | None = None, *, every: int = 10, columns: int = 7, size: int = 200, most: int = 28
+) -> bytes:
+    """PNG contact sheet of a tracking artifact: every ``every``-th frame of each sequence (fewer on long takes:
+    at most ``most`` per sequence, evenly spaced) with its 68 points, drawn on the video frame when the video is
+    among ``inputs['videos']``, else on the stored face crop."""
     from stages.tracking.video import iter_frames
 
     labels = list(view.meta.get("labels", []))
@@ -108,7 +111,7 @@ def contact_sheet_png(view, inputs: dict | None = None, *, every: int = 10, colu
     frames, points, captions, flags, groups = [], [], [], [], []
     for s, label in enumerate(labels):
         rows = np.flatnonzero(sequence == s)
-        wanted = set(range(0, len(rows), every))
+        wanted = set(range(0, len(rows), max(every, -(-len(rows) // most))))
         if label in videos and videos[label].is_file():
             for i, (_, frame) in enumerate(iter_frames(videos[label])):
                 if i in wanted:
@@ -179,4 +182,52 @@ def confidence_figure(view, inputs: dict | None = None):
     return fig
 
 
-FIGURES = {"contact_sheet": contact_sheet_png, "head_pose": head_pose_figure, "confidence": confidence_figure}
+def eyes_figure(view, inputs: dict | None = None):
+    """Eyelid aperture (blinks found shaded) and gaze yaw/pitch of each eye over time, one panel column per
+    sequence (Face Landmarker v2 artifacts; a note otherwise)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from stages.tracking.eyes import detect_blinks
+
+    labels = list(view.meta.get("labels", []))
+    if "eye_aperture" not in view:
+        fig, ax = plt.subplots(figsize=(6, 1.2))
+        ax.axis("off")
+        ax.text(0.5, 0.5, "no eye outputs: the landmark model was face_mesh_v1", ha="center", va="center")
+        return fig
+    time, sequence = view["time"], view["sequence"]
+    aperture, gaze, valid = view["eye_aperture"], view["gaze"], view["valid"]
+    fig, axes = plt.subplots(3, max(len(labels), 1), figsize=(4 * max(len(labels), 1), 6), sharey="row", squeeze=False)
+    for s, label in enumerate(labels):
+        rows = np.flatnonzero(sequence == s)
+        t = time[rows]
+        ax = axes[0, s]
+        for eye, name in ((0, "left"), (1, "right")):
+            ax.plot(t, aperture[rows, eye], label=name)
+            axes[1, s].plot(t, gaze[rows, eye, 0], label=name)
+            axes[2, s].plot(t, gaze[rows, eye, 1], label=name)
+        for a, b in detect_blinks(aperture[rows], valid[rows]):
+            ax.axvspan(t[a], t[b - 1], color="0.85")
+        ax.set_title(label, fontsize=9)
+    axes[0, 0].set_ylabel("eye aperture")
+    axes[1, 0].set_ylabel("gaze yaw (deg)")
+    axes[2, 0].set_ylabel("gaze pitch (deg)")
+    axes[0, 0].legend(fontsize=8)
+    for ax in axes.ravel():
+        ax.grid(alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("time (s)")
+    fig.suptitle("Eyes (blinks found shaded; yaw > 0 towards the performer's left, pitch > 0 up)")
+    fig.tight_layout()
+    return fig
+
+
+FIGURES = {
+    "contact_sheet": contact_sheet_png,
+    "head_pose": head_pose_figure,
+    "confidence": confidence_figure,
+    "eyes": eyes_figure,
+}

@@ -22,6 +22,56 @@ def camera_matrix(width: float, height: float, focal_length: float | None = None
     return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
 
 
+class PoseSolver:
+    """Head pose frame after frame, each ``cv2.solvePnP`` starting from the previous frame's pose (which keeps the
+    sequence on one solution branch); blocks of frames in turn give the same poses as one whole sequence."""
+
+    def __init__(self, face3d: np.ndarray, camera: np.ndarray, points: np.ndarray | None = None):
+        self.idx = np.arange(68) if points is None else np.asarray(points)
+        self.obj = np.ascontiguousarray(face3d[self.idx], dtype=np.float64)
+        self.camera = camera
+        self.rvec = self.tvec = None
+        self.last_quat: np.ndarray | None = None
+
+    def solve(self, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rotation (frames, 4), translation (frames, 3), reprojection RMS (frames,)) of the next frames."""
+        import cv2
+
+        landmarks = np.asarray(landmarks, dtype=np.float64)
+        dist = np.zeros(4)
+        n = len(landmarks)
+        rot, trans, rms = np.zeros((n, 3, 3)), np.zeros((n, 3)), np.zeros(n)
+        for i in range(n):
+            img = np.ascontiguousarray(landmarks[i, self.idx])
+            if self.rvec is None:
+                _, self.rvec, self.tvec = cv2.solvePnP(self.obj, img, self.camera, dist, flags=cv2.SOLVEPNP_SQPNP)
+            _, self.rvec, self.tvec = cv2.solvePnP(
+                self.obj,
+                img,
+                self.camera,
+                dist,
+                self.rvec.copy(),
+                self.tvec.copy(),
+                useExtrinsicGuess=True,
+                flags=cv2.SOLVEPNP_ITERATIVE,
+            )
+            r_cv, _ = cv2.Rodrigues(self.rvec)
+            rot[i] = CV_TO_GLTF @ r_cv
+            trans[i] = CV_TO_GLTF @ self.tvec.reshape(3)
+            projected, _ = cv2.projectPoints(self.obj, self.rvec, self.tvec, self.camera, dist)
+            rms[i] = np.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - img) ** 2, axis=1)))
+        return self._continuous(matrix_to_quat(rot)), trans, rms
+
+    def _continuous(self, q: np.ndarray) -> np.ndarray:
+        """Signs flipped so consecutive quaternions, across blocks too, lie in one hemisphere."""
+        if not len(q):
+            return q
+        lead = [] if self.last_quat is None else [self.last_quat]
+        q = quat_continuous(np.concatenate([lead, q]) if lead else q)[len(lead) :]
+        self.last_quat = q[-1]
+        return q
+
+
 def solve_head_pose(
     landmarks: np.ndarray, face3d: np.ndarray, camera: np.ndarray, points: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -29,37 +79,9 @@ def solve_head_pose(
 
     Returns (rotation (frames, 4) unit quaternions, translation (frames, 3) in the 3D face's units, glTF camera
     axes, reprojection RMS (frames,) pixels). ``points`` selects the landmarks used (default all 68). Each frame
-    starts the iterative solver from the previous frame's pose, which keeps the sequence on one solution
-    branch (sequential by nature: one solvePnP per frame).
+    starts the iterative solver from the previous frame's pose (``PoseSolver``; sequential by nature).
     """
-    import cv2
-
-    landmarks = np.asarray(landmarks, dtype=np.float64)
-    idx = np.arange(68) if points is None else np.asarray(points)
-    obj = np.ascontiguousarray(face3d[idx], dtype=np.float64)
-    dist = np.zeros(4)
-    n = len(landmarks)
-    rot = np.zeros((n, 3, 3))
-    trans = np.zeros((n, 3))
-    rms = np.zeros(n)
-    rvec = tvec = None
-    for i in range(n):
-        img = np.ascontiguousarray(landmarks[i, idx])
-        if rvec is None:
-            ok, rvec, tvec = cv2.solvePnP(obj, img, camera, dist, flags=cv2.SOLVEPNP_SQPNP)
-            ok, rvec, tvec = cv2.solvePnP(
-                obj, img, camera, dist, rvec, tvec, useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE
-            )
-        else:
-            ok, rvec, tvec = cv2.solvePnP(
-                obj, img, camera, dist, rvec.copy(), tvec.copy(), useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE
-            )
-        r_cv, _ = cv2.Rodrigues(rvec)
-        rot[i] = CV_TO_GLTF @ r_cv
-        trans[i] = CV_TO_GLTF @ tvec.reshape(3)
-        projected, _ = cv2.projectPoints(obj, rvec, tvec, camera, dist)
-        rms[i] = np.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - img) ** 2, axis=1)))
-    return quat_continuous(matrix_to_quat(rot)), trans, rms
+    return PoseSolver(face3d, camera, points).solve(landmarks)
 
 
 def project_face(face3d: np.ndarray, rotation: np.ndarray, translation: np.ndarray, camera: np.ndarray) -> np.ndarray:

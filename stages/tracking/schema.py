@@ -3,7 +3,10 @@
 All sequences (one per labelled input video) are concatenated along the frame axis; ``sequence`` gives each
 frame's index into ``meta["labels"]``. Metadata (strict JSON) holds per sequence: ``labels``, ``sources`` (file
 names), ``fps``, ``frame_size`` [w, h], ``audio_rate``, ``audio_offset`` (seconds of the first audio sample
-relative to the first video frame), plus ``landmark_scheme`` ("ibug68"), ``focal_length`` and crop settings.
+relative to the first video frame), ``has_audio``, ``audio_sources``, ``gaps`` (long gaps held, [start, stop)
+frames), plus ``fields`` ({label: {field: value}}), ``landmark_scheme`` ("ibug68"), ``focal_length`` and crop
+settings. Eye outputs (``eye_aperture``, ``gaze``, ``iris``) come with the 478-point landmark model (FaceMesh's
+default); their conventions are in stages/tracking/eyes.py.
 """
 
 from msflow import Output
@@ -19,8 +22,36 @@ TRACKING_OUTPUTS = {
         optional=True,
         doc="FaceMesh 468 points: x, y image pixels, z relative depth in pixels",
     ),
+    "eye_aperture": Output.array(
+        "f",
+        shape=("frames", 2),
+        dtype="float32",
+        optional=True,
+        doc="eyelid gap over eye width (eye aspect ratio): [:, 0] the performer's left eye (ARKit _L), [:, 1] right; "
+        "about 0.25-0.35 open, below 0.1 closed (478-point landmark model only)",
+    ),
+    "gaze": Output.array(
+        "f",
+        shape=("frames", 2, 2),
+        dtype="float32",
+        optional=True,
+        doc="eyeball rotation relative to the head, degrees: [eye (0 left, 1 right)][yaw, pitch], yaw > 0 towards "
+        "the performer's left, pitch > 0 up (478-point landmark model only)",
+    ),
+    "iris": Output.array(
+        "f",
+        shape=("frames", 10, 3),
+        dtype="float32",
+        optional=True,
+        doc="the model's 10 iris points as it orders them (0-4: centre and rim of the performer's right eye, 5-9: "
+        "left eye), image pixels like 'mesh' (478-point landmark model only)",
+    ),
     "confidence": Output.array("f", shape=("frames",), dtype="float32", doc="face presence / tracking score 0..1"),
-    "valid": Output.array("b", shape=("frames",), doc="False where no face was found and landmarks were interpolated"),
+    "valid": Output.array(
+        "b",
+        shape=("frames",),
+        doc="False where no face was found: values interpolated across a short gap, or held through a long one",
+    ),
     "time": Output.array("f", shape=("frames",), dtype="float64", doc="seconds since the sequence's first frame"),
     "sequence": Output.array("i", shape=("frames",), dtype="int32", doc="index into meta['labels']"),
     "rotation": Output.array(

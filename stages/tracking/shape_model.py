@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.geometry.similarity import align_to, fit_similarity
 from stages.tracking.face3d import Face3D
 
 
@@ -33,34 +34,6 @@ def normalise_shape(points: np.ndarray) -> np.ndarray:
     p = np.asarray(points, dtype=np.float64)
     p = p - p.mean(axis=-2, keepdims=True)
     return p / np.sqrt(np.mean(np.sum(p * p, axis=-1), axis=-1))[..., None, None]
-
-
-def similarity_fit(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-    """2x3 similarity (scale, rotation, translation) best mapping src (n, 2) onto dst (n, 2) in weighted
-    least squares (closed form, Umeyama 1991)."""
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
-    w = w / w.sum()
-    mu_s, mu_d = w @ src, w @ dst
-    s, d = src - mu_s, dst - mu_d
-    var = w @ np.sum(s * s, axis=1)
-    a = w @ (s[:, 0] * d[:, 0] + s[:, 1] * d[:, 1]) / var
-    b = w @ (s[:, 0] * d[:, 1] - s[:, 1] * d[:, 0]) / var
-    m = np.array([[a, -b], [b, a]])
-    return np.column_stack([m, mu_d - m @ mu_s])
-
-
-def align_to(shape: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """Shapes (..., n, 2) moved by the similarity that best maps each onto ``reference`` (n, 2)."""
-    shape = np.asarray(shape, dtype=np.float64)
-    mu_s = shape.mean(axis=-2, keepdims=True)
-    mu_r = reference.mean(axis=0)
-    s, r = shape - mu_s, reference - mu_r
-    var = np.sum(s * s, axis=(-2, -1))
-    a = np.sum(s[..., 0] * r[:, 0] + s[..., 1] * r[:, 1], axis=-1) / var
-    b = np.sum(s[..., 0] * r[:, 1] - s[..., 1] * r[:, 0], axis=-1) / var
-    x = a[..., None] * s[..., 0] - b[..., None] * s[..., 1]
-    y = b[..., None] * s[..., 0] + a[..., None] * s[..., 1]
-    return np.stack([x, y], axis=-1) + mu_r
 
 
 def rotation_yx(yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
@@ -136,7 +109,7 @@ def fit_shape(
     precision = noise**2 / lam
     for _ in range(iterations):
         shape = model.mean + (phi @ b).reshape(-1, 2)
-        to_image = similarity_fit(shape, points, w)
+        to_image = fit_similarity(shape, points, w)
         a = to_image[:, :2]
         local = (points - to_image[:, 2]) @ np.linalg.inv(a).T
         resid = (local - model.mean).reshape(-1)
@@ -145,5 +118,5 @@ def fit_shape(
         sd = np.sqrt(lam)
         b = np.clip(b, -limit * sd, limit * sd)
     shape = model.mean + (phi @ b).reshape(-1, 2)
-    to_image = similarity_fit(shape, points, w)
+    to_image = fit_similarity(shape, points, w)
     return shape @ to_image[:, :2].T + to_image[:, 2], b

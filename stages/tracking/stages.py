@@ -3,31 +3,42 @@ schema (TRACKING_OUTPUTS), swappable with ``uses:``."""
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, PositiveInt
 
 from msflow import Input, Result, Stage, UserError
 from stages.data import DATA
-from stages.tracking.assemble import CropCollector, SequenceTrack, TrackingParams, assemble, resolve_face3d
-from stages.tracking.crops import to_gray
+from stages.tracking.assemble import (
+    CropCollector,
+    FrameOutputs,
+    SequenceTrack,
+    TakeTrack,
+    TrackingParams,
+    assemble,
+    pose_point_indices,
+    resolve_face3d,
+    write_sequence,
+)
 from stages.tracking.figures import FIGURES
-from stages.tracking.gaps import fill_face_gaps, interpolate_gaps
+from stages.tracking.gaps import apply_plan, fill_gaps, gap_plan
 from stages.tracking.landmarks68 import mesh_to_ibug68
 from stages.tracking.schema import TRACKING_OUTPUTS
 from stages.tracking.takes import AudioSource, audio_sources, labels_fields, preflight_audio
-from stages.tracking.video import iter_frames, probe_video
+from stages.tracking.video import VideoInfo, iter_planes, probe_video
 
 MODELS = DATA / "models" / "mediapipe-face"
 DETECTOR_MODEL = MODELS / "face_detection_short_range.tflite"
 LANDMARK_MODEL = MODELS / "face_landmark.tflite"
+LANDMARKER_V2_MODEL = MODELS / "face_landmarks_detector.tflite"
 
 VIDEOS_DOC = "labelled videos (label -> file); any container/codec FFmpeg reads"
 FACE3D_DOC = "optional 3D face for head pose: a JSON file with 'neutral' (68, 3) like data/face3d"
-MODELS_DOC = "optional MediaPipe models: labels 'detector' and 'landmarks' (.tflite); default data/models"
+MODELS_DOC = "optional MediaPipe models: labels 'detector', 'landmarks' and 'eyes' (.tflite); default data/models"
 AUDIO_DOC = (
     "optional separate audio files (WAV, FLAC, MP3, ...) matched to the takes by label; params.audio_offset "
     "places each take's first frame in its file"
@@ -35,17 +46,28 @@ AUDIO_DOC = (
 
 # default data files the stages read when no input overrides them: hashed into the cache key
 DEFAULT_FACE3D_FILE = DATA / "face3d" / "ict_landmarks68.json"
-MESH_RESOURCES = {"detector": DETECTOR_MODEL, "landmarks": LANDMARK_MODEL, "face3d": DEFAULT_FACE3D_FILE}
+MESH_RESOURCES = {
+    "detector": DETECTOR_MODEL,
+    "landmarks": LANDMARK_MODEL,
+    "landmarks_v2": LANDMARKER_V2_MODEL,
+    "face3d": DEFAULT_FACE3D_FILE,
+}
 
 
-def model_paths(models: dict | None) -> tuple[Path, Path]:
+def model_paths(models: dict | None, model: str = "face_mesh_v1") -> tuple[Path, Path, Path]:
+    """(detector, landmark model, eye model) files: the ``models`` input's, or the project's for ``model``."""
     models = dict(models or {})
-    unknown = set(models) - {"detector", "landmarks"}
+    unknown = set(models) - {"detector", "landmarks", "eyes"}
     if unknown:
         raise UserError(
-            f"unknown model labels {sorted(unknown)}; use 'detector' and 'landmarks'", field="inputs.models"
+            f"unknown model labels {sorted(unknown)}; use 'detector', 'landmarks' and 'eyes'", field="inputs.models"
         )
-    return Path(models.get("detector", DETECTOR_MODEL)), Path(models.get("landmarks", LANDMARK_MODEL))
+    default = LANDMARKER_V2_MODEL if model == "face_landmarker_v2" else LANDMARK_MODEL
+    return (
+        Path(models.get("detector", DETECTOR_MODEL)),
+        Path(models.get("landmarks", default)),
+        Path(models.get("eyes", LANDMARKER_V2_MODEL)),
+    )
 
 
 def _require_files(files: dict | None, name: str) -> dict:
@@ -71,58 +93,80 @@ class FaceMeshParams(TrackingParams):
         0, ge=0, description="also re-run the detector every this many frames (0: only when the face is lost)"
     )
     output_mesh: bool = Field(True, description="include the 468-point mesh output")
+    model: Literal["face_mesh_v1", "face_landmarker_v2"] = Field(
+        "face_mesh_v1",
+        description="landmark model for the mesh and the 68 points: MediaPipe's 468-point face mesh, or Face "
+        "Landmarker v2 (478 points: the mesh plus the irises; 2.2x slower per frame)",
+    )
+    eyes: bool = Field(
+        True,
+        description="eye outputs (eye_aperture, gaze, iris) from Face Landmarker v2, whose eyelids follow blinks: "
+        "the landmark model's own points when it is v2, else a second model pass on the same face region",
+    )
 
 
 def new_tracker(params, models: dict | None):
     from stages.tracking.facemesh import FaceMeshTracker
 
-    detector, landmarks = model_paths(models)
+    model = getattr(params, "model", "face_mesh_v1")
+    detector, landmarks, eyes = model_paths(models, model)
+    second_pass = getattr(params, "eyes", False) and model != "face_landmarker_v2"
     return FaceMeshTracker(
         detector,
         landmarks,
         min_detection_score=params.min_detection_score,
         min_presence=params.min_presence,
         redetect_every=getattr(params, "redetect_every", 0),
+        model=model,
+        eye_model_path=eyes if second_pass else None,
     )
 
 
-def track_facemesh_video(
-    tracker, label: str, path: Path, params: FaceMeshParams, audio: AudioSource | None = None
-) -> SequenceTrack:
-    """Face mesh over one video, crops made while it streams; gaps filled (or refused) afterwards."""
+def stage_jobs(stage: Stage) -> int:
+    """The run's worker count (``-j``) as the stage sees it."""
+    return max(1, int(stage.jobs))
+
+
+@contextmanager
+def cv_threads(n: int):
+    """OpenCV's thread count set to ``n`` for the duration (its DNN layers and warps split work across threads
+    with the same results)."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(n)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
+
+
+def track_facemesh_take(
+    tracker, label: str, path: Path, params: FaceMeshParams, face3d, outputs: FrameOutputs, audio, jobs: int = 1
+) -> TakeTrack:
+    """One take streamed through the landmark model into ``outputs`` (stages/tracking/stream.py)."""
+    from stages.tracking.pose import PoseSolver, camera_matrix
+    from stages.tracking.stream import BlockWriter, CropSettings, check_gaps, stream_take
+    from stages.tracking.video import iter_planes
+
     field = f"inputs.videos.{label}"
     info = probe_video(path, field=field)
     tracker.reset()
-    collector = CropCollector(params, params.max_gap_frames)
-    times, meshes, scores, found = [], [], [], []
-    for t, frame in iter_frames(path, field=field):
-        points, score = tracker.step(frame)
-        collector.add(to_gray(frame), None if points is None else mesh_to_ibug68(points[:, :2]))
-        times.append(t)
-        meshes.append(np.full((468, 3), np.nan) if points is None else points)
-        scores.append(score)
-        found.append(points is not None)
-    times_arr, valid = np.array(times), np.array(found, dtype=bool)
-    mesh = fill_face_gaps(np.array(meshes), valid, params.max_gap_frames, times_arr, file=str(path), field=field)
-    landmarks = mesh_to_ibug68(mesh[:, :, :2])
-    crops, transforms = collector.finish(landmarks)
-    return SequenceTrack(
-        label,
-        path.name,
-        landmarks,
-        valid,
-        np.array(scores),
-        times_arr,
-        info.fps,
-        (info.width, info.height),
-        field,
-        mesh=mesh if params.output_mesh else None,
-        crops=crops,
-        crop_transforms=transforms,
-        video=path,
-        audio_source=audio,
-        meta={"detector_runs": tracker.detections},
-    )
+    crop = CropSettings(params.crop_size, params.crop_eye_distance, params.crop_eye_height)
+    camera = camera_matrix(info.width, info.height, params.focal_length)
+    solver = PoseSolver(face3d.neutral, camera, pose_point_indices(params, face3d))
+    eyes = tracker.eye_offset if params.eyes else None
+    writer = BlockWriter(tracker.points, crop, solver, outputs.append, params.output_mesh, eyes)
+    frames = iter_planes(path, field=field, threads=jobs)
+    stream_take(frames, tracker, writer, crop, params.max_gap_frames, path, field)
+    s = writer.finish()
+    gaps = check_gaps(s, params.max_gap_frames, params.long_gaps, path, field)
+    size, focal = (info.width, info.height), float(camera[0, 0])
+    meta = {"detector_runs": tracker.detections}
+    return TakeTrack(
+        label, path.name, field, info.fps, size, focal, s.time, s.valid, s.landmarks, s.rotation, s.pose_rms, audio,
+        gaps, meta,
+    )  # fmt: skip
 
 
 class FaceMesh(Stage):
@@ -146,11 +190,15 @@ class FaceMesh(Stage):
         preflight_audio(audio, video_durations(videos), params)
         face3d, face3d_name = resolve_face3d(inputs.get("face3d"))
         tracker = new_tracker(params, inputs.get("models"))
-        sequences = [
-            track_facemesh_video(tracker, label, Path(path), params, audio[label]) for label, path in videos.items()
-        ]
+        outputs, jobs = FrameOutputs(self.sink, TRACKING_OUTPUTS), stage_jobs(self)
+        with cv_threads(jobs):
+            takes = [
+                track_facemesh_take(tracker, label, Path(path), params, face3d, outputs, audio[label], jobs)
+                for label, path in videos.items()
+            ]
         fields = labels_fields(videos, inputs.get("audio"))
-        return assemble(sequences, params, face3d, face3d_name, "FaceMesh", fields=fields)
+        extra = {"landmark_model": params.model}
+        return assemble(takes, outputs, params, face3d_name, "FaceMesh", extra_meta=extra, fields=fields)
 
 
 # ---------------------------------------------------------------------------------------------- OpticalFlow
@@ -178,6 +226,9 @@ class OpticalFlowParams(TrackingParams):
         "forward-backward check are flagged as not tracked (valid = False)",
     )
     min_detection_score: float = Field(0.5, gt=0, lt=1, description="BlazeFace score for the FaceMesh start")
+    model: Literal["face_mesh_v1", "face_landmarker_v2"] = Field(
+        "face_mesh_v1", description="landmark model of the FaceMesh start (see FaceMesh)"
+    )
     min_presence: float = Field(0.5, gt=0, lt=1, description="face-mesh presence score for the FaceMesh start")
     init_frame_base: int | None = Field(
         None, description="first frame number in the init files (default: 1 for OpenFace CSV, 0 otherwise)"
@@ -206,6 +257,39 @@ def initial_shape(init_path: Path, label: str, params: OpticalFlowParams) -> tup
     return int(track.frame[rows[0]]), track.landmarks[rows[0]]
 
 
+class FlowStart:
+    """Where optical flow starts: the init file's shape at its frame, else FaceMesh's first face."""
+
+    def __init__(self, init: tuple[int, np.ndarray] | None, tracker_factory):
+        self.init, self.factory, self.mesh_tracker = init, tracker_factory, None
+
+    def shape(self, index: int, frame) -> tuple[np.ndarray | None, float]:
+        """(68 points, confidence) to start from at this frame, or (None, 0.0)."""
+        if self.init is not None:
+            return (self.init[1], 1.0) if index == self.init[0] else (None, 0.0)
+        self.mesh_tracker = self.mesh_tracker or self.factory()
+        mesh, score = self.mesh_tracker.step(frame)
+        return (None, 0.0) if mesh is None else (mesh_to_ibug68(mesh[:468, :2]), score)
+
+
+def flow_frames(path: Path, field: str, flow, start: FlowStart, collector: CropCollector):
+    """Per frame (time, 68 points or None, tracked, confidence, median forward-backward error or None)."""
+    started = False
+    for i, (t, frame) in enumerate(iter_planes(path, field=field)):
+        gray = frame.gray()
+        if not started:
+            points, c = start.shape(i, frame)
+            started = ok = points is not None
+            if started:
+                flow.start(gray, points)
+            fb = None
+        else:
+            points, good, errors = flow.step(gray)
+            ok, c, fb = not flow.is_lost(good), float(good.mean()), float(np.median(errors))
+        collector.add(frame, points if ok else None)
+        yield t, points, ok, c, fb
+
+
 def track_flow_video(
     label: str,
     path: Path,
@@ -215,6 +299,7 @@ def track_flow_video(
     model,
     audio: AudioSource | None = None,
 ) -> SequenceTrack:
+    """Lucas-Kanade tracking of one video from its start shape; gaps filled (or held) afterwards."""
     from stages.tracking.opticalflow import LucasKanadeTracker
 
     field = f"inputs.videos.{label}"
@@ -228,63 +313,31 @@ def track_flow_video(
         min_good_fraction=params.min_good_fraction,
     )
     collector = CropCollector(params, params.max_gap_frames)
-    mesh_tracker = None
-    times, shapes, conf, valid, fb_errors = [], [], [], [], []
-    started = False
-    for i, (t, frame) in enumerate(iter_frames(path, field=field)):
-        gray = to_gray(frame)
-        points, ok, c = None, False, 0.0
-        if not started:
-            if init is None:
-                mesh_tracker = mesh_tracker or tracker_factory()
-                mesh, score = mesh_tracker.step(frame)
-                if mesh is not None:
-                    points, c = mesh_to_ibug68(mesh[:, :2]), score
-            elif i == init[0]:
-                points, c = init[1], 1.0
-            if points is not None:
-                flow.start(gray, points)
-                started, ok = True, True
-        else:
-            points, good, fb = flow.step(gray)
-            ok = not flow.is_lost(good)
-            c = float(good.mean())
-            fb_errors.append(float(np.median(fb)))
-        collector.add(gray, points if ok else None)
-        times.append(t)
-        shapes.append(points if points is not None else np.full((68, 2), np.nan))
-        conf.append(c)
-        valid.append(ok)
-    if init is not None and not started:
+    rows = list(flow_frames(path, field, flow, FlowStart(init, tracker_factory), collector))
+    times = np.array([r[0] for r in rows])
+    valid = np.array([r[2] for r in rows], dtype=bool)
+    if init is not None and init[0] >= len(rows):
         raise UserError(
-            f"the init shape is for frame {init[0]} but the video has only {len(times)} frames",
+            f"the init shape is for frame {init[0]} but the video has only {len(rows)} frames",
             file=str(path),
             field=f"inputs.init.{label}",
         )
-    times_arr, valid_arr = np.array(times), np.array(valid, dtype=bool)
-    landmarks = fill_face_gaps(
-        np.array(shapes), valid_arr, params.max_gap_frames, times_arr, file=str(path), field=field
+    shapes = np.array([np.full((68, 2), np.nan) if r[1] is None else r[1] for r in rows])
+    landmarks, sources, gaps = fill_gaps(
+        shapes, valid, params.max_gap_frames, params.long_gaps, times, file=str(path), field=field
     )
-    crops, transforms = collector.finish(landmarks)
+    crops, transforms = collector.finish(landmarks, sources)
+    fb_errors = [r[4] for r in rows if r[4] is not None]
+    meta = {
+        "init": "file" if init is not None else "facemesh",
+        "fb_error_px": float(np.mean(fb_errors)) if fb_errors else 0.0,
+    }
+    size = (info.width, info.height)
+    conf = np.array([r[3] for r in rows])
     return SequenceTrack(
-        label,
-        path.name,
-        landmarks,
-        valid_arr,
-        np.array(conf),
-        times_arr,
-        info.fps,
-        (info.width, info.height),
-        field,
-        crops=crops,
-        crop_transforms=transforms,
-        video=path,
-        audio_source=audio,
-        meta={
-            "init": "file" if init is not None else "facemesh",
-            "fb_error_px": float(np.mean(fb_errors)) if fb_errors else 0.0,
-        },
-    )
+        label, path.name, landmarks, valid, conf, times, info.fps, size, field, crops=crops,
+        crop_transforms=transforms, video=path, audio_source=audio, gaps=gaps, meta=meta,
+    )  # fmt: skip
 
 
 class OpticalFlow(Stage):
@@ -348,7 +401,9 @@ class OpticalFlow(Stage):
             sequences.append(track_flow_video(label, Path(path), params, init, factory, model, audio[label]))
         extra = {"shape_modes": int(model.basis.shape[1]) if model is not None else 0}
         fields = labels_fields(videos, inputs.get("init"), inputs.get("audio"))
-        return assemble(sequences, params, face3d, face3d_name, "OpticalFlow", extra_meta=extra, fields=fields)
+        outputs = FrameOutputs(self.sink, TRACKING_OUTPUTS)
+        takes = [write_sequence(seq, params, face3d, outputs) for seq in sequences]
+        return assemble(takes, outputs, params, face3d_name, "OpticalFlow", extra_meta=extra, fields=fields)
 
 
 # ---------------------------------------------------------------------------------------------- TrackFile
@@ -368,7 +423,7 @@ class TrackFileParams(TrackingParams):
     fps: float | None = Field(
         None, gt=0, description="frame rate when there is no video and the file has no timestamps"
     )
-    frame_size: tuple[int, int] | None = Field(
+    frame_size: tuple[PositiveInt, PositiveInt] | None = Field(
         None, description="[width, height] of the tracked video when no video is given (needed for head pose)"
     )
     pose_source: Literal["landmarks", "file"] = Field(
@@ -427,88 +482,95 @@ class TrackFile(Stage):
     figures = FIGURES
 
     def run(self, params: TrackFileParams, inputs: dict) -> Result:
-        from stages.tracking.pose import openface_pose_to_gltf
-        from stages.tracking.trackfile import read_track
-
         tracks = _require_files(inputs["tracks"], "tracks")
         videos = dict(inputs.get("videos") or {})
         if videos and set(videos) != set(tracks):
             raise UserError(
                 f"video labels {sorted(videos)} do not match track labels {sorted(tracks)}", field="inputs.videos"
             )
-        audio = audio_sources(
-            {label: videos.get(label) for label in tracks}, inputs.get("audio"), params, "inputs.tracks"
-        )
+        takes = {label: videos.get(label) for label in tracks}
+        audio = audio_sources(takes, inputs.get("audio"), params, "inputs.tracks")
+        preflight_audio(audio, video_durations(videos), params)
         face3d, face3d_name = resolve_face3d(inputs.get("face3d"))
-        sequences = []
-        for label, path in tracks.items():
-            path = Path(path)
-            field = f"inputs.tracks.{label}"
-            track = read_track(path, params.format, frame_base=params.frame_base, face_id=params.face_id, field=field)
-            if params.min_confidence > 0:
-                track.valid &= track.confidence >= params.min_confidence
-            video = Path(videos[label]) if label in videos else None
-            crops = transforms = None
-            if video is not None:
-                vfield = f"inputs.videos.{label}"
-                info = probe_video(video, field=vfield)
-                row_of = {int(f): r for r, f in enumerate(track.frame) if track.valid[r]}
-                collector = CropCollector(params, params.max_gap_frames)
-                times = []
-                for i, (t, frame) in enumerate(iter_frames(video, field=vfield)):
-                    collector.add(to_gray(frame), track.landmarks[row_of[i]] if i in row_of else None)
-                    times.append(t)
-                n = len(times)
-                times_arr, fps, size = np.array(times), info.fps, (info.width, info.height)
-            else:
-                n = int(track.frame.max()) + 1
-                times_arr, fps = track_times(track, n, params, path, field)
-                size = track.frame_size or params.frame_size
-                if size is None:
-                    raise UserError(
-                        "frame size unknown (needed for head pose): give the video or "
-                        "params.frame_size [width, height]",
-                        file=str(path),
-                        field=field,
-                    )
-            landmarks, valid, conf = dense_track(track, n, label, path)
-            landmarks = fill_face_gaps(landmarks, valid, params.max_gap_frames, times_arr, file=str(path), field=field)
-            if video is not None:
-                crops, transforms = collector.finish(landmarks)
-            rotation = translation = None
-            if params.pose_source == "file":
-                if track.openface_pose is None:
-                    raise UserError(
-                        "pose_source 'file' needs OpenFace pose columns pose_Tx..pose_Rz", file=str(path), field=field
-                    )
-                q, t = openface_pose_to_gltf(track.openface_pose[:, 3:], track.openface_pose[:, :3])
-                dense_q, dense_t = np.zeros((n, 4)), np.zeros((n, 3))
-                dense_q[track.frame], dense_t[track.frame] = q, t
-                rotation = interpolate_gaps(dense_q, valid)
-                rotation /= np.linalg.norm(rotation, axis=1, keepdims=True)
-                translation = interpolate_gaps(dense_t, valid)
-            sequences.append(
-                SequenceTrack(
-                    label,
-                    path.name,
-                    landmarks,
-                    valid,
-                    conf,
-                    times_arr,
-                    fps,
-                    (int(size[0]), int(size[1])),
-                    field,
-                    crops=crops,
-                    crop_transforms=transforms,
-                    video=video,
-                    audio_source=audio[label],
-                    rotation=rotation,
-                    translation=translation,
-                    meta={"track_format": track.format},
-                )
-            )
+        sequences = [
+            trackfile_sequence(label, Path(path), params, takes[label], audio[label]) for label, path in tracks.items()
+        ]
         fields = labels_fields(tracks, videos, inputs.get("audio"))
-        return assemble(sequences, params, face3d, face3d_name, "TrackFile", fields=fields)
+        outputs = FrameOutputs(self.sink, TRACKING_OUTPUTS)
+        takes_out = [write_sequence(seq, params, face3d, outputs) for seq in sequences]
+        return assemble(takes_out, outputs, params, face3d_name, "TrackFile", fields=fields)
+
+
+def video_crops(video: Path, track, params: TrackFileParams, label: str) -> tuple[CropCollector, np.ndarray, VideoInfo]:
+    """Crops (collected while the video streams) at the file's valid rows, the video's frame times and info."""
+    field = f"inputs.videos.{label}"
+    info = probe_video(video, field=field)
+    row_of = {int(f): r for r, f in enumerate(track.frame) if track.valid[r]}
+    collector = CropCollector(params, params.max_gap_frames)
+    times = []
+    for i, (t, frame) in enumerate(iter_planes(video, field=field)):
+        collector.add(frame, track.landmarks[row_of[i]] if i in row_of else None)
+        times.append(t)
+    return collector, np.array(times), info
+
+
+def file_frame_size(track, params: TrackFileParams, path: Path, field: str) -> tuple[int, int]:
+    size = track.frame_size or params.frame_size
+    if size is None:
+        raise UserError(
+            "frame size unknown (needed for head pose): give the video or params.frame_size [width, height]",
+            file=str(path),
+            field=field,
+        )
+    return int(size[0]), int(size[1])
+
+
+def file_pose(track, valid: np.ndarray, n: int, params: TrackFileParams, path: Path, field: str):
+    """(rotation, translation) from the OpenFace pose columns, filled like the landmarks; (None, None) unless
+    params.pose_source is 'file'."""
+    from stages.tracking.pose import openface_pose_to_gltf
+
+    if params.pose_source != "file":
+        return None, None
+    if track.openface_pose is None:
+        raise UserError("pose_source 'file' needs OpenFace pose columns pose_Tx..pose_Rz", file=str(path), field=field)
+    q, t = openface_pose_to_gltf(track.openface_pose[:, 3:], track.openface_pose[:, :3])
+    dense_q, dense_t = np.zeros((n, 4)), np.zeros((n, 3))
+    dense_q[track.frame], dense_t[track.frame] = q, t
+    plan = gap_plan(valid, params.max_gap_frames)[:3]
+    rotation = apply_plan(dense_q, *plan)
+    rotation /= np.linalg.norm(rotation, axis=1, keepdims=True)
+    return rotation, apply_plan(dense_t, *plan)
+
+
+def trackfile_sequence(
+    label: str, path: Path, params: TrackFileParams, video: Path | None, audio: AudioSource | None
+) -> SequenceTrack:
+    """One track file on the frame axis (of its video, when given), gaps filled (or held), crops, pose."""
+    from stages.tracking.trackfile import read_track
+
+    field = f"inputs.tracks.{label}"
+    track = read_track(path, params.format, frame_base=params.frame_base, face_id=params.face_id, field=field)
+    if params.min_confidence > 0:
+        track.valid &= track.confidence >= params.min_confidence
+    collector = None
+    if video is not None:
+        collector, times, info = video_crops(Path(video), track, params, label)
+        n, fps, size = len(times), info.fps, (info.width, info.height)
+    else:
+        n = int(track.frame.max()) + 1
+        (times, fps), size = track_times(track, n, params, path, field), file_frame_size(track, params, path, field)
+    landmarks, valid, conf = dense_track(track, n, label, path)
+    landmarks, sources, gaps = fill_gaps(
+        landmarks, valid, params.max_gap_frames, params.long_gaps, times, file=str(path), field=field
+    )
+    crops, transforms = collector.finish(landmarks, sources) if collector is not None else (None, None)
+    rotation, translation = file_pose(track, valid, n, params, path, field)
+    return SequenceTrack(
+        label, path.name, landmarks, valid, conf, times, fps, size, field, crops=crops, crop_transforms=transforms,
+        video=video, audio_source=audio, rotation=rotation, translation=translation, gaps=gaps,
+        meta={"track_format": track.format},
+    )  # fmt: skip
 
 
 __all__ = ["FaceMesh", "OpticalFlow", "TrackFile"]

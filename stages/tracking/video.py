@@ -58,55 +58,38 @@ def probe_video(path: str | Path, *, field: str | None = None) -> VideoInfo:
         return VideoInfo(path, width, height, fps, frames, duration, bool(container.streams.audio))
 
 
-def iter_frames(
-    path: str | Path, *, gray: bool = False, field: str | None = None
-) -> Iterator[tuple[float, np.ndarray]]:
-    """Yield (seconds since the first frame, frame) for every frame: BGR uint8 (h, w, 3) or gray (h, w).
+def iter_decoded(path: str | Path, *, field: str | None = None, threads: int = 1) -> Iterator[tuple[float, object]]:
+    """Yield (seconds since the first frame, PyAV VideoFrame) for every frame, in order.
 
-    Gray frames are OpenCV's BGR-to-gray conversion of the BGR frames (not the raw luma plane), so every
-    implementation's crops agree.
+    Times come from each frame's timestamp (variable frame rates are kept), or frame index / frame rate when a
+    frame has none. ``threads`` > 1 lets FFmpeg decode several frames at once on that many threads (frame and
+    slice threading; the frames are bit-identical to single-threaded decoding).
 
-    Raises UserError naming the file when it cannot be decoded, holds no frames, or is truncated.
+    Raises UserError naming the file when it cannot be decoded, holds no frames, or is truncated: a damaged
+    packet or a stream that ends before the duration the container declares (a copy that stopped early keeps
+    its header's duration). The error comes when it is met, so a caller writing as it goes must not publish
+    what it wrote.
     """
-    import av
 
     path = Path(path)
     with _open(path, field) as container:
         video = container.streams.video[0]
-        video.thread_type = "SLICE"  # frame threading would decode ahead on the other core
+        video.thread_type = "AUTO" if threads > 1 else "SLICE"
+        video.thread_count = max(1, int(threads))
         declared = float(container.duration) / 1e6 if container.duration else 0.0
         fps = float(video.average_rate or video.guessed_rate or 0.0)
         first_pts = None
         count = 0
         stream_end = 0.0
-        packets = container.demux()
-        while True:
-            try:
-                packet = next(packets)
-                if packet.pts is not None and packet.time_base is not None:
-                    stream_end = max(stream_end, float((packet.pts + (packet.duration or 0)) * packet.time_base))
-                corrupt = packet.is_corrupt
-                decoded = packet.decode() if packet.stream_index == video.index and not corrupt else []
-            except StopIteration:
-                break
-            except (av.error.FFmpegError, IndexError) as exc:
-                # IndexError: PyAV met a packet of a stream the header did not announce (a cut-off tag)
-                raise UserError(
-                    f"video is unreadable or truncated after {count} frames ({type(exc).__name__}: {exc})",
-                    file=str(path),
-                    field=field,
-                ) from None
-            if corrupt:
-                raise UserError(
-                    f"video is truncated or corrupt: a damaged packet after {count} frames", file=str(path), field=field
-                )
+        for packet, decoded in _packets(container, video, path, field, lambda: count):
+            if packet.pts is not None and packet.time_base is not None:
+                stream_end = max(stream_end, float((packet.pts + (packet.duration or 0)) * packet.time_base))
             for frame in decoded:
                 t = _frame_time(frame, count, fps)
                 if first_pts is None:
                     first_pts = t
                 count += 1
-                image = frame.to_ndarray(format="bgr24")
-                yield t - first_pts, (_bgr_to_gray(image) if gray else image)
+                yield t - first_pts, frame
         if count == 0:
             raise UserError("video holds no decodable frames", file=str(path), field=field)
         start = float(container.start_time) / 1e6 if container.start_time else 0.0
@@ -117,6 +100,56 @@ def iter_frames(
                 file=str(path),
                 field=field,
             )
+
+
+def _packets(container, video, path: Path, field: str | None, count):
+    """(packet, decoded video frames) for every packet, then the decoder's flushed frames; UserError on a
+    damaged packet (``count()`` frames decoded so far, for the message)."""
+    import av
+
+    packets = container.demux()
+    while True:
+        try:
+            packet = next(packets)
+            corrupt = packet.is_corrupt
+            decoded = packet.decode() if packet.stream_index == video.index and not corrupt else []
+        except StopIteration:
+            return
+        except (av.error.FFmpegError, IndexError) as exc:
+            # IndexError: PyAV met a packet of a stream the header did not announce (a cut-off tag)
+            raise UserError(
+                f"video is unreadable or truncated after {count()} frames ({type(exc).__name__}: {exc})",
+                file=str(path),
+                field=field,
+            ) from None
+        if corrupt:
+            raise UserError(
+                f"video is truncated or corrupt: a damaged packet after {count()} frames", file=str(path), field=field
+            )
+        yield packet, decoded
+
+
+def iter_frames(
+    path: str | Path, *, gray: bool = False, field: str | None = None
+) -> Iterator[tuple[float, np.ndarray]]:
+    """Yield (seconds since the first frame, frame) for every frame: BGR uint8 (h, w, 3) or gray (h, w).
+
+    Gray frames are OpenCV's BGR-to-gray conversion of the BGR frames (not the raw luma plane), so every
+    implementation that reads BGR frames crops alike. Errors as ``iter_decoded``.
+    """
+    for t, frame in iter_decoded(path, field=field):
+        image = frame.to_ndarray(format="bgr24")
+        yield t, (_bgr_to_gray(image) if gray else image)
+
+
+def iter_planes(path: str | Path, *, field: str | None = None, threads: int = 1):
+    """Yield (seconds since the first frame, ``planes.FramePlanes``) for every frame: decoded frames converted to
+    BGR only where a warp reads them (see stages/tracking/planes.py). Errors as ``iter_decoded``."""
+    from stages.tracking.planes import RegionConverter, frame_planes
+
+    converter = RegionConverter()
+    for t, frame in iter_decoded(path, field=field, threads=threads):
+        yield t, frame_planes(frame, converter)
 
 
 def _bgr_to_gray(image: np.ndarray) -> np.ndarray:
