@@ -149,7 +149,6 @@ def same_outputs(record: dict, reference: dict) -> bool:
 def default_pipeline(tmp: Path, cluster, moto, options: dict, repeats: int) -> None:
     import msflow
 
-    os.umask(0)  # the folder store is shared with the workers' user
     store_folder = cluster.env_dir / "store"
     rows = []
     for i in range(repeats):
@@ -214,19 +213,18 @@ def print_stage_table(rows: list[dict]) -> None:
 
 
 def chain_pipeline(folder: Path, n: int) -> Path:
+    """``s0`` (a Source) then ``s1 .. s{n-1}``, each scaling the previous output (distinct factors: distinct keys)."""
     shutil.copytree(ROOT / "tests" / "numproject", folder, ignore=shutil.ignore_patterns(".msflow", "*.lock"))
     body = "  s0:\n    uses: numstages.basic:Source\n    params: {n: 1000}\n"
-    body += "".join(
-        f"  s{i}:\n    uses: numstages.scaling:Scale\n    inputs: {{x: s{i - 1}.y}}\n    params: {{factor: 1.0}}\n"
-        if i > 1
-        else "  s1:\n    uses: numstages.scaling:Scale\n    inputs: {x: s0.x}\n    params: {factor: 1.0}\n"
-        for i in range(1, n)
-    )
+    for i in range(1, n):
+        source = "s0.x" if i == 1 else f"s{i - 1}.y"
+        body += f"  s{i}:\n    uses: numstages.scaling:Scale\n    inputs: {{x: {source}}}\n"
+        body += f"    params: {{factor: {1 + i / 1000}}}\n"
     (folder / "chain.yaml").write_text("version: 1\nstages:\n" + body)
     return folder / "chain.yaml"
 
 
-def overhead(tmp: Path, cluster, options: dict, n: int = 40) -> None:
+def overhead(tmp: Path, cluster, moto, options: dict, n: int = 40) -> None:
     import msflow
 
     print(f"\nper-stage overhead: a chain of {n} trivial stages (each waits for the previous one):")
@@ -236,23 +234,30 @@ def overhead(tmp: Path, cluster, options: dict, n: int = 40) -> None:
         "cluster, S3": ({"scheduler": cluster.address}, "s3"),
         "cluster, folder": ({"scheduler": cluster.address}, "folder"),
     }
-    for label, (kwargs, store) in configs.items():
-        walls, worker_side = [], []
-        for attempt in range(3):
-            pipeline = chain_pipeline(tmp / f"chain-{label.split()[0]}-{store}-{attempt}", n)
+    for index, (label, (kwargs, store)) in enumerate(configs.items()):
+        walls, worker_side, cpus = [], [], []
+        for attempt in range(5):
+            pipeline = chain_pipeline(tmp / f"chain-{index}-{attempt}", n)
             if store == "s3":
                 use_store(pipeline, f"s3://{new_bucket(options)}/c", options)
             elif store == "folder":
                 shutil.rmtree(cluster.env_dir / "chainstore", ignore_errors=True)
                 use_store(pipeline, str(cluster.env_dir / "chainstore"))
+            pids = [p.pid for p in cluster.procs]
+            cpu = (self_cpu(), cpu_of(pids), cpu_of([moto.pid]))
             started = time.perf_counter()
             result = msflow.run(pipeline, **kwargs)
             walls.append((time.perf_counter() - started) / n * 1000)
-            stages = result.record["stages"].values()
+            after = (self_cpu(), cpu_of(pids), cpu_of([moto.pid]))
+            cpus.append(tuple((b - a) / n * 1000 for a, b in zip(cpu, after)))
+            stages = [s for s in result.record["stages"].values() if s["state"] == "ran"]
+            assert len(stages) == n, "every stage of the chain must run"
             worker_side.append(statistics.median((s["seconds"] - s["compute_seconds"]) * 1000 for s in stages))
         print(
-            f"  {label:26s} {min(walls):6.1f} ms per stage end to end (best of 3; all {[round(w) for w in walls]}), "
-            f"worker side {min(worker_side):5.1f} ms, load {os.getloadavg()[0]:.1f}"
+            f"  {label:26s} {min(walls):6.1f} ms per stage end to end (best of 5; all {[round(w) for w in walls]}), "
+            f"worker side {min(worker_side):5.1f} ms; CPU per stage: "
+            f"{' + '.join(f'{v:.1f}' for v in min(cpus, key=sum))} ms (client + cluster + moto); "
+            f"load {os.getloadavg()[0]:.1f}"
         )
 
 
@@ -266,6 +271,7 @@ def main() -> None:
     logging.getLogger("distributed").setLevel(logging.ERROR)
     from test_dask import IsolatedCluster
 
+    os.umask(0)  # the folder stores are shared with the workers' user (nobody)
     moto, options = start_moto()
     os.environ["AWS_EC2_METADATA_DISABLED"] = "true"
     with tempfile.TemporaryDirectory(prefix="msflow-bench-dask-") as tmp_name:
@@ -277,7 +283,7 @@ def main() -> None:
             print(f"load average (1, 5, 15 min): {os.getloadavg()}, {os.cpu_count()} CPUs", flush=True)
             if not args.skip_default:
                 default_pipeline(tmp, cluster, moto, options, args.repeats)
-            overhead(tmp, cluster, options)
+            overhead(tmp, cluster, moto, options)
         finally:
             cluster.close()
             moto.terminate()
