@@ -1,6 +1,6 @@
 """Dask cluster figures (issue 17): the default pipeline on two workers that cannot read the project folder.
 
-    python bench/bench_dask.py [--repeats 3] [--skip-default]
+    python bench/bench_dask.py [--repeats 3] [--parts default,overhead,malloc]
 
 The cluster is the stand-in of tests/test_dask.py: a ``dask scheduler`` and two ``dask worker`` processes (one
 thread each, ``--preload-nanny msflow.dask_setup``) started in their own folder, in a mount namespace that hides
@@ -18,6 +18,10 @@ the project copies and this checkout, as ``nobody`` when run as root. Two stores
    every stage waits for the one before: wall time per stage = the full round trip of one stage (client
    scheduling, shipping, scheduler, worker, store, outcome) besides the stage itself (~0.1 ms of numpy), and the
    worker-side part (``seconds - compute_seconds`` in the run record).
+
+3. The nanny's ``MALLOC_TRIM_THRESHOLD_``: the default pipeline on a 2-worker LocalCluster with the variable set
+   and nothing undoing it, with Dask's default undone in each worker by ``msflow.worker.tune_malloc``, and unset
+   (msflow's LocalCluster and ``--preload-nanny msflow.dask_setup``), interleaved: the stages' CPU seconds.
 
 The machine's load (1-minute load average, before and after each measurement) is printed with the figures: on a
 shared machine only the ratios measured side by side and the CPU times mean much.
@@ -261,10 +265,38 @@ def overhead(tmp: Path, cluster, moto, options: dict, n: int = 40) -> None:
         )
 
 
+def malloc_trim(tmp: Path, repeats: int) -> None:
+    """Stage CPU on LocalCluster workers spawned with and without the nanny's malloc-trim default."""
+    import msflow
+    import msflow.dask_executor as dask_executor
+
+    ours = dict(dask_executor.WORKER_CONFIG)
+    key = "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_"
+    variants = {
+        # 65537: the nanny's setting in effect, but not the value msflow.worker.tune_malloc undoes
+        "set, no safety net": {**ours, key: 65537},
+        "nanny default + tune_malloc": {k: v for k, v in ours.items() if k != key},
+        "msflow (unset)": ours,
+    }
+    cpu: dict[str, list[dict]] = {label: [] for label in variants}
+    for i in range(repeats):
+        for v, (label, config) in enumerate(variants.items()):
+            dask_executor.WORKER_CONFIG = config
+            project = copy_repo(tmp / f"malloc-{i}-{v}")
+            result = msflow.run(project / "pipeline.yaml", executor="dask", jobs=2)
+            cpu[label].append({n: s["cpu_seconds"] for n, s in result.record["stages"].items()})
+    dask_executor.WORKER_CONFIG = ours
+    print(f"\nstage CPU seconds on a 2-worker LocalCluster (median of {repeats}), load {os.getloadavg()[0]:.1f}:")
+    for label, runs in cpu.items():
+        total = statistics.median(sum(r.values()) for r in runs)
+        top = {n: round(statistics.median(r[n] for r in runs), 2) for n in ("track_train", "keymorphs", "export")}
+        print(f"  {label:24s} all stages {total:5.2f} s; {top}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--skip-default", action="store_true")
+    parser.add_argument("--parts", default="default,overhead,malloc")
     args = parser.parse_args()
     import logging
 
@@ -281,9 +313,13 @@ def main() -> None:
         try:
             print(f"cluster {cluster.address}: 2 workers as uid {set(cluster.client.run(os.getuid).values())}")
             print(f"load average (1, 5, 15 min): {os.getloadavg()}, {os.cpu_count()} CPUs", flush=True)
-            if not args.skip_default:
+            parts = args.parts.split(",")
+            if "default" in parts:
                 default_pipeline(tmp, cluster, moto, options, args.repeats)
-            overhead(tmp, cluster, moto, options)
+            if "overhead" in parts:
+                overhead(tmp, cluster, moto, options)
+            if "malloc" in parts:
+                malloc_trim(tmp, args.repeats)
         finally:
             cluster.close()
             moto.terminate()

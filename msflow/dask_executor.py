@@ -259,7 +259,10 @@ class DaskExecutor:
         return future
 
     def shutdown(self) -> None:
-        self.client.unsubscribe_topic("all")
+        import contextlib
+
+        with contextlib.suppress(Exception):  # the scheduler may be gone already
+            self.client.unsubscribe_topic("all")
         self.client.close()
         if self.cluster is not None:
             self.cluster.close()

@@ -110,6 +110,14 @@ def test_scheduler_addresses_default_to_tcp_and_port_8786():
     assert parse_scheduler_address(" tls://sched.example:8786 ").url == "tls://sched.example:8786"
 
 
+def test_an_unknown_scheduler_host_is_named():
+    from msflow.dask_executor import probe
+
+    with pytest.raises(UserError) as info:
+        probe(parse_scheduler_address("tcp://no-such-host.invalid:8786"), 5)
+    assert "cannot reach the Dask scheduler at tcp://no-such-host.invalid:8786: unknown host" in str(info.value)
+
+
 def test_malformed_scheduler_address_fails_before_any_stage_runs(numproject, tmp_path):
     log = tmp_path / "log"
     result = run_cli(numproject, "run", "--scheduler", "tcp://127.0.0.1:notaport", env={"NUMSTAGES_LOG": str(log)})
