@@ -17,11 +17,13 @@ the project copies and this checkout, as ``nobody`` when run as root. Two stores
 2. Per-stage overhead: a chain of 40 trivial stages (each reads the previous one's array) from an empty store, so
    every stage waits for the one before: wall time per stage = the full round trip of one stage (client
    scheduling, shipping, scheduler, worker, store, outcome) besides the stage itself (~0.1 ms of numpy), and the
-   worker-side part (``seconds - compute_seconds`` in the run record).
+   worker-side part (``seconds - compute_seconds`` in the run record). ``local -j 1, S3`` runs the chain in this
+   process against the same S3 server: the store's own share of the cluster's S3 figure.
 
 3. The nanny's ``MALLOC_TRIM_THRESHOLD_``: the default pipeline on a 2-worker LocalCluster with the variable set
    and nothing undoing it, with Dask's default undone in each worker by ``msflow.worker.tune_malloc``, and unset
-   (msflow's LocalCluster and ``--preload-nanny msflow.dask_setup``), interleaved: the stages' CPU seconds.
+   (msflow's LocalCluster and ``--preload-nanny msflow.dask_setup``), interleaved: the stages' CPU seconds. (Part 1
+   gives the cluster's side: its stages' CPU against a local run's.)
 
 The machine's load (1-minute load average, before and after each measurement) is printed with the figures: on a
 shared machine only the ratios measured side by side and the CPU times mean much.
@@ -234,6 +236,7 @@ def overhead(tmp: Path, cluster, moto, options: dict, n: int = 40) -> None:
     print(f"\nper-stage overhead: a chain of {n} trivial stages (each waits for the previous one):")
     configs = {
         "local -j 1 (in process)": ({}, None),
+        "local -j 1, S3": ({}, "s3"),  # the store's own part of the cluster's S3 figure
         "local -j 2 (process pool)": ({"jobs": 2}, None),
         "cluster, S3": ({"scheduler": cluster.address}, "s3"),
         "cluster, folder": ({"scheduler": cluster.address}, "folder"),
@@ -281,6 +284,9 @@ def malloc_trim(tmp: Path, repeats: int) -> None:
     cpu: dict[str, list[dict]] = {label: [] for label in variants}
     for i in range(repeats):
         for v, (label, config) in enumerate(variants.items()):
+            # a LocalCluster's nannies live in this process and write their pre-spawn variables into its
+            # environment (distributed.nanny), where every later nanny picks them up: start each variant clean
+            os.environ.pop("MALLOC_TRIM_THRESHOLD_", None)
             dask_executor.WORKER_CONFIG = config
             project = copy_repo(tmp / f"malloc-{i}-{v}")
             result = msflow.run(project / "pipeline.yaml", executor="dask", jobs=2)
