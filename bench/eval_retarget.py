@@ -1,14 +1,17 @@
-"""The retargeting evaluation as a table: ``eval/retarget.yaml`` on the embedded CREMA-D takes (the capture branch
-and the default run's paper branch) and, given folders, the capture branch on each; with ``--capture``, the
-performance-capture pipeline ``pipelines/capture.yaml`` run on each clip given (GLB, CSV, preview in out/) and
-scored the same way.
+"""The retargeting evaluation as tables: ``eval/retarget.yaml`` on the embedded CREMA-D takes (the capture branch
+and the default run's paper branch) and, given folders, the capture branch on each.
 
     python bench/eval_retarget.py [FOLDER ...]          # from the project root
     python bench/eval_retarget.py ../shared/data/talking-heads
+    python bench/eval_retarget.py --blinks ../shared/data/talking-heads     # the blink detector vs hand marks
+    python bench/eval_retarget.py --identity ../shared/data/talking-heads   # absolute mouth error, identity fitted
     python bench/eval_retarget.py --capture ../shared/data/talking-heads/{hdtf_kh,retalking_2,vlog_31}.mp4
 
-Prints one markdown row per run (pooled over the takes) and one per take of each folder. Every number is a stage
-metric of ``stages.eval.retarget:RetargetEval``; ``msflow show -f eval/retarget.yaml capture_eval`` shows the same.
+Prints one markdown row per run (pooled over its takes) and one per take, then, per run, the ARKit columns that
+stay dead: where the performer made the movement (by the movement probes of ``stages.retarget.movements``) and
+where not. Every number is a stage metric or meta entry of ``stages.eval.retarget:RetargetEval``
+(``msflow show -f eval/retarget.yaml capture_eval`` shows the same). ``--capture`` runs the performance-capture
+pipeline ``pipelines/capture.yaml`` on each clip (GLB, CSV, preview in out/) and scores it the same way.
 """
 
 from __future__ import annotations
@@ -24,51 +27,202 @@ sys.path.insert(0, str(ROOT))  # this checkout's msflow and stages, whichever on
 PIPELINE = ROOT / "eval" / "retarget.yaml"
 COLUMNS = [
     ("mouth err", "mouth_motion_error_iod", "{:.1%}"),
-    ("mouth err shifted", "mouth_motion_error_iod_shifted", "{:.1%}"),
+    ("shifted", "mouth_motion_error_iod_shifted", "{:.1%}"),
+    ("mouth err, rest aligned", "mouth_neutral_error_iod", "{:.1%}"),
+    ("mouth abs", "mouth_error_iod", "{:.1%}"),
     ("eyes err", "eyes_motion_error_iod", "{:.1%}"),
     ("brows err", "brows_motion_error_iod", "{:.1%}"),
-    ("mouth abs", "mouth_error_iod", "{:.1%}"),
     ("keyshape residual", "keyshape_residual_rms_iod", "{:.1%}"),
-    ("closures", None, None),
-    ("blink recall", "blink_recall", "{:.0%}"),
-    ("false blinks", "false_blink_rate", "{:.0%}"),
+    ("closures", ("closures_reproduced", "closures"), "{:.0f}/{:.0f}"),
+    ("blinks found", ("blinks_found", "blinks"), "{:.0f}/{:.0f}"),
+    ("false blinks", "false_blinks", "{:.0f}"),
     ("jaw > funnel", "jaw_over_funnel_fraction", "{:.0%}"),
-    ("env r char/perf/shift", None, None),
-    ("dead ARKit", "dead_arkit_columns", "{:.0f}"),
+    ("jawOpen at widest", "jaw_open_at_widest", "{:.2f}"),
+    ("env r char/perf/shift", ("envelope_r_character", "envelope_r_performer", "envelope_r_shifted"), "{:.2f}"),
+    ("dead ARKit: moved / not", ("dead_arkit_moved", "dead_arkit_not_moved"), "{:.0f} / {:.0f}"),
 ]
 
 
+def cell(m: dict, key, fmt: str) -> str:
+    if isinstance(key, str):
+        return fmt.format(m[key]) if key in m else "-"
+    if any(k not in m for k in key):
+        return "-"
+    values = [m[k] for k in key]
+    return fmt.format(*values) if fmt.count("{") == len(values) else "/".join(fmt.format(v) for v in values)
+
+
 def row(name: str, m: dict) -> str:
-    cells = [name]
-    for _, key, fmt in COLUMNS:
-        if key is not None:
-            cells.append(fmt.format(m[key]) if key in m else "-")
-        elif _ == "closures":
-            cells.append(f"{m['closures_reproduced']:.0f}/{m['closures']:.0f}")
-        else:
-            keys = ("envelope_r_character", "envelope_r_performer", "envelope_r_shifted")
-            cells.append("/".join(f"{m[k]:.2f}" for k in keys) if keys[0] in m else "-")
-    return "| " + " | ".join(cells) + " |"
+    return "| " + " | ".join([name] + [cell(m, key, fmt) for _, key, fmt in COLUMNS]) + " |"
 
 
-def per_take(view, tracks, keyshapes) -> list[tuple[str, dict]]:
-    """Per take, from the per-frame outputs of the evaluation and the keyshapes: landmark errors, closures and
-    the decomposition residual."""
-    from stages.eval.retarget import closure_agreement
+def header(first: str = "run") -> str:
+    return f"| {first} | " + " | ".join(c for c, _, _ in COLUMNS) + " |\n|" + "---|" * (len(COLUMNS) + 1)
 
-    sequence = np.asarray(tracks["sequence"])
-    error = view["region_error"]
-    regions = view.meta["regions"]
-    gaps = view["lip_gap"]
-    out = []
-    for take, label in enumerate(view.meta["labels"]):
-        rows = sequence == take
-        m = {f"{r}_motion_error_iod": float(np.sqrt(np.mean(error[rows, i] ** 2))) for i, r in enumerate(regions)}
-        closures = closure_agreement(gaps[rows, 0], gaps[rows, 1], sequence[rows], gap=0.03, frames=2, ratio=1.2)
-        m["closures"], m["closures_reproduced"] = len(closures), sum(c["reproduced"] for c in closures)
-        m["keyshape_residual_rms_iod"] = float(np.sqrt(np.mean(keyshapes["residual"][0, rows] ** 2)))
-        out.append((Path(label).name, m))
-    return out
+
+def take_rows(view) -> list[str]:
+    """One row per take, from the evaluation's meta["takes"]."""
+    return [row(f"  {Path(label).name}", take["metrics"]) for label, take in view.meta["takes"].items()]
+
+
+def column_report(name: str, view) -> list[str]:
+    """The ARKit columns that stay dead in some take, with the takes where the performer moved them or not."""
+    lines = [f"**{name}**: ARKit columns dead in some take (the animation never above 0.02)", ""]
+    lines += ["| column | performer moved (takes) | dead where moved | dead, not moved |", "|---|---|---|---|"]
+    for column, where in view.meta["arkit_columns"].items():
+        if not where.get("dead_moved") and not where.get("dead_not_moved") and not where.get("dead_unmeasured"):
+            continue
+        names = {k: ", ".join(Path(t).stem for t in v) for k, v in where.items()}
+        moved = len(where.get("moved", []))
+        unmeasured = " (no probe)" if where.get("dead_unmeasured") else ""
+        lines.append(
+            f"| {column}{unmeasured} | {moved} | {names.get('dead_moved', '')} | "
+            f"{len(where.get('dead_not_moved', []))} takes |"
+        )
+    return lines + [""]
+
+
+def main(folders: list[str]) -> None:
+    import msflow
+
+    folders = [Path(f).resolve() for f in folders]
+    os.chdir(ROOT)
+    default = msflow.run(PIPELINE)
+    runs = [
+        ("CREMA-D 1001, default run's path (edit of the unseen sad take)", default.artifact("paper_eval")),
+        ("CREMA-D 1001, capture of the 6 takes", default.artifact("capture_eval")),
+    ]
+    for folder in folders:
+        relative = os.path.relpath(folder, PIPELINE.parent)
+        result = msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_eval")
+        view = result.artifact("capture_eval")
+        runs.append((f"{folder.name}, capture of {len(view.meta['labels'])} takes", view))
+    print(header())
+    for name, view in runs:
+        print(row(name, view.metrics))
+        if len(view.meta["takes"]) > 1:
+            print("\n".join(take_rows(view)))
+    print()
+    for name, view in runs:
+        print("\n".join(column_report(name, view)))
+
+
+def blinks(folders: list[str]) -> None:
+    """The evaluation's blink detector on the performer's eyelid aperture against the blinks marked by hand
+    (``bench/bench_tracking.py`` HAND_BLINKS: CREMA-D and three talking-head clips)."""
+    from bench_tracking import HAND_BLINKS
+
+    import msflow
+    from stages.eval.retarget import RetargetEval, blink_events, blink_frame_limits, event_agreement
+
+    os.chdir(ROOT)
+    params = RetargetEval.Params()
+    tracks = [msflow.run(PIPELINE, until="capture_track").artifact("capture_track")]
+    for folder in folders:
+        relative = os.path.relpath(Path(folder).resolve(), PIPELINE.parent)
+        tracks.append(msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_track").artifact("capture_track"))
+    total = {"reference": 0, "predicted": 0, "found": 0, "false": 0}
+    for view in tracks:
+        sequence, aperture = np.asarray(view["sequence"]), np.asarray(view["eye_aperture"])
+        for take, label in enumerate(view.meta["labels"]):
+            limit, hand = HAND_BLINKS.get(Path(label).stem, (None, None))
+            if hand is None:
+                continue
+            rows = np.flatnonzero(sequence == take)[: limit or None]
+            one = np.zeros(len(rows), np.int64)
+            longest = blink_frame_limits([view.meta["fps"][take]], one, params.blink_max_seconds)
+            found = blink_events(aperture[rows], one, params.blink_ratio, params.blink_narrow_ratio, longest)
+            agreement = event_agreement([(a, b + 1) for a, b in hand], found, 0)
+            for key in total:
+                total[key] += agreement[key]
+    print(
+        f"blink_ratio {params.blink_ratio}, blink_narrow_ratio {params.blink_narrow_ratio}, blink_max_seconds "
+        f"{params.blink_max_seconds}: {total['found']}/{total['reference']} hand-marked blinks found, "
+        f"{total['predicted']} detected, {total['false']} false"
+    )
+
+
+def identity(folders: list[str]) -> None:
+    """Absolute mouth error with the character's identity fitted to each take's performer (ICT FaceKit's ten
+    identity shapes, ridge least squares on the performer's closed-mouth rest in 3D): how much of the absolute
+    error is the two faces' different shapes, against the rest-aligned error the evaluation reports."""
+    import msflow
+    from msflow.testing import run_stage
+    from stages.eval.retarget import RetargetEval
+
+    os.chdir(ROOT)
+    runs = [("CREMA-D capture", msflow.run(PIPELINE, until="capture_eval"))]
+    for folder in folders:
+        relative = os.path.relpath(Path(folder).resolve(), PIPELINE.parent)
+        runs.append((Path(folder).name, msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_eval")))
+    identities, ids = identity_landmark_deltas()
+    print("| run | take | mouth abs | abs, identity fitted | rest aligned | rest aligned, identity fitted |")
+    print("|---|---|---|---|---|---|")
+    for name, result in runs:
+        tracks, blend, character = (result.artifact(s) for s in ("capture_track", "capture_blend", "character"))
+        for take, label in enumerate(tracks.meta["labels"]):
+            plain, fitted = take_identity_errors(
+                tracks, blend, character, take, identities, ids, run_stage, RetargetEval
+            )
+            print(
+                f"| {name} | {Path(label).name} | {plain['mouth_error_iod']:.1%} | {fitted['mouth_error_iod']:.1%} "
+                f"| {plain['mouth_neutral_error_iod']:.1%} | {fitted['mouth_neutral_error_iod']:.1%} |"
+            )
+
+
+def identity_landmark_deltas():
+    """ICT FaceKit's identity shapes at its 68 landmark vertices (10, 68, 3), and the landmark vertex ids."""
+    from stages.retarget.character import DEFAULT_CHARACTER, EXTRAS_IDENTITY, EXTRAS_LANDMARKS, read_morph_mesh
+
+    mesh = read_morph_mesh(DEFAULT_CHARACTER, None)
+    ids = np.asarray(mesh.extras[EXTRAS_LANDMARKS])
+    names = list(mesh.extras[EXTRAS_IDENTITY])
+    deltas = np.stack([mesh.deltas[mesh.target_names.index(n)][ids] for n in names]).astype(np.float64)
+    return deltas, ids
+
+
+def fit_identity(rest: np.ndarray, neutral: np.ndarray, identities: np.ndarray, ridge: float = 1.0) -> np.ndarray:
+    """Identity coefficients c with neutral + sum c_i identity_i closest to the performer's rest (68, 3, head
+    frame) after a 3D similarity on the rigid points, brows to lips (the contour follows the silhouette); ridge
+    relative to the identity shapes' mean energy. Alternates the similarity and the linear solve."""
+    from stages.retarget.keymorphs import fit_similarity
+    from stages.retarget.regions import RIGID
+
+    points = list(range(17, 68))
+    c = np.zeros(len(identities))
+    for _ in range(4):
+        shape = neutral + np.tensordot(c, identities, axes=1)
+        similarity = fit_similarity(shape[list(RIGID)], rest[list(RIGID)])
+        A = similarity.apply_linear(identities)[:, points].reshape(len(identities), -1).T
+        b = (rest - similarity.apply(neutral))[points].reshape(-1)
+        c = np.linalg.solve(A.T @ A + ridge * np.mean((A**2).sum(axis=0)) * np.eye(len(c)), A.T @ b)
+    return c
+
+
+def take_identity_errors(tracks, blend, character, take, identities, ids, run_stage, stage):
+    """The evaluation of one take with the character as it is and with its identity fitted to the performer."""
+    from msflow.testing import artifact
+    from stages.retarget.keyshapes import rest_frames
+    from stages.retarget.shapes3d import front_view, head_frame_shapes
+
+    rows = np.flatnonzero(np.asarray(tracks["sequence"]) == take)
+    one = slice(rows[0], rows[-1] + 1)
+    arrays = {k: np.asarray(tracks[k])[one] for k in ("landmarks", "rotation", "translation", "mesh")}
+    arrays["sequence"] = np.zeros(len(rows), np.int32)
+    meta = {k: [tracks.meta[k][take]] for k in ("labels", "fps", "frame_size", "focal_length")}
+    take_tracks = artifact(arrays, meta=meta)
+    take_blend = artifact({"weights": np.asarray(blend["weights"])[one]}, meta=blend.meta)
+    plain = run_stage(stage, {}, {"tracks": take_tracks, "blend": take_blend, "character": character}).metrics
+    shapes = head_frame_shapes(arrays["mesh"])
+    rest = shapes[rest_frames(front_view(shapes))].mean(axis=0)
+    neutral = np.asarray(character["neutral"], np.float64)
+    c = fit_identity(rest, neutral[ids], identities)
+    fitted_neutral = neutral.copy()
+    fitted_neutral[ids] += np.tensordot(c, identities, axes=1)
+    arrays = {k: np.asarray(character[k]) for k in character.names}
+    fitted_character = artifact(dict(arrays, neutral=fitted_neutral), meta=character.meta)
+    fitted = run_stage(stage, {}, {"tracks": take_tracks, "blend": take_blend, "character": fitted_character}).metrics
+    return plain, fitted
 
 
 def capture(clips: list[str]) -> None:
@@ -82,46 +236,30 @@ def capture(clips: list[str]) -> None:
     pipeline = ROOT / "pipelines" / "capture.yaml"
     clips = [Path(c).resolve() for c in clips]
     os.chdir(ROOT)
-    print("| clip | frames | CPU s | " + " | ".join(c for c, _, _ in COLUMNS) + " | export warnings |")
-    print("|" + "---|" * (len(COLUMNS) + 4))
+    print(header("clip").replace("| clip |", "| clip | frames | CPU s |", 1).replace("|---|", "|---|---|---|", 1))
+
+    def cpu_seconds():  # this process and the FFmpeg processes it waited for (decoding, the preview's encoder)
+        usage = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
+        return sum(u.ru_utime + u.ru_stime for u in usage)
+
     for clip in clips:
-        before = resource.getrusage(resource.RUSAGE_SELF)
+        before = cpu_seconds()
         take = os.path.relpath(clip, pipeline.parent)
         result = msflow.run(pipeline, [f"vars.take={take}", f"vars.name={clip.stem}_captured"])
-        after = resource.getrusage(resource.RUSAGE_SELF)
-        cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+        cpu = cpu_seconds() - before
         inputs = {
             n: result.artifact(s) for n, s in (("tracks", "track"), ("blend", "blend"), ("character", "character"))
         }
         metrics = run_stage(RetargetEval, {}, dict(inputs, keyshapes=result.artifact("keyshapes"))).metrics
-        export = result.artifact("export")
         frames = len(result.artifact("blend")["weights"])
-        cells = row(clip.name, metrics).rstrip(" |").split(" | ")
-        print(" | ".join([cells[0], str(frames), f"{cpu:.1f}"] + cells[1:]) + f" | {len(export.warnings)} |")
-
-
-def main(folders: list[str]) -> None:
-    import msflow
-
-    folders = [Path(f).resolve() for f in folders]
-    os.chdir(ROOT)
-    header = "| run | " + " | ".join(c for c, _, _ in COLUMNS) + " |"
-    print(header)
-    print("|" + "---|" * (len(COLUMNS) + 1))
-    default = msflow.run(PIPELINE)
-    print(row("CREMA-D 1001, default run's path (edit of the unseen sad take)", default.artifact("paper_eval").metrics))
-    print(row("CREMA-D 1001, capture of the 6 takes", default.artifact("capture_eval").metrics))
-    for folder in folders:
-        relative = os.path.relpath(folder, PIPELINE.parent)
-        result = msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_eval")
-        view = result.artifact("capture_eval")
-        print(row(f"{Path(folder).name}, capture of {len(view.meta['labels'])} takes", view.metrics))
-        for label, m in per_take(view, result.artifact("capture_track"), result.artifact("capture_keyshapes")):
-            print(row(f"  {label}", m))
+        cells = row(clip.name, metrics).strip("| ").split(" | ")
+        print("| " + " | ".join([cells[0], str(frames), f"{cpu:.1f}"] + cells[1:]) + " |")
 
 
 if __name__ == "__main__":
-    if sys.argv[1:2] == ["--capture"]:
-        capture(sys.argv[2:])
+    sys.path.insert(0, str(ROOT / "bench"))
+    modes = {"--capture": capture, "--blinks": blinks, "--identity": identity}
+    if sys.argv[1:2] and sys.argv[1] in modes:
+        modes[sys.argv[1]](sys.argv[2:])
     else:
         main(sys.argv[1:])

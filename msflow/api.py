@@ -16,7 +16,10 @@ from msflow.session import Session, open_session
 from msflow.stores.base import new_run_id
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from msflow.artifact import ArtifactView
+    from msflow.shipping import CodeTree
 
 
 @dataclass
@@ -105,7 +108,14 @@ def run_sessions(
 
     started = time.time()
     pin_blas_threads()
-    pool = make_executor(executor, jobs, scheduler, connect_timeout, on_start=sessions[0].store.clean_tmp)
+    pool = make_executor(
+        executor,
+        jobs,
+        scheduler,
+        connect_timeout,
+        on_start=sessions[0].store.clean_tmp,
+        code_trees=code_trees_of(sessions),
+    )
     runners = [
         Runner(
             session.pipeline,
@@ -147,6 +157,20 @@ def run_sessions(
     for session in {id(s.memo): s for s in sessions}.values():  # sessions may share one memo
         session.save_memo()
     return executions
+
+
+def code_trees_of(sessions: list[Session]) -> Callable[[str], CodeTree]:
+    """Project root -> the code its sessions' stages need (``msflow.shipping``), computed when first asked."""
+    from functools import cache
+
+    @cache
+    def tree(root: str) -> CodeTree:
+        from msflow.shipping import code_tree
+
+        plans = [plan for s in sessions if str(s.pipeline.root) == root for plan in s.plans.values()]
+        return code_tree(Path(root), plans)
+
+    return tree
 
 
 def write_record(session: Session, record: dict[str, Any], noop: bool) -> None:

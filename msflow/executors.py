@@ -2,13 +2,18 @@
 
 ``inline`` runs in the calling process (``-j 1``); ``local`` is a process pool (``-j N``) whose workers pin BLAS to
 one thread; ``dask`` lives in msflow.dask_executor. All produce the same artifacts and keys.
+
+``submit`` takes an optional ``on_retry(lost_worker, attempt)``: executors that retry a job after losing its
+worker (Dask) call it when the new attempt starts, from their own thread.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from concurrent.futures import Future
-from typing import Protocol
+from typing import Any, Protocol
+
+OnRetry = Callable[[str, int], None]
 
 
 class Executor(Protocol):
@@ -17,7 +22,7 @@ class Executor(Protocol):
     @property
     def name(self) -> str: ...
 
-    def submit(self, job_json: str) -> Future[str]: ...
+    def submit(self, job_json: str, on_retry: OnRetry | None = None) -> Future[str]: ...
 
     def shutdown(self) -> None: ...
 
@@ -25,7 +30,7 @@ class Executor(Protocol):
 class InlineExecutor:
     name = "inline"
 
-    def submit(self, job_json: str) -> Future[str]:
+    def submit(self, job_json: str, on_retry: OnRetry | None = None) -> Future[str]:
         from msflow.worker import run_job
 
         future: Future[str] = Future()
@@ -53,7 +58,7 @@ class ProcessExecutor:
             max_workers=jobs, mp_context=multiprocessing.get_context("spawn"), initializer=pin_blas_threads
         )
 
-    def submit(self, job_json: str) -> Future[str]:
+    def submit(self, job_json: str, on_retry: OnRetry | None = None) -> Future[str]:
         from msflow.worker import run_job
 
         return self.pool.submit(run_job, job_json)
@@ -75,12 +80,12 @@ class LazyExecutor:
     def name(self) -> str:
         return self._executor.name if self._executor is not None else "none"
 
-    def submit(self, job_json: str) -> Future[str]:
+    def submit(self, job_json: str, on_retry: OnRetry | None = None) -> Future[str]:
         if self._executor is None:
             if self._on_start is not None:
                 self._on_start()
             self._executor = self._factory()
-        return self._executor.submit(job_json)
+        return self._executor.submit(job_json, on_retry)
 
     def shutdown(self) -> None:
         if self._executor is not None:
@@ -93,18 +98,28 @@ def make_executor(
     scheduler: str | None = None,
     timeout: float = 10.0,
     on_start: Callable[[], object] | None = None,
+    code_trees: Callable[[str], Any] | None = None,
 ) -> LazyExecutor:
-    """Validate the executor options now; start the executor when the first job arrives."""
+    """Validate the executor options now; start the executor when the first job arrives. ``code_trees`` maps a
+    project root to its ``msflow.shipping.CodeTree``, for executors that ship code to their workers."""
     from msflow.errors import UserError
 
     if jobs < 1:
         raise UserError(f"-j must be at least 1, got {jobs}", field="-j")
+    if timeout <= 0:
+        raise UserError(f"--connect-timeout must be positive, got {timeout:g}", field="--connect-timeout")
     if kind == "dask" or scheduler:
+        if scheduler:
+            from msflow.dask_executor import parse_scheduler_address
+
+            parse_scheduler_address(scheduler)  # a malformed address fails now, before any stage runs
 
         def factory() -> Executor:
             from msflow.dask_executor import DaskExecutor
+            from msflow.shipping import Shipper
 
-            return DaskExecutor(jobs=jobs, scheduler=scheduler, timeout=timeout)
+            shipper = Shipper(code_trees) if code_trees is not None else None
+            return DaskExecutor(jobs=jobs, scheduler=scheduler, timeout=timeout, shipper=shipper)
     elif kind in ("local", "inline"):
 
         def factory() -> Executor:

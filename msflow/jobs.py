@@ -50,12 +50,17 @@ class JobInput:
     key: str | None = None  #: artifact and array: the upstream artifact's key
     output: str | None = None  #: array: the output read
     lazy: bool = False  #: array: handed over as a lazy (zarr) array
-    files: tuple[tuple[str, str], ...] = ()  #: files: (label, absolute path) pairs, in order
+    #: files: (label, absolute path) pairs, in order; shipped jobs: (label, file name), the content in ``blobs``
+    files: tuple[tuple[str, str], ...] = ()
     fields: dict[str, dict[str, str]] | None = None  #: files: label -> {field: value}
+    #: shipped jobs (msflow.shipping): label -> content hash of the file (or folder tree) among the store's blobs
+    blobs: dict[str, str] | None = None
+    folders: tuple[str, ...] = ()  #: shipped jobs: labels whose blob is a folder's tree (``{"folder": {path: hash}}``)
 
     @classmethod
     def from_json(cls, value: dict[str, Any]) -> JobInput:
-        return cls(**{**value, "files": tuple((str(a), str(b)) for a, b in value.get("files", ()))})
+        files = tuple((str(a), str(b)) for a, b in value.get("files", ()))
+        return cls(**{**value, "files": files, "folders": tuple(value.get("folders", ()))})
 
 
 @dataclass(frozen=True)
@@ -64,7 +69,7 @@ class Job:
 
     store: str  #: store location (path or URL) ...
     store_options: dict[str, Any]  #: ... and its fsspec options
-    project_root: str  #: imported first, so the stage's modules resolve
+    project_root: str  #: imported first, so the stage's modules resolve ("" in shipped jobs)
     key: str  #: the artifact's cache key
     stage: str  #: stage name (messages, records)
     uses: str  #: ``package.module:Class``
@@ -73,6 +78,9 @@ class Job:
     force: bool = False  #: replace an existing artifact of the key
     jobs: int = 1  #: the run's worker count, given to the stage as ``Stage.jobs`` (not part of the key)
     key_parts: dict[str, Any] | None = None  #: what the key hashes, kept in the manifest
+    #: shipped jobs (msflow.shipping): the content hash of the project code (stage modules and resources) among
+    #: the store's blobs; the worker imports it from its own cache instead of ``project_root``
+    code: str | None = None
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), allow_nan=False)
@@ -95,6 +103,9 @@ class Outcome:
     compute_seconds: float = 0.0  #: time in the stage's ``run``
     seconds: float = 0.0  #: time in the worker, store included
     pid: int | None = None  #: the worker process
+    worker: str | None = None  #: where it ran: a Dask worker's address, or "<host> pid <pid>"
+    attempts: int = 1  #: executions started (more than one when a worker died mid-stage and the task was retried)
+    cpu_seconds: float = 0.0  #: CPU time (user + system) of the worker process in the stage's ``run``
     error: str | None = None
     user_error: dict[str, Any] | None = field(default=None)
     traceback: str | None = None

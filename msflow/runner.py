@@ -20,8 +20,7 @@ from msflow.jobs import Job, JobInput, Outcome, StageStatus
 from msflow.plan import StagePlan
 from msflow.spec import FilesRef, Pipeline, rel_to, suggest, topological_order
 from msflow.stores.base import Store
-
-KEY_SCHEME = 2  # 2: artifact format 2 (streamed array hashes, chunk checksums)
+from msflow.version import KEY_SCHEME  # defined in a leaf module: workers check it too
 
 
 class Reporter(Protocol):
@@ -43,6 +42,10 @@ class StageState:
     traceback: str | None = None
     inputs: dict[str, Any] = field(default_factory=dict)
     detail: str = ""
+    worker: str | None = None  #: where it ran (a Dask worker's address, or "<host> pid <pid>")
+    attempts: int = 0  #: executions started (0: none; more than 1: retried after its worker died)
+    compute_seconds: float = 0.0  #: time in the stage's own ``run``
+    cpu_seconds: float = 0.0  #: CPU time of the worker process in ``run``
 
     def __repr__(self) -> str:
         key = f", key={self.key[:12]}" if self.key else ""
@@ -264,6 +267,10 @@ class Runner:
         if outcome.corrupt and self._repair(name, outcome.corrupt["key"], outcome.corrupt["problem"]):
             return
         state.seconds = outcome.seconds
+        state.worker, state.attempts = outcome.worker, outcome.attempts
+        state.compute_seconds, state.cpu_seconds = outcome.compute_seconds, outcome.cpu_seconds
+        if outcome.attempts > 1:
+            state.detail = f"attempt {outcome.attempts}: {outcome.attempts - 1} worker(s) lost mid-stage"
         if outcome.status.done:
             state.manifest = outcome.manifest
             if outcome.concurrent:
@@ -275,6 +282,12 @@ class Runner:
             state.user_error = outcome.user_error
             state.traceback = outcome.traceback
         self._finish(state, outcome.status if outcome.status.done else StageStatus.FAILED)
+
+    def retrying(self, name: str, lost_worker: str, attempt: int) -> None:
+        """The executor lost the worker running ``name`` and started attempt ``attempt`` elsewhere (its thread)."""
+        state = self.states[name]
+        state.detail = f"retrying (attempt {attempt}): worker {lost_worker} was lost"
+        self._report(state)
 
     def _finish(self, state: StageState, status: StageStatus) -> None:
         state.state = status
@@ -370,7 +383,10 @@ def schedule(runners: list[Runner], executor: Executor) -> None:
             inflight[job.key].append((runner, name))
             return
         inflight[job.key] = [(runner, name)]
-        future = executor.submit(job.to_json())
+        future = executor.submit(
+            job.to_json(),
+            lambda lost, attempt: runner.retrying(name, lost, attempt),
+        )
         if future.done():
             settle(job.key, outcome_of(future))
         else:

@@ -1,3 +1,6 @@
 """msflow's version (its own module, so that records can name it without importing the package API)."""
 
 __version__ = "0.1.0"
+#: the version of what cache keys mean (msflow.runner.key_parts): bumped by any change that alters stored results;
+#: here, in a leaf module, so workers can check a job's key scheme without importing the runner
+KEY_SCHEME = 2  # 2: artifact format 2 (streamed array hashes, chunk checksums)

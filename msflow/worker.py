@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from msflow.jobs import Job, JobInput, Outcome, StageStatus
+from msflow.shipping import worker_name
 
 if TYPE_CHECKING:
     from msflow.stage import Result, Stage
@@ -40,6 +41,29 @@ def pin_blas_threads() -> None:
 
 _CONTROLLER: Any = None
 
+NANNY_MALLOC_TRIM = "65536"  #: the MALLOC_TRIM_THRESHOLD_ a Dask nanny sets for its workers (msflow.dask_setup)
+MMAP_THRESHOLD = 32 << 20  # glibc's largest adaptive mmap threshold on 64-bit (DEFAULT_MMAP_THRESHOLD_MAX)
+TRIM_THRESHOLD = 2 * MMAP_THRESHOLD  # what the adaptive rule sets beside it
+_TUNED = False
+
+
+def tune_malloc() -> bool:
+    """Undo the nanny's malloc-trim default in this process (glibc only, once); True when it did."""
+    import sys
+
+    global _TUNED
+    if _TUNED or os.environ.get("MALLOC_TRIM_THRESHOLD_") != NANNY_MALLOC_TRIM or not sys.platform.startswith("linux"):
+        return False
+    _TUNED = True
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:  # not glibc (musl): the variable means nothing there
+        return False
+    m_trim_threshold, m_mmap_threshold = -1, -3  # <malloc.h>
+    return bool(libc.mallopt(m_mmap_threshold, MMAP_THRESHOLD)) and bool(libc.mallopt(m_trim_threshold, TRIM_THRESHOLD))
+
 
 def single_threaded_blas() -> contextlib.AbstractContextManager[object]:
     """Limit already-loaded BLAS/OpenMP pools to one thread (env vars only reach libraries loaded later)."""
@@ -56,6 +80,7 @@ def run_job(job_json: str) -> str:
     """Run one job (``Job`` as JSON) and return its ``Outcome`` as JSON. Never raises."""
     from msflow.errors import CorruptArtifact, UserError
 
+    tune_malloc()  # a Dask nanny's malloc-trim default slows numpy-heavy stages 2x
     job = Job.from_json(job_json)
     started = time.perf_counter()
     try:
@@ -70,21 +95,36 @@ def run_job(job_json: str) -> str:
         outcome = Outcome.crashed(f"{type(exc).__name__}: {exc}", traceback.format_exc())
     outcome.seconds = time.perf_counter() - started
     outcome.pid = os.getpid()
+    outcome.worker = worker_name()
     return outcome.to_json()
+
+
+def code_root(job: Job) -> str:
+    """Where the job's stage modules import from: the project folder, or for a shipped job (``job.code``) the
+    code tree rebuilt in this worker's cache after checking that its environment matches the key's."""
+    from msflow.plan import ensure_importable
+
+    if job.code is None:
+        ensure_importable(job.project_root)
+        return job.project_root
+    from msflow.shipping import check_environment, check_store, shipped_code
+
+    check_store(job)
+    check_environment(job)
+    return str(shipped_code(job))
 
 
 def run_locked(job: Job) -> Outcome:
     """Under the key's lock: reuse an artifact a concurrent run published meanwhile, or compute and publish."""
-    from msflow.plan import ensure_importable
     from msflow.stores import open_store
 
-    ensure_importable(job.project_root)
+    root = code_root(job)
     store = open_store(job.store, job.store_options)
     with store.lock(job.key, on_wait=lambda holder: report_waiting(job.stage, holder)):
         if store.has(job.key) and not job.force:
             return Outcome(StageStatus.CACHED, manifest=store.manifest(job.key), concurrent=True)
         with store.writer(job.key) as writer:
-            return execute(job, store, writer)
+            return execute(job, store, writer, root)
 
 
 def report_waiting(stage: str, holder: dict[str, Any]) -> None:
@@ -150,14 +190,16 @@ def compute(
     return Computed(arrays, meta, metrics, stage_warnings, seconds, list(caught))
 
 
-def execute(job: Job, store: Store, writer: ArtifactWriter) -> Outcome:
-    """Import the stage class, open its inputs, compute, and commit the artifact through ``writer``."""
+def execute(job: Job, store: Store, writer: ArtifactWriter, root: str) -> Outcome:
+    """Import the stage class (from ``root``), open its inputs, compute, and commit the artifact through
+    ``writer``."""
     from msflow.errors import CorruptArtifact, InvalidResult, StageFailed, UserError
     from msflow.plan import import_stage_class
 
-    cls = import_stage_class(job.uses, stage=job.stage, root=job.project_root)
+    cls = import_stage_class(job.uses, stage=job.stage, root=root)
     params = cls.Params(**job.params)
-    inputs = open_inputs(job.inputs, store)
+    inputs = open_inputs(job.inputs, store, job)
+    cpu = time.process_time()
     try:
         done = compute(cls, job.stage, params, inputs, jobs=job.jobs, chunk_target=writer)
     except (UserError, CorruptArtifact):
@@ -178,8 +220,9 @@ def execute(job: Job, store: Store, writer: ArtifactWriter) -> Outcome:
     }
     if done.warnings:
         extra["warnings"] = done.warnings
+    cpu = time.process_time() - cpu
     manifest = writer.commit(done.arrays, extra, suffixes, replace=job.force)
-    return Outcome(StageStatus.RAN, manifest=manifest, compute_seconds=done.seconds)
+    return Outcome(StageStatus.RAN, manifest=manifest, compute_seconds=done.seconds, cpu_seconds=cpu)
 
 
 def collect_warnings(result: Result, caught: list[Any]) -> list[str]:
@@ -191,14 +234,19 @@ def collect_warnings(result: Result, caught: list[Any]) -> list[str]:
     return list(dict.fromkeys(messages))
 
 
-def open_inputs(spec: Mapping[str, JobInput | None], store: Store) -> dict[str, Any]:
-    """Materialise a job's inputs: artifacts as views, single outputs as numpy (or lazy), files as ``Files``."""
+def open_inputs(spec: Mapping[str, JobInput | None], store: Store, job: Job | None = None) -> dict[str, Any]:
+    """Materialise a job's inputs: artifacts as views, single outputs as numpy (or lazy), files as ``Files``
+    (shipped files, ``entry.blobs``, fetched from the store into this worker's cache)."""
     from msflow.stage import Files
 
     inputs: dict[str, Any] = {}
     for name, entry in spec.items():
         if entry is None:
             inputs[name] = None
+        elif entry.kind == "files" and entry.blobs is not None and job is not None:
+            from msflow.shipping import shipped_files
+
+            inputs[name] = shipped_files(entry, job)
         elif entry.kind == "files":
             inputs[name] = Files({label: Path(path) for label, path in entry.files}, entry.fields)
         else:

@@ -222,3 +222,11 @@ def test_aam_params_are_validated():
         AamPca.Params(shape_variance=1.5)
     with pytest.raises(ValidationError):
         AamPca.Params(texture_width=4)
+
+
+def test_similarity_parameters_round_trip_through_the_shared_fit():
+    """aam's [scale, angle, tx, ty] similarities are the shared geometry module's (2, 3) transforms."""
+    from stages.geometry.similarity import similarity_from_parameters, similarity_parameters
+
+    params = np.array([[1.5, 0.3, 2.0, -1.0], [0.7, -2.9, 0.0, 5.0]])
+    np.testing.assert_allclose(similarity_parameters(similarity_from_parameters(params)), params, atol=1e-12)

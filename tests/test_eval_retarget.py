@@ -67,8 +67,27 @@ def opencv_projection(points, rotation, translation):
     return np.array(out)
 
 
-def performance(character, weights, audio_gain=None):
-    """A tracking artifact of the character itself: landmarks = its landmark vertices under ``weights``."""
+def facemesh_of(points, rotation, translation):
+    """A 468-point FaceMesh whose iBUG points are ``points`` (frames, 68, 3) posed and seen by the camera: image x,
+    y and a relative depth z in pixels (away from the camera), as the tracker gives them; every other vertex (the
+    cheeks' among them) rides rigidly on the nose tip."""
+    from stages.geometry.rotations import quat_to_matrix
+    from stages.tracking.landmarks68 import MESH_TO_IBUG68
+
+    cam = np.einsum("fij,fpj->fpi", quat_to_matrix(rotation), points) + translation[:, None]
+    depth = -cam[..., 2]
+    image = opencv_projection(points, rotation, translation)
+    z = (depth - depth.mean(axis=1, keepdims=True)) * CAMERA[0, 0] / depth.mean(axis=1, keepdims=True)
+    posed = np.concatenate([image, z[..., None]], axis=-1)
+    mesh = np.repeat(posed[:, 30:31], 468, axis=1)
+    for point, vertices in enumerate(MESH_TO_IBUG68):
+        mesh[:, list(vertices)] = posed[:, point : point + 1]
+    return mesh
+
+
+def performance(character, weights, audio_gain=None, mesh=True):
+    """A tracking artifact of the character itself: landmarks = its landmark vertices under ``weights`` (and a
+    FaceMesh made of them)."""
     rotation, translation = head_motion()
     model = load_face3d().neutral
     neutral = character_landmarks(character["neutral"], character["deltas"], character["landmark_ids"], weights[:1] * 0)
@@ -82,6 +101,8 @@ def performance(character, weights, audio_gain=None):
         "translation": translation,
         "sequence": np.zeros(FRAMES, np.int32),
     }
+    if mesh:
+        arrays["mesh"] = facemesh_of(points, rotation, translation).astype(np.float32)
     meta = {"labels": ["take"], "fps": [FPS], "frame_size": [[480, 360]], "focal_length": [480.0]}
     if audio_gain is not None:
         rng = np.random.default_rng(0)
@@ -136,10 +157,15 @@ def test_the_characters_own_animation_scores_zero(truth):
     # mouth opening follows an audio envelope made from it, for the performer and the character alike
     assert m["envelope_r_character"] > 0.8
     assert abs(m["envelope_r_character"] - m["envelope_r_performer"]) < 1e-6
-    # e.g. the smiles: the mouth moved and they never did; ARKit columns through the export's mapping
-    assert m["dead_morphs"] >= 1 and "mouthSmile_L" in out.meta["dead_morphs"]
-    assert "MouthSmileLeft" in out.meta["dead_arkit_columns"] and "JawOpen" not in out.meta["dead_arkit_columns"]
-    assert "TongueOut" not in out.meta["dead_arkit_columns"]
+    # the smiles never moved, and neither did the performer's mouth corners: dead, but not where they moved
+    assert "mouthSmile_L" in out.meta["dead_morphs"]
+    columns = out.meta["arkit_columns"]
+    assert "JawOpen" in columns and "MouthSmileLeft" in columns
+    assert columns["JawOpen"]["moved"] == ["take"] and "dead_moved" not in columns["JawOpen"]
+    assert columns["MouthSmileLeft"].get("dead_not_moved") == ["take"]
+    assert m["dead_arkit_moved"] == 0 and m["movements_missed"] == 0
+    assert columns["EyeBlinkLeft"]["moved"] == ["take"]
+    assert "TongueOut" not in columns
 
 
 def test_a_shifted_animation_scores_badly(character, truth):
@@ -185,6 +211,37 @@ def test_tracking_eye_aperture_is_preferred(character, truth):
     assert out.metrics["blink_recall"] == 0.0 and out.metrics["false_blink_rate"] == 1.0
 
 
+def test_a_movement_the_animation_never_makes_is_a_dead_column_where_moved(character, truth):
+    """The performer smiles on the left while talking (frames 0-12); an animation without the smile leaves
+    MouthSmileLeft dead where the performer moved it, and the right side, which did not smile, dead where it did
+    not."""
+    weights, _, _ = truth
+    names = character.meta["target_names"]
+    smiling = weights.copy()
+    smiling[0:13, names.index("mouthSmile_L")] = 0.7
+    out = evaluate(character, performance(character, smiling), weights)
+    columns = out.meta["arkit_columns"]
+    assert columns["MouthSmileLeft"]["dead_moved"] == ["take"]
+    assert columns["MouthSmileRight"]["dead_not_moved"] == ["take"]
+    assert out.metrics["dead_arkit_moved"] == 1 and out.metrics["movements_missed"] > 0
+    # the animation with the smile has no such column
+    assert evaluate(character, performance(character, smiling), smiling).metrics["dead_arkit_moved"] == 0
+
+
+def test_without_a_facemesh_only_the_eyes_are_probed(character, truth):
+    weights, _, _ = truth
+    out = evaluate(character, performance(character, weights, mesh=False), weights)
+    assert out.meta["movement_source"] == "2D landmarks" and any("no FaceMesh" in w for w in out.warnings)
+    assert "dead_not_moved" not in out.meta["arkit_columns"].get("MouthSmileLeft", {})
+    assert out.meta["arkit_columns"]["MouthSmileLeft"]["dead_unmeasured"] == ["take"]
+    assert out.meta["arkit_columns"]["EyeBlinkLeft"]["moved"] == ["take"]
+
+
+def test_blink_narrowing_must_lie_above_the_dip():
+    with pytest.raises(ValueError, match="blink_narrow_ratio"):
+        RetargetEval.Params(blink_ratio=0.6, blink_narrow_ratio=0.5)
+
+
 def test_frame_count_mismatch_is_a_user_error(character, truth):
     weights, tracks, _ = truth
     with pytest.raises(UserError, match="frames"):
@@ -192,6 +249,46 @@ def test_frame_count_mismatch_is_a_user_error(character, truth):
 
 
 # ------------------------------------------------------------------------------------------------ parts
+
+
+#: a morph of the character and the ARKit column whose probe must see it (stages.retarget.movements)
+PROBED = {
+    "jawLeft": "JawLeft", "jawForward": "JawForward", "mouthClose": "MouthClose", "mouthSmile_L": "MouthSmileLeft",
+    "mouthFrown_R": "MouthFrownRight", "mouthDimple_L": "MouthDimpleLeft", "mouthPress_L": "MouthPressLeft",
+    "mouthRollLower": "MouthRollLower", "mouthRollUpper": "MouthRollUpper", "mouthShrugLower": "MouthShrugLower",
+    "mouthPucker": "MouthPucker", "mouthStretch_R": "MouthStretchRight", "noseSneer_L": "NoseSneerLeft",
+    "browDown_L": "BrowDownLeft", "browOuterUp_R": "BrowOuterUpRight", "eyeSquint_L": "EyeSquintLeft",
+    "eyeWide_R": "EyeWideRight",
+}  # fmt: skip
+
+
+def test_probes_see_each_movement_and_not_the_jaw(character):
+    """Known answers: the character's own landmark vertices (head frame, IOD units) talking with the jaw, and in
+    a burst (frames 30-45) one more morph at 0.6. Each probe moves for its own morph; the talking jaw alone moves
+    none but JawOpen (its chin drop is taken out of the others: a dropped jaw is not a frown or a pucker)."""
+    from stages.retarget.keyshapes import lip_gap_iod
+    from stages.retarget.movements import MovedLevels, landmark_probes, moved
+    from stages.retarget.shapes3d import front_view
+
+    names = character.meta["target_names"]
+    ids = character["landmark_ids"]
+    rest = character["neutral"][ids].astype(np.float64)
+    deltas = character["deltas"][:, ids].astype(np.float64)
+    iod = np.linalg.norm(rest[45] - rest[36])
+    t = np.arange(90)
+
+    def moved_columns(extra):
+        w = np.zeros((len(t), len(names)))
+        w[:, names.index("jawOpen")] = np.clip(0.5 * np.sin(2 * np.pi * t / 20), 0, None)
+        if extra:
+            w[30:46, names.index(extra)] = 0.6
+        shapes = (rest + np.einsum("fm,mpc->fpc", w, deltas)) / iod
+        probes = landmark_probes(shapes, rest / iod, lip_gap_iod(front_view(shapes)), 0.03)
+        return {c for c, v in moved(probes, MovedLevels()).items() if v["moved"]}
+
+    assert moved_columns(None) == {"JawOpen"}
+    for morph, column in PROBED.items():
+        assert column in moved_columns(morph), morph
 
 
 def test_runs_stop_at_take_boundaries():

@@ -372,7 +372,7 @@ def test_contact_sheet_shows_crops_beside_renders(character, tmp_path):
     tracks = tracks_for(keyshapes)
     out = run_stage(
         KeymorphFit,
-        {"tile_size": 64},
+        {"tile_size": 64, "contact_sheet": True},
         {"keyshapes": keyshapes, "character": character, "tracks": tracks},
         store=tmp_path,
     )
@@ -396,9 +396,23 @@ def test_contact_sheet_shows_crops_beside_renders(character, tmp_path):
 
 def test_contact_sheet_without_tracking_draws_the_keyshapes(character):
     keyshapes, _ = keyshapes_from_weights(character, POSES[:4])
-    out = run_stage(KeymorphFit, {"tile_size": 48}, {"keyshapes": keyshapes, "character": character})
+    out = run_stage(
+        KeymorphFit, {"tile_size": 48, "contact_sheet": True}, {"keyshapes": keyshapes, "character": character}
+    )
     sheet = cv2.imdecode(out.arrays["contact_sheet"], cv2.IMREAD_GRAYSCALE)
     assert sheet.shape[1] == 3 * 48
+
+
+def test_contact_sheet_is_rendered_on_demand_by_default(character):
+    """A run stores no contact sheet unless asked (it costs a render per keyshape); the figure makes it from the
+    stage's inputs, the same picture the stored one would be."""
+    keyshapes, _ = keyshapes_from_weights(character, POSES[:4])
+    inputs = {"keyshapes": keyshapes, "character": character}
+    lazy = run_stage(KeymorphFit, {}, inputs)
+    assert "contact_sheet" not in lazy.arrays
+    png = KeymorphFit.figures["contact_sheet"](lazy.view(), inputs)
+    stored = run_stage(KeymorphFit, {"contact_sheet": True}, inputs).arrays["contact_sheet"]
+    assert png == stored.tobytes()
 
 
 def test_tracking_that_does_not_match_the_keyshapes_is_a_user_error(character):
@@ -528,6 +542,29 @@ def test_3d_fit_recovers_every_known_weight(fitted_3d, character):
     assert "eyeLookIn_L" not in regions
 
 
+def test_3d_fit_does_not_price_small_morphs_out(character):
+    """A frown, a lip press or a lower-lip drop moves the landmarks 1/25 as much as the mean mouth morph: with one
+    L1 penalty for all they stay at 0 whatever the performer does (the dead ARKit columns of issue 13); scaled by
+    their energy (l1_scaling, default 1) they are recovered."""
+    small = {"mouthFrown_L": 0.6, "mouthFrown_R": 0.6, "mouthLowerDown_L": 0.6, "mouthLowerDown_R": 0.6}
+    poses = [("neutral", {}), ("neutral", dict(small, jawOpen=0.3)), ("happy", {"mouthPress_L": 0.7}), ("angry", {})]
+    keyshapes, _ = keyshapes3d_from_weights(character, poses)
+    names = character.meta["target_names"]
+
+    def fit(scaling):
+        params = {"contact_sheet": False, "l1_scaling": scaling}
+        return run_stage(KeymorphFit, params, {"keyshapes": keyshapes, "character": character}).arrays[
+            "keymorph_weights"
+        ]
+
+    scaled, flat = fit(1.0), fit(0.0)
+    for name, value in small.items():
+        assert 0.6 * value <= scaled[1, names.index(name)] <= value + 0.08, (name, scaled[1, names.index(name)])
+        assert flat[1, names.index(name)] < 0.3 * value, name
+    assert scaled[1, names.index("jawOpen")] == pytest.approx(0.3, abs=0.05)
+    assert scaled[2, names.index("mouthPress_L")] > 0.4 > flat[2, names.index("mouthPress_L")]
+
+
 def test_mouth_close_never_exceeds_the_jaw(character):
     """ARKit's mouthClose is a corrective on top of jawOpen: the 3D fit bounds it by the fitted jaw."""
     poses = [("neutral", {}), ("neutral", {"jawOpen": 0.4, "mouthClose": 0.35}), ("happy", {}), ("angry", {})]
@@ -561,7 +598,9 @@ def crema_keymorphs(character):
 
     branch = crema_face_branch()
     out = run_stage(
-        KeymorphFit, {"tile_size": 48}, {"keyshapes": branch.keyshapes, "character": character, "tracks": branch.train}
+        KeymorphFit,
+        {"tile_size": 48, "contact_sheet": True},
+        {"keyshapes": branch.keyshapes, "character": character, "tracks": branch.train},
     )
     return branch, out
 

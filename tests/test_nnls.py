@@ -148,6 +148,26 @@ def test_box_qp_respects_bounds_and_matches_reference():
         np.testing.assert_allclose(w, ref, atol=1e-6)
 
 
+def test_box_qp_with_fixed_variables_stops_at_the_optimum():
+    """A variable whose bounds meet (upper 0: a corrective held at 0) is fixed; its gradient must not count as a
+    KKT violation, or the solver never sees that it converged and runs to max_iter (the keymorph fit did, 20,000
+    iterations for every mouth region)."""
+    rng = np.random.default_rng(3)
+    J = rng.normal(size=(40, 10))
+    targets = rng.normal(size=(6, 40)) * 3 + J.sum(axis=1)  # every variable wants to be positive
+    upper = np.ones((6, 10))
+    upper[:, 4] = 0.0
+    W, iterations, residual = solve_box_qp(J.T @ J, targets @ J, lower=0.0, upper=upper, rtol=1e-9)
+    assert iterations < 2000 and residual.max() <= 1e-9 and not W[:, 4].any()
+    free = [i for i in range(10) if i != 4]
+    for w, y in zip(W, targets):
+        from scipy.optimize import lsq_linear
+
+        np.testing.assert_allclose(w[free], lsq_linear(J[:, free], y, bounds=(0, 1), tol=1e-12).x, atol=1e-6)
+    pg = projected_gradient(np.full((1, 2), -1.0), np.zeros((1, 2)), 0.0, np.array([[0.0, 1.0]]))
+    assert pg.tolist() == [[0.0, -1.0]]
+
+
 def test_kkt_violation_detects_suboptimal_and_infeasible():
     A, X = problem(8, n=5)
     good = batched_nnls(A, X).weights

@@ -68,3 +68,15 @@ def test_default_run_swings_the_mood_from_happy_to_disgust(default_run):
     first, last = slice(0, third), slice(-third, None)
     assert mean("mouthSmile", first) > 2 * mean("mouthSmile", last)
     assert mean("browDown", last) > 2 * mean("browDown", first)
+
+
+def test_default_run_blinks_with_the_performer(default_run):
+    """The default tracking gives the eyelid aperture and gaze (Face Landmarker v2 eye pass), and the blend closes
+    the character's eyes where the performer blinks (the sad take, closed at frames 6-7, opening at 8)."""
+    _, result = default_run
+    tracks, blend = result.artifact("track_test"), result.artifact("blend")
+    assert "eye_aperture" in tracks and "gaze" in tracks and "gaze" in blend
+    assert blend.meta["eyes"]["blink_source"] == "tracking eye_aperture"
+    names, weights = blend.meta["target_names"], blend["weights"]
+    blink = weights[:, [names.index("eyeBlink_L"), names.index("eyeBlink_R")]].mean(axis=1)
+    assert blink[6:8].min() > 0.6 and blink[:4].max() < 0.2 and blink[20:].max() < 0.5

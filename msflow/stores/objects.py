@@ -486,7 +486,9 @@ def s3_defaults(options: dict[str, Any]) -> dict[str, Any]:
 
 
 def dumps(value: Any) -> bytes:
-    return json.dumps(value, allow_nan=False, sort_keys=True).encode()
+    """Strict JSON bytes of a marker or journal entry. Keys keep their order: a manifest's meta reads back as the
+    stage wrote it, as from a local store (stages may index arrays by the order of a meta mapping)."""
+    return json.dumps(value, allow_nan=False).encode()
 
 
 def iter_chunks(items: Iterable[tuple[str, bytes]], limit: int = 64 << 20) -> Iterator[dict[str, bytes]]:

@@ -54,31 +54,27 @@ def canonical_pose(shape: np.ndarray) -> np.ndarray:
 
 
 def similarity_align(shapes: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares similarity (scale, rotation, translation) of each shape onto a centred target.
+    """Least-squares similarity (scale, rotation, translation) of each shape onto a centred target, by the
+    project's one 2-D similarity fit (``stages.geometry.similarity``).
 
     shapes (F, N, 2), target (N, 2) centred. Returns the aligned shapes (F, N, 2) and the similarity mapping
     aligned -> original as (F, 4) [scale, angle, tx, ty]: original = scale * R(angle) @ aligned + t, with
-    R = [[cos, -sin], [sin, cos]]. Closed form via complex numbers (2-D similarities are complex-affine maps).
+    R = [[cos, -sin], [sin, cos]] (t is the shape's centroid, the target being centred).
     """
+    from stages.geometry.similarity import apply_similarity as apply_transform
+    from stages.geometry.similarity import fit_similarity, invert_similarity, similarity_parameters
+
     shapes = np.asarray(shapes, dtype=np.float64)
-    z = shapes[..., 0] + 1j * shapes[..., 1]
-    m = target[:, 0] + 1j * target[:, 1]
-    centroid = z.mean(-1, keepdims=True)
-    zc = z - centroid
-    a = (np.conj(zc) @ m) / np.maximum(np.sum(np.abs(zc) ** 2, -1), 1e-300)
-    aligned = zc * a[:, None]
-    inv = 1.0 / a
-    similarity = np.stack([np.abs(inv), np.angle(inv), centroid[:, 0].real, centroid[:, 0].imag], axis=-1)
-    return np.stack([aligned.real, aligned.imag], axis=-1), similarity
+    transform = fit_similarity(shapes, np.broadcast_to(np.asarray(target, dtype=np.float64), shapes.shape))
+    return apply_transform(transform, shapes), similarity_parameters(invert_similarity(transform))
 
 
 def apply_similarity(shapes: np.ndarray, similarity: np.ndarray) -> np.ndarray:
     """Map shapes (F, N, 2) from the aligned frame through similarity (F, 4) [scale, angle, tx, ty]."""
-    shapes = np.asarray(shapes, dtype=np.float64)
-    s, ang, tx, ty = (similarity[:, i, None] for i in range(4))
-    c, si = s * np.cos(ang), s * np.sin(ang)
-    x, y = shapes[..., 0], shapes[..., 1]
-    return np.stack([c * x - si * y + tx, si * x + c * y + ty], axis=-1)
+    from stages.geometry.similarity import apply_similarity as apply_transform
+    from stages.geometry.similarity import similarity_from_parameters
+
+    return apply_transform(similarity_from_parameters(similarity), np.asarray(shapes, dtype=np.float64))
 
 
 def generalised_procrustes(

@@ -39,10 +39,12 @@ class NnlsResult:
 
 
 def projected_gradient(gradient: np.ndarray, weights: np.ndarray, lower=0.0, upper=np.inf) -> np.ndarray:
-    """The part of the gradient that the bounds do not block: zero everywhere exactly at a KKT point."""
+    """The part of the gradient that the bounds do not block: zero everywhere exactly at a KKT point (a variable
+    whose bounds meet, lower = upper, is fixed: nothing of its gradient counts)."""
     at_lower = weights <= lower
     at_upper = weights >= upper
-    return np.where(at_lower, np.minimum(gradient, 0.0), np.where(at_upper, np.maximum(gradient, 0.0), gradient))
+    blocked = np.where(at_lower, np.minimum(gradient, 0.0), np.where(at_upper, np.maximum(gradient, 0.0), gradient))
+    return np.where(at_lower & at_upper, 0.0, blocked)
 
 
 def kkt_violation(A: np.ndarray, X: np.ndarray, W: np.ndarray) -> np.ndarray:

@@ -60,6 +60,16 @@ def similarity_parameters(transform: np.ndarray) -> np.ndarray:
     return np.stack([np.hypot(a, b), np.arctan2(b, a), transform[..., 0, 2], transform[..., 1, 2]], axis=-1)
 
 
+def similarity_from_parameters(parameters: np.ndarray) -> np.ndarray:
+    """(..., 2, 3) similarities from (..., 4) [scale, angle (radians), tx, ty]; the inverse of
+    ``similarity_parameters``."""
+    parameters = np.asarray(parameters, dtype=np.float64)
+    scale, angle = parameters[..., 0], parameters[..., 1]
+    a, b = scale * np.cos(angle), scale * np.sin(angle)
+    rows = [np.stack([a, -b, parameters[..., 2]], axis=-1), np.stack([b, a, parameters[..., 3]], axis=-1)]
+    return np.stack(rows, axis=-2)
+
+
 def align_to(shapes: np.ndarray, reference: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
     """Shapes (..., n, 2) moved by the similarity that best maps each onto ``reference`` (n, 2)."""
     shapes = np.asarray(shapes, dtype=np.float64)

@@ -197,6 +197,7 @@ def fit_keymorph_weights(
     antagonism: float = 0.0,
     pose: np.ndarray | None = None,
     rtol: float = 1e-7,
+    l1_scaling: float = 0.0,
 ) -> tuple[np.ndarray, dict]:
     """Morph weights u in [0, 1]^M per keyshape minimising (Sec 4.3 keymorphs, automated)
 
@@ -220,7 +221,7 @@ def fit_keymorph_weights(
     usable = ~matching_targets(names, exclude)
     return bounded_fit(
         J, targets, names, usable, l2=l2, l1=l1, symmetry=symmetry, antagonists=antagonists,
-        antagonism=antagonism, rtol=rtol,
+        antagonism=antagonism, rtol=rtol, l1_scaling=l1_scaling,
     )  # fmt: skip
 
 
@@ -237,10 +238,12 @@ def bounded_fit(
     antagonism: float = 0.0,
     upper: float | np.ndarray = 1.0,
     rtol: float = 1e-7,
+    l1_scaling: float = 0.0,
 ) -> tuple[np.ndarray, dict]:
     """The regularised bounded least squares of ``fit_keymorph_weights`` for a Jacobian J (D, M) of the morphs'
     landmark motion and target motions (K, D): weights (K, M) in [0, ``upper``] (a number or (K, M) bounds), 0 for
-    morphs not ``usable`` or that move none of the landmarks."""
+    morphs not ``usable`` or that move none of the landmarks. ``l1_scaling`` = g > 0 lowers the L1 penalty of a
+    morph that moves the landmarks less than the mean, e_m < e, to e l1 (e_m / e)^g (``l1_weights``)."""
     M = len(names)
     usable = np.asarray(usable, bool) & (np.abs(J).max(axis=0, initial=0.0) > 0)
     energy = float((J[:, usable] ** 2).sum(axis=0).mean()) if usable.any() else 1.0
@@ -255,7 +258,7 @@ def bounded_fit(
         strength = antagonism * 0.5 * (column_energy[i] + column_energy[j])
         H[i, j] += 0.5 * strength
         H[j, i] += 0.5 * strength
-    F = targets @ J - l1 * energy
+    F = targets @ J - l1 * energy * l1_weights(column_energy, energy, l1_scaling)
     idx = np.flatnonzero(usable)
     weights = np.zeros((len(targets), M))
     if idx.size:
@@ -270,6 +273,20 @@ def bounded_fit(
         "usable_targets": [names[i] for i in idx],
         "energy": energy,
     }
+
+
+def l1_weights(column_energy: np.ndarray, energy: float, scaling: float) -> np.ndarray:
+    """Per morph, its share of the L1 penalty: min(1, e_m / e)^scaling (1 for every morph when scaling = 0).
+
+    The L1 term e l1 u_m costs the same per unit of weight whatever the morph, while a morph's benefit to the fit
+    grows with its landmark energy e_m: a morph that moves the landmarks 1/25 as much as the mean (ICT's frown,
+    lip press, lower-lip drop) would pay off only above u = l1 e / e_m = 0.5, so it stays at 0 however clearly the
+    performer makes that movement. Scaled by e_m / e (scaling 1, the default) its threshold is l1 like any
+    other morph's; morphs at or above the mean energy (jaw, funnel, pucker) keep the full penalty, so the jaw drop
+    and lip rounding are weighed against each other as before."""
+    if scaling <= 0:
+        return np.ones_like(column_energy)
+    return np.minimum(1.0, column_energy / max(energy, 1e-300)) ** scaling
 
 
 def landmark_errors(
@@ -738,19 +755,26 @@ def encode_png(image: np.ndarray) -> bytes:
     return data.tobytes()
 
 
+def check_tracks(keyshapes, tracks) -> None:
+    """The tracking input must be the one the keyshapes' source frames index (a UserError otherwise)."""
+    frames = np.asarray(keyshapes["keyshape_frame"])
+    count = len(tracks["crop_landmarks"]) if tracks is not None and "crop_landmarks" in tracks else None
+    if count is not None and frames.max(initial=0) >= count:
+        raise UserError(
+            f"keyshape source frame {int(frames.max())} is beyond the {count} frames of the "
+            "tracking input: wire the training tracking (the one the aam was built from)",
+            field="inputs.tracks",
+        )
+
+
 def build_contact_sheet(
     keyshapes, character, tracks, weights: np.ndarray, size: int, notes: list[str] | None = None
 ) -> np.ndarray:
     labels = list(keyshapes.meta["labels"])
     frames = np.asarray(keyshapes["keyshape_frame"])
     if tracks is not None:
+        check_tracks(keyshapes, tracks)
         crops, crop_landmarks = tracks["crops"], tracks["crop_landmarks"]
-        if frames.max(initial=0) >= len(crops):
-            raise UserError(
-                f"keyshape source frame {int(frames.max())} is beyond the {len(crops)} frames of the "
-                "tracking input: wire the training tracking (the one the aam was built from)",
-                field="inputs.tracks",
-            )
         left = [face_crop_tile(crops[f], crop_landmarks[f], size) for f in frames]
     else:
         left = [landmark_tile(shape, size) for shape in keyshapes["keyshapes"]]
@@ -764,9 +788,15 @@ def build_contact_sheet(
 
 
 def figure_contact_sheet(view, inputs):
-    """The contact sheet the stage wrote (keyshape crops above keymorph renders, per expression)."""
+    """Keyshape crops above keymorph renders, per expression (the paper's Figs 3-4): the one the stage wrote
+    (``params.contact_sheet``), else rendered now from the stage's inputs (a run need not pay for it)."""
     if "contact_sheet" in view:
         return view.bytes("contact_sheet")
+    if inputs and inputs.get("keyshapes") is not None and inputs.get("character") is not None:
+        notes = [f"err {100 * e:.1f}%" for e in view["landmark_error"]]
+        weights = np.asarray(view["keymorph_weights"], np.float64)
+        sheet = build_contact_sheet(inputs["keyshapes"], inputs["character"], inputs.get("tracks"), weights, 128, notes)
+        return encode_png(sheet)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -774,7 +804,7 @@ def figure_contact_sheet(view, inputs):
 
     fig, ax = plt.subplots(figsize=(4, 1))
     ax.axis("off")
-    ax.text(0.5, 0.5, "contact sheet turned off (params.contact_sheet)", ha="center", va="center")
+    ax.text(0.5, 0.5, "no contact sheet: neither stored (params.contact_sheet) nor inputs", ha="center", va="center")
     return fig
 
 
@@ -901,6 +931,7 @@ class _KeymorphStage(Stage):
 
     def _prepare(self, params, inputs) -> Prepared:
         keyshapes, character = inputs["keyshapes"], inputs["character"]
+        check_tracks(keyshapes, inputs.get("tracks"))
         rig = self._rig(keyshapes, character)
         shapes = np.asarray(keyshapes["keyshapes"], np.float64)
         scale = float(inter_ocular_distance(keyshapes["rest_shape"]))
@@ -1019,6 +1050,10 @@ class KeymorphFitParams(Stage.Params):
     l2: float = Field(0.005, ge=0)
     #: L1 penalty (sparsity: only the needed targets move), same units
     l1: float = Field(0.02, ge=0)
+    #: 3D fit: a morph that moves its region's landmarks less than the mean pays l1 x (its energy / the
+    #: mean)^l1_scaling, so small morphs (frown, lip press) are not priced out (0: one penalty for every morph).
+    #: The 2D fit keeps one penalty: seen from the front, many small morphs look alike
+    l1_scaling: float = Field(1.0, ge=0)
     #: coupling of left/right pairs (x_L, x_R): penalty on their difference
     symmetry: float = Field(0.2, ge=0)
     #: penalty on using opposing targets together (product of their weights), per side of the face
@@ -1049,7 +1084,9 @@ class KeymorphFitParams(Stage.Params):
     decimals: int = Field(3, ge=0)
     #: 2D fit: discount the landmark motion that the actor's head rotation explains (needs the tracks input)
     pose_correction: bool = True
-    contact_sheet: bool = True
+    #: also store the contact sheet (keyshape crops beside keymorph renders) as an output file; without it the
+    #: ``contact_sheet`` figure renders it when asked (msflow show/report), so a run does not pay for it
+    contact_sheet: bool = False
     tile_size: int = Field(128, ge=16)
 
 
@@ -1114,6 +1151,7 @@ class KeymorphFit(_KeymorphStage):
                 list(params.regions),
                 exclude=list(params.exclude),
                 correctives=[tuple(p) for p in params.correctives],
+                l1_scaling=params.l1_scaling,
                 **regularisers,
             )
             info["usable_targets"] = [n for region in info["regions"].values() for n in region]
@@ -1141,7 +1179,7 @@ class KeymorphFile(_KeymorphStage):
         pose_correction: bool = True
         #: which morphs each decomposition region drives in the blend (see KeymorphFit)
         regions: list[FitRegion] = DEFAULT_FIT_REGIONS
-        contact_sheet: bool = True
+        contact_sheet: bool = False
         tile_size: int = Field(128, ge=16)
 
     inputs = dict(_INPUTS, keymorphs=Input.files(doc="the keymorph YAML"))

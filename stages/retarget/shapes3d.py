@@ -64,9 +64,26 @@ def remove_pose(points: np.ndarray, rigid=RIGID, rounds: int = 3) -> np.ndarray:
     return similarity_align(points, reference, rigid)
 
 
-def head_frame_shapes(mesh: np.ndarray) -> np.ndarray:
-    """The tracked FaceMesh as (frames, 68, 3) iBUG shapes, pose removed, IOD units."""
-    return remove_pose(mesh_landmarks(mesh))
+def head_frame_shapes(mesh: np.ndarray, extra_vertices: tuple[int, ...] = ()) -> np.ndarray:
+    """The tracked FaceMesh as (frames, 68, 3) iBUG shapes, pose removed, IOD units; ``extra_vertices`` (mesh
+    vertex ids) follow as points 68, 69, ..., carried by the same per-frame alignment."""
+    shapes = mesh_landmarks(mesh)
+    if extra_vertices:
+        extra = np.asarray(mesh, np.float64)[:, list(extra_vertices)] * MESH_TO_HEAD_AXES
+        shapes = np.concatenate([shapes, extra], axis=1)
+    return remove_pose(shapes)
+
+
+def undo_perspective(mesh: np.ndarray, camera: np.ndarray) -> np.ndarray:
+    """FaceMesh points (frames, P, 3): image x, y and relative depth z in pixels, with the perspective of a
+    pinhole ``camera`` (3, 3) taken out, up to one scale per frame: a point at depth D = T (1 + z / f) (T the
+    head's distance, f the focal length in pixels) lies at X = (x - c_x) D / f, so (x - c_x)(1 + z / f) is X
+    times f / T, the same factor for every point of the frame (which the pose removal's similarity absorbs)."""
+    mesh = np.asarray(mesh, np.float64)
+    camera = np.asarray(camera, np.float64)
+    focal, centre = camera[0, 0], camera[:2, 2]
+    stretch = 1.0 + mesh[..., 2:3] / focal
+    return np.concatenate([(mesh[..., :2] - centre) * stretch, mesh[..., 2:3]], axis=-1)
 
 
 def front_view(points: np.ndarray) -> np.ndarray:

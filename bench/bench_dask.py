@@ -1,0 +1,288 @@
+"""Dask cluster figures (issue 17): the default pipeline on two workers that cannot read the project folder.
+
+    python bench/bench_dask.py [--repeats 3] [--skip-default]
+
+The cluster is the stand-in of tests/test_dask.py: a ``dask scheduler`` and two ``dask worker`` processes (one
+thread each, ``--preload-nanny msflow.dask_setup``) started in their own folder, in a mount namespace that hides
+the project copies and this checkout, as ``nobody`` when run as root. Two stores the workers can reach:
+
+- ``s3``: moto's S3 server on loopback, in its own process (its CPU is counted apart: a real S3 costs no local CPU);
+- ``folder``: a store folder outside the project (what a shared file system gives a real cluster).
+
+1. The default pipeline from an empty store, interleaved ``--repeats`` times: local ``-j 2`` (process pool, store in
+   the project), cluster with the S3 store, cluster with the folder store. Wall time; CPU (user+sys) of the
+   client, the workers, the scheduler, the moto server; the stages' own CPU (sum of ``cpu_seconds``); and whether
+   every output hash equals the local run's (the edit's preview MP4 differs between two local runs too: x264
+   threads without frame timestamps, stages/face/edit.py).
+2. Per-stage overhead: a chain of 40 trivial stages (each reads the previous one's array) from an empty store, so
+   every stage waits for the one before: wall time per stage = the full round trip of one stage (client
+   scheduling, shipping, scheduler, worker, store, outcome) besides the stage itself (~0.1 ms of numpy), and the
+   worker-side part (``seconds - compute_seconds`` in the run record).
+
+The machine's load (1-minute load average, before and after each measurement) is printed with the figures: on a
+shared machine only the ratios measured side by side and the CPU times mean much.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+UNSTABLE = {("edit", "video")}
+
+
+def cpu_of(pids: list[int]) -> float:
+    """User+system CPU seconds of these processes and all their descendants (alive now)."""
+    import psutil
+
+    total = 0.0
+    for pid in pids:
+        try:
+            proc = psutil.Process(pid)
+            for p in [proc, *proc.children(recursive=True)]:
+                times = p.cpu_times()
+                total += times.user + times.system
+        except psutil.NoSuchProcess:
+            continue
+    return total
+
+
+def self_cpu() -> float:
+    times = os.times()
+    return times.user + times.system + times.children_user + times.children_system
+
+
+def start_moto() -> tuple[subprocess.Popen, dict]:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    endpoint = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1).close()
+            break
+        except OSError:
+            time.sleep(0.05)
+    return proc, {"endpoint_url": endpoint, "key": "bench", "secret": "bench"}
+
+
+def new_bucket(options: dict) -> str:
+    import uuid
+
+    import boto3
+
+    name = f"bench-{uuid.uuid4().hex[:10]}"
+    boto3.client(
+        "s3",
+        endpoint_url=options["endpoint_url"],
+        aws_access_key_id="bench",
+        aws_secret_access_key="bench",
+        region_name="us-east-1",
+    ).create_bucket(Bucket=name)
+    return name
+
+
+def use_store(pipeline_file: Path, url: str, options: dict | None = None) -> None:
+    header = f"store: {url}\n" + (f"store_options: {json.dumps(options)}\n" if options else "")
+    text = pipeline_file.read_text()
+    pipeline_file.write_text(text.replace("version: 1\n", "version: 1\n" + header, 1))
+
+
+def copy_repo(dest: Path) -> Path:
+    from test_dask import copy_repo as copy
+
+    return copy(dest)
+
+
+def measure(label: str, run, cluster, moto) -> dict:
+    """Run ``run()`` (returns a RunResult) and collect wall, CPU per party and load."""
+    load = os.getloadavg()[0]
+    pids = [p.pid for p in cluster.procs]
+    before = (self_cpu(), cpu_of(pids), cpu_of([moto.pid]))
+    started = time.perf_counter()
+    result = run()
+    wall = time.perf_counter() - started
+    after = (self_cpu(), cpu_of(pids), cpu_of([moto.pid]))
+    stages = result.record["stages"]
+    return {
+        "label": label,
+        "wall_s": round(wall, 2),
+        "cpu_client_s": round(after[0] - before[0], 2),
+        "cpu_cluster_s": round(after[1] - before[1], 2),
+        "cpu_moto_s": round(after[2] - before[2], 2),
+        "stage_cpu_s": round(sum(s["cpu_seconds"] for s in stages.values()), 2),
+        "load_before_after": [round(load, 1), round(os.getloadavg()[0], 1)],
+        "record": result.record,
+    }
+
+
+def same_outputs(record: dict, reference: dict) -> bool:
+    for name, stage in reference["stages"].items():
+        ours = record["stages"][name]["outputs"]
+        if {k: v for k, v in ours.items() if (name, k) not in UNSTABLE} != {
+            k: v for k, v in stage["outputs"].items() if (name, k) not in UNSTABLE
+        }:
+            return False
+    return True
+
+
+def default_pipeline(tmp: Path, cluster, moto, options: dict, repeats: int) -> None:
+    import msflow
+
+    os.umask(0)  # the folder store is shared with the workers' user
+    store_folder = cluster.env_dir / "store"
+    rows = []
+    for i in range(repeats):
+        local = copy_repo(tmp / f"local{i}")
+        rows.append(measure("local -j 2", lambda: msflow.run(local / "pipeline.yaml", jobs=2), cluster, moto))
+        reference = rows[-1]["record"]
+        on_s3 = copy_repo(tmp / f"s3_{i}")
+        use_store(on_s3 / "pipeline.yaml", f"s3://{new_bucket(options)}/p", options)
+        rows.append(
+            measure(
+                "cluster, S3",
+                lambda: msflow.run(on_s3 / "pipeline.yaml", scheduler=cluster.address, jobs=2),
+                cluster,
+                moto,
+            )
+        )
+        on_folder = copy_repo(tmp / f"folder{i}")
+        shutil.rmtree(store_folder, ignore_errors=True)
+        use_store(on_folder / "pipeline.yaml", str(store_folder))
+        rows.append(
+            measure(
+                "cluster, folder",
+                lambda: msflow.run(on_folder / "pipeline.yaml", scheduler=cluster.address, jobs=2),
+                cluster,
+                moto,
+            )
+        )
+        for row in rows[-2:]:
+            row["identical_outputs"] = same_outputs(row["record"], reference)
+        for row in rows[-3:]:
+            print(json.dumps({k: v for k, v in row.items() if k != "record"}), flush=True)
+    print("\ndefault pipeline, medians over", repeats, "interleaved repeats:")
+    for label in ("local -j 2", "cluster, S3", "cluster, folder"):
+        mine = [r for r in rows if r["label"] == label]
+        med = {k: statistics.median(r[k] for r in mine) for k in ("wall_s", "cpu_client_s", "cpu_cluster_s")}
+        stage_cpu = statistics.median(r["stage_cpu_s"] for r in mine)
+        print(
+            f"  {label:16s} wall {med['wall_s']:6.1f} s (all: {[r['wall_s'] for r in mine]}), "
+            f"stage CPU {stage_cpu:5.1f} s, CPU client {med['cpu_client_s']:5.1f} s + cluster "
+            f"{med['cpu_cluster_s']:5.1f} s, identical outputs {[r.get('identical_outputs', True) for r in mine]}"
+        )
+    for label in ("cluster, S3", "cluster, folder"):
+        ratios = [
+            rows[i + offset]["wall_s"] / rows[i]["wall_s"]
+            for i in range(0, len(rows), 3)
+            for offset in ((1,) if label.endswith("S3") else (2,))
+        ]
+        print(f"  wall {label} / local -j 2: {[round(r, 2) for r in ratios]}")
+    print_stage_table(rows)
+
+
+def print_stage_table(rows: list[dict]) -> None:
+    """Per stage: CPU seconds in the stage's run, local vs on the workers (medians)."""
+    names = list(rows[0]["record"]["stages"])
+    print("\n  stage CPU seconds (median): local -j 2 | cluster S3 | cluster folder")
+    for name in names:
+        cells = []
+        for label in ("local -j 2", "cluster, S3", "cluster, folder"):
+            values = [r["record"]["stages"][name]["cpu_seconds"] for r in rows if r["label"] == label]
+            cells.append(f"{statistics.median(values):6.2f}")
+        print(f"  {name:14s} " + " | ".join(cells))
+
+
+def chain_pipeline(folder: Path, n: int) -> Path:
+    shutil.copytree(ROOT / "tests" / "numproject", folder, ignore=shutil.ignore_patterns(".msflow", "*.lock"))
+    body = "  s0:\n    uses: numstages.basic:Source\n    params: {n: 1000}\n"
+    body += "".join(
+        f"  s{i}:\n    uses: numstages.scaling:Scale\n    inputs: {{x: s{i - 1}.y}}\n    params: {{factor: 1.0}}\n"
+        if i > 1
+        else "  s1:\n    uses: numstages.scaling:Scale\n    inputs: {x: s0.x}\n    params: {factor: 1.0}\n"
+        for i in range(1, n)
+    )
+    (folder / "chain.yaml").write_text("version: 1\nstages:\n" + body)
+    return folder / "chain.yaml"
+
+
+def overhead(tmp: Path, cluster, options: dict, n: int = 40) -> None:
+    import msflow
+
+    print(f"\nper-stage overhead: a chain of {n} trivial stages (each waits for the previous one):")
+    configs = {
+        "local -j 1 (in process)": ({}, None),
+        "local -j 2 (process pool)": ({"jobs": 2}, None),
+        "cluster, S3": ({"scheduler": cluster.address}, "s3"),
+        "cluster, folder": ({"scheduler": cluster.address}, "folder"),
+    }
+    for label, (kwargs, store) in configs.items():
+        walls, worker_side = [], []
+        for attempt in range(3):
+            pipeline = chain_pipeline(tmp / f"chain-{label.split()[0]}-{store}-{attempt}", n)
+            if store == "s3":
+                use_store(pipeline, f"s3://{new_bucket(options)}/c", options)
+            elif store == "folder":
+                shutil.rmtree(cluster.env_dir / "chainstore", ignore_errors=True)
+                use_store(pipeline, str(cluster.env_dir / "chainstore"))
+            started = time.perf_counter()
+            result = msflow.run(pipeline, **kwargs)
+            walls.append((time.perf_counter() - started) / n * 1000)
+            stages = result.record["stages"].values()
+            worker_side.append(statistics.median((s["seconds"] - s["compute_seconds"]) * 1000 for s in stages))
+        print(
+            f"  {label:26s} {min(walls):6.1f} ms per stage end to end (best of 3; all {[round(w) for w in walls]}), "
+            f"worker side {min(worker_side):5.1f} ms, load {os.getloadavg()[0]:.1f}"
+        )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--skip-default", action="store_true")
+    args = parser.parse_args()
+    import logging
+
+    logging.getLogger("distributed").setLevel(logging.ERROR)
+    from test_dask import IsolatedCluster
+
+    moto, options = start_moto()
+    os.environ["AWS_EC2_METADATA_DISABLED"] = "true"
+    with tempfile.TemporaryDirectory(prefix="msflow-bench-dask-") as tmp_name:
+        tmp = Path(tmp_name)
+        tmp.chmod(0o700)
+        cluster = IsolatedCluster(hidden=[tmp], extra_env={})
+        try:
+            print(f"cluster {cluster.address}: 2 workers as uid {set(cluster.client.run(os.getuid).values())}")
+            print(f"load average (1, 5, 15 min): {os.getloadavg()}, {os.cpu_count()} CPUs", flush=True)
+            if not args.skip_default:
+                default_pipeline(tmp, cluster, moto, options, args.repeats)
+            overhead(tmp, cluster, options)
+        finally:
+            cluster.close()
+            moto.terminate()
+            moto.wait()
+
+
+if __name__ == "__main__":
+    main()

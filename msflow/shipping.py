@@ -1,0 +1,447 @@
+"""Shipping jobs to workers that share nothing with the project but the store and a Python environment.
+
+A worker on another machine cannot read the project folder, so a job sent to a Dask scheduler carries no paths:
+
+- **Code by content.** The project's code that the run's stages need (every module of each stage's import closure,
+  and the data files stages declare in ``Stage.resources``) is put into the store as content-addressed blobs, plus
+  one small *code tree* (relative path -> content hash) whose own hash names it. The job carries that hash; the
+  worker rebuilds the tree once in its cache (``worker_cache``), imports the stage from there and, before running,
+  re-fingerprints the stage's import closure and compares it with the key's ``code.modules``: code edited between
+  key and shipping is refused, never computed under the old key.
+- **Data files by content.** An ``Input.files`` input becomes blobs (a file: its bytes, whose hash is the one in the
+  key; a folder: a JSON tree of its files' hashes, whose hash is the folder's hash in the key). The worker rebuilds
+  each under its cache with its original file name, so stages see ordinary paths.
+- **The environment is checked, not assumed.** The key holds the Python version and the versions of the
+  distributions the code imports; a worker whose environment differs refuses the job with a ``UserError`` naming
+  the worker and each difference, instead of computing a different result under the same key.
+
+Blobs live under ``blobs/`` of the store (an object store, or a store folder on a shared file system). They are
+immutable and named by the xxh3-128 of their content, so a run uploads only what the store does not have yet and
+a worker checks every blob it reads.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+import tempfile
+import threading
+import uuid
+from collections.abc import Iterable
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
+
+from msflow.errors import UserError
+from msflow.hashing import bytes_hash, canonical_json, file_hash, json_hash
+from msflow.jobs import Job, JobInput
+
+if TYPE_CHECKING:
+    from msflow.plan import StagePlan
+    from msflow.stage import Files
+    from msflow.stores.objects import Objects
+
+
+# ---------------------------------------------------------------------------------------------------------- blobs
+class Blobs(Protocol):
+    """Content-addressed, immutable blobs beside a store's artifacts."""
+
+    def has(self, digest: str) -> bool: ...
+    def put(self, digest: str, data: bytes) -> None: ...
+    def get_many(self, digests: list[str]) -> dict[str, bytes | None]: ...
+
+
+def blob_path(digest: str) -> str:
+    """Where a blob lives, relative to the store's root."""
+    return f"blobs/{digest[:2]}/{digest}"
+
+
+class ObjectBlobs:
+    """Blobs on an object store (``s3://...``, any fsspec URL), through the store's object primitives."""
+
+    def __init__(self, objects: Objects):
+        self.objects = objects
+
+    def has(self, digest: str) -> bool:
+        return bool(self.objects.list(blob_path(digest)))
+
+    def put(self, digest: str, data: bytes) -> None:
+        self.objects.put(blob_path(digest), data)
+
+    def get_many(self, digests: list[str]) -> dict[str, bytes | None]:
+        found = self.objects.get_many([blob_path(d) for d in digests])
+        return {d: found[blob_path(d)] for d in digests}
+
+
+class FolderBlobs:
+    """Blobs in a store folder (a local or shared POSIX file system)."""
+
+    def __init__(self, root: Path):
+        self.root = root
+
+    def has(self, digest: str) -> bool:
+        return (self.root / blob_path(digest)).is_file()
+
+    def put(self, digest: str, data: bytes) -> None:
+        from msflow.atomic import write_atomic
+
+        path = self.root / blob_path(digest)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_atomic(path, data)
+
+    def get_many(self, digests: list[str]) -> dict[str, bytes | None]:
+        found: dict[str, bytes | None] = {}
+        for digest in digests:
+            try:
+                found[digest] = (self.root / blob_path(digest)).read_bytes()
+            except FileNotFoundError:
+                found[digest] = None
+        return found
+
+
+def open_blobs(url: str, options: dict[str, Any]) -> Blobs:
+    """The blobs of the store at ``url`` (the job's ``store`` and ``store_options``)."""
+    if url.startswith("file://"):
+        url = url[len("file://") :]
+    if "://" in url:
+        from msflow.stores.objects import make_objects
+
+        return ObjectBlobs(make_objects(url, options))
+    return FolderBlobs(Path(url))
+
+
+def fetch_verified(blobs: Blobs, digests: list[str]) -> dict[str, bytes]:
+    """Blobs by hash; a missing blob, or one whose content does not hash to its name, is an error."""
+    found = blobs.get_many(sorted(set(digests)))
+    out = {}
+    for digest, data in found.items():
+        if data is None:
+            raise UserError(f"blob {digest} is missing from the store; run again from the project to upload it")
+        if bytes_hash(data) != digest:
+            raise UserError(f"blob {digest} in the store is corrupt (its content hashes differently)")
+        out[digest] = data
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------------- client
+@dataclass
+class CodeTree:
+    """The project code a run's stages need: relative path -> content hash, and where each file is here."""
+
+    files: dict[str, str]
+    sources: dict[str, Path]
+
+    @property
+    def document(self) -> dict[str, Any]:
+        return {"code": dict(sorted(self.files.items()))}
+
+    @property
+    def digest(self) -> str:
+        return json_hash(self.document)
+
+
+def code_tree(root: Path, plans: Iterable[StagePlan]) -> CodeTree:
+    """Every module in the stages' import closures and every declared resource, relative to the project root
+    (modules of development packages outside it: relative to their package's folder, as fingerprints name them)."""
+    from msflow.fingerprint import CodeIndex
+
+    index = CodeIndex(root)
+    sources: dict[str, Path] = {}
+    for plan in plans:
+        for rel in plan.code["modules"]:
+            sources[rel] = module_source(index, root, rel)
+        for name, rel in plan.interface.get("resources", {}).items():
+            path = root / rel
+            if Path(rel).is_absolute() or rel.startswith("../"):
+                path, rel = Path(rel).resolve(), resource_rel(plan, name, Path(rel).resolve())
+            sources[rel] = path
+    files = {rel: file_hash(path) for rel, path in sorted(sources.items())}
+    return CodeTree(files, sources)
+
+
+def resource_rel(plan: StagePlan, name: str, path: Path) -> str:
+    """Where a resource outside the project root sits in the code tree: relative to the folder its stage's modules
+    were imported from (a development package's folder), found as the nearest folder above it that holds them;
+    stages locate resources relative to their own modules, so the tree must keep that layout."""
+    anchor = next(iter(plan.code["modules"]), None)
+    for parent in path.parents:
+        if anchor is not None and (parent / anchor).is_file():
+            return path.relative_to(parent).as_posix()
+    raise UserError(
+        f"{plan.uses} reads the data file {path} (resource '{name}') from outside its code's folder, so it cannot "
+        "be shipped to the Dask workers: keep resources beside the stage's package",
+        stage=plan.name,
+        field="uses",
+    )
+
+
+def module_source(index: Any, root: Path, rel: str) -> Path:
+    """The file of a fingerprinted module: in the project, or in a development package's folder."""
+    path = root / rel
+    if path.is_file():
+        return path
+    top = rel.split("/")[0].removesuffix(".py")
+    folder = index.source_root(top)
+    if folder is not None and (Path(folder) / rel).is_file():
+        return Path(folder) / rel
+    raise UserError(f"cannot find the module file {rel} to ship to the Dask workers")
+
+
+class Shipper:
+    """Rewrites jobs for workers that cannot read the project: code and data files become blobs in the store.
+
+    ``trees`` maps a project root to the code tree of the run's stages there (computed on first use). Blobs known
+    to be in the store are remembered, so each is checked or uploaded once per run."""
+
+    def __init__(self, trees: Any):
+        self.trees = trees
+        self.known: set[str] = set()
+        self.lock = threading.Lock()
+
+    def ship(self, job: Job) -> Job:
+        with self.lock:
+            blobs = open_blobs(job.store, job.store_options)
+            tree = self.trees(job.project_root)
+            self.upload_code(blobs, tree)
+            inputs = {
+                name: self.ship_files(blobs, job, name, entry) if entry is not None and entry.kind == "files" else entry
+                for name, entry in job.inputs.items()
+            }
+        return replace(job, project_root="", code=tree.digest, inputs=inputs)
+
+    def upload_code(self, blobs: Blobs, tree: CodeTree) -> None:
+        """The code tree's files, then the tree itself (so a tree in the store implies its files are)."""
+        if tree.digest in self.known or blobs.has(tree.digest):
+            self.known.add(tree.digest)
+            return
+        for rel, digest in tree.files.items():
+            self.upload_file(blobs, digest, tree.sources[rel], f"project file {rel}")
+        blobs.put(tree.digest, canonical_json(tree.document).encode())
+        self.known.add(tree.digest)
+
+    def upload_file(self, blobs: Blobs, digest: str, path: Path, what: str) -> None:
+        if digest in self.known or blobs.has(digest):
+            self.known.add(digest)
+            return
+        data = path.read_bytes()
+        if bytes_hash(data) != digest:
+            raise UserError(f"{what} changed during the run; run again", file=str(path))
+        blobs.put(digest, data)
+        self.known.add(digest)
+
+    def ship_files(self, blobs: Blobs, job: Job, name: str, entry: JobInput) -> JobInput:
+        """A data-files input as blobs: each labelled file (or folder tree) by the content hash the key holds."""
+        part = ((job.key_parts or {}).get("inputs") or {}).get(name) or {}
+        hashes: dict[str, str] = part.get("files", {})
+        names, folders = [], []
+        for label, path in entry.files:
+            digest = hashes[label]
+            where = f"stage '{job.stage}' inputs.{name}.{label}"
+            if os.path.isdir(path):
+                self.upload_folder(blobs, digest, Path(path), where)
+                folders.append(label)
+            else:
+                self.upload_file(blobs, digest, Path(path), f"the data file of {where}")
+            names.append((label, Path(path).name))
+        return replace(entry, files=tuple(names), blobs=dict(hashes), folders=tuple(folders))
+
+    def upload_folder(self, blobs: Blobs, digest: str, folder: Path, where: str) -> None:
+        """A folder input: its files, then its tree ``{"folder": {relpath: hash}}`` (hashed as the key hashed it)."""
+        if digest in self.known or blobs.has(digest):
+            self.known.add(digest)
+            return
+        entries = folder_entries(folder)
+        document = {"folder": {rel: file_hash(folder / rel) for rel in entries}}
+        if json_hash(document) != digest:
+            raise UserError(f"the data folder of {where} changed during the run; run again", file=str(folder))
+        for rel, file_digest in document["folder"].items():
+            self.upload_file(blobs, file_digest, folder / rel, f"{rel} in the data folder of {where}")
+        blobs.put(digest, canonical_json(document).encode())
+        self.known.add(digest)
+
+
+def folder_entries(folder: Path) -> list[str]:
+    """A folder input's files as the key sees them (msflow.hashing.FileHashMemo): relative paths, hidden skipped."""
+    found = []
+    for dirpath, dirnames, files in os.walk(folder):
+        dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
+        for name in sorted(files):
+            if not name.startswith("."):
+                found.append(os.path.relpath(os.path.join(dirpath, name), folder).replace(os.sep, "/"))
+    return found
+
+
+# ---------------------------------------------------------------------------------------------------------- worker
+def worker_cache() -> Path:
+    """Where a worker keeps shipped code and data: ``MSFLOW_WORKER_CACHE``, else the Dask worker's own local
+    directory (removed with the worker), else a folder of this user's in the temporary directory."""
+    configured = os.environ.get("MSFLOW_WORKER_CACHE")
+    if configured:
+        return Path(configured)
+    try:
+        from distributed import get_worker
+
+        return Path(get_worker().local_directory) / "msflow"
+    except (ImportError, ValueError):
+        return Path(tempfile.gettempdir()) / f"msflow-worker-{os.getuid()}"
+
+
+def worker_name() -> str:
+    """This worker: a Dask worker's address, else ``<host> pid <pid>``."""
+    try:
+        from distributed import get_worker
+
+        return str(get_worker().address)
+    except (ImportError, ValueError):
+        import socket
+
+        return f"{socket.gethostname()} pid {os.getpid()}"
+
+
+_ENVIRONMENT_MEMO: dict[str, Any] = {}
+_CHECKED_CODE: set[tuple[str, str]] = set()
+
+
+def check_store(job: Job) -> None:
+    """A store folder must exist here too: a project's ``.msflow`` is on the machine that started the run."""
+    location = job.store[len("file://") :] if job.store.startswith("file://") else job.store
+    if "://" in location:
+        return
+    if not os.path.isdir(location) or not os.access(location, os.W_OK | os.X_OK):
+        raise UserError(
+            f"worker {worker_name()} cannot use the store folder {location} (missing or not writable there): with "
+            "--scheduler, use a store every machine reaches (s3://..., or a folder on a file system mounted at the "
+            "same path everywhere)",
+            stage=job.stage,
+            field="store",
+        )
+
+
+def check_environment(job: Job) -> None:
+    """Refuse a job whose key was made for another environment: key scheme, Python version, distributions."""
+    from msflow.fingerprint import distribution_versions
+    from msflow.plan import PYTHON
+    from msflow.version import KEY_SCHEME
+
+    parts = job.key_parts or {}
+    code = parts.get("code") or {}
+    problems = []
+    if parts.get("scheme") != KEY_SCHEME:
+        problems.append(f"msflow key scheme {KEY_SCHEME} here, {parts.get('scheme')} in the key (update msflow)")
+    if code.get("python") != PYTHON:
+        problems.append(f"Python {PYTHON} here, {code.get('python')} in the key")
+    wanted: dict[str, str] = code.get("dists") or {}
+    here = distribution_versions(sorted(wanted), _ENVIRONMENT_MEMO)
+    problems += [
+        f"'{name}': {here[name]} here, {want} in the key" for name, want in wanted.items() if here[name] != want
+    ]
+    if problems:
+        raise UserError(
+            f"worker {worker_name()} refuses the job: its Python environment differs from the one the cache key "
+            f"was computed in ({'; '.join(problems)}). Install the same versions on the workers",
+            stage=job.stage,
+            field="uses",
+        )
+
+
+def shipped_code(job: Job) -> Path:
+    """The folder to import a shipped job's stage from: the code tree rebuilt in the worker's cache, its stage's
+    import closure checked against the key's fingerprint (once per process)."""
+    assert job.code is not None
+    from msflow.plan import ensure_importable
+
+    cache = worker_cache()
+    root = materialise_code(job.code, open_blobs(job.store, job.store_options), cache / "code")
+    for entry in list(sys.path):  # code trees of earlier runs: their modules must not resolve any more
+        if entry.startswith(str(cache / "code") + "/") and entry != str(root):
+            sys.path.remove(entry)
+    ensure_importable(root)
+    check_fingerprint(job, root)
+    return root
+
+
+def materialise_code(digest: str, blobs: Blobs, folder: Path) -> Path:
+    """The code tree ``digest`` as files under ``folder/digest`` (built once, atomically)."""
+    target = folder / digest
+    if target.is_dir():
+        return target
+    document = fetch_verified(blobs, [digest])[digest]
+    files: dict[str, str] = json.loads(document)["code"]
+    contents = fetch_verified(blobs, list(files.values()))
+    write_tree(target, {rel: contents[d] for rel, d in files.items()})
+    return target
+
+
+def write_tree(target: Path, files: dict[str, bytes]) -> None:
+    """Write files into a fresh sibling folder, then rename it to ``target`` (a concurrent writer's stays)."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.parent / f".{target.name}.{uuid.uuid4().hex[:8]}.tmp"
+    try:
+        for rel, data in files.items():
+            path = tmp / rel
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(data)
+        try:
+            os.rename(tmp, target)
+        except OSError:
+            if not target.exists():
+                raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def check_fingerprint(job: Job, root: Path) -> None:
+    """The shipped stage's import closure must fingerprint as the key says (else the code changed meanwhile)."""
+    if (job.code or "", job.uses) in _CHECKED_CODE:
+        return
+    from msflow.fingerprint import CodeIndex
+
+    wanted = ((job.key_parts or {}).get("code") or {}).get("modules")
+    found = CodeIndex(root).closure(job.uses.partition(":")[0])["modules"]
+    if wanted is not None and found != wanted:
+        changed = sorted(set(found.items()) ^ set(wanted.items()))
+        raise UserError(
+            f"the shipped code does not match the cache key's fingerprint ({', '.join(sorted({r for r, _ in changed}))} "
+            "differ): was the code edited during the run? Run again",
+            stage=job.stage,
+            field="uses",
+        )
+    _CHECKED_CODE.add((job.code or "", job.uses))
+
+
+def shipped_files(entry: JobInput, job: Job) -> Files:
+    """A shipped data-files input: each blob rebuilt under the worker's cache with its original file name."""
+    from msflow.stage import Files
+
+    assert entry.blobs is not None
+    blobs = open_blobs(job.store, job.store_options)
+    folder = worker_cache() / "files"
+    paths = {
+        label: materialise_file(entry.blobs[label], name, label in entry.folders, blobs, folder)
+        for label, name in entry.files
+    }
+    return Files(paths, entry.fields)
+
+
+def materialise_file(digest: str, name: str, is_folder: bool, blobs: Blobs, folder: Path) -> Path:
+    """``folder/digest/name``: a file's bytes, or a folder tree's files (built once, atomically)."""
+    target = folder / digest / name
+    if target.exists():
+        return target
+    data = fetch_verified(blobs, [digest])[digest]
+    if not is_folder:
+        write_file(target, data)
+        return target
+    entries: dict[str, str] = json.loads(data)["folder"]
+    contents = fetch_verified(blobs, list(entries.values()))
+    write_tree(target, {rel: contents[d] for rel, d in entries.items()})
+    return target
+
+
+def write_file(target: Path, data: bytes) -> None:
+    from msflow.atomic import write_atomic
+
+    target.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(target, data)
