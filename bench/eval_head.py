@@ -34,13 +34,16 @@ COLUMNS = [
     ("ba_shifted", "shifted", "{:.3f}"),
     ("ba_random", "random", "{:.3f}"),
     ("ba_path", "path", "{:.3f}"),
+    ("ba_synth_over_real", "synth / real (goal >= 80%)", "{:.0%}"),
     ("ba_rel", "(synth-random)/(real-random)", "{:.2f}"),
-    ("win_synth_random", "synth > random", "{:.0%}"),
-    ("win_real_random", "real > random", "{:.0%}"),
+    ("win_synth_random", "synth > random (goal >= 75%)", "{:.0%}"),
+    ("win_real_random", "real > random (real > shifted): calibration", "{:.0%}"),
     ("ba_accent_rel", "accents: rel.", "{:.2f}"),
     ("corr_synth", "corr. with real (path)", "{:.2f}"),
     ("amplitude_synth", "amplitude / real", "{:.2f}"),
+    ("range_ok_synth", "p5..p95 inside the real p5..p95, as the goal reads (random real)", "{:.0%}"),
     ("range_fit_synth", "range fit: all speakers (real halves); speakers the database knows", "{:.0%}"),
+    ("range_fit_angles", "range fit yaw / pitch / roll", "{}"),
     ("drift_synth", "drift deg (real)", "{:.1f}"),
     ("join_acc_max", "max join acc. deg/s2", "{:.0f}"),
     ("join_acc_over_p99", "worst take: max join / p99 (jitter-free p99)", "{:.2f}"),
@@ -97,6 +100,10 @@ def cell(metrics: dict, key: str, fmt: str) -> str:
         value += f" ({metrics.get('drift_real', float('nan')):.1f})"
     if key == "joins_over_p99_synth":
         value += f" ({metrics.get('joins_over_p99_real', float('nan')):.0%})"
+    if key == "win_real_random":
+        value += f" ({metrics.get('win_real_shifted', float('nan')):.0%})"
+    if key == "range_ok_synth":
+        value += f" ({metrics.get('range_ok_random', float('nan')):.0%})"
     if key == "range_fit_synth":
         value += f" ({metrics.get('range_fit_halves', float('nan')):.0%})"
         known = int(metrics.get("speakers_known", 0))
@@ -109,6 +116,12 @@ def cell(metrics: dict, key: str, fmt: str) -> str:
     if key == "join_acc_max":
         value += f" (p99 {metrics.get('real_acc_p99', float('nan')):.0f})"
     return value
+
+
+def angle_metrics(evaluation) -> dict:
+    """The synthesis's range fit per angle (yaw / pitch / roll), over the speakers (the stage keeps it as an array)."""
+    fit = np.asarray(evaluation["range_fit"])[:, 0]  # (speakers, angles) of the synthesis
+    return {"range_fit_angles": " / ".join(f"{v:.0%}" for v in fit.mean(axis=0))}
 
 
 def lowpassed(angles: np.ndarray, fps: float, cutoff: float | None) -> np.ndarray:
@@ -164,7 +177,13 @@ def calibrate_range(by_speaker: dict, span_tolerance: float, margin: float) -> l
 
     results = {"own real motion, other half": [], "x 0.5": [], "x 0.7": [], "x 1.5": [], "still": []}
     results |= {"other speakers": [], "other speakers, centred and scaled to the speaker's spread": []}
+    unknown = "own real motion, centred and scaled to the median other speaker's spread (a held-out speaker's guess)"
+    results[unknown] = []
+    spread = lambda m: np.ptp(percentile_range(m), axis=0)
     for speaker, motion in by_speaker.items():
+        others = np.median([spread(m) for x, m in by_speaker.items() if x != speaker], axis=0)
+        guess = np.exp(np.mean(np.log(others / np.maximum(spread(motion), 1e-12))))  # one gain for the angles
+        results[unknown].append(fit((motion - motion.mean(axis=0)) * guess, motion))
         half = len(motion) // 2
         a, b = motion[:half] - motion[:half].mean(axis=0), motion[half:] - motion[half:].mean(axis=0)
         results["own real motion, other half"] += [fit(a, b), fit(b, a)]
@@ -175,7 +194,6 @@ def calibrate_range(by_speaker: dict, span_tolerance: float, margin: float) -> l
             if other == speaker:
                 continue
             results["other speakers"].append(fit(theirs, motion))
-            spread = lambda m: np.ptp(percentile_range(m), axis=0)
             scaled = (theirs - theirs.mean(axis=0)) * spread(motion) / np.maximum(spread(theirs), 1e-12)
             results["other speakers, centred and scaled to the speaker's spread"].append(fit(scaled, motion))
     rows = ["| motion against a speaker's real p5..p95 | speaker-angles that fit |", "|---|---|"]
@@ -229,7 +247,8 @@ def main(argv=None):
                 result = msflow.run(ROOT / pipeline, overrides=overrides + args.set)
             except msflow.UserError as exc:
                 sys.exit(f"error: {exc} (for the shared clips elsewhere: --shared PATH)")
-            rows.append((name, result.artifact(stage).metrics))
+            evaluation = result.artifact(stage)
+            rows.append((name, {**evaluation.metrics, **angle_metrics(evaluation)}))
             print(f"{name}: run {result.run_id}", file=sys.stderr)
     print("| data | " + " | ".join(title for _, title, _ in COLUMNS) + " |")
     print("|---" * (len(COLUMNS) + 1) + "|")

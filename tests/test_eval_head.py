@@ -74,6 +74,22 @@ def test_head_beats_at_a_random_phase_score_chance():
     assert 0.4 < chance_alignment(period, sigma) < 0.6
 
 
+def test_phase_shifted_motion_loses_its_alignment_with_the_shift():
+    """The same nods, exactly on the onsets and then shifted in time: the score falls as exp(-d^2 / 2 sigma^2)
+    with the shift d while it is under half the onset period, and the aligned motion beats every shifted copy."""
+    period, sigma = 0.5, 0.1
+    onsets = np.arange(1, 20) * period + 0.1
+    score = lambda shift: beat_alignment(
+        kinematic_beats(strokes(onsets + shift, 10.4), FPS, smoothing=0.05), onsets, sigma
+    )
+    aligned = score(0.0)
+    for frames in (2, 4, 6):  # shifts of whole frames, so the beats land exactly on the shifted times
+        shift = frames / FPS
+        assert score(shift) == pytest.approx(np.exp(-(shift**2) / (2 * sigma**2)), abs=0.02)
+        assert score(shift) < aligned
+    assert aligned > 0.99 and score(period / 2) < 0.1
+
+
 def test_beat_alignment_edge_cases():
     assert beat_alignment(np.zeros(0), np.array([1.0]), 0.1) == 0.0  # a still head aligns with nothing
     assert beat_alignment(np.array([1.0]), np.zeros(0), 0.1) == 0.0
