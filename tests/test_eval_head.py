@@ -184,7 +184,7 @@ def synthesis(tracks, *, holdout: str, mirror: bool = True, timing: str = "strok
     in ``blend`` is the paper's (motion and amplitude as recorded, uniform resampling)."""
     paper = blend.pop("paper", False)
     db_params = {"mirror": mirror, **({"jitter_cutoff": None} if paper else {})}
-    blend = {"timing": timing, **({"amplitude": "database"} if paper else {}), **blend}
+    blend = {"timing": timing, **({"amplitude": "database", "output_cutoff": None} if paper else {}), **blend}
     headdb = run_stage(TrackedHeadDb, db_params, {"tracks": tracks})
     db_pitch = run_stage(Pitch, {}, {"source": headdb})
     test_pitch = run_stage(Pitch, {}, {"source": tracks})

@@ -339,7 +339,7 @@ def test_an_utterance_found_in_the_database_gets_its_own_motion_back(phrases, tr
     test_tracks = tracking_artifact(phrases[3:4], fps=30.0)
     take_pitch = run_stage(Pitch, {}, {"source": test_tracks})
     tr = run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": take_pitch})
-    paper = {"timing": "segment", "amplitude": "database"}
+    paper = {"timing": "segment", "amplitude": "database", "output_cutoff": None}
     run = run_stage(MotionBlend, paper, {"trellis": tr, "database": headdb, "reference": test_tracks})
     real = reference_angles(test_tracks, phrases[3].label, 1, 30.0)
     assert run.arrays["angles"].shape == real.shape
@@ -573,6 +573,26 @@ def test_the_amplitude_target_never_comes_from_the_held_out_take(phrases):
     loud_real = spread(reference_angles(tracks, loud[0], 8, 30.0))
     assert loud_real > 3 * quiet_real
     assert spread(angles[seq == 0]) == pytest.approx(quiet_real, rel=0.1)
+
+
+def test_output_filter_keeps_strokes_and_removes_sped_up_peaks():
+    """The output low-pass passes a 1.5 Hz nod unchanged in size and timing and removes an 8 Hz wobble (a 3 Hz
+    nod played 2.7x faster); at or above the Nyquist rate it leaves the motion alone."""
+    from stages.head.motion_blend import lowpass_channels
+
+    fps = 30.0
+    t = np.arange(300) / fps
+    nod = np.radians(5.0) * np.sin(2 * np.pi * 1.5 * t)
+    wobble = np.radians(1.0) * np.sin(2 * np.pi * 8.0 * t + 0.3)
+    channels = np.zeros((len(t), 6))
+    channels[:, 1] = nod + wobble
+    out = lowpass_channels(channels, fps, 4.0)
+    inner = slice(30, -30)  # away from the ends, where the filter starts up
+    np.testing.assert_allclose(out[inner, 1], nod[inner], atol=np.radians(0.1))  # 8 Hz: gain 1 / (1 + 2^8)
+    assert np.abs(out[:, [0, 2, 3, 4, 5]]).max() == 0.0
+    np.testing.assert_array_equal(lowpass_channels(channels, 6.0, 4.0), channels)
+    with pytest.raises(ValidationError):
+        MotionBlend.Params(output_cutoff=0)
 
 
 def test_rest_anchor_removes_slow_wander(leave_one_out, database):

@@ -743,6 +743,12 @@ class MotionBlendParams(Stage.Params):
         "speaker's); 'match': that, and the output centred on the rest pose with its spread set to the target",
     )
     max_amplitude_gain: float = Field(3.0, ge=1, description="'match': largest gain (either way) on the output")
+    output_cutoff: float | None = Field(
+        4.0,
+        gt=0,
+        description="zero-phase low-pass (Hz) of the stitched motion, against the acceleration of segments played "
+        "faster than recorded (None: off, the paper)",
+    )
     rest_anchor: float = Field(
         0.0, ge=0, description="remove wander slower than this many seconds, back to the rest pose (0: off)"
     )
@@ -831,6 +837,7 @@ def stitch_options(params, db: DatabaseMotion, trellis) -> dict:
         "max_stretch": params.max_stretch,
         "amplitude": params.amplitude,
         "max_amplitude_gain": params.max_amplitude_gain,
+        "output_cutoff": params.output_cutoff,
         "rest_anchor": params.rest_anchor,
     }
 
@@ -998,6 +1005,7 @@ def synthesise(
     amplitude: str = "database",
     rest_anchor: float = 0.0,
     max_amplitude_gain: float = 3.0,
+    output_cutoff: float | None = None,
     **blend,
 ) -> list[Stitched]:
     """The stitched motion of each test utterance of a trellis artifact (a still head where silent). ``timing``:
@@ -1006,8 +1014,9 @@ def synthesise(
     (``segment_knots``). ``amplitude="speaker"`` scales every source speaker's motion to the test speaker's
     spread (``amplitude_source``), ``"match"`` also centres the output on the rest pose and scales it to that
     spread (``match_amplitude``, gain at most ``max_amplitude_gain``); ``rest_anchor`` > 0 removes wander slower
-    than that many seconds (a Gaussian low-pass of that sd), so the head keeps returning to its rest pose.
-    ``blend``: keyword arguments of ``stitch_segments``."""
+    than that many seconds (a Gaussian low-pass of that sd), so the head keeps returning to its rest pose;
+    ``output_cutoff`` (Hz) low-passes the stitched motion (``lowpass_channels``). ``blend``: keyword arguments of
+    ``stitch_segments``."""
     path = TrellisPath.of(trellis)
     shared_events = database_events(trellis, db, timing) if timing != "segment" else None
     out = []
@@ -1044,6 +1053,8 @@ def synthesise(
             stitched.channels = stitched.channels - low_pass(stitched.channels, rest_anchor * fps)
         if amplitude == "match" and len(rows):
             stitched.channels = match_amplitude(stitched.channels, target, max_amplitude_gain)
+        if output_cutoff and len(rows):
+            stitched.channels = lowpass_channels(stitched.channels, fps, output_cutoff)
         out.append(stitched)
     return out
 
@@ -1059,6 +1070,23 @@ def amplitude_source(
     spreads = speaker_spreads(db, path.allowed(u), duration)
     target = amplitude_target(spreads, path.speakers[u])
     return db.scaled(amplitude_gains(db, spreads, target)), target
+
+
+def lowpass_channels(channels: np.ndarray, fps: float, cutoff: float) -> np.ndarray:
+    """Zero-phase Butterworth low-pass of the output channels at ``cutoff`` Hz (the database's jitter filter,
+    stages.head.database.lowpass_motion, applied to the stitched motion).
+
+    Resampling a database segment onto a shorter test segment, and more so the timing warp that moves a stroke,
+    plays the motion faster: a rate r multiplies its acceleration by r^2 and moves its frequencies up by r, so a
+    nod recorded at 3 Hz comes out at 6-8 Hz where the warp plays a piece at 2-2.7x. The filter takes those
+    sped-up peaks (and any velocity kink left at a join) back into the band of real head strokes; the strokes'
+    timing, below the cutoff, stays."""
+    from scipy.signal import butter, sosfiltfilt
+
+    if cutoff >= 0.5 * fps or len(channels) < 3:
+        return channels
+    sos = butter(4, cutoff / (0.5 * fps), output="sos")
+    return sosfiltfilt(sos, channels, axis=0, padlen=min(3 * (2 * len(sos) + 1), len(channels) - 1))
 
 
 def low_pass(channels: np.ndarray, sd_frames: float) -> np.ndarray:
