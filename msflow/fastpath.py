@@ -10,7 +10,8 @@ warnings of cached stages) and writes a small run record pointing at the full on
 
 It imports only the standard library (no typer, pydantic, yaml, numpy or stage code). Any doubt - an option it
 does not know, a missing or unreadable state, one changed signature - hands over to the full path, which
-recomputes keys and decides (and saves a fresh state).
+recomputes keys and decides (and saves a fresh state). MSFLOW_FASTPATH_DEBUG=1 prints why it handed over;
+MSFLOW_FASTPATH=0 turns it off.
 """
 
 from __future__ import annotations
@@ -159,6 +160,8 @@ def doubt(reason: str) -> None:
 def try_noop(args: list[str]) -> int | None:
     """Exit code of ``msflow ARGS`` when it is a no-op ``run`` or ``status`` answered from the saved state;
     None (use the full path) on any doubt."""
+    if os.environ.get("MSFLOW_FASTPATH") == "0":  # benchmarks and debugging: always the full path
+        return None
     try:
         parsed = parse_args(args)
         if parsed is None:

@@ -12,6 +12,7 @@ import yaml
 from conftest import cli_env, run_cli
 
 import msflow
+from msflow.cli import main
 
 
 def lock_keys(proj, name="pipeline.lock"):
@@ -48,18 +49,18 @@ PROBES = ["flip_byte", "delete_chunk", "truncate_manifest", "empty_folder"]
 
 
 @pytest.mark.parametrize("probe", PROBES)
-def test_a_corrupt_artifact_is_caught_by_show_export_and_run_which_repairs_it(numproject, tmp_path, probe):
-    assert run_cli(numproject, "run", "-q").returncode == 0
+def test_a_corrupt_artifact_is_caught_by_show_export_and_run_which_repairs_it(
+    numproject, tmp_path, monkeypatch, capsys, probe
+):
+    msflow.run(numproject / "pipeline.yaml")
     key = lock_keys(numproject)["src"]
     damage(artifact_dir(numproject, key), probe)
 
-    for args in (["show", "src"], ["show", "src.x"], ["export", "src.x", tmp_path / "x.npy"]):
-        result = run_cli(numproject, *args)
-        assert result.returncode == 1, (args, result.stdout, result.stderr)
-        assert key in result.stderr and "msflow verify" in result.stderr and "Traceback" not in result.stderr
+    for args in (["show", "src.x"], ["export", "src.x", tmp_path / "x.npy"]):
+        code, _, err = cli(numproject, monkeypatch, capsys, *args)
+        assert code == 1, (args, err)
+        assert key in err and "msflow verify" in err and "Traceback" not in err
     assert not (tmp_path / "x.npy").exists() and list(tmp_path.glob(".x.npy*")) == []
-    status = run_cli(numproject, "status")  # reads manifests, never data (a no-op stays cheap)
-    assert status.returncode == 0 and ("corrupt" in status.stdout) == probe.endswith(("manifest", "folder"))
 
     # a run that reads it (scaled reruns with a new factor) moves it aside and recomputes it
     run = run_cli(numproject, "run", "-q", "-S", "scaled.factor=5")
@@ -70,14 +71,25 @@ def test_a_corrupt_artifact_is_caught_by_show_export_and_run_which_repairs_it(nu
     out = msflow.run(numproject / "pipeline.yaml", ["scaled.factor=5"])
     assert out.executed == [] and np.array_equal(out.load("src.x"), np.arange(6.0))
     assert np.array_equal(out.load("scaled.y"), 5 * np.arange(6.0))
-    assert run_cli(numproject, "verify").returncode == 0
+    assert all(out.session.store.verify(k) == [] for k in out.session.store.keys())
     records = [json.loads(p.read_text()) for p in (numproject / ".msflow" / "runs").glob("*.json")]
     (repair,) = [r for record in records for r in record.get("repairs", [])]
     assert repair["key"] == key and repair["stage"] == "src"
 
 
+def test_status_reads_manifests_but_no_data(numproject):
+    msflow.run(numproject / "pipeline.yaml")
+    keys = lock_keys(numproject)
+    damage(artifact_dir(numproject, keys["src"]), "flip_byte")
+    damage(artifact_dir(numproject, keys["csv"]), "truncate_manifest")
+    status = run_cli(numproject, "status")
+    assert status.returncode == 0 and "Traceback" not in status.stderr
+    assert "src     cached" in status.stdout and "csv     will run" in status.stdout
+    assert "its artifact is corrupt" in status.stdout, status.stdout
+
+
 def test_a_no_op_run_repairs_a_truncated_manifest_and_verify_reports_chunk_damage(numproject):
-    assert run_cli(numproject, "run", "-q").returncode == 0
+    msflow.run(numproject / "pipeline.yaml")
     keys = lock_keys(numproject)
     manifest = artifact_dir(numproject, keys["total"]) / "zarr.json"
     manifest.write_bytes(manifest.read_bytes()[:-7])
@@ -201,25 +213,37 @@ def test_reprs_are_compact(numproject):
     assert "5 ran" in repr(result)
 
 
-def test_show_and_export_take_overrides(numproject, tmp_path):
-    assert run_cli(numproject, "run", "-q", "-S", "src.n=3").returncode == 0
-    assert run_cli(numproject, "run", "-q").returncode == 0
-    shown = run_cli(numproject, "show", "src.x", "-S", "src.n=3")
-    assert shown.returncode == 0 and "(3,)" in shown.stdout and "(current)" in shown.stdout, shown.stdout
-    exported = run_cli(numproject, "export", "src.x", tmp_path / "x.npy", "-S", "src.n=3")
-    assert exported.returncode == 0 and np.load(tmp_path / "x.npy").shape == (3,)
-    assert "(6,)" in run_cli(numproject, "show", "src.x").stdout
+def cli(proj, monkeypatch, capsys, *args):
+    """The command line in this process (for behaviour that does not depend on a fresh process)."""
+    monkeypatch.chdir(proj)
+    code = main([str(a) for a in args])
+    out = capsys.readouterr()
+    return code, out.out, out.err
 
 
-def test_gc_keeps_the_report_figures_of_kept_runs(numproject, tmp_path):
+def test_show_and_export_take_overrides(numproject, tmp_path, monkeypatch, capsys):
+    msflow.run(numproject / "pipeline.yaml", ["src.n=3"])
+    msflow.run(numproject / "pipeline.yaml")
+    code, shown, _ = cli(numproject, monkeypatch, capsys, "show", "src.x", "-S", "src.n=3")
+    assert code == 0 and "(3,)" in shown and "(current)" in shown, shown
+    code, _, _ = cli(numproject, monkeypatch, capsys, "export", "src.x", tmp_path / "x.npy", "-S", "src.n=3")
+    assert code == 0 and np.load(tmp_path / "x.npy").shape == (3,)
+    assert "(6,)" in cli(numproject, monkeypatch, capsys, "show", "src.x")[1]
+
+
+def test_gc_keeps_the_report_figures_of_kept_runs(numproject, tmp_path, monkeypatch, capsys):
     (numproject / "figs.yaml").write_text("version: 1\nstages:\n  pic:\n    uses: numstages.basic:Pictured\n")
-    assert run_cli(numproject, "run", "figs.yaml", "-q").returncode == 0
-    first = run_cli(numproject, "report", "-f", "figs.yaml", "-o", tmp_path / "a.html", "-j", "1")
-    assert first.returncode == 0 and "1 rendered" in first.stderr, first.stderr
-    gc = run_cli(numproject, "gc", "figs.yaml", "--keep-runs", "1")
-    assert gc.returncode == 0 and "removed 0 artifacts" in gc.stdout, gc.stdout
-    again = run_cli(numproject, "report", "-f", "figs.yaml", "-o", tmp_path / "b.html", "-j", "1")
-    assert again.returncode == 0 and "0 rendered" in again.stderr, again.stderr
-    assert run_cli(numproject, "run", "figs.yaml", "-q", "-S", "pic.size=3").returncode == 0
-    gone = run_cli(numproject, "gc", "figs.yaml", "--keep-runs", "1")  # the old stage and its figure go
-    assert "removed 2 artifacts" in gone.stdout, gone.stdout
+    msflow.run(numproject / "figs.yaml")
+    code, _, err = cli(
+        numproject, monkeypatch, capsys, "report", "-f", "figs.yaml", "-o", tmp_path / "a.html", "-j", "1"
+    )
+    assert code == 0 and "1 rendered" in err, err
+    code, out, _ = cli(numproject, monkeypatch, capsys, "gc", "figs.yaml", "--keep-runs", "1")
+    assert code == 0 and "removed 0 artifacts" in out, out
+    code, _, err = cli(
+        numproject, monkeypatch, capsys, "report", "-f", "figs.yaml", "-o", tmp_path / "b.html", "-j", "1"
+    )
+    assert code == 0 and "0 rendered" in err, err
+    msflow.run(numproject / "figs.yaml", ["pic.size=3"])
+    code, out, _ = cli(numproject, monkeypatch, capsys, "gc", "figs.yaml", "--keep-runs", "1")
+    assert "removed 2 artifacts" in out, out  # the old stage and its figure go
