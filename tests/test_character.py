@@ -699,7 +699,7 @@ def test_fit_identity_recovers_known_coefficients(ict):
 
 
 def test_fit_identity_needs_a_facemesh_and_excludes_given_coefficients():
-    with pytest.raises(UserError, match="needs the performer's tracking"):
+    with pytest.raises(UserError, match="needs the performer's FaceMesh tracking"):
         run_stage(GltfCharacter, {"fit_identity": True}, {})
     with pytest.raises(ValueError, match="not both"):
         GltfCharacter.Params(fit_identity=True, identity={"identity000": 1.0})
