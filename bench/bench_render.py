@@ -6,9 +6,9 @@ its morph weights with head and eye motion.
 
 Prints (1) the rasteriser alone on one core, per image size: CPU milliseconds per frame and frames per CPU
 second, beside OpenCV's fillConvexPoly painter's algorithm (flat shading, no z-buffer) as a reference; (2) the
-preview path for each level ("low": half size, "full") and each thread count: wall-clock frames per second, CPU
-milliseconds per frame (user + sys, all threads) and the load average while it ran (other processes on the
-machine slow the wall clock, not the CPU figure). The frames must be identical whatever the thread count: the
+preview path for each level ("low": half size, "full") and each worker count: wall-clock frames per second, CPU
+milliseconds per frame (user + sys, all threads and worker processes) and the load average while it ran (other processes on the
+machine slow the wall clock, not the CPU figure). The frames must be identical whatever the worker count: the
 script checks it. (3) the export stage end to end on a synthetic one-minute take (1800 frames at 30 fps).
 """
 
@@ -30,8 +30,11 @@ import numpy as np  # noqa: E402
 
 
 def cpu_seconds() -> float:
-    usage = resource.getrusage(resource.RUSAGE_SELF)
-    return usage.ru_utime + usage.ru_stime
+    """User + system CPU of this process and of its finished children (the preview's worker processes)."""
+    return sum(
+        usage.ru_utime + usage.ru_stime
+        for usage in (resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN))
+    )
 
 
 def painter_render(vertices, triangles, size, view, colors):
@@ -108,7 +111,7 @@ def rasteriser_table(character, sizes: list[int], repeats: int) -> None:
 
 
 def preview_table(character, frames: int, jobs_list: list[int], size: int) -> None:
-    from stages.export.preview import encode_mp4, rendered_frames
+    from stages.export.preview import PROCESS_MIN_FRAMES, encode_mp4, rendered_frames
     from stages.export.rig import find_eyes
     from stages.geometry.render import CharacterRenderer
 
@@ -116,6 +119,8 @@ def preview_table(character, frames: int, jobs_list: list[int], size: int) -> No
     eyes = find_eyes(character["neutral"], character["triangles"], character["triangle_groups"], groups)
     poses = animation(frames, character.meta["target_names"])
     print(f"\n(2) preview path (pose + render + H.264 encode), {frames} frames, {os.cpu_count()} CPUs")
+    pool = "processes" if frames >= PROCESS_MIN_FRAMES else "threads"
+    print(f"(jobs > 1: worker {pool}, as the export stage uses them for a take of {frames} frames)")
     print(f"{'level':>5} {'px':>4} {'jobs':>4} {'wall f/s':>9} {'CPU ms/frame':>13} {'load':>5} {'MP4 KiB':>8}")
     for level, side in (("low", size // 2), ("full", size)):
         renderer = CharacterRenderer.from_artifact(character, size=side, eyes=[(e.vertices, e.center) for e in eyes])
@@ -132,7 +137,7 @@ def preview_table(character, frames: int, jobs_list: list[int], size: int) -> No
                 f"{level:>5} {side:>4} {jobs:>4} {frames / wall:>9.1f} {cpu / frames * 1e3:>13.1f} "
                 f"{os.getloadavg()[0]:>5.1f} {len(data) / 1024:>8.0f}"
             )
-    print(f"(codec {codec}; identical videos for every thread count)")
+    print(f"(codec {codec}; identical videos for every worker count)")
 
 
 def export_table(character, frames: int, jobs_list: list[int]) -> None:

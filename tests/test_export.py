@@ -828,6 +828,24 @@ def test_preview_is_the_same_whatever_the_jobs(character):
         Export.Params(preview="medium")
 
 
+def test_preview_frames_drawn_by_worker_processes_equal_the_serial_ones(character):
+    """Long takes render in spawned worker processes: the same pixels, in order, as one thread draws them."""
+    from stages.export.preview import Poses, rendered_frames
+    from stages.geometry.render import CharacterRenderer
+    from stages.geometry.rotations import euler_to_quat
+
+    renderer = CharacterRenderer.from_artifact(character.view(), size=32)
+    t = np.arange(24) / 30.0
+    names = character.view().meta["target_names"]
+    weights = np.zeros((24, len(names)), np.float32)
+    weights[:, 0] = np.linspace(0, 1, 24)
+    poses = Poses(weights, euler_to_quat(0.3 * np.sin(4 * t), 0.1 * t, 0 * t))
+    serial = list(rendered_frames(renderer, poses, jobs=1))
+    pooled = list(rendered_frames(renderer, poses, jobs=2, block=5, processes=True))
+    assert len(pooled) == 24 and all(np.array_equal(a, b) for a, b in zip(serial, pooled))
+    assert not all(np.array_equal(serial[0], f) for f in serial[1:])  # the frames differ: order is checked
+
+
 def test_a_bad_frame_rate_is_refused_before_anything_runs(default_run):
     """Params hold the rule: `msflow status` names stage and field, exit 2, and runs nothing."""
     proj, _ = default_run

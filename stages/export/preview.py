@@ -2,14 +2,17 @@
 PyAV, the take's audio muxed in.
 
 Frames are rendered in blocks and handed to the encoder as they come, so memory does not grow with the take; with
-``jobs`` > 1 the blocks are rendered by a pool of threads (the rasteriser's numpy work releases the GIL) and
-encoded in order. A frame's pixels depend on its pose only, so the video is the same whatever ``jobs`` is.
+``jobs`` > 1 the blocks are rendered by a pool of worker processes on long takes (``PROCESS_MIN_FRAMES``), else by
+a pool of threads, and encoded in order. A frame's pixels depend on its pose only, so the video is the same
+whatever ``jobs`` is and whichever pool drew it.
 """
 
 from __future__ import annotations
 
+import functools
 import io
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from fractions import Fraction
 
@@ -148,27 +151,76 @@ def render_poses(renderer, poses: Poses) -> list[np.ndarray]:
     return [renderer(**poses.frame(i)) for i in range(len(poses))]
 
 
-def rendered_frames(renderer, poses: Poses, *, jobs: int = 1, block: int = 16) -> Iterator[np.ndarray]:
+#: shortest take (frames) rendered by worker processes when ``jobs`` > 1: a spawned worker costs about half a CPU
+#: second to start (numpy, scipy, the character), which a longer take repays; shorter takes use threads
+PROCESS_MIN_FRAMES = 300
+
+
+def rendered_frames(
+    renderer, poses: Poses, *, jobs: int = 1, block: int = 16, processes: bool | None = None
+) -> Iterator[np.ndarray]:
     """Every frame in order, rendered ``block`` frames at a time.
 
-    With ``jobs`` > 1, ``jobs`` threads render the blocks (the rasteriser's work is numpy operations on whole
-    arrays, which release the GIL); at most 2 * jobs blocks wait for the encoder, so memory stays bounded
-    whatever the take's length. A frame's image depends only on its pose, so the frames are the same whatever
-    ``jobs`` is.
+    With ``jobs`` > 1, ``jobs`` workers render the blocks and at most 2 * jobs blocks wait for the encoder, so
+    memory stays bounded whatever the take's length. The workers are processes when ``processes`` is true (default:
+    takes of at least ``PROCESS_MIN_FRAMES`` frames, unless this process is a daemon, e.g. a Dask worker, which may
+    not start children), else threads. Threads share the interpreter: the rasteriser's many small numpy calls
+    contend for the GIL, and two threads drew 1.45x the frames of one (``bench/bench_render.py``), where two
+    processes scale with the cores. A frame's image depends only on its pose, so the frames are the same whatever
+    ``jobs`` and the pool are.
     """
     starts = range(0, len(poses), block)
     if jobs <= 1:
         for start in starts:
             yield from render_poses(renderer, poses.block(start, start + block))
         return
+    if processes is None:
+        processes = len(poses) >= PROCESS_MIN_FRAMES and not _is_daemon()
     from collections import deque
-    from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(max_workers=jobs) as pool:
+    with _render_pool(renderer, jobs, processes) as (pool, render_block):
         pending: deque = deque()
         for start in starts:
-            pending.append(pool.submit(render_poses, renderer, poses.block(start, start + block)))
+            pending.append(pool.submit(render_block, poses.block(start, start + block)))
             if len(pending) >= 2 * jobs:
                 yield from pending.popleft().result()
         while pending:
             yield from pending.popleft().result()
+
+
+def _is_daemon() -> bool:
+    import multiprocessing
+
+    return bool(multiprocessing.current_process().daemon)
+
+
+@contextmanager
+def _render_pool(renderer, jobs: int, processes: bool):
+    """(executor, function rendering one block of poses) for ``jobs`` threads or spawned processes."""
+    from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+
+    if not processes:
+        with ThreadPoolExecutor(max_workers=jobs) as pool:
+            yield pool, functools.partial(render_poses, renderer)
+        return
+    import multiprocessing
+
+    # spawn, not fork: the parent may run other threads (the runner's, the encoder's), which fork would copy
+    # mid-operation
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(jobs, mp_context=context, initializer=_keep_renderer, initargs=(renderer,)) as pool:
+        yield pool, render_block_in_worker
+
+
+#: the renderer of a worker process, set once by the pool's initializer
+_worker_renderer = None
+
+
+def _keep_renderer(renderer) -> None:
+    global _worker_renderer
+    _worker_renderer = renderer
+
+
+def render_block_in_worker(poses: Poses) -> np.ndarray:
+    """A block of frames (n, H, W, 3) drawn by this worker process's renderer (one array: one transfer)."""
+    return np.stack(render_poses(_worker_renderer, poses))
