@@ -231,8 +231,10 @@ def hold_if_asked(name):
     folder = os.environ.get("NUMSTAGES_HOLD")
     if not folder:
         return
-    with open(os.path.join(folder, "ready"), "w") as fh:
+    partial = os.path.join(folder, f"ready.{os.getpid()}")
+    with open(partial, "w") as fh:
         fh.write(f"{name} {os.getpid()}\n")
+    os.replace(partial, os.path.join(folder, "ready"))  # the test reads the line as soon as the file exists
     while not os.path.exists(os.path.join(folder, "release")):
         time.sleep(0.01)
 
