@@ -1,6 +1,6 @@
 """Dask cluster figures (issue 17): the default pipeline on two workers that cannot read the project folder.
 
-    python bench/bench_dask.py [--repeats 3] [--skip-default]
+    python bench/bench_dask.py [--repeats 3] [--parts default,overhead,malloc]
 
 The cluster is the stand-in of tests/test_dask.py: a ``dask scheduler`` and two ``dask worker`` processes (one
 thread each, ``--preload-nanny msflow.dask_setup``) started in their own folder, in a mount namespace that hides
@@ -17,7 +17,13 @@ the project copies and this checkout, as ``nobody`` when run as root. Two stores
 2. Per-stage overhead: a chain of 40 trivial stages (each reads the previous one's array) from an empty store, so
    every stage waits for the one before: wall time per stage = the full round trip of one stage (client
    scheduling, shipping, scheduler, worker, store, outcome) besides the stage itself (~0.1 ms of numpy), and the
-   worker-side part (``seconds - compute_seconds`` in the run record).
+   worker-side part (``seconds - compute_seconds`` in the run record). ``local -j 1, S3`` runs the chain in this
+   process against the same S3 server: the store's own share of the cluster's S3 figure.
+
+3. The nanny's ``MALLOC_TRIM_THRESHOLD_``: the default pipeline on a 2-worker LocalCluster with the variable set
+   and nothing undoing it, with Dask's default undone in each worker by ``msflow.worker.tune_malloc``, and unset
+   (msflow's LocalCluster and ``--preload-nanny msflow.dask_setup``), interleaved: the stages' CPU seconds. (Part 1
+   gives the cluster's side: its stages' CPU against a local run's.)
 
 The machine's load (1-minute load average, before and after each measurement) is printed with the figures: on a
 shared machine only the ratios measured side by side and the CPU times mean much.
@@ -149,7 +155,6 @@ def same_outputs(record: dict, reference: dict) -> bool:
 def default_pipeline(tmp: Path, cluster, moto, options: dict, repeats: int) -> None:
     import msflow
 
-    os.umask(0)  # the folder store is shared with the workers' user
     store_folder = cluster.env_dir / "store"
     rows = []
     for i in range(repeats):
@@ -214,58 +219,97 @@ def print_stage_table(rows: list[dict]) -> None:
 
 
 def chain_pipeline(folder: Path, n: int) -> Path:
+    """``s0`` (a Source) then ``s1 .. s{n-1}``, each scaling the previous output (distinct factors: distinct keys)."""
     shutil.copytree(ROOT / "tests" / "numproject", folder, ignore=shutil.ignore_patterns(".msflow", "*.lock"))
     body = "  s0:\n    uses: numstages.basic:Source\n    params: {n: 1000}\n"
-    body += "".join(
-        f"  s{i}:\n    uses: numstages.scaling:Scale\n    inputs: {{x: s{i - 1}.y}}\n    params: {{factor: 1.0}}\n"
-        if i > 1
-        else "  s1:\n    uses: numstages.scaling:Scale\n    inputs: {x: s0.x}\n    params: {factor: 1.0}\n"
-        for i in range(1, n)
-    )
+    for i in range(1, n):
+        source = "s0.x" if i == 1 else f"s{i - 1}.y"
+        body += f"  s{i}:\n    uses: numstages.scaling:Scale\n    inputs: {{x: {source}}}\n"
+        body += f"    params: {{factor: {1 + i / 1000}}}\n"
     (folder / "chain.yaml").write_text("version: 1\nstages:\n" + body)
     return folder / "chain.yaml"
 
 
-def overhead(tmp: Path, cluster, options: dict, n: int = 40) -> None:
+def overhead(tmp: Path, cluster, moto, options: dict, n: int = 40) -> None:
     import msflow
 
     print(f"\nper-stage overhead: a chain of {n} trivial stages (each waits for the previous one):")
     configs = {
         "local -j 1 (in process)": ({}, None),
+        "local -j 1, S3": ({}, "s3"),  # the store's own part of the cluster's S3 figure
         "local -j 2 (process pool)": ({"jobs": 2}, None),
         "cluster, S3": ({"scheduler": cluster.address}, "s3"),
         "cluster, folder": ({"scheduler": cluster.address}, "folder"),
     }
-    for label, (kwargs, store) in configs.items():
-        walls, worker_side = [], []
-        for attempt in range(3):
-            pipeline = chain_pipeline(tmp / f"chain-{label.split()[0]}-{store}-{attempt}", n)
+    for index, (label, (kwargs, store)) in enumerate(configs.items()):
+        walls, worker_side, cpus = [], [], []
+        for attempt in range(5):
+            pipeline = chain_pipeline(tmp / f"chain-{index}-{attempt}", n)
             if store == "s3":
                 use_store(pipeline, f"s3://{new_bucket(options)}/c", options)
             elif store == "folder":
                 shutil.rmtree(cluster.env_dir / "chainstore", ignore_errors=True)
                 use_store(pipeline, str(cluster.env_dir / "chainstore"))
+            pids = [p.pid for p in cluster.procs]
+            cpu = (self_cpu(), cpu_of(pids), cpu_of([moto.pid]))
             started = time.perf_counter()
             result = msflow.run(pipeline, **kwargs)
             walls.append((time.perf_counter() - started) / n * 1000)
-            stages = result.record["stages"].values()
+            after = (self_cpu(), cpu_of(pids), cpu_of([moto.pid]))
+            cpus.append(tuple((b - a) / n * 1000 for a, b in zip(cpu, after)))
+            stages = [s for s in result.record["stages"].values() if s["state"] == "ran"]
+            assert len(stages) == n, "every stage of the chain must run"
             worker_side.append(statistics.median((s["seconds"] - s["compute_seconds"]) * 1000 for s in stages))
         print(
-            f"  {label:26s} {min(walls):6.1f} ms per stage end to end (best of 3; all {[round(w) for w in walls]}), "
-            f"worker side {min(worker_side):5.1f} ms, load {os.getloadavg()[0]:.1f}"
+            f"  {label:26s} {min(walls):6.1f} ms per stage end to end (best of 5; all {[round(w) for w in walls]}), "
+            f"worker side {min(worker_side):5.1f} ms; CPU per stage: "
+            f"{' + '.join(f'{v:.1f}' for v in min(cpus, key=sum))} ms (client + cluster + moto); "
+            f"load {os.getloadavg()[0]:.1f}"
         )
+
+
+def malloc_trim(tmp: Path, repeats: int) -> None:
+    """Stage CPU on LocalCluster workers spawned with and without the nanny's malloc-trim default."""
+    import msflow
+    import msflow.dask_executor as dask_executor
+
+    ours = dict(dask_executor.WORKER_CONFIG)
+    key = "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_"
+    variants = {
+        # 65537: the nanny's setting in effect, but not the value msflow.worker.tune_malloc undoes
+        "set, no safety net": {**ours, key: 65537},
+        "nanny default + tune_malloc": {k: v for k, v in ours.items() if k != key},
+        "msflow (unset)": ours,
+    }
+    cpu: dict[str, list[dict]] = {label: [] for label in variants}
+    for i in range(repeats):
+        for v, (label, config) in enumerate(variants.items()):
+            # a LocalCluster's nannies live in this process and write their pre-spawn variables into its
+            # environment (distributed.nanny), where every later nanny picks them up: start each variant clean
+            os.environ.pop("MALLOC_TRIM_THRESHOLD_", None)
+            dask_executor.WORKER_CONFIG = config
+            project = copy_repo(tmp / f"malloc-{i}-{v}")
+            result = msflow.run(project / "pipeline.yaml", executor="dask", jobs=2)
+            cpu[label].append({n: s["cpu_seconds"] for n, s in result.record["stages"].items()})
+    dask_executor.WORKER_CONFIG = ours
+    print(f"\nstage CPU seconds on a 2-worker LocalCluster (median of {repeats}), load {os.getloadavg()[0]:.1f}:")
+    for label, runs in cpu.items():
+        total = statistics.median(sum(r.values()) for r in runs)
+        top = {n: round(statistics.median(r[n] for r in runs), 2) for n in ("track_train", "keymorphs", "export")}
+        print(f"  {label:24s} all stages {total:5.2f} s; {top}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--skip-default", action="store_true")
+    parser.add_argument("--parts", default="default,overhead,malloc")
     args = parser.parse_args()
     import logging
 
     logging.getLogger("distributed").setLevel(logging.ERROR)
     from test_dask import IsolatedCluster
 
+    os.umask(0)  # the folder stores are shared with the workers' user (nobody)
     moto, options = start_moto()
     os.environ["AWS_EC2_METADATA_DISABLED"] = "true"
     with tempfile.TemporaryDirectory(prefix="msflow-bench-dask-") as tmp_name:
@@ -275,9 +319,13 @@ def main() -> None:
         try:
             print(f"cluster {cluster.address}: 2 workers as uid {set(cluster.client.run(os.getuid).values())}")
             print(f"load average (1, 5, 15 min): {os.getloadavg()}, {os.cpu_count()} CPUs", flush=True)
-            if not args.skip_default:
+            parts = args.parts.split(",")
+            if "default" in parts:
                 default_pipeline(tmp, cluster, moto, options, args.repeats)
-            overhead(tmp, cluster, options)
+            if "overhead" in parts:
+                overhead(tmp, cluster, moto, options)
+            if "malloc" in parts:
+                malloc_trim(tmp, args.repeats)
         finally:
             cluster.close()
             moto.terminate()

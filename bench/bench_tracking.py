@@ -13,8 +13,11 @@ DIR defaults to ../shared/data/talking-heads beside the project (skipped when ab
    converted to BGR by FFmpeg) with the same model (face_mesh_v1), and Face Landmarker v2 against face_mesh_v1;
    nose-bridge jitter (mean second difference) of both models;
 4. eyes: blinks found by ``eyes.detect_blinks`` on each configuration's eye aperture (face_mesh_v1 alone: its
-   own lids, measured the same way) against blinks marked by hand, frame by frame, on contact sheets of the eye region (``HAND_BLINKS``); the rest
-   position of the iris in the eye (median over every clip's open-eye frames; ``eyes.REST_OFFSET``).
+   own lids, measured the same way) against blinks marked by hand, frame by frame, on contact sheets of the eye
+   region (``HAND_BLINKS``), with the open and closed aperture levels; for each eye pass (``EYE_PASSES``: Face
+   Landmarker v2, the iris model) the rest position of the iris in the eye (median over every clip's open-eye
+   frames; ``eyes.REST_OFFSETS``); the iris pass's gaze against the v2 pass's; the CPU per frame of each pass
+   alone. ``--sections 4`` runs only this section.
 
 Tracks are cached per clip and model under --out/tracks (``--fresh`` recomputes them).
 """
@@ -37,16 +40,22 @@ import numpy as np  # noqa: E402
 from msflow.testing import run_stage  # noqa: E402
 from stages.tracking import FaceMesh  # noqa: E402
 from stages.tracking.assemble import inter_ocular  # noqa: E402
-from stages.tracking.eyes import detect_blinks, eye_aperture, eye_offsets  # noqa: E402
+from stages.tracking.eyes import REST_OFFSETS, angles_to_offsets, detect_blinks, eye_aperture  # noqa: E402
+from stages.tracking.facemesh import eye_pass_points  # noqa: E402
+from stages.tracking.planes import BgrImage  # noqa: E402
 
 CREMA = sorted((ROOT / "data" / "crema-d").glob("*.flv"))
 #: FaceMesh configurations compared: the default (face_mesh_v1 landmarks, eyes from a Face Landmarker v2 pass on
 #: the same face region), Face Landmarker v2 as the landmark model, face_mesh_v1 alone
 CONFIGS = {
     "default": {},
+    "eyes_landmarker_v2": {"eyes": "landmarker_v2"},
+    "eyes_iris": {"eyes": "iris"},
     "face_landmarker_v2": {"model": "face_landmarker_v2"},
     "face_mesh_v1": {"eyes": False},
 }
+#: the eye passes compared in section 4 (face_mesh_v1 landmarks plus a second model for the eyes)
+EYE_PASSES = {"eyes_landmarker_v2": "landmarker_v2", "eyes_iris": "iris"}
 #: blinks marked by hand on eye-region contact sheets: clip -> (frames looked at, or None for all;
 #: [first, last] closed-or-closing frames, inclusive)
 HAND_BLINKS = {
@@ -187,11 +196,21 @@ def agreement(clips: list[Path], cache: Path, fresh: bool) -> None:
         )
 
 
-def eyes(clips: list[Path], cache: Path, fresh: bool) -> None:
-    print("4. blinks against the hand-marked ones (a hand blink is found when a detected one overlaps it):")
+def closed_levels(aperture: np.ndarray, hand: list[tuple[int, int]]) -> list[float]:
+    """Each hand-marked blink's most closed aperture (mean of both eyes)."""
+    a = aperture.mean(axis=1)
+    return [float(a[first : last + 1].min()) for first, last in hand]
+
+
+def blink_recall(clips: list[Path], cache: Path, fresh: bool) -> None:
+    """Blinks found against the hand-marked ones, with each configuration's open and closed aperture levels."""
     by_stem = {c.stem: c for c in clips}
+    print("   configuration        recall          false blinks    aperture open (median) / closed (median of blinks)")
     for config in CONFIGS:
+        if config == "default":
+            continue
         marked = found = detected = false = 0
+        opened, closed = [], []
         for stem, (limit, hand) in HAND_BLINKS.items():
             if stem not in by_stem:
                 continue
@@ -208,23 +227,103 @@ def eyes(clips: list[Path], cache: Path, fresh: bool) -> None:
             found += sum(any(overlaps(h, b) for b in blinks) for h in hand)
             detected += len(blinks)
             false += sum(not any(overlaps(b, h) for h in hand) for b in blinks)
+            opened.append(float(np.median(aperture[arrays["valid"][:n]].mean(axis=1))))
+            closed += closed_levels(aperture, hand)
         print(
-            f"   {config:20s} recall {found}/{marked} = {found / max(marked, 1):.0%}, "
-            f"false blinks {false}/{detected} = {false / max(detected, 1):.0%}"
+            f"   {config:20s} {found:2d}/{marked} = {found / max(marked, 1):4.0%}   {false:2d}/{detected:2d} = "
+            f"{false / max(detected, 1):4.0%}      {np.median(opened):.3f} / {np.median(closed):.3f}"
         )
-    medians = []
-    for clip in clips:
-        arrays = track(clip, "face_landmarker_v2", cache, fresh)
-        points = np.concatenate([arrays["mesh"], arrays["iris"]], axis=1).astype(np.float64)
-        aperture = eye_aperture(points).mean(axis=1)
-        open_eyes = arrays["valid"] & (aperture > 0.6 * np.median(aperture))
-        e = np.median(eye_offsets(points)[open_eyes], axis=0)
-        medians.append([e[0, 0], -e[1, 0], e[0, 1], e[1, 1]])  # temporal L, R; up L, R
-    m = np.array(medians)
+
+
+def open_eyes(arrays: dict) -> np.ndarray:
+    """Tracked frames whose eyes are open (aperture above 0.6 x the take's median): gaze means something there."""
+    aperture = arrays["eye_aperture"].mean(axis=1)
+    return arrays["valid"] & (aperture > 0.6 * np.median(aperture))
+
+
+def rest_positions(clips: list[Path], cache: Path, fresh: bool) -> None:
+    """Each eye pass's iris rest position: the median over clips of each clip's median offset (open eyes)."""
+    for config, kind in EYE_PASSES.items():
+        medians = []
+        for clip in clips:
+            arrays = track(clip, config, cache, fresh)
+            e = np.median(angles_to_offsets(arrays["gaze"], rest=REST_OFFSETS[kind])[open_eyes(arrays)], axis=0)
+            medians.append([e[0, 0], -e[1, 0], e[0, 1], e[1, 1]])  # temporal L, R; up L, R
+        m = np.array(medians)
+        print(
+            f"   {config:20s} iris rest position over {len(clips)} clips (median of per-clip medians, eye widths): "
+            f"towards the outer corner {np.median(m[:, :2]):.3f}, up {np.median(m[:, 2:]):.3f} "
+            f"(eyes.REST_OFFSETS['{kind}'] = {REST_OFFSETS[kind]})"
+        )
+
+
+def gaze_agreement(clips: list[Path], cache: Path, fresh: bool, shift: int = 25) -> None:
+    """Gaze of the iris pass against the v2 pass (deg RMS over open-eye frames, both eyes, yaw and pitch); the
+    same with each clip's median difference taken off (what differs beyond a constant offset); against the v2
+    pass shifted by ``shift`` frames (how far apart two unrelated gazes of the clip are); the v2 pass's own
+    spread (RMS about its median)."""
     print(
-        f"   iris rest position over {len(clips)} clips (median of per-clip medians, eye widths): towards the "
-        f"outer corner {np.median(m[:, :2]):.3f}, up {np.median(m[:, 2:]):.3f} (eyes.REST_OFFSET)"
+        f"   gaze, iris pass vs v2 pass, deg RMS yaw, pitch | clip offsets removed | v2 shifted {shift} frames | "
+        "v2 spread:"
     )
+    for name, group in (
+        ("CREMA-D", [c for c in clips if c in CREMA]),
+        ("talking heads", [c for c in clips if c not in CREMA]),
+    ):
+        same, moving, shifted, spread = [], [], [], []
+        for clip in group:
+            iris, v2 = track(clip, "eyes_iris", cache, fresh), track(clip, "eyes_landmarker_v2", cache, fresh)
+            ok = open_eyes(iris) & open_eyes(v2)
+            a, b = iris["gaze"].astype(np.float64), v2["gaze"].astype(np.float64)
+            same.append((a - b)[ok])
+            moving.append((a - b)[ok] - np.median((a - b)[ok], axis=0))
+            spread.append((b - np.median(b[ok], axis=0))[ok])
+            k = min(shift, len(a) // 2)
+            both = ok[k:] & ok[:-k]
+            shifted.append((a[k:] - b[:-k])[both])
+        if not group:
+            continue
+
+        def rms(parts):
+            d = np.concatenate(parts)
+            return np.sqrt(np.mean(d**2, axis=(0, 1)))
+
+        cells = " | ".join(f"{r[0]:4.1f}, {r[1]:4.1f}" for r in map(rms, (same, moving, shifted, spread)))
+        print(f"   {name:14s} ({len(group):2d} clips): {cells}")
+
+
+def eye_pass_cpu(clips: list[Path]) -> None:
+    """CPU per frame of each eye pass alone (one thread), on the face_mesh_v1 tracks of the clips' frames."""
+    from stages.tracking.facemesh import FaceMeshTracker, new_eye_pass
+    from stages.tracking.stages import DETECTOR_MODEL, IRIS_MODEL, LANDMARK_MODEL, LANDMARKER_V2_MODEL
+    from stages.tracking.video import read_frames
+
+    tracker = FaceMeshTracker(DETECTOR_MODEL, LANDMARK_MODEL)
+    work = []
+    for clip in clips:
+        tracker.reset()
+        for frame in read_frames(clip)[1]:
+            roi = tracker.roi
+            points, _ = tracker.step(frame)
+            if roi is not None and points is not None:
+                work.append((BgrImage(frame), roi, points))
+    passes = {"landmarker_v2": LANDMARKER_V2_MODEL, "iris": IRIS_MODEL}
+    for kind, path in passes.items():
+        model = new_eye_pass(kind, path)
+        eye_pass_points(model, *work[0])  # warm-up
+        started = time.process_time()
+        for item in work:
+            eye_pass_points(model, *item)
+        cpu = time.process_time() - started
+        print(f"   eye pass {kind:14s} {1000 * cpu / len(work):5.2f} ms CPU per frame ({len(work)} CREMA-D frames)")
+
+
+def eyes(clips: list[Path], cache: Path, fresh: bool) -> None:
+    print("4. eyes: blinks against the hand-marked ones (a hand blink is found when a detected one overlaps it):")
+    blink_recall(clips, cache, fresh)
+    rest_positions(clips, cache, fresh)
+    gaze_agreement(clips, cache, fresh)
+    eye_pass_cpu(CREMA)
 
 
 def main() -> None:
@@ -232,17 +331,23 @@ def main() -> None:
     ap.add_argument("--talking-heads", type=Path, default=ROOT.parent / "shared" / "data" / "talking-heads")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "out" / "tracking")
     ap.add_argument("--fresh", action="store_true", help="recompute cached tracks")
+    ap.add_argument("--sections", type=int, nargs="+", default=[1, 2, 3, 4], help="sections to run (default all)")
     args = ap.parse_args()
     cache = args.out / "tracks"
     cache.mkdir(parents=True, exist_ok=True)
     heads = args.talking_heads if args.talking_heads.is_dir() else None
     clips = CREMA + (sorted(heads.glob("*.mp4")) if heads else [])
+    sections = set(args.sections)
     cv2.setNumThreads(1)
-    speed_per_core(args.out)
-    speed_high_resolution(heads, args.out)
+    if 1 in sections:
+        speed_per_core(args.out)
+    if 2 in sections:
+        speed_high_resolution(heads, args.out)
     cv2.setNumThreads(1)
-    agreement(clips, cache, args.fresh)
-    eyes(clips, cache, args.fresh)
+    if 3 in sections:
+        agreement(clips, cache, args.fresh)
+    if 4 in sections:
+        eyes(clips, cache, args.fresh)
 
 
 if __name__ == "__main__":

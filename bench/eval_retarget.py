@@ -30,6 +30,7 @@ COLUMNS = [
     ("shifted", "mouth_motion_error_iod_shifted", "{:.1%}"),
     ("mouth err, rest aligned", "mouth_neutral_error_iod", "{:.1%}"),
     ("mouth abs", "mouth_error_iod", "{:.1%}"),
+    ("mouth abs, own face pose", "mouth_face_posed_error_iod", "{:.1%}"),
     ("eyes err", "eyes_motion_error_iod", "{:.1%}"),
     ("brows err", "brows_motion_error_iod", "{:.1%}"),
     ("keyshape residual", "keyshape_residual_rms_iod", "{:.1%}"),
@@ -156,18 +157,31 @@ def identity(folders: list[str]) -> None:
         relative = os.path.relpath(Path(folder).resolve(), PIPELINE.parent)
         runs.append((Path(folder).name, msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_eval")))
     identities, ids = identity_landmark_deltas()
-    print("| run | take | mouth abs | abs, identity fitted | rest aligned | rest aligned, identity fitted |")
-    print("|---|---|---|---|---|---|")
+    print(
+        "| run | take | mouth abs | abs, identity fitted | abs, own face pose | own face pose, identity fitted "
+        "| rest aligned | rest aligned, identity fitted |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    pooled = {}
     for name, result in runs:
         tracks, blend, character = (result.artifact(s) for s in ("capture_track", "capture_blend", "character"))
         for take, label in enumerate(tracks.meta["labels"]):
             plain, fitted = take_identity_errors(
                 tracks, blend, character, take, identities, ids, run_stage, RetargetEval
             )
-            print(
-                f"| {name} | {Path(label).name} | {plain['mouth_error_iod']:.1%} | {fitted['mouth_error_iod']:.1%} "
-                f"| {plain['mouth_neutral_error_iod']:.1%} | {fitted['mouth_neutral_error_iod']:.1%} |"
-            )
+            keys = ("mouth_error_iod", "mouth_face_posed_error_iod", "mouth_neutral_error_iod")
+            cells = [f"{m[k]:.1%}" for k in keys for m in (plain, fitted)]
+            print(f"| {name} | {Path(label).name} | " + " | ".join(cells) + " |")
+            frames = int(np.sum(np.asarray(tracks["sequence"]) == take))
+            for k in keys:  # pooled as the evaluation pools: RMS over all frames
+                for tag, m in (("", plain), (" fitted", fitted)):
+                    pooled.setdefault((name, k + tag), []).append((frames, m[k]))
+        cells = []
+        for k in keys:
+            for tag in ("", " fitted"):
+                n, e = np.array(pooled[(name, k + tag)]).T
+                cells.append(f"{np.sqrt((n * e**2).sum() / n.sum()):.1%}")
+        print(f"| {name} | all takes | " + " | ".join(cells) + " |")
 
 
 def identity_landmark_deltas():

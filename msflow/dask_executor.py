@@ -128,8 +128,13 @@ def identify(address: SchedulerAddress, timeout: float, deadline: float | None =
 
     try:
         reply = asyncio.run(asyncio.wait_for(ask(), timeout if deadline is None else deadline))
-    except (OSError, TimeoutError) as exc:
-        cause = f"no Dask handshake within {timeout:g}s" if isinstance(exc, TimeoutError) else str(exc)
+    except Exception as exc:  # whatever a foreign server's bytes make Dask's parser raise
+        if isinstance(exc, TimeoutError):
+            cause = f"no Dask handshake within {timeout:g}s"
+        elif isinstance(exc, OSError):
+            cause = str(exc) or type(exc).__name__
+        else:  # e.g. an HTTP server: its reply read as Dask frame lengths (a MemoryError of exabytes)
+            cause = "what it says is not Dask's protocol"
         raise UserError(
             f"cannot reach the Dask scheduler at {address.given}: the port answers, but {cause}; is this the "
             f"scheduler's port ({DEFAULT_PORT} by default; 8787 is the dashboard)?",
@@ -189,7 +194,7 @@ class DaskExecutor:
                 "the Dask executor needs dask.distributed: pip install 'msflow[dask]'", field="--executor"
             ) from None
         self.cluster = None
-        if scheduler:
+        if scheduler is not None:
             self.client = connect(parse_scheduler_address(scheduler), timeout)
             warn_if_no_workers(self.client, scheduler)
         else:
@@ -206,7 +211,7 @@ class DaskExecutor:
                     silence_logs=40,
                 )
             self.client = Client(self.cluster, set_as_default=False)
-        ship = bool(scheduler) or os.environ.get("MSFLOW_DASK_SHIP", "") not in ("", "0")
+        ship = scheduler is not None or os.environ.get("MSFLOW_DASK_SHIP", "") not in ("", "0")
         self.shipper = shipper if ship else None
         self.tracked: dict[str, Tracked] = {}
         self.lock = threading.Lock()
@@ -259,7 +264,10 @@ class DaskExecutor:
         return future
 
     def shutdown(self) -> None:
-        self.client.unsubscribe_topic("all")
+        import contextlib
+
+        with contextlib.suppress(Exception):  # the scheduler may be gone already
+            self.client.unsubscribe_topic("all")
         self.client.close()
         if self.cluster is not None:
             self.cluster.close()

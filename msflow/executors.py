@@ -108,8 +108,8 @@ def make_executor(
         raise UserError(f"-j must be at least 1, got {jobs}", field="-j")
     if timeout <= 0:
         raise UserError(f"--connect-timeout must be positive, got {timeout:g}", field="--connect-timeout")
-    if kind == "dask" or scheduler:
-        if scheduler:
+    if kind == "dask" or scheduler is not None:
+        if scheduler is not None:  # an empty one too (an unset variable): an error, not a silent local run
             from msflow.dask_executor import parse_scheduler_address
 
             parse_scheduler_address(scheduler)  # a malformed address fails now, before any stage runs

@@ -300,7 +300,7 @@ def worker_name() -> str:
         return f"{socket.gethostname()} pid {os.getpid()}"
 
 
-_ENVIRONMENT_MEMO: dict[str, Any] = {}
+_VERSIONS: dict[str, str] = {}  #: import name -> "dist==version" in this worker process
 _CHECKED_CODE: set[tuple[str, str]] = set()
 
 
@@ -333,7 +333,10 @@ def check_environment(job: Job) -> None:
     if code.get("python") != PYTHON:
         problems.append(f"Python {PYTHON} here, {code.get('python')} in the key")
     wanted: dict[str, str] = code.get("dists") or {}
-    here = distribution_versions(sorted(wanted), _ENVIRONMENT_MEMO)
+    missing = sorted(set(wanted) - set(_VERSIONS))
+    if missing:  # once per name and process: a process keeps the packages it imported, whatever pip does later
+        _VERSIONS.update(distribution_versions(missing, {}))
+    here = {name: _VERSIONS[name] for name in wanted}
     problems += [
         f"'{name}': {here[name]} here, {want} in the key" for name, want in wanted.items() if here[name] != want
     ]

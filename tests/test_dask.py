@@ -93,6 +93,7 @@ def test_local_cluster_workers_run_without_the_malloc_trim_default():
         ("tcp://127.0.0.1:notaport", "the port 'notaport' is not a number"),
         ("http://127.0.0.1:8787", "unknown scheme 'http://' (http:// is the dashboard's address)"),
         ("tcp://", "expected tcp://HOST:PORT"),
+        ("", "expected tcp://HOST:PORT"),
         ("tcp://127.0.0.1:99999", "the port 99999 is out of range"),
         ("tcp://host:8786/path", "expected tcp://HOST:PORT"),
     ],
@@ -110,11 +111,20 @@ def test_scheduler_addresses_default_to_tcp_and_port_8786():
     assert parse_scheduler_address(" tls://sched.example:8786 ").url == "tls://sched.example:8786"
 
 
-def test_malformed_scheduler_address_fails_before_any_stage_runs(numproject, tmp_path):
+def test_an_unknown_scheduler_host_is_named():
+    from msflow.dask_executor import probe
+
+    with pytest.raises(UserError) as info:
+        probe(parse_scheduler_address("tcp://no-such-host.invalid:8786"), 5)
+    assert "cannot reach the Dask scheduler at tcp://no-such-host.invalid:8786: unknown host" in str(info.value)
+
+
+@pytest.mark.parametrize("address", ["tcp://127.0.0.1:notaport", ""])  # "": an unset $SCHEDULER, not a local run
+def test_malformed_scheduler_address_fails_before_any_stage_runs(numproject, tmp_path, address):
     log = tmp_path / "log"
-    result = run_cli(numproject, "run", "--scheduler", "tcp://127.0.0.1:notaport", env={"NUMSTAGES_LOG": str(log)})
+    result = run_cli(numproject, "run", "--scheduler", address, env={"NUMSTAGES_LOG": str(log)})
     assert result.returncode == 2 and "Traceback" not in result.stderr
-    assert "invalid Dask scheduler address 'tcp://127.0.0.1:notaport'" in result.stderr
+    assert f"invalid Dask scheduler address '{address}'" in result.stderr
     assert executions(log) == []
 
 
@@ -142,6 +152,35 @@ def test_a_port_that_is_no_scheduler_is_a_clear_error(numproject):
         result = run_cli(numproject, "run", "--scheduler", address, "--connect-timeout", "2", "--force", "src")
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert f"cannot reach the Dask scheduler at {address}: the port answers, but no Dask handshake within 2s" in (
+        result.stderr
+    )
+
+
+def test_a_port_that_speaks_another_protocol_is_a_clear_error(numproject):
+    """A server that answers in its own protocol (here an HTTP proxy's 400, as one on this machine does for
+    unrouted addresses): its reply read as Dask frame lengths asked numpy for exabytes (a MemoryError traceback)."""
+    import socket
+    import threading
+
+    reply = b"HTTP/1.1 400 Bad Request\r\nconnection: close\r\ncontent-length: 0\r\n\r\n"
+
+    def answer(sock: socket.socket) -> None:
+        while True:
+            try:
+                conn, _ = sock.accept()
+            except OSError:  # closed: the test is over
+                return
+            with conn:
+                conn.sendall(reply)
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        sock.listen(8)
+        threading.Thread(target=answer, args=(sock,), daemon=True).start()
+        address = f"tcp://127.0.0.1:{sock.getsockname()[1]}"
+        result = run_cli(numproject, "run", "--scheduler", address, "--connect-timeout", "5", "--force", "src")
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert f"cannot reach the Dask scheduler at {address}: the port answers, but what it says is not Dask's" in (
         result.stderr
     )
 
@@ -407,9 +446,10 @@ def namespace_command() -> list[str]:
     ):
         if subprocess.run([*command, "true"], capture_output=True).returncode == 0:
             return command
-    pytest.fail(
-        "cannot create a mount namespace (unshare --mount, also in a user namespace): the stand-in for "
-        "another machine needs root or unprivileged user namespaces (sysctl kernel.unprivileged_userns_clone=1)"
+    missing_tool(
+        "cannot create a mount namespace (unshare --mount, also in a user namespace), so no worker can be kept from "
+        "reading the project folder: run as root, or allow unprivileged user namespaces "
+        "(sysctl -w kernel.unprivileged_userns_clone=1 user.max_user_namespaces=15000)"
     )
 
 
@@ -452,6 +492,7 @@ def copy_repo(dest: Path) -> Path:
     return dest
 
 
+@pytest.mark.cluster
 def test_the_workers_are_another_machine(cluster, numproject):
     """What the stand-in guarantees: another user (as root), another folder, no project, no checkout."""
     uids = cluster.client.run(os.getuid)
@@ -477,6 +518,7 @@ def downstream(pipeline, name):
     return found
 
 
+@pytest.mark.cluster
 def test_default_pipeline_on_the_cluster_matches_local(cluster, s3, default_run, tmp_path):
     local_dir, local = default_run
     proj = copy_repo(tmp_path / "proj")
@@ -498,6 +540,7 @@ def test_default_pipeline_on_the_cluster_matches_local(cluster, s3, default_run,
         assert (proj / published).read_bytes() == (local_dir / published).read_bytes()
 
 
+@pytest.mark.cluster
 def test_sweep_on_the_cluster_matches_local(cluster, s3, numproject, tmp_path):
     from msflow.sweep import expand_variants, run_sweep
 
@@ -516,6 +559,7 @@ def test_sweep_on_the_cluster_matches_local(cluster, s3, numproject, tmp_path):
         }
 
 
+@pytest.mark.cluster
 def test_worker_killed_mid_stage_on_the_cluster(cluster, s3, numproject):
     bucket = s3.bucket()
     (numproject / "hold.yaml").write_text(

@@ -10,7 +10,8 @@ first aligned to that model by a 3D similarity on the rigid landmarks), then com
   the character's *neutral* face at the performer's closed-mouth rest frames, leaving everything the animation
   does; ``*_motion_error_iod`` removes each take's mean error per landmark instead. The same number for the
   animation shifted by half a take (``*_shifted``) says how far a wrong animation scores: the metric's calibration
-  on the same data.
+  on the same data. ``*_face_posed_error_iod`` (with a FaceMesh) is the absolute error with the character posed on
+  the performer's own tracked 3D face instead of with the generic model's head pose (``pose_on_tracked_face``).
 - **lip closures**: runs of >= ``closure_frames`` frames where the performer's inner-lip gap is below
   ``closure_gap`` IOD; a closure is reproduced when the character's mean gap over those frames is at most
   ``closure_ratio`` times the performer's.
@@ -76,6 +77,19 @@ def align_to_model(character_points: np.ndarray, model_points: np.ndarray):
 
     rigid = list(RIGID)
     return fit_similarity(np.asarray(character_points)[rigid], np.asarray(model_points)[rigid])
+
+
+def pose_on_tracked_face(points: np.ndarray, mesh_points: np.ndarray) -> np.ndarray:
+    """The character's landmark vertices (frames, 68, 3, head axes) posed on the performer's own tracked 3D face:
+    image pixels (frames, 68, 2). Per frame, the 3D similarity (Umeyama) of the rigid points onto the tracked iBUG
+    points (FaceMesh image x, y and relative depth z, ``mesh_points`` (frames, 68, 3)), read in x, y. Unlike the
+    tracked head pose (the pose of a generic face model fitted to the 2D landmarks), it does not depend on how the
+    performer's proportions differ from that model's. FaceMesh is taken as it comes, a scaled orthographic view:
+    taking a pinhole perspective out of it first (``shapes3d.undo_perspective``) made the error larger on every
+    clip but one, the more so the shorter the focal length assumed (docs/retarget.md)."""
+    from stages.retarget.shapes3d import MESH_TO_HEAD_AXES, similarity_align
+
+    return similarity_align(np.asarray(points, np.float64) * MESH_TO_HEAD_AXES, mesh_points)[..., :2]
 
 
 def face_frame_errors(predicted: np.ndarray, tracked: np.ndarray) -> np.ndarray:
@@ -582,6 +596,21 @@ def posed_frames(data) -> dict[str, np.ndarray]:
     out["motion"] = remove_take_offsets(out["absolute"], sequence)
     out["motion_shifted"] = remove_take_offsets(face_frame_errors(out["shifted"], tracked), sequence)
     out["scale"] = np.array(to_model.scale)
+    if data.get("mesh") is not None:
+        points = character_landmarks(data["neutral"], data["deltas"], data["landmark_ids"], weights)
+        out["face_posed"] = face_frame_errors(face_posed_projection(points, data), tracked)
+    return out
+
+
+def face_posed_projection(points: np.ndarray, data) -> np.ndarray:
+    """``pose_on_tracked_face`` take by take (each take's FaceMesh read as one slice of the stored mesh)."""
+    from stages.tracking.landmarks68 import mesh_to_ibug68
+
+    out = np.empty(points.shape[:2] + (2,))
+    for take in np.unique(data["sequence"]):
+        rows = np.flatnonzero(data["sequence"] == take)
+        mesh_points = mesh_to_ibug68(data["mesh"][rows[0] : rows[-1] + 1])
+        out[rows] = pose_on_tracked_face(points[rows], mesh_points)
     return out
 
 
@@ -626,6 +655,9 @@ def summary(params, data, frames, context, rows: np.ndarray) -> dict[str, float]
             ("motion_error_iod_shifted", "motion_shifted"),
         ):  # fmt: skip
             metrics[f"{region}_{name}"] = float(np.sqrt(np.mean(region_rms(frames[key][rows], points) ** 2)))
+        if "face_posed" in frames:
+            error = region_rms(frames["face_posed"][rows], points)
+            metrics[f"{region}_face_posed_error_iod"] = float(np.sqrt(np.mean(error**2)))
     closures = [c for c in context["closures"] if rows[c["start"]]]
     metrics["closures"] = float(len(closures))
     metrics["closures_reproduced"] = float(sum(c["reproduced"] for c in closures))

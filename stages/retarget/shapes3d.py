@@ -30,20 +30,22 @@ def mesh_landmarks(mesh: np.ndarray) -> np.ndarray:
 
 
 def similarity_align(points: np.ndarray, reference: np.ndarray, rigid=RIGID) -> np.ndarray:
-    """Every frame of ``points`` (frames, P, d) carried onto ``reference`` (P, d) by the least-squares similarity
-    of its rigid points (Umeyama 1991), vectorised over frames."""
+    """Every frame of ``points`` (frames, P, d) carried onto ``reference`` (P, d), or onto its own frame of
+    ``reference`` (frames, P, d), by the least-squares similarity of its rigid points (Umeyama 1991), vectorised
+    over frames."""
     points = np.asarray(points, np.float64)
     rigid = list(rigid)
-    source, target = points[:, rigid], np.asarray(reference, np.float64)[rigid]
-    mu_s, mu_t = source.mean(axis=1), target.mean(axis=0)
-    s, t = source - mu_s[:, None], target - mu_t
-    u, sigma, vt = np.linalg.svd(np.einsum("pi,fpj->fij", t, s))
+    source = points[:, rigid]
+    target = np.broadcast_to(np.asarray(reference, np.float64)[..., rigid, :], source.shape)
+    mu_s, mu_t = source.mean(axis=1), target.mean(axis=1)
+    s, t = source - mu_s[:, None], target - mu_t[:, None]
+    u, sigma, vt = np.linalg.svd(np.einsum("fpi,fpj->fij", t, s))
     d = np.ones(sigma.shape)
     d[:, -1] = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)
     rotation = u @ (d[..., None] * vt)
     scale = (sigma * d).sum(axis=1) / np.maximum((s**2).sum(axis=(1, 2)), 1e-300)
     moved = np.einsum("fij,fpj->fpi", rotation, points - mu_s[:, None]) * scale[:, None, None]
-    return moved + mu_t
+    return moved + mu_t[:, None]
 
 
 def inter_ocular(points: np.ndarray) -> np.ndarray:

@@ -48,8 +48,10 @@ IRIS_CENTRE = {0: 473, 1: 468}
 FOREHEAD, CHIN = 10, 152
 #: iris-centre sphere radius over the eye's corner-to-corner width
 EYEBALL_RADIUS = 0.40
-#: where the iris centre sits in the eye looking straight ahead: (towards the outer corner, up), in eye widths
-REST_OFFSET = (0.05, 0.075)
+#: where the iris centre sits in the eye looking straight ahead: (towards the outer corner, up), in eye widths,
+#: per eye pass (each model places the lid corners a little differently; bench/bench_tracking.py section 4)
+REST_OFFSETS = {"landmarker_v2": (0.05, 0.075), "iris": (0.04, 0.083)}
+REST_OFFSET = REST_OFFSETS["landmarker_v2"]
 #: eye index -> sign of the temporal direction along the eye frame's x axis (towards the performer's left)
 TEMPORAL_SIGN = {0: 1.0, 1: -1.0}
 
@@ -102,6 +104,14 @@ def offsets_to_angles(e: np.ndarray, radius: float = EYEBALL_RADIUS, rest=REST_O
     pitch = np.arcsin(np.clip(d[..., 1], -1.0, 1.0))
     yaw = np.arcsin(np.clip(d[..., 0] / np.maximum(np.cos(pitch), 1e-6), -1.0, 1.0))
     return np.degrees(np.stack([yaw, pitch], axis=-1))
+
+
+def angles_to_offsets(angles: np.ndarray, radius: float = EYEBALL_RADIUS, rest=REST_OFFSET) -> np.ndarray:
+    """(..., 2, 2) iris offsets (e_x, e_y) from [yaw, pitch] degrees: the inverse of ``offsets_to_angles`` (for
+    offsets within the sphere), e = rest + R (sin(yaw) cos(pitch), sin(pitch))."""
+    yaw, pitch = np.radians(np.asarray(angles, dtype=np.float64)).swapaxes(0, -1)
+    moved = np.stack([np.sin(yaw) * np.cos(pitch), np.sin(pitch)]).swapaxes(0, -1)
+    return rest_offsets(rest) + radius * moved
 
 
 def gaze_angles(points: np.ndarray, radius: float = EYEBALL_RADIUS, rest=REST_OFFSET) -> np.ndarray:

@@ -141,6 +141,27 @@ class FaceMeshModel:
         return points, float(sigmoid(float(np.clip(presence.reshape(-1)[0], -100, 100))))
 
 
+#: points of an eye pass (the Face Landmarker v2 layout, whichever model made it)
+EYE_PASS_POINTS = 478
+
+
+def new_eye_pass(kind: str, path: str | Path):
+    """The eye pass model: 'landmarker_v2' (Face Landmarker v2 on the face ROI) or 'iris' (the iris model)."""
+    if kind == "iris":
+        from stages.tracking.iris import IrisEyeModel
+
+        return IrisEyeModel(path)
+    return FaceMeshModel(path, LANDMARK_MODELS["face_landmarker_v2"])
+
+
+def eye_pass_points(model, frame, roi: Roi, points: np.ndarray) -> np.ndarray:
+    """(478, 3) eye-pass points of one frame: v2 sees the same ROI as the landmark model; the iris model crops
+    each eye around this frame's mesh corners."""
+    if isinstance(model, FaceMeshModel):
+        return model.infer(frame, roi)[0]
+    return model.infer(frame, points)
+
+
 class FaceMeshTracker:
     """Detector + landmark model with MediaPipe's tracking logic for one face, one frame at a time."""
 
@@ -154,11 +175,13 @@ class FaceMeshTracker:
         redetect_every: int = 0,
         model: str = "face_mesh_v1",
         eye_model_path: str | Path | None = None,
+        eye_pass: str = "landmarker_v2",
     ):
         self.detector = BlazeFaceDetector(detector_path, min_score=min_detection_score)
         self.mesh = FaceMeshModel(landmark_path, LANDMARK_MODELS[model])
-        #: a second, 478-point model run on the same ROI for the eyes (when the landmark model has no iris)
-        self.eyes = FaceMeshModel(eye_model_path, LANDMARK_MODELS["face_landmarker_v2"]) if eye_model_path else None
+        #: a second model for the eyes, giving the 478-point layout: Face Landmarker v2 on the same ROI
+        #: (``eye_pass`` 'landmarker_v2') or the iris model on a crop around each eye ('iris', stages/tracking/iris.py)
+        self.eyes = new_eye_pass(eye_pass, eye_model_path) if eye_model_path else None
         self.min_presence = min_presence
         self.redetect_every = redetect_every
         self.reset()
@@ -173,7 +196,7 @@ class FaceMeshTracker:
     @property
     def points(self) -> int:
         """Points per frame ``step`` returns: the landmark model's, then the eye model's when there is one."""
-        return self.mesh.spec.points + (self.eyes.spec.points if self.eyes is not None else 0)
+        return self.mesh.spec.points + (EYE_PASS_POINTS if self.eyes is not None else 0)
 
     @property
     def eye_offset(self) -> int | None:
@@ -209,8 +232,8 @@ class FaceMeshTracker:
             self.roi = None
             return None, 0.0
         self.roi = roi_from_mesh(points)
-        if self.eyes is not None:  # the same ROI: both models see the same face region
-            points = np.concatenate([points, self.eyes.infer(frame, roi)[0]])
+        if self.eyes is not None:
+            points = np.concatenate([points, eye_pass_points(self.eyes, frame, roi, points)])
         return points, score
 
     def track(self, frames: Iterable) -> tuple[np.ndarray, np.ndarray]:

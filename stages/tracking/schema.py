@@ -5,8 +5,8 @@ frame's index into ``meta["labels"]``. Metadata (strict JSON) holds per sequence
 names), ``fps``, ``frame_size`` [w, h], ``audio_rate``, ``audio_offset`` (seconds of the first audio sample
 relative to the first video frame), ``has_audio``, ``audio_sources``, ``gaps`` (long gaps held, [start, stop)
 frames), plus ``fields`` ({label: {field: value}}), ``landmark_scheme`` ("ibug68"), ``focal_length`` and crop
-settings. Eye outputs (``eye_aperture``, ``gaze``, ``iris``) come with the 478-point landmark model (FaceMesh's
-default); their conventions are in stages/tracking/eyes.py.
+settings. Eye outputs (``eye_aperture``, ``gaze``, ``iris``) come with FaceMesh's eye pass (``eyes``: Face
+Landmarker v2 by default, or the iris model); their conventions are in stages/tracking/eyes.py.
 """
 
 from msflow import Output
@@ -28,7 +28,7 @@ TRACKING_OUTPUTS = {
         dtype="float32",
         optional=True,
         doc="eyelid gap over eye width (eye aspect ratio): [:, 0] the performer's left eye (ARKit _L), [:, 1] right; "
-        "about 0.25-0.35 open, below 0.1 closed (478-point landmark model only)",
+        "about 0.25-0.35 open, below 0.1 closed (Face Landmarker v2; the iris model's lids stop at about 0.13)",
     ),
     "gaze": Output.array(
         "f",
@@ -36,7 +36,7 @@ TRACKING_OUTPUTS = {
         dtype="float32",
         optional=True,
         doc="eyeball rotation relative to the head, degrees: [eye (0 left, 1 right)][yaw, pitch], yaw > 0 towards "
-        "the performer's left, pitch > 0 up (478-point landmark model only)",
+        "the performer's left, pitch > 0 up (FaceMesh with an eye pass)",
     ),
     "iris": Output.array(
         "f",
@@ -44,7 +44,7 @@ TRACKING_OUTPUTS = {
         dtype="float32",
         optional=True,
         doc="the model's 10 iris points as it orders them (0-4: centre and rim of the performer's right eye, 5-9: "
-        "left eye), image pixels like 'mesh' (478-point landmark model only)",
+        "left eye), image pixels like 'mesh' (FaceMesh with an eye pass)",
     ),
     "confidence": Output.array("f", shape=("frames",), dtype="float32", doc="face presence / tracking score 0..1"),
     "valid": Output.array(

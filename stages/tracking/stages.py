@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import Field, PositiveInt
+from pydantic import Field, PositiveInt, field_validator
 
 from msflow import Input, Result, Stage, UserError
 from stages.data import DATA
@@ -24,6 +24,7 @@ from stages.tracking.assemble import (
     resolve_face3d,
     write_sequence,
 )
+from stages.tracking.eyes import REST_OFFSETS
 from stages.tracking.figures import FIGURES
 from stages.tracking.gaps import apply_plan, fill_gaps, gap_plan
 from stages.tracking.landmarks68 import mesh_to_ibug68
@@ -35,6 +36,9 @@ MODELS = DATA / "models" / "mediapipe-face"
 DETECTOR_MODEL = MODELS / "face_detection_short_range.tflite"
 LANDMARK_MODEL = MODELS / "face_landmark.tflite"
 LANDMARKER_V2_MODEL = MODELS / "face_landmarks_detector.tflite"
+IRIS_MODEL = MODELS / "iris_landmark.tflite"
+#: the eye pass ``eyes: true`` means
+DEFAULT_EYES = "landmarker_v2"
 
 VIDEOS_DOC = "labelled videos (label -> file); any container/codec FFmpeg reads"
 FACE3D_DOC = "optional 3D face for head pose: a JSON file with 'neutral' (68, 3) like data/face3d"
@@ -50,12 +54,16 @@ MESH_RESOURCES = {
     "detector": DETECTOR_MODEL,
     "landmarks": LANDMARK_MODEL,
     "landmarks_v2": LANDMARKER_V2_MODEL,
+    "iris": IRIS_MODEL,
     "face3d": DEFAULT_FACE3D_FILE,
 }
 
 
-def model_paths(models: dict | None, model: str = "face_mesh_v1") -> tuple[Path, Path, Path]:
-    """(detector, landmark model, eye model) files: the ``models`` input's, or the project's for ``model``."""
+def model_paths(
+    models: dict | None, model: str = "face_mesh_v1", eyes: str | bool = DEFAULT_EYES
+) -> tuple[Path, Path, Path]:
+    """(detector, landmark model, eye model) files: the ``models`` input's, or the project's for ``model`` and
+    the ``eyes`` pass."""
     models = dict(models or {})
     unknown = set(models) - {"detector", "landmarks", "eyes"}
     if unknown:
@@ -66,7 +74,7 @@ def model_paths(models: dict | None, model: str = "face_mesh_v1") -> tuple[Path,
     return (
         Path(models.get("detector", DETECTOR_MODEL)),
         Path(models.get("landmarks", default)),
-        Path(models.get("eyes", LANDMARKER_V2_MODEL)),
+        Path(models.get("eyes", IRIS_MODEL if eyes == "iris" else LANDMARKER_V2_MODEL)),
     )
 
 
@@ -98,19 +106,27 @@ class FaceMeshParams(TrackingParams):
         description="landmark model for the mesh and the 68 points: MediaPipe's 468-point face mesh, or Face "
         "Landmarker v2 (478 points: the mesh plus the irises; 2.2x slower per frame)",
     )
-    eyes: bool = Field(
-        True,
-        description="eye outputs (eye_aperture, gaze, iris) from Face Landmarker v2, whose eyelids follow blinks: "
-        "the landmark model's own points when it is v2, else a second model pass on the same face region",
+    eyes: Literal["iris", "landmarker_v2", False] = Field(
+        DEFAULT_EYES,
+        description="eye outputs (eye_aperture, gaze, iris) and the model making them: 'landmarker_v2' (Face "
+        "Landmarker v2, whose eyelids follow blinks: the landmark model's own points when it is v2, else a second "
+        "pass on the same face region), 'iris' (MediaPipe's iris model on a 64 px crop around each eye), false "
+        f"(none); true means '{DEFAULT_EYES}'",
     )
+
+    @field_validator("eyes", mode="before")
+    @classmethod
+    def true_means_the_default_eye_pass(cls, value):
+        return DEFAULT_EYES if value is True else value
 
 
 def new_tracker(params, models: dict | None):
     from stages.tracking.facemesh import FaceMeshTracker
 
     model = getattr(params, "model", "face_mesh_v1")
-    detector, landmarks, eyes = model_paths(models, model)
-    second_pass = getattr(params, "eyes", False) and model != "face_landmarker_v2"
+    eye_pass = getattr(params, "eyes", False)
+    detector, landmarks, eyes = model_paths(models, model, eye_pass)
+    second_pass = eye_pass == "iris" or (eye_pass == "landmarker_v2" and model != "face_landmarker_v2")
     return FaceMeshTracker(
         detector,
         landmarks,
@@ -119,6 +135,7 @@ def new_tracker(params, models: dict | None):
         redetect_every=getattr(params, "redetect_every", 0),
         model=model,
         eye_model_path=eyes if second_pass else None,
+        eye_pass=eye_pass or DEFAULT_EYES,
     )
 
 
@@ -156,7 +173,8 @@ def track_facemesh_take(
     camera = camera_matrix(info.width, info.height, params.focal_length)
     solver = PoseSolver(face3d.neutral, camera, pose_point_indices(params, face3d))
     eyes = tracker.eye_offset if params.eyes else None
-    writer = BlockWriter(tracker.points, crop, solver, outputs.append, params.output_mesh, eyes)
+    rest = REST_OFFSETS.get(params.eyes)
+    writer = BlockWriter(tracker.points, crop, solver, outputs.append, params.output_mesh, eyes, eye_rest=rest)
     frames = iter_planes(path, field=field, threads=jobs)
     stream_take(frames, tracker, writer, crop, params.max_gap_frames, path, field)
     s = writer.finish()
@@ -197,7 +215,7 @@ class FaceMesh(Stage):
                 for label, path in videos.items()
             ]
         fields = labels_fields(videos, inputs.get("audio"))
-        extra = {"landmark_model": params.model}
+        extra = {"landmark_model": params.model, "eye_model": params.eyes}
         return assemble(takes, outputs, params, face3d_name, "FaceMesh", extra_meta=extra, fields=fields)
 
 

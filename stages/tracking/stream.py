@@ -149,9 +149,11 @@ class BlockWriter:
         keep_mesh: bool,
         eye_offset: int | None = None,
         block: int = 0,
+        eye_rest: tuple[float, float] | None = None,
     ):
         self.n_points, self.crop, self.pose, self.emit = n_points, crop, pose_solver, emit
         self.keep_mesh, self.eye_offset, self.block = keep_mesh, eye_offset, block or BLOCK_FRAMES
+        self.eye_rest = eye_rest  # the eye pass's straight-ahead iris position (eyes.REST_OFFSETS); None: v2's
         self.frames: list[FilledFrame] = []
         self.summary: dict[str, list[np.ndarray]] = {}
 
@@ -173,11 +175,11 @@ class BlockWriter:
         rotation, translation, rms = self.pose.solve(arrays.pop("landmarks64"))
         arrays.update(rotation=rotation, translation=translation, pose_rms=rms.astype(np.float32))
         if self.eye_offset is not None:
-            from stages.tracking.eyes import eye_aperture, gaze_angles
+            from stages.tracking.eyes import REST_OFFSET, eye_aperture, gaze_angles
 
             eye_points = arrays["points"][:, self.eye_offset : self.eye_offset + 478]
             arrays["eye_aperture"] = eye_aperture(eye_points)
-            arrays["gaze"] = gaze_angles(eye_points)
+            arrays["gaze"] = gaze_angles(eye_points, rest=self.eye_rest or REST_OFFSET)
             arrays["iris"] = eye_points[:, 468:478].astype(np.float32)
         points = arrays.pop("points")
         if self.keep_mesh:
