@@ -1,18 +1,23 @@
-"""Long takes end to end: the default pipeline with its test take replaced by 2 s, 1 min and 10 min takes.
+"""Long takes end to end (issue 14): the default pipeline with its test take replaced by 2 s, 1 min and 10 min takes.
 
-    python bench/bench_long.py [--lengths 2s,1min,10min] [-j 2] [--out bench/out/long]
+    python bench/bench_long.py [--lengths 2s,1min,10min] [-j 2] [--out bench/out/long] [--until STAGE] [--per-stage]
 
 The takes are built at run time from the embedded CREMA-D sad clip (480x360, 29.97 fps), repeated back to back
 with its own sound cut to the picture, and encoded as H.264 + AAC MP4 under ``--out`` (nothing large is committed;
 a take already built is reused). For each length a pipeline file is generated next to them: ``pipeline.yaml``
-with ``track_test`` reading the long take, its own store under ``--out``, no ``publish:``. A first, untimed run
-of the default take fills that store with the training branch (track_train, aam, bilinear, character, headdb,
-...), so every timed run computes exactly the stages that depend on the test take.
+with ``track_test`` reading the long take, no ``publish:``, and a store of its own under ``--out``: a fresh copy
+of a warm-up store that a first, untimed run of the default take filled with the training branch (track_train,
+aam, bilinear, character, headdb, ...), so every timed run computes exactly the stages that depend on the test
+take, whatever earlier runs left behind.
 
-Each timed run is ``python -m msflow.cli run <generated pipeline> -j N`` in a subprocess; printed per length:
-the wall seconds of the tracking (track_test), edit and export stages from the run record, the whole run's wall
-time and CPU time (user + sys of msflow and all its workers), and the peak resident memory of the run: the sum
-over msflow and its worker processes, sampled every 0.1 s with psutil.
+Each timed run is ``python -m msflow.cli run <generated pipeline> -j N`` in a subprocess (``--until track_test``:
+tracking alone, no warm-up). Printed per length, the issue's table: the wall (and CPU) seconds of the tracking
+(track_test), edit and export stages from the run record, the whole run's wall time and CPU time (user + sys of
+msflow and all its workers), the peak resident memory of the run (the sum over msflow and its worker processes,
+sampled every 0.1 s with psutil), the load average; then the 10 min / 1 min ratios against the goals (linear:
+10x +- 15%; peak RSS <= 1.5 GB), and, per run, the peak RSS of the worker running each stage while it ran.
+``--per-stage``: each test-dependent stage alone in its own ``msflow run`` (wall, CPU, peak RSS per stage).
+Wall-clock figures depend on the machine's load (printed); CPU seconds and memory much less.
 """
 
 from __future__ import annotations
@@ -32,6 +37,19 @@ sys.path.insert(0, str(ROOT))
 
 SOURCE = ROOT / "data" / "crema-d" / "1001_DFA_SAD_XX.flv"
 LENGTHS = {"2s": 1, "1min": 30, "10min": 300}  # repetitions of the 2.0 s clip
+#: table column -> stage
+TRACKED_STAGES = {"track": "track_test", "edit": "edit", "export": "export"}
+#: the stages that depend on the test take, in an order that runs each after its inputs (--per-stage)
+TEST_STAGES = (
+    "track_test",
+    "pitch_test",
+    "edit",
+    "keyshapes",
+    "blend",
+    "trellis",
+    "motion_blend",
+    "export",
+)
 
 
 def build_take(path: Path, repeat: int) -> Path:
@@ -78,13 +96,25 @@ def build_take(path: Path, repeat: int) -> Path:
     return path
 
 
-def pipeline_for(take: Path, out: Path, name: str) -> Path:
-    """pipeline.yaml with the test take replaced, its own store, absolute data paths, nothing published."""
+def fresh_store(out: Path, name: str, warm: bool) -> Path:
+    """An empty store for one timed run, or a copy of the warm-up store (training branch already computed), so
+    every stage that depends on the test take runs, whatever earlier runs left behind."""
+    import shutil
+
+    store = out / f"store-{name}"
+    shutil.rmtree(store, ignore_errors=True)
+    if warm:
+        shutil.copytree(out / "store-warm", store)
+    return store
+
+
+def pipeline_for(take: Path, out: Path, name: str, store: Path) -> Path:
+    """pipeline.yaml with the test take replaced, the given store, absolute data paths, nothing published."""
     import yaml
 
     spec = yaml.safe_load((ROOT / "pipeline.yaml").read_text())
     spec["vars"]["clips"] = str(ROOT / "data" / "crema-d")
-    spec["store"] = str(out / "store")
+    spec["store"] = str(store)
     spec["stages"]["track_test"]["inputs"]["videos"] = {"sad": str(take)}
     for stage in spec["stages"].values():
         for key, ref in list(stage.get("inputs", {}).items()):
@@ -96,49 +126,94 @@ def pipeline_for(take: Path, out: Path, name: str) -> Path:
     return path
 
 
-def tree_rss(proc) -> int:
-    """Resident bytes of a process and all its descendants."""
+def process_rss(proc) -> dict[int, int]:
+    """Resident bytes of a process and each of its descendants, by pid."""
     import psutil
 
-    total = 0
     try:
         procs = [proc] + proc.children(recursive=True)
     except psutil.NoSuchProcess:
-        return 0
+        return {}
+    out = {}
     for p in procs:
         try:
-            total += p.memory_info().rss
+            out[p.pid] = p.memory_info().rss
         except psutil.NoSuchProcess:
             pass
-    return total
+    return out
 
 
-def timed_run(pipeline: Path, jobs: int) -> dict:
-    """Run the pipeline in a subprocess: wall and CPU seconds (with workers), peak tree RSS, the run record."""
+def read_lines(stream, lines: list) -> None:
+    """Collect (time, line) from the run's progress output (one line per stage state change)."""
+    for line in stream:
+        lines.append((time.perf_counter(), line))
+
+
+def stage_peaks(record: dict, lines: list, samples: list) -> dict[str, float]:
+    """Peak RSS of the process that ran each stage while it ran: the stage's worker (pid in the run record),
+    sampled between its "running" and "done" progress lines. A worker keeps memory its earlier stages freed to
+    the allocator, so a figure is an upper bound of what the stage itself needed."""
+    import re
+
+    bounds: dict[str, list[float]] = {}
+    for t, line in lines:
+        m = re.match(r"^\S+\s+(\S+)\s+(running|done)\b", line)
+        if m:
+            bounds.setdefault(m.group(1), [t, t])[0 if m.group(2) == "running" else 1] = t
+    peaks = {}
+    for name, stage in record.get("stages", {}).items():
+        worker = re.search(r"pid (\d+)", stage.get("worker") or "")
+        if stage["state"] != "ran" or not worker or name not in bounds:
+            continue
+        pid, (start, stop) = int(worker.group(1)), bounds[name]
+        inside = [rss.get(pid, 0) for t, rss in samples if start - 0.1 <= t <= stop + 0.1]
+        peaks[name] = max(inside, default=0)
+    return peaks
+
+
+def timed_run(pipeline: Path, jobs: int, until: str | None = None) -> dict:
+    """Run the pipeline in a subprocess: wall and CPU seconds (with workers), peak tree RSS (msflow and its
+    workers together, sampled every 0.1 s), peak RSS per stage (``stage_peaks``), the run record."""
+    import threading
+
     import psutil
 
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     started = time.perf_counter()
+    extra = ["--until", until] if until else []
     proc = subprocess.Popen(
-        [sys.executable, "-m", "msflow.cli", "run", str(pipeline), "-j", str(jobs)],
+        [sys.executable, "-m", "msflow.cli", "run", str(pipeline), "-j", str(jobs), *extra],
         cwd=ROOT,
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
     )
-    watched, peak = psutil.Process(proc.pid), 0
+    lines: list = []
+    reader = threading.Thread(target=read_lines, args=(proc.stdout, lines), daemon=True)
+    reader.start()
+    watched, samples = psutil.Process(proc.pid), []
     while proc.poll() is None:
-        peak = max(peak, tree_rss(watched))
+        samples.append((time.perf_counter(), process_rss(watched)))
         time.sleep(0.1)
     wall = time.perf_counter() - started
-    output = proc.stdout.read()
+    reader.join()
+    output = "".join(line for _, line in lines)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if proc.returncode != 0:
         raise SystemExit(f"run of {pipeline} failed ({proc.returncode}):\n{output}")
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return {"wall": wall, "cpu": cpu, "peak_rss": peak, "record": latest_record(pipeline), "output": output}
+    record = latest_record(pipeline)
+    peak = max((sum(rss.values()) for _, rss in samples), default=0)
+    return {
+        "wall": wall,
+        "cpu": cpu,
+        "peak_rss": peak,
+        "stage_rss": stage_peaks(record, lines, samples),
+        "record": record,
+        "output": output,
+    }
 
 
 def latest_record(pipeline: Path) -> dict:
@@ -149,8 +224,60 @@ def latest_record(pipeline: Path) -> dict:
     return json.loads(records[-1].read_text())
 
 
-def stage_seconds(record: dict, *names: str) -> float:
-    return sum(record["stages"][n]["seconds"] for n in names if record["stages"][n]["state"] == "ran")
+def stage_times(record: dict, name: str) -> str:
+    """ "wall s (CPU s)" of a stage from the run record, "-" when it did not run."""
+    stage = record.get("stages", {}).get(name)
+    if not stage or stage["state"] != "ran":
+        return "-"
+    return f"{stage['seconds']:.1f} s ({stage.get('cpu_seconds', 0.0):.1f} s CPU)"
+
+
+def per_stage(pipeline: Path, jobs: int) -> list[tuple[str, float, float, float]]:
+    """Each test-dependent stage alone (``--until`` it, its inputs already stored), in its own ``msflow run``
+    process: (stage, wall s, CPU s, peak RSS bytes of the run's process tree)."""
+    rows = []
+    for stage in TEST_STAGES:
+        run = timed_run(pipeline, jobs, stage)
+        rows.append((stage, run["wall"], run["cpu"], run["peak_rss"]))
+        print(
+            f"   {stage}: {run['wall']:.1f} s wall, {run['cpu']:.1f} s CPU, {run['peak_rss'] / 1e9:.2f} GB", flush=True
+        )
+    return rows
+
+
+def print_per_stage(tables: dict[str, list]) -> None:
+    names = list(tables)
+    print("| stage | " + " | ".join(f"{n}: wall, CPU, peak RSS" for n in names) + " |")
+    print("|---|" + "---|" * len(names))
+    for i, stage in enumerate(TEST_STAGES):
+        cells = [f"{t[i][1]:.1f} s, {t[i][2]:.1f} s, {t[i][3] / 1e9:.2f} GB" for t in tables.values()]
+        print(f"| {stage} | " + " | ".join(cells) + " |")
+
+
+def print_table(rows: list[dict], jobs: int, until: str | None) -> None:
+    print(
+        f"\n-j {jobs}, {os.cpu_count()} CPUs; stage times: wall (CPU of the stage's run) from the run record; whole "
+        f"run CPU = user + sys of msflow and its workers; peak RSS = msflow and its workers together"
+        f"{f'; run --until {until}' if until else ''}"
+    )
+    print("| take | frames | tracking | edit | export | whole run, wall | whole run, CPU | peak RSS | load average |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {r['name']} | {r['frames']} | {r['track']} | {r['edit']} | {r['export']} | {r['wall']:.1f} s "
+            f"| {r['cpu']:.1f} s | {r['rss'] / 1e9:.2f} GB | {r['load']} |"
+        )
+    by_name = {r["name"]: r for r in rows}
+    if "1min" in by_name and "10min" in by_name:
+        a, b = by_name["1min"], by_name["10min"]
+        print(
+            f"10 min / 1 min: CPU {b['cpu'] / a['cpu']:.2f}x, wall {b['wall'] / a['wall']:.2f}x "
+            f"(linear: 10x +- 15%); peak RSS {b['rss'] / 1e9:.2f} GB (goal <= 1.5 GB)"
+        )
+
+
+def loads() -> str:
+    return "/".join(f"{x:.1f}" for x in os.getloadavg())
 
 
 def main() -> None:
@@ -158,39 +285,48 @@ def main() -> None:
     ap.add_argument("--lengths", default="2s,1min", help="comma list of " + ", ".join(LENGTHS))
     ap.add_argument("-j", "--jobs", type=int, default=2)
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "out" / "long")
+    ap.add_argument("--until", default=None, help="run only up to this stage (e.g. track_test: tracking alone)")
+    ap.add_argument(
+        "--per-stage",
+        action="store_true",
+        help="run each test-dependent stage alone in its own process: wall, CPU and peak RSS per stage",
+    )
     args = ap.parse_args()
     args.out = args.out.resolve()
     (args.out / "takes").mkdir(parents=True, exist_ok=True)
-    warm = pipeline_for(SOURCE, args.out, "warmup")
-    print(f"warm-up run (training branch into {args.out / 'store'}) ...", flush=True)
-    timed_run(warm, args.jobs)
-    rows = []
+    if not args.until:
+        warm = pipeline_for(SOURCE, args.out, "warmup", args.out / "store-warm")
+        print(f"warm-up run (training branch into {args.out / 'store-warm'}) ...", flush=True)
+        timed_run(warm, args.jobs)
+    rows, tables = [], {}
     for name in args.lengths.split(","):
         take = build_take(args.out / "takes" / f"sad_{name}.mp4", LENGTHS[name])
-        run = timed_run(pipeline_for(take, args.out, name), args.jobs)
+        store = fresh_store(args.out, name, warm=not args.until)
+        pipeline = pipeline_for(take, args.out, name, store)
+        if args.per_stage:
+            print(f"{name}, stage by stage (load average {loads()}):", flush=True)
+            tables[name] = per_stage(pipeline, args.jobs)
+            continue
+        run = timed_run(pipeline, args.jobs, args.until)
         record = run["record"]
-        frames = LENGTHS[name] * 60
-        rows.append(
-            (
-                name,
-                frames,
-                stage_seconds(record, "track_test"),
-                stage_seconds(record, "edit"),
-                stage_seconds(record, "export"),
-                run["wall"],
-                run["cpu"],
-                run["peak_rss"] / 1e9,
-            )
-        )
-        print(f"{name}: {run['wall']:.1f} s wall, ran {record['counts']['ran']} stages", flush=True)
-    print(f"\n-j {args.jobs}, {os.cpu_count()} CPUs; stage times are wall seconds from the run record")
-    print("| take | frames | tracking | edit | export | whole run, wall | whole run, CPU | peak RSS |")
-    print("|---|---|---|---|---|---|---|---|")
-    for name, frames, track, edit, export, wall, cpu, rss in rows:
+        row = {"name": name, "frames": LENGTHS[name] * 60, "wall": run["wall"], "cpu": run["cpu"]}
+        row.update(rss=run["peak_rss"], load=loads())
+        row.update({key: stage_times(record, stage) for key, stage in TRACKED_STAGES.items()})
+        rows.append(row)
         print(
-            f"| {name} | {frames} | {track:.1f} s | {edit:.1f} s | {export:.1f} s | {wall:.1f} s | {cpu:.1f} s "
-            f"| {rss:.2f} GB |"
+            f"{name}: {run['wall']:.1f} s wall, ran {record['counts'].get('ran', 0)} stages, load {row['load']}",
+            flush=True,
         )
+        print(
+            "   peak RSS of each stage's worker while it ran: "
+            + ", ".join(f"{stage} {rss / 1e9:.2f} GB" for stage, rss in run["stage_rss"].items()),
+            flush=True,
+        )
+    if tables:
+        print(f"\n-j {args.jobs}, {os.cpu_count()} CPUs; each stage alone in its own msflow run process")
+        print_per_stage(tables)
+    else:
+        print_table(rows, args.jobs, args.until)
 
 
 if __name__ == "__main__":

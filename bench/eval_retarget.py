@@ -6,6 +6,11 @@ and the default run's paper branch) and, given folders, the capture branch on ea
     python bench/eval_retarget.py --blinks ../shared/data/talking-heads     # the blink detector vs hand marks
     python bench/eval_retarget.py --identity ../shared/data/talking-heads   # absolute mouth error, identity fitted
     python bench/eval_retarget.py --capture ../shared/data/talking-heads/{hdtf_kh,retalking_2,vlog_31}.mp4
+    python bench/eval_retarget.py -S capture_character.fit_identity=true           # CREMA-D, identity fitted
+    python bench/eval_retarget.py --capture -S character.fit_identity=true ../shared/data/talking-heads/hdtf_kh.mp4
+
+``-S key=value`` overrides go to every pipeline run (``eval/retarget.yaml``, or ``pipelines/capture.yaml`` with
+``--capture``); the capture files of a run with overrides are published as ``out/<clip>_captured_variant.*``.
 
 Prints one markdown row per run (pooled over its takes) and one per take, then, per run, the ARKit columns that
 stay dead: where the performer made the movement (by the movement probes of ``stages.retarget.movements``) and
@@ -83,19 +88,31 @@ def column_report(name: str, view) -> list[str]:
     return lines + [""]
 
 
-def main(folders: list[str]) -> None:
+def split_overrides(args: list[str]) -> tuple[list[str], list[str]]:
+    """``-S key=value`` pairs out of the command line: (overrides, the other arguments)."""
+    overrides, rest = [], []
+    args = iter(args)
+    for arg in args:
+        if arg == "-S":
+            overrides.append(next(args))
+        else:
+            rest.append(arg)
+    return overrides, rest
+
+
+def main(folders: list[str], overrides: list[str] = ()) -> None:
     import msflow
 
     folders = [Path(f).resolve() for f in folders]
     os.chdir(ROOT)
-    default = msflow.run(PIPELINE)
+    default = msflow.run(PIPELINE, list(overrides))
     runs = [
         ("CREMA-D 1001, default run's path (edit of the unseen sad take)", default.artifact("paper_eval")),
         ("CREMA-D 1001, capture of the 6 takes", default.artifact("capture_eval")),
     ]
     for folder in folders:
         relative = os.path.relpath(folder, PIPELINE.parent)
-        result = msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_eval")
+        result = msflow.run(PIPELINE, [f"vars.takes={relative}", *overrides], until="capture_eval")
         view = result.artifact("capture_eval")
         runs.append((f"{folder.name}, capture of {len(view.meta['labels'])} takes", view))
     print(header())
@@ -164,7 +181,7 @@ def identity(folders: list[str]) -> None:
     print("|---|---|---|---|---|---|---|---|")
     pooled = {}
     for name, result in runs:
-        tracks, blend, character = (result.artifact(s) for s in ("capture_track", "capture_blend", "character"))
+        tracks, blend, character = (result.artifact(s) for s in ("capture_track", "capture_blend", "capture_character"))
         for take, label in enumerate(tracks.meta["labels"]):
             plain, fitted = take_identity_errors(
                 tracks, blend, character, take, identities, ids, run_stage, RetargetEval
@@ -195,29 +212,10 @@ def identity_landmark_deltas():
     return deltas, ids
 
 
-def fit_identity(rest: np.ndarray, neutral: np.ndarray, identities: np.ndarray, ridge: float = 1.0) -> np.ndarray:
-    """Identity coefficients c with neutral + sum c_i identity_i closest to the performer's rest (68, 3, head
-    frame) after a 3D similarity on the rigid points, brows to lips (the contour follows the silhouette); ridge
-    relative to the identity shapes' mean energy. Alternates the similarity and the linear solve."""
-    from stages.retarget.keymorphs import fit_similarity
-    from stages.retarget.regions import RIGID
-
-    points = list(range(17, 68))
-    c = np.zeros(len(identities))
-    for _ in range(4):
-        shape = neutral + np.tensordot(c, identities, axes=1)
-        similarity = fit_similarity(shape[list(RIGID)], rest[list(RIGID)])
-        A = similarity.apply_linear(identities)[:, points].reshape(len(identities), -1).T
-        b = (rest - similarity.apply(neutral))[points].reshape(-1)
-        c = np.linalg.solve(A.T @ A + ridge * np.mean((A**2).sum(axis=0)) * np.eye(len(c)), A.T @ b)
-    return c
-
-
-def take_identity_errors(tracks, blend, character, take, identities, ids, run_stage, stage):
+def take_identity_errors(tracks, blend, character, take, identities, ids, run_stage, stage, ridge=0.1):
     """The evaluation of one take with the character as it is and with its identity fitted to the performer."""
     from msflow.testing import artifact
-    from stages.retarget.keyshapes import rest_frames
-    from stages.retarget.shapes3d import front_view, head_frame_shapes
+    from stages.retarget.identity import fit_identity, performer_rest_face
 
     rows = np.flatnonzero(np.asarray(tracks["sequence"]) == take)
     one = slice(rows[0], rows[-1] + 1)
@@ -227,10 +225,8 @@ def take_identity_errors(tracks, blend, character, take, identities, ids, run_st
     take_tracks = artifact(arrays, meta=meta)
     take_blend = artifact({"weights": np.asarray(blend["weights"])[one]}, meta=blend.meta)
     plain = run_stage(stage, {}, {"tracks": take_tracks, "blend": take_blend, "character": character}).metrics
-    shapes = head_frame_shapes(arrays["mesh"])
-    rest = shapes[rest_frames(front_view(shapes))].mean(axis=0)
     neutral = np.asarray(character["neutral"], np.float64)
-    c = fit_identity(rest, neutral[ids], identities)
+    c = fit_identity(performer_rest_face(arrays["mesh"]), neutral[ids], identities, ridge)
     fitted_neutral = neutral.copy()
     fitted_neutral[ids] += np.tensordot(c, identities, axes=1)
     arrays = {k: np.asarray(character[k]) for k in character.names}
@@ -239,7 +235,7 @@ def take_identity_errors(tracks, blend, character, take, identities, ids, run_st
     return plain, fitted
 
 
-def capture(clips: list[str]) -> None:
+def capture(clips: list[str], overrides: list[str] = ()) -> None:
     """pipelines/capture.yaml on each clip, scored against the clip's tracking (RetargetEval on its artifacts)."""
     import resource
 
@@ -259,7 +255,8 @@ def capture(clips: list[str]) -> None:
     for clip in clips:
         before = cpu_seconds()
         take = os.path.relpath(clip, pipeline.parent)
-        result = msflow.run(pipeline, [f"vars.take={take}", f"vars.name={clip.stem}_captured"])
+        name = f"{clip.stem}_captured" + ("_variant" if overrides else "")
+        result = msflow.run(pipeline, [f"vars.take={take}", f"vars.name={name}", *overrides])
         cpu = cpu_seconds() - before
         inputs = {
             n: result.artifact(s) for n, s in (("tracks", "track"), ("blend", "blend"), ("character", "character"))
@@ -272,8 +269,12 @@ def capture(clips: list[str]) -> None:
 
 if __name__ == "__main__":
     sys.path.insert(0, str(ROOT / "bench"))
-    modes = {"--capture": capture, "--blinks": blinks, "--identity": identity}
-    if sys.argv[1:2] and sys.argv[1] in modes:
-        modes[sys.argv[1]](sys.argv[2:])
+    overrides, args = split_overrides(sys.argv[1:])
+    if args[:1] == ["--capture"]:
+        capture(args[1:], overrides)
+    elif args[:1] == ["--blinks"]:
+        blinks(args[1:])
+    elif args[:1] == ["--identity"]:
+        identity(args[1:])
     else:
-        main(sys.argv[1:])
+        main(args, overrides)

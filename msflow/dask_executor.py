@@ -16,8 +16,8 @@ attempts it took and which workers were lost, and the progress display shows a r
 
 Workers are started without the nanny's ``MALLOC_TRIM_THRESHOLD_`` default: that variable switches off glibc's
 adaptive mmap threshold, so every large numpy temporary is mapped and unmapped again (page faults on every use)
-and numpy-heavy stages ran 2-2.5x slower. The LocalCluster is configured so; external workers get the same with
-``--preload-nanny msflow.dask_setup`` (README, "Run on a cluster").
+and numpy-heavy stages took 1.4-1.7x the CPU (bench/bench_dask.py). The LocalCluster is configured so; external
+workers get the same with ``--preload-nanny msflow.dask_setup`` (README, "Run on a cluster").
 """
 
 from __future__ import annotations

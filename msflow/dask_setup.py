@@ -3,8 +3,9 @@
 The nanny spawns each worker process with ``MALLOC_TRIM_THRESHOLD_=65536``
 (``distributed.nanny.pre-spawn-environ``). Setting that variable switches off glibc's adaptive mmap threshold:
 every numpy temporary above 128 KiB is then mapped and unmapped again, and its pages faulted in on every use.
-msflow's numpy-heavy stages ran 2-2.5x slower (CPU time) on such workers. As a nanny preload this module removes
-the variable before the nanny spawns (and respawns) its worker, so workers run with glibc's defaults, as local runs do.
+msflow's numpy-heavy stages took 1.4-1.7x the CPU on such workers (bench/bench_dask.py). As a nanny preload this
+module removes the variable before the nanny spawns (and respawns) its worker, so workers run with glibc's defaults,
+as local runs do.
 
 ``msflow.worker.tune_malloc`` is the safety net for workers started without the preload: run once per worker
 process before its first job, it restores large mmap and trim thresholds (the values glibc's adaptive rule reaches

@@ -659,3 +659,47 @@ def test_figures_render_pngs(obj_folder):
     assert (np.abs(image.astype(int) - [0, 200, 255]).sum(axis=2) < 60).sum() > 68  # the landmark dots
     sheet = cv2.imdecode(np.frombuffer(figure_targets(out.view(), tile=64, columns=2), np.uint8), cv2.IMREAD_COLOR)
     assert sheet.shape == (128, 128, 3)  # 3 targets in 2 columns: 2 rows
+
+
+# ------------------------------------------------------------------------------------------------ identity fit
+
+
+def facemesh_tracks(points: np.ndarray, frames: int = 4):
+    """A tracking artifact whose FaceMesh's iBUG points are ``points`` (68, 3, head axes) seen from the front
+    (image axes, pixels), every frame the same (a closed mouth: the character's neutral)."""
+    from msflow.testing import artifact
+    from stages.tracking.landmarks68 import MAPPING_MATRIX
+
+    image = points * np.array([1.0, -1.0, -1.0]) * 2000.0 + np.array([320.0, 240.0, 0.0])
+    mesh = np.linalg.pinv(MAPPING_MATRIX) @ image  # whose iBUG means are exactly ``image``
+    return artifact({"mesh": np.repeat(mesh[None], frames, axis=0).astype(np.float32)}, meta={"fields": {}})
+
+
+def test_fit_identity_recovers_known_coefficients(ict):
+    """Known answer: a performer who is the character with a known identity mix gets that mix back."""
+    truth = {"identity000": 1.0, "identity003": -0.5, "identity007": 0.8}
+    performer = run_stage(GltfCharacter, {"identity": truth}, {"mesh": ICT_GLB})
+    tracks = facemesh_tracks(performer.arrays["neutral"][performer.arrays["landmark_ids"]])
+    fitted = run_stage(GltfCharacter, {"fit_identity": True, "identity_ridge": 1e-6}, {"tracks": tracks})
+    for name, value in fitted.meta["identity"].items():
+        assert value == pytest.approx(truth.get(name, 0.0), abs=0.05), name
+    assert np.array_equal(fitted.arrays["deltas"], ict.arrays["deltas"])
+    # the default ridge goes part of the way: the landmarks (up to a similarity) move towards the performer's
+    from stages.retarget.identity import IDENTITY_POINTS
+    from stages.retarget.shapes3d import similarity_align
+
+    default = run_stage(GltfCharacter, {"fit_identity": True}, {"tracks": tracks})
+    target, points = performer.arrays["neutral"][performer.arrays["landmark_ids"]], list(IDENTITY_POINTS)
+
+    def distance(character):
+        face = character.arrays["neutral"][character.arrays["landmark_ids"]]
+        return np.abs(similarity_align(face[None], target, points)[0][points] - target[points]).max()
+
+    assert distance(default) < 0.6 * distance(ict)
+
+
+def test_fit_identity_needs_a_facemesh_and_excludes_given_coefficients():
+    with pytest.raises(UserError, match="needs the performer's FaceMesh tracking"):
+        run_stage(GltfCharacter, {"fit_identity": True}, {})
+    with pytest.raises(ValueError, match="not both"):
+        GltfCharacter.Params(fit_identity=True, identity={"identity000": 1.0})

@@ -318,8 +318,9 @@ def isolation_script(env_dir: Path, hidden: list[Path], as_nobody: bool) -> str:
     lines += [f"mount -t tmpfs -o mode=0755,size=1m tmpfs '{folder}'" for folder in covered]
     for prefix, keep in kept:
         lines += [f"mkdir -p '{prefix}'", f"mount --bind '{keep}' '{prefix}'"]
-    drop = f"setpriv --reuid={NOBODY} --regid={NOBODY} --clear-groups -- " if as_nobody else ""
-    lines.append(f'exec {drop}"$@"')
+    # --pdeathsig: a killed pytest (a suite timeout) takes its cluster along instead of leaving it running
+    drop = f"--reuid={NOBODY} --regid={NOBODY} --clear-groups " if as_nobody else ""
+    lines.append(f'exec setpriv {drop}--pdeathsig KILL -- "$@"')
     return "\n".join(lines) + "\n"
 
 

@@ -74,6 +74,22 @@ def test_head_beats_at_a_random_phase_score_chance():
     assert 0.4 < chance_alignment(period, sigma) < 0.6
 
 
+def test_phase_shifted_motion_loses_its_alignment_with_the_shift():
+    """The same nods, exactly on the onsets and then shifted in time: the score falls as exp(-d^2 / 2 sigma^2)
+    with the shift d while it is under half the onset period, and the aligned motion beats every shifted copy."""
+    period, sigma = 0.5, 0.1
+    onsets = np.arange(1, 20) * period + 0.1
+    score = lambda shift: beat_alignment(
+        kinematic_beats(strokes(onsets + shift, 10.4), FPS, smoothing=0.05), onsets, sigma
+    )
+    aligned = score(0.0)
+    for frames in (2, 4, 6):  # shifts of whole frames, so the beats land exactly on the shifted times
+        shift = frames / FPS
+        assert score(shift) == pytest.approx(np.exp(-(shift**2) / (2 * sigma**2)), abs=0.02)
+        assert score(shift) < aligned
+    assert aligned > 0.99 and score(period / 2) < 0.1
+
+
 def test_beat_alignment_edge_cases():
     assert beat_alignment(np.zeros(0), np.array([1.0]), 0.1) == 0.0  # a still head aligns with nothing
     assert beat_alignment(np.array([1.0]), np.zeros(0), 0.1) == 0.0
@@ -130,11 +146,46 @@ def test_windows_baselines_and_pooling():
     np.testing.assert_allclose(percentile_range(np.radians(np.tile(np.arange(101.0)[:, None], 3))), [[5] * 3, [95] * 3])
 
 
+def test_range_fit_cannot_be_met_by_shrinking_the_motion():
+    from stages.eval.head import halves_range_fit, range_fit
+
+    t = np.arange(3000) / 30.0
+    real = np.radians(np.stack([8 * np.sin(1.3 * t), 4 * np.sin(0.7 * t + 1), 3 * np.sin(2.1 * t + 2)], axis=1))
+    r = percentile_range(real)
+    fit = lambda motion: range_fit(percentile_range(motion), r, 1.5, 0.25)
+    assert fit(real).all() and fit(0.7 * real).all() and fit(1.4 * real).all()  # within the span tolerance
+    assert not fit(0.5 * real).any() and not fit(np.zeros_like(real)).any()  # shrunk or still: inside, but too small
+    assert not fit(1.6 * real).any()  # too large
+    offset = real + np.radians([5.0, 0.0, 0.0])  # off-centre by more than a quarter of the yaw's 16 degree span
+    np.testing.assert_array_equal(fit(offset), [False, True, True])
+    np.testing.assert_array_equal(halves_range_fit(real, 1.5, 0.25), [1.0, 1.0, 1.0])  # a stationary motion
+    calm_then_wild = np.concatenate([real, 3 * real])
+    np.testing.assert_array_equal(halves_range_fit(calm_then_wild, 1.5, 0.25), [0.0, 0.0, 0.0])
+
+
+def test_the_jitter_free_yardstick_is_below_the_raw_one():
+    from stages.eval.head import Take, speaker_acceleration_p99
+
+    fps, t = 30.0, np.arange(900) / 30.0
+    rng = np.random.default_rng(1)
+    nod = np.stack([np.zeros_like(t), np.radians(5) * np.sin(2 * np.pi * 0.8 * t), np.zeros_like(t)], axis=1)
+    noisy = nod + np.radians(0.3) * rng.standard_normal(nod.shape)
+    take = Take("a", "ann", fps, noisy, noisy, np.zeros(0), np.zeros(0), np.zeros(0), np.ones(1, bool))
+    raw, band = speaker_acceleration_p99([take])["ann"], speaker_acceleration_p99([take], 5.0)["ann"]
+    # the nod alone: peak acceleration 5 (2 pi 0.8)^2 = 126 deg/s^2; white jitter of 0.3 degree adds thousands
+    assert raw > 1000 and 80 < band < 400
+
+
 # ------------------------------------------------------------------------------------------ the stage
 
 
-def synthesis(tracks, *, holdout: str, mirror: bool = True, timing: str = "strokes"):
-    headdb = run_stage(TrackedHeadDb, {"mirror": mirror}, {"tracks": tracks})
+def synthesis(tracks, *, holdout: str, mirror: bool = True, timing: str = "strokes", **blend):
+    """The head branch on ``tracks`` as the evaluation pipeline runs it; ``timing="segment"`` with ``paper=True``
+    in ``blend`` is the paper's (motion and amplitude as recorded, uniform resampling)."""
+    paper = blend.pop("paper", False)
+    db_params = {"mirror": mirror, **({"jitter_cutoff": None} if paper else {})}
+    blend = {"timing": timing, **({"amplitude": "database", "output_cutoff": None} if paper else {}), **blend}
+    headdb = run_stage(TrackedHeadDb, db_params, {"tracks": tracks})
     db_pitch = run_stage(Pitch, {}, {"source": headdb})
     test_pitch = run_stage(Pitch, {}, {"source": tracks})
     trellis = run_stage(
@@ -142,7 +193,7 @@ def synthesis(tracks, *, holdout: str, mirror: bool = True, timing: str = "strok
         {"holdout": holdout, "test_speaker": "own"},
         {"database": headdb, "database_pitch": db_pitch, "test_pitch": test_pitch},
     )
-    blend = run_stage(MotionBlend, {"timing": timing}, {"trellis": trellis, "database": headdb, "reference": tracks})
+    blend = run_stage(MotionBlend, blend, {"trellis": trellis, "database": headdb, "reference": tracks})
     inputs = {"synthesis": blend, "trellis": trellis, "database": headdb, "reference": tracks, "test_pitch": test_pitch}
     return inputs
 
@@ -159,7 +210,7 @@ def phrases():
 
 def test_a_synthesis_equal_to_the_real_motion_scores_as_the_real_motion(phrases):
     # every take finds itself, and the paper's uniform resampling plays it back unchanged
-    inputs = synthesis(tracking_artifact(phrases), holdout="none", mirror=False, timing="segment")
+    inputs = synthesis(tracking_artifact(phrases), holdout="none", mirror=False, timing="segment", paper=True)
     result = evaluate(inputs)
     m = result.metrics
     assert m["ba_synth"] == m["ba_real"] and m["ba_accent_synth"] == m["ba_accent_real"]
@@ -167,6 +218,7 @@ def test_a_synthesis_equal_to_the_real_motion_scores_as_the_real_motion(phrases)
     assert m["win_synth_random"] == m["win_real_random"]
     assert m["speed_w1_synth"] == pytest.approx(0.0, abs=1e-9) and m["amplitude_synth"] == pytest.approx(1.0)
     assert m["range_ok_synth"] == 1.0 and m["drift_synth"] == pytest.approx(m["drift_real"])
+    assert m["range_fit_synth"] == 1.0 and m["range_fit_real"] == 1.0 and m["range_fit_still"] == 0.0
     assert m["corr_synth"] == pytest.approx(1.0) and abs(m["corr_random"]) < 0.3
     # the baselines are not the real motion, and a still head has no beats
     assert m["speed_w1_random"] > 1.0 and m["speed_w1_noise"] > 0.1 and m["ba_still"] == 0.0

@@ -46,7 +46,8 @@ def sequence_rows(run, label):
 
 
 def test_resampled_to_one_rate(phrases, tracks60):
-    run = run_stage(TrackedHeadDb, {"fps": 30.0, "mirror": False, "center": False}, {"tracks": tracks60})
+    raw = {"mirror": False, "center": False, "jitter_cutoff": None}  # the motion as recorded, resampled only
+    run = run_stage(TrackedHeadDb, {"fps": 30.0, **raw}, {"tracks": tracks60})
     assert run.meta["fps"] == 30.0 and run.meta["labels"] == ["take0", "take1", "take2"]
     for k, phrase in enumerate(phrases):
         rows = sequence_rows(run, phrase.label)
@@ -206,12 +207,12 @@ def test_csv_degrees_and_radians_agree_with_the_truth(phrases, tmp_path):
         write_csv(tmp_path / f"{p.label}_rad.csv", p, False, columns=("rz", "time", "tx", "ty", "tz", "rx", "ry"))
     deg = run_stage(
         CsvHeadDb,
-        {"angle_unit": "degrees", "center": False, "mirror": False},
+        {"angle_unit": "degrees", "center": False, "mirror": False, "jitter_cutoff": None},
         {"motion": {p.label: tmp_path / f"{p.label}_deg.csv" for p in phrases[:2]}, "audio": audio},
     )
     rad = run_stage(
         CsvHeadDb,
-        {"angle_unit": "radians", "center": False, "mirror": False},
+        {"angle_unit": "radians", "center": False, "mirror": False, "jitter_cutoff": None},
         {"motion": {p.label: tmp_path / f"{p.label}_rad.csv" for p in phrases[:2]}, "audio": audio},
     )
     assert deg.meta["fps"] == pytest.approx(50.0)
@@ -310,18 +311,85 @@ def test_a_silent_take_cannot_enter_the_database(phrases):
     assert err.value.field == f"inputs.tracks[{phrases[1].label}]"
 
 
+def jittery(phrases, sd=0.004, seed=0):
+    """The first phrase tracked at 30 fps, clean and with about 0.5 degree of white jitter on the quaternion."""
+    clean = tracking_artifact(phrases[:1], fps=30.0)
+    rotation = np.asarray(clean["rotation"]).copy()
+    rotation[:, 1:] += np.random.default_rng(seed).normal(0, sd, (len(rotation), 3))
+    rotation /= np.linalg.norm(rotation, axis=1, keepdims=True)
+    return clean, artifact({**{k: clean[k] for k in clean.names}, "rotation": rotation}, clean.meta)
+
+
 def test_smoothing_removes_tracking_jitter_and_keeps_the_motion(phrases):
     from stages.head.measures import angular_acceleration
 
-    clean = tracking_artifact(phrases[:1], fps=30.0)
-    rotation = np.asarray(clean["rotation"]).copy()
-    rng = np.random.default_rng(0)
-    rotation[:, 1:] += rng.normal(0, 0.004, (len(rotation), 3))  # about 0.5 degree of jitter
-    rotation /= np.linalg.norm(rotation, axis=1, keepdims=True)
-    noisy = artifact({**{k: clean[k] for k in clean.names}, "rotation": rotation}, clean.meta)
-    truth = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": clean}).arrays["angles"]
-    raw = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": noisy}).arrays["angles"]
-    smooth = run_stage(TrackedHeadDb, {"mirror": False, "smoothing": 0.05}, {"tracks": noisy}).arrays["angles"]
+    clean, noisy = jittery(phrases)
+    raw = {"mirror": False, "jitter_cutoff": None}
+    truth = run_stage(TrackedHeadDb, raw, {"tracks": clean}).arrays["angles"]
+    rough = run_stage(TrackedHeadDb, raw, {"tracks": noisy}).arrays["angles"]
+    smooth = run_stage(TrackedHeadDb, {**raw, "smoothing": 0.05}, {"tracks": noisy}).arrays["angles"]
     acc = lambda a: np.percentile(angular_acceleration(a, 30.0), 99)
-    assert acc(smooth) < 0.3 * acc(raw)
-    assert np.abs(smooth - truth).mean() < 0.7 * np.abs(raw - truth).mean()  # closer to the motion than the jitter
+    assert acc(smooth) < 0.3 * acc(rough)
+    assert np.abs(smooth - truth).mean() < 0.7 * np.abs(rough - truth).mean()  # closer to the motion than the jitter
+
+
+def test_jitter_filter_keeps_head_strokes_and_removes_jitter():
+    """The zero-phase low-pass passes a 1.5 Hz nod unchanged in size and timing and removes 10 Hz jitter."""
+    from stages.geometry.rotations import euler_to_quat, quat_to_euler
+    from stages.head.database import lowpass_motion
+
+    fps = 30.0
+    t = np.arange(300) / fps
+    nod = np.radians(5.0) * np.sin(2 * np.pi * 1.5 * t)
+    jitter = np.radians(0.5) * np.sin(2 * np.pi * 10.0 * t + 0.3)
+    q = euler_to_quat(np.zeros_like(t), nod + jitter, np.zeros_like(t))
+    shift = np.stack([np.sin(2 * np.pi * 1.5 * t), np.sin(2 * np.pi * 10.0 * t), np.zeros_like(t)], axis=1)
+    rot, trans = lowpass_motion(q, shift, fps, 5.0)
+    pitch = quat_to_euler(rot)[:, 1]
+    inner = slice(30, -30)  # away from the ends, where the filter starts up
+    np.testing.assert_allclose(pitch[inner], nod[inner], atol=np.radians(0.05))  # < 1% of the nod, no delay
+    np.testing.assert_allclose(trans[inner, 0], shift[inner, 0], atol=0.01)
+    assert np.abs(trans[inner, 1]).max() < 0.01  # 10 Hz: gain 1 / (1 + 2^8) = 0.004
+    same, _ = lowpass_motion(q, shift, 8.0, 5.0)  # cutoff above the Nyquist rate: nothing to remove
+    np.testing.assert_array_equal(same, q)
+
+
+def test_jitter_filter_is_the_default_and_the_paper_keeps_the_motion(phrases):
+    from stages.head.measures import angular_acceleration
+
+    clean, noisy = jittery(phrases)
+    truth = run_stage(TrackedHeadDb, {"mirror": False, "jitter_cutoff": None}, {"tracks": clean}).arrays["angles"]
+    paper = run_stage(TrackedHeadDb, {"mirror": False, "jitter_cutoff": None}, {"tracks": noisy}).arrays["angles"]
+    default = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": noisy}).arrays["angles"]
+    acc = lambda a: np.percentile(angular_acceleration(a, 30.0), 99)
+    assert acc(default) < 0.3 * acc(paper)
+    assert np.abs(default - truth).mean() < 0.6 * np.abs(paper - truth).mean()
+    with pytest.raises(pydantic.ValidationError):
+        TrackedHeadDb.Params(jitter_cutoff=0)
+
+
+def test_takes_cut_into_pieces_keep_their_motion_audio_and_speaker(phrases):
+    """Each piece is a take of its own (label#k, source#k, same speaker) whose frames and audio, laid end to end,
+    are exactly the whole take's."""
+    tracks = tracking_artifact(phrases[:2], fps=30.0, speaker="ann")
+    plain = {"mirror": False, "center": False, "jitter_cutoff": None}
+    whole = run_stage(TrackedHeadDb, plain, {"tracks": tracks})
+    cut = run_stage(TrackedHeadDb, {**plain, "piece": 1.0}, {"tracks": tracks})
+    for k, label in enumerate(whole.meta["labels"]):
+        count = int(round(whole.meta["frames"][k] / 30.0))
+        names = [f"{label}#{j + 1}" for j in range(count)]
+        assert [x for x in cut.meta["labels"] if x.startswith(f"{label}#")] == names
+        parts = [cut.meta["labels"].index(x) for x in names]
+        assert {cut.meta["sources"][j] for j in parts} == {f"{whole.meta['sources'][k]}#{j + 1}" for j in range(count)}
+        assert {cut.meta["speakers"][j] for j in parts} == {"ann"}
+        frames = np.concatenate([cut.arrays["angles"][cut.arrays["sequence"] == j] for j in parts])
+        np.testing.assert_allclose(frames, whole.arrays["angles"][whole.arrays["sequence"] == k], atol=1e-12)
+        a, b = whole.arrays["audio_bounds"][k]
+        audio = np.concatenate([cut.arrays["audio"][slice(*cut.arrays["audio_bounds"][j])] for j in parts])
+        np.testing.assert_array_equal(audio, whole.arrays["audio"][a:b])
+        rate = cut.meta["audio_rate"]
+        for j in parts:  # each piece's audio starts within one sample after its first frame
+            assert 0.0 <= cut.meta["audio_offset"][j] - whole.meta["audio_offset"][k] < 1.0 / rate + 1e-9
+    assert (
+        run_stage(TrackedHeadDb, {**plain, "piece": 100.0}, {"tracks": tracks}).meta["labels"] == whole.meta["labels"]
+    )

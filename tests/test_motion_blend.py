@@ -332,12 +332,15 @@ def test_measures():
 
 
 def test_an_utterance_found_in_the_database_gets_its_own_motion_back(phrases, tracks):
-    headdb = run_stage(TrackedHeadDb, {"mirror": False}, {"tracks": tracks})
+    """The paper's settings (motion as recorded, uniform resampling, amplitude as recorded) give a take found in
+    the database back exactly."""
+    headdb = run_stage(TrackedHeadDb, {"mirror": False, "jitter_cutoff": None}, {"tracks": tracks})
     db_pitch = run_stage(Pitch, {}, {"source": headdb})
     test_tracks = tracking_artifact(phrases[3:4], fps=30.0)
     take_pitch = run_stage(Pitch, {}, {"source": test_tracks})
     tr = run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": take_pitch})
-    run = run_stage(MotionBlend, {"timing": "segment"}, {"trellis": tr, "database": headdb, "reference": test_tracks})
+    paper = {"timing": "segment", "amplitude": "database", "output_cutoff": None}
+    run = run_stage(MotionBlend, paper, {"trellis": tr, "database": headdb, "reference": test_tracks})
     real = reference_angles(test_tracks, phrases[3].label, 1, 30.0)
     assert run.arrays["angles"].shape == real.shape
     np.testing.assert_allclose(run.arrays["angles"], real, atol=1e-9)
@@ -479,28 +482,117 @@ def test_timing_knots_move_database_events_onto_test_events():
     # 4.5 would land at 10.25: moved onto 10.35; 5.9 would land at 10.95, next to 10.8: too fast a piece after it
     np.testing.assert_allclose(knots_t, [10.0, 10.35, 11.0])
     np.testing.assert_allclose(knots_d, [4.0, 4.5, 6.0])
-    t = np.linspace(9.5, 11.5, 201)
-    mapped = warp_time(t, knots_t, knots_d)
-    assert np.all(np.diff(mapped) > 0)  # monotone, continuous
-    np.testing.assert_allclose(warp_time(np.array([10.0, 10.35, 11.0]), knots_t, knots_d), [4.0, 4.5, 6.0])
-    np.testing.assert_allclose(warp_time(np.array([9.5, 11.5]), knots_t, knots_d), [3.0, 7.0])  # beyond: uniform
+    t = np.linspace(9.5, 11.5, 2001)
+    for kind in ("monotone", "linear"):
+        mapped = warp_time(t, knots_t, knots_d, kind)
+        assert np.all(np.diff(mapped) > 0)  # monotone, continuous
+        np.testing.assert_allclose(warp_time(np.array([10.0, 10.35, 11.0]), knots_t, knots_d, kind), [4.0, 4.5, 6.0])
+    linear = warp_time(np.array([9.5, 11.5]), knots_t, knots_d, "linear")
+    np.testing.assert_allclose(linear, [3.0, 7.0])  # beyond: the average rate
+    # the monotone map's rate changes smoothly (the linear one steps from 500/350 to 1500/650 at 10.35) and goes on
+    # beyond the ends at the end pieces' own rates
+    rate = np.diff(warp_time(t, knots_t, knots_d)) / np.diff(t)
+    assert np.abs(np.diff(rate)).max() < 0.01
+    assert rate[0] == pytest.approx(0.5 / 0.35) and rate[-1] == pytest.approx(1.5 / 0.65)
+    lin_rate = np.diff(warp_time(t, knots_t, knots_d, "linear")) / np.diff(t)
+    assert np.abs(np.diff(lin_rate)).max() > 0.5
+    # two knots: both maps are the uniform one
+    np.testing.assert_allclose(warp_time(t, knots_t[[0, -1]], knots_d[[0, -1]]), 4.0 + (t - 10.0) * 2.0)
     far = segment_knots((10.0, 11.0), (4.0, 6.0), np.array([10.6]), np.array([4.5]), tolerance=0.15, max_stretch=2.0)
     np.testing.assert_allclose(far[0], [10.0, 11.0])  # 0.35 s away: left alone
 
 
 def test_amplitude_gains_bring_every_speaker_to_the_target_spread():
-    from stages.head.motion_blend import amplitude_gains
+    from stages.head.motion_blend import amplitude_gains, amplitude_target, speaker_spreads
 
     t = np.linspace(0, 4 * np.pi, 400)
     quiet = np.repeat(np.sin(t)[:, None], 6, axis=1)
-    db = DatabaseMotion(
-        np.concatenate([quiet, 3 * quiet]), np.array([0, 400]), np.array([400, 400]), 100.0, ["ann", "bob"]
+    channels = np.concatenate([quiet, 3 * quiet, 10 * quiet])
+    db = DatabaseMotion(channels, np.array([0, 400, 800]), np.array([400, 400, 400]), 100.0, ["ann", "bob", "bob"])
+    spreads = speaker_spreads(db)
+    np.testing.assert_allclose(spreads["bob"] / spreads["ann"], 10.0 * np.ones(6), rtol=0.05)  # pooled: 10x wins p95
+    np.testing.assert_allclose(amplitude_gains(db, spreads, amplitude_target(spreads, "ann"))[0], [1.0] * 6)
+    # bob's third take held out (say, the test take): his target comes from his other take only
+    held_out = speaker_spreads(db, np.array([True, True, False]))
+    np.testing.assert_allclose(amplitude_target(held_out, "bob"), 3 * spreads["ann"])
+    np.testing.assert_allclose(
+        amplitude_gains(db, held_out, amplitude_target(held_out, "bob"))[:2], [[3.0] * 6, [1.0] * 6]
     )
-    np.testing.assert_allclose(amplitude_gains(db, "ann"), [[1.0] * 6, [1 / 3] * 6])
-    np.testing.assert_allclose(amplitude_gains(db, "bob"), [[3.0] * 6, [1.0] * 6])
-    scaled = db.scaled(amplitude_gains(db, None))  # a held-out speaker: both to the database's pooled spread
+    # a speaker the database does not know: the median speaker's spread
+    np.testing.assert_allclose(amplitude_target(held_out, "cid"), 2 * spreads["ann"])
+    scaled = db.scaled(amplitude_gains(db, held_out, amplitude_target(held_out, "cid")))
     spread = lambda x: np.percentile(x, 95, axis=0) - np.percentile(x, 5, axis=0)
-    np.testing.assert_allclose(spread(scaled.channels[:400]), spread(scaled.channels[400:]))
+    np.testing.assert_allclose(spread(scaled.channels[:400]), spread(scaled.channels[400:800]))
+
+
+def test_matched_amplitude_is_centred_with_the_target_spread():
+    from stages.head.beats import kinematic_beats
+    from stages.head.motion_blend import match_amplitude
+
+    t = np.arange(600) / 30.0
+    motion = np.zeros((600, 6))
+    motion[:, 0] = 0.3 + 0.1 * np.sin(t)  # yaw: spread about 0.2, off the rest pose
+    motion[:, 1] = 0.02 * np.sin(3 * t + 1)  # pitch: spread about 0.04
+    spread = lambda x: np.percentile(x, 95, axis=0) - np.percentile(x, 5, axis=0)
+    target = np.array([0.1, 0.08, 0.05, 1.0, 1.0, 1.0])
+    out = match_amplitude(motion, target, max_gain=3.0)
+    np.testing.assert_allclose(out.mean(axis=0), 0.0, atol=1e-12)  # on the rest pose
+    # one gain for the angles, the geometric mean of yaw's and pitch's ratios (roll and translation do not move)
+    ratios = target[:2] / spread(motion)[:2]
+    np.testing.assert_allclose(spread(out)[:2], spread(motion)[:2] * np.sqrt(ratios.prod()))
+    assert np.all(out[:, 2:] == 0.0)
+    # a common gain keeps the head strokes (maxima of the angular speed) where they were
+    np.testing.assert_array_equal(kinematic_beats(out[:, :3], 30.0), kinematic_beats(motion[:, :3], 30.0))
+    # and it is limited: a motion far smaller than the target grows by max_gain only
+    small = match_amplitude(0.01 * motion, target, max_gain=3.0)
+    np.testing.assert_allclose(spread(small)[:2], 0.03 * spread(motion)[:2])
+
+
+def test_the_amplitude_target_never_comes_from_the_held_out_take(phrases):
+    """Leave one take out on a database where one take moves far more than its speaker's other takes: its matched
+    synthesis moves about as much as the other takes (overall: the geometric mean of the three angles' spreads, the
+    size a common gain sets), not like itself."""
+    loud = [phrases[0].label]
+    tracks = tracking_artifact(phrases[:8], fps=30.0)
+    rotation = np.asarray(tracks["rotation"]).copy()
+    sequence = np.asarray(tracks["sequence"])
+    for k, label in enumerate(tracks.meta["labels"]):
+        if label in loud:
+            rotation[sequence == k, 1:] *= 8.0
+    rotation /= np.linalg.norm(rotation, axis=1, keepdims=True)
+    tracks = artifact({**{k: tracks[k] for k in tracks.names}, "rotation": rotation}, tracks.meta)
+    headdb = run_stage(TrackedHeadDb, {}, {"tracks": tracks})
+    db_pitch = run_stage(Pitch, {}, {"source": headdb})
+    test_pitch = run_stage(Pitch, {}, {"source": tracks})
+    inputs = {"database": headdb, "database_pitch": db_pitch, "test_pitch": test_pitch}
+    tr = run_stage(Trellis, {"holdout": "take", "test_speaker": "own"}, inputs)
+    run = run_stage(MotionBlend, {"amplitude": "match"}, {"trellis": tr, "database": headdb})
+    spread = lambda a: np.prod(np.percentile(a, 95, axis=0)[:3] - np.percentile(a, 5, axis=0)[:3]) ** (1 / 3)
+    angles, seq = run.arrays["angles"], run.arrays["sequence"]
+    quiet_real = spread(np.concatenate([reference_angles(tracks, x, 8, 30.0) for x in tracks.meta["labels"][1:]]))
+    loud_real = spread(reference_angles(tracks, loud[0], 8, 30.0))
+    assert loud_real > 3 * quiet_real
+    assert spread(angles[seq == 0]) == pytest.approx(quiet_real, rel=0.1)
+
+
+def test_output_filter_keeps_strokes_and_removes_sped_up_peaks():
+    """The output low-pass passes a 1.5 Hz nod unchanged in size and timing and removes an 8 Hz wobble (a 3 Hz
+    nod played 2.7x faster); at or above the Nyquist rate it leaves the motion alone."""
+    from stages.head.motion_blend import lowpass_channels
+
+    fps = 30.0
+    t = np.arange(300) / fps
+    nod = np.radians(5.0) * np.sin(2 * np.pi * 1.5 * t)
+    wobble = np.radians(1.0) * np.sin(2 * np.pi * 8.0 * t + 0.3)
+    channels = np.zeros((len(t), 6))
+    channels[:, 1] = nod + wobble
+    out = lowpass_channels(channels, fps, 4.0)
+    inner = slice(30, -30)  # away from the ends, where the filter starts up
+    np.testing.assert_allclose(out[inner, 1], nod[inner], atol=np.radians(0.1))  # 8 Hz: gain 1 / (1 + 2^8)
+    assert np.abs(out[:, [0, 2, 3, 4, 5]]).max() == 0.0
+    np.testing.assert_array_equal(lowpass_channels(channels, 6.0, 4.0), channels)
+    with pytest.raises(ValidationError):
+        MotionBlend.Params(output_cutoff=0)
 
 
 def test_rest_anchor_removes_slow_wander(leave_one_out, database):

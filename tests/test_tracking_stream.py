@@ -2,9 +2,14 @@
 change results, pictures come from Y'CbCr planes with the right colours, and bad input (variable frame rate, a
 face gone for longer than max_gap_frames, a file cut halfway) is kept, marked or refused, never half-written."""
 
+import json
+import subprocess
+import sys
+import time
+
 import numpy as np
 import pytest
-from conftest import run_cli
+from conftest import cli_env, run_cli
 from tracking_media import CLIPS, first_frames, write_video
 
 from msflow import UserError
@@ -183,3 +188,58 @@ def test_a_held_gap_is_a_warning_and_a_cut_file_leaves_no_artifact(gap_video, tm
     assert "Traceback" not in proc.stderr
     shown = run_cli(tmp_path, "show", "cut")
     assert shown.returncode != 0  # nothing was stored for the stage that failed halfway
+
+
+# A run of the real tracking stage stopped between two blocks of frames: the driver patches the stage so that after
+# its first block went to the output sinks it marks a file and waits (forever) to be killed, then runs the CLI
+# in-process (-j 1), so the stage is killed mid-stream at a known point, not after a guessed delay.
+KILL_DRIVER = """
+import sys, threading
+from pathlib import Path
+import stages.tracking.stream as stream
+
+stream.BLOCK_FRAMES = 8
+original = stream.BlockWriter._flush
+
+def flush_then_wait(self, frames):
+    original(self, frames)
+    Path(sys.argv[1]).touch()
+    threading.Event().wait()
+
+stream.BlockWriter._flush = flush_then_wait
+from msflow.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def test_a_tracking_run_killed_mid_stream_leaves_nothing_and_the_rerun_is_whole(tmp_path):
+    from msflow.artifact import read_artifact
+
+    clip = write_video(tmp_path / "short.mp4", first_frames(CLIPS["NEU"], 30))
+    (tmp_path / "pipeline.yaml").write_text(
+        f"version: 1\nstages:\n  track:\n    uses: stages.tracking:FaceMesh\n    inputs: {{videos: {{v: {clip}}}}}\n"
+        "    params: {audio: none}\n"
+    )
+    (tmp_path / "driver.py").write_text(KILL_DRIVER)
+    ready = tmp_path / "ready"
+    cmd = [sys.executable, str(tmp_path / "driver.py"), str(ready), "run", "-j", "1", "-q"]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 120
+        while not ready.exists():  # polls for the mark the stage writes after its first block
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.01)
+    finally:
+        proc.kill()
+        proc.wait()
+    artifacts = tmp_path / ".msflow" / "artifacts"
+    assert not artifacts.exists() or not any(artifacts.glob("*/*")), "a killed run left an artifact"
+    result = run_cli(tmp_path, "run", "-q")
+    assert result.returncode == 0, result.stderr
+    assert run_cli(tmp_path, "verify").returncode == 0
+    key = json.loads(sorted((tmp_path / ".msflow" / "runs").glob("*.json"))[-1].read_text())["stages"]["track"]["key"]
+    stored = read_artifact(artifacts / key[:2] / key)
+    whole = run_stage(FaceMesh, {"audio": "none"}, {"videos": {"v": clip}}).arrays
+    assert stored["landmarks"].shape[0] == 30
+    for name in ("landmarks", "mesh", "crops", "rotation", "valid"):
+        np.testing.assert_array_equal(stored[name], whole[name], err_msg=name)

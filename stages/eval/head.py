@@ -57,6 +57,7 @@ class Take:
     accents: np.ndarray  # pitch accents
     joins: np.ndarray  # join times of the synthesis
     allowed: np.ndarray  # (db sequences,) bool: what the search could use for this take
+    known: bool = False  # the database the search could use holds other motion of this take's speaker
 
 
 def evaluation_windows(n: int, fps: float, window: float) -> list[tuple[int, int]]:
@@ -107,6 +108,7 @@ def load_takes(inputs: dict, params) -> list[Take]:
     if list(trellis.meta.get("db_labels") or []) != db_labels:
         raise UserError("the trellis was searched over a different database", field="inputs.database")
     ref_labels = list(reference.meta.get("labels") or [])
+    db_speakers = list(inputs["database"].meta.get("speakers") or [None] * len(db_labels))
     fps = float(synthesis.meta["fps"])
     speakers = list(trellis.meta.get("speakers") or [None] * len(labels))
     excluded = trellis.meta.get("excluded") or [[] for _ in labels]
@@ -120,17 +122,20 @@ def load_takes(inputs: dict, params) -> list[Take]:
         samples, rate, offset = take_audio(reference, ref_labels.index(label))
         onsets = audio_onsets(samples, rate, offset=offset, delta=params.onset_delta, min_gap=params.onset_min_gap)
         joins = np.asarray(synthesis["joins"])[np.asarray(synthesis["join_utterance"]) == u]
+        allowed = np.array([name not in excluded[u] for name in db_labels])
+        speaker = speakers[u] or label
         takes.append(
             Take(
                 label,
-                speakers[u] or label,
+                speaker,
                 fps,
                 real[:n],
                 synth[:n],
                 onsets,
                 take_accents(inputs["test_pitch"], u, params.accent_prominence),
                 joins[joins < (n - 2) / fps],
-                np.array([name not in excluded[u] for name in db_labels]),
+                allowed,
+                bool(any(ok and x == speaker for ok, x in zip(allowed, db_speakers))),
             )
         )
     return takes
@@ -307,51 +312,94 @@ class RangeScores:
     amplitude: np.ndarray  # (S, M, 3) (p95 - p5) of the motion over (p95 - p5) of the real motion (NaN: still)
     inside: np.ndarray  # (S, M, 3) 1 where the motion's [p5, p95] lies inside the real [p5, p95]
     in_range: np.ndarray  # (S, M) fraction of frames (all angles) inside the real [p5, p95]
+    fit: np.ndarray  # (S, M, 3) 1 where the motion's range fits the real one (``range_fit``)
+    halves_fit: np.ndarray  # (S, 3) the same for the speaker's real motion, one half against the other
+    known: np.ndarray | None = None  # (S,) the database held other motion of the speaker (its amplitude known)
 
 
-def range_scores(pooled: dict[str, dict[str, list[np.ndarray]]]) -> RangeScores:
+def range_fit(motion: np.ndarray, real: np.ndarray, span_tolerance: float, margin: float) -> np.ndarray:
+    """Per angle, whether a motion's p5..p95 fits a real p5..p95 (both (2, angles) from ``percentile_range``):
+    its span p95 - p5 within a factor ``span_tolerance`` of the real span (either way), and its p5..p95 inside the
+    real p5..p95 widened by ``margin`` times the real span at each end. A motion shrunk below 1 / span_tolerance
+    of the real amplitude fails however well it stays inside the range; one that is large enough fails if it sits
+    off-centre. An angle the real motion never moves in fits when the motion does not move either."""
+    span, real_span = motion[1] - motion[0], real[1] - real[0]
+    moves = real_span > 1e-6
+    ratio = span / np.where(moves, real_span, 1.0)
+    sized = (ratio >= 1.0 / span_tolerance) & (ratio <= span_tolerance)
+    inside = (motion[0] >= real[0] - margin * real_span - 1e-9) & (motion[1] <= real[1] + margin * real_span + 1e-9)
+    return np.where(moves, sized & inside, span <= 1e-6)
+
+
+def halves_range_fit(real: np.ndarray, span_tolerance: float, margin: float) -> np.ndarray:
+    """``range_fit`` of a speaker's real motion (frames, 3) against itself: its first half, centred on its mean,
+    against the range of the second half, centred alike, and the other way round (mean of the two, per angle).
+    What another stretch of the speaker's own motion achieves: the level a synthesis can be asked for."""
+    from stages.head.measures import percentile_range
+
+    half = len(real) // 2
+    if half < 2:
+        return np.ones(real.shape[1])
+    a, b = real[:half] - real[:half].mean(axis=0), real[half:] - real[half:].mean(axis=0)
+    ra, rb = percentile_range(a), percentile_range(b)
+    forth, back = range_fit(ra, rb, span_tolerance, margin), range_fit(rb, ra, span_tolerance, margin)
+    return 0.5 * (forth.astype(float) + back.astype(float))
+
+
+def range_scores(pooled: dict[str, dict[str, list[np.ndarray]]], span_tolerance: float, margin: float) -> RangeScores:
     """``RangeScores`` from every motion's excerpts pooled per speaker (``score_windows``)."""
     from stages.head.measures import percentile_range
 
     speakers = sorted(pooled)
     amplitude = np.zeros((len(speakers), len(MOTIONS), 3))
     inside = np.zeros_like(amplitude)
+    fit = np.zeros_like(amplitude)
     in_range = np.zeros((len(speakers), len(MOTIONS)))
+    halves = np.zeros((len(speakers), 3))
     for i, speaker in enumerate(speakers):
-        real = percentile_range(np.concatenate(pooled[speaker]["real"]))
+        real_motion = np.concatenate(pooled[speaker]["real"])
+        real = percentile_range(real_motion)
         spread = real[1] - real[0]
         moves = spread > 1e-6  # an angle the real motion never moves in has no amplitude to match (NaN)
+        halves[i] = halves_range_fit(real_motion, span_tolerance, margin)
         for j, name in enumerate(MOTIONS):
             motion = np.concatenate(pooled[speaker][name])
             p = percentile_range(motion)
             amplitude[i, j] = np.where(moves, (p[1] - p[0]) / np.where(moves, spread, 1.0), np.nan)
             inside[i, j] = (p[0] >= real[0] - 1e-9) & (p[1] <= real[1] + 1e-9)
+            fit[i, j] = range_fit(p, real, span_tolerance, margin)
             degrees = np.degrees(motion)
             in_range[i, j] = np.mean((degrees >= real[0]) & (degrees <= real[1]))
-    return RangeScores(speakers, amplitude, inside, in_range)
+    return RangeScores(speakers, amplitude, inside, in_range, fit, halves)
 
 
-def speaker_acceleration_p99(takes: list[Take]) -> dict[str, float]:
-    """Each speaker's real 99th percentile of angular acceleration (deg/s^2) over all of that speaker's takes."""
-    from stages.head.measures import angular_acceleration
+def speaker_acceleration_p99(takes: list[Take], cutoff: float | None = None) -> dict[str, float]:
+    """Each speaker's real 99th percentile of angular acceleration (deg/s^2) over all of that speaker's takes; with
+    a ``cutoff`` (Hz), of the real motion low-passed there first (stages.head.measures.lowpass_angles): the
+    acceleration of the head's own motion without the tracking jitter, which dominates the raw figure."""
+    from stages.head.measures import angular_acceleration, lowpass_angles
+
+    def motion(t):
+        return t.real if cutoff is None else lowpass_angles(t.real, t.fps, cutoff)
 
     return {
         speaker: float(
             np.percentile(
-                np.concatenate([angular_acceleration(t.real, t.fps) for t in takes if t.speaker == speaker]), 99
+                np.concatenate([angular_acceleration(motion(t), t.fps) for t in takes if t.speaker == speaker]), 99
             )
         )
         for speaker in {t.speaker for t in takes}
     }
 
 
-def take_scores(takes: list[Take], paths: list[list[np.ndarray]]) -> dict[str, np.ndarray]:
+def take_scores(takes: list[Take], paths: list[list[np.ndarray]], jitter_cutoff: float) -> dict[str, np.ndarray]:
     """Per take: drift of the synthesis, the real motion and the random path (deg); the largest angular
     acceleration at the synthesis's joins, of the synthesis and of the real motion at the same times (deg/s^2);
     the speaker's real 99th percentile."""
     from stages.head.measures import JOIN_MEASURE_WINDOW, join_acceleration, linear_drift
 
     p99 = speaker_acceleration_p99(takes)
+    p99_band = speaker_acceleration_p99(takes, jitter_cutoff)
     drift = np.array(
         [
             [
@@ -378,6 +426,7 @@ def take_scores(takes: list[Take], paths: list[list[np.ndarray]]) -> dict[str, n
         "join_acc_max": np.array([[largest(t.synth, t), largest(t.real, t)] for t in takes]).reshape(-1, 2),
         "joins_over_p99": np.array([[over(t.synth, t), over(t.real, t), len(t.joins)] for t in takes]).reshape(-1, 3),
         "real_acc_p99": np.array([p99[t.speaker] for t in takes]),
+        "real_acc_p99_band": np.array([p99_band[t.speaker] for t in takes]),
     }
 
 
@@ -452,8 +501,16 @@ def pooled_metrics(w: WindowScores, ranges: RangeScores, per_take: dict, params)
             float(np.nanmean(ranges.amplitude[:, i])) if np.isfinite(ranges.amplitude[:, i]).any() else 0.0
         )
         metrics[f"range_ok_{m}"] = float(ranges.inside[:, i].mean())
+        metrics[f"range_fit_{m}"] = float(ranges.fit[:, i].mean())
         metrics[f"in_range_{m}"] = float(ranges.in_range[:, i].mean())
+    metrics["range_fit_halves"] = float(ranges.halves_fit.mean())
+    known = ranges.known if ranges.known is not None else np.zeros(len(ranges.speakers), bool)
+    metrics["speakers_known"] = int(known.sum())
+    if known.any():
+        metrics["range_fit_known_synth"] = float(ranges.fit[known, 0].mean())
+        metrics["range_fit_known_halves"] = float(ranges.halves_fit[known].mean())
     drift, joins, p99 = per_take["drift"], per_take["join_acc_max"], per_take["real_acc_p99"]
+    p99_band = per_take["real_acc_p99_band"]
     over = per_take["joins_over_p99"]
     metrics.update(
         {
@@ -466,6 +523,8 @@ def pooled_metrics(w: WindowScores, ranges: RangeScores, per_take: dict, params)
             "joins_over_p99_synth": float(over[:, 0].sum() / max(over[:, 2].sum(), 1)),
             "joins_over_p99_real": float(over[:, 1].sum() / max(over[:, 2].sum(), 1)),
             "real_acc_p99": float(p99.min()) if len(p99) else 0.0,
+            "real_acc_p99_band": float(p99_band.min()) if len(p99_band) else 0.0,
+            "join_acc_over_p99_band": float((joins[:, 0] / np.maximum(p99_band, 1e-9)).max()) if len(joins) else 0.0,
         }
     )
     return {k: (v if np.isfinite(v) else 0.0) for k, v in metrics.items()}
@@ -503,6 +562,19 @@ HEAD_EVAL_OUTPUTS = {
         dtype="float64",
         doc="1 where the motion's p5..p95 lies inside the speaker's real p5..p95",
     ),
+    "range_fit": Output.array(
+        "f",
+        shape=("speakers", len(MOTIONS), 3),
+        dtype="float64",
+        doc="1 where the motion's p5..p95 fits the speaker's real one: span within params span_tolerance, inside "
+        "the real range widened by params range_margin of its span",
+    ),
+    "range_fit_halves": Output.array(
+        "f",
+        shape=("speakers", 3),
+        dtype="float64",
+        doc="range_fit of one half of the speaker's real motion against the other (both ways, centred)",
+    ),
     "in_range": Output.array(
         "f", shape=("speakers", len(MOTIONS)), dtype="float64", doc="fraction of frames inside the real p5..p95"
     ),
@@ -519,6 +591,9 @@ HEAD_EVAL_OUTPUTS = {
         doc="joins whose acceleration exceeds the speaker's real p99: synth, real at the same times; joins",
     ),
     "real_acc_p99": Output.array("f", shape=("takes",), dtype="float64", doc="speaker's real p99 acceleration"),
+    "real_acc_p99_band": Output.array(
+        "f", shape=("takes",), dtype="float64", doc="the same of the real motion low-passed at params jitter_cutoff"
+    ),
 }
 
 
@@ -563,6 +638,15 @@ class HeadEvalParams(Stage.Params):
     onset_delta: float = Field(0.15, ge=0, le=1, description="onset peak height above the local mean (flux in 0..1)")
     onset_min_gap: float = Field(0.1, ge=0, description="shortest time (s) between two audio onsets")
     accent_prominence: float = Field(0.5, gt=0, description="semitones of prominence of a pitch accent")
+    span_tolerance: float = Field(
+        1.5, ge=1, description="range fit: the motion's p5..p95 span within this factor of the real span, either way"
+    )
+    range_margin: float = Field(
+        0.25, ge=0, description="range fit: p5..p95 inside the real one widened by this fraction of its span each side"
+    )
+    jitter_cutoff: float = Field(
+        5.0, gt=0, description="Hz: the real motion low-passed here gives the jitter-free acceleration yardstick"
+    )
     draws: int = Field(20, ge=1, le=1000, description="draws averaged per random baseline")
     min_shift: float = Field(1.0, ge=0, description="smallest circular shift (s) of the 'shifted' baseline")
     bootstrap: int = Field(2000, ge=100, description="bootstrap resamples of the takes for the intervals")
@@ -604,8 +688,9 @@ class HeadMotionEval(Stage):
             for _ in range(params.draws)
         ]
         windows, pooled = score_windows(takes, paths, db, params)
-        ranges = range_scores(pooled)
-        per_take = take_scores(takes, paths)
+        ranges = range_scores(pooled, params.span_tolerance, params.range_margin)
+        ranges.known = np.array([any(t.known for t in takes if t.speaker == x) for x in ranges.speakers])
+        per_take = take_scores(takes, paths, params.jitter_cutoff)
         metrics = pooled_metrics(windows, ranges, per_take, params)
         return pack_evaluation(takes, windows, ranges, per_take, metrics, inputs)
 
@@ -624,10 +709,13 @@ def pack_evaluation(
         "amplitude": ranges.amplitude,
         "range_ok": ranges.inside,
         "in_range": ranges.in_range,
+        "range_fit": ranges.fit,
+        "range_fit_halves": ranges.halves_fit,
         "drift": per_take["drift"],
         "join_acc_max": per_take["join_acc_max"],
         "joins_over_p99": per_take["joins_over_p99"].astype(np.int64),
         "real_acc_p99": per_take["real_acc_p99"],
+        "real_acc_p99_band": per_take["real_acc_p99_band"],
     }
     meta = {
         "motions": list(MOTIONS),

@@ -125,6 +125,28 @@ def smooth_motion(rotation: np.ndarray, translation: np.ndarray, sd_frames: floa
     return quat_normalize(q), gaussian_filter1d(translation, sd_frames, axis=0, mode="nearest")
 
 
+def lowpass_motion(
+    rotation: np.ndarray, translation: np.ndarray, fps: float, cutoff: float, order: int = 4
+) -> tuple[np.ndarray, np.ndarray]:
+    """Zero-phase Butterworth low-pass (``order``, applied forwards and backwards: no delay, gain 1/2 at
+    ``cutoff`` Hz and falling as (f / cutoff)^(2 order) above it) of the quaternion components (on one hemisphere,
+    renormalised) and translations.
+
+    Tracked head pose carries frame-to-frame jitter whose acceleration swamps that of the head's own motion
+    (acceleration weighs a frequency f by f^4 in power), while head strokes -- nods and turns -- live below about 3 Hz.
+    A cutoff above that band removes the jitter and leaves the strokes' timing and size alone, unlike a Gaussian
+    smoothing strong enough to remove the same jitter. A cutoff at or above the Nyquist rate leaves the motion as
+    it is."""
+    from scipy.signal import butter, sosfiltfilt
+
+    if cutoff >= 0.5 * fps or len(rotation) < 3:
+        return rotation, translation
+    sos = butter(order, cutoff / (0.5 * fps), output="sos")
+    pad = min(3 * (2 * len(sos) + 1), len(rotation) - 1)
+    q = sosfiltfilt(sos, quat_continuous(rotation), axis=0, padlen=pad)
+    return quat_normalize(q), sosfiltfilt(sos, translation, axis=0, padlen=pad)
+
+
 def center_motion(rotation: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Motion relative to the sequence's mean pose, in the mean head's frame: q' = q_mean^* q,
     t' = R_mean^T (t - mean t). Takes with different resting poses can then be stitched."""
@@ -140,6 +162,38 @@ def mirror_motion(rotation: np.ndarray, translation: np.ndarray) -> tuple[np.nda
     return mirror_quat(rotation), translation * np.array([-1.0, 1.0, 1.0])
 
 
+def cut_recording(rec: Recording, piece: float) -> list[Recording]:
+    """``rec`` cut into nearly equal pieces of about ``piece`` seconds (one when shorter), each a take of its own:
+    label and source ``name#k`` (k from 1), the same speaker. The audio is cut at each piece's first frame (the first
+    piece keeps any audio before the take's first frame, the last any after its end), so the pieces' audio laid end
+    to end is the take's."""
+    rel = rec.time - rec.time[0]
+    frame = float(np.median(np.diff(rel)))
+    count = max(1, int(round((rel[-1] + frame) / piece)))
+    if count == 1:
+        return [rec]
+    edges = np.linspace(0.0, rel[-1] + frame, count + 1)
+    rows = [np.flatnonzero((rel >= edges[k] - 1e-9) & (rel < edges[k + 1] - 1e-9)) for k in range(count)]
+    starts = [float(rel[r[0]]) for r in rows]
+    cuts = [int(np.clip(np.ceil((t - rec.audio_offset) * rec.audio_rate - 1e-6), 0, len(rec.samples))) for t in starts]
+    cuts = [0, *cuts[1:], len(rec.samples)]
+    return [
+        Recording(
+            f"{rec.label}#{k + 1}",
+            f"{rec.source}#{k + 1}",
+            rec.time[rows[k]],
+            rec.rotation[rows[k]],
+            rec.translation[rows[k]],
+            rec.samples[cuts[k] : cuts[k + 1]],
+            rec.audio_rate,
+            rec.audio_offset + cuts[k] / rec.audio_rate - starts[k],
+            rec.field,
+            rec.speaker,
+        )
+        for k in range(count)
+    ]
+
+
 def build_database(
     recordings: list[Recording],
     *,
@@ -148,20 +202,28 @@ def build_database(
     center: bool,
     max_length_mismatch: float,
     smoothing: float = 0.0,
+    jitter_cutoff: float | None = None,
+    piece: float | None = None,
     translation_units: str,
 ) -> Result:
-    """Resample every recording to ``fps``, optionally centre it and add its mirror image; one artifact."""
+    """Resample every recording to ``fps`` (after cutting it into pieces of about ``piece`` seconds), optionally
+    low-pass and centre it and add its mirror image; one artifact."""
     if not recordings:
         raise UserError("the database has no recordings", field="inputs")
     rates = {r.audio_rate for r in recordings}
     if len(rates) != 1:
         raise UserError(f"audio rates differ between recordings: {sorted(rates)}", field="inputs")
-    sequences = []
-    audio_chunks, audio_cursor = [], 0
     for rec in recordings:
         check_motion_finite(rec)
         check_lengths(rec, max_length_mismatch)
+    if piece:
+        recordings = [part for rec in recordings for part in cut_recording(rec, piece)]
+    sequences = []
+    audio_chunks, audio_cursor = [], 0
+    for rec in recordings:
         grid, rot, trans = resample_motion(rec.time, quat_normalize(rec.rotation), rec.translation, fps)
+        if jitter_cutoff:
+            rot, trans = lowpass_motion(rot, trans, fps, jitter_cutoff)
         if smoothing > 0:
             rot, trans = smooth_motion(rot, trans, smoothing * fps)
         if center:
@@ -217,6 +279,18 @@ class HeadDbParams(Stage.Params):
     smoothing: float = Field(
         0.0, ge=0, description="Gaussian smoothing (s, sd) of the motion against tracking jitter (0: none)"
     )
+    jitter_cutoff: float | None = Field(
+        5.0,
+        gt=0,
+        description="zero-phase low-pass (Hz) of the motion against tracking jitter, above the head-stroke band "
+        "(None: as recorded, the paper)",
+    )
+    piece: float | None = Field(
+        None,
+        gt=0,
+        description="cut every take into pieces of about this many seconds, each a take of its own (label#k), "
+        "e.g. to leave one piece out with the speaker's other pieces in the database (None: whole takes)",
+    )
     speaker: str | None = Field(
         None,
         min_length=1,
@@ -268,6 +342,8 @@ class TrackedHeadDb(Stage):
             center=params.center,
             max_length_mismatch=params.max_length_mismatch,
             smoothing=params.smoothing,
+            jitter_cutoff=params.jitter_cutoff,
+            piece=params.piece,
             translation_units=str(views[0][1].meta.get("translation_units", "unknown")),
         )
 
@@ -413,6 +489,8 @@ class BvhHeadDb(Stage):
             center=params.center,
             max_length_mismatch=params.max_length_mismatch,
             smoothing=params.smoothing,
+            jitter_cutoff=params.jitter_cutoff,
+            piece=params.piece,
             translation_units=params.translation_units,
         )
 
@@ -503,5 +581,7 @@ class CsvHeadDb(Stage):
             center=params.center,
             max_length_mismatch=params.max_length_mismatch,
             smoothing=params.smoothing,
+            jitter_cutoff=params.jitter_cutoff,
+            piece=params.piece,
             translation_units=params.translation_units,
         )

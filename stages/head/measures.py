@@ -42,6 +42,16 @@ def reference_angles(view, label: str, n_labels: int, fps: float) -> np.ndarray 
     return quat_to_euler(rot)
 
 
+def lowpass_angles(angles: np.ndarray, fps: float, cutoff: float) -> np.ndarray:
+    """(yaw, pitch, roll) angles low-passed at ``cutoff`` Hz with the database's jitter filter
+    (stages.head.database.lowpass_motion, on the quaternions)."""
+    from stages.head.database import lowpass_motion
+
+    q = euler_to_quat(angles[:, 0], angles[:, 1], angles[:, 2])
+    filtered, _ = lowpass_motion(q, np.zeros((len(q), 3)), fps, cutoff)
+    return quat_to_euler(filtered)
+
+
 def angular_speed(angles: np.ndarray, fps: float) -> np.ndarray:
     """Angular speed (frames - 1,) in degrees per second from (yaw, pitch, roll) angles in radians."""
     q = euler_to_quat(angles[:, 0], angles[:, 1], angles[:, 2])

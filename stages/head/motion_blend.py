@@ -21,6 +21,10 @@ velocity" -- the paper does not say how; here (``join_smoothing="velocity"``, th
 - optionally (``preserve_speed``) the blended velocity is rescaled to keep the speed of the joined segments where
   their motions are unrelated (a plain average of two unrelated velocities is slower than either).
 
+Beyond the paper (each behind a param, the paper's behaviour available): head strokes moved onto the test audio's
+onsets by a smooth time warp (``timing``, ``timing_warp``); every source speaker's motion brought to the target
+speaker's amplitude and the output centred and scaled to it (``amplitude``); slow wander removed (``rest_anchor``).
+
 Motion is blended as (yaw, pitch, roll) angles and translation: the database is centred on each take's mean pose,
 so angles stay small and far from the Euler singularity, where angle rates are close to the angular velocity.
 """
@@ -80,20 +84,85 @@ class DatabaseMotion:
         return DatabaseMotion(channels, self.first, self.frames, self.fps, self.speakers)
 
 
-def amplitude_gains(db: DatabaseMotion, target: str | None) -> np.ndarray:
-    """Per sequence and channel, the gain that gives its speaker's motion the spread (p95 - p5 over all of that
-    speaker's sequences) of the ``target`` speaker's in the database, or of the whole database when the target
-    is not in it (a held-out speaker): every source speaker then moves about as much as the typical one."""
+def speaker_spreads(db: DatabaseMotion, allowed: np.ndarray | None = None, duration: float | None = None) -> dict:
+    """Per speaker, the spread (p95 - p5 per channel) of its motion about its rest pose, pooled over its
+    ``allowed`` sequences (all when None); speakers with no allowed sequence are left out.
+
+    The spread of a stretch of head motion grows with its length (slow postural wander adds to it), so with a
+    ``duration`` (seconds) the sequences are cut into pieces of about that length, each centred on its own mean
+    like a take, and the pieces pooled: the spread expected of an utterance that long. Without it each whole
+    sequence (centred on its mean pose by the database) counts as it is."""
     speakers = list(db.speakers or [None] * len(db.frames))
-    owner = np.array([speakers.index(x) for x in speakers])[db.sequence_of_frames()]  # first sequence of each speaker
+    allowed = np.ones(len(db.frames), bool) if allowed is None else np.asarray(allowed, bool)
+    piece = None if not duration else max(int(round(duration * db.fps)), 2)
+    out = {}
+    for speaker in dict.fromkeys(speakers):
+        parts = []
+        for k in np.flatnonzero(np.array([x == speaker for x in speakers]) & allowed):
+            motion = db.channels[db.first[k] : db.first[k] + db.frames[k]]
+            parts += centred_pieces(motion, piece) if piece else [motion]
+        if parts:
+            values = np.concatenate(parts)
+            out[speaker] = np.percentile(values, 95, axis=0) - np.percentile(values, 5, axis=0)
+    return out
 
-    def spread(mask):
-        values = db.channels[mask]
-        return np.maximum(np.percentile(values, 95, axis=0) - np.percentile(values, 5, axis=0), 1e-12)
 
-    wanted = spread(owner == speakers.index(target)) if target in speakers else spread(np.ones(len(owner), bool))
-    by_speaker = {x: spread(owner == speakers.index(x)) for x in set(speakers)}
-    return np.stack([wanted / by_speaker[x] for x in speakers])
+def centred_pieces(motion: np.ndarray, piece: int) -> list[np.ndarray]:
+    """``motion`` cut into nearly equal pieces of about ``piece`` frames (one when shorter), each minus its mean."""
+    count = max(1, int(round(len(motion) / piece)))
+    edges = np.linspace(0, len(motion), count + 1).round().astype(int)
+    return [motion[a:b] - motion[a:b].mean(axis=0) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+def amplitude_target(spreads: dict, speaker) -> np.ndarray:
+    """The spread to give the synthesis of ``speaker``: that speaker's own (from its other takes) when the
+    database has them, else the median over the database's speakers (the typical speaker's amplitude)."""
+    if speaker in spreads:
+        return spreads[speaker]
+    return np.median(np.stack(list(spreads.values())), axis=0)
+
+
+def group_gains(target: np.ndarray, spread: np.ndarray, max_gain: float = np.inf) -> np.ndarray:
+    """Per channel, the gain that brings ``spread`` to about ``target``: one gain for the three angles and one for
+    the translation, each the geometric mean over its channels of target / spread (channels that do not move are
+    left out; 1 when none moves), at most ``max_gain`` either way.
+
+    One gain for all three angles keeps the direction of the angular velocity, so the speed's maxima -- the head
+    strokes the timing warp placed on the voice's onsets -- stay where they are; a gain per angle would move them
+    (measured on the shared clips: it cost beat alignment), at the price of keeping the source motion's
+    proportions between yaw, pitch and roll."""
+    target, spread = np.asarray(target, dtype=np.float64), np.asarray(spread, dtype=np.float64)
+    gains = np.ones(len(spread))
+    for group in (slice(0, 3), slice(3, len(spread))):
+        moving = (spread[group] > 1e-12) & (target[group] > 1e-12)
+        if moving.any():
+            ratio = np.exp(np.mean(np.log(target[group][moving] / spread[group][moving])))
+            gains[group] = np.clip(ratio, 1.0 / max_gain, max_gain)
+    return gains
+
+
+def amplitude_gains(db: DatabaseMotion, spreads: dict, target: np.ndarray) -> np.ndarray:
+    """Per sequence and channel, the gains (``group_gains``) that bring its speaker's spread
+    (``speaker_spreads``) to ``target``: every source speaker then moves about as much as the target speaker (1
+    where a speaker's spread is unknown)."""
+    speakers = list(db.speakers or [None] * len(db.frames))
+    gains = np.ones((len(speakers), db.channels.shape[1]))
+    for k, speaker in enumerate(speakers):
+        if speaker in spreads:
+            gains[k] = group_gains(target, spreads[speaker])
+    return gains
+
+
+def match_amplitude(channels: np.ndarray, target: np.ndarray, max_gain: float) -> np.ndarray:
+    """The motion about its mean (the rest pose of a take centred like the database), scaled (``group_gains``,
+    at most ``max_gain`` either way, so a short, nearly still utterance is not blown up) so that its spread
+    p95 - p5 is about ``target``'s. Blending shrinks the spread of unrelated segments, so the overall size is set
+    on the output."""
+    centred = channels - channels.mean(axis=0)
+    if len(channels) < 2:
+        return centred
+    spread = np.percentile(centred, 95, axis=0) - np.percentile(centred, 5, axis=0)
+    return centred * group_gains(target, spread, max_gain)
 
 
 JOIN_BUDGET_OF_MEDIAN = 0.5  # default acceleration a join's velocity step may add, as a fraction of the
@@ -190,15 +259,39 @@ def segment_weights(x: np.ndarray, k: int, left: np.ndarray, right: np.ndarray, 
     return np.clip(ramp(k) - ramp(k + 1), 0.0, 1.0)
 
 
-def warp_time(t: np.ndarray, test_knots: np.ndarray, db_knots: np.ndarray) -> np.ndarray:
-    """Database time of output times ``t`` under a piecewise-linear map through the knots (test time -> database
-    time), continued beyond the first and last knot at the segment's average rate."""
+def monotone_slopes(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Knot slopes of a monotone C1 cubic through increasing knots (Fritsch & Butland 1984): inside, the weighted
+    harmonic mean of the two neighbouring secants, which lies between them and keeps the cubic monotone; at the
+    ends, the end piece's own secant."""
+    h, m = np.diff(x), np.diff(y) / np.maximum(np.diff(x), 1e-12)
+    d = np.empty(len(x))
+    d[0], d[-1] = m[0], m[-1]
+    w1, w2 = 2 * h[1:] + h[:-1], h[1:] + 2 * h[:-1]
+    d[1:-1] = (w1 + w2) / (w1 / np.maximum(m[:-1], 1e-12) + w2 / np.maximum(m[1:], 1e-12))
+    return d
+
+
+def warp_time(t: np.ndarray, test_knots: np.ndarray, db_knots: np.ndarray, kind: str = "monotone") -> np.ndarray:
+    """Database time of output times ``t`` under a map through the knots (test time -> database time).
+
+    ``kind="monotone"``: a monotone C1 cubic (``monotone_slopes``), continued beyond the first and last knot at its
+    end slopes, so the playback rate changes smoothly and a moved stroke adds no velocity step (a piecewise-linear
+    map changes the rate abruptly at each knot, which steps the velocity by v times the rate change: an
+    acceleration spike at the very stroke it moved). ``"linear"``: piecewise linear, continued at the segment's
+    average rate (the earlier map, kept for comparison). With two knots both are the uniform map."""
     t = np.asarray(t, dtype=np.float64)
-    rate = (db_knots[-1] - db_knots[0]) / max(test_knots[-1] - test_knots[0], 1e-9)
-    inside = np.interp(t, test_knots, db_knots)
-    before = db_knots[0] + (t - test_knots[0]) * rate
-    after = db_knots[-1] + (t - test_knots[-1]) * rate
-    return np.where(t < test_knots[0], before, np.where(t > test_knots[-1], after, inside))
+    x, y = np.asarray(test_knots, dtype=np.float64), np.asarray(db_knots, dtype=np.float64)
+    if kind == "linear" or len(x) == 2:
+        rate = (y[-1] - y[0]) / max(x[-1] - x[0], 1e-9)
+        before, after = rate, rate
+        inside = np.interp(t, x, y)
+    else:
+        from scipy.interpolate import CubicHermiteSpline
+
+        slopes = monotone_slopes(x, y)
+        before, after = slopes[0], slopes[-1]
+        inside = CubicHermiteSpline(x, y, slopes)(np.clip(t, x[0], x[-1]))
+    return np.where(t < x[0], y[0] + (t - x[0]) * before, np.where(t > x[-1], y[-1] + (t - x[-1]) * after, inside))
 
 
 def segment_knots(
@@ -253,6 +346,7 @@ def stitch_segments(
     preserve_speed: bool = False,
     boundary_window: float = 0.1,
     time_maps: list[tuple[np.ndarray, np.ndarray]] | None = None,
+    warp: str = "monotone",
 ) -> Stitched:
     """Sec. 5.4 for one utterance. ``test_segments`` (N, 3) and the chosen database segments' sequence (N,) and
     times (N, 3); ``times`` the output frame times (increasing). Returns the blended channels on ``times``.
@@ -291,7 +385,7 @@ def stitch_segments(
     out = np.zeros((len(times), db.channels.shape[1]))
     if len(test_segments) == 0:
         return Stitched(out, np.zeros(0), np.zeros((0, 2)), np.zeros(0))
-    chosen = ChosenMotion(db, test_segments, db_segments, np.asarray(db_sequence, dtype=np.int64), time_maps)
+    chosen = ChosenMotion(db, test_segments, db_segments, np.asarray(db_sequence, dtype=np.int64), time_maps, warp)
     starts = np.asarray(subsentence_start, dtype=bool).copy()
     starts[0] = True
     joins, left, right, dv_deg = velocity_blend_windows(
@@ -315,6 +409,7 @@ class ChosenMotion:
     db_segments: np.ndarray  # (N, 3) the same in database seconds
     sequence: np.ndarray  # (N,) database sequence of each
     time_maps: list | None = None  # per segment (test knots, database knots); None: uniform
+    warp: str = "monotone"  # interpolation of the time maps (warp_time)
 
     @property
     def scale(self) -> np.ndarray:
@@ -328,7 +423,7 @@ class ChosenMotion:
         if self.time_maps is None:
             db_time = self.db_segments[k, 0] + (t - self.test_segments[k, 0]) * self.scale[k]
         else:
-            db_time = warp_time(t, *self.time_maps[k])
+            db_time = warp_time(t, *self.time_maps[k], kind=self.warp)
         return self.db.sample(int(self.sequence[k]), db_time)
 
 
@@ -636,10 +731,23 @@ class MotionBlendParams(Stage.Params):
         "onto the test's audio onsets",
     )
     timing_tolerance: float = Field(0.15, gt=0, description="farthest (s) the timing warp moves an event")
-    amplitude: Literal["database", "speaker"] = Field(
-        "database",
-        description="motion amplitude as recorded, or each source speaker's scaled to the test speaker's spread "
-        "(the whole database's when the test speaker is not in it)",
+    timing_warp: Literal["monotone", "linear"] = Field(
+        "monotone",
+        description="the timing warp's time map through its knots: a monotone C1 cubic (the playback rate changes "
+        "smoothly) or piecewise linear (the rate steps at each moved event)",
+    )
+    amplitude: Literal["database", "speaker", "match"] = Field(
+        "match",
+        description="'database': motion amplitude as recorded (the paper); 'speaker': each source speaker's motion "
+        "scaled to the target spread (the test speaker's own from its other takes, else the database's typical "
+        "speaker's); 'match': that, and the output centred on the rest pose with its spread set to the target",
+    )
+    max_amplitude_gain: float = Field(3.0, ge=1, description="'match': largest gain (either way) on the output")
+    output_cutoff: float | None = Field(
+        4.0,
+        gt=0,
+        description="zero-phase low-pass (Hz) of the stitched motion, against the acceleration of segments played "
+        "faster than recorded (None: off, the paper)",
     )
     rest_anchor: float = Field(
         0.0, ge=0, description="remove wander slower than this many seconds, back to the rest pose (0: off)"
@@ -725,8 +833,11 @@ def stitch_options(params, db: DatabaseMotion, trellis) -> dict:
         "boundary_window": float(trellis.meta.get("boundary_window", 0.1)),
         "timing": params.timing,
         "timing_tolerance": params.timing_tolerance,
+        "warp": params.timing_warp,
         "max_stretch": params.max_stretch,
         "amplitude": params.amplitude,
+        "max_amplitude_gain": params.max_amplitude_gain,
+        "output_cutoff": params.output_cutoff,
         "rest_anchor": params.rest_anchor,
     }
 
@@ -843,6 +954,16 @@ class TrellisPath:
     db_segments: np.ndarray  # (N, 3) its times
     onsets: np.ndarray  # test audio onsets
     onset_utterance: np.ndarray
+    db_labels: list[str] | None = None  # the searched database's sequences
+    excluded: list[list[str]] | None = None  # per utterance, the database sequences held out of its search
+
+    def allowed(self, u: int) -> np.ndarray | None:
+        """Database sequences utterance ``u``'s search could use (None: all): its amplitude target must not come
+        from the takes held out for it (its own take, or its whole speaker)."""
+        if self.db_labels is None or self.excluded is None or u >= len(self.excluded):
+            return None
+        held_out = set(self.excluded[u])
+        return np.array([name not in held_out for name in self.db_labels], dtype=bool)
 
     @classmethod
     def of(cls, trellis) -> TrellisPath:
@@ -859,6 +980,8 @@ class TrellisPath:
             np.asarray(trellis["db_segments"]).reshape(-1, 3)[chosen],
             np.asarray(trellis["test_onsets"]) if has_onsets else np.zeros(0),
             np.asarray(trellis["test_onset_utterance"]) if has_onsets else np.zeros(0, int),
+            trellis.meta.get("db_labels"),
+            trellis.meta.get("excluded"),
         )
 
 
@@ -881,20 +1004,27 @@ def synthesise(
     max_stretch: float = 2.0,
     amplitude: str = "database",
     rest_anchor: float = 0.0,
+    max_amplitude_gain: float = 3.0,
+    output_cutoff: float | None = None,
     **blend,
 ) -> list[Stitched]:
     """The stitched motion of each test utterance of a trellis artifact (a still head where silent). ``timing``:
     each chosen segment resampled uniformly onto its test segment (``"segment"``, the paper), or with its audio
     onsets (``"onsets"``) or its head strokes (``"strokes"``) moved onto the test's audio onsets
     (``segment_knots``). ``amplitude="speaker"`` scales every source speaker's motion to the test speaker's
-    spread (``amplitude_gains``); ``rest_anchor`` > 0 removes wander slower than that many seconds (a Gaussian
-    low-pass of that sd), so the head keeps returning to its rest pose. ``blend``: keyword arguments of
+    spread (``amplitude_source``), ``"match"`` also centres the output on the rest pose and scales it to that
+    spread (``match_amplitude``, gain at most ``max_amplitude_gain``); ``rest_anchor`` > 0 removes wander slower
+    than that many seconds (a Gaussian low-pass of that sd), so the head keeps returning to its rest pose;
+    ``output_cutoff`` (Hz) low-passes the stitched motion (``lowpass_channels``). ``blend``: keyword arguments of
     ``stitch_segments``."""
     path = TrellisPath.of(trellis)
-    events = database_events(trellis, db, timing) if timing != "segment" else None
+    shared_events = database_events(trellis, db, timing) if timing != "segment" else None
     out = []
     for u in range(len(path.labels)):
-        source = db.scaled(amplitude_gains(db, path.speakers[u])) if amplitude == "speaker" else db
+        source, target = amplitude_source(db, path, u, utterance_frames(trellis, u, fps) / fps, amplitude)
+        events = shared_events
+        if timing == "strokes" and source is not db:
+            events = database_events(trellis, source, timing)  # the strokes of the motion as it will play
         rows = np.flatnonzero(path.utterance == u)
         maps = None
         if events is not None:
@@ -921,8 +1051,42 @@ def synthesise(
         )
         if rest_anchor > 0 and len(stitched.channels) > 1:
             stitched.channels = stitched.channels - low_pass(stitched.channels, rest_anchor * fps)
+        if amplitude == "match" and len(rows):
+            stitched.channels = match_amplitude(stitched.channels, target, max_amplitude_gain)
+        if output_cutoff and len(rows):
+            stitched.channels = lowpass_channels(stitched.channels, fps, output_cutoff)
         out.append(stitched)
     return out
+
+
+def amplitude_source(
+    db: DatabaseMotion, path: TrellisPath, u: int, duration: float, amplitude: str
+) -> tuple[DatabaseMotion, np.ndarray | None]:
+    """The database motion utterance ``u`` is stitched from and its amplitude target: as recorded
+    (``amplitude="database"``), or every source speaker brought to the target spread at the utterance's
+    ``duration`` (``speaker_spreads`` over the sequences its search could use, ``amplitude_target``)."""
+    if amplitude == "database":
+        return db, None
+    spreads = speaker_spreads(db, path.allowed(u), duration)
+    target = amplitude_target(spreads, path.speakers[u])
+    return db.scaled(amplitude_gains(db, spreads, target)), target
+
+
+def lowpass_channels(channels: np.ndarray, fps: float, cutoff: float) -> np.ndarray:
+    """Zero-phase Butterworth low-pass of the output channels at ``cutoff`` Hz (the database's jitter filter,
+    stages.head.database.lowpass_motion, applied to the stitched motion).
+
+    Resampling a database segment onto a shorter test segment, and more so the timing warp that moves a stroke,
+    plays the motion faster: a rate r multiplies its acceleration by r^2 and moves its frequencies up by r, so a
+    nod recorded at 3 Hz comes out at 6-8 Hz where the warp plays a piece at 2-2.7x. The filter takes those
+    sped-up peaks (and any velocity kink left at a join) back into the band of real head strokes; the strokes'
+    timing, below the cutoff, stays."""
+    from scipy.signal import butter, sosfiltfilt
+
+    if cutoff >= 0.5 * fps or len(channels) < 3:
+        return channels
+    sos = butter(4, cutoff / (0.5 * fps), output="sos")
+    return sosfiltfilt(sos, channels, axis=0, padlen=min(3 * (2 * len(sos) + 1), len(channels) - 1))
 
 
 def low_pass(channels: np.ndarray, sd_frames: float) -> np.ndarray:

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from msflow import Input, Output, Result, Stage, UserError
 from stages.data import DATA
@@ -422,6 +422,34 @@ def apply_identity(mesh: MorphMesh, identities: dict[str, np.ndarray], weights: 
     return mesh
 
 
+def performer_identity(mesh: MorphMesh, identities: dict, landmark_ids, tracks, ridge: float) -> dict[str, float]:
+    """Identity coefficients (name -> value) fitted to the rest face of the performer in ``tracks``
+    (``stages.retarget.identity``); several speakers in the tracking get one identity for all, with a warning."""
+    import warnings
+
+    from stages.retarget.identity import fit_identity, performer_rest_face
+
+    if tracks is None or "mesh" not in tracks:
+        raise UserError(
+            "fit_identity needs the performer's FaceMesh tracking: wire it as input tracks (e.g. tracks: track)",
+            field="inputs.tracks",
+        )
+    if not identities:
+        raise UserError("fit_identity: the character has no identity targets", field="params.fit_identity")
+    speakers = {f.get("speaker") for f in (tracks.meta.get("fields") or {}).values() if f.get("speaker")}
+    if len(speakers) > 1:
+        warnings.warn(
+            f"fit_identity: the tracking holds {len(speakers)} speakers ({sorted(speakers)}); the character gets "
+            "one identity fitted to all of them together",
+            UserWarning,
+        )
+    names = sorted(identities)
+    ids = np.asarray(landmark_ids, np.int64)
+    deltas = np.stack([np.asarray(identities[n], np.float64)[ids] for n in names])
+    c = fit_identity(performer_rest_face(tracks["mesh"]), np.asarray(mesh.positions, np.float64)[ids], deltas, ridge)
+    return {n: float(v) for n, v in zip(names, c)}
+
+
 def character_result(
     mesh: MorphMesh,
     landmark_ids: np.ndarray,
@@ -488,6 +516,18 @@ class GltfCharacter(Stage):
         #: extras (identityTargetNames) or by ``identity_targets``, and are left out of the animated targets
         identity: dict[str, float] = {}
         identity_targets: list[str] | None = None
+        #: fit the identity coefficients to the performer of input ``tracks`` (its FaceMesh rest face) instead:
+        #: a digital double; the expression deltas are unchanged (``stages.retarget.identity``, docs/retarget.md)
+        fit_identity: bool = False
+        #: the fit's ridge, relative to the identity shapes' mean landmark energy (0.1: the lowest absolute mouth
+        #: error of 0.01 / 0.1 / 1 on the CREMA-D and talking-head takes, docs/retarget.md)
+        identity_ridge: float = Field(0.1, gt=0)
+
+        @model_validator(mode="after")
+        def _one_identity(self):
+            if self.fit_identity and self.identity:
+                raise ValueError("give identity coefficients or fit_identity, not both")
+            return self
 
     inputs = {
         "mesh": Input.files(
@@ -496,6 +536,9 @@ class GltfCharacter(Stage):
         ),
         "landmarks": Input.files(
             optional=True, doc="JSON with the 68 landmark vertex ids (overrides the ids stored in the glTF)"
+        ),
+        "tracks": Input.artifact(
+            "mesh", optional=True, doc="tracking of one performer (FaceMesh), for fit_identity; ignored otherwise"
         ),
     }
     outputs = CHARACTER_OUTPUTS
@@ -517,33 +560,39 @@ class GltfCharacter(Stage):
         mesh, identities = split_identity_targets(mesh, identity_names)
         if not mesh.target_names:
             raise UserError("the character has no expression morph targets (all are identity targets)", file=str(path))
-        mesh = apply_identity(mesh, identities, dict(params.identity))
-        landmark_file = _single_file(inputs.get("landmarks"), "inputs.landmarks", (".json",))
-        if landmark_file is not None:
-            ids = read_landmark_json(landmark_file, len(mesh.positions), "inputs.landmarks")
-        elif EXTRAS_LANDMARKS in mesh.extras:
-            ids = check_landmark_ids(
-                mesh.extras[EXTRAS_LANDMARKS],
-                len(mesh.positions),
-                file=str(path),
-                field=f"mesh.extras.{EXTRAS_LANDMARKS}",
-            )
-        else:
-            raise UserError(
-                f"the glTF has no '{EXTRAS_LANDMARKS}' in its mesh extras; give the 68 landmark vertex "
-                f"ids as a JSON file input 'landmarks'",
-                file=str(path),
-                field="inputs.landmarks",
-            )
+        ids = self._landmark_ids(inputs, mesh, path)
+        identity = dict(params.identity)
+        if params.fit_identity:
+            identity = performer_identity(mesh, identities, ids, inputs.get("tracks"), params.identity_ridge)
+        mesh = apply_identity(mesh, identities, identity)
         pivot = mesh.extras.get(EXTRAS_PIVOT)
-        pivot = np.asarray(pivot, dtype=np.float64) if pivot is not None and not params.identity else None
+        pivot = np.asarray(pivot, dtype=np.float64) if pivot is not None and not identity else None
         source = {
             "file": path.name,
             "mesh": mesh.name,
             "target_names_from": mesh.extras.get("_target_names_from"),
             "identity_targets": sorted(identities),
         }
-        return character_result(mesh, ids, source, dict(params.identity), pivot)
+        return character_result(mesh, ids, source, identity, pivot)
+
+    @staticmethod
+    def _landmark_ids(inputs, mesh: MorphMesh, path: Path) -> np.ndarray:
+        landmark_file = _single_file(inputs.get("landmarks"), "inputs.landmarks", (".json",))
+        if landmark_file is not None:
+            return read_landmark_json(landmark_file, len(mesh.positions), "inputs.landmarks")
+        if EXTRAS_LANDMARKS in mesh.extras:
+            return check_landmark_ids(
+                mesh.extras[EXTRAS_LANDMARKS],
+                len(mesh.positions),
+                file=str(path),
+                field=f"mesh.extras.{EXTRAS_LANDMARKS}",
+            )
+        raise UserError(
+            f"the glTF has no '{EXTRAS_LANDMARKS}' in its mesh extras; give the 68 landmark vertex "
+            f"ids as a JSON file input 'landmarks'",
+            file=str(path),
+            field="inputs.landmarks",
+        )
 
 
 class ObjBlendshapes(Stage):
