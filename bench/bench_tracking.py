@@ -181,7 +181,7 @@ def speed_high_resolution(heads: Path | None, out: Path) -> None:
     source = heads / "address_us.mp4"
     clips = {"1080p (address_us upscaled)": upscaled_1080p(source, out / "address_us_1080p.mp4"), "720p": source}
     print("2. FaceMesh stage, 2 workers and 1 worker: frames/s wall (CPU per frame, load average)")
-    runs = [("default", 2), ("default", 1), ("face_mesh_v1", 2)]
+    runs = [("default", 2), ("default", 1), ("eyes_iris", 1), ("face_mesh_v1", 2)]
     best: dict[str, float] = {}
     for name, clip in clips.items():
         for config, jobs in runs:
