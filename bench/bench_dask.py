@@ -1,6 +1,6 @@
 """Dask cluster figures (issue 17): the default pipeline on two workers that cannot read the project folder.
 
-    python bench/bench_dask.py [--repeats 3] [--parts default,overhead,malloc]
+    python bench/bench_dask.py [--repeats 3] [--parts default,overhead,malloc,idle]
 
 The cluster is the stand-in of tests/test_dask.py: a ``dask scheduler`` and two ``dask worker`` processes (one
 thread each, ``--preload-nanny msflow.dask_setup``) started in their own folder, in a mount namespace that hides
@@ -24,6 +24,7 @@ the project copies and this checkout, as ``nobody`` when run as root. Two stores
    and nothing undoing it, with Dask's default undone in each worker by ``msflow.worker.tune_malloc``, and unset
    (msflow's LocalCluster and ``--preload-nanny msflow.dask_setup``), interleaved: the stages' CPU seconds. (Part 1
    gives the cluster's side: its stages' CPU against a local run's.)
+4. An idle 2-worker LocalCluster's CPU with Dask's system-monitor and tick intervals and with msflow's.
 
 The machine's load (1-minute load average, before and after each measurement) is printed with the figures: on a
 shared machine only the ratios measured side by side and the CPU times mean much.
@@ -299,10 +300,46 @@ def malloc_trim(tmp: Path, repeats: int) -> None:
         print(f"  {label:24s} all stages {total:5.2f} s; {top}")
 
 
+def idle_cpu(others: list[int], seconds: float = 10.0, repeats: int = 2) -> None:
+    """CPU of an idle 2-worker LocalCluster (this process and its children but ``others``, the stand-in cluster
+    and moto, and theirs): Dask's monitors at their defaults and as msflow sets them
+    (``msflow.dask_executor.WORKER_CONFIG``)."""
+    import psutil
+
+    import msflow.dask_executor as dask_executor
+
+    def cpu() -> float:
+        me = psutil.Process()
+        skip = set(others)
+        for pid in others:
+            skip |= {c.pid for c in psutil.Process(pid).children(recursive=True)}
+        procs = [me, *(c for c in me.children(recursive=True) if c.pid not in skip)]
+        return sum(t.user + t.system for t in (p.cpu_times() for p in procs))
+
+    ours = dict(dask_executor.WORKER_CONFIG)
+    monitors = ("distributed.admin.system-monitor.interval", "distributed.admin.tick.interval")
+    variants = {"Dask's monitor intervals": {k: v for k, v in ours.items() if k not in monitors}, "msflow's": ours}
+    found: dict[str, list[float]] = {label: [] for label in variants}
+    for _ in range(repeats):
+        for label, config in variants.items():
+            dask_executor.WORKER_CONFIG = config
+            executor = dask_executor.DaskExecutor(jobs=2)
+            executor.client.run(lambda: None)
+            time.sleep(2)  # start-up done
+            before = cpu()
+            time.sleep(seconds)
+            found[label].append((cpu() - before) / seconds)
+            executor.shutdown()
+    dask_executor.WORKER_CONFIG = ours
+    print(f"\nidle 2-worker LocalCluster, cores busy (median of {repeats}), load {os.getloadavg()[0]:.1f}:")
+    for label, values in found.items():
+        print(f"  {label:26s} {statistics.median(values):.3f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--parts", default="default,overhead,malloc")
+    parser.add_argument("--parts", default="default,overhead,malloc,idle")
     args = parser.parse_args()
     import logging
 
@@ -326,6 +363,8 @@ def main() -> None:
                 overhead(tmp, cluster, moto, options)
             if "malloc" in parts:
                 malloc_trim(tmp, args.repeats)
+            if "idle" in parts:
+                idle_cpu([p.pid for p in cluster.procs] + [moto.pid])
         finally:
             cluster.close()
             moto.terminate()

@@ -80,7 +80,9 @@ def run(
     counts = result.record["counts"]
     summary = ", ".join(f"{v} {k}" for k, v in counts.items() if v)
     if not quiet:
-        echo(f"{summary or 'nothing selected'} in {result.record['seconds']:.2f}s (run {result.run_id})", err=True)
+        ran = [s.cpu_seconds for s in result.states.values() if s.state is StageStatus.RAN]
+        cpu = f", stages {sum(ran):.2f}s CPU" if ran else ""
+        echo(f"{summary or 'nothing selected'} in {result.record['seconds']:.2f}s{cpu} (run {result.run_id})", err=True)
     _echo_warnings(result.warnings, {n: s.state for n, s in result.states.items()})
     for repair in result.record.get("repairs", []):
         where = f"; moved aside to {display_path(repair['moved_to'])}" if repair.get("moved_to") else ""
@@ -195,6 +197,8 @@ def show(
     view = session.store.open(key)
     session.save_memo()
     echo(f"{stage}  {session.plans[stage].uses}\nkey {key}  ({origin})")
+    if "cpu_seconds" in view.manifest:
+        echo(f"computed in {view.manifest['compute_seconds']:.3g} s ({view.manifest['cpu_seconds']:.3g} s CPU)")
     names = [output] if output else list(view.names)
     if output and output not in view:
         raise UserError(
@@ -326,10 +330,9 @@ def sweep(
     from msflow.sweep import expand_variants, format_table, metric_columns, results_rows, run_sweep
 
     variants = expand_variants(list(values or ()), grid)
-    from msflow.spec import load_pipeline
-
-    stage_count = len(load_pipeline(file).stages)
-    reporter = None if quiet else SweepReporter(len(variants), stage_count)
+    # the pipeline is loaded once per variant, with its overrides: a default `vars:` entry (a folder of takes
+    # that only exists elsewhere) is never read on its own
+    reporter = None if quiet else SweepReporter(len(variants))
     result = run_sweep(
         file,
         variants,

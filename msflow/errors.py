@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Sequence
 from typing import Any
 
 
@@ -126,17 +127,20 @@ PYDANTIC_TAG = re.compile(
 )
 
 
-def field_path(loc: tuple[object, ...] | list[object]) -> str:
+def field_path(loc: Sequence[object]) -> str:
     """A pydantic error location as a dotted field path, without pydantic's union member tags.
 
     >>> field_path(("k", "int"))
     'k'
     >>> field_path(("alpha", "literal['a','b']", "keyframes", 0))
     'alpha.keyframes.0'
+    >>> field_path(("time", "float"))  # the first part always names a field, whatever it is called
+    'time'
     """
     return ".".join(strip_tags(loc))
 
 
-def strip_tags(loc: tuple[object, ...] | list[object]) -> list[str]:
-    """The parts of a pydantic error location that name fields, keys and indices (union member tags dropped)."""
-    return [str(p) for p in loc if not (isinstance(p, str) and PYDANTIC_TAG.match(p))]
+def strip_tags(loc: Sequence[object]) -> list[str]:
+    """The parts of a pydantic error location that name fields, keys and indices (union member tags dropped; the
+    first part is the field of the model itself, never a tag)."""
+    return [str(p) for i, p in enumerate(loc) if not (i and isinstance(p, str) and PYDANTIC_TAG.match(p))]

@@ -105,7 +105,7 @@ class Outcome:
     pid: int | None = None  #: the worker process
     worker: str | None = None  #: where it ran: a Dask worker's address, or "<host> pid <pid>"
     attempts: int = 1  #: executions started (more than one when a worker died mid-stage and the task was retried)
-    cpu_seconds: float = 0.0  #: CPU time (user + system) of the worker process in the stage's ``run``
+    cpu_seconds: float = 0.0  #: CPU (user + system) of the worker and of processes it waited for, in ``run``
     error: str | None = None
     user_error: dict[str, Any] | None = field(default=None)
     traceback: str | None = None

@@ -100,15 +100,17 @@ def make_reporter(names: list[str], quiet: bool = False) -> PlainReporter | Rich
 class SweepReporter:
     """One line per variant: how many of its stages are settled, cached, run, failed."""
 
-    def __init__(self, total: int, stages: int, stream: TextIO | None = None):
+    def __init__(self, total: int, stream: TextIO | None = None):
         self.stream = stream or sys.stderr
         self.total = total
-        self.stages = stages
         self.rows: dict[int, dict[str, Any]] = {}
         self.finished = 0
 
-    def for_variant(self, index: int, params: dict[str, Any]) -> Reporter:
+    def for_variant(self, index: int, params: dict[str, Any], stages: int) -> Reporter:
+        """The reporter of variant ``index``, whose pipeline (loaded with the variant's overrides, ``vars.*``
+        included) has ``stages`` stages."""
         reporter = self
+        self.rows[index] = {"states": {}, "done": False, "stages": stages}
 
         class Proxy:
             def update(self, state: StageState) -> None:
@@ -120,10 +122,10 @@ class SweepReporter:
         pass
 
     def update(self, index: int, params: dict[str, Any], state: StageState) -> None:
-        row = self.rows.setdefault(index, {"states": {}, "done": False})
+        row = self.rows[index]
         row["states"][state.name] = state.state
         settled = [s for s in row["states"].values() if s.settled]
-        if len(settled) == self.stages and not row["done"]:
+        if len(settled) == row["stages"] and not row["done"]:
             row["done"] = True
             self.finished += 1
             order = (StageStatus.RAN, StageStatus.CACHED, StageStatus.FAILED, StageStatus.SKIPPED)

@@ -600,11 +600,12 @@ def topological_order(nodes: dict[str, StageNode]) -> list[str]:
 
 def _user_error_from_validation(exc: ValidationError, file: str) -> UserError:
     err = exc.errors()[0]
-    loc = strip_tags(err.get("loc", ()))
+    raw = list(err.get("loc", ()))
     stage = None
-    if len(loc) >= 2 and loc[0] == "stages":
-        stage = loc[1]
-        loc = loc[2:]
+    if len(raw) >= 2 and raw[0] == "stages":  # a stage's name is never a type tag, whatever it is called
+        stage = str(raw[1])
+        raw = raw[2:]
+    loc = strip_tags(raw)
     where = ".".join(loc) or None
     msg = err.get("msg", "invalid")
     if err.get("type") == "extra_forbidden":

@@ -192,7 +192,10 @@ def run_sweep(
             ) from None
         memo = session.memo
         sessions.append(session)
-    reporters = [reporter.for_variant(i, v) if reporter is not None else None for i, v in enumerate(variants)]
+    reporters = [
+        reporter.for_variant(i, v, len(s.pipeline.stages)) if reporter is not None else None
+        for i, (v, s) in enumerate(zip(variants, sessions))
+    ]
     sweep_id = new_run_id()
     executions = run_sessions(
         sessions,

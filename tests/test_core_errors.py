@@ -156,6 +156,11 @@ CASES = {
         [],
         ["stage 'src'", "field 'uses'", "'os:getcwd' is not a msflow Stage subclass", "standard library"],
     ),
+    "stage_named_like_a_type_tag": (
+        "version: 1\nstages:\n  time:\n    uses: [1]\n",
+        [],
+        ["bad.yaml: stage 'time': field 'uses': Input should be a valid string"],
+    ),
     "union_param_wrong_type": (
         "version: 1\nstages:\n  t:\n    uses: numstages.basic:Tagged\n    params: {k: many}\n",
         [],

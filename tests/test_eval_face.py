@@ -131,6 +131,8 @@ def test_evaluation_errors_name_the_field():
     assert exc.value.field == "params.train"
     with pytest.raises(ValidationError):
         FaceEval.Params(train=["NEU"])
+    with pytest.raises(ValidationError, match="two different"):
+        FaceEval.Params(train=["NEU", "NEU"])
     with pytest.raises(ValidationError):
         FaceEval.Params(folds=1)
     with pytest.raises(ValidationError):

@@ -31,7 +31,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
 from stages.face.aam import (
@@ -495,6 +495,14 @@ class FaceEvalParams(AnalysisParams):
     leave_one_take_out: bool = True
     aam: AamParams = AamParams()
     bilinear: BilinearParams = BilinearParams()
+
+    @field_validator("train")
+    @classmethod
+    def two_different_expressions(cls, train: list[str] | None) -> list[str] | None:
+        """``[NEU, NEU]`` is one expression: rejected up front, not after tracking."""
+        if train is not None and len(set(train)) < 2:
+            raise ValueError(f"needs at least two different training expressions, got {train}")
+        return train
 
 
 FACE_EVAL_OUTPUTS = {

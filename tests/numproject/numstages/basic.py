@@ -173,6 +173,27 @@ class Burn(Stage):
         return Result({"v": v})
 
 
+class Busy(Stage):
+    """Uses at least ``cpu`` CPU seconds itself and ``child_cpu`` in a child process it waits for (a known amount
+    of CPU for the run record's cpu_seconds; a loop on CPU time, not a sleep)."""
+
+    class Params(Stage.Params):
+        cpu: float = 0.0
+        child_cpu: float = 0.0
+
+    outputs = {"v": Output.array("f", ndim=1)}
+
+    def run(self, params, inputs):
+        import subprocess
+        import sys
+
+        spin = "import time\nstart = time.process_time()\nwhile time.process_time() - start < {}: pass\n"
+        exec(spin.format(params.cpu), {})
+        if params.child_cpu:
+            subprocess.run([sys.executable, "-c", spin.format(params.child_cpu)], check=True)
+        return Result({"v": np.zeros(2)})
+
+
 class Cautious(Stage):
     """A usable result with warnings: one attached to the Result, one raised with warnings.warn."""
 
@@ -210,8 +231,10 @@ def hold_if_asked(name):
     folder = os.environ.get("NUMSTAGES_HOLD")
     if not folder:
         return
-    with open(os.path.join(folder, "ready"), "w") as fh:
+    partial = os.path.join(folder, f"ready.{os.getpid()}")
+    with open(partial, "w") as fh:
         fh.write(f"{name} {os.getpid()}\n")
+    os.replace(partial, os.path.join(folder, "ready"))  # the test reads the line as soon as the file exists
     while not os.path.exists(os.path.join(folder, "release")):
         time.sleep(0.01)
 
