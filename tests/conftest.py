@@ -13,11 +13,13 @@ Outside tools (interface for every area's tests):
 - ``chromium`` (session fixture): the path of the Chromium executable (``CHROMIUM``) for Playwright.
 """
 
+import logging
 import os
 import shutil
 import subprocess
 import sys
 import time
+import uuid
 from pathlib import Path
 
 import pytest
@@ -131,15 +133,20 @@ def default_run(tmp_path_factory):
     """The repository's default pipeline, run once per session in a copy with its own store."""
     import msflow
 
-    dest = tmp_path_factory.mktemp("repo") / "msflow"
-    dest.mkdir()
-    for name in ("pipeline.yaml", "data", "stages", "pyproject.toml"):
+    dest = copy_project(tmp_path_factory.mktemp("repo") / "msflow")
+    return dest, msflow.run(dest / "pipeline.yaml")
+
+
+def copy_project(dest: Path, names=("pipeline.yaml", "data", "stages", "pyproject.toml")) -> Path:
+    """Copy the repository's ``names`` (files or folders, without bytecode caches) into a new folder ``dest``."""
+    dest.mkdir(parents=True)
+    for name in names:
         src = ROOT / name
         if src.is_dir():
             shutil.copytree(src, dest / name, ignore=shutil.ignore_patterns("__pycache__"))
         else:
             shutil.copy2(src, dest / name)
-    return dest, msflow.run(dest / "pipeline.yaml")
+    return dest
 
 
 # ------------------------------------------------------------------------------------------------ outside tools
@@ -196,3 +203,55 @@ def chromium():
     if not os.access(CHROMIUM, os.X_OK):
         missing_tool(f"Chromium is not installed: {CHROMIUM_INSTALL} ({CHROMIUM})")
     return CHROMIUM
+
+
+# ------------------------------------------------------------------------------------------------ object store
+class MotoS3:
+    """A moto S3 server on loopback: its endpoint, store options with dummy credentials and a boto3 client."""
+
+    def __init__(self, endpoint: str):
+        import boto3
+
+        self.endpoint = endpoint
+        self.options = {"endpoint_url": endpoint, "key": "testing", "secret": "testing"}
+        self.client = boto3.client(
+            "s3",
+            endpoint_url=endpoint,
+            aws_access_key_id="testing",
+            aws_secret_access_key="testing",
+            region_name="us-east-1",
+        )
+
+    def bucket(self) -> str:
+        name = f"b-{uuid.uuid4().hex[:12]}"
+        self.client.create_bucket(Bucket=name)
+        return name
+
+    def objects(self, bucket: str, prefix: str = "") -> list[str]:
+        keys, token = [], None
+        while True:
+            kwargs = {"Bucket": bucket, "Prefix": prefix, **({"ContinuationToken": token} if token else {})}
+            resp = self.client.list_objects_v2(**kwargs)
+            keys += [o["Key"] for o in resp.get("Contents", [])]
+            if not resp.get("IsTruncated"):
+                return keys
+            token = resp["NextContinuationToken"]
+
+    def store(self, bucket: str, prefix: str = "p"):
+        from msflow.stores import open_store
+
+        return open_store(f"s3://{bucket}/{prefix}", self.options)
+
+
+@pytest.fixture(scope="module")
+def s3():
+    """A moto S3 server on 127.0.0.1 for the module's tests (instance metadata lookups off: botocore stays local)."""
+    from moto.server import ThreadedMotoServer
+
+    logging.getLogger("werkzeug").setLevel(logging.ERROR)
+    os.environ["AWS_EC2_METADATA_DISABLED"] = "true"
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    yield MotoS3(f"http://{host}:{port}")
+    server.stop()

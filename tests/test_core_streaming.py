@@ -124,7 +124,6 @@ def test_iter_blocks_reads_lazy_inputs_block_by_block(tmp_path):
 
 
 def test_sinks_on_an_object_store_match_a_local_one(tmp_path):
-    pytest.importorskip("fsspec")
     remote = open_store(f"memory://sinks-{tmp_path.name}", {})
     local = LocalStore(tmp_path / "local")
     manifests = []

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import ROOT, Hold, executions, missing_tool, run_cli, start_cli
-from test_remote_store import MotoS3, on_s3, uncommitted_folders
+from conftest import ROOT, Hold, copy_project, executions, missing_tool, run_cli, start_cli
+from test_remote_store import on_s3, uncommitted_folders
 
 import msflow
 from msflow.dask_executor import parse_scheduler_address
@@ -462,35 +462,12 @@ def with_group(proc: subprocess.Popen, sig: int) -> None:
 
 
 @pytest.fixture(scope="module")
-def s3():
-    from moto.server import ThreadedMotoServer
-
-    os.environ["AWS_EC2_METADATA_DISABLED"] = "true"
-    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
-    server.start()
-    host, port = server.get_host_and_port()
-    yield MotoS3(f"http://{host}:{port}")
-    server.stop()
-
-
-@pytest.fixture(scope="module")
 def cluster(tmp_path_factory):
     cluster = IsolatedCluster(hidden=[tmp_path_factory.getbasetemp()], extra_env={})
     try:
         yield cluster
     finally:
         cluster.close()
-
-
-def copy_repo(dest: Path) -> Path:
-    dest.mkdir(parents=True)
-    for name in ("pipeline.yaml", "data", "stages", "pyproject.toml"):
-        src = ROOT / name
-        if src.is_dir():
-            shutil.copytree(src, dest / name, ignore=shutil.ignore_patterns("__pycache__"))
-        else:
-            shutil.copy2(src, dest / name)
-    return dest
 
 
 @pytest.mark.cluster
@@ -522,7 +499,7 @@ def downstream(pipeline, name):
 @pytest.mark.cluster
 def test_default_pipeline_on_the_cluster_matches_local(cluster, s3, default_run, tmp_path):
     local_dir, local = default_run
-    proj = copy_repo(tmp_path / "proj")
+    proj = copy_project(tmp_path / "proj")
     on_s3(proj, s3, s3.bucket(), files=("pipeline.yaml",))
     result = msflow.run(proj / "pipeline.yaml", scheduler=cluster.address, jobs=2)
     workers = set(cluster.client.scheduler_info()["workers"])

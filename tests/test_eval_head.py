@@ -1,11 +1,11 @@
 """Head-motion evaluation: beats and beat alignment with known answers, the evaluation stage on synthetic takes
 whose answer is known, and the evaluation pipeline on the embedded CREMA-D takes from a fresh copy."""
 
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import copy_project
 from head_synthetic import pitch_driven, synth_database, tracking_artifact
 from pydantic import ValidationError
 
@@ -257,13 +257,8 @@ def test_the_evaluation_pipeline_on_crema_d_from_a_fresh_copy(tmp_path):
     motion shifted (the calibration every beat-alignment figure rests on), and every metric is there."""
     import msflow
 
-    for name in ("eval", "data", "stages", "pyproject.toml"):
-        src = ROOT / name
-        if src.is_dir():
-            shutil.copytree(src, tmp_path / name, ignore=shutil.ignore_patterns("__pycache__"))
-        else:
-            shutil.copy2(src, tmp_path / name)
-    run = msflow.run(tmp_path / "eval" / "head.yaml", overrides=["evaluate.draws=5"])
+    project = copy_project(tmp_path / "project", names=("eval", "data", "stages", "pyproject.toml"))
+    run = msflow.run(project / "eval" / "head.yaml", overrides=["evaluate.draws=5"])
     view = run.artifact("evaluate")
     m = view.metrics
     assert m["takes"] == 6 and m["utterances"] == 6 and view.meta["speakers"] == ["1001"] * 6

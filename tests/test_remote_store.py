@@ -5,8 +5,6 @@ metadata lookups are disabled (AWS_EC2_METADATA_DISABLED) so botocore never leav
 """
 
 import json
-import logging
-import os
 import socket
 import subprocess
 import sys
@@ -17,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import Hold, cli_env, executions, run_cli, start_cli, wait_for_line
+from conftest import Hold, MotoS3, cli_env, executions, run_cli, start_cli, wait_for_line
 
 import msflow
 from msflow.artifact import check_contents, encode_artifact, prepare_manifest
@@ -28,52 +26,6 @@ from msflow.stores.leases import Lease
 from msflow.stores.remote import RemoteStore, open_remote_store
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-class MotoS3:
-    def __init__(self, endpoint: str):
-        import boto3
-
-        self.endpoint = endpoint
-        self.options = {"endpoint_url": endpoint, "key": "testing", "secret": "testing"}
-        self.client = boto3.client(
-            "s3",
-            endpoint_url=endpoint,
-            aws_access_key_id="testing",
-            aws_secret_access_key="testing",
-            region_name="us-east-1",
-        )
-
-    def bucket(self) -> str:
-        name = f"b-{uuid.uuid4().hex[:12]}"
-        self.client.create_bucket(Bucket=name)
-        return name
-
-    def objects(self, bucket: str, prefix: str = "") -> list[str]:
-        keys, token = [], None
-        while True:
-            kwargs = {"Bucket": bucket, "Prefix": prefix, **({"ContinuationToken": token} if token else {})}
-            resp = self.client.list_objects_v2(**kwargs)
-            keys += [o["Key"] for o in resp.get("Contents", [])]
-            if not resp.get("IsTruncated"):
-                return keys
-            token = resp["NextContinuationToken"]
-
-    def store(self, bucket: str, prefix: str = "p") -> RemoteStore:
-        return open_store(f"s3://{bucket}/{prefix}", self.options)
-
-
-@pytest.fixture(scope="module")
-def s3():
-    from moto.server import ThreadedMotoServer
-
-    logging.getLogger("werkzeug").setLevel(logging.ERROR)
-    os.environ["AWS_EC2_METADATA_DISABLED"] = "true"
-    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
-    server.start()
-    host, port = server.get_host_and_port()
-    yield MotoS3(f"http://{host}:{port}")
-    server.stop()
 
 
 def on_s3(proj: Path, s3: MotoS3, bucket: str, files=("pipeline.yaml", "crash.yaml"), options=None, url=None) -> str:

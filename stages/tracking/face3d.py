@@ -107,6 +107,8 @@ def load_face3d(path: str | Path = DEFAULT_FACE3D, *, field: str | None = None) 
 if __name__ == "__main__":  # python -m stages.tracking.face3d <ict-facekit dir> [out dir]
     import sys
 
-    src = sys.argv[1] if len(sys.argv) > 1 else "../shared/data/ict-facekit"
+    if len(sys.argv) < 2:
+        sys.exit("usage: python -m stages.tracking.face3d <ICT FaceKit folder> [out dir]")
+    src = sys.argv[1]
     dst = sys.argv[2] if len(sys.argv) > 2 else str(DEFAULT_FACE3D.parent)
     print(write_face3d(src, dst))
