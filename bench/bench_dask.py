@@ -116,9 +116,9 @@ def use_store(pipeline_file: Path, url: str, options: dict | None = None) -> Non
 
 
 def copy_repo(dest: Path) -> Path:
-    from test_dask import copy_repo as copy
+    from conftest import copy_project
 
-    return copy(dest)
+    return copy_project(dest)
 
 
 def measure(label: str, run, cluster, moto) -> dict:
@@ -153,39 +153,42 @@ def same_outputs(record: dict, reference: dict) -> bool:
     return True
 
 
-def default_pipeline(tmp: Path, cluster, moto, options: dict, repeats: int) -> None:
+def local_run(project: Path, cluster):
     import msflow
 
+    return lambda: msflow.run(project / "pipeline.yaml", jobs=2)
+
+
+def s3_run(project: Path, cluster):
+    import msflow
+
+    return lambda: msflow.run(project / "pipeline.yaml", scheduler=cluster.address, jobs=2)
+
+
+folder_run = s3_run  # the store is in the pipeline file
+
+
+def default_pipeline(tmp: Path, cluster, moto, options: dict, repeats: int) -> None:
     store_folder = cluster.env_dir / "store"
     rows = []
+    runs = {"local -j 2": local_run, "cluster, S3": s3_run, "cluster, folder": folder_run}
+    order = list(runs)
     for i in range(repeats):
-        local = copy_repo(tmp / f"local{i}")
-        rows.append(measure("local -j 2", lambda: msflow.run(local / "pipeline.yaml", jobs=2), cluster, moto))
-        reference = rows[-1]["record"]
-        on_s3 = copy_repo(tmp / f"s3_{i}")
-        use_store(on_s3 / "pipeline.yaml", f"s3://{new_bucket(options)}/p", options)
-        rows.append(
-            measure(
-                "cluster, S3",
-                lambda: msflow.run(on_s3 / "pipeline.yaml", scheduler=cluster.address, jobs=2),
-                cluster,
-                moto,
-            )
-        )
-        on_folder = copy_repo(tmp / f"folder{i}")
-        shutil.rmtree(store_folder, ignore_errors=True)
-        use_store(on_folder / "pipeline.yaml", str(store_folder))
-        rows.append(
-            measure(
-                "cluster, folder",
-                lambda: msflow.run(on_folder / "pipeline.yaml", scheduler=cluster.address, jobs=2),
-                cluster,
-                moto,
-            )
-        )
-        for row in rows[-2:]:
-            row["identical_outputs"] = same_outputs(row["record"], reference)
-        for row in rows[-3:]:
+        # rotate which configuration goes first: the first cluster run is the fresh cluster's first
+        for label in order[i % 3 :] + order[: i % 3]:
+            project = copy_repo(tmp / f"{label.replace(', ', '-').replace(' ', '')}{i}")
+            if label == "cluster, S3":
+                use_store(project / "pipeline.yaml", f"s3://{new_bucket(options)}/p", options)
+            elif label == "cluster, folder":
+                shutil.rmtree(store_folder, ignore_errors=True)
+                use_store(project / "pipeline.yaml", str(store_folder))
+            rows.append(measure(label, runs[label](project, cluster), cluster, moto))
+            rows[-1]["repeat"] = i
+        mine = rows[-3:]
+        reference = next(r for r in mine if r["label"] == "local -j 2")["record"]
+        for row in mine:
+            if row["label"] != "local -j 2":
+                row["identical_outputs"] = same_outputs(row["record"], reference)
             print(json.dumps({k: v for k, v in row.items() if k != "record"}), flush=True)
     print("\ndefault pipeline, medians over", repeats, "interleaved repeats:")
     for label in ("local -j 2", "cluster, S3", "cluster, folder"):
@@ -198,12 +201,11 @@ def default_pipeline(tmp: Path, cluster, moto, options: dict, repeats: int) -> N
             f"{med['cpu_cluster_s']:5.1f} s, identical outputs {[r.get('identical_outputs', True) for r in mine]}"
         )
     for label in ("cluster, S3", "cluster, folder"):
-        ratios = [
-            rows[i + offset]["wall_s"] / rows[i]["wall_s"]
-            for i in range(0, len(rows), 3)
-            for offset in ((1,) if label.endswith("S3") else (2,))
-        ]
-        print(f"  wall {label} / local -j 2: {[round(r, 2) for r in ratios]}")
+        ratios = []
+        for i in range(repeats):
+            wall = {r["label"]: r["wall_s"] for r in rows if r["repeat"] == i}
+            ratios.append(round(wall[label] / wall["local -j 2"], 2))
+        print(f"  wall {label} / local -j 2, per repeat (repeat 0: the fresh cluster's first run): {ratios}")
     print_stage_table(rows)
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import ast
 import os
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -264,13 +265,21 @@ def path_signature(project_root: Path | None = None) -> str:
     return json_hash(entries)
 
 
-def distribution_versions(names: list[str], memo: dict[str, Any], project_root: Path | None = None) -> dict[str, str]:
+#: ``distribution_versions(signature=WORKER_PROCESS)``: the installed distributions as this process first saw them
+WORKER_PROCESS = "worker process"
+
+
+def distribution_versions(
+    names: list[str], memo: dict[str, Any], project_root: Path | None = None, *, signature: str | None = None
+) -> dict[str, str]:
     """Map top-level import names to "dist==version"; memoised on the state of sys.path's directories.
 
     A name with no distribution and no importable module is recorded as absent (an optional dependency that is not
-    installed is a fact about the environment, hashed like a version).
+    installed is a fact about the environment, hashed like a version). ``signature=WORKER_PROCESS`` memoises for
+    the process's lifetime instead: a worker keeps the packages it imported, whatever is installed later, and the
+    code trees it puts on sys.path hold no distributions.
     """
-    signature = path_signature(project_root)
+    signature = signature or path_signature(project_root)
     cache = memo.get("dists")
     if not cache or cache.get("sig") != signature:
         cache = {"sig": signature, "map": {}}
@@ -280,7 +289,7 @@ def distribution_versions(names: list[str], memo: dict[str, Any], project_root: 
         import importlib.metadata as md
         import importlib.util
 
-        owners = md.packages_distributions()
+        owners = _owners(signature)
         for name in missing:
             dists = sorted(set(owners.get(name, [])))
             if dists:
@@ -290,6 +299,25 @@ def distribution_versions(names: list[str], memo: dict[str, Any], project_root: 
             else:
                 cache["map"][name] = [f"unpackaged:{_unpackaged_digest(name)}"]
     return {n: ",".join(cache["map"][n]) for n in names}
+
+
+_OWNERS: tuple[str, Mapping[str, list[str]]] | None = None
+
+
+def _owners(signature: str) -> Mapping[str, list[str]]:
+    """``importlib.metadata.packages_distributions()`` (a scan of every installed distribution), once per state of
+    sys.path in this process: a worker checks the distributions of each job it runs."""
+    global _OWNERS
+    if _OWNERS is None or _OWNERS[0] != signature:
+        import importlib.metadata as md
+
+        _OWNERS = (signature, md.packages_distributions())
+    return _OWNERS[1]
+
+
+def warm_distribution_index() -> None:
+    """Scan the installed distributions now (a worker at start-up), not in its first job."""
+    _owners(WORKER_PROCESS)
 
 
 def _unpackaged_digest(name: str) -> str:

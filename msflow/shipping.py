@@ -39,6 +39,7 @@ from msflow.hashing import bytes_hash, canonical_json, file_hash, json_hash
 from msflow.jobs import Job, JobInput
 
 if TYPE_CHECKING:
+    from msflow.fingerprint import CodeIndex
     from msflow.plan import StagePlan
     from msflow.stage import Files
     from msflow.stores.objects import Objects
@@ -301,7 +302,11 @@ def worker_name() -> str:
 
 
 _VERSIONS: dict[str, str] = {}  #: import name -> "dist==version" in this worker process
+_DIST_MEMO: dict[str, Any] = {}  #: distribution_versions' memo in this worker process
 _CHECKED_CODE: set[tuple[str, str]] = set()
+#: code tree digest -> its CodeIndex: a tree is immutable (named by its content), so its modules' fingerprints are
+#: parsed once per worker process, not once per job
+_INDEXES: dict[str, CodeIndex] = {}
 
 
 def check_store(job: Job) -> None:
@@ -321,7 +326,7 @@ def check_store(job: Job) -> None:
 
 def check_environment(job: Job) -> None:
     """Refuse a job whose key was made for another environment: key scheme, Python version, distributions."""
-    from msflow.fingerprint import distribution_versions
+    from msflow.fingerprint import WORKER_PROCESS, distribution_versions
     from msflow.plan import PYTHON
     from msflow.version import KEY_SCHEME
 
@@ -335,7 +340,7 @@ def check_environment(job: Job) -> None:
     wanted: dict[str, str] = code.get("dists") or {}
     missing = sorted(set(wanted) - set(_VERSIONS))
     if missing:  # once per name and process: a process keeps the packages it imported, whatever pip does later
-        _VERSIONS.update(distribution_versions(missing, {}))
+        _VERSIONS.update(distribution_versions(missing, _DIST_MEMO, signature=WORKER_PROCESS))
     here = {name: _VERSIONS[name] for name in wanted}
     problems += [
         f"'{name}': {here[name]} here, {want} in the key" for name, want in wanted.items() if here[name] != want
@@ -402,7 +407,10 @@ def check_fingerprint(job: Job, root: Path) -> None:
     from msflow.fingerprint import CodeIndex
 
     wanted = ((job.key_parts or {}).get("code") or {}).get("modules")
-    found = CodeIndex(root).closure(job.uses.partition(":")[0])["modules"]
+    index = _INDEXES.get(job.code or "")
+    if index is None or index.root != root.resolve():
+        index = _INDEXES[job.code or ""] = CodeIndex(root)
+    found = index.closure(job.uses.partition(":")[0])["modules"]
     if wanted is not None and found != wanted:
         changed = sorted(set(found.items()) ^ set(wanted.items()))
         raise UserError(

@@ -29,6 +29,8 @@ from msflow.errors import UserError
 from msflow.stores import open_store
 
 NOBODY = 65534
+#: what the README's worker recipe pre-imports for the default pipeline's stages (msflow.dask_setup)
+WORKER_IMPORTS = "scipy.signal,scipy.ndimage,scipy.optimize,scipy.spatial.transform,cv2,av,parselmouth,pygltflib"
 
 
 # ------------------------------------------------------------------------------------------------ LocalCluster
@@ -353,6 +355,7 @@ class IsolatedCluster:
             "PYTHONDONTWRITEBYTECODE": "1",
             "AWS_EC2_METADATA_DISABLED": "true",
             "NUMSTAGES_HOLD": str(self.hold),
+            "MSFLOW_WORKER_IMPORTS": WORKER_IMPORTS,
             # the BLAS kernel choice (e.g. OPENBLAS_CORETYPE) changes the last bits of results: same as here
             **{k: v for k, v in os.environ.items() if k.startswith(("OPENBLAS_", "MKL_", "NPY_"))},
             **{var: "1" for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")},
@@ -368,7 +371,8 @@ class IsolatedCluster:
             (self.work / f"w{n}").chmod(0o777)
             self.start(
                 "worker", "--scheduler-file", str(scheduler_file), "--nthreads", "1", "--nworkers", "1",
-                "--preload-nanny", "msflow.dask_setup", "--local-directory", str(self.work / f"w{n}"),
+                "--preload-nanny", "msflow.dask_setup", "--preload", "msflow.dask_setup",
+                "--local-directory", str(self.work / f"w{n}"),
                 "--no-dashboard", "--name", f"w{n}",
             )  # fmt: skip
         from distributed import Client
@@ -468,6 +472,31 @@ def cluster(tmp_path_factory):
         yield cluster
     finally:
         cluster.close()
+
+
+def test_worker_preload_reports_modules_it_cannot_import(caplog):
+    from msflow.dask_setup import extra_modules, warm_imports
+
+    assert extra_modules(" scipy.signal, cv2  av,") == ["scipy.signal", "cv2", "av"]
+    failed = warm_imports(["json", "no_such_module_for_msflow"])
+    assert (
+        list(failed) == ["no_such_module_for_msflow"] and "ModuleNotFoundError" in failed["no_such_module_for_msflow"]
+    )
+    assert "could not pre-import no_such_module_for_msflow" in caplog.text
+
+
+@pytest.mark.cluster
+def test_workers_start_with_their_imports_done(cluster):
+    """The worker preload imported msflow's worker path and MSFLOW_WORKER_IMPORTS before the first job."""
+
+    def loaded():
+        import sys
+
+        return sorted(m for m in ("msflow.worker", "zarr", "cv2", "scipy.signal", "parselmouth") if m in sys.modules)
+
+    assert set(map(tuple, cluster.client.run(loaded).values())) == {
+        ("cv2", "msflow.worker", "parselmouth", "scipy.signal", "zarr")
+    }
 
 
 @pytest.mark.cluster
