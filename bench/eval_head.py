@@ -233,6 +233,7 @@ def main(argv=None):
     parser.add_argument("--phrases", type=int, default=67)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("-S", "--set", action="append", default=[], help="stage.param=value for every pipeline")
+    parser.add_argument("--rows", default="", help="only the rows whose name contains this text")
     parser.add_argument(
         "--calibrate", action="store_true", help="the jitter filter's and the range fit's calibration on real motion"
     )
@@ -243,6 +244,8 @@ def main(argv=None):
         args.work = args.work or tmp
         rows = []
         for name, pipeline, stage, overrides in runs(args):
+            if args.rows not in name:
+                continue
             try:
                 result = msflow.run(ROOT / pipeline, overrides=overrides + args.set)
             except msflow.UserError as exc:

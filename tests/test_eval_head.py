@@ -18,6 +18,7 @@ from stages.eval.head import (
     evaluation_windows,
     phase_randomised,
     reflect_index,
+    scored_windows,
     shifted_motion,
 )
 from stages.head.beats import (
@@ -125,6 +126,10 @@ def test_pitch_accents_at_the_contour_peaks():
 def test_windows_baselines_and_pooling():
     assert evaluation_windows(300, 30.0, 3.4) == [(0, 100), (100, 200), (200, 300)]
     assert evaluation_windows(50, 30.0, 10.0) == [(0, 50)]
+    # scored from skip_seconds on: the windows of the rest, at their place in the take; none when nothing is left
+    assert scored_windows(300, 30.0, 3.4, 0.0) == evaluation_windows(300, 30.0, 3.4)
+    assert scored_windows(300, 30.0, 3.4, 5.0) == [(150, 300)]
+    assert scored_windows(300, 30.0, 3.4, 10.0) == []
     np.testing.assert_array_equal(reflect_index(np.arange(-2, 8), 4), [2, 1, 0, 1, 2, 3, 2, 1, 0, 1])
     rng = np.random.default_rng(0)
     motion = np.cumsum(rng.standard_normal((300, 3)) * 0.01, axis=0)

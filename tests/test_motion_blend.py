@@ -525,6 +525,35 @@ def test_amplitude_gains_bring_every_speaker_to_the_target_spread():
     np.testing.assert_allclose(spread(scaled.channels[:400]), spread(scaled.channels[400:800]))
 
 
+def test_per_angle_source_gains_bring_each_angle_to_the_target():
+    """source_gain 'per_angle': a speaker moving (1, 2, 4) in (yaw, pitch, roll) brought to a target of (2, 2, 2)
+    gets gains (2, 1, 0.5); the common gain (their geometric mean ratio) is 1 and keeps the proportions."""
+    from stages.head.motion_blend import amplitude_gains, speaker_spreads
+
+    t = np.linspace(0, 4 * np.pi, 400)
+    wave = np.sin(t)[:, None] * np.array([1.0, 2.0, 4.0, 1.0, 1.0, 1.0])
+    db = DatabaseMotion(wave, np.array([0]), np.array([400]), 100.0, ["ann"])
+    spreads = speaker_spreads(db)
+    target = spreads["ann"] * np.array([2.0, 1.0, 0.5, 1.0, 1.0, 1.0])
+    np.testing.assert_allclose(amplitude_gains(db, spreads, target, per_angle=True)[0], [2, 1, 0.5, 1, 1, 1])
+    np.testing.assert_allclose(amplitude_gains(db, spreads, target)[0], [1.0] * 6)
+
+
+def test_the_reference_target_can_come_from_an_enrolment_stretch():
+    """reference_seconds: the target spread is that of the first seconds of the performer's take only."""
+    from stages.head.motion_blend import reference_spreads
+
+    phrase = synth_database(1, seed=3)[0]
+    tracks = tracking_artifact([phrase], fps=30.0)
+    angles = reference_angles(tracks, phrase.label, 1, 30.0)
+    first = angles[:30] - angles[:30].mean(axis=0)
+    whole = angles - angles.mean(axis=0)
+    spread = lambda a: (np.percentile(a, 95, axis=0) - np.percentile(a, 5, axis=0)).tolist()
+    assert reference_spreads(tracks, [phrase.label], 30.0, 1.0)[0] == pytest.approx(spread(first))
+    assert reference_spreads(tracks, [phrase.label], 30.0)[0] == pytest.approx(spread(whole))
+    assert reference_spreads(tracks, ["elsewhere", phrase.label], 30.0)[0] is None
+
+
 def test_matched_amplitude_is_centred_with_the_target_spread():
     from stages.head.beats import kinematic_beats
     from stages.head.motion_blend import match_amplitude
@@ -573,6 +602,51 @@ def test_the_amplitude_target_never_comes_from_the_held_out_take(phrases):
     loud_real = spread(reference_angles(tracks, loud[0], 8, 30.0))
     assert loud_real > 3 * quiet_real
     assert spread(angles[seq == 0]) == pytest.approx(quiet_real, rel=0.1)
+
+
+def test_the_amplitude_target_from_the_reference_is_the_performers_own(phrases):
+    """``amplitude_target="reference"``: a performer the database does not know (held out, moving 8x more than
+    every database take) gets its own amplitude, read from its tracked take, not the database's; a take missing
+    from the reference keeps the database's, with a warning."""
+    tracks = tracking_artifact(phrases[:8], fps=30.0)
+    rotation = np.asarray(tracks["rotation"]).copy()
+    loud = np.asarray(tracks["sequence"]) == 0
+    rotation[loud, 1:] *= 8.0
+    rotation /= np.linalg.norm(rotation, axis=1, keepdims=True)
+    tracks = artifact({**{k: tracks[k] for k in tracks.names}, "rotation": rotation}, tracks.meta)
+    headdb = run_stage(TrackedHeadDb, {}, {"tracks": tracks})
+    inputs = {
+        "database": headdb,
+        "database_pitch": run_stage(Pitch, {}, {"source": headdb}),
+        "test_pitch": run_stage(Pitch, {}, {"source": tracks}),
+    }
+    tr = run_stage(Trellis, {"holdout": "take", "test_speaker": "own"}, inputs)
+    spread = lambda a: np.prod(np.percentile(a, 95, axis=0)[:3] - np.percentile(a, 5, axis=0)[:3]) ** (1 / 3)
+    loud_real = spread(reference_angles(tracks, tracks.meta["labels"][0], 8, 30.0))
+    params = {"amplitude": "match", "amplitude_target": "reference"}
+    run = stage_result(MotionBlend, params, {"trellis": tr, "database": headdb, "reference": tracks})
+    angles, seq = run.arrays["angles"], run.arrays["sequence"]
+    assert spread(angles[seq == 0]) == pytest.approx(loud_real, rel=0.1)
+    assert run.meta["stitch"]["targets"][0] == pytest.approx(
+        list(np.percentile(reference_angles(tracks, tracks.meta["labels"][0], 8, 30.0), 95, axis=0)
+             - np.percentile(reference_angles(tracks, tracks.meta["labels"][0], 8, 30.0), 5, axis=0))
+    )  # fmt: skip
+    default = run_stage(MotionBlend, {"amplitude": "match"}, {"trellis": tr, "database": headdb, "reference": tracks})
+    assert spread(default.arrays["angles"][default.arrays["sequence"] == 0]) < loud_real / 3
+    partial = artifact({**{k: tracks[k] for k in tracks.names}}, {**tracks.meta, "labels": ["other"] * 8})
+    missing = stage_result(MotionBlend, params, {"trellis": tr, "database": headdb, "reference": partial})
+    assert any("is not in the reference" in w for w in missing.warnings)
+    np.testing.assert_allclose(missing.arrays["angles"], default.arrays["angles"])
+
+
+def test_a_reference_amplitude_target_needs_scaling_and_a_reference(leave_one_out, database):
+    with pytest.raises(ValidationError, match="amplitude_target"):
+        MotionBlend.Params(amplitude="database", amplitude_target="reference")
+    with pytest.raises(UserError, match="reference input") as err:
+        stage_result(
+            MotionBlend, {"amplitude_target": "reference"}, {"trellis": leave_one_out, "database": database[0]}
+        )
+    assert err.value.field == "inputs.reference"
 
 
 def test_output_filter_keeps_strokes_and_removes_sped_up_peaks():

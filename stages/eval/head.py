@@ -68,6 +68,12 @@ def evaluation_windows(n: int, fps: float, window: float) -> list[tuple[int, int
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b - a >= 3]
 
 
+def scored_windows(n: int, fps: float, window: float, skip: float) -> list[tuple[int, int]]:
+    """``evaluation_windows`` of the frames from ``skip`` seconds on (none when the take is not longer)."""
+    start = min(n, int(round(skip * fps)))
+    return [(a + start, b + start) for a, b in evaluation_windows(n - start, fps, window)] if n > start else []
+
+
 def take_audio(view, k: int) -> tuple[np.ndarray, int, float]:
     """Samples, rate and offset (time of the first sample on the take's clock) of sequence ``k``'s audio."""
     if "audio" not in view or "audio_bounds" not in view:
@@ -283,7 +289,7 @@ def score_windows(takes: list[Take], paths: list[list[np.ndarray]], db, params) 
     for t, take in enumerate(takes):
         shifted = [shifted_motion(take.real, take.fps, params.min_shift, rng) for _ in range(params.draws)]
         own_paths = [p[t][: len(take.real)] for p in paths]
-        for a, b in evaluation_windows(len(take.real), take.fps, params.window):
+        for a, b in scored_windows(len(take.real), take.fps, params.window, params.skip_seconds):
             t0 = a / take.fps
             motions = window_motions(take, a, b, shifted, own_paths, db, rng, params)
             scores = []
@@ -630,6 +636,12 @@ def _plot_beat_alignment(view, inputs=None):
 
 class HeadEvalParams(Stage.Params):
     window: float = Field(10.0, gt=0, description="length (s) of the evaluation utterances takes are cut into")
+    skip_seconds: float = Field(
+        0.0,
+        ge=0,
+        description="score each take from this many seconds on (the stretch a synthesis used for enrolment: "
+        "motion_blend.reference_seconds)",
+    )
     sigma: float = Field(0.1, gt=0, description="beat alignment tolerance (s): the Gaussian's standard deviation")
     head_beats: Literal["peaks", "minima"] = Field(
         "peaks", description="head beats: maxima (strokes) or minima (stops) of the smoothed angular speed"
