@@ -5,6 +5,7 @@ and the default run's paper branch) and, given folders, the capture branch on ea
     python bench/eval_retarget.py ../shared/data/talking-heads
     python bench/eval_retarget.py --blinks ../shared/data/talking-heads     # the blink detector vs hand marks
     python bench/eval_retarget.py --identity ../shared/data/talking-heads   # absolute mouth error, identity fitted
+    python bench/eval_retarget.py --probes ../shared/data/talking-heads     # dead-where-moved probes, read two ways
     python bench/eval_retarget.py --capture ../shared/data/talking-heads/{hdtf_kh,retalking_2,vlog_31}.mp4
     python bench/eval_retarget.py -S capture_character.fit_identity=true           # CREMA-D, identity fitted
     python bench/eval_retarget.py --capture -S character.fit_identity=true ../shared/data/talking-heads/hdtf_kh.mp4
@@ -235,6 +236,81 @@ def take_identity_errors(tracks, blend, character, take, identities, ids, run_st
     return plain, fitted
 
 
+def character_shapes(character, weights: np.ndarray, performer_rest: np.ndarray) -> np.ndarray:
+    """The character's landmark vertices under ``weights`` (frames, 68 + cheek points, 3) in IOD units, the cheek
+    points being the character's vertices nearest to the performer's FaceMesh cheek points at rest
+    (``performer_rest`` (68 + 12, 3)) carried onto the character by the similarity of the rigid points."""
+    from stages.retarget.keymorphs import Rig3D
+
+    neutral, deltas = np.asarray(character["neutral"], np.float64), np.asarray(character["deltas"], np.float64)
+    rig = Rig3D.build(neutral, deltas, character["landmark_ids"])
+    cheeks = rig.to_character(performer_rest[:68]).apply(performer_rest[68:])
+    nearest = [int(np.argmin(((neutral - p) ** 2).sum(axis=1))) for p in cheeks]
+    ids = np.concatenate([np.asarray(character["landmark_ids"]), nearest])
+    return (neutral[ids][None] + np.einsum("fm,mpc->fpc", weights, deltas[:, ids])) / rig.iod
+
+
+def probes(folders: list[str]) -> None:
+    """For every ARKit column dead where the performer moved it: the movement probe as the evaluation reads it
+    (the FaceMesh with the tracked camera's perspective taken out, focal length as tracking assumed it) beside
+    the same probe on the FaceMesh as the retarget reads it (no perspective removal), and for the chin raise a
+    check on the 2D landmarks: how far the chin-to-nose-bridge distance is below its closed-mouth rest (IOD) at
+    the frame where the evaluated probe peaks; last, the same probe on the character's animation (its landmark
+    vertices, and the vertices nearest to the FaceMesh cheek points, rest at the performer's rest frames): how
+    much of the movement the animation makes, whichever morph makes it."""
+    import msflow
+    from stages.eval.retarget import RetargetEval, jaw_drop, performer_shapes, take_cameras
+    from stages.retarget.keyshapes import level, lip_gap_iod, rest_frames
+    from stages.retarget.movements import EXTRA_VERTICES, MovedLevels, landmark_probes, moved
+    from stages.retarget.shapes3d import front_view, head_frame_shapes
+
+    os.chdir(ROOT)
+    params = RetargetEval.Params()
+    levels = MovedLevels(params.moved_level, params.moved_closure, params.moved_degrees, params.moved_frames)
+    runs = [msflow.run(PIPELINE, until="capture_eval")]
+    for folder in folders:
+        relative = os.path.relpath(Path(folder).resolve(), PIPELINE.parent)
+        runs.append(msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_eval"))
+
+    def rest_of(shapes):
+        return shapes[rest_frames(front_view(shapes[:, :68]))].mean(axis=0)
+
+    print(
+        "| take | column | probe peak / level, as evaluated | without perspective removal | 2D chin rise at the "
+        "peak | the character's probe peak / level |"
+    )
+    print("|---|---|---|---|---|---|")
+    for result in runs:
+        tracks, view = result.artifact("capture_track"), result.artifact("capture_eval")
+        blend, character = result.artifact("capture_blend"), result.artifact("capture_character")
+        sequence, labels = np.asarray(tracks["sequence"]), list(tracks.meta["labels"])
+        for label, take in view.meta["takes"].items():
+            rows = np.flatnonzero(sequence == labels.index(label))
+            landmarks = np.asarray(tracks["landmarks"])[rows[0] : rows[-1] + 1]
+            shapes = head_frame_shapes(np.asarray(tracks["mesh"][rows[0] : rows[-1] + 1], np.float64), EXTRA_VERTICES)
+            gap = lip_gap_iod(level(landmarks))
+            plain = landmark_probes(shapes, rest_of(shapes), gap, params.closure_gap)
+            camera = take_cameras(tracks.meta, sequence)[labels.index(label)]
+            evaluated = performer_shapes(tracks["mesh"], sequence == labels.index(label), camera)
+            evaluated = landmark_probes(evaluated, rest_of(evaluated), gap, params.closure_gap)
+            drop = jaw_drop(landmarks)
+            chin = drop[rest_frames(landmarks)].mean() - drop
+            animated = character_shapes(character, np.asarray(blend["weights"])[rows], rest_of(shapes))
+            at_rest = animated[rest_frames(front_view(shapes[:, :68]))].mean(axis=0)
+            animated = landmark_probes(animated, at_rest, lip_gap_iod(level(front_view(animated[:, :68]))), 0.03)
+            for column in take["columns"]["dead_moved"]:
+                peak, at = take["movements"][column]
+                seen = moved({column: plain[column]}, levels)[column] if column in plain else None
+                cells = [f"{peak:.4f} / {at:.4f}", f"{seen['peak']:.4f} / {seen['level']:.4f}" if seen else "-"]
+                peak_frame = int(np.argmax(evaluated[column]))
+                cells.append(
+                    f"{chin[peak_frame]:.3f} (frame {rows[0] + peak_frame})" if column == "MouthShrugLower" else ""
+                )
+                made = moved({column: animated[column]}, levels)[column] if column in animated else None
+                cells.append(f"{made['peak']:.4f} / {made['level']:.4f}" if made else "-")
+                print(f"| {Path(label).stem} | {column} | " + " | ".join(cells) + " |")
+
+
 def capture(clips: list[str], overrides: list[str] = ()) -> None:
     """pipelines/capture.yaml on each clip, scored against the clip's tracking (RetargetEval on its artifacts)."""
     import resource
@@ -276,5 +352,7 @@ if __name__ == "__main__":
         blinks(args[1:])
     elif args[:1] == ["--identity"]:
         identity(args[1:])
+    elif args[:1] == ["--probes"]:
+        probes(args[1:])
     else:
         main(args, overrides)

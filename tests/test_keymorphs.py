@@ -623,3 +623,32 @@ def test_crema_keymorph_drafts_match_the_keyshapes(crema_keymorphs, character):
     assert mean["angry"][brow].mean() > 2 * mean["happy"][brow].mean()
     sheet = cv2.imdecode(out.arrays["contact_sheet"], cv2.IMREAD_COLOR)
     assert sheet.shape[1] == max(ks.meta["keyshape_counts"]) * 48
+
+
+def test_a_stretched_open_mouth_is_no_funnel(character):
+    """Known answer (issue 13, CREMA-D fear): an open jaw with the lips stretched and the lower lip pulled down
+    beyond what the character's mouthLowerDown reaches. Without the funnel/stretch antagonism the fit lowered
+    that lip with a funnel, its corners drawn in, cancelled by the stretch; the performer rounded nothing."""
+    names = character.meta["target_names"]
+    pose = {"jawOpen": 0.4, "mouthStretch_L": 0.5, "mouthStretch_R": 0.5}
+    pose.update(mouthLowerDown_L=1.0, mouthLowerDown_R=1.0)
+    keyshapes, _ = keyshapes3d_from_weights(
+        character, [("neutral", {}), ("neutral", pose), ("happy", {}), ("angry", {})]
+    )
+    lower_lip = [55, 56, 57, 58, 59, 64, 65, 66, 67]
+    shapes = np.array(keyshapes["keyshapes3d"])
+    shapes[1, lower_lip, 1] -= 0.1  # the performer's lower lip 0.1 IOD further down (the keyshapes have IOD 1)
+    arrays = {name: keyshapes[name] for name in keyshapes.names}
+    arrays["keyshapes3d"] = shapes.astype(np.float32)
+    keyshapes = artifact(arrays, meta=keyshapes.meta)
+    jaw, funnel, stretch = (names.index(n) for n in ("jawOpen", "mouthFunnel", "mouthStretch_L"))
+
+    def fit(**params):
+        inputs = {"keyshapes": keyshapes, "character": character}
+        return run_stage(KeymorphFit, {"contact_sheet": False, **params}, inputs).arrays["keymorph_weights"][1]
+
+    w = fit()
+    assert w[funnel] < 0.05 and w[jaw] > 0.4 and w[stretch] > 0.3, (w[jaw], w[funnel], w[stretch])
+    before = [p for p in KeymorphFit.Params().antagonists if tuple(p) != ("mouthFunnel", "mouthStretch")]
+    old = fit(antagonists=before)
+    assert old[funnel] > 0.1 and old[stretch] > 0.3, (old[funnel], old[stretch])

@@ -1058,6 +1058,10 @@ class KeymorphFitParams(Stage.Params):
     symmetry: float = Field(0.2, ge=0)
     #: penalty on using opposing targets together (product of their weights), per side of the face
     antagonism: float = Field(1.0, ge=0)
+    #: opposing pairs. mouthFunnel draws the lip corners in and mouthStretch pulls them out: without the pair the
+    #: fit used a funnel as a lower-lip lowerer beyond the character's mouthLowerDown, its corners cancelled by a
+    #: stretch (CREMA-D fear: funnel 0.52 over jawOpen 0.51 where the performer's lips stretched and moved back;
+    #: docs/retarget.md). The list before it: this one without ("mouthFunnel", "mouthStretch")
     antagonists: list[tuple[str, str]] = [
         ("browDown", "browInnerUp"),
         ("browDown", "browOuterUp"),
@@ -1067,6 +1071,7 @@ class KeymorphFitParams(Stage.Params):
         ("jawLeft", "jawRight"),
         ("mouthLeft", "mouthRight"),
         ("mouthPucker", "mouthStretch"),
+        ("mouthFunnel", "mouthStretch"),
     ]
     #: 2D fit: weight of the jaw-line landmarks (0-16) relative to the others (2D trackers place it least well)
     contour_weight: float = Field(0.5, ge=0)
