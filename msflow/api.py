@@ -167,8 +167,9 @@ def code_trees_of(sessions: list[Session]) -> Callable[[str], CodeTree]:
     def tree(root: str) -> CodeTree:
         from msflow.shipping import code_tree
 
-        plans = [plan for s in sessions if str(s.pipeline.root) == root for plan in s.plans.values()]
-        return code_tree(Path(root), plans)
+        mine = [s for s in sessions if str(s.pipeline.root) == root]
+        plans = [plan for s in mine for plan in s.plans.values()]
+        return code_tree(Path(root), plans, mine[0].memo.setdefault("code", {}) if mine else None)
 
     return tree
 

@@ -30,7 +30,7 @@ import tempfile
 import threading
 import uuid
 from collections.abc import Iterable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -129,37 +129,70 @@ def fetch_verified(blobs: Blobs, digests: list[str]) -> dict[str, bytes]:
 # ---------------------------------------------------------------------------------------------------------- client
 @dataclass
 class CodeTree:
-    """The project code a run's stages need: relative path -> content hash, and where each file is here."""
+    """The project code a run's stages need: relative path -> content hash, and where each file is here;
+    ``modules``: each module's fingerprint (AST digest), checked against the keys' when the tree was made."""
 
     files: dict[str, str]
     sources: dict[str, Path]
+    modules: dict[str, str] = field(default_factory=dict)
 
     @property
     def document(self) -> dict[str, Any]:
-        return {"code": dict(sorted(self.files.items()))}
+        return {"code": dict(sorted(self.files.items())), "modules": dict(sorted(self.modules.items()))}
 
     @property
     def digest(self) -> str:
         return json_hash(self.document)
 
 
-def code_tree(root: Path, plans: Iterable[StagePlan]) -> CodeTree:
+def code_tree(root: Path, plans: Iterable[StagePlan], memo: dict[str, Any] | None = None) -> CodeTree:
     """Every module in the stages' import closures and every declared resource, relative to the project root
-    (modules of development packages outside it: relative to their package's folder, as fingerprints name them)."""
+    (modules of development packages outside it: relative to their package's folder, as fingerprints name them).
+
+    Each module's bytes are fingerprinted again and must give the digest its stage's key holds: code edited after
+    the keys were computed is refused here, so workers need not parse the code again. ``memo`` (the session's
+    code memo) keeps the digests by content hash, so an unchanged file is parsed once, not once per run."""
     from msflow.fingerprint import CodeIndex
 
     index = CodeIndex(root)
+    known: dict[str, str] = (memo or {}).get("shipped", {})
     sources: dict[str, Path] = {}
+    files: dict[str, str] = {}
+    modules: dict[str, str] = {}
+    digests: dict[str, str] = {}  # content hash -> AST digest, of this tree's modules
     for plan in plans:
-        for rel in plan.code["modules"]:
-            sources[rel] = module_source(index, root, rel)
+        for rel, wanted in plan.code["modules"].items():
+            path = sources[rel] = module_source(index, root, rel)
+            content, digest = module_fingerprint(path, known)
+            if digest != wanted:
+                raise UserError(
+                    f"{rel} changed after this run computed its cache keys; run again", stage=plan.name, file=str(path)
+                )
+            files[rel], modules[rel], digests[content] = content, digest, digest
         for name, rel in plan.interface.get("resources", {}).items():
             path = root / rel
             if Path(rel).is_absolute() or rel.startswith("../"):
                 path, rel = Path(rel).resolve(), resource_rel(plan, name, Path(rel).resolve())
             sources[rel] = path
-    files = {rel: file_hash(path) for rel, path in sorted(sources.items())}
-    return CodeTree(files, sources)
+    files.update({rel: file_hash(path) for rel, path in sorted(sources.items()) if rel not in files})
+    if memo is not None:
+        memo["shipped"] = digests  # only the current tree's: the memo does not grow with every edit
+    return CodeTree(dict(sorted(files.items())), sources, modules)
+
+
+def module_fingerprint(path: Path, known: dict[str, str]) -> tuple[str, str]:
+    """(content hash, AST digest) of a module file; the digest from ``known`` (content hash -> digest) when there."""
+    from msflow.fingerprint import parse_module
+
+    data = path.read_bytes()
+    content = bytes_hash(data)
+    digest = known.get(content)
+    if digest is None:
+        try:
+            digest = parse_module(data, str(path))[0]
+        except SyntaxError as exc:
+            raise UserError(f"syntax error at line {exc.lineno}: {exc.msg}", file=str(path)) from None
+    return content, digest
 
 
 def resource_rel(plan: StagePlan, name: str, path: Path) -> str:
@@ -307,6 +340,8 @@ _CHECKED_CODE: set[tuple[str, str]] = set()
 #: code tree digest -> its CodeIndex: a tree is immutable (named by its content), so its modules' fingerprints are
 #: parsed once per worker process, not once per job
 _INDEXES: dict[str, CodeIndex] = {}
+#: code tree digest -> its record of module fingerprints (read with the tree in this process)
+_TREE_MODULES: dict[str, dict[str, str]] = {}
 
 
 def check_store(job: Job) -> None:
@@ -371,12 +406,16 @@ def shipped_code(job: Job) -> Path:
 
 
 def materialise_code(digest: str, blobs: Blobs, folder: Path) -> Path:
-    """The code tree ``digest`` as files under ``folder/digest`` (built once, atomically)."""
+    """The code tree ``digest`` as files under ``folder/digest`` (built once, atomically); its document (its
+    record of module fingerprints) read once per process."""
     target = folder / digest
+    if target.is_dir() and digest in _TREE_MODULES:
+        return target
+    document = json.loads(fetch_verified(blobs, [digest])[digest])
+    _TREE_MODULES[digest] = document.get("modules") or {}
     if target.is_dir():
         return target
-    document = fetch_verified(blobs, [digest])[digest]
-    files: dict[str, str] = json.loads(document)["code"]
+    files: dict[str, str] = document["code"]
     contents = fetch_verified(blobs, list(files.values()))
     write_tree(target, {rel: contents[d] for rel, d in files.items()})
     return target
@@ -401,16 +440,18 @@ def write_tree(target: Path, files: dict[str, bytes]) -> None:
 
 
 def check_fingerprint(job: Job, root: Path) -> None:
-    """The shipped stage's import closure must fingerprint as the key says (else the code changed meanwhile)."""
+    """The shipped stage's import closure must fingerprint as the key says (else the code changed meanwhile).
+    The tree's own record of its modules' fingerprints (``CodeTree.modules``, checked by the client against the
+    keys when it made the tree; the tree's blobs are checked by content) answers without parsing; a tree without
+    one is parsed here."""
     if (job.code or "", job.uses) in _CHECKED_CODE:
         return
-    from msflow.fingerprint import CodeIndex
-
     wanted = ((job.key_parts or {}).get("code") or {}).get("modules")
-    index = _INDEXES.get(job.code or "")
-    if index is None or index.root != root.resolve():
-        index = _INDEXES[job.code or ""] = CodeIndex(root)
-    found = index.closure(job.uses.partition(":")[0])["modules"]
+    recorded = _TREE_MODULES.get(job.code or "")
+    if recorded and wanted is not None:
+        found = {rel: recorded.get(rel, "missing from the shipped tree") for rel in wanted}
+    else:
+        found = parsed_closure(job, root)
     if wanted is not None and found != wanted:
         changed = sorted(set(found.items()) ^ set(wanted.items()))
         raise UserError(
@@ -420,6 +461,17 @@ def check_fingerprint(job: Job, root: Path) -> None:
             field="uses",
         )
     _CHECKED_CODE.add((job.code or "", job.uses))
+
+
+def parsed_closure(job: Job, root: Path) -> dict[str, str]:
+    """The stage's import closure fingerprinted from the shipped files (one CodeIndex per tree and process)."""
+    from msflow.fingerprint import CodeIndex
+
+    index = _INDEXES.get(job.code or "")
+    if index is None or index.root != root.resolve():
+        index = _INDEXES[job.code or ""] = CodeIndex(root)
+    modules: dict[str, str] = index.closure(job.uses.partition(":")[0])["modules"]
+    return modules
 
 
 def shipped_files(entry: JobInput, job: Job) -> Files:

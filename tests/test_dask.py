@@ -261,11 +261,31 @@ def test_code_edited_after_the_key_is_refused(numproject, tmp_path):
         path = project / "numstages" / "basic.py"
         path.write_text(path.read_text().replace("ndmin=2).reshape(-1)", "ndmin=2).reshape(-1) * 2"))
 
-    job, store = shipped(numproject, tmp_path, edit=edit)
-    outcome = run_in_fresh_process(job, tmp_path)
+    with pytest.raises(UserError, match="numstages/basic.py changed after this run computed its cache keys") as err:
+        shipped(numproject, tmp_path, edit=edit)
+    assert err.value.file == str(numproject / "numstages" / "basic.py")
+
+
+def test_a_worker_checks_the_tree_against_the_key_without_parsing(numproject, tmp_path):
+    """The tree records its modules' fingerprints (checked by the client against the keys): a job whose key
+    names other code is refused; a tree without that record (an older client) is fingerprinted by parsing."""
+    from dataclasses import replace
+
+    from msflow.hashing import canonical_json, json_hash
+    from msflow.shipping import FolderBlobs, blob_path
+
+    job, store = shipped(numproject, tmp_path)
+    parts = json.loads(json.dumps(job.key_parts))
+    parts["code"]["modules"]["numstages/basic.py"] = "0" * 32
+    other = replace(job, key_parts=parts)
+    outcome = run_in_fresh_process(other, tmp_path)
     assert outcome.status == "failed" and outcome.user_error
     assert "does not match the cache key's fingerprint (numstages/basic.py differ)" in outcome.user_error["message"]
     assert not store.has(job.key)
+    document = json.loads((tmp_path / "store" / blob_path(job.code)).read_bytes())
+    old = {"code": document["code"]}
+    FolderBlobs(tmp_path / "store").put(json_hash(old), canonical_json(old).encode())
+    assert run_in_fresh_process(replace(job, code=json_hash(old)), tmp_path).status == "ran"
 
 
 def test_shipped_folder_inputs_and_resources(numproject, tmp_path):
@@ -507,7 +527,15 @@ def test_the_workers_are_another_machine(cluster, numproject):
     assert set(cluster.client.run(os.getcwd).values()) == {str(cluster.work)}
     for folder in (numproject, ROOT / "stages", ROOT / "msflow"):
         assert set(cluster.client.run(os.path.exists, str(folder)).values()) == {False}
-    assert list(cluster.client.run(os.listdir, str(ROOT)).values()) == [[], []]  # covered by an empty mount
+
+    def listing(folder: str):  # defined here: cloudpickle ships it by value (the tests are not on the workers)
+        try:
+            return tuple(sorted(os.listdir(folder)))
+        except PermissionError:
+            return "permission denied"
+
+    # covered by an empty mount, or (as nobody, under a closed folder such as a mktemp -d) not even reachable
+    assert set(cluster.client.run(listing, str(ROOT)).values()) <= {(), "permission denied"}
     assert set(cluster.client.run(os.environ.get, "MALLOC_TRIM_THRESHOLD_").values()) == {None}
 
 
