@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from msflow.errors import UserError
-from msflow.hashing import bytes_hash, canonical_json, file_hash, json_hash
+from msflow.hashing import bytes_hash, canonical_json, file_hash, json_hash, stat_signature
 from msflow.jobs import Job, JobInput
 
 if TYPE_CHECKING:
@@ -155,20 +155,25 @@ def code_tree(root: Path, plans: Iterable[StagePlan], memo: dict[str, Any] | Non
     from msflow.fingerprint import CodeIndex
 
     index = CodeIndex(root)
-    known: dict[str, str] = (memo or {}).get("shipped", {})
+    known: dict[str, str] = dict((memo or {}).get("shipped", {}))
+    planned: dict[str, list[Any]] = (memo or {}).get("files", {})
     sources: dict[str, Path] = {}
     files: dict[str, str] = {}
     modules: dict[str, str] = {}
     digests: dict[str, str] = {}  # content hash -> AST digest, of this tree's modules
     for plan in plans:
         for rel, wanted in plan.code["modules"].items():
-            path = sources[rel] = module_source(index, root, rel)
-            content, digest = module_fingerprint(path, known)
-            if digest != wanted:
+            if rel not in modules:
+                path = sources[rel] = module_source(index, root, rel)
+                content, digest = module_fingerprint(path, known, planned.get(rel))
+                files[rel], modules[rel], digests[content] = content, digest, digest
+                known[content] = digest
+            if modules[rel] != wanted:
                 raise UserError(
-                    f"{rel} changed after this run computed its cache keys; run again", stage=plan.name, file=str(path)
+                    f"{rel} changed after this run computed its cache keys; run again",
+                    stage=plan.name,
+                    file=str(sources[rel]),
                 )
-            files[rel], modules[rel], digests[content] = content, digest, digest
         for name, rel in plan.interface.get("resources", {}).items():
             path = root / rel
             if Path(rel).is_absolute() or rel.startswith("../"):
@@ -180,13 +185,17 @@ def code_tree(root: Path, plans: Iterable[StagePlan], memo: dict[str, Any] | Non
     return CodeTree(dict(sorted(files.items())), sources, modules)
 
 
-def module_fingerprint(path: Path, known: dict[str, str]) -> tuple[str, str]:
-    """(content hash, AST digest) of a module file; the digest from ``known`` (content hash -> digest) when there."""
+def module_fingerprint(path: Path, known: dict[str, str], planned: list[Any] | None) -> tuple[str, str]:
+    """(content hash, AST digest) of a module file: the digest from ``known`` (content hash -> digest), else the
+    planner's (``planned``: its memo entry [stat signature, digest, imports]) when the file's stat signature, taken
+    after reading it, is still the one the planner fingerprinted, else parsed from the bytes read."""
     from msflow.fingerprint import parse_module
 
     data = path.read_bytes()
     content = bytes_hash(data)
     digest = known.get(content)
+    if digest is None and planned and planned[0] == stat_signature(path):
+        digest = str(planned[1])
     if digest is None:
         try:
             digest = parse_module(data, str(path))[0]
