@@ -4,10 +4,12 @@ A worker on another machine cannot read the project folder, so a job sent to a D
 
 - **Code by content.** The project's code that the run's stages need (every module of each stage's import closure,
   and the data files stages declare in ``Stage.resources``) is put into the store as content-addressed blobs, plus
-  one small *code tree* (relative path -> content hash) whose own hash names it. The job carries that hash; the
-  worker rebuilds the tree once in its cache (``worker_cache``), imports the stage from there and, before running,
-  re-fingerprints the stage's import closure and compares it with the key's ``code.modules``: code edited between
-  key and shipping is refused, never computed under the old key.
+  one small *code tree* (relative path -> content hash, and each module's fingerprint) whose own hash names it.
+  Building the tree, the client fingerprints every module it ships (the planner's digest while the file's stat
+  signature is unchanged, else parsed from the bytes shipped) against the key's ``code.modules``: code edited
+  between key and shipping is refused, never computed under the old key. The job carries the tree's hash; the
+  worker rebuilds the tree once in its cache (``worker_cache``), checks the stage's closure in the key against the
+  tree's fingerprints (no parsing: the blobs are checked by content) and imports the stage from there.
 - **Data files by content.** An ``Input.files`` input becomes blobs (a file: its bytes, whose hash is the one in the
   key; a folder: a JSON tree of its files' hashes, whose hash is the folder's hash in the key). The worker rebuilds
   each under its cache with its original file name, so stages see ordinary paths.
