@@ -229,7 +229,8 @@ def test_jobs_reaches_the_stage_and_stays_out_of_the_key(numproject, tmp_path):
     assert executions(tmp_path / "log1") == ["streamed"]
 
 
-def test_a_sink_opened_but_not_returned_leaves_no_files(tmp_path):
+@pytest.mark.parametrize("where", ["local", "object store"])
+def test_a_sink_opened_but_not_returned_leaves_no_files(tmp_path, where):
     class Undecided(Stage):
         outputs = {"a": Output.array("f", ndim=1, optional=True), "b": Output.array("f", ndim=1)}
 
@@ -238,10 +239,15 @@ def test_a_sink_opened_but_not_returned_leaves_no_files(tmp_path):
             a.append(np.zeros(600_000))  # more than a chunk: some of it was written
             return Result({"b": np.ones(2)})
 
-    store = LocalStore(tmp_path)
+    store = LocalStore(tmp_path) if where == "local" else open_store(f"memory://undecided-{tmp_path.name}", {})
     with store.writer("k") as writer:
         stage = Undecided("u", chunk_target=writer)
         from msflow.stage import validate_result
 
         writer.commit(validate_result("u", Undecided, stage.run(None, {})), {})
-    assert sorted(p.name for p in store.artifact_path("k").iterdir()) == ["b", "zarr.json"]
+    if where == "local":
+        assert sorted(p.name for p in store.artifact_path("k").iterdir()) == ["b", "zarr.json"]
+    else:
+        folder = writer.folder + "/"
+        assert {i.path[len(folder) :].split("/")[0] for i in store.objects.list(folder)} == {"b", "zarr.json"}
+    assert np.array_equal(store.open("k")["b"], np.ones(2))

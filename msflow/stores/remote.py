@@ -412,6 +412,7 @@ class RemoteWriter:
         self.folder = store.data_path(key, self.wid)
         self.journal: str | None = None
         self.committed = False
+        self.streamed = False  # objects uploaded before the commit (chunks of output sinks)
 
     def __enter__(self) -> RemoteWriter:
         return self
@@ -427,6 +428,7 @@ class RemoteWriter:
     def put(self, rel: str, data: bytes) -> None:
         """Upload one object of the zarr group (a chunk of an output sink) now."""
         self._start()
+        self.streamed = True
         self.store.objects.put(f"{self.folder}/{rel}", data)
 
     def commit(
@@ -442,7 +444,8 @@ class RemoteWriter:
         arrays, manifest = prepare_manifest(arrays, extra, file_suffixes)
         self._start()
         objects = self.store.objects
-        for info in objects.list(self.folder + "/"):  # chunks of sinks the stage opened but did not return
+        # chunks of sinks the stage opened but did not return (the folder is this writer's own: nothing else there)
+        for info in objects.list(self.folder + "/") if self.streamed else []:
             if info.path[len(self.folder) + 1 :].split("/")[0] not in arrays:
                 objects.delete(info.path)
         for batch in iter_chunks(encode_artifact(arrays, manifest)):
