@@ -226,7 +226,9 @@ def test_takes_of_a_sentence_missing_an_expression_are_left_out_and_none_left_is
 
 
 def test_a_fit_stopped_at_max_iter_warns_with_its_error():
-    run = run_stage(BilinearFit, {"max_iter": 2, "tol": 1e-300, "align": "mouth"}, {"aam": aam_run()})
-    assert not run.meta["converged"] and run.meta["iterations"] == 2
-    assert len(run.warnings) == 1 and "max_iter=2" in run.warnings[0] and "relative training error" in run.warnings[0]
+    # One iteration cannot converge (convergence compares two errors); two may already reach an exact fixed point
+    # with some CPUs' BLAS kernels, so the test would depend on the machine.
+    run = run_stage(BilinearFit, {"max_iter": 1, "tol": 1e-300, "align": "mouth"}, {"aam": aam_run()})
+    assert not run.meta["converged"] and run.meta["iterations"] == 1
+    assert len(run.warnings) == 1 and "max_iter=1" in run.warnings[0] and "relative training error" in run.warnings[0]
     assert bilinear_run("mouth").warnings == []
