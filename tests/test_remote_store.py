@@ -416,6 +416,52 @@ def test_leases_exclude_each_other_renew_and_break_when_stale(s3):
     assert count[0] == 12 and max(overlaps) == 1
 
 
+def test_a_lease_trusts_its_create_only_where_the_server_honours_if_none_match(s3, monkeypatch):
+    from msflow.stores import objects as objects_module
+
+    monkeypatch.setattr(objects_module, "_EXCLUSIVE_CREATE", {})
+    store = s3.store(s3.bucket())
+    calls = []
+    real_call = objects_module.S3Objects._call
+
+    async def counted(self, method, **kwargs):
+        calls.append((method, kwargs.get("Key", "")))
+        return await real_call(self, method, **kwargs)
+
+    monkeypatch.setattr(objects_module.S3Objects, "_call", counted)
+    assert store.objects.creates_exclusively()  # moto refuses a second create
+    assert store.objects.list("locks/") == []  # the probe object is gone
+    calls.clear()
+    with store.lock("k-trusted") as lease:
+        assert calls == [("put_object", store.objects._key(store.lease_path("k-trusted")))]  # no read-back
+        assert lease.etag == store.objects.get_versioned(store.lease_path("k-trusted")).etag
+
+    # a server that ignores the condition: the probe says so, and the read-back keeps the leases exclusive
+    async def ignoring(self, method, **kwargs):
+        kwargs.pop("IfNoneMatch", None)
+        return await real_call(self, method, **kwargs)
+
+    monkeypatch.setattr(objects_module, "_EXCLUSIVE_CREATE", {})
+    monkeypatch.setattr(objects_module.S3Objects, "_call", ignoring)
+    assert not store.objects.creates_exclusively()
+    inside, overlaps = [0], []
+
+    def contender():
+        for _ in range(2):
+            with store.lock("k-ignored"):
+                inside[0] += 1
+                overlaps.append(inside[0])
+                time.sleep(0.02)
+                inside[0] -= 1
+
+    threads = [threading.Thread(target=contender) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(overlaps) == 6 and max(overlaps) == 1
+
+
 # ------------------------------------------------------------------------------------------- errors
 def cli_without_aws_env(proj, *args, extra=None, timeout=60):
     env = {k: v for k, v in cli_env().items() if not k.startswith("AWS_")}

@@ -5,10 +5,11 @@ time to live. Protocol:
 
 acquire
     Create the object with a conditional PUT (``If-None-Match: *``): of several writers racing, the server lets
-    exactly one through. The winner reads the object back and proceeds only if it carries its own token, which
-    also protects against S3-compatible servers that ignore the condition. On backends without conditional
-    writes (FsspecObjects) the winner first waits ``settle`` seconds, so that a concurrent writer who checked
-    before our write but wrote after it is seen by the read-back.
+    exactly one through, and the winner holds the etag the PUT returned. Where create is not atomic - an
+    S3-compatible server that ignores the condition (each process asks its server once,
+    ``Objects.creates_exclusively``) or a backend without conditional writes (FsspecObjects) - create reads before
+    it writes, and the winner waits ``settle`` seconds, so that a concurrent writer who checked before our write
+    but wrote after it is seen, then reads the object back and proceeds only if it carries its own token.
 hold
     A daemon thread renews the lease every ttl/3 with ``If-Match: <etag>``; a failed renewal means the lease was
     broken (the holder stalled for longer than the ttl) and is recorded in ``lost``.
@@ -75,7 +76,7 @@ class Lease:
         self.objects = objects
         self.path = path
         self.ttl = ttl or lease_ttl()
-        self.settle = 0.0 if objects.conditional else settle
+        self.settle = settle  # where create is not atomic: wait this long before reading the lease back
         self.token = uuid.uuid4().hex
         self.since = 0.0
         self.etag: str | None = None
@@ -103,9 +104,13 @@ class Lease:
         told = False
         delay = poll
         while True:
-            if self.objects.create(self.path, self._body()) is not None:
-                if self.settle:
-                    time.sleep(self.settle)
+            created = self.objects.create(self.path, self._body())
+            if created is not None and self.objects.creates_exclusively():
+                self.etag = created  # the server refused every other creator: no need to read it back
+                self._start_heartbeat()
+                return
+            if created is not None:
+                time.sleep(self.settle)
                 current = self.objects.get_versioned(self.path)
                 if current is not None and parse_holder(current.data).get("owner") == self.token:
                     self.etag = current.etag

@@ -5,7 +5,8 @@ Two backends:
 
 ``S3Objects``
     S3 and S3-compatible servers through s3fs's botocore client, one request per primitive (no HEAD before a
-    GET, no listing cache). Conditional writes are real: ``create`` is a PUT with ``If-None-Match: *``,
+    GET, no listing cache). Conditional writes are real: ``create`` is a PUT with ``If-None-Match: *`` (each
+    process asks the server once whether it honours that, ``creates_exclusively``; if not, create reads first),
     ``replace_if``/``delete_if`` carry ``If-Match: <etag>``, and the age of an object is measured on the server's
     clock (``Date`` minus ``Last-Modified``), so clock skew between machines does not matter.
 ``FsspecObjects``
@@ -18,19 +19,23 @@ Paths given to these methods are relative to the store's root.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
 import json
 import os
+import uuid
 from collections.abc import Awaitable, Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
 
 from msflow.errors import UserError
+from msflow.stores.base import HOST
 
 T = TypeVar("T")
 
 PROBE_SECONDS = 15.0  # the first request to a store gives up after this long (MSFLOW_STORE_TIMEOUT)
 CONCURRENCY = 16  # parallel requests when reading or writing many objects
+_EXCLUSIVE_CREATE: dict[tuple[str | None, str], bool] = {}  # (endpoint, bucket) -> server honours If-None-Match
 
 
 def probe_seconds() -> float:
@@ -129,9 +134,8 @@ def translate_failure(exc: BaseException, url: str, endpoint: str | None = None)
 class Objects(Protocol):
     """The object primitives a remote store is built on; paths are relative to the store's root."""
 
-    conditional: bool  #: create/replace_if/delete_if are atomic on the server
-
     def probe(self) -> None: ...
+    def creates_exclusively(self) -> bool: ...
     def get(self, rel: str) -> bytes | None: ...
     def get_versioned(self, rel: str) -> Versioned | None: ...
     def get_many(self, rels: list[str]) -> dict[str, bytes | None]: ...
@@ -146,8 +150,6 @@ class Objects(Protocol):
 
 
 class S3Objects:
-    conditional = True
-
     def __init__(self, fs: Any, bucket: str, prefix: str, url: str):
         self.fs = fs
         self.bucket = bucket
@@ -221,6 +223,29 @@ class S3Objects:
 
         self._run(list_one)
 
+    def creates_exclusively(self) -> bool:
+        """Whether this server refuses ``create`` of an existing object (honours ``If-None-Match: *``), so the
+        etag ``create`` returns is proof of ownership. Some S3-compatible servers ignore the condition; asked once
+        per process and server (three requests: create a probe object, create it again, delete it)."""
+        server = (self.endpoint, self.bucket)
+        if server not in _EXCLUSIVE_CREATE:
+            _EXCLUSIVE_CREATE[server] = self._probe_exclusive_create()
+        return _EXCLUSIVE_CREATE[server]
+
+    def _probe_exclusive_create(self) -> bool:
+        # a body clean_tmp can judge like a lease's, should this process die before deleting it
+        path = f"locks/.create-probe-{uuid.uuid4().hex}"
+        body = json.dumps({"probe": "If-None-Match", "host": HOST, "pid": os.getpid(), "ttl": 1.0}).encode()
+        try:
+            if self._run(self._create_if_absent, path, body) is None:
+                return False
+            return self._run(self._create_if_absent, path, body) is None
+        except Exception:
+            return False  # whatever went wrong, the read-back after a create stays the safe path
+        finally:
+            with contextlib.suppress(Exception):
+                self.delete(path)
+
     def get(self, rel: str) -> bytes | None:
         return self._run(self._aget, rel)
 
@@ -259,14 +284,17 @@ class S3Objects:
                 return None
             raise
 
+    async def _create_if_absent(self, rel: str, data: bytes) -> str | None:
+        resp = await self._conditional("put_object", Key=self._key(rel), Body=data, IfNoneMatch="*")
+        return None if resp is None else str(resp["ETag"])
+
     def create(self, rel: str, data: bytes) -> str | None:
-        """Write ``rel`` only if no object is there (atomic on the server); its etag, or None if one existed."""
-
-        async def create() -> str | None:
-            resp = await self._conditional("put_object", Key=self._key(rel), Body=data, IfNoneMatch="*")
-            return None if resp is None else str(resp["ETag"])
-
-        return self._run(create)
+        """Write ``rel`` only if no object is there; its etag, or None if one existed. Atomic on a server that
+        honours ``If-None-Match``; elsewhere a read before the write, which narrows the race to the two requests'
+        interval (msflow.stores.leases settles and reads back there)."""
+        if not self.creates_exclusively() and self.get(rel) is not None:
+            return None
+        return self._run(self._create_if_absent, rel, data)
 
     def replace_if(self, rel: str, data: bytes, etag: str) -> str | None:
         """Overwrite ``rel`` only if it is still at version ``etag``; the new etag, or None."""
@@ -325,8 +353,6 @@ class S3Objects:
 class FsspecObjects:
     """Any fsspec filesystem. ``create``/``replace_if``/``delete_if`` are read-compare-write, not atomic."""
 
-    conditional = False
-
     def __init__(self, fs: Any, root: str, url: str):
         self.fs = fs
         self.root = root.rstrip("/")
@@ -352,6 +378,9 @@ class FsspecObjects:
 
     def probe(self) -> None:
         self._guard(self.fs.exists, self.root)
+
+    def creates_exclusively(self) -> bool:
+        return False  # create is read-then-write here
 
     def get(self, rel: str) -> bytes | None:
         try:
