@@ -14,10 +14,12 @@ the project copies and this checkout, as ``nobody`` when run as root. Two stores
    client, the workers, the scheduler, the moto server; the stages' own CPU (sum of ``cpu_seconds``); and whether
    every output hash equals the local run's (the edit's preview MP4 differs between two local runs too: x264
    threads without frame timestamps, stages/face/edit.py).
-2. Per-stage overhead: a chain of 40 trivial stages (each reads the previous one's array) from an empty store, so
-   every stage waits for the one before: wall time per stage = the full round trip of one stage (client
-   scheduling, shipping, scheduler, worker, store, outcome) besides the stage itself (~0.1 ms of numpy), and the
-   worker-side part (``seconds - compute_seconds`` in the run record). ``local -j 1, S3`` runs the chain in this
+2. Per-stage overhead: chains of 40 and 80 trivial stages (each reads the previous one's array) from an empty
+   store, so every stage waits for the one before. What one more stage costs, (wall(80) - wall(40)) / 40, is the
+   full round trip of one stage (client scheduling, shipping, scheduler, worker, store, outcome) besides the stage
+   itself (~0.1 ms of numpy), without the run's fixed costs (planning; a process that meets a new project scans
+   the installed distributions again, ~0.4 s); also the end-to-end wall per stage and the worker-side part
+   (``seconds - compute_seconds`` in the run record). ``local -j 1, S3`` runs the chain in this
    process against the same S3 server: the store's own share of the cluster's S3 figure.
 
 3. The nanny's ``MALLOC_TRIM_THRESHOLD_``: the default pipeline on a 2-worker LocalCluster with the variable set
@@ -234,9 +236,12 @@ def chain_pipeline(folder: Path, n: int) -> Path:
 
 
 def overhead(tmp: Path, cluster, moto, options: dict, n: int = 40) -> None:
+    """Per-stage overhead as the marginal cost of a stage: chains of ``n`` and ``2 n`` trivial stages, run in
+    turn; (wall(2n) - wall(n)) / n is what one more stage costs, without the run's fixed costs (planning, the
+    distribution scan of a process that meets a new project, connecting), which the intercept shows."""
     import msflow
 
-    print(f"\nper-stage overhead: a chain of {n} trivial stages (each waits for the previous one):")
+    print(f"\nper-stage overhead: chains of {n} and {2 * n} trivial stages (each waits for the previous one):")
     configs = {
         "local -j 1 (in process)": ({}, None),
         "local -j 1, S3": ({}, "s3"),  # the store's own part of the cluster's S3 figure
@@ -245,29 +250,41 @@ def overhead(tmp: Path, cluster, moto, options: dict, n: int = 40) -> None:
         "cluster, folder": ({"scheduler": cluster.address}, "folder"),
     }
     for index, (label, (kwargs, store)) in enumerate(configs.items()):
-        walls, worker_side, cpus = [], [], []
+        walls: dict[int, list[float]] = {n: [], 2 * n: []}
+        worker_side, cpus = [], []
         for attempt in range(5):
-            pipeline = chain_pipeline(tmp / f"chain-{index}-{attempt}", n)
-            if store == "s3":
-                use_store(pipeline, f"s3://{new_bucket(options)}/c", options)
-            elif store == "folder":
-                shutil.rmtree(cluster.env_dir / "chainstore", ignore_errors=True)
-                use_store(pipeline, str(cluster.env_dir / "chainstore"))
-            pids = [p.pid for p in cluster.procs]
-            cpu = (self_cpu(), cpu_of(pids), cpu_of([moto.pid]))
-            started = time.perf_counter()
-            result = msflow.run(pipeline, **kwargs)
-            walls.append((time.perf_counter() - started) / n * 1000)
-            after = (self_cpu(), cpu_of(pids), cpu_of([moto.pid]))
-            cpus.append(tuple((b - a) / n * 1000 for a, b in zip(cpu, after)))
-            stages = [s for s in result.record["stages"].values() if s["state"] == "ran"]
-            assert len(stages) == n, "every stage of the chain must run"
-            worker_side.append(statistics.median((s["seconds"] - s["compute_seconds"]) * 1000 for s in stages))
+            for length in (n, 2 * n):
+                pipeline = chain_pipeline(tmp / f"chain-{index}-{attempt}-{length}", length)
+                if store == "s3":
+                    use_store(pipeline, f"s3://{new_bucket(options)}/c", options)
+                elif store == "folder":
+                    shutil.rmtree(cluster.env_dir / "chainstore", ignore_errors=True)
+                    use_store(pipeline, str(cluster.env_dir / "chainstore"))
+                pids = [p.pid for p in cluster.procs]
+                cpu = (self_cpu(), cpu_of(pids), cpu_of([moto.pid]))
+                started = time.perf_counter()
+                result = msflow.run(pipeline, **kwargs)
+                walls[length].append(time.perf_counter() - started)
+                after = (self_cpu(), cpu_of(pids), cpu_of([moto.pid]))
+                cpus.append((length, tuple(b - a for a, b in zip(cpu, after))))
+                stages = [s for s in result.record["stages"].values() if s["state"] == "ran"]
+                assert len(stages) == length, "every stage of the chain must run"
+                worker_side.append(statistics.median((s["seconds"] - s["compute_seconds"]) * 1000 for s in stages))
+        slopes = [(b - a) / n * 1000 for a, b in zip(walls[n], walls[2 * n])]
+        short = [c for length, c in cpus if length == n]
+        long = [c for length, c in cpus if length == 2 * n]
+        cpu_slope = [
+            (statistics.median(x[k] for x in long) - statistics.median(x[k] for x in short)) / n * 1000
+            for k in range(3)
+        ]
+        intercept = statistics.median(walls[n]) - statistics.median(slopes) * n / 1000
         print(
-            f"  {label:26s} {min(walls):6.1f} ms per stage end to end (best of 5; all {[round(w) for w in walls]}), "
-            f"worker side {min(worker_side):5.1f} ms; CPU per stage: "
-            f"{' + '.join(f'{v:.1f}' for v in min(cpus, key=sum))} ms (client + cluster + moto); "
-            f"load {os.getloadavg()[0]:.1f}"
+            f"  {label:26s} {statistics.median(slopes):6.1f} ms per added stage (median of 5; all "
+            f"{[round(w, 1) for w in slopes]}), fixed {intercept:5.2f} s per run; end to end "
+            f"{min(walls[n]) / n * 1000:.1f} ms per stage for {n}, {min(walls[2 * n]) / (2 * n) * 1000:.1f} for "
+            f"{2 * n} (best of 5); worker side {min(worker_side):5.1f} ms; CPU per added stage: "
+            f"{' + '.join(f'{v:.1f}' for v in cpu_slope)} ms (client + cluster + moto); load {os.getloadavg()[0]:.1f}",
+            flush=True,
         )
 
 
