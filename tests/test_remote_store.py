@@ -428,6 +428,14 @@ def test_a_lease_trusts_its_create_only_where_the_server_honours_if_none_match(s
         calls.append((method, kwargs.get("Key", "")))
         return await real_call(self, method, **kwargs)
 
+    async def failing(self, method, **kwargs):
+        if ".create-probe-" in kwargs.get("Key", "") and method == "put_object":
+            raise ConnectionResetError("network blip")
+        return await real_call(self, method, **kwargs)
+
+    monkeypatch.setattr(objects_module.S3Objects, "_call", failing)
+    assert not store.objects.creates_exclusively()  # no answer: the safe path, and not remembered
+    assert objects_module._EXCLUSIVE_CREATE == {}
     monkeypatch.setattr(objects_module.S3Objects, "_call", counted)
     assert store.objects.creates_exclusively()  # moto refuses a second create
     assert store.objects.list("locks/") == []  # the probe object is gone

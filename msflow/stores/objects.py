@@ -229,19 +229,22 @@ class S3Objects:
         per process and server (three requests: create a probe object, create it again, delete it)."""
         server = (self.endpoint, self.bucket)
         if server not in _EXCLUSIVE_CREATE:
-            _EXCLUSIVE_CREATE[server] = self._probe_exclusive_create()
+            answer = self._probe_exclusive_create()
+            if answer is None:
+                return False  # no answer this time: the safe path now, ask again next time
+            _EXCLUSIVE_CREATE[server] = answer
         return _EXCLUSIVE_CREATE[server]
 
-    def _probe_exclusive_create(self) -> bool:
+    def _probe_exclusive_create(self) -> bool | None:
         # a body clean_tmp can judge like a lease's, should this process die before deleting it
         path = f"locks/.create-probe-{uuid.uuid4().hex}"
         body = json.dumps({"probe": "If-None-Match", "host": HOST, "pid": os.getpid(), "ttl": 1.0}).encode()
         try:
             if self._run(self._create_if_absent, path, body) is None:
-                return False
+                return None  # our fresh name existed: nothing learnt
             return self._run(self._create_if_absent, path, body) is None
         except Exception:
-            return False  # whatever went wrong, the read-back after a create stays the safe path
+            return None  # a failed request says nothing about the server's conditions
         finally:
             with contextlib.suppress(Exception):
                 self.delete(path)
