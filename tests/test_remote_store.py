@@ -344,23 +344,29 @@ def test_replace_swaps_whole_artifacts_under_concurrent_readers(s3):
 
 
 # ------------------------------------------------------------------------------------------- leases
-def test_leases_exclude_each_other_renew_and_break_when_stale(s3):
-    store = s3.store(s3.bucket())
-    # mutual exclusion among racing threads
-    inside, overlaps, count = [0], [], [0]
+def start_contenders(store, key: str, threads: int, rounds: int) -> tuple[list[threading.Thread], list[int]]:
+    """Threads that each take ``key``'s lock ``rounds`` times, started; the list gets, at each entry, how many
+    threads were inside (1 while the lock excludes)."""
+    inside, overlaps = [0], []
 
     def contender():
-        for _ in range(3):
-            with store.lock("k-excl"):
+        for _ in range(rounds):
+            with store.lock(key):
                 inside[0] += 1
                 overlaps.append(inside[0])
                 time.sleep(0.02)
-                count[0] += 1
                 inside[0] -= 1
 
-    threads = [threading.Thread(target=contender) for _ in range(4)]
-    for t in threads:
+    started = [threading.Thread(target=contender) for _ in range(threads)]
+    for t in started:
         t.start()
+    return started, overlaps
+
+
+def test_leases_exclude_each_other_renew_and_break_when_stale(s3):
+    store = s3.store(s3.bucket())
+    # mutual exclusion among racing threads
+    threads, overlaps = start_contenders(store, "k-excl", threads=4, rounds=3)
 
     # a lease held with a short ttl stays valid through heartbeats ...
     holder = Lease(store.objects, store.lease_path("k-beat"), ttl=1.0)
@@ -413,7 +419,7 @@ def test_leases_exclude_each_other_renew_and_break_when_stale(s3):
         pass
     for t in threads:
         t.join()
-    assert count[0] == 12 and max(overlaps) == 1
+    assert len(overlaps) == 12 and max(overlaps) == 1
 
 
 def test_a_lease_trusts_its_create_only_where_the_server_honours_if_none_match(s3, monkeypatch):
@@ -452,19 +458,7 @@ def test_a_lease_trusts_its_create_only_where_the_server_honours_if_none_match(s
     monkeypatch.setattr(objects_module, "_EXCLUSIVE_CREATE", {})
     monkeypatch.setattr(objects_module.S3Objects, "_call", ignoring)
     assert not store.objects.creates_exclusively()
-    inside, overlaps = [0], []
-
-    def contender():
-        for _ in range(2):
-            with store.lock("k-ignored"):
-                inside[0] += 1
-                overlaps.append(inside[0])
-                time.sleep(0.02)
-                inside[0] -= 1
-
-    threads = [threading.Thread(target=contender) for _ in range(3)]
-    for t in threads:
-        t.start()
+    threads, overlaps = start_contenders(store, "k-ignored", threads=3, rounds=2)
     for t in threads:
         t.join()
     assert len(overlaps) == 6 and max(overlaps) == 1
