@@ -464,6 +464,39 @@ def test_a_lease_trusts_its_create_only_where_the_server_honours_if_none_match(s
     assert len(overlaps) == 6 and max(overlaps) == 1
 
 
+def test_the_journal_is_deleted_together_with_the_lease_release(s3, monkeypatch):
+    """After a commit under a lease, the journal's delete and the lease's delete go out together (one round trip):
+    the journal's delete waits, on the store's event loop, until the lease's delete has started."""
+    import asyncio
+
+    from msflow.stores import objects as objects_module
+
+    store = s3.store(s3.bucket())
+    real_call = objects_module.S3Objects._call
+    lease_deleting = asyncio.Event()
+    journal_deletes = []
+
+    async def paired(self, method, **kwargs):
+        path = kwargs.get("Key", "")
+        if method == "delete_object" and path.endswith(".lease"):
+            lease_deleting.set()
+        elif method == "delete_object" and "/pending/" in f"/{path}":
+            try:
+                await asyncio.wait_for(lease_deleting.wait(), 5)
+                journal_deletes.append("with the lease's")
+            except TimeoutError:
+                journal_deletes.append("alone")
+        return await real_call(self, method, **kwargs)
+
+    monkeypatch.setattr(objects_module.S3Objects, "_call", paired)
+    key = "cd" + "1" * 30
+    with store.lock(key):
+        store.write(key, {"x": np.arange(5)}, {"meta": {}, "metrics": {}})
+    assert journal_deletes == ["with the lease's"]
+    assert store.objects.list("pending/") == [] and store.objects.list("locks/") == []
+    assert np.array_equal(store.open(key)["x"], np.arange(5))
+
+
 # ------------------------------------------------------------------------------------------- errors
 def cli_without_aws_env(proj, *args, extra=None, timeout=60):
     env = {k: v for k, v in cli_env().items() if not k.startswith("AWS_")}
