@@ -18,7 +18,8 @@ Atomic publish
     (has, manifest, open, keys, verify) look at commit markers only, so a folder without one - a writer killed
     mid-upload - is invisible. ``replace=True`` (``msflow run --force``) journals the old folder, overwrites the
     marker in one PUT (readers see the old artifact or the new one, never a mix); the old folder stays for
-    RETIRE_SECONDS, so a reader that read the old marker can finish. Removal deletes the marker first.
+    RETIRE_SECONDS, so a reader that read the old marker can finish. Removal deletes the marker first. Under a
+    lease the journal of the committed folder is deleted together with the lease's release (one round trip).
 Cleanup
     clean_tmp reads the journal (small: only unfinished work is in it). A folder being written is deleted once
     its writer is gone - a dead process on this host, or for another host no live lease on the key and older
