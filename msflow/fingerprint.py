@@ -252,6 +252,23 @@ def _find_source_root(top: str) -> str | None:
     return str(resolved.parent if locations else resolved.parent)
 
 
+#: project roots msflow put on sys.path (msflow.plan.ensure_importable), each ending in "/"
+PROJECT_ROOTS: set[str] = set()
+
+
+def environment_signature() -> str:
+    """What the installed distributions depend on: sys.path and the mtime of each folder on it, leaving out the
+    project roots msflow put there and the folders inside them (a project's code is fingerprinted by content and
+    holds no installed distributions), so a process that runs one project after another scans its distributions
+    once, not once per project."""
+    entries = []
+    for entry in sys.path:
+        path = os.path.abspath(entry or ".") + "/"
+        if not any(path.startswith(root) for root in PROJECT_ROOTS):
+            entries.append([entry, _mtime(entry)])
+    return json_hash(entries)
+
+
 def path_signature(project_root: Path | None = None) -> str:
     """What installed packages and their locations depend on: sys.path, and the mtime of each folder on it (a
     package installed or removed changes its folder's mtime). The project root and folders inside it count by
@@ -289,7 +306,7 @@ def distribution_versions(
         import importlib.metadata as md
         import importlib.util
 
-        owners = _owners(signature)
+        owners = _owners(signature if signature == WORKER_PROCESS else environment_signature())
         for name in missing:
             dists = sorted(set(owners.get(name, [])))
             if dists:
@@ -305,8 +322,9 @@ _OWNERS: tuple[str, Mapping[str, list[str]]] | None = None
 
 
 def _owners(signature: str) -> Mapping[str, list[str]]:
-    """``importlib.metadata.packages_distributions()`` (a scan of every installed distribution), once per state of
-    sys.path in this process: a worker checks the distributions of each job it runs."""
+    """``importlib.metadata.packages_distributions()`` (a scan of every installed distribution), once per
+    ``signature`` (``environment_signature``, or WORKER_PROCESS) in this process: a worker checks the distributions
+    of each job it runs."""
     global _OWNERS
     if _OWNERS is None or _OWNERS[0] != signature:
         import importlib.metadata as md

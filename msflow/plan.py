@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from msflow.errors import UserError, field_path
-from msflow.fingerprint import STDLIB, CodeIndex, distribution_versions
+from msflow.fingerprint import PROJECT_ROOTS, STDLIB, CodeIndex, distribution_versions
 from msflow.hashing import json_hash
 from msflow.spec import FilesRef, Pipeline, StageRef, rel_to, suggest
 
@@ -33,13 +33,10 @@ class StagePlan:
     params: dict[str, Any]  # canonical: validated, defaults filled in
 
 
-_PROJECT_ROOTS: set[str] = set()
-
-
 def ensure_importable(root: str | Path) -> None:
     """Put the project root first on sys.path so its stage modules import (also in worker processes)."""
     root = str(root)
-    _PROJECT_ROOTS.add(root.rstrip("/") + "/")
+    PROJECT_ROOTS.add(root.rstrip("/") + "/")
     if sys.path[:1] != [root]:
         if root in sys.path:
             sys.path.remove(root)
@@ -92,7 +89,7 @@ def _remember_project_modules() -> None:
             path
             and name not in _IMPORTED
             and name.split(".")[0] != "msflow"
-            and any(path.startswith(root) for root in _PROJECT_ROOTS)
+            and any(path.startswith(root) for root in PROJECT_ROOTS)
             and "site-packages" not in path
         ):
             try:
