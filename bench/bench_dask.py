@@ -17,8 +17,8 @@ the project copies and this checkout, as ``nobody`` when run as root. Two stores
 2. Per-stage overhead: chains of 40 and 80 trivial stages (each reads the previous one's array) from an empty
    store, so every stage waits for the one before. What one more stage costs, (wall(80) - wall(40)) / 40, is the
    full round trip of one stage (client scheduling, shipping, scheduler, worker, store, outcome) besides the stage
-   itself (~0.1 ms of numpy), without the run's fixed costs (planning; a process that meets a new project scans
-   the installed distributions again, ~0.4 s); also the end-to-end wall per stage and the worker-side part
+   itself (~0.1 ms of numpy), without the run's fixed costs (planning, the first request to a store, connecting
+   to the cluster); also the end-to-end wall per stage and the worker-side part
    (``seconds - compute_seconds`` in the run record). ``local -j 1, S3`` runs the chain in this
    process against the same S3 server: the store's own share of the cluster's S3 figure.
 
@@ -238,7 +238,7 @@ def chain_pipeline(folder: Path, n: int) -> Path:
 def overhead(tmp: Path, cluster, moto, options: dict, n: int = 40) -> None:
     """Per-stage overhead as the marginal cost of a stage: chains of ``n`` and ``2 n`` trivial stages, run in
     turn; (wall(2n) - wall(n)) / n is what one more stage costs, without the run's fixed costs (planning, the
-    distribution scan of a process that meets a new project, connecting), which the intercept shows."""
+    first request to a store, connecting), which the intercept shows."""
     import msflow
 
     print(f"\nper-stage overhead: chains of {n} and {2 * n} trivial stages (each waits for the previous one):")
