@@ -23,6 +23,8 @@ import sys
 import time
 from typing import Any
 
+from msflow.syspath import holds_installed_packages
+
 FORMAT = 1
 RUN_FLAGS = {"-q", "--quiet"}
 VALUED = {"-S": "set", "--set": "set", "-j": "jobs", "--jobs": "jobs", "--executor": "executor"}
@@ -65,14 +67,19 @@ def state_file(pipeline: str, overrides: list[str]) -> str:
 
 def environment(project_root: str) -> str:
     """Digest of what the interpreter brings: Python, msflow's own source files, and the folders on sys.path
-    outside the project (an installed or removed package changes its folder's mtime)."""
+    outside the project or holding installed packages (an installed or removed package changes its folder's
+    mtime; a virtualenv inside the project too)."""
     package = os.path.dirname(os.path.abspath(__file__))  # msflow/
     sources = []
     for folder, dirs, files in os.walk(package):
         dirs[:] = sorted(d for d in dirs if d != "__pycache__")
         sources += [[name, signature(os.path.join(folder, name))] for name in sorted(files) if name.endswith(".py")]
     root = project_root.rstrip(os.sep) + os.sep
-    path = [[p, signature(p)] for p in sys.path if not (os.path.abspath(p or ".") + os.sep).startswith(root)]
+    path = [
+        [p, signature(p)]
+        for p in sys.path
+        if holds_installed_packages(p) or not (os.path.abspath(p or ".") + os.sep).startswith(root)
+    ]
     text = json.dumps([sys.version, sys.executable, sources, path])
     return hashlib.sha1(text.encode()).hexdigest()
 

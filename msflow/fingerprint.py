@@ -18,6 +18,7 @@ from typing import Any
 
 from msflow.errors import UserError
 from msflow.hashing import bytes_hash, json_hash, stat_signature
+from msflow.syspath import holds_installed_packages
 
 IGNORED_PARTS = {"site-packages", "dist-packages", ".msflow", "node_modules", ".git", "__pycache__"}
 STDLIB = frozenset(sys.stdlib_module_names) | frozenset(sys.builtin_module_names)
@@ -259,12 +260,12 @@ PROJECT_ROOTS: set[str] = set()
 def environment_signature() -> str:
     """What the installed distributions depend on: sys.path and the mtime of each folder on it, leaving out the
     project roots msflow put there and the folders inside them (a project's code is fingerprinted by content and
-    holds no installed distributions), so a process that runs one project after another scans its distributions
-    once, not once per project."""
+    holds no installed distributions; a virtualenv's site-packages inside a project still counts), so a process
+    that runs one project after another scans its distributions once, not once per project."""
     entries = []
     for entry in sys.path:
         path = os.path.abspath(entry or ".") + "/"
-        if not any(path.startswith(root) for root in PROJECT_ROOTS):
+        if holds_installed_packages(entry) or not any(path.startswith(root) for root in PROJECT_ROOTS):
             entries.append([entry, _mtime(entry)])
     return json_hash(entries)
 
@@ -273,11 +274,16 @@ def path_signature(project_root: Path | None = None) -> str:
     """What installed packages and their locations depend on: sys.path, and the mtime of each folder on it (a
     package installed or removed changes its folder's mtime). The project root and folders inside it count by
     name only: writing pipeline.lock or a run's outputs there changes no installed package, and the project's own
-    modules are fingerprinted by content instead."""
+    modules are fingerprinted by content instead. A site-packages folder inside the project (a virtualenv in
+    ``.venv``) counts by its mtime like any other: pip installs there."""
     root = str(project_root).rstrip("/") + "/" if project_root is not None else None
     entries = []
     for entry in sys.path:
-        inside = root is not None and (os.path.abspath(entry or ".") + "/").startswith(root)
+        inside = (
+            root is not None
+            and (os.path.abspath(entry or ".") + "/").startswith(root)
+            and not holds_installed_packages(entry)
+        )
         entries.append([entry, 0 if inside else _mtime(entry)])
     return json_hash(entries)
 

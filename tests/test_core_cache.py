@@ -2,6 +2,7 @@
 
 import os
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -210,6 +211,44 @@ def test_a_process_scans_its_installed_distributions_once_for_several_projects(n
     second = run(clone)
     assert scans == [] and sorted(second.executed) == sorted(ALL)
     assert {n: second.key(n) for n in ALL} == {n: first.key(n) for n in ALL}
+
+
+def fake_distribution(site: Path, version: str) -> None:
+    """An installed distribution ``fakedist`` (module ``fakedist_mod``) in ``site``, as pip leaves it: upgrading
+    replaces its .dist-info folder."""
+    for old in site.glob("fakedist-*.dist-info"):
+        shutil.rmtree(old)
+    info = site / f"fakedist-{version}.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: fakedist\nVersion: {version}\n")
+    (info / "top_level.txt").write_text("fakedist_mod\n")
+    (site / "fakedist_mod.py").write_text("SCALE = 2.0\n")
+
+
+def test_an_upgrade_in_a_virtualenv_inside_the_project_changes_the_keys(tmp_path):
+    """A project with its virtualenv inside it (``.venv``): upgrading a package there changes the keys of the
+    stages that import it, for the fast no-op path and for the planner alike."""
+    from conftest import run_cli
+
+    project = tmp_path / "proj"
+    site = project / ".venv" / "lib" / "python3" / "site-packages"
+    fake_distribution(site, "1.0")
+    (project / "mystages").mkdir(parents=True)
+    (project / "mystages" / "__init__.py").write_text("")
+    (project / "mystages" / "scaled.py").write_text(
+        "import numpy as np\nimport fakedist_mod\nfrom msflow import Stage, Output, Result\n\n"
+        "class Scaled(Stage):\n    outputs = {'x': Output.array('f')}\n\n"
+        "    def run(self, params, inputs):\n        return Result({'x': np.array([fakedist_mod.SCALE])})\n"
+    )
+    (project / "pipeline.yaml").write_text("version: 1\nstages:\n  s:\n    uses: mystages.scaled:Scaled\n")
+    env = {"PYTHONPATH": str(site)}
+    assert run_cli(project, "run", "-q", env=env).returncode == 0
+    assert "1 cached, 0 to run" in run_cli(project, "status", env=env).stdout
+    fake_distribution(site, "2.0")
+    status = run_cli(project, "status", env=env)
+    assert "0 cached, 1 to run" in status.stdout, status.stdout + status.stderr
+    assert run_cli(project, "run", "-q", env=env).returncode == 0
+    assert "1 cached, 0 to run" in run_cli(project, "status", env=env).stdout
 
 
 def test_development_package_outside_the_project_is_fingerprinted(tmp_path):
