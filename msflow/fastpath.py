@@ -23,7 +23,7 @@ import sys
 import time
 from typing import Any
 
-from msflow.syspath import holds_installed_packages
+from msflow.syspath import in_project
 
 FORMAT = 1
 RUN_FLAGS = {"-q", "--quiet"}
@@ -75,11 +75,7 @@ def environment(project_root: str) -> str:
         dirs[:] = sorted(d for d in dirs if d != "__pycache__")
         sources += [[name, signature(os.path.join(folder, name))] for name in sorted(files) if name.endswith(".py")]
     root = project_root.rstrip(os.sep) + os.sep
-    path = [
-        [p, signature(p)]
-        for p in sys.path
-        if holds_installed_packages(p) or not (os.path.abspath(p or ".") + os.sep).startswith(root)
-    ]
+    path = [[p, signature(p)] for p in sys.path if not in_project(p, [root])]
     text = json.dumps([sys.version, sys.executable, sources, path])
     return hashlib.sha1(text.encode()).hexdigest()
 

@@ -12,13 +12,13 @@ from __future__ import annotations
 import ast
 import os
 import sys
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
 from msflow.errors import UserError
 from msflow.hashing import bytes_hash, json_hash, stat_signature
-from msflow.syspath import holds_installed_packages
+from msflow.syspath import holds_installed_packages, in_project
 
 IGNORED_PARTS = {"site-packages", "dist-packages", ".msflow", "node_modules", ".git", "__pycache__"}
 STDLIB = frozenset(sys.stdlib_module_names) | frozenset(sys.builtin_module_names)
@@ -246,7 +246,7 @@ def _find_source_root(top: str) -> str | None:
         return None  # compiled extension modules and namespace packages: versioned as distributions
     installed = {sysconfig.get_paths()[k] for k in ("stdlib", "platstdlib", "purelib", "platlib")}
     resolved = path.resolve()
-    if any(part in ("site-packages", "dist-packages") for part in resolved.parts) or any(
+    if holds_installed_packages(str(resolved)) or any(
         str(resolved).startswith(str(Path(p).resolve())) for p in installed
     ):
         return None
@@ -258,33 +258,30 @@ PROJECT_ROOTS: set[str] = set()
 
 
 def environment_signature() -> str:
-    """What the installed distributions depend on: sys.path and the mtime of each folder on it, leaving out the
-    project roots msflow put there and the folders inside them (a project's code is fingerprinted by content and
-    holds no installed distributions; a virtualenv's site-packages inside a project still counts), so a process
+    """What the installed distributions depend on: ``sys_path_signature`` leaving out the project roots msflow put
+    on sys.path (a project's code is fingerprinted by content and holds no installed distributions), so a process
     that runs one project after another scans its distributions once, not once per project."""
-    entries = []
-    for entry in sys.path:
-        path = os.path.abspath(entry or ".") + "/"
-        if holds_installed_packages(entry) or not any(path.startswith(root) for root in PROJECT_ROOTS):
-            entries.append([entry, _mtime(entry)])
-    return json_hash(entries)
+    return sys_path_signature(PROJECT_ROOTS, keep=False)
 
 
 def path_signature(project_root: Path | None = None) -> str:
-    """What installed packages and their locations depend on: sys.path, and the mtime of each folder on it (a
-    package installed or removed changes its folder's mtime). The project root and folders inside it count by
-    name only: writing pipeline.lock or a run's outputs there changes no installed package, and the project's own
-    modules are fingerprinted by content instead. A site-packages folder inside the project (a virtualenv in
-    ``.venv``) counts by its mtime like any other: pip installs there."""
-    root = str(project_root).rstrip("/") + "/" if project_root is not None else None
+    """What installed packages and their locations depend on: ``sys_path_signature`` with the project root and
+    folders inside it counted by name only (writing pipeline.lock or a run's outputs there changes no installed
+    package, and the project's own modules are fingerprinted by content instead)."""
+    roots = [str(project_root).rstrip("/") + "/"] if project_root is not None else []
+    return sys_path_signature(roots, keep=True)
+
+
+def sys_path_signature(project_roots: Iterable[str], *, keep: bool) -> str:
+    """sys.path and the mtime of each folder on it (a package installed or removed changes its folder's mtime);
+    folders of ``project_roots`` (``msflow.syspath.in_project``; a ``.venv`` inside a project is not one) are
+    kept by name only (``keep``) or left out. A process that does not change sys.path signs it once."""
     entries = []
     for entry in sys.path:
-        inside = (
-            root is not None
-            and (os.path.abspath(entry or ".") + "/").startswith(root)
-            and not holds_installed_packages(entry)
-        )
-        entries.append([entry, 0 if inside else _mtime(entry)])
+        if not in_project(entry, project_roots):
+            entries.append([entry, _mtime(entry)])
+        elif keep:
+            entries.append([entry, 0])
     return json_hash(entries)
 
 

@@ -16,6 +16,7 @@ from msflow.errors import UserError, field_path
 from msflow.fingerprint import PROJECT_ROOTS, STDLIB, CodeIndex, distribution_versions
 from msflow.hashing import json_hash
 from msflow.spec import FilesRef, Pipeline, StageRef, rel_to, suggest
+from msflow.syspath import holds_installed_packages
 
 if TYPE_CHECKING:
     from msflow.stage import Stage
@@ -90,7 +91,7 @@ def _remember_project_modules() -> None:
             and name not in _IMPORTED
             and name.split(".")[0] != "msflow"
             and any(path.startswith(root) for root in PROJECT_ROOTS)
-            and "site-packages" not in path
+            and not holds_installed_packages(path)
         ):
             try:
                 _IMPORTED[name] = stat_signature(path)
