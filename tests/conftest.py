@@ -199,7 +199,10 @@ def node_modules():
 @pytest.fixture(scope="session")
 def chromium():
     """The Chromium executable Playwright drives (Debian's package; Playwright downloads no browser)."""
-    pytest.importorskip("playwright", reason='Playwright is not installed: pip install -e ".[test]"')
+    try:
+        import playwright  # noqa: F401
+    except ImportError:
+        missing_tool('Playwright is not installed: pip install -e ".[test]"')
     if not os.access(CHROMIUM, os.X_OK):
         missing_tool(f"Chromium is not installed: {CHROMIUM_INSTALL} ({CHROMIUM})")
     return CHROMIUM
