@@ -120,11 +120,13 @@ def run_locked(job: Job) -> Outcome:
 
     root = code_root(job)
     store = open_store(job.store, job.store_options)
-    with store.lock(job.key, on_wait=lambda holder: report_waiting(job.stage, holder)):
+    with (
+        store.lock(job.key, on_wait=lambda holder: report_waiting(job.stage, holder)),
+        store.writer(job.key) as writer,  # before the re-check: a remote writer journals its folder meanwhile
+    ):
         if store.has(job.key) and not job.force:
             return Outcome(StageStatus.CACHED, manifest=store.manifest(job.key), concurrent=True)
-        with store.writer(job.key) as writer:
-            return execute(job, store, writer, root)
+        return execute(job, store, writer, root)
 
 
 def report_waiting(stage: str, holder: dict[str, Any]) -> None:

@@ -497,6 +497,78 @@ def test_the_journal_is_deleted_together_with_the_lease_release(s3, monkeypatch)
     assert np.array_equal(store.open(key)["x"], np.arange(5))
 
 
+def test_a_stage_journals_its_folder_while_the_lease_holder_checks_for_a_published_artifact(
+    numproject, s3, monkeypatch
+):
+    """Under the lease, the journal's PUT and the re-check for an artifact published meanwhile go out together
+    (one round trip): the re-check's GET waits, on the store's event loop, until the journal's PUT has started."""
+    import asyncio
+
+    from msflow.stores import objects as objects_module
+
+    bucket = s3.bucket()
+    on_s3(numproject, s3, bucket, files=("pipeline.yaml",))
+    real_call = objects_module.S3Objects._call
+    leased: set[str] = set()
+    journalling: dict[str, asyncio.Event] = {}
+    journals = []
+
+    async def paired(self, method, **kwargs):
+        path = kwargs.get("Key", "")
+        key = path.rsplit("/", 1)[-1].split(".")[0]
+        event = journalling.setdefault(key, asyncio.Event())
+        if method == "put_object" and path.endswith(".lease"):
+            leased.add(key)
+        elif method == "put_object" and "/pending/" in f"/{path}":
+            event.set()
+        elif method == "get_object" and "/commits/" in f"/{path}" and key in leased:
+            leased.discard(key)  # the first read under the lease is the re-check
+            try:
+                await asyncio.wait_for(event.wait(), 2)
+                journals.append("with the re-check")
+            except TimeoutError:
+                journals.append("alone")
+        return await real_call(self, method, **kwargs)
+
+    monkeypatch.setattr(objects_module.S3Objects, "_call", paired)
+    result = msflow.run(numproject / "pipeline.yaml")
+    assert len(result.executed) == 5 and journals == ["with the re-check"] * 5
+    store = s3.store(bucket, "num")
+    assert store.objects.list("pending/") == [] and store.objects.list("locks/") == []
+    assert uncommitted_folders(store) == set()
+
+
+def test_a_writer_that_finds_the_artifact_published_meanwhile_takes_back_only_its_journal(s3, monkeypatch):
+    """The re-check under the lease finds the key committed: the writer made for it uploaded nothing, so it
+    deletes its journal entry and nothing else (no marker read, no listing of its folder)."""
+    from msflow.stores import objects as objects_module
+
+    store = s3.store(s3.bucket())
+    key = "ef" + "2" * 30
+    store.write(key, {"x": np.arange(3)}, {"meta": {}, "metrics": {}})
+    real_call = objects_module.S3Objects._call
+    calls = []
+
+    async def logged(self, method, **kwargs):
+        calls.append((method, kwargs.get("Key", kwargs.get("Prefix", "")).split("/")[1]))
+        return await real_call(self, method, **kwargs)
+
+    monkeypatch.setattr(objects_module.S3Objects, "_call", logged)
+    with store.lock(key), store.writer(key):
+        assert store.has(key)
+    assert sorted(calls) == sorted(
+        [
+            ("put_object", "locks"),
+            ("put_object", "pending"),
+            ("get_object", "commits"),  # the re-check
+            ("delete_object", "pending"),
+            ("delete_object", "locks"),
+        ]
+    )
+    assert store.objects.list("pending/") == [] and store.objects.list("locks/") == []
+    assert {o.path.split("/")[3] for o in store.objects.list("artifacts/")} == {store._marker(key)["data"]}
+
+
 # ------------------------------------------------------------------------------------------- errors
 def cli_without_aws_env(proj, *args, extra=None, timeout=60):
     env = {k: v for k, v in cli_env().items() if not k.startswith("AWS_")}

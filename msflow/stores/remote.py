@@ -13,8 +13,9 @@ The memo of file stat signatures and code fingerprints is machine-local: it live
 (``.msflow/cache``), never in the store.
 
 Atomic publish
-    A writer journals its folder, uploads the zarr group into it, then writes the commit marker: one small
-    object, created conditionally (``If-None-Match: *``) so the first committed artifact of a key stays. Readers
+    A writer journals its folder (the PUT overlapping the re-check under the lease), uploads the zarr group into
+    it, then writes the commit marker: one small object, created conditionally (``If-None-Match: *``) so the
+    first committed artifact of a key stays. Readers
     (has, manifest, open, keys, verify) look at commit markers only, so a folder without one - a writer killed
     mid-upload - is invisible. ``replace=True`` (``msflow run --force``) journals the old folder, overwrites the
     marker in one PUT (readers see the old artifact or the new one, never a mix); the old folder stays for
@@ -52,8 +53,9 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator, Mapping
+from concurrent.futures import Future
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from msflow.artifact import check_manifest
 from msflow.atomic import write_json_atomic
@@ -70,6 +72,7 @@ STALE_SECONDS = 3600.0  # a journalled folder of a writer on another host, witho
 RETIRE_SECONDS = 60.0  # a folder replaced by --force stays readable this long for readers that opened it
 
 _PROBED: set[str] = set()
+T = TypeVar("T")
 
 
 def open_remote_store(url: str, options: dict[str, Any] | None, cache_dir: str | Path | None = None) -> RemoteStore:
@@ -425,15 +428,19 @@ class RemoteStore:
 
 
 class RemoteWriter:
-    """One artifact being written: objects go to a fresh folder (journalled before the first upload, so
-    clean_tmp can find it if the writer dies), and the commit marker written last makes it visible."""
+    """One artifact being written: objects go to a fresh folder, journalled before the first upload so clean_tmp
+    can find it if the writer dies, and the commit marker written last makes it visible. The journal's PUT is
+    sent when the writer is made and awaited before the first upload, so its round trip overlaps whatever the
+    caller does meanwhile (under a lease: the re-check for an artifact published meanwhile, then the stage)."""
 
     def __init__(self, store: RemoteStore, key: str):
         self.store = store
         self.key = key
         self.wid = writer_id()
         self.folder = store.data_path(key, self.wid)
-        self.journal: str | None = None
+        self.journal = store.journal_path(key, self.wid)
+        self._journalled = in_background(store.objects.put, self.journal, store.journal_entry(key, self.wid, "write"))
+        self.uploading = False  # set before the first upload: from then on the folder may hold objects
         self.committed = False
         self.streamed = False  # objects uploaded before the commit (chunks of output sinks)
 
@@ -444,9 +451,9 @@ class RemoteWriter:
         self.abort()
 
     def _start(self) -> None:
-        if self.journal is None:
-            self.journal = self.store.journal_path(self.key, self.wid)
-            self.store.objects.put(self.journal, self.store.journal_entry(self.key, self.wid, "write"))
+        """Wait for the journal entry (a failed PUT raises here, before anything is uploaded)."""
+        self._journalled.result()
+        self.uploading = True
 
     def put(self, rel: str, data: bytes) -> None:
         """Upload one object of the zarr group (a chunk of an output sink) now."""
@@ -475,7 +482,6 @@ class RemoteWriter:
             objects.put_many({f"{self.folder}/{rel}": data for rel, data in batch.items()})
         manifest = self.store.commit_folder(self.key, self.wid, manifest, replace)
         self.committed = True
-        assert self.journal is not None
         under_lease = self.store._held.get(self.key)
         if under_lease is not None:
             under_lease.append(self.journal)  # deleted beside the lease's release (RemoteStore._release)
@@ -484,9 +490,30 @@ class RemoteWriter:
         return manifest
 
     def abort(self) -> None:
-        """Best effort after a failed write (nothing once committed); clean_tmp does the rest from the journal."""
-        if self.journal is not None and not self.committed:
+        """Best effort after a failed or unneeded write (nothing once committed); clean_tmp does the rest from the
+        journal. A writer that uploaded nothing only takes its journal entry back."""
+        if self.committed:
+            return
+        if self.uploading:
             self.store.abandon(self.key, self.wid)
+            return
+        with contextlib.suppress(Exception):
+            self._journalled.result()
+            self.store.objects.delete(self.journal)
+
+
+def in_background(fn: Callable[..., T], *args: Any) -> Future[T]:
+    """Call ``fn(*args)`` in a new daemon thread; its result or exception arrives through the returned future."""
+    future: Future[T] = Future()
+
+    def call() -> None:
+        try:
+            future.set_result(fn(*args))
+        except BaseException as exc:  # handed to whoever waits on the future
+            future.set_exception(exc)
+
+    threading.Thread(target=call, name="msflow-store-background", daemon=True).start()
+    return future
 
 
 def parse_marker(key: str, data: bytes) -> Json | None:
