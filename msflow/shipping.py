@@ -24,6 +24,7 @@ a worker checks every blob it reads.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -335,14 +336,14 @@ def worker_cache() -> Path:
 
 def worker_name() -> str:
     """This worker: a Dask worker's address, else ``<host> pid <pid>``."""
-    try:
+    if "distributed" in sys.modules:  # a Dask worker has imported it; a local run must not pay its import (0.4 s)
         from distributed import get_worker
 
-        return str(get_worker().address)
-    except (ImportError, ValueError):
-        import socket
+        with contextlib.suppress(ValueError):  # distributed is loaded, but this is no worker's thread
+            return str(get_worker().address)
+    import socket
 
-        return f"{socket.gethostname()} pid {os.getpid()}"
+    return f"{socket.gethostname()} pid {os.getpid()}"
 
 
 _VERSIONS: dict[str, str] = {}  #: import name -> "dist==version" in this worker process

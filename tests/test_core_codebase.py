@@ -183,3 +183,15 @@ def test_importing_msflow_for_a_no_op_loads_no_heavy_module():
     out = subprocess.run([sys.executable, "-c", code], env=cli_env(), capture_output=True, text=True, cwd=ROOT)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == ""
+
+
+def test_a_local_run_that_computes_loads_no_cluster_module(numproject):
+    """Running stages locally never imports Dask or distributed (0.4 s of imports a local run has no use for;
+    the worker's name comes from distributed only in a process that already loaded it)."""
+    code = (
+        "import sys, msflow; r = msflow.run('pipeline.yaml'); assert r.ok and r.executed, r; "
+        "print(' '.join(m for m in ('dask', 'distributed', 'tornado') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], env=cli_env(), capture_output=True, text=True, cwd=numproject)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == ""
