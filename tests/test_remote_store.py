@@ -569,6 +569,77 @@ def test_a_writer_that_finds_the_artifact_published_meanwhile_takes_back_only_it
     assert {o.path.split("/")[3] for o in store.objects.list("artifacts/")} == {store._marker(key)["data"]}
 
 
+def test_a_stage_reads_the_input_its_process_just_committed_without_asking_the_store(numproject, s3, monkeypatch):
+    """In one process, a stage whose input was committed a moment ago reads it from memory: per executed stage
+    only the run's check and the check under the lease GET anything. With the cache off
+    (MSFLOW_STORE_CACHE_MB=0) the input's marker and chunks are fetched, and the results are the same."""
+    from msflow.stores import objects as objects_module
+
+    real_call = objects_module.S3Objects._call
+    gets = []
+
+    async def logged(self, method, **kwargs):
+        if method == "get_object":
+            gets.append(kwargs["Key"].split("/")[1])
+        return await real_call(self, method, **kwargs)
+
+    monkeypatch.setattr(objects_module.S3Objects, "_call", logged)
+    loads = {}
+    for megabytes in ("64", "0"):
+        monkeypatch.setenv("MSFLOW_STORE_CACHE_MB", megabytes)
+        bucket = s3.bucket()  # a fresh store URL: its caches are made with this capacity
+        (numproject / "pipeline.yaml").write_text((ROOT / "tests/numproject/pipeline.yaml").read_text())
+        on_s3(numproject, s3, bucket, files=("pipeline.yaml",))
+        gets.clear()
+        result = msflow.run(numproject / "pipeline.yaml")
+        assert len(result.executed) == 5
+        loads[megabytes] = {name: result.load(f"{name}.{output}") for name, output in (("scaled", "y"), ("src", "x"))}
+        if megabytes == "64":
+            assert gets.count("commits") == 2 * 5 and "artifacts" not in gets, gets
+        else:
+            assert "artifacts" in gets and gets.count("commits") > 2 * 5, gets
+    for name in loads["64"]:
+        assert np.array_equal(loads["64"][name], loads["0"][name])
+
+
+def test_verify_reads_the_store_not_what_the_process_remembers(s3):
+    """A chunk damaged on the server after this process wrote it: reading in this process returns the data it
+    wrote (the cache holds exactly what was uploaded), and verify, which always reads the server, reports it."""
+    store = s3.store(s3.bucket())
+    key = "ab" + "3" * 30
+    store.write(key, {"x": np.arange(4.0)}, {"meta": {}, "metrics": {}})
+    folder = store.data_path(key, store._marker(key)["data"])
+    data = bytearray(store.objects.get(f"{folder}/x/c/0"))
+    data[len(data) // 2] ^= 0x10
+    store.objects.put(f"{folder}/x/c/0", bytes(data))
+    assert np.array_equal(store.open(key)["x"], np.arange(4.0))
+    problems = store.verify(key)
+    assert problems and "x" in " ".join(problems), problems
+
+
+def test_recent_objects_stay_within_their_capacity_and_markers_expire(monkeypatch):
+    from msflow.stores import recent
+
+    objects = recent.RecentObjects(capacity=800)
+    for i in range(10):
+        objects.put(f"o{i}", bytes(90))
+    objects.get("o3")  # used: kept over older ones
+    objects.put("o10", bytes(90))
+    kept = [f"o{i}" for i in range(11) if objects.get(f"o{i}") is not None]
+    assert objects.size <= 800 and "o3" in kept and "o10" in kept and "o0" not in kept
+    objects.put("big", bytes(101))  # over an eighth of the capacity: not kept
+    assert objects.get("big") is None
+
+    now = [1000.0]
+    monkeypatch.setattr(recent.time, "monotonic", lambda: now[0])
+    markers = recent.RecentMarkers(max_age=15.0)
+    markers.put("k", {"data": "w1"})
+    now[0] += 14.0
+    assert markers.get("k") == {"data": "w1"}
+    now[0] += 2.0
+    assert markers.get("k") is None
+
+
 # ------------------------------------------------------------------------------------------- errors
 def cli_without_aws_env(proj, *args, extra=None, timeout=60):
     env = {k: v for k, v in cli_env().items() if not k.startswith("AWS_")}

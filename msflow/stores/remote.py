@@ -42,6 +42,10 @@ No-op path
     ``has`` is one GET of the commit marker, and the manifest comes with it: a cached stage costs one small
     request. Opening an artifact reads no metadata beyond the marker; outputs are fetched chunk by chunk in
     parallel, or through zarr for lazy access.
+Reading what this process just wrote
+    Markers and data objects this process wrote or read lately are answered from memory (msflow.stores.recent):
+    the next stage of a chain run by the same process fetches nothing of its input. ``has`` and ``verify``
+    always ask the server.
 """
 
 from __future__ import annotations
@@ -63,6 +67,7 @@ from msflow.errors import CorruptArtifact, UserError
 from msflow.stores.base import HOST, Json, expand_record, json_object, pid_alive
 from msflow.stores.leases import Lease, lease_is_stale, parse_holder
 from msflow.stores.objects import dumps, iter_chunks, make_objects
+from msflow.stores.recent import RecentObjects, caches_for
 
 if TYPE_CHECKING:
     from msflow.artifact import ArtifactView
@@ -98,6 +103,7 @@ class RemoteStore:
         self.cache_dir = Path(cache_dir) if cache_dir is not None else None
         self.objects = make_objects(self.url, self.options)
         self._recent: dict[str, Json] = {}  # markers read by has(), consumed by the manifest() that follows
+        self._caches = caches_for(self.url)  # what this process wrote or read lately (msflow.stores.recent)
         self._held: dict[str, list[str]] = {}  # key under our lease -> journals to delete when it is released
 
     # ------------------------------------------------------------------ paths
@@ -125,19 +131,34 @@ class RemoteStore:
         if data is None:
             self._recent.pop(key, None)
             return False
-        self._recent[key] = parse_marker(key, data) or {"corrupt": "its commit marker is unreadable"}
+        marker = parse_marker(key, data)
+        self._recent[key] = marker or {"corrupt": "its commit marker is unreadable"}
+        self._remember(key, marker)
         return True
 
     def _committed(self, key: str) -> Json:
         marker = self._recent.pop(key, None)
+        if marker is None and self._caches.enabled:
+            marker = self._caches.markers.get(key)
         if marker is None:
             data = self.objects.get(self.marker_path(key))
             if data is None:
                 raise FileNotFoundError(f"no artifact {key} in {self.url}")
-            marker = parse_marker(key, data) or {"corrupt": "its commit marker is unreadable"}
+            marker = parse_marker(key, data)
+            self._remember(key, marker)
+            marker = marker or {"corrupt": "its commit marker is unreadable"}
         if "corrupt" in marker:
             raise CorruptArtifact(key, marker["corrupt"])
         return marker
+
+    def _remember(self, key: str, marker: Json | None) -> None:
+        """Keep a valid marker this process wrote or read for the next reader of the key (msflow.stores.recent)."""
+        if marker is not None and self._caches.enabled:
+            self._caches.markers.put(key, marker)
+
+    def _forget(self, key: str) -> None:
+        self._recent.pop(key, None)
+        self._caches.markers.forget(key)
 
     def manifest(self, key: str) -> dict[str, Any]:
         manifest: Json = self._committed(key)["manifest"]
@@ -146,14 +167,17 @@ class RemoteStore:
     def open(self, key: str) -> ArtifactView:
         return self._view(key, self._committed(key))
 
-    def _view(self, key: str, marker: Json) -> ArtifactView:
+    def _view(self, key: str, marker: Json, cached: bool = True) -> ArtifactView:
+        """The artifact ``marker`` names; ``cached``: chunks this process holds are not fetched again."""
         from msflow.artifact import ArtifactView
 
         manifest = marker["manifest"]
         folder = self.data_path(key, marker["data"])
         chunks = marker.get("chunks", {})
+        recent = self._caches.objects if cached else None
+        checksum = manifest.get("format", 1) >= 2
         arrays = {
-            name: RemoteArray(self, folder, name, entry, chunks.get(name), checksum=manifest.get("format", 1) >= 2)
+            name: RemoteArray(self, folder, name, entry, chunks.get(name), checksum=checksum, recent=recent)
             for name, entry in manifest["outputs"].items()
         }
         return ArtifactView(arrays, manifest.get("meta", {}), manifest.get("metrics", {}), key=key, manifest=manifest)
@@ -188,7 +212,7 @@ class RemoteStore:
             else:
                 if stored != recorded:
                     problems.append("zarr.json manifest differs from the commit marker's")
-        return problems + check_contents(recorded, self._view(key, marker).__getitem__)
+        return problems + check_contents(recorded, self._view(key, marker, cached=False).__getitem__)
 
     def size(self, key: str) -> int:
         marker = self._marker(key)
@@ -222,7 +246,7 @@ class RemoteStore:
             name: array_metadata(tuple(entry["shape"]), entry["dtype"])["chunk_grid"]["configuration"]["chunk_shape"]
             for name, entry in manifest["outputs"].items()
         }
-        marker = dumps(
+        committed = dumps(
             {
                 "format": MARKER_FORMAT,
                 "key": key,
@@ -234,13 +258,16 @@ class RemoteStore:
                 "committed": time.time(),
             }
         )
+        marker = parse_marker(key, committed)
         if replace:
-            self._replace(key, wid, marker)
-        elif self.objects.create(self.marker_path(key), marker) is None:
+            self._replace(key, wid, committed)
+        elif self.objects.create(self.marker_path(key), committed) is None:
             # published meanwhile by another writer of the key: theirs stays
             self.objects.delete_prefix(self.data_path(key, wid) + "/")
-            manifest = (self._marker(key) or {}).get("manifest", manifest)
-        self._recent.pop(key, None)
+            marker = self._marker(key)
+            manifest = (marker or {}).get("manifest", manifest)
+        self._forget(key)
+        self._remember(key, marker)
         return manifest
 
     def _replace(self, key: str, wid: str, marker: bytes) -> None:
@@ -270,7 +297,7 @@ class RemoteStore:
         """Move a corrupt artifact aside: its marker goes to corrupt/ with the reason (the data folder it names
         stays for inspection); the key becomes free to recompute. Returns where it went."""
         data = self.objects.get(self.marker_path(key))
-        self._recent.pop(key, None)
+        self._forget(key)
         if data is None:
             return ""
         path = f"corrupt/{key}.{writer_id()}.json"
@@ -285,7 +312,7 @@ class RemoteStore:
         wid = marker["data"]
         self.objects.put(self.journal_path(key, wid), self.journal_entry(key, wid, "retire"))
         self.objects.delete(self.marker_path(key))
-        self._recent.pop(key, None)
+        self._forget(key)
         self.objects.delete_prefix(self.data_path(key, wid) + "/")
         self.objects.delete(self.journal_path(key, wid))
 
@@ -460,6 +487,7 @@ class RemoteWriter:
         self._start()
         self.streamed = True
         self.store.objects.put(f"{self.folder}/{rel}", data)
+        self.store._caches.objects.put(f"{self.folder}/{rel}", data)
 
     def commit(
         self,
@@ -478,8 +506,13 @@ class RemoteWriter:
         for info in objects.list(self.folder + "/") if self.streamed else []:
             if info.path[len(self.folder) + 1 :].split("/")[0] not in arrays:
                 objects.delete(info.path)
+        recent = self.store._caches.objects
         for batch in iter_chunks(encode_artifact(arrays, manifest)):
-            objects.put_many({f"{self.folder}/{rel}": data for rel, data in batch.items()})
+            uploads = {f"{self.folder}/{rel}": data for rel, data in batch.items()}
+            objects.put_many(uploads)
+            for path, data in uploads.items():
+                if not path.endswith("zarr.json"):  # readers take the layout from the marker
+                    recent.put(path, data)
         manifest = self.store.commit_folder(self.key, self.wid, manifest, replace)
         self.committed = True
         under_lease = self.store._held.get(self.key)
@@ -565,6 +598,7 @@ class RemoteArray:
         entry: dict[str, Any],
         chunks: list[Any] | None,
         checksum: bool = True,
+        recent: RecentObjects | None = None,
     ):
         import numpy as np
 
@@ -575,6 +609,7 @@ class RemoteArray:
         self.dtype = np.dtype(entry["dtype"]).newbyteorder("=")  # stored little endian, read as native
         self._chunks = chunks
         self._checksum = checksum  # chunks carry a crc32c (artifact format 2 on)
+        self._recent = recent  # objects this process wrote or read lately (None: always ask the store)
         self._zarr: Any = None
 
     @property
@@ -643,11 +678,26 @@ class RemoteArray:
             return np.zeros(self.shape, dtype=self.dtype)
         if self.shape:
             return self.read_rows(0, self.shape[0])
-        blob = self._store.objects.get(f"{self._folder}/{self._name}/c")
+        blob = self._fetch([f"{self._folder}/{self._name}/c"])[f"{self._folder}/{self._name}/c"]
         if blob is None:
             raise FileNotFoundError(f"chunk {self._name}/c of {self._store.url}/{self._folder} is missing")
         little = self.dtype.newbyteorder("<") if self.dtype.itemsize > 1 else self.dtype
         return np.array(np.frombuffer(decode_chunk(blob, self._checksum), dtype=little)[0], dtype=self.dtype)
+
+    def _fetch(self, paths: list[str]) -> dict[str, bytes | None]:
+        """These objects of the folder: from this process's recent objects where it holds them, the rest fetched
+        concurrently (and kept)."""
+        recent = self._recent
+        found = {path: recent.get(path) for path in paths} if recent is not None else {}
+        missing = [path for path in paths if found.get(path) is None]
+        if missing:
+            fetched = self._store.objects.get_many(missing)
+            found.update(fetched)
+            if recent is not None:
+                for path, data in fetched.items():
+                    if data is not None:
+                        recent.put(path, data)
+        return found
 
     def read_rows(self, start: int, stop: int) -> Any:
         """Rows ``start:stop``: the chunks covering them fetched concurrently and decoded."""
@@ -663,7 +713,7 @@ class RemoteArray:
         chunk = self.chunks
         first, last = start // chunk[0], (stop - 1) // chunk[0]
         paths = [f"{self._folder}/{chunk_path(self._name, i, len(self.shape))}" for i in range(first, last + 1)]
-        blobs = self._store.objects.get_many(paths)
+        blobs = self._fetch(paths)
         blocks = []
         for path in paths:
             blob = blobs[path]
