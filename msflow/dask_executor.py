@@ -270,8 +270,12 @@ class DaskExecutor:
     def shutdown(self) -> None:
         import contextlib
 
+        from msflow.worker import settle
+
         with contextlib.suppress(Exception):  # the scheduler may be gone already
             self.client.unsubscribe_topic("all")
+        with contextlib.suppress(Exception):  # the workers' lease releases in flight land before the run ends
+            self.client.run(settle)
         self.client.close()
         if self.cluster is not None:
             self.cluster.close()

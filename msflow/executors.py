@@ -38,7 +38,9 @@ class InlineExecutor:
         return future
 
     def shutdown(self) -> None:
-        pass
+        from msflow.worker import settle
+
+        settle()
 
 
 class ProcessExecutor:

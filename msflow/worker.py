@@ -129,6 +129,16 @@ def run_locked(job: Job) -> Outcome:
         return execute(job, store, writer, root)
 
 
+def settle() -> None:
+    """Let this process's store work that outlives its jobs land: the lease releases in flight
+    (msflow.stores.remote.settle_releases). Executors call it when a run ends, in every process that ran jobs."""
+    import sys
+
+    remote = sys.modules.get("msflow.stores.remote")
+    if remote is not None:
+        remote.settle_releases()
+
+
 def report_waiting(stage: str, holder: dict[str, Any]) -> None:
     """Tell the user why a stage seems stuck: another run (named by the lock) is computing the same key."""
     import sys

@@ -23,7 +23,7 @@ from msflow.errors import UserError
 from msflow.stores import open_store
 from msflow.stores.base import HOST
 from msflow.stores.leases import Lease
-from msflow.stores.remote import RemoteStore, open_remote_store
+from msflow.stores.remote import RemoteStore, open_remote_store, settle_releases
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -492,6 +492,7 @@ def test_the_journal_is_deleted_together_with_the_lease_release(s3, monkeypatch)
     key = "cd" + "1" * 30
     with store.lock(key):
         store.write(key, {"x": np.arange(5)}, {"meta": {}, "metrics": {}})
+    settle_releases()
     assert journal_deletes == ["with the lease's"]
     assert store.objects.list("pending/") == [] and store.objects.list("locks/") == []
     assert np.array_equal(store.open(key)["x"], np.arange(5))
@@ -556,6 +557,7 @@ def test_a_writer_that_finds_the_artifact_published_meanwhile_takes_back_only_it
     monkeypatch.setattr(objects_module.S3Objects, "_call", logged)
     with store.lock(key), store.writer(key):
         assert store.has(key)
+    settle_releases()
     assert sorted(calls) == sorted(
         [
             ("put_object", "locks"),
@@ -638,6 +640,43 @@ def test_recent_objects_stay_within_their_capacity_and_markers_expire(monkeypatc
     assert markers.get("k") == {"data": "w1"}
     now[0] += 2.0
     assert markers.get("k") is None
+
+
+def test_a_lease_is_released_without_waiting_and_settled_before_the_run_ends(numproject, s3, monkeypatch):
+    """The lease's release is sent when the locked block ends and not waited for: the block returns while the
+    DELETE is still held back here. Locking the key again waits for that release, settle_releases waits for all,
+    and a run (inline, a process pool) ends with no lease left in the store."""
+    import asyncio
+
+    from msflow.stores import objects as objects_module
+
+    store = s3.store(s3.bucket())
+    real_call = objects_module.S3Objects._call
+    let_go = threading.Event()
+
+    async def held_back(self, method, **kwargs):
+        if method == "delete_object" and kwargs.get("Key", "").endswith(".lease"):
+            await asyncio.get_running_loop().run_in_executor(None, let_go.wait, 10)
+        return await real_call(self, method, **kwargs)
+
+    monkeypatch.setattr(objects_module.S3Objects, "_call", held_back)
+    key = "aa" + "4" * 30
+    with store.lock(key):
+        pass
+    assert [o.path for o in store.objects.list("locks/")] == [f"locks/{key}.lease"]  # released in the background
+    threading.Timer(0.3, let_go.set).start()
+    with store.lock(key):  # waits for our own release first, then takes the key at once
+        pass
+    settle_releases()
+    assert store.objects.list("locks/") == []
+    monkeypatch.undo()
+
+    bucket = s3.bucket()
+    on_s3(numproject, s3, bucket, files=("pipeline.yaml",))
+    for jobs in ("1", "2"):
+        run = run_cli(numproject, "run", "-q", "-j", jobs, "-S", f"scaled.factor={jobs}")
+        assert run.returncode == 0, run.stderr
+        assert s3.store(bucket, "num").objects.list("locks/") == [], jobs
 
 
 # ------------------------------------------------------------------------------------------- errors

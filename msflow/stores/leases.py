@@ -18,7 +18,10 @@ wait / break
     wins), when it expired - older than its ttl (plus a margin) by the server's clock - or when its holder ran on
     this host and that process is gone (a SIGKILLed run frees its keys at once, as flock does locally).
 release
-    Stop the heartbeat, delete the lease if it still has our etag.
+    Stop the heartbeat, delete the lease if it still has our etag. RemoteStore.lock sends the release when its
+    block ends without waiting for it (its round trip overlaps the next stage); the process settles its releases
+    in flight when a run ends and before it exits (msflow.stores.remote.settle_releases), and locking the same key
+    again first waits for its own release.
 
 Leases make "each stage instance computed once" hold across machines; they are not what keeps the store
 consistent. Publishing is atomic and content-addressed (msflow.stores.remote), so a lost lease costs duplicated work,

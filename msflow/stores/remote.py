@@ -20,7 +20,8 @@ Atomic publish
     mid-upload - is invisible. ``replace=True`` (``msflow run --force``) journals the old folder, overwrites the
     marker in one PUT (readers see the old artifact or the new one, never a mix); the old folder stays for
     RETIRE_SECONDS, so a reader that read the old marker can finish. Removal deletes the marker first. Under a
-    lease the journal of the committed folder is deleted together with the lease's release (one round trip).
+    lease the journal of the committed folder is deleted together with the lease's release (one round trip),
+    which is sent in the background (settled at the end of the run and at process exit).
 Cleanup
     clean_tmp reads the journal (small: only unfinished work is in it). A folder being written is deleted once
     its writer is gone - a dead process on this host, or for another host no live lease on the key and older
@@ -57,7 +58,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator, Mapping
-from concurrent.futures import Future
+from concurrent.futures import Future, wait
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -74,6 +75,7 @@ if TYPE_CHECKING:
 
 MARKER_FORMAT = 1
 STALE_SECONDS = 3600.0  # a journalled folder of a writer on another host, without a live lease, is gone after this
+SETTLE_SECONDS = 30.0  # the longest a run waits at its end for its lease releases to land
 RETIRE_SECONDS = 60.0  # a folder replaced by --force stays readable this long for readers that opened it
 
 _PROBED: set[str] = set()
@@ -363,14 +365,17 @@ class RemoteStore:
 
     @contextlib.contextmanager
     def lock(self, key: str, on_wait: Callable[[Json], None] | None = None, poll: float = 0.1) -> Iterator[Lease]:
-        """Exclusive per-key lease across processes and machines (msflow.stores.leases)."""
+        """Exclusive per-key lease across processes and machines (msflow.stores.leases). The release is sent when
+        the block ends and not waited for (``settle_releases``), so its round trip overlaps what comes next."""
+        name = f"{self.url}/{self.lease_path(key)}"
+        _await_release(name)  # this process's own release of the key, still in flight: let it land first
         lease = Lease(self.objects, self.lease_path(key))
         lease.acquire(on_wait, poll)
         self._held[key] = []
         try:
             yield lease
         finally:
-            self._release(lease, self._held.pop(key, []))
+            _release_soon(name, in_background(self._release, lease, self._held.pop(key, [])))
 
     def _release(self, lease: Lease, journals: list[str]) -> None:
         """Release the lease and, at the same time, delete the journals of folders committed under it: one round
@@ -533,6 +538,51 @@ class RemoteWriter:
         with contextlib.suppress(Exception):
             self._journalled.result()
             self.store.objects.delete(self.journal)
+
+
+_RELEASES: dict[str, Future[None]] = {}  #: "<store url>/<lease path>" -> its release in flight, in this process
+_RELEASES_LOCK = threading.Lock()
+
+
+def _release_soon(name: str, release: Future[None]) -> None:
+    with _RELEASES_LOCK:
+        if not _RELEASES:
+            _settle_at_exit()
+        _RELEASES[name] = release
+
+    def done(_: Future[None]) -> None:
+        with _RELEASES_LOCK:
+            if _RELEASES.get(name) is release:
+                del _RELEASES[name]
+
+    release.add_done_callback(done)
+
+
+def _await_release(name: str) -> None:
+    with _RELEASES_LOCK:
+        release = _RELEASES.get(name)
+    if release is not None:
+        wait([release], timeout=SETTLE_SECONDS)
+
+
+def settle_releases(timeout: float = SETTLE_SECONDS) -> None:
+    """Wait until this process's lease releases in flight have landed (at the end of a run and before the
+    process exits); a release that failed leaves a lease that lapses after its ttl."""
+    with _RELEASES_LOCK:
+        pending = list(_RELEASES.values())
+    wait(pending, timeout=timeout)
+
+
+_SETTLING_AT_EXIT: list[bool] = []
+
+
+def _settle_at_exit() -> None:
+    """Once per process: settle the releases at exit, also in multiprocessing's workers (which skip atexit)."""
+    if not _SETTLING_AT_EXIT:
+        from multiprocessing.util import Finalize
+
+        Finalize(None, settle_releases, exitpriority=10)
+        _SETTLING_AT_EXIT.append(True)
 
 
 def in_background(fn: Callable[..., T], *args: Any) -> Future[T]:
