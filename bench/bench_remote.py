@@ -1,11 +1,14 @@
 """Remote store figures (issue 7) against a moto S3 server on 127.0.0.1, with a local store for reference.
 
-    python bench/bench_remote.py [--repeats 7]
+    python bench/bench_remote.py [--repeats 7] [--latency-ms 20] [--parts noop,overhead,chain]
 
 1. No-op rerun of the 10-stage numeric pipeline (bench_core.ten_stage_pipeline): wall clock and CPU (user+sys
    of the ``msflow run`` child process), best of N; and the S3 requests it makes, by operation.
 2. Per-stage overhead: 40 tiny Source stages run from an empty store in one process (wall per stage, which is
    almost all store work: lease, has, upload, commit, release), and the requests per executed stage.
+3. A chain of 40 stages, each reading the previous one's output, in one process, from an empty store: wall and
+   requests per stage as they are against moto, and with ``--latency-ms`` (default 20) added to every request,
+   which stands in for a real S3's round trip: what a stage costs there is mostly its serial round trips.
 
 moto answers on the loopback in about a millisecond; on real S3 each request costs ~10-30 ms, so the request
 counts are what carries over: multiply them by the round trip of your endpoint.
@@ -64,9 +67,11 @@ def child_run(cmd: list[str], cwd: Path) -> tuple[float, float]:
 
 
 class RequestCounter:
-    """Counts S3 requests made in this process (by API operation)."""
+    """Counts S3 requests made in this process (by API operation); ``latency`` seconds are added to each."""
 
-    def __init__(self):
+    def __init__(self, latency: float = 0.0):
+        import asyncio
+
         from msflow.stores.objects import S3Objects
 
         self.counts: collections.Counter = collections.Counter()
@@ -77,6 +82,8 @@ class RequestCounter:
 
         async def counted(self_, method, **kwargs):
             counts[method] += 1
+            if latency:
+                await asyncio.sleep(latency)
             return await original(self_, method, **kwargs)
 
         S3Objects._call = counted
@@ -157,17 +164,54 @@ def bench_stage_overhead(tmp: Path, options: dict, stages: int = 40) -> dict:
     return out
 
 
+def bench_chain(tmp: Path, options: dict, latency_ms: float, stages: int = 40, repeats: int = 3) -> dict:
+    from bench_dask import chain_pipeline
+
+    import msflow
+
+    out = {}
+    for label, latency in (("moto", 0.0), (f"moto + {latency_ms:g} ms per request", latency_ms / 1000)):
+        walls, requests = [], {}
+        for repeat in range(repeats + 1):  # the first warms imports and the store connection
+            pipeline = chain_pipeline(tmp / f"chain-{latency}-{repeat}", stages if repeat else 3)
+            use_store(pipeline, f"s3://bench/chain-{latency}-{repeat}", options)
+            counter = RequestCounter(latency)
+            try:
+                started = time.perf_counter()
+                msflow.run(pipeline)
+                wall = time.perf_counter() - started
+                requests = counter.take()
+            finally:
+                counter.close()
+            if repeat:
+                walls.append(1000 * wall / stages)
+        out[label] = {
+            "per_stage_ms": round(sorted(walls)[len(walls) // 2], 1),
+            "all": [round(w, 1) for w in walls],
+            "requests_per_stage": round(sum(requests.values()) / stages, 2),
+        }
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--latency-ms", type=float, default=20.0)
+    parser.add_argument("--parts", default="noop,overhead,chain")
     args = parser.parse_args()
+    parts = args.parts.split(",")
     os.environ.setdefault("AWS_EC2_METADATA_DISABLED", "true")
     server, options = start_moto()
     try:
         with tempfile.TemporaryDirectory() as tmp:
             tmp = Path(tmp)
-            print("no-op rerun, 10 stages:", json.dumps(bench_noop(tmp, options, args.repeats), indent=1))
-            print("per-stage overhead:", json.dumps(bench_stage_overhead(tmp, options), indent=1))
+            if "noop" in parts:
+                print("no-op rerun, 10 stages:", json.dumps(bench_noop(tmp, options, args.repeats), indent=1))
+            if "overhead" in parts:
+                print("per-stage overhead:", json.dumps(bench_stage_overhead(tmp, options), indent=1))
+            if "chain" in parts:
+                chain = bench_chain(tmp, options, args.latency_ms)
+                print("chain of 40 stages, in process:", json.dumps(chain, indent=1))
     finally:
         server.stop()
 
