@@ -76,6 +76,10 @@ class Job:
     params: dict[str, Any]  #: canonical (validated) params
     inputs: dict[str, JobInput | None]
     force: bool = False  #: replace an existing artifact of the key
+    #: the runner found no artifact of the key before submitting; False when it left that check to the worker
+    #: (a remote store, and an input just computed: ``Runner.needs_check``), so the artifact found is no
+    #: concurrent run's
+    checked: bool = True
     jobs: int = 1  #: the run's worker count, given to the stage as ``Stage.jobs`` (not part of the key)
     key_parts: dict[str, Any] | None = None  #: what the key hashes, kept in the manifest
     #: shipped jobs (msflow.shipping): the content hash of the project code (stage modules and resources) among

@@ -46,6 +46,7 @@ class StageState:
     attempts: int = 0  #: executions started (0: none; more than 1: retried after its worker died)
     compute_seconds: float = 0.0  #: time in the stage's own ``run``
     cpu_seconds: float = 0.0  #: CPU time of the worker process in ``run``
+    checked: bool = True  #: the runner asked the store for the key before submitting (``Runner.needs_check``)
 
     def __repr__(self) -> str:
         key = f", key={self.key[:12]}" if self.key else ""
@@ -237,7 +238,8 @@ class Runner:
         state.parts, state.key, job_inputs, state.inputs = stage_key(
             self.pipeline, plan, name, self.states, self.file_memo
         )
-        if name not in self.force and self.store.has(state.key):
+        state.checked = self.needs_check(name)
+        if state.checked and name not in self.force and self.store.has(state.key):
             try:
                 state.manifest = self.store.manifest(state.key)
             except CorruptArtifact as exc:  # a damaged artifact is never used: move it aside, compute anew
@@ -257,9 +259,19 @@ class Runner:
             params=plan.params,
             inputs=job_inputs,
             force=name in self.force,
+            checked=state.checked,
             jobs=self.jobs,
             key_parts=state.parts,
         )
+
+    def needs_check(self, name: str) -> bool:
+        """Whether to ask the store for the stage's artifact before submitting it. Not on a remote store when an
+        input was computed by this run: new content makes a new key (early cutoff aside), and the worker checks
+        the store under the key's lock anyway, so asking here too would cost every executed stage one more round
+        trip. A stage found there counts as cached, as here."""
+        if not self.store.remote:
+            return True
+        return not any(self.states[dep].state is StageStatus.RAN for dep in self.pipeline.stages[name].deps)
 
     def settle(self, name: str, outcome: Outcome) -> None:
         """Record what became of a stage's job (or of its preparation) and release its dependents."""
@@ -275,7 +287,7 @@ class Runner:
             state.manifest = outcome.manifest
             if outcome.concurrent:
                 state.detail = "computed by a concurrent run"
-            elif outcome.status is StageStatus.CACHED and not state.detail:
+            elif outcome.status is StageStatus.CACHED and not state.detail and state.checked:
                 state.detail = "computed meanwhile"
         else:
             state.error = outcome.error
@@ -309,7 +321,16 @@ class Runner:
 
     def _repair(self, name: str, key: str, problem: str) -> bool:
         """An input of ``name`` failed its integrity check: move the upstream artifact aside, recompute it, then
-        run ``name`` again. False when the key is not an upstream stage's (then ``name`` fails)."""
+        run ``name`` again; or the stage's own artifact, found damaged by the worker that checked it instead of the
+        runner: move it aside and run ``name`` again. False when the key is neither, or was repaired already (then
+        ``name`` fails)."""
+        state = self.states[name]
+        if key == state.key and not state.checked:
+            if key in self.repaired:
+                return False
+            self._quarantine(name, key, problem)
+            self._requeue(state)
+            return True
         upstream = [d for d in self.pipeline.stages[name].deps if self.states[d].key == key]
         if not upstream:
             return False
@@ -317,14 +338,18 @@ class Runner:
             for up in upstream:
                 self._quarantine(up, key, problem)
                 self._reopen(up)
-        state = self.states[name]
-        state.state = StageStatus.PENDING
-        self._report(state)
         if self.states[upstream[0]].state.done:  # recomputed meanwhile: run again now
-            self.queue.append(name)
+            self._requeue(state)
         else:
+            state.state = StageStatus.PENDING
+            self._report(state)
             self.blocking[name] += 1  # wait for the recomputed upstream artifact
         return True
+
+    def _requeue(self, state: StageState) -> None:
+        state.state = StageStatus.PENDING
+        self._report(state)
+        self.queue.append(state.name)
 
     def _reopen(self, name: str) -> None:
         """Make a settled stage pending again (its artifact is gone) and hold back its pending dependents."""

@@ -1,8 +1,9 @@
 """Execute one stage: the unit of work every executor runs (in-process, a process pool, a Dask worker).
 
 A job and its outcome are JSON strings, so nothing but JSON crosses process or machine boundaries. The worker
-takes the key's lock, re-checks the store (a concurrent run may have produced the artifact meanwhile), runs the
-stage, validates its result, and publishes the artifact atomically before releasing the lock.
+takes the key's lock, re-checks the store (a concurrent run may have produced the artifact meanwhile; or the runner
+left the check to it, ``Job.checked``), runs the stage, validates its result, and publishes the artifact
+atomically before releasing the lock.
 """
 
 from __future__ import annotations
@@ -125,7 +126,7 @@ def run_locked(job: Job) -> Outcome:
         store.writer(job.key) as writer,  # before the re-check: a remote writer journals its folder meanwhile
     ):
         if store.has(job.key) and not job.force:
-            return Outcome(StageStatus.CACHED, manifest=store.manifest(job.key), concurrent=True)
+            return Outcome(StageStatus.CACHED, manifest=store.manifest(job.key), concurrent=job.checked)
         return execute(job, store, writer, root)
 
 

@@ -212,6 +212,43 @@ def test_a_corrupt_chunk_on_s3_is_caught_on_read_and_repaired(numproject, s3):
     assert np.array_equal(msflow.run(numproject / "pipeline.yaml").load("src.x"), np.arange(6.0))
 
 
+def test_the_run_leaves_the_check_of_a_stage_whose_input_it_computed_to_the_worker(numproject, s3, monkeypatch):
+    """Early cutoff on a remote store: src forced, its content unchanged. scaled's input was just computed, so
+    the run does not ask the store for scaled (a round trip every executed stage would pay): the worker finds
+    the artifact under scaled's lease, and it counts as a plain cache hit, not as a concurrent run's work.
+    sign and total, whose inputs were cached, are checked by the run as before (no lease)."""
+    on_s3(numproject, s3, s3.bucket())
+    first = msflow.run(numproject / "pipeline.yaml")
+    locked = []
+    real_lock = RemoteStore.lock
+    monkeypatch.setattr(RemoteStore, "lock", lambda self, key, **kw: locked.append(key) or real_lock(self, key, **kw))
+    result = msflow.run(numproject / "pipeline.yaml", force=("src",))
+    assert result.executed == ["src"]
+    for name in ("scaled", "sign", "total", "csv"):
+        state = result.states[name]
+        assert state.state.value == "cached" and state.key == first.states[name].key, state
+        assert state.detail == "", (name, state.detail)
+    assert locked == [first.states["src"].key, first.states["scaled"].key]
+    assert np.array_equal(result.load("total.total"), first.load("total.total"))
+
+
+def test_a_damaged_artifact_found_by_the_worker_instead_of_the_run_is_moved_aside_and_recomputed(numproject, s3):
+    """The worker's check (left to it by the run) meets scaled's unreadable commit marker: the run moves it
+    aside and computes scaled again, as when the run's own check finds it."""
+    bucket = s3.bucket()
+    on_s3(numproject, s3, bucket)
+    first = msflow.run(numproject / "pipeline.yaml")
+    store = s3.store(bucket, "num")
+    key = first.states["scaled"].key
+    store.objects.put(store.marker_path(key), b"{not a marker")
+    result = msflow.run(numproject / "pipeline.yaml", force=("src",))
+    assert sorted(result.executed) == ["scaled", "src"]
+    assert result.states["scaled"].detail == "recomputed: its artifact was corrupt"
+    assert [r["stage"] for r in result.record["repairs"]] == ["scaled"], result.record.get("repairs")
+    assert [o.path for o in store.objects.list("corrupt/")] and store.verify(key) == []
+    assert np.array_equal(result.load("scaled.y"), first.load("scaled.y"))
+
+
 # ------------------------------------------------------------------------------------------- store contract
 @pytest.fixture(params=["s3", "memory"])
 def any_store(request, s3):
@@ -572,8 +609,9 @@ def test_a_writer_that_finds_the_artifact_published_meanwhile_takes_back_only_it
 
 
 def test_a_stage_reads_the_input_its_process_just_committed_without_asking_the_store(numproject, s3, monkeypatch):
-    """In one process, a stage whose input was committed a moment ago reads it from memory: per executed stage
-    only the run's check and the check under the lease GET anything. With the cache off
+    """In one process, a stage whose input was committed a moment ago reads it from memory: only the checks GET
+    anything, the one under each stage's lease, and the run's own of the two stages (src, csv) whose inputs were
+    not computed by the run (Runner.needs_check). With the cache off
     (MSFLOW_STORE_CACHE_MB=0) the input's marker and chunks are fetched, and the results are the same."""
     from msflow.stores import objects as objects_module
 
@@ -597,9 +635,9 @@ def test_a_stage_reads_the_input_its_process_just_committed_without_asking_the_s
         assert len(result.executed) == 5
         loads[megabytes] = {name: result.load(f"{name}.{output}") for name, output in (("scaled", "y"), ("src", "x"))}
         if megabytes == "64":
-            assert gets.count("commits") == 2 * 5 and "artifacts" not in gets, gets
+            assert gets.count("commits") == 5 + 2 and "artifacts" not in gets, gets
         else:
-            assert "artifacts" in gets and gets.count("commits") > 2 * 5, gets
+            assert "artifacts" in gets and gets.count("commits") > 5 + 2, gets
     for name in loads["64"]:
         assert np.array_equal(loads["64"][name], loads["0"][name])
 

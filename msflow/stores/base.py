@@ -56,6 +56,9 @@ class Store(Protocol):
 
     url: str  #: what a worker needs to reopen the store, with ``options``
     options: Json
+    #: ``has`` asks a server (a round trip): the runner then leaves the check of a stage whose input was just
+    #: computed to the worker's check under the key's lock, which it makes anyway
+    remote: bool
 
     # artifacts
     def has(self, key: str) -> bool: ...

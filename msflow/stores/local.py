@@ -38,6 +38,8 @@ if TYPE_CHECKING:
 class LocalStore:
     """A store in a folder (see the module docstring for its layout); implements ``msflow.stores.base.Store``."""
 
+    remote = False  # has() is a stat
+
     def __init__(self, root: str | Path):
         self.root = Path(root)
         self.url = str(self.root)

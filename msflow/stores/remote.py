@@ -42,7 +42,8 @@ Errors
 No-op path
     ``has`` is one GET of the commit marker, and the manifest comes with it: a cached stage costs one small
     request. Opening an artifact reads no metadata beyond the marker; outputs are fetched chunk by chunk in
-    parallel, or through zarr for lazy access.
+    parallel, or through zarr for lazy access. A stage whose input the run just computed is not checked by the
+    run (``remote``; msflow.runner.Runner.needs_check): the check under its lease is the only one.
 Reading what this process just wrote
     Markers and data objects this process wrote or read lately are answered from memory (msflow.stores.recent):
     the next stage of a chain run by the same process fetches nothing of its input. ``has`` and ``verify``
@@ -98,6 +99,8 @@ def writer_id() -> str:
 
 
 class RemoteStore:
+    remote = True  # has() is a request
+
     def __init__(self, url: str, options: dict[str, Any], cache_dir: str | Path | None = None):
         protocol, sep, path = url.partition("://")
         self.url = protocol + sep + path.rstrip("/")
