@@ -1,6 +1,6 @@
 """Dask cluster figures (issue 17): the default pipeline on two workers that cannot read the project folder.
 
-    python bench/bench_dask.py [--repeats 3] [--parts default,overhead,malloc,idle]
+    python bench/bench_dask.py [--repeats 3] [--parts default,overhead,floor,malloc,idle]
 
 The cluster is the stand-in of tests/test_dask.py: a ``dask scheduler`` and two ``dask worker`` processes (one
 thread each, ``--preload-nanny msflow.dask_setup``) started in their own folder, in a mount namespace that hides
@@ -20,7 +20,8 @@ the project copies and this checkout, as ``nobody`` when run as root. Two stores
    itself (~0.1 ms of numpy), without the run's fixed costs (planning, the first request to a store, connecting
    to the cluster); also the end-to-end wall per stage and the worker-side part
    (``seconds - compute_seconds`` in the run record). ``local -j 1, S3`` runs the chain in this
-   process against the same S3 server: the store's own share of the cluster's S3 figure.
+   process against the same S3 server: the store's own share of the cluster's S3 figure. ``floor``: Dask's own
+   round trip on the same cluster, a chain of tasks that do nothing.
 
 3. The nanny's ``MALLOC_TRIM_THRESHOLD_``: the default pipeline on a 2-worker LocalCluster with the variable set
    and nothing undoing it, with Dask's default undone in each worker by ``msflow.worker.tune_malloc``, and unset
@@ -288,6 +289,30 @@ def overhead(tmp: Path, cluster, moto, options: dict, n: int = 40) -> None:
         )
 
 
+def dask_round_trip(cluster, tasks: int = 200) -> None:
+    """Dask's own floor: a task that does nothing (its argument as big as a shipped job, ~800 bytes), submitted
+    when the one before has come back, as msflow submits a chain's stages; per task: wall and the CPU of this
+    process (the client) and of the cluster's processes."""
+
+    def noop(job: str) -> str:
+        return job
+
+    pids = [p.pid for p in cluster.procs]
+    for _ in range(20):  # warm: the function's pickle reaches every worker
+        cluster.client.submit(noop, "x", pure=False).result()
+    cpu = (self_cpu(), cpu_of(pids))
+    started = time.perf_counter()
+    for _ in range(tasks):
+        cluster.client.submit(noop, "x" * 800, pure=False).result()
+    wall = (time.perf_counter() - started) / tasks * 1000
+    client, workers = ((b - a) / tasks * 1000 for a, b in zip(cpu, (self_cpu(), cpu_of(pids))))
+    print(
+        f"  Dask alone, a task that does nothing: {wall:.1f} ms per task ({tasks} in a row), CPU {client:.1f} "
+        f"(client) + {workers:.1f} (cluster) ms; load {os.getloadavg()[0]:.1f}",
+        flush=True,
+    )
+
+
 def malloc_trim(tmp: Path, repeats: int) -> None:
     """Stage CPU on LocalCluster workers spawned with and without the nanny's malloc-trim default."""
     import msflow
@@ -358,7 +383,7 @@ def idle_cpu(others: list[int], seconds: float = 10.0, repeats: int = 2) -> None
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--parts", default="default,overhead,malloc,idle")
+    parser.add_argument("--parts", default="default,overhead,floor,malloc,idle")
     args = parser.parse_args()
     import logging
 
@@ -380,6 +405,8 @@ def main() -> None:
                 default_pipeline(tmp, cluster, moto, options, args.repeats)
             if "overhead" in parts:
                 overhead(tmp, cluster, moto, options)
+            if "floor" in parts:
+                dask_round_trip(cluster)
             if "malloc" in parts:
                 malloc_trim(tmp, args.repeats)
             if "idle" in parts:

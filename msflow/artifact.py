@@ -287,10 +287,11 @@ def missing_chunks(path: Path, manifest: dict[str, Any]) -> list[str]:
     return missing
 
 
-def read_artifact(path: Path, key: str | None = None) -> ArtifactView:
+def read_artifact(path: Path, key: str | None = None, through_zarr: bool = False) -> ArtifactView:
     """Open a local artifact: its manifest is checked and every chunk must be present; chunk checksums are checked
-    as they are read. ``CorruptArtifact`` otherwise."""
-    import zarr
+    as they are read. ``CorruptArtifact`` otherwise. msflow's own chunks (format 2 on) are read directly
+    (msflow.stored), anything else, or everything with ``through_zarr``, through zarr."""
+    from msflow.stored import FolderArray
 
     path = Path(path)
     key = key or path.name
@@ -298,19 +299,32 @@ def read_artifact(path: Path, key: str | None = None) -> ArtifactView:
     missing = missing_chunks(path, manifest)
     if missing:
         raise CorruptArtifact(key, f"{len(missing)} chunk file(s) missing, e.g. {missing[0]}")
-    try:
-        group = zarr.open_group(str(path), mode="r")
-        arrays = {name: group[name] for name in manifest["outputs"]}
-    except (*READ_DAMAGE, TypeError) as exc:
-        raise CorruptArtifact(key, f"its arrays cannot be opened: {type(exc).__name__}: {exc}") from None
+    if manifest.get("format", 1) >= FORMAT and not through_zarr:
+        arrays: dict[str, Any] = {
+            name: FolderArray(str(path), name, entry) for name, entry in manifest["outputs"].items()
+        }
+    else:
+        arrays = zarr_arrays(path, key, manifest)
     return ArtifactView(arrays, manifest.get("meta", {}), manifest.get("metrics", {}), key=key, manifest=manifest)
 
 
+def zarr_arrays(path: Path, key: str, manifest: dict[str, Any]) -> dict[str, Any]:
+    """The artifact's outputs opened by zarr (which also checks every array's own zarr.json)."""
+    import zarr
+
+    try:
+        group = zarr.open_group(str(path), mode="r")
+        return {name: group[name] for name in manifest["outputs"]}
+    except (*READ_DAMAGE, TypeError) as exc:
+        raise CorruptArtifact(key, f"its arrays cannot be opened: {type(exc).__name__}: {exc}") from None
+
+
 def verify_artifact(path: Path) -> list[str]:
-    """Recompute every content hash of an artifact; return a list of problems (empty when intact)."""
+    """Recompute every content hash of an artifact, reading it through zarr (so the folder stays a zarr group any
+    zarr reader opens); return a list of problems (empty when intact)."""
     try:
         manifest = read_manifest(path)
-        view = read_artifact(path)
+        view = read_artifact(path, through_zarr=True)
     except CorruptArtifact as exc:
         return [exc.problem]
     return check_contents(manifest, view.lazy)

@@ -49,7 +49,7 @@ class JobInput:
     kind: Literal["files", "artifact", "array"]
     key: str | None = None  #: artifact and array: the upstream artifact's key
     output: str | None = None  #: array: the output read
-    lazy: bool = False  #: array: handed over as a lazy (zarr) array
+    lazy: bool = False  #: array: handed over as a lazy stored array (msflow.stored)
     #: files: (label, absolute path) pairs, in order; shipped jobs: (label, file name), the content in ``blobs``
     files: tuple[tuple[str, str], ...] = ()
     fields: dict[str, dict[str, str]] | None = None  #: files: label -> {field: value}

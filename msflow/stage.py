@@ -16,7 +16,7 @@ A stage is a class::
 
 Inputs arrive as:
 - ``Input.array``: one upstream output (``stage.output`` in pipeline.yaml), a numpy array (``lazy=True``: a
-  read-only zarr array that loads on slicing);
+  read-only stored array that loads on slicing, with zarr's attributes);
 - ``Input.artifact``: a whole upstream artifact (``stage``), an ``ArtifactView`` (``view["name"]`` loads numpy,
   ``view.lazy("name")``, ``view.meta``, ``view.metrics``);
 - ``Input.files``: data files, ``Files``: an ordered ``dict`` label -> absolute ``Path`` whose ``fields``
@@ -120,8 +120,8 @@ class Input:
     Attributes
     ----------
     kind : str
-        "array": one upstream output (``stage.output``), handed over as numpy, or as a read-only zarr array
-        when ``lazy``; "artifact": a whole upstream artifact (``stage``), an ``ArtifactView``; "files": data
+        "array": one upstream output (``stage.output``), handed over as numpy, or as a read-only stored array
+        when ``lazy`` (``msflow.stored``: slicing reads; other attributes are zarr's); "artifact": a whole upstream artifact (``stage``), an ``ArtifactView``; "files": data
         files, a ``Files`` mapping label -> Path with each label's fields.
     optional : bool
         The pipeline may leave it unconnected (the stage receives None).

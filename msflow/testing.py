@@ -159,7 +159,7 @@ def run_stage(
 
         path = Path(store) / f"{stage_name}.zarr"
         write_artifact(path, arrays, {"meta": done.meta, "metrics": done.metrics})
-        view = read_artifact(path)
+        view = read_artifact(path, through_zarr=True)  # what any zarr reader sees of it
         arrays = {k: view[k] for k in view.names}
     return StageRun(arrays, done.meta, done.metrics, done.warnings)
 

@@ -66,6 +66,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from msflow.artifact import check_manifest
 from msflow.atomic import write_json_atomic
 from msflow.errors import CorruptArtifact, UserError
+from msflow.stored import StoredArray
 from msflow.stores.base import HOST, Json, expand_record, json_object, pid_alive
 from msflow.stores.leases import Lease, lease_is_stale, parse_holder
 from msflow.stores.objects import dumps, iter_chunks, make_objects
@@ -614,34 +615,15 @@ def parse_marker(key: str, data: bytes) -> Json | None:
     return marker
 
 
-def _selects_everything(selection: Any) -> bool:
-    if isinstance(selection, tuple):
-        return selection in ((), (Ellipsis,))
-    return selection is Ellipsis or (isinstance(selection, slice) and selection == slice(None))
-
-
-def _row_slice(selection: Any) -> slice | None:
-    """The slice of rows a selection takes when it is a step-1 slice of whole rows (``a[i:j]``), else None."""
-    if isinstance(selection, tuple):
-        if not selection or not all(
-            s is Ellipsis or (isinstance(s, slice) and s == slice(None)) for s in selection[1:]
-        ):
-            return None
-        selection = selection[0]
-    if isinstance(selection, slice) and selection.step in (None, 1):
-        return selection
-    return None
-
-
 def _age(entry: dict[str, Any]) -> float:
     started = entry.get("started")
     return time.time() - started if isinstance(started, (int, float)) else float("inf")
 
 
-class RemoteArray:
-    """One stored output, read on demand. ``[...]`` (what ArtifactView uses) fetches every chunk in parallel and
-    decodes them directly; any other indexing, and every zarr attribute, goes through a zarr array opened on
-    the store, so lazy inputs behave as zarr arrays do on a local store."""
+class RemoteArray(StoredArray):
+    """One stored output, read on demand (msflow.stored): chunk objects from this process's recent objects where
+    it holds them, the rest fetched concurrently (and kept); zarr opened on the store for everything else, so
+    lazy inputs behave as zarr arrays do on a local store."""
 
     def __init__(
         self,
@@ -653,126 +635,34 @@ class RemoteArray:
         checksum: bool = True,
         recent: RecentObjects | None = None,
     ):
-        import numpy as np
-
+        super().__init__(name, entry, chunks, checksum)
         self._store = store
         self._folder = folder
-        self._name = name
-        self.shape = tuple(entry["shape"])
-        self.dtype = np.dtype(entry["dtype"]).newbyteorder("=")  # stored little endian, read as native
-        self._chunks = chunks
-        self._checksum = checksum  # chunks carry a crc32c (artifact format 2 on)
         self._recent = recent  # objects this process wrote or read lately (None: always ask the store)
-        self._zarr: Any = None
 
-    @property
-    def ndim(self) -> int:
-        return len(self.shape)
+    def _where(self) -> str:
+        return f"{self._store.url}/{self._folder}"
 
-    @property
-    def size(self) -> int:
-        out = 1
-        for s in self.shape:
-            out *= s
-        return out
+    def _open_zarr(self) -> Any:
+        import zarr
+        from zarr.storage import FsspecStore
 
-    def __len__(self) -> int:
-        if not self.shape:
-            raise TypeError("len() of a 0-d array")
-        return int(self.shape[0])
+        from msflow.stores.objects import s3_defaults
 
-    def __repr__(self) -> str:
-        return f"RemoteArray({self._store.url}/{self._folder}/{self._name}, shape={self.shape}, dtype={self.dtype})"
+        protocol = self._store.url.split("://", 1)[0]
+        options = s3_defaults(self._store.options) if protocol in ("s3", "s3a") else self._store.options
+        zstore = FsspecStore.from_url(f"{self._store.url}/{self._folder}", storage_options=options, read_only=True)
+        return zarr.open_array(zstore, path=self._name, mode="r")
 
-    @property
-    def zarr(self) -> Any:
-        if self._zarr is None:
-            import zarr
-            from zarr.storage import FsspecStore
-
-            from msflow.stores.objects import s3_defaults
-
-            protocol = self._store.url.split("://", 1)[0]
-            options = s3_defaults(self._store.options) if protocol in ("s3", "s3a") else self._store.options
-            zstore = FsspecStore.from_url(f"{self._store.url}/{self._folder}", storage_options=options, read_only=True)
-            self._zarr = zarr.open_array(zstore, path=self._name, mode="r")
-        return self._zarr
-
-    def __getattr__(self, attr: str) -> Any:
-        if attr.startswith("_"):
-            raise AttributeError(attr)
-        return getattr(self.zarr, attr)
-
-    @property
-    def chunks(self) -> tuple[int, ...]:
-        from msflow.chunks import chunk_shape
-
-        return tuple(self._chunks) if self._chunks else chunk_shape(self.shape, self.dtype.itemsize)
-
-    def __getitem__(self, selection: Any) -> Any:
-        if _selects_everything(selection):
-            return self.read()
-        rows = _row_slice(selection)
-        if rows is not None and self.shape:
-            return self.read_rows(*rows.indices(self.shape[0])[:2])
-        return self.zarr[selection]
-
-    def __array__(self, dtype: Any = None, copy: bool | None = None) -> Any:
-        out = self.read()
-        return out if dtype is None else out.astype(dtype)
-
-    def read(self) -> Any:
-        """The whole array: every chunk object fetched concurrently, decoded (checksum checked), concatenated."""
-        import numpy as np
-
-        from msflow.chunks import decode_chunk
-
-        if self.size == 0:
-            return np.zeros(self.shape, dtype=self.dtype)
-        if self.shape:
-            return self.read_rows(0, self.shape[0])
-        blob = self._fetch([f"{self._folder}/{self._name}/c"])[f"{self._folder}/{self._name}/c"]
-        if blob is None:
-            raise FileNotFoundError(f"chunk {self._name}/c of {self._store.url}/{self._folder} is missing")
-        little = self.dtype.newbyteorder("<") if self.dtype.itemsize > 1 else self.dtype
-        return np.array(np.frombuffer(decode_chunk(blob, self._checksum), dtype=little)[0], dtype=self.dtype)
-
-    def _fetch(self, paths: list[str]) -> dict[str, bytes | None]:
-        """These objects of the folder: from this process's recent objects where it holds them, the rest fetched
-        concurrently (and kept)."""
+    def _fetch(self, rels: list[str]) -> dict[str, bytes | None]:
         recent = self._recent
-        found = {path: recent.get(path) for path in paths} if recent is not None else {}
-        missing = [path for path in paths if found.get(path) is None]
+        paths = {rel: f"{self._folder}/{rel}" for rel in rels}
+        found = {rel: recent.get(path) if recent is not None else None for rel, path in paths.items()}
+        missing = [rel for rel in rels if found[rel] is None]
         if missing:
-            fetched = self._store.objects.get_many(missing)
-            found.update(fetched)
-            if recent is not None:
-                for path, data in fetched.items():
-                    if data is not None:
-                        recent.put(path, data)
+            fetched = self._store.objects.get_many([paths[rel] for rel in missing])
+            for rel in missing:
+                found[rel] = data = fetched.get(paths[rel])
+                if recent is not None and data is not None:
+                    recent.put(paths[rel], data)
         return found
-
-    def read_rows(self, start: int, stop: int) -> Any:
-        """Rows ``start:stop``: the chunks covering them fetched concurrently and decoded."""
-        import numpy as np
-
-        from msflow.chunks import chunk_path, decode_chunk
-
-        native = self.dtype
-        stop = max(start, stop)
-        if stop == start or self.size == 0:
-            return np.zeros((stop - start, *self.shape[1:]), dtype=native)
-        little = native.newbyteorder("<") if native.itemsize > 1 else native
-        chunk = self.chunks
-        first, last = start // chunk[0], (stop - 1) // chunk[0]
-        paths = [f"{self._folder}/{chunk_path(self._name, i, len(self.shape))}" for i in range(first, last + 1)]
-        blobs = self._fetch(paths)
-        blocks = []
-        for path in paths:
-            blob = blobs[path]
-            if blob is None:
-                raise FileNotFoundError(f"chunk {path} of {self._store.url} is missing")
-            blocks.append(np.frombuffer(decode_chunk(blob, self._checksum), dtype=little).reshape(chunk))
-        out = blocks[0] if len(blocks) == 1 else np.concatenate(blocks)
-        offset = first * chunk[0]
-        return np.array(out[start - offset : stop - offset], dtype=native, order="C")  # writable, native-endian
