@@ -71,6 +71,39 @@ def test_every_executor_hands_its_jobs_to_worker_run_job():
     assert source.count(".run(params, inputs)") == 1  # in compute, and nowhere else in the worker
 
 
+def test_jobs_and_outcomes_cross_processes_as_the_same_json_without_copying_their_contents():
+    """Job and Outcome serialise field by field (no deep copy of the manifest or key parts first): the JSON is the
+    one ``dataclasses.asdict`` gave, it reads back equal, and the objects it came from are left as they were."""
+    import dataclasses
+
+    from msflow.jobs import Job, JobInput, Outcome, StageStatus
+
+    parts = {"code": {"modules": {"a": "1" * 64}}, "params": {"factor": 2.5}, "inputs": {"x": {"hash": "2" * 64}}}
+    job = Job(
+        store="/s",
+        store_options={"anon": True},
+        project_root="/p",
+        key="k" * 64,
+        stage="scaled",
+        uses="numstages.scaling:Scale",
+        params={"factor": 2.5},
+        inputs={
+            "x": JobInput("array", key="u" * 64, output="y", lazy=True),
+            "table": JobInput("files", files=(("t", "/d/t.csv"),), fields={"t": {"col": "x"}}),
+            "gone": None,
+        },
+        key_parts=parts,
+        checked=False,
+    )
+    manifest = {"outputs": {"y": {"hash": "h", "shape": [3], "dtype": "<f8"}}, "meta": {"labels": ["a", "b"]}}
+    outcome = Outcome(StageStatus.RAN, manifest=manifest, seconds=0.5, worker="w", attempts=2)
+    for obj, cls in ((job, Job), (outcome, Outcome)):
+        text = obj.to_json()
+        assert json.loads(text) == json.loads(json.dumps(dataclasses.asdict(obj)))
+        assert cls.from_json(text) == obj
+    assert job.key_parts is parts and outcome.manifest is manifest
+
+
 # ------------------------------------------------------------------------------------------------ linear scheduling
 def chain_pipeline(proj, n):
     stages = ["  s0:\n    uses: numstages.basic:Source\n    params: {n: 4}\n"]
