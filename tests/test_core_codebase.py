@@ -175,14 +175,19 @@ def test_public_api_has_numpydoc_sections_and_an_example(target):
     assert "Examples" in sections and len(sections) >= 2, f"{target}: numpydoc sections {sections}"
 
 
+def python_prints(code: str, cwd: Path) -> str:
+    """What ``python -c code`` prints in a fresh process (which must succeed), stripped."""
+    out = subprocess.run([sys.executable, "-c", code], env=cli_env(), capture_output=True, text=True, cwd=cwd)
+    assert out.returncode == 0, out.stderr
+    return out.stdout.strip()
+
+
 def test_importing_msflow_for_a_no_op_loads_no_heavy_module():
     code = (
         "import sys, msflow, msflow.cli, msflow.api, msflow.runner; "
         "print(' '.join(m for m in ('numpy', 'zarr', 'stages', 'dask') if m in sys.modules))"
     )
-    out = subprocess.run([sys.executable, "-c", code], env=cli_env(), capture_output=True, text=True, cwd=ROOT)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == ""
+    assert python_prints(code, ROOT) == ""
 
 
 def test_a_local_run_that_computes_loads_no_cluster_module(numproject):
@@ -192,9 +197,7 @@ def test_a_local_run_that_computes_loads_no_cluster_module(numproject):
         "import sys, msflow; r = msflow.run('pipeline.yaml'); assert r.ok and r.executed, r; "
         "print(' '.join(m for m in ('dask', 'distributed', 'tornado') if m in sys.modules))"
     )
-    out = subprocess.run([sys.executable, "-c", code], env=cli_env(), capture_output=True, text=True, cwd=numproject)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == ""
+    assert python_prints(code, numproject) == ""
 
 
 def test_a_local_run_reads_and_writes_its_artifacts_without_zarr(numproject):
@@ -206,9 +209,7 @@ def test_a_local_run_reads_and_writes_its_artifacts_without_zarr(numproject):
         "import sys, msflow; r = msflow.run('pipeline.yaml'); assert r.ok and r.executed, r; "
         "print('zarr' in sys.modules, float(r.load('total.total')))"
     )
-    out = subprocess.run([sys.executable, "-c", code], env=cli_env(), capture_output=True, text=True, cwd=numproject)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == ["False", "26.0"]
+    assert python_prints(code, numproject).split() == ["False", "26.0"]
 
     import numpy as np
     import zarr

@@ -38,6 +38,17 @@ def on_s3(proj: Path, s3: MotoS3, bucket: str, files=("pipeline.yaml", "crash.ya
     return url
 
 
+async def together(event, seconds: float, label: str) -> str:
+    """``label`` when ``event`` is set within ``seconds`` (two requests went out together), else "alone"."""
+    import asyncio
+
+    try:
+        await asyncio.wait_for(event.wait(), seconds)
+    except TimeoutError:
+        return "alone"
+    return label
+
+
 def stage_keys(record: dict) -> dict:
     return {name: s["key"] for name, s in record["stages"].items()}
 
@@ -518,11 +529,7 @@ def test_the_journal_is_deleted_together_with_the_lease_release(s3, monkeypatch)
         if method == "delete_object" and path.endswith(".lease"):
             lease_deleting.set()
         elif method == "delete_object" and "/pending/" in f"/{path}":
-            try:
-                await asyncio.wait_for(lease_deleting.wait(), 5)
-                journal_deletes.append("with the lease's")
-            except TimeoutError:
-                journal_deletes.append("alone")
+            journal_deletes.append(await together(lease_deleting, 5, "with the lease's"))
         return await real_call(self, method, **kwargs)
 
     monkeypatch.setattr(objects_module.S3Objects, "_call", paired)
@@ -561,11 +568,7 @@ def test_a_stage_journals_its_folder_while_the_lease_holder_checks_for_a_publish
             event.set()
         elif method == "get_object" and "/commits/" in f"/{path}" and key in leased:
             leased.discard(key)  # the first read under the lease is the re-check
-            try:
-                await asyncio.wait_for(event.wait(), 2)
-                journals.append("with the re-check")
-            except TimeoutError:
-                journals.append("alone")
+            journals.append(await together(event, 2, "with the re-check"))
         return await real_call(self, method, **kwargs)
 
     monkeypatch.setattr(objects_module.S3Objects, "_call", paired)
