@@ -121,12 +121,19 @@ def run_locked(job: Job) -> Outcome:
 
     root = code_root(job)
     store = open_store(job.store, job.store_options)
+    waited: list[object] = []  # another run held the key's lock: what is found then is that run's work
+
+    def on_wait(holder: dict[str, Any]) -> None:
+        waited.append(holder)
+        report_waiting(job.stage, holder)
+
     with (
-        store.lock(job.key, on_wait=lambda holder: report_waiting(job.stage, holder)),
+        store.lock(job.key, on_wait=on_wait),
         store.writer(job.key) as writer,  # before the re-check: a remote writer journals its folder meanwhile
     ):
         if store.has(job.key) and not job.force:
-            return Outcome(StageStatus.CACHED, manifest=store.manifest(job.key), concurrent=job.checked)
+            concurrent = job.checked or bool(waited)  # unchecked (Job.checked) and no wait: a plain cache hit
+            return Outcome(StageStatus.CACHED, manifest=store.manifest(job.key), concurrent=concurrent)
         return execute(job, store, writer, root)
 
 

@@ -66,6 +66,36 @@ def test_two_concurrent_runs_execute_each_stage_exactly_once(numproject, tmp_pat
     assert sum(r["stages"]["slow"]["detail"] == "computed by a concurrent run" for r in records) == 2
 
 
+@pytest.mark.parametrize("checked", [True, False])
+def test_an_artifact_published_while_the_worker_waited_for_the_lock_is_a_concurrent_runs(
+    numproject, monkeypatch, checked
+):
+    """Whether or not the runner checked the store first (Job.checked: it leaves that to the worker for a stage
+    whose input it just computed), an artifact that appears while the worker waits for the key's lock was
+    computed by the run holding it, and the outcome says so."""
+    import threading
+
+    import msflow.worker
+    from msflow.jobs import Job, Outcome
+    from msflow.stores import open_store
+
+    store = open_store(str(numproject / ".msflow"), {})
+    key = "ef" + "5" * 30
+    job = Job(str(store.url), {}, str(numproject), key, "src", "numstages.basic:Source", {"n": 3}, {}, checked=checked)
+    waiting = threading.Event()
+    monkeypatch.setattr(msflow.worker, "report_waiting", lambda stage, holder: waiting.set())
+    outcomes = []
+    with store.lock(key):
+        worker = threading.Thread(
+            target=lambda: outcomes.append(Outcome.from_json(msflow.worker.run_job(job.to_json())))
+        )
+        worker.start()
+        assert waiting.wait(60)  # a guard against hanging, not a speed assertion
+        store.write(key, {"x": np.arange(3.0)}, {"meta": {}, "metrics": {}})
+    worker.join(60)
+    assert [(o.status.value, o.concurrent) for o in outcomes] == [("cached", True)]
+
+
 def test_lock_held_by_a_killed_run_is_broken(numproject, tmp_path):
     hold = Hold(tmp_path / "hold")
     proc = start_cli(numproject, "run", "crash.yaml", "--until", "slow", "-q", env=hold.env)
