@@ -121,8 +121,9 @@ class Input:
     ----------
     kind : str
         "array": one upstream output (``stage.output``), handed over as numpy, or as a read-only stored array
-        when ``lazy`` (``msflow.stored``: slicing reads; other attributes are zarr's); "artifact": a whole upstream artifact (``stage``), an ``ArtifactView``; "files": data
-        files, a ``Files`` mapping label -> Path with each label's fields.
+        when ``lazy`` (``msflow.stored``: slicing reads; other attributes are zarr's); "artifact": a whole
+        upstream artifact (``stage``), an ``ArtifactView``; "files": data files, a ``Files`` mapping label -> Path
+        with each label's fields.
     optional : bool
         The pipeline may leave it unconnected (the stage receives None).
     requires : tuple of str

@@ -17,6 +17,10 @@ class StoredArray:
     """One output of an artifact (manifest ``entry``: shape, dtype); ``chunks``: its chunk shape when the caller
     knows it (else msflow's rule for the shape); ``checksum``: the chunks carry a crc32c (artifact format 2 on)."""
 
+    #: stored chunks fetched at a time when reading a run of rows (each holds up to ~4 MB, msflow.chunks): an
+    #: object store fetches a batch concurrently
+    fetch_batch = 16
+
     def __init__(self, name: str, entry: dict[str, Any], chunks: list[Any] | None = None, checksum: bool = True):
         import numpy as np
 
@@ -108,33 +112,38 @@ class StoredArray:
         return np.array(np.frombuffer(decode_chunk(blob, self._checksum), dtype=little)[0], dtype=self.dtype)
 
     def read_rows(self, start: int, stop: int) -> Any:
-        """Rows ``start:stop``: the chunks covering them fetched and decoded."""
+        """Rows ``start:stop``, decoded chunk by chunk into one array: memory is the result, at most
+        ``fetch_batch`` stored chunks and one decoded chunk."""
         import numpy as np
 
         from msflow.chunks import chunk_path, decode_chunk
 
         native = self.dtype
         stop = max(start, stop)
+        out = np.empty((stop - start, *self.shape[1:]), dtype=native)
         if stop == start or self.size == 0:
-            return np.zeros((stop - start, *self.shape[1:]), dtype=native)
+            return out
         little = native.newbyteorder("<") if native.itemsize > 1 else native
         chunk = self.chunks
-        first, last = start // chunk[0], (stop - 1) // chunk[0]
-        rels = [chunk_path(self._name, i, len(self.shape)) for i in range(first, last + 1)]
-        blobs = self._fetch(rels)
-        blocks = []
-        for rel in rels:
-            blob = blobs[rel]
-            if blob is None:
-                raise FileNotFoundError(f"chunk {rel} of {self._where()} is missing")
-            blocks.append(np.frombuffer(decode_chunk(blob, self._checksum), dtype=little).reshape(chunk))
-        out = blocks[0] if len(blocks) == 1 else np.concatenate(blocks)
-        offset = first * chunk[0]
-        return np.array(out[start - offset : stop - offset], dtype=native, order="C")  # writable, native-endian
+        rows = chunk[0]
+        indices = list(range(start // rows, (stop - 1) // rows + 1))
+        for batch in range(0, len(indices), self.fetch_batch):
+            wanted = {i: chunk_path(self._name, i, len(self.shape)) for i in indices[batch : batch + self.fetch_batch]}
+            blobs = self._fetch(list(wanted.values()))
+            for i, rel in wanted.items():
+                blob = blobs.pop(rel)
+                if blob is None:
+                    raise FileNotFoundError(f"chunk {rel} of {self._where()} is missing")
+                block = np.frombuffer(decode_chunk(blob, self._checksum), dtype=little).reshape(chunk)
+                lo, hi = max(start, i * rows), min(stop, (i + 1) * rows)
+                out[lo - start : hi - start] = block[lo - i * rows : hi - i * rows]  # native byte order
+        return out
 
 
 class FolderArray(StoredArray):
     """An output of an artifact in a local folder (``LocalStore``; artifact format 2 on: msflow wrote its chunks)."""
+
+    fetch_batch = 1  # files are read one after the other anyway: hold one at a time
 
     def __init__(self, folder: str, name: str, entry: dict[str, Any]):
         super().__init__(name, entry)

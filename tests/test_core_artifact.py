@@ -40,6 +40,42 @@ def test_zarr_reads_what_msflow_writes(tmp_path, monkeypatch):
     assert read_manifest(path)["content_hash"] == manifest["content_hash"]
 
 
+def test_msflow_reads_runs_of_rows_across_chunks_as_zarr_does(tmp_path):
+    """Reads without zarr (msflow.stored): whole arrays and runs of rows that start and end inside chunks equal
+    zarr's reading of the same folder, in native byte order and writable; other selections go through zarr."""
+    rng = np.random.default_rng(3)
+    arrays = {"pairs": rng.standard_normal((300_000, 2)), "scalar": np.array(7, dtype=">i4"), "empty": np.zeros((0, 3))}
+    write_artifact(tmp_path / "a", arrays, {"meta": {}, "metrics": {}})
+    view = read_artifact(tmp_path / "a")
+    group = zarr.open_group(str(tmp_path / "a"), mode="r")
+    stored = view.lazy("pairs")
+    assert stored.chunks == group["pairs"].chunks and stored.chunks[0] < 300_000  # two chunks
+    edge = stored.chunks[0]
+    for rows in (slice(edge - 5, edge + 7), slice(0, 3), slice(edge, None), slice(10, 10), slice(None)):
+        got = stored[rows]
+        assert np.array_equal(got, group["pairs"][rows]) and got.flags.writeable, rows
+    assert np.array_equal(stored[[1, edge + 1]], arrays["pairs"][[1, edge + 1]])  # fancy indexing: zarr's
+    assert view["scalar"] == 7 and view["scalar"].dtype == np.dtype("i4") and view["empty"].shape == (0, 3)
+
+
+def test_reading_a_stored_array_holds_it_about_once(tmp_path):
+    """A whole output read from a folder is decoded chunk by chunk into the result, so memory peaks near the
+    array's own size (gathering the decoded chunks, concatenating and copying held it three times)."""
+    import tracemalloc
+
+    big = np.random.default_rng(0).standard_normal(6_000_000)  # 48 MB: 12 chunks of 4 MB
+    write_artifact(tmp_path / "a", {"big": big}, {"meta": {}, "metrics": {}})
+    view = read_artifact(tmp_path / "a")
+    tracemalloc.start()
+    try:
+        got = view["big"]
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert np.array_equal(got, big)
+    assert peak < 1.5 * big.nbytes, f"peak {peak / big.nbytes:.2f}x the array"
+
+
 def test_content_hash_ignores_storage_but_not_values(tmp_path):
     a = write_artifact(tmp_path / "a", {"x": np.arange(4.0)}, {"meta": {}})
     b = write_artifact(tmp_path / "b", {"x": np.arange(4.0).astype(">f8")}, {"meta": {}})
