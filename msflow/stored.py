@@ -51,10 +51,9 @@ class StoredArray:
 
     @property
     def size(self) -> int:
-        out = 1
-        for s in self.shape:
-            out *= s
-        return out
+        from msflow.chunks import prod
+
+        return prod(self.shape)
 
     def __len__(self) -> int:
         if not self.shape:
