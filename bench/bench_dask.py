@@ -292,25 +292,33 @@ def overhead(tmp: Path, cluster, moto, options: dict, n: int = 40) -> None:
 def dask_round_trip(cluster, tasks: int = 200) -> None:
     """Dask's own floor: a task that does nothing (its argument as big as a shipped job, ~800 bytes), submitted
     when the one before has come back, as msflow submits a chain's stages; per task: wall and the CPU of this
-    process (the client) and of the cluster's processes."""
+    process (the client) and of the cluster's processes. Twice: with Dask's client as it comes (its messages
+    batched 10 ms apart) and as msflow's executor sets it up (each sent as made: ``send_without_delay``)."""
+    from msflow.dask_executor import send_without_delay
 
     def noop(job: str) -> str:
         return job
 
     pids = [p.pid for p in cluster.procs]
-    for _ in range(20):  # warm: the function's pickle reaches every worker
-        cluster.client.submit(noop, "x", pure=False).result()
-    cpu = (self_cpu(), cpu_of(pids))
-    started = time.perf_counter()
-    for _ in range(tasks):
-        cluster.client.submit(noop, "x" * 800, pure=False).result()
-    wall = (time.perf_counter() - started) / tasks * 1000
-    client, workers = ((b - a) / tasks * 1000 for a, b in zip(cpu, (self_cpu(), cpu_of(pids))))
-    print(
-        f"  Dask alone, a task that does nothing: {wall:.1f} ms per task ({tasks} in a row), CPU {client:.1f} "
-        f"(client) + {workers:.1f} (cluster) ms; load {os.getloadavg()[0]:.1f}",
-        flush=True,
-    )
+    stream = cluster.client.scheduler_comm
+    for label in ("as it comes", "as msflow sets it up"):
+        batching = stream.interval
+        if label != "as it comes":
+            send_without_delay(cluster.client)
+        for _ in range(20):  # warm: the function's pickle reaches every worker
+            cluster.client.submit(noop, "x", pure=False).result()
+        cpu = (self_cpu(), cpu_of(pids))
+        started = time.perf_counter()
+        for _ in range(tasks):
+            cluster.client.submit(noop, "x" * 800, pure=False).result()
+        wall = (time.perf_counter() - started) / tasks * 1000
+        client, workers = ((b - a) / tasks * 1000 for a, b in zip(cpu, (self_cpu(), cpu_of(pids))))
+        stream.interval = batching
+        print(
+            f"  Dask alone, a task that does nothing, client {label}: {wall:.1f} ms per task ({tasks} in a row), "
+            f"CPU {client:.1f} (client) + {workers:.1f} (cluster) ms; load {os.getloadavg()[0]:.1f}",
+            flush=True,
+        )
 
 
 def malloc_trim(tmp: Path, repeats: int) -> None:

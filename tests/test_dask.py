@@ -88,6 +88,41 @@ def test_local_cluster_workers_run_without_the_malloc_trim_default():
     assert list(found.values()) == [None]
 
 
+def scheduler_transitions(dask_scheduler):
+    """(key, from, to) of every task transition the scheduler made, in order."""
+    return [(str(entry[0]), entry[1], entry[2]) for entry in dask_scheduler.transition_log]
+
+
+def test_a_stage_reaches_the_scheduler_before_the_previous_result_is_released(numproject, monkeypatch):
+    """Dask batches a client's messages (10 ms) and the scheduler's to a worker (5 ms): a submission sent right
+    after a release waited for the release's batch. The executor sends at once and releases a result only after
+    the next submission, so in a chain each stage is submitted before its input's task is released."""
+    from msflow import dask_executor
+
+    seen = {}
+    shutdown = dask_executor.DaskExecutor.shutdown
+
+    def record_then_shut_down(self):
+        seen["interval"] = self.client.scheduler_comm.interval
+        seen["log"] = self.client.run_on_scheduler(scheduler_transitions)
+        shutdown(self)
+
+    monkeypatch.setattr(dask_executor.DaskExecutor, "shutdown", record_then_shut_down)
+    msflow.run(numproject / "pipeline.yaml", executor="dask", jobs=1)
+    assert seen["interval"] == 0.0
+    log = seen["log"]
+
+    def first(stage, start, finish):
+        found = [
+            i for i, (key, a, b) in enumerate(log) if key.startswith(f"msflow-{stage}-") and (a, b) == (start, finish)
+        ]
+        assert found, (stage, start, finish, [entry for entry in log if stage in entry[0]])
+        return found[0]
+
+    for upstream, stage in (("src", "scaled"), ("scaled", "sign")):
+        assert first(stage, "released", "waiting") < first(upstream, "memory", "forgotten"), (upstream, stage)
+
+
 # ------------------------------------------------------------------------------------------------ addresses
 @pytest.mark.parametrize(
     "address, cause",
