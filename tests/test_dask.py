@@ -223,8 +223,8 @@ def test_a_port_that_speaks_another_protocol_is_a_clear_error(numproject):
 
 
 # ------------------------------------------------------------------------------------------------ shipping
-def shipped(numproject, tmp_path, pipeline="pipeline.yaml", stage="csv", edit=None):
-    """The job of ``stage`` shipped into a store folder outside the project, and a run_job in a fresh process."""
+def shipped(numproject, tmp_path, pipeline="pipeline.yaml", stage="csv", edit=None, store=None):
+    """The job of ``stage`` shipped into a store (by default a folder outside the project)."""
     from msflow.api import code_trees_of
     from msflow.runner import Runner
     from msflow.session import open_session
@@ -232,7 +232,7 @@ def shipped(numproject, tmp_path, pipeline="pipeline.yaml", stage="csv", edit=No
     from msflow.stores import open_store
 
     session = open_session(numproject / pipeline)
-    store = open_store(str(tmp_path / "store"))
+    store = store or open_store(str(tmp_path / "store"))
     runner = Runner(session.pipeline, session.plans, store, session.memo, executor=None, until=stage)
     assert runner.selected == [stage]  # a stage without upstream stages
     job = runner.prepare(stage)
@@ -265,6 +265,38 @@ def test_a_shipped_job_carries_no_path_and_runs_from_the_store(numproject, tmp_p
     assert outcome.status == "ran", outcome.error
     expected = np.loadtxt(moved / "data" / "table.csv", delimiter=",", ndmin=2).reshape(-1)
     assert np.array_equal(store.open(job.key)["x"], expected)
+
+
+def test_shipping_to_a_fresh_object_store_takes_as_many_round_trips_for_many_project_files_as_for_few(
+    numproject, tmp_path, s3, monkeypatch
+):
+    """The code tree's files are checked and uploaded together: one by one, a first run against a fresh S3 store
+    spent two serial round trips per project file before its first stage could start."""
+    from msflow.shipping import blob_path
+    from msflow.stores.objects import S3Objects
+
+    def round_trips(project):
+        waves = []
+        run = S3Objects._run
+        monkeypatch.setattr(S3Objects, "_run", lambda self, *args: waves.append(1) or run(self, *args))
+        job, store = shipped(project, tmp_path, store=s3.store(s3.bucket()))
+        monkeypatch.setattr(S3Objects, "_run", run)
+        blobs = store.objects.list("blobs/")
+        assert {o.path for o in blobs} >= {blob_path(job.code)} | {
+            blob_path(d) for d in job.inputs["table"].blobs.values()
+        }
+        return len(waves), len(blobs)
+
+    few, few_blobs = round_trips(numproject)
+    bigger = tmp_path / "bigger"
+    shutil.copytree(numproject, bigger)
+    for i in range(12):  # twelve more modules in the stage's import closure
+        (bigger / "numstages" / f"extra_{i}.py").write_text(f"VALUE = {i}\n")
+    basic = bigger / "numstages" / "basic.py"
+    basic.write_text(basic.read_text() + "".join(f"from numstages import extra_{i}  # noqa\n" for i in range(12)))
+    many, many_blobs = round_trips(bigger)
+    assert many_blobs == few_blobs + 12
+    assert many == few
 
 
 def test_a_worker_with_other_package_versions_refuses_the_job(numproject, tmp_path):

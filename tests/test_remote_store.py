@@ -268,6 +268,19 @@ def any_store(request, s3):
     return open_store(f"memory://msflow-test/{uuid.uuid4().hex[:8]}", {})
 
 
+def test_objects_say_which_exist_by_exact_path(any_store):
+    objects = any_store.objects
+    objects.put_many({"blobs/ab/abc": b"1", "blobs/ab/abcd": b"2", "blobs/cd/cde": b"3"})
+    asked = ["blobs/ab/abc", "blobs/ab/ab", "blobs/cd/cde", "blobs/ef/nothing"]
+    assert objects.exists_many(asked) == {
+        "blobs/ab/abc": True,
+        "blobs/ab/ab": False,  # a prefix of existing objects is no object
+        "blobs/cd/cde": True,
+        "blobs/ef/nothing": False,
+    }
+    assert objects.exists_many([]) == {}
+
+
 def artifact_objects(arrays, meta):
     arrays, manifest = prepare_manifest(arrays, {"meta": meta, "metrics": {}})
     return dict(encode_artifact(arrays, manifest))
