@@ -3,8 +3,8 @@
 Forward: every face image is warped onto one reference shape (the AAM mean shape drawn in a small texture image).
 The reference is triangulated once (Delaunay), and for every texture pixel inside the face hull the containing
 triangle and its barycentric coordinates are precomputed. The source position of all pixels for many frames is
-then a single matrix product (barycentric weights x source landmarks), and each frame is resampled by one
-``cv2.remap``.
+then each pixel's three barycentric weights applied to its triangle's vertices in the source shape, and each frame
+is resampled by one ``cv2.remap``.
 
 Inverse: a texture in the reference frame is drawn back onto an arbitrary (e.g. edited) shape. The target
 triangles change every frame, so their pixel coverage is rasterised per frame (``cv2.fillConvexPoly``, cheap)
@@ -84,8 +84,8 @@ class PixelTriangles:
 
     Each covered pixel has its triangle's three vertex indices and its barycentric coordinates there, so the
     same weights applied to another shape with the same triangulation give the pixel's corresponding position:
-    the piecewise-affine correspondence. ``weights`` is that map as a dense (P, n_points) matrix, so positions for
-    many shapes at once are one matrix product.
+    the piecewise-affine correspondence; as a sparse (P, n_points) matrix, positions for many shapes at once are
+    one matrix product (``PiecewiseAffineWarp.source_positions``).
     """
 
     size: tuple[int, int]  # (w, h) of the image
@@ -101,14 +101,6 @@ class PixelTriangles:
         m = np.zeros(h * w, dtype=bool)
         m[self.pixel_index] = True
         return m.reshape(h, w)
-
-    @property
-    def weights(self) -> np.ndarray:
-        """(P, n_points) float32, three nonzero barycentric weights per row."""
-        dense = np.zeros((len(self.pixel_index), self.n_points), dtype=np.float32)
-        rows = np.repeat(np.arange(len(self.pixel_index)), 3)
-        np.add.at(dense, (rows, self.vertices.reshape(-1)), self.bary.reshape(-1))
-        return dense
 
     def positions(self, shape: np.ndarray) -> np.ndarray:
         """(P, 2) positions of the covered pixels in another shape (n_points, 2) with the same triangulation."""
@@ -161,7 +153,6 @@ class PiecewiseAffineWarp:
         self.triangles = np.asarray(triangles, dtype=np.int32)
         self.size = (int(size[0]), int(size[1]))
         self.pixels = pixels_of_reference(self.reference, self.triangles, self.size)
-        self._weights = self.pixels.weights
         self._nearest_inside = nearest_inside_index(self.pixels.mask)
 
     @property
@@ -169,12 +160,34 @@ class PiecewiseAffineWarp:
         return len(self.pixels.pixel_index)
 
     def source_positions(self, shapes: np.ndarray) -> np.ndarray:
-        """(frames, P, 2) float32 position in each source image of every covered reference pixel."""
-        shapes = np.asarray(shapes, dtype=np.float32)
+        """(frames, P, 2) float32 position in each source image of every covered reference pixel.
+
+        A sparse product (three barycentric weights per pixel) in float64, rounded once to float32: each position is
+        its three terms summed in a fixed order, so a frame's positions do not depend on the frames batched with
+        it. (A dense float32 matrix product over the batch did: BLAS blocks the sum differently for other batch
+        sizes on some CPUs, ``cv2.remap`` quantises positions to 1/32 pixel, so a one-ulp difference could change a
+        grey level, and a take's textures depended on the takes processed beside it.)
+        """
+        shapes = np.asarray(shapes, dtype=np.float64)
         n, k, _ = shapes.shape
         flat = shapes.transpose(1, 0, 2).reshape(k, n * 2)  # (points, frames*2)
-        pos = self._weights @ flat  # (P, frames*2)
-        return pos.reshape(-1, n, 2).transpose(1, 0, 2)
+        pos = self._sparse_weights @ flat  # (P, frames*2)
+        return pos.reshape(-1, n, 2).transpose(1, 0, 2).astype(np.float32)
+
+    @property
+    def _sparse_weights(self):
+        """The (P, n_points) barycentric weights as a CSR matrix (built on first use)."""
+        cached = self.__dict__.get("_csr")
+        if cached is None:
+            from scipy.sparse import csr_matrix
+
+            p = len(self.pixels.pixel_index)
+            cached = csr_matrix(
+                (self.pixels.bary.reshape(-1), self.pixels.vertices.reshape(-1), np.arange(0, 3 * p + 1, 3)),
+                shape=(p, self.pixels.n_points),
+            )
+            self.__dict__["_csr"] = cached
+        return cached
 
     def warp(self, images: np.ndarray, shapes: np.ndarray, chunk: int = 256) -> np.ndarray:
         """Sample every image (frames, H, W) at its shape's correspondence of the reference pixels.
