@@ -219,7 +219,9 @@ class DaskExecutor:
         ship = scheduler is not None or os.environ.get("MSFLOW_DASK_SHIP", "") not in ("", "0")
         self.shipper = shipper if ship else None
         self.tracked: dict[str, Tracked] = {}
-        self.finished: list[Any] = []  # Dask futures whose results were taken, released at the next submission
+        # Dask futures whose results were taken, released at the next submission (if their worker dies before
+        # that, Dask reruns them: the stage is then a cache hit under its lock, and nobody waits for it)
+        self.finished: list[Any] = []
         self.lock = threading.Lock()
         self.client.subscribe_topic("all", self.on_event)
 

@@ -14,6 +14,7 @@ from msflow.testing import artifact, prepare_inputs, run_stage
 from stages.formats.bvh import joint_rotation, joint_translation, parse_bvh
 from stages.head.database import TrackedHeadDb
 from stages.head.measures import (
+    JOIN_MEASURE_WINDOW,
     angular_acceleration,
     angular_speed,
     join_acceleration,
@@ -365,7 +366,25 @@ def test_outputs_frames_rate_and_bvh(leave_one_out, database, tracks):
     assert {"speed_wasserstein", "max_join_acceleration", "real_acceleration_p99"} <= set(run.metrics)
 
 
+def accelerations_at_joins(run, fps=30.0):
+    """The largest angular acceleration near each join of a MotionBlend run (deg/s^2, within the window the stage's
+    ``max_join_acceleration`` uses), over all utterances."""
+    a = run.arrays
+    return np.concatenate(
+        [
+            join_acceleration(
+                a["angles"][a["sequence"] == u], fps, a["joins"][a["join_utterance"] == u], JOIN_MEASURE_WINDOW
+            )
+            for u in np.unique(a["sequence"])
+        ]
+    )
+
+
 def test_leave_one_out_motion_is_plausible_and_smooth_at_joins(leave_one_out, database, tracks):
+    """Velocity blending makes joins smoother than hard cuts and than the position crossfade, join by join (mean and
+    90th percentile over the ~200 joins). Not by the single worst join: on this synthetic database it can fall on a
+    head stroke of the database motion itself, where every variant accelerates alike (about 800-940 deg/s^2, the
+    real motion's 99th percentile 832), so it measures the motion, not the join."""
     soft = run_stage(MotionBlend, {}, {"trellis": leave_one_out, "database": database[0]})
     hard = run_stage(
         MotionBlend,
@@ -373,8 +392,13 @@ def test_leave_one_out_motion_is_plausible_and_smooth_at_joins(leave_one_out, da
         {"trellis": leave_one_out, "database": database[0]},
     )
     fade = run_stage(MotionBlend, {"join_smoothing": "crossfade"}, {"trellis": leave_one_out, "database": database[0]})
-    assert soft.metrics["max_join_acceleration"] < 0.8 * hard.metrics["max_join_acceleration"]
-    assert soft.metrics["max_join_acceleration"] < 0.8 * fade.metrics["max_join_acceleration"]
+    smooth = accelerations_at_joins(soft)
+    assert smooth.max() == pytest.approx(soft.metrics["max_join_acceleration"])
+    for rough in (accelerations_at_joins(hard), accelerations_at_joins(fade)):
+        assert len(rough) == len(smooth) > 50
+        assert smooth.mean() < 0.8 * rough.mean()
+        assert np.percentile(smooth, 90) < 0.8 * np.percentile(rough, 90)
+    assert smooth.max() <= hard.metrics["max_join_acceleration"]
     # windows are at least the minimum, wider where the velocity step is large
     widths = np.diff(soft.arrays["join_window"], axis=1)[:, 0]
     step = soft.arrays["join_velocity_step"]
