@@ -1,6 +1,6 @@
 """Remote store figures (issue 7) against a moto S3 server on 127.0.0.1, with a local store for reference.
 
-    python bench/bench_remote.py [--repeats 7] [--latency-ms 20] [--parts noop,overhead,chain]
+    python bench/bench_remote.py [--repeats 7] [--latency-ms 20] [--parts noop,overhead,chain,default]
 
 1. No-op rerun of the 10-stage numeric pipeline (bench_core.ten_stage_pipeline): wall clock and CPU (user+sys
    of the ``msflow run`` child process), best of N; and the S3 requests it makes, by operation.
@@ -9,6 +9,8 @@
 3. A chain of 40 stages, each reading the previous one's output, in one process, from an empty store: wall and
    requests per stage as they are against moto, and with ``--latency-ms`` (default 20) added to every request,
    which stands in for a real S3's round trip: what a stage costs there is mostly its serial round trips.
+4. ``--parts default``: the default pipeline from an empty store, in one process: its requests by operation and
+   kind of object (each array writes its zarr.json beside its chunks).
 
 moto answers on the loopback in about a millisecond; on real S3 each request costs ~10-30 ms, so the request
 counts are what carries over: multiply them by the round trip of your endpoint.
@@ -75,13 +77,16 @@ class RequestCounter:
         from msflow.stores.objects import S3Objects
 
         self.counts: collections.Counter = collections.Counter()
+        self.objects: collections.Counter = collections.Counter()  # (operation, kind of object)
         self._cls = S3Objects
         self._original = S3Objects._call
-        counts = self.counts
+        counts, objects = self.counts, self.objects
         original = self._original
 
         async def counted(self_, method, **kwargs):
             counts[method] += 1
+            path = self_._rel(kwargs.get("Key") or kwargs.get("Prefix") or "")
+            objects[(method, object_kind(path, listing=method.startswith("list")))] += 1
             if latency:
                 await asyncio.sleep(latency)
             return await original(self_, method, **kwargs)
@@ -91,10 +96,40 @@ class RequestCounter:
     def take(self) -> dict:
         out = dict(self.counts)
         self.counts.clear()
+        self.objects.clear()
         return out
 
     def close(self) -> None:
         self._cls._call = self._original
+
+
+def object_kind(rel: str, listing: bool = False) -> str:
+    """What a store path is: the top folder of the layout (artifacts, commits, locks, pending, blobs, runs), an
+    artifact's object split into zarr.json (group and array metadata) and chunks (a listing: its top folder)."""
+    top = rel.split("/", 1)[0]
+    if top == "artifacts" and not listing:
+        return "artifacts: zarr.json" if rel.endswith("zarr.json") else "artifacts: chunks"
+    return top or "(store root)"
+
+
+def bench_default(tmp: Path, options: dict) -> dict:
+    """The default pipeline from an empty S3 store, in one process: its requests by operation and kind of object."""
+    from bench_dask import copy_repo
+
+    import msflow
+
+    project = copy_repo(tmp / "default")
+    use_store(project / "pipeline.yaml", "s3://bench/default", options)
+    counter = RequestCounter()
+    try:
+        started = time.perf_counter()
+        result = msflow.run(project / "pipeline.yaml")
+        wall = time.perf_counter() - started
+        by_object = {f"{op} {kind}": n for (op, kind), n in counter.objects.most_common()}
+        total = sum(counter.take().values())
+    finally:
+        counter.close()
+    return {"stages": len(result.record["stages"]), "wall_s": round(wall, 2), "requests": total, "by_object": by_object}
 
 
 def bench_noop(tmp: Path, options: dict, repeats: int) -> dict:
@@ -197,7 +232,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--latency-ms", type=float, default=20.0)
-    parser.add_argument("--parts", default="noop,overhead,chain")
+    parser.add_argument("--parts", default="noop,overhead,chain,default")
     args = parser.parse_args()
     parts = args.parts.split(",")
     os.environ.setdefault("AWS_EC2_METADATA_DISABLED", "true")
@@ -212,6 +247,8 @@ def main() -> None:
             if "chain" in parts:
                 chain = bench_chain(tmp, options, args.latency_ms)
                 print("chain of 40 stages, in process:", json.dumps(chain, indent=1))
+            if "default" in parts:
+                print("default pipeline, in process:", json.dumps(bench_default(tmp, options), indent=1))
     finally:
         server.stop()
 
