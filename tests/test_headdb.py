@@ -30,14 +30,10 @@ def tracks60(phrases):
 
 @pytest.fixture(scope="module")
 def crema_tracks():
-    from stages.tracking import FaceMesh
+    """Three CREMA-D takes, tracked once per test session (face_fixtures)."""
+    from face_fixtures import training_tracks
 
-    files = {
-        p.name.split("_")[2]: p
-        for p in sorted((ROOT / "data" / "crema-d").glob("*.flv"))
-        if p.name.split("_")[2] in ("NEU", "HAP", "ANG")
-    }
-    return run_stage(FaceMesh, {}, {"videos": files})
+    return training_tracks()
 
 
 def sequence_rows(run, label):
@@ -260,10 +256,10 @@ def test_paper_sized_database():
 
 def test_crema_d_tracked_database(crema_tracks):
     run = run_stage(TrackedHeadDb, {"speaker": "1001"}, {"tracks": crema_tracks})
-    assert run.meta["labels"] == ["ANG", "ANG~mirror", "HAP", "HAP~mirror", "NEU", "NEU~mirror"]
+    assert run.meta["labels"] == ["neutral", "neutral~mirror", "happy", "happy~mirror", "angry", "angry~mirror"]
     assert run.meta["speakers"] == ["1001"] * 6
     assert run.meta["fps"] == pytest.approx(29.97, abs=0.01) and run.meta["translation_units"] == "cm"
-    counts = np.bincount(crema_tracks.arrays["sequence"])
+    counts = np.bincount(crema_tracks["sequence"])
     assert run.meta["frames"][0::2] == list(counts)
     degrees = np.degrees(np.abs(run.arrays["angles"]))
     assert degrees.max() < 30  # small head motion of a seated actor

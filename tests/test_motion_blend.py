@@ -465,12 +465,10 @@ def test_head_angles_figure(leave_one_out, database, tracks):
 
 @pytest.fixture(scope="module")
 def crema():
-    from stages.tracking import FaceMesh
+    """The default pipeline's takes, tracked once per test session (face_fixtures)."""
+    from face_fixtures import tracked, training_tracks
 
-    files = {p.name.split("_")[2]: p for p in sorted((ROOT / "data" / "crema-d").glob("*.flv"))}
-    train = run_stage(FaceMesh, {}, {"videos": {k: files[k] for k in ("NEU", "HAP", "ANG")}})
-    test = run_stage(FaceMesh, {}, {"videos": {"SAD": files["SAD"]}})
-    return train, test
+    return training_tracks(), tracked("sad")
 
 
 def test_crema_d_end_to_end(crema):
@@ -482,7 +480,7 @@ def test_crema_d_end_to_end(crema):
     tr = run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": take_pitch})
     run = run_stage(MotionBlend, {}, {"trellis": tr, "database": headdb, "reference": test})
     assert run.meta["fps"] == pytest.approx(test.meta["fps"][0])
-    assert run.meta["frames"] == [len(test.arrays["rotation"])]
+    assert run.meta["frames"] == [len(test["rotation"])]
     angles = np.degrees(run.arrays["angles"])
     assert np.abs(angles).max() < 30
     # the synthesis moves, and not wildly faster than the real take
