@@ -301,9 +301,9 @@ def dask_round_trip(cluster, tasks: int = 200) -> None:
 
     pids = [p.pid for p in cluster.procs]
     stream = cluster.client.scheduler_comm
-    for label in ("as it comes", "as msflow sets it up"):
+    for label, at_once in (("as it comes", False), ("as msflow sets it up", True)):
         batching = stream.interval
-        if label != "as it comes":
+        if at_once:
             send_without_delay(cluster.client)
         for _ in range(20):  # warm: the function's pickle reaches every worker
             cluster.client.submit(noop, "x", pure=False).result()

@@ -14,8 +14,6 @@ from stages.geometry.rotations import euler_to_quat, quat_mean
 from stages.head.database import BvhHeadDb, CsvHeadDb, TrackedHeadDb
 from stages.head.pitch import Pitch, wav_bytes
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
 def phrases():

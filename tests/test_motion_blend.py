@@ -1,7 +1,5 @@
 """Motion blending (paper Sec. 5.4): resampling, chaining, drift correction, crossfaded joins, outputs."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 from head_synthetic import synth_database, tracking_artifact
@@ -14,7 +12,6 @@ from msflow.testing import artifact, prepare_inputs, run_stage
 from stages.formats.bvh import joint_rotation, joint_translation, parse_bvh
 from stages.head.database import TrackedHeadDb
 from stages.head.measures import (
-    JOIN_MEASURE_WINDOW,
     angular_acceleration,
     angular_speed,
     join_acceleration,
@@ -25,14 +22,13 @@ from stages.head.measures import (
 from stages.head.motion_blend import (
     DatabaseMotion,
     MotionBlend,
+    accelerations_at_joins,
     join_windows,
     segment_weights,
     stitch_segments,
 )
 from stages.head.pitch import Pitch
 from stages.head.trellis import Trellis
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -366,20 +362,6 @@ def test_outputs_frames_rate_and_bvh(leave_one_out, database, tracks):
     assert {"speed_wasserstein", "max_join_acceleration", "real_acceleration_p99"} <= set(run.metrics)
 
 
-def accelerations_at_joins(run, fps=30.0):
-    """The largest angular acceleration near each join of a MotionBlend run (deg/s^2, within the window the stage's
-    ``max_join_acceleration`` uses), over all utterances."""
-    a = run.arrays
-    return np.concatenate(
-        [
-            join_acceleration(
-                a["angles"][a["sequence"] == u], fps, a["joins"][a["join_utterance"] == u], JOIN_MEASURE_WINDOW
-            )
-            for u in np.unique(a["sequence"])
-        ]
-    )
-
-
 def test_leave_one_out_motion_is_plausible_and_smooth_at_joins(leave_one_out, database, tracks):
     """Velocity blending makes joins smoother than hard cuts and than the position crossfade, join by join (mean and
     90th percentile over the ~200 joins). Not by the single worst join: on this synthetic database it can fall on a
@@ -392,9 +374,9 @@ def test_leave_one_out_motion_is_plausible_and_smooth_at_joins(leave_one_out, da
         {"trellis": leave_one_out, "database": database[0]},
     )
     fade = run_stage(MotionBlend, {"join_smoothing": "crossfade"}, {"trellis": leave_one_out, "database": database[0]})
-    smooth = accelerations_at_joins(soft)
+    smooth = accelerations_at_joins(soft.arrays, 30.0)
     assert smooth.max() == pytest.approx(soft.metrics["max_join_acceleration"])
-    for rough in (accelerations_at_joins(hard), accelerations_at_joins(fade)):
+    for rough in (accelerations_at_joins(hard.arrays, 30.0), accelerations_at_joins(fade.arrays, 30.0)):
         assert len(rough) == len(smooth) > 50
         assert smooth.mean() < 0.8 * rough.mean()
         assert np.percentile(smooth, 90) < 0.8 * np.percentile(rough, 90)

@@ -84,8 +84,8 @@ class PixelTriangles:
 
     Each covered pixel has its triangle's three vertex indices and its barycentric coordinates there, so the
     same weights applied to another shape with the same triangulation give the pixel's corresponding position:
-    the piecewise-affine correspondence; as a sparse (P, n_points) matrix, positions for many shapes at once are
-    one matrix product (``PiecewiseAffineWarp.source_positions``).
+    the piecewise-affine correspondence. As a sparse (P, n_points) matrix (``weights``), positions for many shapes
+    at once are one matrix product (``PiecewiseAffineWarp.source_positions``).
     """
 
     size: tuple[int, int]  # (w, h) of the image
@@ -101,6 +101,15 @@ class PixelTriangles:
         m = np.zeros(h * w, dtype=bool)
         m[self.pixel_index] = True
         return m.reshape(h, w)
+
+    def weights(self):
+        """(P, n_points) CSR matrix (scipy.sparse), three barycentric weights per row."""
+        from scipy.sparse import csr_matrix
+
+        p = len(self.pixel_index)
+        return csr_matrix(
+            (self.bary.reshape(-1), self.vertices.reshape(-1), np.arange(0, 3 * p + 1, 3)), (p, self.n_points)
+        )
 
     def positions(self, shape: np.ndarray) -> np.ndarray:
         """(P, 2) positions of the covered pixels in another shape (n_points, 2) with the same triangulation."""
@@ -153,6 +162,7 @@ class PiecewiseAffineWarp:
         self.triangles = np.asarray(triangles, dtype=np.int32)
         self.size = (int(size[0]), int(size[1]))
         self.pixels = pixels_of_reference(self.reference, self.triangles, self.size)
+        self._weights = self.pixels.weights()
         self._nearest_inside = nearest_inside_index(self.pixels.mask)
 
     @property
@@ -171,23 +181,8 @@ class PiecewiseAffineWarp:
         shapes = np.asarray(shapes, dtype=np.float64)
         n, k, _ = shapes.shape
         flat = shapes.transpose(1, 0, 2).reshape(k, n * 2)  # (points, frames*2)
-        pos = self._sparse_weights @ flat  # (P, frames*2)
+        pos = self._weights @ flat  # (P, frames*2)
         return pos.reshape(-1, n, 2).transpose(1, 0, 2).astype(np.float32)
-
-    @property
-    def _sparse_weights(self):
-        """The (P, n_points) barycentric weights as a CSR matrix (built on first use)."""
-        cached = self.__dict__.get("_csr")
-        if cached is None:
-            from scipy.sparse import csr_matrix
-
-            p = len(self.pixels.pixel_index)
-            cached = csr_matrix(
-                (self.pixels.bary.reshape(-1), self.pixels.vertices.reshape(-1), np.arange(0, 3 * p + 1, 3)),
-                shape=(p, self.pixels.n_points),
-            )
-            self.__dict__["_csr"] = cached
-        return cached
 
     def warp(self, images: np.ndarray, shapes: np.ndarray, chunk: int = 256) -> np.ndarray:
         """Sample every image (frames, H, W) at its shape's correspondence of the reference pixels.

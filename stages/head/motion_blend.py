@@ -1185,19 +1185,28 @@ def low_pass(channels: np.ndarray, sd_frames: float) -> np.ndarray:
     return gaussian_filter1d(channels, sd_frames, axis=0, mode="nearest")
 
 
+def accelerations_at_joins(arrays, fps: float, window: float = JOIN_MEASURE_WINDOW) -> np.ndarray:
+    """The largest angular acceleration within +-``window`` s of each join (deg/s^2), utterance by utterance, of a
+    MotionBlend output (``angles``, ``sequence``, ``joins``, ``join_utterance``); utterances under 3 frames have none."""
+    found = [np.zeros(0)]
+    for u in np.unique(arrays["sequence"]):
+        angles = arrays["angles"][arrays["sequence"] == u]
+        if len(angles) >= 3:
+            joins = arrays["joins"][arrays["join_utterance"] == u]
+            found.append(join_acceleration(angles, fps, joins, max(window, 1.0 / fps)))
+    return np.concatenate(found)
+
+
 def motion_metrics(arrays: dict, fps: float, window: float, reference, labels: list[str]) -> dict:
     """Speed and join smoothness of the synthesis; against the real motion when a reference is given."""
     metrics = {}
-    speeds, join_acc, ref_speed, ref_acc99, w1 = [], [], [], [], []
+    speeds, ref_speed, ref_acc99, w1 = [], [], [], []
     for u in range(len(labels)):
         mask = arrays["sequence"] == u
         angles = arrays["angles"][mask]
         if len(angles) < 3:
             continue
         speeds.append(angular_speed(angles, fps))
-        join_acc.append(
-            join_acceleration(angles, fps, arrays["joins"][arrays["join_utterance"] == u], max(window, 1.0 / fps))
-        )
         if reference is not None:
             real = reference_angles(reference, labels[u], len(labels), fps)
             if real is not None and len(real) >= 3:
@@ -1206,7 +1215,7 @@ def motion_metrics(arrays: dict, fps: float, window: float, reference, labels: l
                 w1.append(wasserstein_speed(angles, real, fps))
     if speeds:
         metrics["mean_angular_speed"] = float(np.mean(np.concatenate(speeds)))
-    joins = np.concatenate(join_acc) if join_acc else np.zeros(0)
+    joins = accelerations_at_joins(arrays, fps, window)
     if len(joins):
         metrics["max_join_acceleration"] = float(joins.max())
     if ref_speed:
