@@ -1,12 +1,14 @@
 """Dask cluster figures (issue 17): the default pipeline on two workers that cannot read the project folder.
 
-    python bench/bench_dask.py [--repeats 3] [--parts default,overhead,floor,malloc,idle]
+    python bench/bench_dask.py [--repeats 3] [--parts default,overhead,floor,malloc,idle] [--s3-server moto]
 
 The cluster is the stand-in of tests/test_dask.py: a ``dask scheduler`` and two ``dask worker`` processes (one
 thread each, ``--preload-nanny msflow.dask_setup``) started in their own folder, in a mount namespace that hides
 the project copies and this checkout, as ``nobody`` when run as root. Two stores the workers can reach:
 
-- ``s3``: moto's S3 server on loopback, in its own process (its CPU is counted apart: a real S3 costs no local CPU);
+- ``s3``: moto's S3 on loopback, in its own process (its CPU is counted apart: a real S3 costs no local CPU), served
+  alone (bench/moto_s3.py; ``--s3-server moto``: ``python -m moto.server``, whose dispatcher for all of AWS costs
+  about 1.4 ms of CPU more per request on the same 2 cores);
 - ``folder``: a store folder outside the project (what a shared file system gives a real cluster).
 
 1. The default pipeline from an empty store, interleaved ``--repeats`` times: local ``-j 2`` (process pool, store in
@@ -76,12 +78,18 @@ def self_cpu() -> float:
     return times.user + times.system + times.children_user + times.children_system
 
 
-def start_moto() -> tuple[subprocess.Popen, dict]:
+def start_moto(server: str = "s3-only") -> tuple[subprocess.Popen, dict]:
+    """moto on a free loopback port: its S3 application alone (``s3-only``, bench/moto_s3.py) or ``python -m
+    moto.server`` (``moto``: every AWS service behind moto's dispatcher, which costs CPU per request)."""
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
+    command = {
+        "s3-only": [str(HERE / "moto_s3.py"), str(port)],
+        "moto": ["-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)],
+    }[server]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)],
+        [sys.executable, *command],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
@@ -392,6 +400,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--parts", default="default,overhead,floor,malloc,idle")
+    parser.add_argument("--s3-server", choices=["s3-only", "moto"], default="s3-only")
     args = parser.parse_args()
     import logging
 
@@ -399,7 +408,7 @@ def main() -> None:
     from test_dask import IsolatedCluster
 
     os.umask(0)  # the folder stores are shared with the workers' user (nobody)
-    moto, options = start_moto()
+    moto, options = start_moto(args.s3_server)
     os.environ["AWS_EC2_METADATA_DISABLED"] = "true"
     with tempfile.TemporaryDirectory(prefix="msflow-bench-dask-") as tmp_name:
         tmp = Path(tmp_name)

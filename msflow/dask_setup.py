@@ -26,7 +26,17 @@ import os
 from typing import Any
 
 #: imported by every worker at start-up: the modules each msflow job imports before its stage's own
-WORKER_MODULES = ("msflow.worker", "msflow.shipping", "msflow.stores", "msflow.stores.local", "numpy", "zarr")
+WORKER_MODULES = (
+    "msflow.worker",
+    "msflow.shipping",
+    "msflow.plan",  # shipped code is made importable through it (and it brings pydantic: ~0.12 s)
+    "msflow.stage",  # results are validated through it
+    "msflow.stores",
+    "msflow.stores.local",
+    "numpy",
+    "zarr",
+    "threadpoolctl",  # BLAS pools limited around every stage
+)
 #: imported when installed: the object-store backends of remote stores
 OPTIONAL_MODULES = ("msflow.stores.remote", "s3fs")
 IMPORTS_VAR = "MSFLOW_WORKER_IMPORTS"

@@ -5,6 +5,9 @@ A worker on another machine cannot read the project folder, so a job sent to a D
 - **Code by content.** The project's code that the run's stages need (every module of each stage's import closure,
   and the data files stages declare in ``Stage.resources``) is put into the store as content-addressed blobs, plus
   one small *code tree* (relative path -> content hash, and each module's fingerprint) whose own hash names it.
+  The modules travel as one blob, the tree's *pack* (their bytes one after another, in the tree's order), so a
+  fresh store or worker costs the same few requests however many modules the stages import; each resource (models,
+  meshes: large, and rarely changed) is a blob of its own, so an edit to the code uploads none of them again.
   Building the tree, the client fingerprints every module it ships (the planner's digest while the file's stat
   signature is unchanged, else parsed from the bytes shipped) against the key's ``code.modules``: code edited
   between key and shipping is refused, never computed under the old key. The job carries the tree's hash; the
@@ -34,6 +37,7 @@ import threading
 import uuid
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -158,12 +162,25 @@ class CodeTree:
     files: dict[str, str]
     sources: dict[str, Path]
     modules: dict[str, str] = field(default_factory=dict)
+    module_bytes: dict[str, bytes] = field(default_factory=dict, repr=False)  # the modules' content, as hashed
 
-    @property
+    @cached_property
+    def pack(self) -> bytes:
+        """The modules' bytes one after another, in the order of ``document["pack"]["files"]``."""
+        return b"".join(self.module_bytes[rel] for rel in sorted(self.module_bytes))
+
+    @cached_property
     def document(self) -> dict[str, Any]:
-        return {"code": dict(sorted(self.files.items())), "modules": dict(sorted(self.modules.items()))}
+        document: dict[str, Any] = {
+            "code": dict(sorted(self.files.items())),
+            "modules": dict(sorted(self.modules.items())),
+        }
+        if self.module_bytes:
+            files = [[rel, len(self.module_bytes[rel])] for rel in sorted(self.module_bytes)]
+            document["pack"] = {"blob": bytes_hash(self.pack), "files": files}
+        return document
 
-    @property
+    @cached_property
     def digest(self) -> str:
         return json_hash(self.document)
 
@@ -183,12 +200,14 @@ def code_tree(root: Path, plans: Iterable[StagePlan], memo: dict[str, Any] | Non
     sources: dict[str, Path] = {}
     files: dict[str, str] = {}
     modules: dict[str, str] = {}
+    module_bytes: dict[str, bytes] = {}
     digests: dict[str, str] = {}  # content hash -> AST digest, of this tree's modules
     for plan in plans:
         for rel, wanted in plan.code["modules"].items():
             if rel not in modules:
                 path = sources[rel] = module_source(index, root, rel)
-                content, digest = module_fingerprint(path, known, planned.get(rel))
+                data = module_bytes[rel] = path.read_bytes()
+                content, digest = module_fingerprint(path, data, known, planned.get(rel))
                 files[rel], modules[rel], digests[content] = content, digest, digest
                 known[content] = digest
             if modules[rel] != wanted:
@@ -205,16 +224,15 @@ def code_tree(root: Path, plans: Iterable[StagePlan], memo: dict[str, Any] | Non
     files.update({rel: file_hash(path) for rel, path in sorted(sources.items()) if rel not in files})
     if memo is not None:
         memo["shipped"] = digests  # only the current tree's: the memo does not grow with every edit
-    return CodeTree(dict(sorted(files.items())), sources, modules)
+    return CodeTree(dict(sorted(files.items())), sources, modules, module_bytes)
 
 
-def module_fingerprint(path: Path, known: dict[str, str], planned: list[Any] | None) -> tuple[str, str]:
-    """(content hash, AST digest) of a module file: the digest from ``known`` (content hash -> digest), else the
-    planner's (``planned``: its memo entry [stat signature, digest, imports]) when the file's stat signature, taken
-    after reading it, is still the one the planner fingerprinted, else parsed from the bytes read."""
+def module_fingerprint(path: Path, data: bytes, known: dict[str, str], planned: list[Any] | None) -> tuple[str, str]:
+    """(content hash, AST digest) of a module file's ``data``: the digest from ``known`` (content hash -> digest),
+    else the planner's (``planned``: its memo entry [stat signature, digest, imports]) when the file's stat
+    signature, taken after reading it, is still the one the planner fingerprinted, else parsed from ``data``."""
     from msflow.fingerprint import parse_module
 
-    data = path.read_bytes()
     content = bytes_hash(data)
     digest = known.get(content)
     if digest is None and planned and planned[0] == stat_signature(path):
@@ -278,28 +296,41 @@ class Shipper:
         return replace(job, project_root="", code=tree.digest, inputs=inputs)
 
     def upload_code(self, blobs: Blobs, tree: CodeTree) -> None:
-        """The code tree's files, then the tree itself (so a tree in the store implies its files are)."""
+        """The tree's pack and resources, then the tree itself (so a tree in the store implies the rest is)."""
+        document = tree.document
         if tree.digest in self.known or blobs.has(tree.digest):
             self.known.add(tree.digest)
             return
-        self.upload_files(
-            blobs, [(digest, tree.sources[rel], f"project file {rel}") for rel, digest in tree.files.items()]
-        )
-        blobs.put(tree.digest, canonical_json(tree.document).encode())
+        resources = [
+            (d, tree.sources[rel], f"project file {rel}")
+            for rel, d in tree.files.items()
+            if rel not in tree.module_bytes
+        ]
+        pack = {document["pack"]["blob"]: tree.pack} if "pack" in document else {}
+        self.upload_files(blobs, resources, pack)
+        blobs.put(tree.digest, canonical_json(document).encode())
         self.known.add(tree.digest)
 
-    def upload_files(self, blobs: Blobs, files: list[tuple[str, Path, str]]) -> None:
-        """Files (digest, path, what) as blobs: the store asked once which it lacks (concurrently, on an object
-        store), those uploaded together in batches of about UPLOAD_BATCH_BYTES. One by one, a first run against
-        a fresh S3 store spent two serial round trips per project file before its first stage could start."""
-        wanted = {digest: (path, what) for digest, path, what in files if digest not in self.known}
+    def upload_files(
+        self, blobs: Blobs, files: list[tuple[str, Path, str]], read: dict[str, bytes] | None = None
+    ) -> None:
+        """Files (digest, path, what) and blobs already ``read`` (digest -> bytes) into the store: the store asked
+        once which it lacks (concurrently, on an object store), those uploaded together in batches of about
+        UPLOAD_BATCH_BYTES. One by one, a first run against a fresh S3 store spent two serial round trips per
+        project file before its first stage could start."""
+        wanted: dict[str, tuple[Path, str] | None] = {d: (path, what) for d, path, what in files if d not in self.known}
+        wanted.update({digest: None for digest in read or {} if digest not in self.known})
         batch: dict[str, bytes] = {}
         size = 0
         for digest in blobs.missing(list(wanted)) if wanted else ():
-            path, what = wanted[digest]
-            data = path.read_bytes()
-            if bytes_hash(data) != digest:
-                raise UserError(f"{what} changed during the run; run again", file=str(path))
+            source = wanted[digest]
+            if source is None:
+                data = (read or {})[digest]
+            else:
+                path, what = source
+                data = path.read_bytes()
+                if bytes_hash(data) != digest:
+                    raise UserError(f"{what} changed during the run; run again", file=str(path))
             batch[digest] = data
             size += len(data)
             if size >= UPLOAD_BATCH_BYTES:
@@ -461,9 +492,30 @@ def materialise_code(digest: str, blobs: Blobs, folder: Path) -> Path:
     if target.is_dir():
         return target
     files: dict[str, str] = document["code"]
-    contents = fetch_verified(blobs, list(files.values()))
+    pack = document.get("pack") or {"files": []}
+    packed = {rel for rel, _ in pack["files"]}
+    contents = fetch_verified(
+        blobs, [d for rel, d in files.items() if rel not in packed] + ([pack["blob"]] if packed else [])
+    )
+    contents.update(unpack(contents.pop(pack["blob"]), pack["files"], files) if packed else {})
     write_tree(target, {rel: contents[d] for rel, d in files.items()})
     return target
+
+
+def unpack(data: bytes, layout: list[list[Any]], files: dict[str, str]) -> dict[str, bytes]:
+    """A code tree's pack cut into its modules (``layout``: [relative path, size] in order), each checked against
+    the hash the tree gives it; returns content hash -> bytes."""
+    out: dict[str, bytes] = {}
+    start = 0
+    for rel, size in layout:
+        piece = data[start : start + size]
+        start += size
+        if bytes_hash(piece) != files.get(rel):
+            raise UserError(f"the code pack in the store does not hold {rel} as its tree says (corrupt)")
+        out[files[rel]] = piece
+    if start != len(data):
+        raise UserError("the code pack in the store is longer than its tree says (corrupt)")
+    return out
 
 
 def write_tree(target: Path, files: dict[str, bytes]) -> None:

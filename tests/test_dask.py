@@ -267,36 +267,46 @@ def test_a_shipped_job_carries_no_path_and_runs_from_the_store(numproject, tmp_p
     assert np.array_equal(store.open(job.key)["x"], expected)
 
 
-def test_shipping_to_a_fresh_object_store_takes_as_many_round_trips_for_many_project_files_as_for_few(
+def test_shipping_to_a_fresh_object_store_takes_as_many_requests_for_many_project_modules_as_for_few(
     numproject, tmp_path, s3, monkeypatch
 ):
-    """The code tree's files are checked and uploaded together: one by one, a first run against a fresh S3 store
-    spent two serial round trips per project file before its first stage could start."""
-    from msflow.shipping import blob_path
+    """The modules travel as one pack: the client checks and uploads, and a fresh worker fetches, as many objects
+    (and in as many round trips) for a stage importing twelve more modules. One by one, a first run against a fresh
+    S3 store spent two serial round trips per project file before its first stage could start, and each worker
+    then fetched every file: on the default pipeline 148 of the client's requests and 145 of the workers'."""
+    from msflow.shipping import blob_path, materialise_code, open_blobs
     from msflow.stores.objects import S3Objects
 
-    def round_trips(project):
-        waves = []
-        run = S3Objects._run
+    def requests(project):
+        waves, paths = [], []
+        run, exists, get = S3Objects._run, S3Objects.exists_many, S3Objects.get_many
         monkeypatch.setattr(S3Objects, "_run", lambda self, *args: waves.append(1) or run(self, *args))
+        monkeypatch.setattr(S3Objects, "exists_many", lambda self, rels: paths.extend(rels) or exists(self, rels))
+        monkeypatch.setattr(S3Objects, "get_many", lambda self, rels: paths.extend(rels) or get(self, rels))
         job, store = shipped(project, tmp_path, store=s3.store(s3.bucket()))
+        shipping = (len(waves), len(paths))
+        waves.clear(), paths.clear()
+        root = materialise_code(job.code, open_blobs(job.store, job.store_options), tmp_path / f"w-{project.name}")
+        fetching = (len(waves), len(paths))
         monkeypatch.setattr(S3Objects, "_run", run)
+        monkeypatch.setattr(S3Objects, "exists_many", exists)
+        monkeypatch.setattr(S3Objects, "get_many", get)
+        assert (root / "numstages" / "basic.py").read_bytes() == (project / "numstages" / "basic.py").read_bytes()
         blobs = store.objects.list("blobs/")
         assert {o.path for o in blobs} >= {blob_path(job.code)} | {
             blob_path(d) for d in job.inputs["table"].blobs.values()
         }
-        return len(waves), len(blobs)
+        return shipping, fetching, len(blobs)
 
-    few, few_blobs = round_trips(numproject)
+    few = requests(numproject)
     bigger = tmp_path / "bigger"
     shutil.copytree(numproject, bigger)
     for i in range(12):  # twelve more modules in the stage's import closure
         (bigger / "numstages" / f"extra_{i}.py").write_text(f"VALUE = {i}\n")
     basic = bigger / "numstages" / "basic.py"
     basic.write_text(basic.read_text() + "".join(f"from numstages import extra_{i}  # noqa\n" for i in range(12)))
-    many, many_blobs = round_trips(bigger)
-    assert many_blobs == few_blobs + 12
-    assert many == few
+    many = requests(bigger)
+    assert (bigger / "numstages" / "extra_11.py").is_file() and many == few
 
 
 def test_a_worker_with_other_package_versions_refuses_the_job(numproject, tmp_path):
@@ -350,9 +360,27 @@ def test_a_worker_checks_the_tree_against_the_key_without_parsing(numproject, tm
     assert "does not match the cache key's fingerprint (numstages/basic.py differ)" in outcome.user_error["message"]
     assert not store.has(job.key)
     document = json.loads((tmp_path / "store" / blob_path(job.code)).read_bytes())
-    old = {"code": document["code"]}
+    old = {"code": document["code"], "pack": document["pack"]}  # the same files, no record of fingerprints
     FolderBlobs(tmp_path / "store").put(json_hash(old), canonical_json(old).encode())
     assert run_in_fresh_process(replace(job, code=json_hash(old)), tmp_path).status == "ran"
+
+
+def test_a_code_pack_that_does_not_match_its_tree_is_refused(numproject, tmp_path):
+    """The pack is checked module by module against the tree's hashes (a client that cut it wrongly, say)."""
+    from dataclasses import replace
+
+    from msflow.hashing import canonical_json, json_hash
+    from msflow.shipping import FolderBlobs, blob_path
+
+    job, _ = shipped(numproject, tmp_path)
+    document = json.loads((tmp_path / "store" / blob_path(job.code)).read_bytes())
+    layout = document["pack"]["files"]
+    assert len(layout) >= 2 and layout[0][1] != layout[1][1]
+    layout[0][1], layout[1][1] = layout[1][1], layout[0][1]  # the same bytes, cut in the wrong places
+    FolderBlobs(tmp_path / "store").put(json_hash(document), canonical_json(document).encode())
+    outcome = run_in_fresh_process(replace(job, code=json_hash(document)), tmp_path)
+    assert outcome.status == "failed" and outcome.user_error
+    assert f"the code pack in the store does not hold {layout[0][0]} as its tree says" in outcome.user_error["message"]
 
 
 def test_shipped_folder_inputs_and_resources(numproject, tmp_path):
@@ -579,10 +607,11 @@ def test_workers_start_with_their_imports_done(cluster):
     def loaded():
         import sys
 
-        return sorted(m for m in ("msflow.worker", "zarr", "cv2", "scipy.signal", "parselmouth") if m in sys.modules)
+        wanted = ("msflow.worker", "msflow.plan", "pydantic", "zarr", "cv2", "scipy.signal", "parselmouth")
+        return sorted(m for m in wanted if m in sys.modules)
 
     assert set(map(tuple, cluster.client.run(loaded).values())) == {
-        ("cv2", "msflow.worker", "parselmouth", "scipy.signal", "zarr")
+        ("cv2", "msflow.plan", "msflow.worker", "parselmouth", "pydantic", "scipy.signal", "zarr")
     }
 
 
