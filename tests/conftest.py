@@ -246,6 +246,31 @@ class MotoS3:
         return open_store(f"s3://{bucket}/{prefix}", self.options)
 
 
+def damage_chunk(store, key: str, rel: str | None = None) -> str:
+    """Flip a byte in the middle of one stored chunk (``rel`` in the group, else the largest) of artifact ``key``
+    on a remote store, whether its group is loose objects or one pack (msflow.stores.packs; the pack is rebuilt,
+    so only msflow's own chunk checksum can notice); returns the chunk's path in the group."""
+    from msflow.stores.packs import Pack, make_pack
+
+    def flip(data: bytes) -> bytes:
+        damaged = bytearray(data)
+        damaged[len(damaged) // 2] ^= 0x10
+        return bytes(damaged)
+
+    marker = store._marker(key)
+    folder = store.data_path(key, marker["data"])
+    if marker.get("pack"):
+        path = f"{folder}/{marker['pack']}"
+        members = dict(Pack(store.objects.get(path), path).members())
+        rel = rel or max((r for r in members if not r.endswith("zarr.json")), key=lambda r: len(members[r]))
+        store.objects.put(path, make_pack([(r, flip(d) if r == rel else d) for r, d in members.items()]))
+        return rel
+    sizes = {o.path[len(folder) + 1 :]: o.size for o in store.objects.list(folder + "/") if "/c" in o.path}
+    rel = rel or max(sizes, key=lambda r: sizes[r])
+    store.objects.put(f"{folder}/{rel}", flip(store.objects.get(f"{folder}/{rel}")))
+    return rel
+
+
 @pytest.fixture(scope="module")
 def s3():
     """A moto S3 server on 127.0.0.1 for the module's tests (instance metadata lookups off: botocore stays local)."""

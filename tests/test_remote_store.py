@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import Hold, MotoS3, cli_env, executions, run_cli, start_cli, wait_for_line
+from conftest import Hold, MotoS3, cli_env, damage_chunk, executions, run_cli, start_cli, wait_for_line
 
 import msflow
 from msflow.artifact import check_contents, encode_artifact, prepare_manifest
@@ -112,12 +112,8 @@ def test_numeric_project_on_s3_matches_a_local_store(numproject, tmp_path, s3):
     verify = run_cli(numproject, "verify")
     assert verify.returncode == 0 and "verified 7 artifacts: 0 corrupt" in verify.stdout, verify.stdout
 
-    chunks = [k for k in s3.objects(bucket, "num/artifacts/") if "/c/" in k or k.endswith("/c")]
-    victim = max(chunks, key=lambda k: s3.client.head_object(Bucket=bucket, Key=k)["ContentLength"])
-    data = bytearray(s3.client.get_object(Bucket=bucket, Key=victim)["Body"].read())
-    data[len(data) // 2] ^= 0x40
-    s3.client.put_object(Bucket=bucket, Key=victim, Body=bytes(data))
-    corrupt_key = victim.split("/")[3]
+    corrupt_key = max(store.keys(), key=store.size)
+    damage_chunk(store, corrupt_key)
     found = run_cli(numproject, "verify")
     assert found.returncode == 1 and f"corrupt {corrupt_key}" in found.stdout and "1 corrupt" in found.stdout
     assert run_cli(numproject, "verify", "--delete").returncode == 1
@@ -167,7 +163,8 @@ def test_sigkilled_runs_leave_nothing_visible_and_the_next_run_recovers(numproje
     # killed inside a forced stage (its lease held, nothing written), then mid-upload of a streamed output
     for pipeline, args in (("crash.yaml", ("--force", "slow")), ("stream.yaml", ("--until", "streamed"))):
         hold = Hold(tmp_path / pipeline)
-        proc = start_cli(numproject, "run", pipeline, *args, "-q", env=hold.env)
+        env = {**hold.env, "MSFLOW_STORE_PACK_MB": "0"}  # stream the chunks at once: killed mid-upload
+        proc = start_cli(numproject, "run", pipeline, *args, "-q", env=env)
         hold.wait_ready(proc)
         written = writes_of(store, proc.pid)
         proc.kill()
@@ -210,11 +207,7 @@ def test_a_corrupt_chunk_on_s3_is_caught_on_read_and_repaired(numproject, s3):
     store = s3.store(bucket, "num")
     record = store.read_run(store.run_ids()[-1])
     key = record["stages"]["src"]["key"]
-    folder = store.data_path(key, json.loads(store.objects.get(store.marker_path(key)))["data"])
-    chunk = f"{folder}/x/c/0"
-    data = bytearray(store.objects.get(chunk))
-    data[len(data) // 2] ^= 0x10
-    store.objects.put(chunk, bytes(data))
+    damage_chunk(store, key, "x/c/0")
     shown = run_cli(numproject, "show", "src.x")
     assert shown.returncode == 1 and key in shown.stderr and "Traceback" not in shown.stderr, shown.stderr
     run = run_cli(numproject, "run", "-q", "-S", "scaled.factor=5")
@@ -664,10 +657,7 @@ def test_verify_reads_the_store_not_what_the_process_remembers(s3):
     store = s3.store(s3.bucket())
     key = "ab" + "3" * 30
     store.write(key, {"x": np.arange(4.0)}, {"meta": {}, "metrics": {}})
-    folder = store.data_path(key, store._marker(key)["data"])
-    data = bytearray(store.objects.get(f"{folder}/x/c/0"))
-    data[len(data) // 2] ^= 0x10
-    store.objects.put(f"{folder}/x/c/0", bytes(data))
+    damage_chunk(store, key, "x/c/0")
     assert np.array_equal(store.open(key)["x"], np.arange(4.0))
     problems = store.verify(key)
     assert problems and "x" in " ".join(problems), problems
@@ -793,3 +783,84 @@ def test_open_remote_store_rejects_bad_options_and_urls(s3):
         open_remote_store(f"s3://{s3.bucket()}/p", {"no_such_option": 1})
     with pytest.raises(UserError, match="no bucket"):
         open_remote_store("s3://", s3.options)
+
+
+def test_a_small_artifact_is_one_object_that_zarr_opens_and_a_large_one_stays_loose(s3, tmp_path, monkeypatch):
+    """Eleven small outputs go up as one PUT (msflow.stores.packs), read back exactly, lazily through zarr too,
+    and the downloaded pack is a zarr v3 group with the manifest; over the limit the objects stay loose."""
+    import zarr
+
+    from msflow.stores import objects as objects_module
+    from msflow.stores import packs
+
+    puts = []
+    real_call = objects_module.S3Objects._call
+
+    async def logged(self, method, **kwargs):
+        if method == "put_object" and kwargs["Key"].split("/")[1] == "artifacts":
+            puts.append(kwargs["Key"])
+        return await real_call(self, method, **kwargs)
+
+    monkeypatch.setattr(objects_module.S3Objects, "_call", logged)
+    store = s3.store(s3.bucket())
+    arrays = {f"a{i}": np.arange(i * 10.0).reshape(i, 10) for i in range(10)} | {"s": np.array(7, np.int16)}
+    key = "ab" + "4" * 30
+    manifest = store.write(key, arrays, {"meta": {"note": "small"}})
+    assert len(puts) == 1 and puts[0].endswith(f"/{packs.PACK_NAME}") and store._marker(key)["pack"] == packs.PACK_NAME
+    for cached in (True, False):  # from this process's recent objects, then from the server
+        view = store._view(key, store._marker(key), cached=cached)
+        assert all(np.array_equal(view[name], arr) for name, arr in arrays.items())
+        assert np.array_equal(view.lazy("a9").oindex[[0, 8], 3:5], arrays["a9"][[0, 8], 3:5])  # through zarr
+    assert store.verify(key) == []
+    downloaded = tmp_path / "artifact.zip"
+    downloaded.write_bytes(store.objects.get(puts[0].split("/", 1)[1]))
+    group = zarr.open_group(zarr.storage.ZipStore(downloaded, mode="r"), mode="r")
+    assert group.attrs["msflow"] == manifest and np.array_equal(group["a7"][...], arrays["a7"])
+
+    monkeypatch.setenv("MSFLOW_STORE_PACK_MB", "0.001")  # 1000 bytes
+    puts.clear()
+    store.write("cd" + "4" * 30, arrays, {})
+    assert len(puts) == 2 * len(arrays) - 1 + 1 and not any(p.endswith(packs.PACK_NAME) for p in puts)  # a0 is empty
+    assert not store._marker("cd" + "4" * 30).get("pack") and store.verify("cd" + "4" * 30) == []
+
+
+def test_a_damaged_pack_is_a_corrupt_artifact(s3):
+    from msflow.errors import CorruptArtifact
+    from msflow.stores.packs import PACK_NAME
+
+    store = s3.store(s3.bucket())
+    key = "ab" + "5" * 30
+    store.write(key, {"x": np.arange(6.0), "y": np.ones(3)}, {})
+    path = f"{store.data_path(key, store._marker(key)['data'])}/{PACK_NAME}"
+    store.objects.put(path, store.objects.get(path)[:-40])  # cut short: no central directory
+    with pytest.raises(CorruptArtifact, match="not a readable zip"):
+        store._view(key, store._marker(key), cached=False)["x"]
+    assert any("not a readable zip" in p for p in store.verify(key))
+    other = "ab" + "6" * 30
+    store.write(other, {"z": np.arange(9.0)}, {})
+    damage_chunk(store, other, "z/c/0")  # a pack whose zip is sound, with a damaged chunk in it
+    with pytest.raises(CorruptArtifact, match="checksum"):
+        store._view(other, store._marker(other), cached=False)["z"]
+
+
+def test_an_output_sinks_chunks_wait_for_the_pack_while_small_and_stream_beyond_it(s3, monkeypatch):
+    """A sink's chunks are held for the pack up to the limit (the default pipeline's tracking stages: 29-35
+    objects each otherwise); past it the held ones go up and the rest stream, so memory stays bounded."""
+    from msflow.sinks import OutputSink
+    from msflow.stores.packs import PACK_NAME
+
+    store = s3.store(s3.bucket())
+    rows = np.arange(3000 * 4, dtype=np.float32).reshape(3000, 4)
+    for megabytes, packed in (("8", True), ("0.01", False)):
+        monkeypatch.setenv("MSFLOW_STORE_PACK_MB", megabytes)
+        key = ("ab" if packed else "cd") + "7" * 30
+        with store.writer(key) as writer:
+            sink = OutputSink("frames", "float32", (4,), target=writer)
+            for block in np.split(rows, 6):
+                sink.append(block)
+            writer.commit({"frames": sink, "n": np.array(3000)}, {})
+        folder = store.data_path(key, store._marker(key)["data"])
+        names = {o.path[len(folder) + 1 :] for o in store.objects.list(folder + "/")}
+        assert (names == {PACK_NAME}) == packed and bool(store._marker(key).get("pack")) == packed, names
+        view = store._view(key, store._marker(key), cached=False)
+        assert np.array_equal(view["frames"], rows) and store.verify(key) == []

@@ -3,7 +3,8 @@
 Layout under the store's prefix::
 
     commits/<k[:2]>/<key>.json       commit marker: names the key's data folder and holds its manifest
-    artifacts/<k[:2]>/<key>/<wid>/   zarr v3 groups, one folder per writer (wid: time, random)
+    artifacts/<k[:2]>/<key>/<wid>/   zarr v3 groups, one folder per writer (wid: time, random); a small artifact's
+                                     group is one object there, artifact.zip (msflow.stores.packs)
     pending/<key>.<wid>.json         journal of folders that may become garbage (being written or retired)
     locks/<key>.lease                per-key leases (msflow.stores.leases)
     runs/<id>.json                   one record per run (shared by every machine using the store)
@@ -53,6 +54,7 @@ Reading what this process just wrote
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import os
 import threading
@@ -70,6 +72,7 @@ from msflow.stored import StoredArray
 from msflow.stores.base import HOST, Json, expand_record, json_object, pid_alive
 from msflow.stores.leases import Lease, lease_is_stale, parse_holder
 from msflow.stores.objects import dumps, iter_chunks, make_objects
+from msflow.stores.packs import PACK_NAME, Pack, make_pack, pack_limit, take_small
 from msflow.stores.recent import RecentObjects, caches_for
 
 if TYPE_CHECKING:
@@ -182,8 +185,9 @@ class RemoteStore:
         chunks = marker.get("chunks", {})
         recent = self._caches.objects if cached else None
         checksum = manifest.get("format", 1) >= 2
+        pack = PackSource(self, f"{folder}/{marker['pack']}", recent) if marker.get("pack") else None
         arrays = {
-            name: RemoteArray(self, folder, name, entry, chunks.get(name), checksum=checksum, recent=recent)
+            name: RemoteArray(self, folder, name, entry, chunks.get(name), checksum=checksum, recent=recent, pack=pack)
             for name, entry in manifest["outputs"].items()
         }
         return ArtifactView(arrays, manifest.get("meta", {}), manifest.get("metrics", {}), key=key, manifest=manifest)
@@ -207,7 +211,14 @@ class RemoteStore:
         except (ValueError, KeyError, TypeError) as exc:
             return [f"commit marker unreadable: {type(exc).__name__}: {exc}"]
         problems = []
-        group = self.objects.get(f"{folder}/zarr.json")
+        try:
+            group = (
+                PackSource(self, f"{folder}/{marker['pack']}", None).load().get("zarr.json")
+                if marker.get("pack")
+                else self.objects.get(f"{folder}/zarr.json")
+            )
+        except (ValueError, FileNotFoundError) as exc:
+            return [f"the artifact's pack is unreadable: {exc}"]
         if group is None:
             problems.append(f"zarr.json missing under {folder}")
         else:
@@ -243,9 +254,11 @@ class RemoteStore:
         with self.writer(key) as writer:
             return writer.commit(arrays, extra, file_suffixes, replace)
 
-    def commit_folder(self, key: str, wid: str, manifest: dict[str, Any], replace: bool) -> dict[str, Any]:
-        """Write the commit marker naming folder ``wid``; returns the manifest that is committed (another
-        writer's, if one won the race)."""
+    def commit_folder(
+        self, key: str, wid: str, manifest: dict[str, Any], replace: bool, packed: bool = False
+    ) -> dict[str, Any]:
+        """Write the commit marker naming folder ``wid`` (``packed``: its group is one zip, PACK_NAME); returns
+        the manifest that is committed (another writer's, if one won the race)."""
         from msflow.chunks import array_metadata
 
         chunks = {
@@ -259,6 +272,7 @@ class RemoteStore:
                 "data": wid,
                 "manifest": manifest,
                 "chunks": chunks,
+                **({"pack": PACK_NAME} if packed else {}),
                 "host": HOST,
                 "pid": os.getpid(),
                 "committed": time.time(),
@@ -479,6 +493,8 @@ class RemoteWriter:
         self.uploading = False  # set before the first upload: from then on the folder may hold objects
         self.committed = False
         self.streamed = False  # objects uploaded before the commit (chunks of output sinks)
+        self._held: dict[str, bytes] = {}  # chunks of output sinks kept for the pack while they are small
+        self._held_size = 0
 
     def __enter__(self) -> RemoteWriter:
         return self
@@ -492,9 +508,21 @@ class RemoteWriter:
         self.uploading = True
 
     def put(self, rel: str, data: bytes) -> None:
-        """Upload one object of the zarr group (a chunk of an output sink) now."""
+        """One object of the zarr group (a chunk of an output sink): held for the commit's pack while the held
+        ones add up to at most the pack limit, then uploaded with them, and every later one at once (streamed)."""
+        if not self.streamed:
+            self._held[rel] = data
+            self._held_size += len(data)
+            if self._held_size <= pack_limit():
+                return
+            self._start()
+            self.streamed = True
+            held, self._held = self._held, {}
+            self.store.objects.put_many({f"{self.folder}/{r}": d for r, d in held.items()})
+            for r, d in held.items():
+                self.store._caches.objects.put(f"{self.folder}/{r}", d)
+            return
         self._start()
-        self.streamed = True
         self.store.objects.put(f"{self.folder}/{rel}", data)
         self.store._caches.objects.put(f"{self.folder}/{rel}", data)
 
@@ -516,13 +544,21 @@ class RemoteWriter:
             if info.path[len(self.folder) + 1 :].split("/")[0] not in arrays:
                 objects.delete(info.path)
         recent = self.store._caches.objects
-        for batch in iter_chunks(encode_artifact(arrays, manifest)):
+        held = [(rel, data) for rel, data in self._held.items() if rel.split("/")[0] in arrays]
+        self._held = {}
+        encoded = itertools.chain(held, encode_artifact(arrays, manifest))
+        small, packed = take_small(encoded) if not self.streamed else ([], False)
+        if packed:  # one object instead of one per array and chunk (msflow.stores.packs)
+            pack = make_pack(small)
+            objects.put(f"{self.folder}/{PACK_NAME}", pack)
+            recent.put(f"{self.folder}/{PACK_NAME}", pack)
+        for batch in iter_chunks(itertools.chain(small, encoded)) if not packed else ():
             uploads = {f"{self.folder}/{rel}": data for rel, data in batch.items()}
             objects.put_many(uploads)
             for path, data in uploads.items():
                 if not path.endswith("zarr.json"):  # readers take the layout from the marker
                     recent.put(path, data)
-        manifest = self.store.commit_folder(self.key, self.wid, manifest, replace)
+        manifest = self.store.commit_folder(self.key, self.wid, manifest, replace, packed)
         self.committed = True
         under_lease = self.store._held.get(self.key)
         if under_lease is not None:
@@ -634,16 +670,20 @@ class RemoteArray(StoredArray):
         chunks: list[Any] | None,
         checksum: bool = True,
         recent: RecentObjects | None = None,
+        pack: PackSource | None = None,
     ):
         super().__init__(name, entry, chunks, checksum)
         self._store = store
         self._folder = folder
         self._recent = recent  # objects this process wrote or read lately (None: always ask the store)
+        self._pack = pack  # the artifact's group as one object (msflow.stores.packs), shared by its outputs
 
     def _where(self) -> str:
         return f"{self._store.url}/{self._folder}"
 
     def _open_zarr(self) -> Any:
+        if self._pack is not None:
+            return self._pack.load().zarr_array(self._name)
         import zarr
         from zarr.storage import FsspecStore
 
@@ -655,6 +695,9 @@ class RemoteArray(StoredArray):
         return zarr.open_array(zstore, path=self._name, mode="r")
 
     def _fetch(self, rels: list[str]) -> dict[str, bytes | None]:
+        if self._pack is not None:
+            pack = self._pack.load()
+            return {rel: pack.get(rel) for rel in rels}
         recent = self._recent
         paths = {rel: f"{self._folder}/{rel}" for rel in rels}
         found = {rel: recent.get(path) if recent is not None else None for rel, path in paths.items()}
@@ -666,3 +709,28 @@ class RemoteArray(StoredArray):
                 if recent is not None and data is not None:
                     recent.put(paths[rel], data)
         return found
+
+
+class PackSource:
+    """An artifact's pack, fetched when one of its outputs is first read (from this process's recent objects
+    when it holds them) and then shared by all of them."""
+
+    def __init__(self, store: RemoteStore, path: str, recent: RecentObjects | None):
+        self._store = store
+        self._path = path
+        self._recent = recent
+        self._pack: Pack | None = None
+        self._lock = threading.Lock()
+
+    def load(self) -> Pack:
+        with self._lock:
+            if self._pack is None:
+                data = self._recent.get(self._path) if self._recent is not None else None
+                if data is None:
+                    data = self._store.objects.get(self._path)
+                    if data is None:
+                        raise FileNotFoundError(f"{self._store.url}/{self._path} is missing")
+                    if self._recent is not None:
+                        self._recent.put(self._path, data)
+                self._pack = Pack(data, f"{self._store.url}/{self._path}")
+            return self._pack
