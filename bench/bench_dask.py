@@ -1,6 +1,6 @@
 """Dask cluster figures (issue 17): the default pipeline on two workers that cannot read the project folder.
 
-    python bench/bench_dask.py [--repeats 3] [--parts default,overhead,floor,malloc,idle] [--s3-server moto]
+    python bench/bench_dask.py [--repeats 3] [--parts default,cli,overhead,floor,malloc,idle] [--s3-server moto]
 
 The cluster is the stand-in of tests/test_dask.py: a ``dask scheduler`` and two ``dask worker`` processes (one
 thread each, ``--preload-nanny msflow.dask_setup``) started in their own folder, in a mount namespace that hides
@@ -16,6 +16,8 @@ the project copies and this checkout, as ``nobody`` when run as root. Two stores
    client, the workers, the scheduler, the moto server; the stages' own CPU (sum of ``cpu_seconds``); and whether
    every output hash equals the local run's (the edit's preview MP4 differs between two local runs too: x264
    threads without frame timestamps, stages/face/edit.py).
+   ``cli``: the same three as a user runs them, ``msflow run`` in a fresh process each time (what every run pays
+   to start: interpreter, imports, the store client, the Dask connection, a local process pool).
 2. Per-stage overhead: chains of 40 and 80 trivial stages (each reads the previous one's array) from an empty
    store, so every stage waits for the one before. What one more stage costs, (wall(80) - wall(40)) / 40, is the
    full round trip of one stage (client scheduling, shipping, scheduler, worker, store, outcome) besides the stage
@@ -220,6 +222,34 @@ def default_pipeline(tmp: Path, cluster, moto, options: dict, repeats: int) -> N
     print_stage_table(rows)
 
 
+def cli_runs(tmp: Path, cluster, options: dict, repeats: int) -> None:
+    """The default pipeline as a user runs it: ``msflow run`` in a fresh process each time (interpreter, imports,
+    the store client and the Dask connection paid by every run; bytecode caches allowed, as users have them),
+    local ``-j 2`` vs ``--scheduler`` with the S3 and the folder store, interleaved, the order rotated."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    labels = ["local -j 2", "cluster, S3", "cluster, folder"]
+    walls: dict[str, list[float]] = {label: [] for label in labels}
+    for i in range(repeats):
+        for label in labels[i % 3 :] + labels[: i % 3]:
+            project = copy_repo(tmp / f"cli-{label.replace(', ', '-').replace(' ', '')}{i}")
+            command = [sys.executable, "-m", "msflow.cli", "run", "pipeline.yaml", "-q"]
+            if label == "cluster, S3":
+                use_store(project / "pipeline.yaml", f"s3://{new_bucket(options)}/p", options)
+            elif label == "cluster, folder":
+                shutil.rmtree(cluster.env_dir / "store", ignore_errors=True)
+                use_store(project / "pipeline.yaml", str(cluster.env_dir / "store"))
+            command += ["-j", "2"] if label == "local -j 2" else ["--scheduler", cluster.address]
+            started = time.perf_counter()
+            subprocess.run(command, cwd=project, env=env, check=True, capture_output=True)
+            walls[label].append(round(time.perf_counter() - started, 2))
+        ratios = {label: round(walls[label][-1] / walls["local -j 2"][-1], 2) for label in labels[1:]}
+        print(json.dumps({"repeat": i, "wall_s": {k: v[-1] for k, v in walls.items()}, "ratio": ratios}), flush=True)
+    print(f"\ndefault pipeline through the CLI, {repeats} interleaved repeats (load {os.getloadavg()[0]:.1f}):")
+    for label in labels[1:]:
+        ratios = [round(c / local, 2) for c, local in zip(walls[label], walls["local -j 2"])]
+        print(f"  {label} / local -j 2: {ratios} (median {statistics.median(ratios)})")
+
+
 def print_stage_table(rows: list[dict]) -> None:
     """Per stage: CPU seconds in the stage's run, local vs on the workers (medians)."""
     names = list(rows[0]["record"]["stages"])
@@ -399,7 +429,7 @@ def idle_cpu(others: list[int], seconds: float = 10.0, repeats: int = 2) -> None
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--parts", default="default,overhead,floor,malloc,idle")
+    parser.add_argument("--parts", default="default,cli,overhead,floor,malloc,idle")
     parser.add_argument("--s3-server", choices=["s3-only", "moto"], default="s3-only")
     args = parser.parse_args()
     import logging
@@ -420,6 +450,8 @@ def main() -> None:
             parts = args.parts.split(",")
             if "default" in parts:
                 default_pipeline(tmp, cluster, moto, options, args.repeats)
+            if "cli" in parts:
+                cli_runs(tmp, cluster, options, args.repeats)
             if "overhead" in parts:
                 overhead(tmp, cluster, moto, options)
             if "floor" in parts:

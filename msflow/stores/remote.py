@@ -493,8 +493,8 @@ class RemoteWriter:
         self.uploading = False  # set before the first upload: from then on the folder may hold objects
         self.committed = False
         self.streamed = False  # objects uploaded before the commit (chunks of output sinks)
-        self._held: dict[str, bytes] = {}  # chunks of output sinks kept for the pack while they are small
-        self._held_size = 0
+        self._for_pack: dict[str, bytes] = {}  # chunks of output sinks kept for the pack while they are small
+        self._for_pack_size = 0
 
     def __enter__(self) -> RemoteWriter:
         return self
@@ -511,20 +511,25 @@ class RemoteWriter:
         """One object of the zarr group (a chunk of an output sink): held for the commit's pack while the held
         ones add up to at most the pack limit, then uploaded with them, and every later one at once (streamed)."""
         if not self.streamed:
-            self._held[rel] = data
-            self._held_size += len(data)
-            if self._held_size <= pack_limit():
+            self._for_pack[rel] = data
+            self._for_pack_size += len(data)
+            if self._for_pack_size <= pack_limit():
                 return
-            self._start()
             self.streamed = True
-            held, self._held = self._held, {}
-            self.store.objects.put_many({f"{self.folder}/{r}": d for r, d in held.items()})
-            for r, d in held.items():
-                self.store._caches.objects.put(f"{self.folder}/{r}", d)
+            kept, self._for_pack = self._for_pack, {}
+            self._upload(kept)
             return
+        self._upload({rel: data})
+
+    def _upload(self, items: Mapping[str, bytes]) -> None:
+        """Objects of the group (paths relative to it) into the folder, concurrently; kept for this process's
+        readers, but for the arrays' zarr.json (readers take the layout from the marker)."""
         self._start()
-        self.store.objects.put(f"{self.folder}/{rel}", data)
-        self.store._caches.objects.put(f"{self.folder}/{rel}", data)
+        uploads = {f"{self.folder}/{rel}": data for rel, data in items.items()}
+        self.store.objects.put_many(uploads)
+        for path, data in uploads.items():
+            if not path.endswith("zarr.json"):
+                self.store._caches.objects.put(path, data)
 
     def commit(
         self,
@@ -543,21 +548,14 @@ class RemoteWriter:
         for info in objects.list(self.folder + "/") if self.streamed else []:
             if info.path[len(self.folder) + 1 :].split("/")[0] not in arrays:
                 objects.delete(info.path)
-        recent = self.store._caches.objects
-        held = [(rel, data) for rel, data in self._held.items() if rel.split("/")[0] in arrays]
-        self._held = {}
-        encoded = itertools.chain(held, encode_artifact(arrays, manifest))
+        kept = [(rel, data) for rel, data in self._for_pack.items() if rel.split("/")[0] in arrays]
+        self._for_pack = {}
+        encoded = itertools.chain(kept, encode_artifact(arrays, manifest))
         small, packed = take_small(encoded) if not self.streamed else ([], False)
         if packed:  # one object instead of one per array and chunk (msflow.stores.packs)
-            pack = make_pack(small)
-            objects.put(f"{self.folder}/{PACK_NAME}", pack)
-            recent.put(f"{self.folder}/{PACK_NAME}", pack)
+            self._upload({PACK_NAME: make_pack(small)})
         for batch in iter_chunks(itertools.chain(small, encoded)) if not packed else ():
-            uploads = {f"{self.folder}/{rel}": data for rel, data in batch.items()}
-            objects.put_many(uploads)
-            for path, data in uploads.items():
-                if not path.endswith("zarr.json"):  # readers take the layout from the marker
-                    recent.put(path, data)
+            self._upload(batch)
         manifest = self.store.commit_folder(self.key, self.wid, manifest, replace, packed)
         self.committed = True
         under_lease = self.store._held.get(self.key)
