@@ -95,6 +95,15 @@ class Store(Protocol):
     def read_sweep(self, sweep_id: str) -> Json: ...
 
 
+def env_megabytes(variable: str, default: float) -> int:
+    """A size in bytes from an environment variable in megabytes (``default`` when unset or not a number)."""
+    try:
+        megabytes = float(os.environ.get(variable, default))
+    except ValueError:
+        megabytes = default
+    return max(0, int(megabytes * 1e6))
+
+
 def pid_alive(pid: int) -> bool:
     """Whether process ``pid`` exists on this host (a process of another user counts as alive)."""
     try:

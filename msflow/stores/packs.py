@@ -16,10 +16,11 @@ this process read lately), takes members from it, and checks each member's CRC-3
 from __future__ import annotations
 
 import io
-import os
 import zipfile
 from collections.abc import Iterable, Iterator
 from typing import Any
+
+from msflow.stores.base import env_megabytes
 
 PACK_NAME = "artifact.zip"
 DEFAULT_PACK_MB = 8.0  # a pack is read whole: a reader of one small output fetches at most this much
@@ -28,11 +29,7 @@ _EPOCH = (1980, 1, 1, 0, 0, 0)  # zip's earliest date: members carry no time, so
 
 def pack_limit() -> int:
     """The largest artifact packed, in bytes: ``MSFLOW_STORE_PACK_MB`` (default 8) megabytes; 0 packs nothing."""
-    try:
-        megabytes = float(os.environ.get("MSFLOW_STORE_PACK_MB", DEFAULT_PACK_MB))
-    except ValueError:
-        megabytes = DEFAULT_PACK_MB
-    return max(0, int(megabytes * 1e6))
+    return env_megabytes("MSFLOW_STORE_PACK_MB", DEFAULT_PACK_MB)
 
 
 def take_small(items: Iterable[tuple[str, bytes]], limit: int | None = None) -> tuple[list[tuple[str, bytes]], bool]:

@@ -20,11 +20,12 @@ critical path. Two caches answer them from memory:
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from collections import OrderedDict
 from typing import Any
+
+from msflow.stores.base import env_megabytes
 
 DEFAULT_MB = 64
 MARKER_SECONDS = 15.0  # a quarter of RETIRE_SECONDS (msflow.stores.remote)
@@ -32,11 +33,7 @@ MARKER_SECONDS = 15.0  # a quarter of RETIRE_SECONDS (msflow.stores.remote)
 
 def cache_bytes() -> int:
     """The object cache's capacity in bytes: ``MSFLOW_STORE_CACHE_MB`` (default 64) megabytes."""
-    try:
-        megabytes = float(os.environ.get("MSFLOW_STORE_CACHE_MB", DEFAULT_MB))
-    except ValueError:
-        megabytes = DEFAULT_MB
-    return max(0, int(megabytes * 1e6))
+    return env_megabytes("MSFLOW_STORE_CACHE_MB", DEFAULT_MB)
 
 
 class RecentObjects:
