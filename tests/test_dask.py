@@ -285,13 +285,16 @@ def test_shipping_to_a_fresh_object_store_takes_as_many_requests_for_many_projec
         monkeypatch.setattr(S3Objects, "get_many", lambda self, rels: paths.extend(rels) or get(self, rels))
         job, store = shipped(project, tmp_path, store=s3.store(s3.bucket()))
         shipping = (len(waves), len(paths))
-        waves.clear(), paths.clear()
+        waves.clear()
+        paths.clear()
         root = materialise_code(job.code, open_blobs(job.store, job.store_options), tmp_path / f"w-{project.name}")
         fetching = (len(waves), len(paths))
         monkeypatch.setattr(S3Objects, "_run", run)
         monkeypatch.setattr(S3Objects, "exists_many", exists)
         monkeypatch.setattr(S3Objects, "get_many", get)
-        assert (root / "numstages" / "basic.py").read_bytes() == (project / "numstages" / "basic.py").read_bytes()
+        shipped_files = {p.relative_to(root) for p in root.rglob("*.py")}
+        assert shipped_files == {p.relative_to(project) for p in (project / "numstages").rglob("*.py")}
+        assert all((root / rel).read_bytes() == (project / rel).read_bytes() for rel in shipped_files)
         blobs = store.objects.list("blobs/")
         assert {o.path for o in blobs} >= {blob_path(job.code)} | {
             blob_path(d) for d in job.inputs["table"].blobs.values()
@@ -306,7 +309,7 @@ def test_shipping_to_a_fresh_object_store_takes_as_many_requests_for_many_projec
     basic = bigger / "numstages" / "basic.py"
     basic.write_text(basic.read_text() + "".join(f"from numstages import extra_{i}  # noqa\n" for i in range(12)))
     many = requests(bigger)
-    assert (bigger / "numstages" / "extra_11.py").is_file() and many == few
+    assert many == few
 
 
 def test_a_worker_with_other_package_versions_refuses_the_job(numproject, tmp_path):
