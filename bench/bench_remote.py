@@ -10,7 +10,9 @@
    requests per stage as they are against moto, and with ``--latency-ms`` (default 20) added to every request,
    which stands in for a real S3's round trip: what a stage costs there is mostly its serial round trips.
 4. ``--parts default``: the default pipeline from an empty store, in one process: its requests by operation and
-   kind of object (each array writes its zarr.json beside its chunks).
+   kind of object, and its wall time against moto and with ``--latency-ms`` added, with small artifacts packed
+   into one object (the default) and without (``MSFLOW_STORE_PACK_MB=0``: each array's zarr.json beside its
+   chunks).
 
 moto answers on the loopback in about a millisecond; on real S3 each request costs ~10-30 ms, so the request
 counts are what carries over: multiply them by the round trip of your endpoint.
@@ -112,24 +114,35 @@ def object_kind(rel: str, listing: bool = False) -> str:
     return top or "(store root)"
 
 
-def bench_default(tmp: Path, options: dict) -> dict:
-    """The default pipeline from an empty S3 store, in one process: its requests by operation and kind of object."""
+def bench_default(tmp: Path, options: dict, latency_ms: float) -> dict:
+    """The default pipeline from an empty S3 store, in one process: its requests by operation and kind of object,
+    and its wall time against moto and with ``latency_ms`` added to every request (a distant S3), with small
+    artifacts packed into one object (msflow.stores.packs) and without (``MSFLOW_STORE_PACK_MB=0``)."""
     from bench_dask import copy_repo
 
     import msflow
 
-    project = copy_repo(tmp / "default")
-    use_store(project / "pipeline.yaml", "s3://bench/default", options)
-    counter = RequestCounter()
-    try:
-        started = time.perf_counter()
-        result = msflow.run(project / "pipeline.yaml")
-        wall = time.perf_counter() - started
-        by_object = {f"{op} {kind}": n for (op, kind), n in counter.objects.most_common()}
-        total = sum(counter.take().values())
-    finally:
-        counter.close()
-    return {"stages": len(result.record["stages"]), "wall_s": round(wall, 2), "requests": total, "by_object": by_object}
+    out: dict = {}
+    for packs in ("8", "0"):
+        os.environ["MSFLOW_STORE_PACK_MB"] = packs
+        for latency in (0.0, latency_ms / 1000):
+            label = f"packs {'on' if packs != '0' else 'off'}, {latency * 1000:g} ms added per request"
+            project = copy_repo(tmp / f"default-{packs}-{latency}")
+            use_store(project / "pipeline.yaml", f"s3://bench/default-{packs}-{latency}", options)
+            counter = RequestCounter(latency)
+            try:
+                started = time.perf_counter()
+                result = msflow.run(project / "pipeline.yaml")
+                wall = time.perf_counter() - started
+                by_object = {f"{op} {kind}": n for (op, kind), n in counter.objects.most_common()}
+                total = sum(counter.take().values())
+            finally:
+                counter.close()
+            out[label] = {"stages": len(result.record["stages"]), "wall_s": round(wall, 2), "requests": total}
+            if not latency:
+                out[label]["by_object"] = by_object
+    os.environ.pop("MSFLOW_STORE_PACK_MB")
+    return out
 
 
 def bench_noop(tmp: Path, options: dict, repeats: int) -> dict:
@@ -248,7 +261,8 @@ def main() -> None:
                 chain = bench_chain(tmp, options, args.latency_ms)
                 print("chain of 40 stages, in process:", json.dumps(chain, indent=1))
             if "default" in parts:
-                print("default pipeline, in process:", json.dumps(bench_default(tmp, options), indent=1))
+                default = bench_default(tmp, options, args.latency_ms)
+                print("default pipeline, in process:", json.dumps(default, indent=1))
     finally:
         server.stop()
 
