@@ -5,7 +5,7 @@ A worker on another machine cannot read the project folder, so a job sent to a D
 - **Code by content.** The project's code that the run's stages need (every module of each stage's import closure,
   and the data files stages declare in ``Stage.resources``) is put into the store as content-addressed blobs, plus
   one small *code tree* (relative path -> content hash, and each module's fingerprint) whose own hash names it.
-  The modules travel as one blob, the tree's *pack* (their bytes one after another, in the tree's order), so a
+  The modules travel as one blob, the tree's *pack* (a zip of them, as msflow.stores.packs makes), so a
   fresh store or worker costs the same few requests however many modules the stages import; each resource (models,
   meshes: large, and rarely changed) is a blob of its own, so an edit to the code uploads none of them again.
   Building the tree, the client fingerprints every module it ships (the planner's digest while the file's stat
@@ -166,8 +166,10 @@ class CodeTree:
 
     @cached_property
     def pack(self) -> bytes:
-        """The modules' bytes one after another, in the order of ``document["pack"]["files"]``."""
-        return b"".join(self.module_bytes[rel] for rel in sorted(self.module_bytes))
+        """The modules as one zip (msflow.stores.packs), member name = relative path."""
+        from msflow.stores.packs import make_pack
+
+        return make_pack((rel, self.module_bytes[rel]) for rel in sorted(self.module_bytes))
 
     @cached_property
     def document(self) -> dict[str, Any]:
@@ -176,8 +178,7 @@ class CodeTree:
             "modules": dict(sorted(self.modules.items())),
         }
         if self.module_bytes:
-            files = [[rel, len(self.module_bytes[rel])] for rel in sorted(self.module_bytes)]
-            document["pack"] = {"blob": bytes_hash(self.pack), "files": files}
+            document["pack"] = {"blob": bytes_hash(self.pack), "files": sorted(self.module_bytes)}
         return document
 
     @cached_property
@@ -493,7 +494,7 @@ def materialise_code(digest: str, blobs: Blobs, folder: Path) -> Path:
         return target
     files: dict[str, str] = document["code"]
     pack = document.get("pack") or {"files": []}
-    packed = {rel for rel, _ in pack["files"]}
+    packed = set(pack["files"])
     contents = fetch_verified(
         blobs, [d for rel, d in files.items() if rel not in packed] + ([pack["blob"]] if packed else [])
     )
@@ -502,19 +503,21 @@ def materialise_code(digest: str, blobs: Blobs, folder: Path) -> Path:
     return target
 
 
-def unpack(data: bytes, layout: list[list[Any]], files: dict[str, str]) -> dict[str, bytes]:
-    """A code tree's pack cut into its modules (``layout``: [relative path, size] in order), each checked against
-    the hash the tree gives it; returns content hash -> bytes."""
+def unpack(data: bytes, packed: list[str], files: dict[str, str]) -> dict[str, bytes]:
+    """The modules ``packed`` in a code tree's pack, each checked against the hash the tree gives it; returns
+    content hash -> bytes."""
+    from msflow.stores.packs import Pack
+
     out: dict[str, bytes] = {}
-    start = 0
-    for rel, size in layout:
-        piece = data[start : start + size]
-        start += size
-        if bytes_hash(piece) != files.get(rel):
-            raise UserError(f"the code pack in the store does not hold {rel} as its tree says (corrupt)")
-        out[files[rel]] = piece
-    if start != len(data):
-        raise UserError("the code pack in the store is longer than its tree says (corrupt)")
+    try:
+        pack = Pack(data, "the code pack")
+        for rel in packed:
+            member = pack.get(rel)
+            if member is None or bytes_hash(member) != files.get(rel):
+                raise UserError(f"the code pack in the store does not hold {rel} as its tree says (corrupt)")
+            out[files[rel]] = member
+    except ValueError as exc:
+        raise UserError(f"the code pack in the store is unreadable: {exc}") from None
     return out
 
 

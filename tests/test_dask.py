@@ -369,21 +369,27 @@ def test_a_worker_checks_the_tree_against_the_key_without_parsing(numproject, tm
 
 
 def test_a_code_pack_that_does_not_match_its_tree_is_refused(numproject, tmp_path):
-    """The pack is checked module by module against the tree's hashes (a client that cut it wrongly, say)."""
+    """The pack is checked module by module against the tree's hashes (a client that packed it wrongly, say)."""
     from dataclasses import replace
 
-    from msflow.hashing import canonical_json, json_hash
+    from msflow.hashing import bytes_hash, canonical_json, json_hash
     from msflow.shipping import FolderBlobs, blob_path
+    from msflow.stores.packs import Pack, make_pack
 
     job, _ = shipped(numproject, tmp_path)
+    blobs = FolderBlobs(tmp_path / "store")
     document = json.loads((tmp_path / "store" / blob_path(job.code)).read_bytes())
     layout = document["pack"]["files"]
-    assert len(layout) >= 2 and layout[0][1] != layout[1][1]
-    layout[0][1], layout[1][1] = layout[1][1], layout[0][1]  # the same bytes, cut in the wrong places
-    FolderBlobs(tmp_path / "store").put(json_hash(document), canonical_json(document).encode())
+    members = dict(Pack(blobs.get_many([document["pack"]["blob"]])[document["pack"]["blob"]], "pack").members())
+    assert len(layout) >= 2 and members[layout[0]] != members[layout[1]]
+    members[layout[0]] = members[layout[1]]  # the first module's place holds another module's bytes
+    wrong = make_pack(members.items())
+    blobs.put(bytes_hash(wrong), wrong)
+    document["pack"]["blob"] = bytes_hash(wrong)
+    blobs.put(json_hash(document), canonical_json(document).encode())
     outcome = run_in_fresh_process(replace(job, code=json_hash(document)), tmp_path)
     assert outcome.status == "failed" and outcome.user_error
-    assert f"the code pack in the store does not hold {layout[0][0]} as its tree says" in outcome.user_error["message"]
+    assert f"the code pack in the store does not hold {layout[0]} as its tree says" in outcome.user_error["message"]
 
 
 def test_shipped_folder_inputs_and_resources(numproject, tmp_path):

@@ -176,8 +176,15 @@ class RemoteStore:
     def open(self, key: str) -> ArtifactView:
         return self._view(key, self._committed(key))
 
-    def _view(self, key: str, marker: Json, cached: bool = True) -> ArtifactView:
-        """The artifact ``marker`` names; ``cached``: chunks this process holds are not fetched again."""
+    def _pack_source(self, key: str, marker: Json, recent: RecentObjects | None) -> PackSource | None:
+        """The artifact's pack, when ``marker`` says its group is one (msflow.stores.packs); fetched on first use."""
+        if not marker.get("pack"):
+            return None
+        return PackSource(self, f"{self.data_path(key, marker['data'])}/{marker['pack']}", recent)
+
+    def _view(self, key: str, marker: Json, cached: bool = True, pack: PackSource | None = None) -> ArtifactView:
+        """The artifact ``marker`` names; ``cached``: chunks this process holds are not fetched again; ``pack``:
+        its pack source when the caller has one already (else made here)."""
         from msflow.artifact import ArtifactView
 
         manifest = marker["manifest"]
@@ -185,7 +192,7 @@ class RemoteStore:
         chunks = marker.get("chunks", {})
         recent = self._caches.objects if cached else None
         checksum = manifest.get("format", 1) >= 2
-        pack = PackSource(self, f"{folder}/{marker['pack']}", recent) if marker.get("pack") else None
+        pack = pack or self._pack_source(key, marker, recent)
         arrays = {
             name: RemoteArray(self, folder, name, entry, chunks.get(name), checksum=checksum, recent=recent, pack=pack)
             for name, entry in manifest["outputs"].items()
@@ -211,12 +218,9 @@ class RemoteStore:
         except (ValueError, KeyError, TypeError) as exc:
             return [f"commit marker unreadable: {type(exc).__name__}: {exc}"]
         problems = []
+        pack = self._pack_source(key, marker, None)  # fetched once, for the group's zarr.json and every output
         try:
-            group = (
-                PackSource(self, f"{folder}/{marker['pack']}", None).load().get("zarr.json")
-                if marker.get("pack")
-                else self.objects.get(f"{folder}/zarr.json")
-            )
+            group = pack.load().get("zarr.json") if pack else self.objects.get(f"{folder}/zarr.json")
         except (ValueError, FileNotFoundError) as exc:
             return [f"the artifact's pack is unreadable: {exc}"]
         if group is None:
@@ -229,7 +233,7 @@ class RemoteStore:
             else:
                 if stored != recorded:
                     problems.append("zarr.json manifest differs from the commit marker's")
-        return problems + check_contents(recorded, self._view(key, marker, cached=False).__getitem__)
+        return problems + check_contents(recorded, self._view(key, marker, cached=False, pack=pack).__getitem__)
 
     def size(self, key: str) -> int:
         marker = self._marker(key)
