@@ -201,26 +201,69 @@ def calibrate_range(by_speaker: dict, span_tolerance: float, margin: float) -> l
     return rows
 
 
+VOICE_FEATURES = ("pitch spread (st)", "loudness spread (dB)", "median f0 (log Hz)", "voiced fraction")
+
+
+def voice_features(samples: np.ndarray, rate: int) -> np.ndarray:
+    """One take's voice, summarised: pitch spread (standard deviation of the voiced semitones about the median),
+    loudness spread (dB, voiced frames), log median f0, voiced fraction."""
+    from stages.head.pitch import frame_energy, praat_pitch
+
+    times, f0 = praat_pitch(samples, rate, floor=60.0)
+    voiced = np.isfinite(f0)
+    median = np.median(f0[voiced])
+    loudness = frame_energy(samples, rate, times[voiced])
+    return np.array([np.std(12 * np.log2(f0[voiced] / median)), np.std(loudness), np.log(median), voiced.mean()])
+
+
+def calibrate_voice(spans: dict[str, np.ndarray], voices: dict[str, np.ndarray]) -> list[str]:
+    """Does the voice predict how much a held-out speaker moves its head? Per voice feature: Pearson r across
+    speakers with the log of the speaker's head span (geometric mean of the angles' p95 - p5), and leave one speaker
+    out, a line fitted on the other speakers predicting the held-out one's span: how often the prediction is within
+    the range fit's factor 1.5, against the median of the other speakers (the synthesis's guess)."""
+    speakers = sorted(spans)
+    log_span = np.array([np.mean(np.log(spans[s])) for s in speakers])
+    features = np.array([voices[s] for s in speakers])
+    rows = ["| predictor of a held-out speaker's head span | r with log span | within 1.5x |", "|---|---|---|"]
+    held_out = np.arange(len(speakers))
+    guess = np.array([np.median(np.delete(log_span, i)) for i in held_out])
+    rows.append(f"| the median of the other speakers | | {np.mean(abs(guess - log_span) <= np.log(1.5)):.0%} |")
+    for j, name in enumerate(VOICE_FEATURES):
+        x = features[:, j]
+        fitted = [np.polyfit(np.delete(x, i), np.delete(log_span, i), 1) for i in held_out]
+        guess = np.array([np.polyval(line, x[i]) for i, line in zip(held_out, fitted)])
+        within = np.mean(abs(guess - log_span) <= np.log(1.5))
+        rows.append(
+            f"| {name}, a line fitted on the other speakers | {np.corrcoef(x, log_span)[0, 1]:+.2f} | {within:.0%} |"
+        )
+    return rows
+
+
 def calibrate(args) -> None:
     """Both calibrations on the shared clips' real motion (tracked by the leave-one-speaker-out pipeline)."""
     import msflow
     from stages.eval.head import take_audio
     from stages.head.beats import audio_onsets
-    from stages.head.measures import reference_angles
+    from stages.head.measures import percentile_range, reference_angles
 
     clips = f"vars.clips={Path(args.shared).resolve() / 'data' / 'talking-heads'}"
     run = msflow.run(ROOT / "eval/head_talking_heads.yaml", overrides=[clips, *args.set])
     track, trellis = run.artifact("track"), run.artifact("trellis")
     labels, rates = list(track.meta["labels"]), track.meta["fps"]
-    takes, by_speaker = [], {}
+    takes, by_speaker, voices = [], {}, {}
     for k, (label, speaker) in enumerate(zip(labels, trellis.meta["speakers"])):
         angles = reference_angles(track, label, len(labels), rates[k])
         samples, rate, offset = take_audio(track, k)
         takes.append((angles, rates[k], audio_onsets(samples, rate, offset=offset, delta=0.15, min_gap=0.1)))
         by_speaker.setdefault(speaker, []).append(angles)
+        voices.setdefault(speaker, []).append((voice_features(samples, rate), len(samples)))
     print("\n".join(calibrate_jitter(takes, [None, 8.0, 6.0, 5.0, 4.0, 3.0, 2.0])))
     print()
     print("\n".join(calibrate_range({s: np.concatenate(m) for s, m in by_speaker.items()}, 1.5, 0.25)))
+    print()
+    spans = {s: np.ptp(percentile_range(np.concatenate(m)), axis=0) for s, m in by_speaker.items()}
+    voice = {s: np.average([f for f, _ in v], axis=0, weights=[n for _, n in v]) for s, v in voices.items()}
+    print("\n".join(calibrate_voice(spans, voice)))
 
 
 def main(argv=None):

@@ -238,6 +238,29 @@ def test_leave_one_out_never_uses_the_held_out_recording(phrases, database, take
         assert not run.arrays["phrase_selected"][u, excluded].any()
 
 
+def test_speaker_motion_same_keeps_to_the_test_speakers_own_motion(phrases):
+    """speaker_motion: same searches only the test speaker's own takes (the held-out one excluded) when the database
+    holds some, and every speaker's when it holds none; any (the paper) searches every speaker's."""
+    ann = tracking_artifact(phrases[:12], speaker="ann")
+    headdb = run_stage(
+        TrackedHeadDb, {}, {"tracks": ann, "more_tracks": tracking_artifact(phrases[12:], speaker="ben")}
+    )
+    db = (headdb, run_stage(Pitch, {}, {"source": headdb}))
+    speaker_of = {label: ("ann" if int(label.split("_")[0][1:]) < 12 else "ben") for label in headdb.meta["labels"]}
+
+    def used_speakers(test, mode):
+        run = search(
+            db, run_stage(Pitch, {}, {"source": test}), holdout="take", speaker_motion=mode, test_speaker="own"
+        )
+        labels = run.meta["db_labels"]
+        return {speaker_of[labels[s]] for s in run.arrays["db_segment_sequence"][run.arrays["candidates"].ravel()]}
+
+    assert used_speakers(tracking_artifact(phrases[:4], speaker="ann"), "same") == {"ann"}
+    assert used_speakers(tracking_artifact(phrases[12:16], speaker="ben"), "same") == {"ben"}
+    assert used_speakers(tracking_artifact(phrases[:4], speaker="ann"), "any") == {"ann", "ben"}
+    assert used_speakers(tracking_artifact(phrases[:4], speaker="cid"), "same") == {"ann", "ben"}
+
+
 def test_phrase_stage_prefers_the_same_speaking_style(phrases, database, take_pitch):
     run = search(database, take_pitch, holdout="take", top_m=6)
     styles = [phrases[int(label.split("_")[0][1:])].style for label in run.meta["db_labels"]]

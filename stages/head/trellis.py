@@ -752,6 +752,11 @@ class TrellisParams(Stage.Params):
         "mirror included); or every take of its speaker",
     )
     exclude_labels: list[str] = Field([], description="database recordings (labels) to leave out")
+    speaker_motion: Literal["any", "same"] = Field(
+        "any",
+        description="database motion a test take may use: any speaker's (the paper), or only its own speaker's "
+        "when the database holds some after the holdout (beyond the paper; any speaker's otherwise)",
+    )
 
     @field_validator("c")
     @classmethod
@@ -832,6 +837,9 @@ def allowed_sequences(db: Database, params, test_source: str, test_speaker: str 
                 field="params.holdout",
             )
         allowed &= np.array([spk != test_speaker for spk in db.speakers])
+    if params.speaker_motion == "same" and test_speaker is not None:
+        own = allowed & np.array([spk == test_speaker for spk in db.speakers])
+        allowed = own if own.any() else allowed
     return allowed
 
 
