@@ -643,6 +643,57 @@ def test_the_amplitude_target_from_the_reference_is_the_performers_own(phrases):
     np.testing.assert_allclose(missing.arrays["angles"], default.arrays["angles"])
 
 
+def test_the_automatic_amplitude_target_reads_only_performers_the_database_does_not_know(phrases):
+    """``amplitude_target="auto"`` (the default): a performer the database does not know (moving 8x more than the
+    database's speaker) gets its own amplitude from its tracked take, each angle its own (``source_gain="auto"``:
+    per angle where the target is the performer's); the same take labelled as the database's speaker, or
+    unlabelled beside a one-speaker database, gets that speaker's amplitude from the database."""
+    from stages.head.motion_blend import knows_speaker
+
+    spread = lambda a: np.prod(np.percentile(a, 95, axis=0)[:3] - np.percentile(a, 5, axis=0)[:3]) ** (1 / 3)
+    headdb = run_stage(TrackedHeadDb, {}, {"tracks": tracking_artifact(phrases[8:16], fps=30.0, speaker="ann")})
+    db_pitch = run_stage(Pitch, {}, {"source": headdb})
+
+    def first_take(speaker, gains=(8.0, 8.0, 8.0), **params):
+        """The synthesis of the first of two test takes whose quaternion's vector part is scaled by ``gains``,
+        and its real motion."""
+        tracks = tracking_artifact(phrases[:2], fps=30.0, speaker=speaker)
+        rotation = np.asarray(tracks["rotation"]).copy()
+        rotation[:, 1:] *= gains
+        rotation /= np.linalg.norm(rotation, axis=1, keepdims=True)
+        tracks = artifact({**{k: tracks[k] for k in tracks.names}, "rotation": rotation}, tracks.meta)
+        pitch = run_stage(Pitch, {"median_over": "utterance"} if speaker is None else {}, {"source": tracks})
+        inputs = {"database": headdb, "database_pitch": db_pitch, "test_pitch": pitch}
+        tr = run_stage(Trellis, {"test_speaker": "own"}, inputs)
+        run = run_stage(
+            MotionBlend, {"amplitude": "match", **params}, {"trellis": tr, "database": headdb, "reference": tracks}
+        )
+        return run.arrays["angles"][run.arrays["sequence"] == 0], reference_angles(
+            tracks, tracks.meta["labels"][0], 2, 30.0
+        )
+
+    def first_take_spread(speaker, **params):
+        return tuple(spread(a) for a in first_take(speaker, **params))
+
+    synth, real = first_take_spread("ben")
+    assert synth == pytest.approx(real, rel=0.1)
+    assert first_take_spread("ben", amplitude_target="database")[0] < real / 3
+    for speaker in ("ann", None):
+        known, _ = first_take_spread(speaker)
+        assert known < real / 3
+        assert known == pytest.approx(first_take_spread(speaker, amplitude_target="database")[0])
+    # the performer's own proportions between the angles (one angle 8x, the others as recorded): per angle
+    spans = lambda a: np.percentile(a, 95, axis=0)[:3] - np.percentile(a, 5, axis=0)[:3]
+    synth, real = first_take("ben", gains=(8.0, 1.0, 1.0))
+    common, _ = first_take("ben", gains=(8.0, 1.0, 1.0), source_gain="common")
+    proportion = lambda a: spans(a)[1] / spans(a)[0]  # the angle made 8x larger over another one
+    assert proportion(real) > 2
+    assert proportion(synth) == pytest.approx(proportion(real), rel=0.25)
+    assert proportion(common) < proportion(real) / 2
+    assert knows_speaker({"ann": 1, "ben": 2}, "ann") and not knows_speaker({"ann": 1}, "ben")
+    assert knows_speaker({"ann": 1}, None) and not knows_speaker({"ann": 1, "ben": 2}, None)
+
+
 def test_a_reference_amplitude_target_needs_scaling_and_a_reference(leave_one_out, database):
     with pytest.raises(ValidationError, match="amplitude_target"):
         MotionBlend.Params(amplitude="database", amplitude_target="reference")

@@ -122,6 +122,13 @@ def amplitude_target(spreads: dict, speaker) -> np.ndarray:
     return np.median(np.stack(list(spreads.values())), axis=0)
 
 
+def knows_speaker(spreads: dict, speaker) -> bool:
+    """Whether the database's motion (``spreads``: per speaker, over the sequences the search could use) is the
+    test speaker's own: its label is there, or the test is unlabelled and the database has one speaker (the
+    trellis's reading of such a test, ``test_speaker: database``)."""
+    return speaker in spreads if speaker is not None else len(spreads) == 1
+
+
 def group_gains(target: np.ndarray, spread: np.ndarray, max_gain: float = np.inf) -> np.ndarray:
     """Per channel, the gain that brings ``spread`` to about ``target``: one gain for the three angles and one for
     the translation, each the geometric mean over its channels of target / spread (channels that do not move are
@@ -752,11 +759,12 @@ class MotionBlendParams(Stage.Params):
         "scaled to the target spread (the test speaker's own from its other takes, else the database's typical "
         "speaker's); 'match': that, and the output centred on the rest pose with its spread set to the target",
     )
-    amplitude_target: Literal["database", "reference"] = Field(
-        "database",
+    amplitude_target: Literal["auto", "database", "reference"] = Field(
+        "auto",
         description="where 'speaker' and 'match' take the angles' target spread: the database (the test speaker's "
-        "other takes, else its typical speaker's) or the reference input (the performer's own tracked motion in "
-        "the test take: a performer the database does not know)",
+        "other takes, else its typical speaker's), the reference input (the performer's own tracked motion in "
+        "the test take), or 'auto': the database when it knows the test's speaker (its label, or an unlabelled "
+        "test with a one-speaker database), else the reference when given",
     )
     max_amplitude_gain: float = Field(3.0, ge=1, description="'match': largest gain (either way) on the output")
     reference_seconds: float | None = Field(
@@ -765,10 +773,12 @@ class MotionBlendParams(Stage.Params):
         description="amplitude_target 'reference': the target from the first this many seconds of each reference "
         "take (an enrolment stretch of the performer's motion; None: the whole take)",
     )
-    source_gain: Literal["common", "per_angle"] = Field(
-        "common",
+    source_gain: Literal["auto", "common", "per_angle"] = Field(
+        "auto",
         description="'speaker', 'match': one gain per source speaker for its three angles, or one per angle (its "
-        "proportions between yaw, pitch and roll brought to the target's before its strokes are timed)",
+        "proportions between yaw, pitch and roll brought to the target's before its strokes are timed); 'auto': "
+        "per angle where the target is the performer's own motion (the reference), common where it is the "
+        "database's",
     )
     output_cutoff: float | None = Field(
         4.0,
@@ -821,7 +831,9 @@ class MotionBlend(Stage):
         options = stitch_options(params, db, trellis)
         fps = output_rate(params, trellis, db)
         labels = list(trellis.meta.get("labels") or [])
-        if params.amplitude_target == "reference":
+        if params.amplitude_target == "reference" or (
+            params.amplitude_target == "auto" and params.amplitude != "database" and inputs.get("reference") is not None
+        ):
             if inputs.get("reference") is None:
                 raise UserError(
                     "amplitude_target 'reference' needs the reference input (the test take's tracking)",
@@ -879,6 +891,7 @@ def stitch_options(params, db: DatabaseMotion, trellis) -> dict:
         "max_amplitude_gain": params.max_amplitude_gain,
         "source_gain": params.source_gain,
         "targets": None,  # per utterance, the angles' target spread from the reference (amplitude_target)
+        "targets_for": "unknown" if params.amplitude_target == "auto" else "all",
         "output_cutoff": params.output_cutoff,
         "rest_anchor": params.rest_anchor,
     }
@@ -1082,6 +1095,7 @@ def synthesise(
     output_cutoff: float | None = None,
     source_gain: str = "common",
     targets: list | None = None,
+    targets_for: str = "all",
     **blend,
 ) -> list[Stitched]:
     """The stitched motion of each test utterance of a trellis artifact (a still head where silent). ``timing``:
@@ -1092,15 +1106,18 @@ def synthesise(
     spread (``match_amplitude``, gain at most ``max_amplitude_gain``); ``rest_anchor`` > 0 removes wander slower
     than that many seconds (a Gaussian low-pass of that sd), so the head keeps returning to its rest pose;
     ``output_cutoff`` (Hz) low-passes the stitched motion (``lowpass_channels``); ``targets`` (per utterance, the
-    angles' spread or None) replaces the database's amplitude target of the angles. ``blend``: keyword arguments
-    of ``stitch_segments``."""
+    angles' spread or None) replaces the database's amplitude target of the angles (``targets_for="unknown"``:
+    only where the database does not know the utterance's speaker). ``blend``: keyword arguments of
+    ``stitch_segments``."""
     path = TrellisPath.of(trellis)
     shared_events = database_events(trellis, db, timing) if timing != "segment" else None
     out = []
     for u in range(len(path.labels)):
         given = targets[u] if targets is not None and u < len(targets) else None
         duration = utterance_frames(trellis, u, fps) / fps
-        source, target = amplitude_source(db, path, u, duration, amplitude, given, source_gain == "per_angle")
+        source, target = amplitude_source(
+            db, path, u, duration, amplitude, given, source_gain, targets_for == "unknown"
+        )
         events = shared_events
         if timing == "strokes" and source is not db:
             events = database_events(trellis, source, timing)  # the strokes of the motion as it will play
@@ -1145,19 +1162,25 @@ def amplitude_source(
     duration: float,
     amplitude: str,
     angles_target=None,
-    per_angle: bool = False,
+    source_gain: str = "common",
+    database_first: bool = False,
 ) -> tuple[DatabaseMotion, np.ndarray | None]:
     """The database motion utterance ``u`` is stitched from and its amplitude target: as recorded
     (``amplitude="database"``), or every source speaker brought to the target spread at the utterance's
     ``duration`` (``speaker_spreads`` over the sequences its search could use, ``amplitude_target``), the angles'
-    part replaced by ``angles_target`` when given (the performer's own, ``reference_spreads``)."""
+    part replaced by ``angles_target`` when given (the performer's own, ``reference_spreads``; with
+    ``database_first`` only when the database does not know the speaker, ``knows_speaker``). ``source_gain``:
+    each source speaker scaled by one gain for its angles, by one per angle, or (``"auto"``) per angle only where
+    the angles' target is the performer's own: only then are its proportions between the angles known."""
     if amplitude == "database":
         return db, None
     spreads = speaker_spreads(db, path.allowed(u), duration)
     target = amplitude_target(spreads, path.speakers[u])
-    if angles_target is not None:
+    performers = angles_target is not None and not (database_first and knows_speaker(spreads, path.speakers[u]))
+    if performers:
         target = np.array(target, dtype=np.float64)
         target[:3] = angles_target
+    per_angle = source_gain == "per_angle" or (source_gain == "auto" and performers)
     return db.scaled(amplitude_gains(db, spreads, target, per_angle)), target
 
 
