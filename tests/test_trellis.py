@@ -261,6 +261,35 @@ def test_speaker_motion_same_keeps_to_the_test_speakers_own_motion(phrases):
     assert used_speakers(tracking_artifact(phrases[:4], speaker="cid"), "same") == {"ann", "ben"}
 
 
+def test_same_performance_leaves_out_a_copy_of_the_held_out_take(phrases):
+    """A second recording of the held-out take's performance (here an exact copy under another label) is the
+    search's best match under holdout 'take'; same_performance groups the two, and the copy (mirror included) is
+    left out too. Pieces of a take and its mirror belong to the take (take_of); an unknown label is an error."""
+    import dataclasses
+
+    from stages.head.trellis import take_of
+
+    copy = dataclasses.replace(phrases[0], label="copy")
+    headdb = run_stage(TrackedHeadDb, {}, {"tracks": tracking_artifact([*phrases[:8], copy])})
+    db = (headdb, run_stage(Pitch, {}, {"source": headdb}))
+    test = run_stage(Pitch, {}, {"source": tracking_artifact(phrases[:1])})
+
+    def used(**params):
+        run = search(db, test, holdout="take", **params)
+        return {
+            take_of(run.meta["db_labels"][s])
+            for s in run.arrays["db_segment_sequence"][run.arrays["candidates"].ravel()]
+        }
+
+    assert "copy" in used()
+    grouped = used(same_performance=[[phrases[0].label, "copy"]])
+    assert "copy" not in grouped and phrases[0].label not in grouped and grouped
+    assert take_of("clip#3~mirror") == take_of("clip#3") == take_of("clip~mirror") == "clip"
+    with pytest.raises(UserError, match="same_performance") as err:
+        search(db, test, holdout="take", same_performance=[[phrases[0].label, "nobody"]])
+    assert err.value.field == "params.same_performance"
+
+
 def test_phrase_stage_prefers_the_same_speaking_style(phrases, database, take_pitch):
     run = search(database, take_pitch, holdout="take", top_m=6)
     styles = [phrases[int(label.split("_")[0][1:])].style for label in run.meta["db_labels"]]

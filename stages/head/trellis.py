@@ -19,6 +19,7 @@ Motion-blend measures its join velocity steps with the same parabola fits (``bou
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import Literal
 
@@ -752,6 +753,12 @@ class TrellisParams(Stage.Params):
         "mirror included); or every take of its speaker",
     )
     exclude_labels: list[str] = Field([], description="database recordings (labels) to leave out")
+    same_performance: list[list[str]] = Field(
+        [],
+        description="groups of take labels that record one performance (two cameras, a re-encoded or cropped copy): "
+        "with holdout 'take', a test take also leaves out the other takes of its group (their pieces and mirrors "
+        "included), since their motion and voice are its own",
+    )
     speaker_motion: Literal["any", "same"] = Field(
         "any",
         description="database motion a test take may use: any speaker's (the paper), or only its own speaker's "
@@ -830,6 +837,8 @@ def allowed_sequences(db: Database, params, test_source: str, test_speaker: str 
     )
     if params.holdout == "take":
         allowed &= np.array([src != test_source for src in db.sources])
+        linked = linked_takes(params.same_performance, take_of(label))
+        allowed &= np.array([take_of(lab) not in linked for lab in db.labels])
     elif params.holdout == "speaker":
         if test_speaker is None:
             raise UserError(
@@ -841,6 +850,17 @@ def allowed_sequences(db: Database, params, test_source: str, test_speaker: str 
         own = allowed & np.array([spk == test_speaker for spk in db.speakers])
         allowed = own if own.any() else allowed
     return allowed
+
+
+def take_of(label: str) -> str:
+    """The take a database or test sequence label comes from: without the suffixes of its piece (``#k``,
+    stages.head.database.cut_recording) and its mirror image (``~mirror``)."""
+    return re.sub(r"(#\d+)?(~mirror)?$", "", label)
+
+
+def linked_takes(groups: list[list[str]], take: str) -> set[str]:
+    """The other takes recorded in one performance with ``take`` (``same_performance``)."""
+    return {other for group in groups if take in group for other in group if other != take}
 
 
 def test_phrase_features(test_view, shift: np.ndarray) -> np.ndarray:
@@ -858,6 +878,13 @@ def search(db: Database, test_view, params, length: int, db_meta: dict) -> Resul
     if unknown:
         raise UserError(f"exclude_labels {unknown} are not database labels", field="params.exclude_labels")
     test_labels = list(test_view.meta.get("labels") or [])
+    takes = {take_of(x) for x in [*db.labels, *test_labels]}
+    strangers = sorted({x for group in params.same_performance for x in group} - takes)
+    if strangers:
+        raise UserError(
+            f"same_performance names {strangers}, which are neither database nor test takes",
+            field="params.same_performance",
+        )
     test_sources = list(test_view.meta.get("sources") or test_labels)
     test_speakers = list(test_view.meta.get("speakers") or [None] * len(test_labels))
     reference, shift = reference_for_test(test_view, db, params.test_speaker)
