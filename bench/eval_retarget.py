@@ -343,16 +343,29 @@ def capture(clips: list[str], overrides: list[str] = ()) -> None:
         print("| " + " | ".join([cells[0], str(frames), f"{cpu:.1f}"] + cells[1:]) + " |")
 
 
+def dispatch(argv: list[str]) -> None:
+    """The command line: the docstring's forms; -h prints it; a user error is one line, exit 2."""
+    import msflow
+
+    overrides, args = split_overrides(argv)
+    if args[:1] in (["-h"], ["--help"]):
+        print(__doc__)
+        return
+    modes = {"--blinks": blinks, "--identity": identity, "--probes": probes}  # these take no overrides
+    try:
+        if args[:1] == ["--capture"]:
+            capture(args[1:], overrides)
+        elif args[:1] and args[0] in modes:
+            modes[args[0]](args[1:])
+        elif args[:1] and args[0].startswith("-"):
+            sys.exit(f"error: unknown option {args[0]} (python bench/eval_retarget.py --help)")
+        else:
+            main(args, overrides)
+    except msflow.UserError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
+
+
 if __name__ == "__main__":
     sys.path.insert(0, str(ROOT / "bench"))
-    overrides, args = split_overrides(sys.argv[1:])
-    if args[:1] == ["--capture"]:
-        capture(args[1:], overrides)
-    elif args[:1] == ["--blinks"]:
-        blinks(args[1:])
-    elif args[:1] == ["--identity"]:
-        identity(args[1:])
-    elif args[:1] == ["--probes"]:
-        probes(args[1:])
-    else:
-        main(args, overrides)
+    dispatch(sys.argv[1:])
