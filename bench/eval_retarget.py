@@ -358,7 +358,7 @@ def dispatch(argv: list[str]) -> None:
         elif args[:1] and args[0] in modes:
             modes[args[0]](args[1:])
         elif args[:1] and args[0].startswith("-"):
-            sys.exit(f"error: unknown option {args[0]} (python bench/eval_retarget.py --help)")
+            raise msflow.UserError(f"unknown option {args[0]} (python bench/eval_retarget.py --help)")
         else:
             main(args, overrides)
     except msflow.UserError as exc:
