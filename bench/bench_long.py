@@ -115,7 +115,7 @@ def pipeline_for(take: Path, out: Path, name: str, store: Path) -> Path:
     spec = yaml.safe_load((ROOT / "pipeline.yaml").read_text())
     spec["vars"]["clips"] = str(ROOT / "data" / "crema-d")
     spec["store"] = str(store)
-    spec["stages"]["track_test"]["inputs"]["videos"] = {"sad": str(take)}
+    spec["stages"]["track_test"]["inputs"]["videos"] = {"sad": {"path": str(take), "speaker": "1001"}}
     for stage in spec["stages"].values():
         for key, ref in list(stage.get("inputs", {}).items()):
             if isinstance(ref, dict) and set(ref) == {"path"} and not Path(ref["path"]).is_absolute():

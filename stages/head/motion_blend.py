@@ -124,9 +124,9 @@ def amplitude_target(spreads: dict, speaker) -> np.ndarray:
 
 def knows_speaker(spreads: dict, speaker) -> bool:
     """Whether the database's motion (``spreads``: per speaker, over the sequences the search could use) is the
-    test speaker's own: its label is there, or the test is unlabelled and the database has one speaker (the
-    trellis's reading of such a test, ``test_speaker: database``)."""
-    return speaker in spreads if speaker is not None else len(spreads) == 1
+    test speaker's own: the test is labelled with a speaker the database holds. An unlabelled test is a performer
+    the database does not know (whose own filmed motion, when given, is the better guess of its amplitude)."""
+    return speaker is not None and speaker in spreads
 
 
 def group_gains(target: np.ndarray, spread: np.ndarray, max_gain: float = np.inf) -> np.ndarray:
@@ -763,8 +763,8 @@ class MotionBlendParams(Stage.Params):
         "auto",
         description="where 'speaker' and 'match' take the angles' target spread: the database (the test speaker's "
         "other takes, else its typical speaker's), the reference input (the performer's own tracked motion in "
-        "the test take), or 'auto': the database when it knows the test's speaker (its label, or an unlabelled "
-        "test with a one-speaker database), else the reference when given",
+        "the test take), or 'auto': the database when it holds the test's speaker (by its speaker label), else "
+        "the reference when given",
     )
     max_amplitude_gain: float = Field(3.0, ge=1, description="'match': largest gain (either way) on the output")
     reference_seconds: float | None = Field(
