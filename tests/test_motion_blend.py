@@ -685,6 +685,11 @@ def test_the_automatic_amplitude_target_reads_only_performers_the_database_does_
     # the performer's own proportions between the angles (one angle 8x, the others as recorded): per angle
     spans = lambda a: np.percentile(a, 95, axis=0)[:3] - np.percentile(a, 5, axis=0)[:3]
     synth, real = first_take("ben", gains=(8.0, 1.0, 1.0))
+    # refine_proportions (the default) stitches again with the gains corrected by the first output's proportions:
+    # every angle then lands near the performer's; stitched once, blending left one angle 2x off
+    np.testing.assert_allclose(spans(synth), spans(real), rtol=0.2)
+    once, _ = first_take("ben", gains=(8.0, 1.0, 1.0), refine_proportions=False)
+    assert np.max(np.abs(np.log(spans(once) / spans(real)))) > np.log(1.5)
     common, _ = first_take("ben", gains=(8.0, 1.0, 1.0), source_gain="common")
     proportion = lambda a: spans(a)[1] / spans(a)[0]  # the angle made 8x larger over another one
     assert proportion(real) > 2

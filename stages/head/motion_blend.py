@@ -780,6 +780,11 @@ class MotionBlendParams(Stage.Params):
         "per angle where the target is the performer's own motion (the reference), common where it is the "
         "database's",
     )
+    refine_proportions: bool = Field(
+        True,
+        description="where the sources are scaled per angle (source_gain), stitch a second time with their gains "
+        "corrected by the first output's proportions between yaw, pitch and roll (blending changes them)",
+    )
     output_cutoff: float | None = Field(
         4.0,
         gt=0,
@@ -892,6 +897,7 @@ def stitch_options(params, db: DatabaseMotion, trellis) -> dict:
         "source_gain": params.source_gain,
         "targets": None,  # per utterance, the angles' target spread from the reference (amplitude_target)
         "targets_for": "unknown" if params.amplitude_target == "auto" else "all",
+        "refine_proportions": params.refine_proportions,
         "output_cutoff": params.output_cutoff,
         "rest_anchor": params.rest_anchor,
     }
@@ -1096,6 +1102,7 @@ def synthesise(
     source_gain: str = "common",
     targets: list | None = None,
     targets_for: str = "all",
+    refine_proportions: bool = False,
     **blend,
 ) -> list[Stitched]:
     """The stitched motion of each test utterance of a trellis artifact (a still head where silent). ``timing``:
@@ -1107,52 +1114,73 @@ def synthesise(
     than that many seconds (a Gaussian low-pass of that sd), so the head keeps returning to its rest pose;
     ``output_cutoff`` (Hz) low-passes the stitched motion (``lowpass_channels``); ``targets`` (per utterance, the
     angles' spread or None) replaces the database's amplitude target of the angles (``targets_for="unknown"``:
-    only where the database does not know the utterance's speaker). ``blend``: keyword arguments of
+    only where the database does not know the utterance's speaker). ``refine_proportions``: where the sources
+    were scaled per angle and the output is matched, stitch a second time with the per-angle gains corrected by
+    the first output's proportions (``proportion_correction``). ``blend``: keyword arguments of
     ``stitch_segments``."""
     path = TrellisPath.of(trellis)
     shared_events = database_events(trellis, db, timing) if timing != "segment" else None
+    finishing = {"rest_anchor": rest_anchor, "max_gain": max_amplitude_gain, "cutoff": output_cutoff}
     out = []
     for u in range(len(path.labels)):
         given = targets[u] if targets is not None and u < len(targets) else None
         duration = utterance_frames(trellis, u, fps) / fps
-        source, target = amplitude_source(
+        source, target, per_angle = amplitude_source(
             db, path, u, duration, amplitude, given, source_gain, targets_for == "unknown"
         )
-        events = shared_events
-        if timing == "strokes" and source is not db:
-            events = database_events(trellis, source, timing)  # the strokes of the motion as it will play
         rows = np.flatnonzero(path.utterance == u)
-        maps = None
-        if events is not None:
-            onsets = path.onsets[path.onset_utterance == u]
-            maps = utterance_time_maps(
-                path.segments[rows],
-                path.db_segments[rows],
-                path.db_sequence[rows],
-                onsets,
-                events,
-                timing_tolerance,
-                max_stretch,
-            )
         times = np.arange(utterance_frames(trellis, u, fps)) / fps
-        stitched = stitch_segments(
-            source,
-            path.segments[rows],
-            path.subsentence_start[rows],
-            path.db_sequence[rows],
-            path.db_segments[rows],
-            times,
-            time_maps=maps,
-            **blend,
-        )
-        if rest_anchor > 0 and len(stitched.channels) > 1:
-            stitched.channels = stitched.channels - low_pass(stitched.channels, rest_anchor * fps)
-        if amplitude == "match" and len(rows):
-            stitched.channels = match_amplitude(stitched.channels, target, max_amplitude_gain)
-        if output_cutoff and len(rows):
-            stitched.channels = lowpass_channels(stitched.channels, fps, output_cutoff)
+
+        def render(source: DatabaseMotion) -> Stitched:
+            events = shared_events
+            if timing == "strokes" and source is not db:
+                events = database_events(trellis, source, timing)  # the strokes of the motion as it will play
+            maps = None
+            if events is not None:
+                onsets = path.onsets[path.onset_utterance == u]
+                maps = utterance_time_maps(
+                    path.segments[rows], path.db_segments[rows], path.db_sequence[rows], onsets, events,
+                    timing_tolerance, max_stretch,
+                )  # fmt: skip
+            stitched = stitch_segments(
+                source, path.segments[rows], path.subsentence_start[rows], path.db_sequence[rows],
+                path.db_segments[rows], times, time_maps=maps, **blend,
+            )  # fmt: skip
+            if len(rows):
+                stitched.channels = finish_channels(stitched.channels, fps, amplitude, target, **finishing)
+            return stitched
+
+        stitched = render(source)
+        if refine_proportions and per_angle and amplitude == "match" and len(rows):
+            stitched = render(source.scaled(proportion_correction(stitched.channels, target, len(db.frames))))
         out.append(stitched)
     return out
+
+
+def finish_channels(
+    channels: np.ndarray, fps: float, amplitude: str, target, *, rest_anchor: float, max_gain: float, cutoff
+) -> np.ndarray:
+    """The stitched channels of an utterance finished: wander slower than ``rest_anchor`` seconds removed (0:
+    kept), the amplitude matched to ``target`` (``amplitude="match"``, ``match_amplitude``), low-passed at
+    ``cutoff`` Hz (None: not)."""
+    if rest_anchor > 0 and len(channels) > 1:
+        channels = channels - low_pass(channels, rest_anchor * fps)
+    if amplitude == "match":
+        channels = match_amplitude(channels, target, max_gain)
+    if cutoff:
+        channels = lowpass_channels(channels, fps, cutoff)
+    return channels
+
+
+def proportion_correction(channels: np.ndarray, target: np.ndarray, sequences: int, max_gain: float = 2.0):
+    """(sequences, channels) gains that bring the proportions between the angles' spreads of a stitched output
+    (``channels``) to ``target``'s: per angle target / spread, divided by their geometric mean (the output's one
+    gain sets the size), at most ``max_gain`` either way; 1 for the translation."""
+    spread = np.percentile(channels, 95, axis=0) - np.percentile(channels, 5, axis=0)
+    ratio = angle_gains(np.asarray(target, dtype=np.float64)[:3], spread[:3], max_gain)
+    gains = np.ones(channels.shape[1])
+    gains[:3] = np.clip(ratio / np.exp(np.mean(np.log(ratio))), 1.0 / max_gain, max_gain)
+    return np.tile(gains, (sequences, 1))
 
 
 def amplitude_source(
@@ -1164,7 +1192,7 @@ def amplitude_source(
     angles_target=None,
     source_gain: str = "common",
     database_first: bool = False,
-) -> tuple[DatabaseMotion, np.ndarray | None]:
+) -> tuple[DatabaseMotion, np.ndarray | None, bool]:
     """The database motion utterance ``u`` is stitched from and its amplitude target: as recorded
     (``amplitude="database"``), or every source speaker brought to the target spread at the utterance's
     ``duration`` (``speaker_spreads`` over the sequences its search could use, ``amplitude_target``), the angles'
@@ -1173,7 +1201,7 @@ def amplitude_source(
     each source speaker scaled by one gain for its angles, by one per angle, or (``"auto"``) per angle only where
     the angles' target is the performer's own: only then are its proportions between the angles known."""
     if amplitude == "database":
-        return db, None
+        return db, None, False
     spreads = speaker_spreads(db, path.allowed(u), duration)
     target = amplitude_target(spreads, path.speakers[u])
     performers = angles_target is not None and not (database_first and knows_speaker(spreads, path.speakers[u]))
@@ -1181,7 +1209,7 @@ def amplitude_source(
         target = np.array(target, dtype=np.float64)
         target[:3] = angles_target
     per_angle = source_gain == "per_angle" or (source_gain == "auto" and performers)
-    return db.scaled(amplitude_gains(db, spreads, target, per_angle)), target
+    return db.scaled(amplitude_gains(db, spreads, target, per_angle)), target, per_angle
 
 
 def lowpass_channels(channels: np.ndarray, fps: float, cutoff: float) -> np.ndarray:
