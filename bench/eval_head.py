@@ -6,7 +6,9 @@
     python bench/eval_head.py --calibrate           # the jitter filter and the range fit, on real motion only
 
 Each row is one run of an evaluation pipeline (stages.eval.head): CREMA-D ``eval/head.yaml`` (leave one take out;
-one speaker), the talking-head clips ``eval/head_talking_heads.yaml`` (leave one speaker out; leave one take out
+one speaker), the talking-head clips ``eval/head_talking_heads.yaml`` (leave one speaker out; the same with the
+amplitude read off the scored take, ``motion_blend.amplitude_target=auto``, the product's default for a performer
+the database does not know, in-sample for the amplitude; leave one take out
 with ``vars.holdout=take``; and every clip cut into 5-s pieces, leave one piece out, so that the speaker's other
 pieces are in the database: ``vars.piece=5 vars.test=takes``),
 synthetic takes ``eval/head_csv.yaml`` (67 phrases of tests/head_synthetic.py whose head pitch follows the voice's
@@ -78,6 +80,8 @@ def runs(args) -> list[tuple[str, str, str, list[str]]]:
     if "talking-heads" in args.data:
         clips = [f"vars.clips={Path(args.shared).resolve() / 'data' / 'talking-heads'}"]
         out.append(("talking heads, leave one speaker out", "eval/head_talking_heads.yaml", "evaluate", clips))
+        name = "talking heads, leave one speaker out, the performer's amplitude (read off the scored take)"
+        out.append((name, "eval/head_talking_heads.yaml", "evaluate", [*clips, "motion_blend.amplitude_target=auto"]))
         take = [*clips, "vars.holdout=take"]
         out.append(("talking heads, leave one take out", "eval/head_talking_heads.yaml", "evaluate", take))
         pieces = [*take, "vars.piece=5", "vars.test=takes"]
