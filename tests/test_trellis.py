@@ -264,7 +264,8 @@ def test_speaker_motion_same_keeps_to_the_test_speakers_own_motion(phrases):
 def test_same_performance_leaves_out_a_copy_of_the_held_out_take(phrases):
     """A second recording of the held-out take's performance (here an exact copy under another label) is the
     search's best match under holdout 'take'; same_performance groups the two, and the copy (mirror included) is
-    left out too. Pieces of a take and its mirror belong to the take (take_of); an unknown label is an error."""
+    left out too, and the two takes' shared sound makes the search warn until they are grouped. Pieces of a take
+    and its mirror belong to the take (take_of); an unknown label is an error."""
     import dataclasses
 
     from stages.head.trellis import take_of
@@ -282,6 +283,10 @@ def test_same_performance_leaves_out_a_copy_of_the_held_out_take(phrases):
         }
 
     assert "copy" in used()
+    # the copy's sound gives it away: the search warns unless the two are grouped
+    apart = search(db, test, holdout="take").warnings
+    assert len(apart) == 1 and f"'{phrases[0].label}' and 'copy' share their sound" in apart[0]
+    assert not search(db, test, holdout="take", same_performance=[[phrases[0].label, "copy"]]).warnings
     grouped = used(same_performance=[[phrases[0].label, "copy"]])
     assert "copy" not in grouped and phrases[0].label not in grouped and grouped
     assert take_of("clip#3~mirror") == take_of("clip#3") == take_of("clip~mirror") == "clip"

@@ -19,7 +19,6 @@ Motion-blend measures its join velocity steps with the same parabola fits (``bou
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 from typing import Literal
 
@@ -27,6 +26,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
+from stages.head.copies import copy_warnings, take_of
 from stages.head.pitch import semitones
 
 GEOMETRY_FEATURES = ("min", "max", "range", "min_slope", "max_slope", "curvature")
@@ -796,6 +796,8 @@ class Trellis(Stage):
         )
         result = search(db, inputs["test_pitch"], params, length, inputs["database"].meta)
         result.arrays.update(onsets_of("test", inputs["test_pitch"]) | onsets_of("db", inputs["database_pitch"]))
+        if params.holdout == "take":
+            result.warnings += copy_warnings(inputs["database"], params.same_performance)
         return result
 
 
@@ -850,12 +852,6 @@ def allowed_sequences(db: Database, params, test_source: str, test_speaker: str 
         own = allowed & np.array([spk == test_speaker for spk in db.speakers])
         allowed = own if own.any() else allowed
     return allowed
-
-
-def take_of(label: str) -> str:
-    """The take a database or test sequence label comes from: without the suffixes of its piece (``#k``,
-    stages.head.database.cut_recording) and its mirror image (``~mirror``)."""
-    return re.sub(r"(#\d+)?(~mirror)?$", "", label)
 
 
 def linked_takes(groups: list[list[str]], take: str) -> set[str]:
