@@ -291,7 +291,7 @@ def probes(folders: list[str]) -> None:
             gap = lip_gap_iod(level(landmarks))
             plain = landmark_probes(shapes, rest_of(shapes), gap, params.closure_gap)
             camera = take_cameras(tracks.meta, sequence)[labels.index(label)]
-            evaluated = performer_shapes(tracks["mesh"], sequence == labels.index(label), camera)
+            evaluated, _ = performer_shapes(tracks["mesh"], sequence == labels.index(label), camera, params.probe_focal)
             evaluated = landmark_probes(evaluated, rest_of(evaluated), gap, params.closure_gap)
             drop = jaw_drop(landmarks)
             chin = drop[rest_frames(landmarks)].mean() - drop

@@ -68,16 +68,20 @@ def opencv_projection(points, rotation, translation):
     return np.array(out)
 
 
-def facemesh_of(points, rotation, translation):
+def facemesh_of(points, rotation, translation, orthographic=False):
     """A 468-point FaceMesh whose iBUG points are ``points`` (frames, 68, 3) posed and seen by the camera: image x,
     y and a relative depth z in pixels (away from the camera), as the tracker gives them; every other vertex (the
-    cheeks' among them) rides rigidly on the nose tip."""
+    cheeks' among them) rides rigidly on the nose tip. ``orthographic``: seen without perspective, every point
+    scaled as the face's mean depth would be (a scaled orthographic view: a very long lens from far away)."""
     from stages.geometry.rotations import quat_to_matrix
     from stages.tracking.landmarks68 import MESH_TO_IBUG68
 
     cam = np.einsum("fij,fpj->fpi", quat_to_matrix(rotation), points) + translation[:, None]
     depth = -cam[..., 2]
     image = opencv_projection(points, rotation, translation)
+    if orthographic:
+        scale = CAMERA[0, 0] / depth.mean(axis=1, keepdims=True)
+        image = np.stack([cam[..., 0] * scale, -cam[..., 1] * scale], axis=-1) + CAMERA[:2, 2]
     z = (depth - depth.mean(axis=1, keepdims=True)) * CAMERA[0, 0] / depth.mean(axis=1, keepdims=True)
     posed = np.concatenate([image, z[..., None]], axis=-1)
     mesh = np.repeat(posed[:, 30:31], 468, axis=1)
@@ -292,6 +296,28 @@ PROBED = {
     "browDown_L": "BrowDownLeft", "browOuterUp_R": "BrowOuterUpRight", "eyeSquint_L": "EyeSquintLeft",
     "eyeWide_R": "EyeWideRight",
 }  # fmt: skip
+
+
+def test_the_probes_focal_length_is_found_in_the_take(character, truth):
+    """The probes take the perspective out with the focal length that leaves the rigid points most rigid: the
+    synthetic head filmed by a 480 px pinhole gets 480 back, whether tracking guessed 480 or twice that, and the
+    same head seen without perspective gets none (infinite) taken out. The evaluation uses and reports it."""
+    from stages.retarget.shapes3d import estimate_focal
+
+    weights, tracks, out = truth
+    mesh = np.asarray(tracks["mesh"], np.float64)
+    assert estimate_focal(mesh, CAMERA)[0] == pytest.approx(480.0)
+    guessed = CAMERA.copy()
+    guessed[0, 0] = guessed[1, 1] = 960.0
+    assert estimate_focal(mesh, guessed)[0] == pytest.approx(480.0)
+    model = load_face3d().neutral
+    neutral = character_landmarks(character["neutral"], character["deltas"], character["landmark_ids"], weights[:1] * 0)
+    points = align_to_model(neutral[0], model).apply(
+        character_landmarks(character["neutral"], character["deltas"], character["landmark_ids"], weights)
+    )
+    flat = facemesh_of(points, *head_motion(), orthographic=True)
+    assert estimate_focal(flat, CAMERA)[0] == np.inf
+    assert out.meta["takes"]["take"]["probe_focal_length"] == pytest.approx(480.0)
 
 
 def test_probes_see_each_movement_and_not_the_jaw(character):

@@ -34,6 +34,8 @@ Pooled over the takes as stage metrics, per take in ``meta["takes"]``.
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 from pydantic import Field, model_validator
 
@@ -264,34 +266,41 @@ def widest_frames(values: np.ndarray, sequence: np.ndarray, fraction: float) -> 
 # ------------------------------------------------------------------------------------------------ movements
 
 
-def performer_shapes(tracks_mesh, rows: np.ndarray, camera: np.ndarray) -> np.ndarray:
+def performer_shapes(tracks_mesh, rows: np.ndarray, camera: np.ndarray, focal: str = "estimated"):
     """One take's performer in the head frame, IOD units (frames, 68 + cheek points, 3), from the tracked FaceMesh
-    with the camera's perspective taken out (``camera`` (3, 3) the take's)."""
+    with a pinhole's perspective taken out, and the focal length used (pixels; inf: none). ``focal``: the one
+    ``shapes3d.estimate_focal`` finds in the take (``estimated``), or the tracked ``camera``'s (``tracked``: the
+    frame width, which tracking assumes)."""
     from stages.retarget.movements import EXTRA_VERTICES
-    from stages.retarget.shapes3d import head_frame_shapes, undo_perspective
+    from stages.retarget.shapes3d import estimate_focal, head_frame_shapes, undo_perspective
 
     index = np.flatnonzero(rows)  # a take's frames are contiguous: read them as one slice of the stored mesh
-    mesh = undo_perspective(tracks_mesh[index[0] : index[-1] + 1], camera)
-    return head_frame_shapes(mesh, EXTRA_VERTICES)
+    mesh = np.asarray(tracks_mesh[index[0] : index[-1] + 1], np.float64)
+    used = estimate_focal(mesh, camera)[0] if focal == "estimated" else float(camera[0, 0])
+    scaled = np.asarray(camera, np.float64).copy()
+    scaled[0, 0] = scaled[1, 1] = used
+    return head_frame_shapes(undo_perspective(mesh, scaled), EXTRA_VERTICES), used
 
 
-def take_movements(data: dict, rows: np.ndarray, gap: np.ndarray, params) -> dict[str, dict]:
+def take_movements(data: dict, rows: np.ndarray, gap: np.ndarray, params) -> tuple[dict[str, dict], float | None]:
     """Per ARKit column with a probe: did the performer make that movement in this take
-    (``stages.retarget.movements``)?"""
+    (``stages.retarget.movements``)? With the focal length the probes took the perspective out with (None without
+    a FaceMesh)."""
     from stages.retarget.keyshapes import rest_frames
     from stages.retarget.movements import MovedLevels, eye_probes, landmark_probes, moved
     from stages.retarget.shapes3d import front_view
 
-    probes = {}
+    probes, focal = {}, None
     if data.get("mesh") is not None:  # 2D landmarks read a turn of the head as a sideways jaw or a frown
-        shapes = performer_shapes(data["mesh"], rows, data["camera"][np.flatnonzero(rows)[0]])
+        camera = data["camera"][np.flatnonzero(rows)[0]]
+        shapes, focal = performer_shapes(data["mesh"], rows, camera, params.probe_focal)
         rest = shapes[rest_frames(front_view(shapes[:, :68]))].mean(axis=0)
         probes = landmark_probes(shapes, rest, gap[rows], params.closure_gap)
     aperture = data["aperture"][rows] if data["aperture"] is not None else eye_aperture(data["landmarks"][rows])
     gaze = data["gaze"][rows] if data["gaze"] is not None else None
     probes.update(eye_probes(aperture, gaze))
     levels = MovedLevels(params.moved_level, params.moved_closure, params.moved_degrees, params.moved_frames)
-    return moved(probes, levels)
+    return moved(probes, levels), focal
 
 
 def dead_where_moved(arkit: np.ndarray, columns: list[str], movements: dict, rows: np.ndarray, level: float) -> dict:
@@ -403,6 +412,10 @@ class RetargetEval(Stage):
         #: ... and for gaze (degrees from the take's median direction)
         moved_degrees: float = Field(8.0, gt=0)
         moved_frames: int = Field(3, ge=1)
+        #: the probes read the FaceMesh with a pinhole's perspective taken out, with the focal length that leaves
+        #: each take's rigid points most rigid (``estimated``, shapes3d.estimate_focal) or tracking's assumption,
+        #: the frame width (``tracked``)
+        probe_focal: Literal["estimated", "tracked"] = "estimated"
 
         @model_validator(mode="after")
         def _narrowing_above_dip(self):
@@ -548,13 +561,14 @@ def evaluate(params, **data) -> dict:
     takes, labels = {}, data["labels"]
     for take in np.unique(sequence):
         rows = sequence == take
-        movements = take_movements(data, rows, context["performer_gap"], params)
+        movements, focal = take_movements(data, rows, context["performer_gap"], params)
         dead = dead_where_moved(arkit, columns, movements, rows, params.dead_level)
         label = labels[take] if take < len(labels) else f"take{take}"
         takes[label] = {
             "metrics": summary(params, data, frames, context, rows),
             "columns": dead,
             "movements": {c: [round(v["peak"], 4), round(v["level"], 4)] for c, v in movements.items()},
+            "probe_focal_length": None if focal is None or not np.isfinite(focal) else round(focal, 1),
         }
     metrics = summary(params, data, frames, context, np.ones(len(sequence), bool))
     metrics.update(pooled_dead(takes, arkit, columns, params.dead_level))
