@@ -252,7 +252,7 @@ def character_shapes(character, weights: np.ndarray, performer_rest: np.ndarray)
 
 def probes(folders: list[str]) -> None:
     """For every ARKit column dead where the performer moved it: the movement probe as the evaluation reads it
-    (the FaceMesh with the tracked camera's perspective taken out, focal length as tracking assumed it) beside
+    (the FaceMesh with a pinhole's perspective taken out, the focal length found in the take) beside
     the same probe on the FaceMesh as the retarget reads it (no perspective removal), and for the chin raise a
     check on the 2D landmarks: how far the chin-to-nose-bridge distance is below its closed-mouth rest (IOD) at
     the frame where the evaluated probe peaks; last, the same probe on the character's animation (its landmark
