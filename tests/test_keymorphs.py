@@ -652,3 +652,30 @@ def test_a_stretched_open_mouth_is_no_funnel(character):
     before = [p for p in KeymorphFit.Params().antagonists if tuple(p) != ("mouthFunnel", "mouthStretch")]
     old = fit(antagonists=before)
     assert old[funnel] > 0.1 and old[stretch] > 0.3, (old[funnel], old[stretch])
+
+
+def test_a_mistracked_landmark_does_not_recruit_other_morphs(character):
+    """Known answer: a keyshape made by the jaw and a smile, one of its landmarks off by 0.1-0.15 IOD (a tracking
+    glitch, or a lip beyond the character's reach). With squared residuals the fit chases that one point with
+    other morphs (weights off by 0.19-0.42); with Huber's loss beyond 0.025 IOD (``robust_iod``, the default) every
+    weight stays within 0.1 of the fit of the clean keyshape."""
+    names = character.meta["target_names"]
+    pose = {"jawOpen": 0.4, "mouthSmile_L": 0.5, "mouthSmile_R": 0.5}
+    poses = [("neutral", {}), ("neutral", pose), ("happy", {}), ("angry", {})]
+    clean, _ = keyshapes3d_from_weights(character, poses)
+
+    def fit(keyshapes, **params):
+        inputs = {"keyshapes": keyshapes, "character": character}
+        return run_stage(KeymorphFit, {"contact_sheet": False, **params}, inputs).arrays["keymorph_weights"][1]
+
+    reference = {robust: fit(clean, robust_iod=robust) for robust in (0.025, None)}
+    assert reference[0.025][names.index("jawOpen")] == pytest.approx(0.4, abs=0.05)
+    for point, axis, offset in ((57, 1, -0.15), (54, 0, 0.15), (62, 1, 0.1), (8, 1, -0.15)):
+        shapes = np.array(clean["keyshapes3d"])
+        shapes[1, point, axis] += offset
+        arrays = {name: clean[name] for name in clean.names}
+        arrays["keyshapes3d"] = shapes.astype(np.float32)
+        glitched = artifact(arrays, meta=clean.meta)
+        robust = np.abs(fit(glitched) - reference[0.025]).max()
+        squared = np.abs(fit(glitched, robust_iod=None) - reference[None]).max()
+        assert robust < 0.1 < 0.15 < squared, (point, robust, squared)

@@ -148,6 +148,28 @@ def test_box_qp_respects_bounds_and_matches_reference():
         np.testing.assert_allclose(w, ref, atol=1e-6)
 
 
+def test_box_qp_with_one_matrix_per_row_solves_each_row_weighted():
+    """Per-row matrices (n, k, k): each row is its own weighted least squares (the keymorph fit's robust
+    reweighting), the same as scaling that row's data and solving it alone; a warm start changes nothing."""
+    from scipy.optimize import lsq_linear
+
+    rng = np.random.default_rng(11)
+    J = rng.normal(size=(30, 8))
+    targets = rng.normal(size=(5, 30)) * 2
+    weights = rng.uniform(0.05, 1.0, size=(5, 30))
+    H = np.einsum("dm,kd,dn->kmn", J, weights, J)
+    W, _, residual = solve_box_qp(H, (targets * weights) @ J, lower=0.0, upper=1.0, rtol=1e-10)
+    assert residual.max() <= 1e-10
+    for w, y, d in zip(W, targets, weights):
+        root = np.sqrt(d)
+        ref = lsq_linear(J * root[:, None], y * root, bounds=(0, 1), method="bvls", tol=1e-12).x
+        np.testing.assert_allclose(w, ref, atol=1e-6)
+    warm, _, _ = solve_box_qp(H, (targets * weights) @ J, lower=0.0, upper=1.0, rtol=1e-10, W0=W * 0.5)
+    np.testing.assert_allclose(warm, W, atol=1e-6)
+    with pytest.raises(ValueError, match="smoothing"):
+        solve_box_qp(H, targets @ J, smoothing=1.0)
+
+
 def test_box_qp_with_fixed_variables_stops_at_the_optimum():
     """A variable whose bounds meet (upper 0: a corrective held at 0) is fixed; its gradient must not count as a
     KKT violation, or the solver never sees that it converged and runs to max_iter (the keymorph fit did, 20,000

@@ -201,19 +201,26 @@ def solve_box_qp(
 
     FISTA (Beck & Teboulle 2009) with gradient-based adaptive restart (O'Donoghue & Candes 2015); rows (frames)
     are coupled only through ``smoothing``. Stops when the projected gradient, the KKT residual of the box
-    constraints, is below ``rtol * (||f_t|| + ||H|| * ||w_t||)`` for every frame. Returns (W, iterations,
-    per-frame KKT residual relative to that scale).
+    constraints, is below ``rtol * (||f_t|| + ||H|| * ||w_t||)`` for every frame. ``H`` is one (k, k) matrix or
+    one per row, (n, k, k) (no smoothing then), each row stepping by its own Lipschitz constant. ``W0`` starts
+    the iteration (a warm start). Returns (W, iterations, per-frame KKT residual relative to that scale).
     """
     H = np.asarray(H, np.float64)
     F = np.atleast_2d(np.asarray(F, np.float64))
     n, k = F.shape
+    per_row = H.ndim == 3
+    if per_row and smoothing > 0:
+        raise ValueError("smoothing couples the rows: it needs one H for all of them")
     # the gradient's Lipschitz constant; |eigenvalues| so that a slightly indefinite H (non-convex) still works
-    lipschitz = float(np.abs(np.linalg.eigvalsh(H)).max(initial=0.0)) + 4.0 * smoothing
-    lipschitz = max(lipschitz, EPS)
-    h_norm = lipschitz
+    if per_row:
+        lipschitz = np.abs(np.linalg.eigvalsh(H)).max(axis=1, initial=0.0)[:, None]
+    else:
+        lipschitz = np.asarray(float(np.abs(np.linalg.eigvalsh(H)).max(initial=0.0)) + 4.0 * smoothing)
+    lipschitz = np.maximum(lipschitz, EPS)
+    h_norm = lipschitz.reshape(-1)
 
     def gradient(W):
-        g = W @ H - F
+        g = np.einsum("nj,njk->nk", W, H) - F if per_row else W @ H - F
         if smoothing > 0 and n > 1:
             d = np.diff(W, axis=0)
             g[:-1] -= smoothing * d
