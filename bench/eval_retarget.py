@@ -6,6 +6,7 @@ and the default run's paper branch) and, given folders, the capture branch on ea
     python bench/eval_retarget.py --blinks ../shared/data/talking-heads     # the blink detector vs hand marks
     python bench/eval_retarget.py --identity ../shared/data/talking-heads   # absolute mouth error, identity fitted
     python bench/eval_retarget.py --probes ../shared/data/talking-heads     # dead-where-moved probes, read two ways
+    python bench/eval_retarget.py --focal ../shared/data/talking-heads      # the probes' focal length per take
     python bench/eval_retarget.py --capture ../shared/data/talking-heads/{hdtf_kh,retalking_2,vlog_31}.mp4
     python bench/eval_retarget.py -S capture_character.fit_identity=true           # CREMA-D, identity fitted
     python bench/eval_retarget.py --capture -S character.fit_identity=true ../shared/data/talking-heads/hdtf_kh.mp4
@@ -343,6 +344,36 @@ def capture(clips: list[str], overrides: list[str] = ()) -> None:
         print("| " + " | ".join([cells[0], str(frames), f"{cpu:.1f}"] + cells[1:]) + " |")
 
 
+def focal(folders: list[str]) -> None:
+    """Per take, the scatter of the rigid points (% IOD, ``shapes3d.rigid_scatter``) after taking a pinhole's
+    perspective out of the FaceMesh with multiples of tracking's focal length (the frame width) and with none,
+    and the focal length the movement probes use (``shapes3d.estimate_focal``)."""
+    import msflow
+    from stages.eval.retarget import take_cameras
+    from stages.retarget.shapes3d import estimate_focal
+
+    os.chdir(ROOT)
+    multiples = [0.5, 1.0, 2.0, 4.0, 8.0, np.inf]
+    runs = [msflow.run(PIPELINE, until="capture_track")]
+    for folder in folders:
+        relative = os.path.relpath(Path(folder).resolve(), PIPELINE.parent)
+        runs.append(msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_track"))
+    names = ["none" if not np.isfinite(m) else f"f x{m:g}" for m in multiples]
+    print("| take (tracked f, px) | " + " | ".join(names) + " | f found |")
+    print("|---" * (len(multiples) + 2) + "|")
+    for result in runs:
+        tracks = result.artifact("capture_track")
+        sequence, labels = np.asarray(tracks["sequence"]), list(tracks.meta["labels"])
+        cameras = take_cameras(tracks.meta, sequence)
+        for i, label in enumerate(labels):
+            rows = np.flatnonzero(sequence == i)
+            mesh = np.asarray(tracks["mesh"][rows[0] : rows[-1] + 1], np.float64)
+            _, scatter = estimate_focal(mesh, cameras[i], multiples)
+            found, _ = estimate_focal(mesh, cameras[i])
+            cells = [f"{100 * v:.2f}" for v in scatter] + [f"{found:.0f}" if np.isfinite(found) else "none"]
+            print(f"| {Path(label).stem} ({cameras[i][0, 0]:.0f}) | " + " | ".join(cells) + " |")
+
+
 def dispatch(argv: list[str]) -> None:
     """The command line: the docstring's forms; -h prints it; a user error is one line, exit 2."""
     import msflow
@@ -351,7 +382,7 @@ def dispatch(argv: list[str]) -> None:
     if args[:1] in (["-h"], ["--help"]):
         print(__doc__)
         return
-    modes = {"--blinks": blinks, "--identity": identity, "--probes": probes}  # these take no overrides
+    modes = {"--blinks": blinks, "--identity": identity, "--probes": probes, "--focal": focal}  # no overrides
     try:
         if args[:1] == ["--capture"]:
             capture(args[1:], overrides)
