@@ -317,6 +317,9 @@ def test_the_probes_focal_length_is_found_in_the_take(character, truth):
     )
     flat = facemesh_of(points, *head_motion(), orthographic=True)
     assert estimate_focal(flat, CAMERA)[0] == np.inf
+    # a still head (or a single frame) cannot tell: tracking's guess stays
+    assert estimate_focal(np.repeat(mesh[:1], 20, axis=0), guessed)[0] == pytest.approx(960.0)
+    assert estimate_focal(mesh[:1], guessed)[0] == pytest.approx(960.0)
     assert out.meta["takes"]["take"]["probe_focal_length"] == pytest.approx(480.0)
 
 

@@ -107,17 +107,25 @@ def estimate_focal(
     length tried (``rigid_scatter``). A pinhole's perspective changes the rigid points' image distances as the
     head turns, so the right focal length, taken out, leaves them one rigid shape; a wrong one leaves a scatter
     that grows with the pose. Tracking assumes the frame width; cropped footage (a talking head cut out of a wider
-    frame) was filmed with a longer lens relative to the crop. At most ``max_frames`` frames, evenly spread."""
+    frame) was filmed with a longer lens relative to the crop. At most ``max_frames`` frames, evenly spread; a tie
+    with tracking's focal length (a still head) keeps it."""
     mesh = np.asarray(mesh, np.float64)
+    mesh = mesh[np.isfinite(mesh).all(axis=(1, 2))]  # tracking fills its gaps; a frame without a face says nothing
+    camera = np.asarray(camera, np.float64)
+    if len(mesh) < 2:
+        return float(camera[0, 0]), np.full(len(multiples), np.nan)
     if len(mesh) > max_frames:
         mesh = mesh[np.linspace(0, len(mesh) - 1, max_frames).round().astype(int)]
-    camera = np.asarray(camera, np.float64)
     scatter = np.empty(len(multiples))
     for i, multiple in enumerate(multiples):
         scaled = camera.copy()
         scaled[0, 0] = scaled[1, 1] = camera[0, 0] * multiple
         scatter[i] = rigid_scatter(mesh_landmarks(undo_perspective(mesh, scaled)))
-    return float(camera[0, 0] * multiples[int(np.argmin(scatter))]), scatter
+    best = int(np.argmin(scatter))
+    tracked = np.flatnonzero(np.isclose(np.asarray(multiples, np.float64), 1.0))
+    if tracked.size and scatter[tracked[0]] <= scatter[best] * (1 + 1e-6) + 1e-12:
+        best = int(tracked[0])  # where the data cannot tell (a still head), tracking's focal length stays
+    return float(camera[0, 0] * multiples[best]), scatter
 
 
 def front_view(points: np.ndarray) -> np.ndarray:
