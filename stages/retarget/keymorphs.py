@@ -334,10 +334,12 @@ def robust_fit(
         rows = np.flatnonzero(reweighted)
         if not rows.size:
             break
-        refit, _ = bounded_fit(
+        refit, refit_info = bounded_fit(
             J, targets[rows], names, usable, upper=bounds[rows], **regularisers,
             data_weights=np.repeat(point_weights[rows], dims, axis=1), start=weights[rows],
         )  # fmt: skip
+        info["iterations"] = max(info["iterations"], refit_info["iterations"])
+        info["kkt_max"] = max(info["kkt_max"], refit_info["kkt_max"])
         moved = np.abs(refit - weights[rows]).max(initial=0.0)
         weights[rows] = refit
         if moved < 1e-3:
