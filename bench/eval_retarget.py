@@ -241,7 +241,7 @@ def character_shapes(character, weights: np.ndarray, performer_rest: np.ndarray)
     """The character's landmark vertices under ``weights`` (frames, 68 + cheek points, 3) in IOD units, the cheek
     points being the character's vertices nearest to the performer's FaceMesh cheek points at rest
     (``performer_rest`` (68 + 12, 3)) carried onto the character by the similarity of the rigid points."""
-    from stages.retarget.keymorphs import Rig3D
+    from stages.retarget.region_fit import Rig3D
 
     neutral, deltas = np.asarray(character["neutral"], np.float64), np.asarray(character["deltas"], np.float64)
     rig = Rig3D.build(neutral, deltas, character["landmark_ids"])

@@ -7,18 +7,10 @@ import pytest
 from msflow import UserError
 from msflow.testing import artifact, run_stage
 from stages.retarget.character import GltfCharacter
-from stages.retarget.keymorphs import (
-    KeymorphFile,
-    KeymorphFit,
-    LandmarkRig,
-    antagonist_pairs,
-    fit_similarity,
-    format_keymorph_yaml,
-    parse_keymorph_yaml,
-    project_front,
-    symmetric_pairs,
-)
+from stages.retarget.keymorph_yaml import format_keymorph_yaml, parse_keymorph_yaml
+from stages.retarget.keymorphs import KeymorphFile, KeymorphFit
 from stages.retarget.keyshapes import inter_ocular_distance
+from stages.retarget.morph_fit import LandmarkRig, antagonist_pairs, fit_similarity, project_front, symmetric_pairs
 
 ICT = "data/characters/ict-facekit.glb"
 

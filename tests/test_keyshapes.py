@@ -393,7 +393,7 @@ def face3d_takes(frames=(40, 30), seed=5):
 
 
 def test_head_frame_takes_the_pose_out_of_the_mesh():
-    from stages.retarget.keymorphs import fit_similarity
+    from stages.retarget.morph_fit import fit_similarity
     from stages.retarget.shapes3d import head_frame_shapes
 
     tracks, truth = face3d_takes()

@@ -19,15 +19,9 @@ from stages.head.measures import (
     reference_angles,
     wasserstein_speed,
 )
-from stages.head.motion_blend import (
-    DatabaseMotion,
-    MotionBlend,
-    accelerations_at_joins,
-    join_windows,
-    segment_weights,
-    stitch_segments,
-)
+from stages.head.motion_blend import MotionBlend, accelerations_at_joins
 from stages.head.pitch import Pitch
+from stages.head.stitching import DatabaseMotion, join_windows, segment_weights, stitch_segments
 from stages.head.trellis import Trellis
 
 
@@ -477,7 +471,7 @@ def test_crema_d_end_to_end(crema):
 
 
 def test_timing_knots_move_database_events_onto_test_events():
-    from stages.head.motion_blend import segment_knots, warp_time
+    from stages.head.stitching import segment_knots, warp_time
 
     # a 1 s test segment drawn from a 2 s database segment: uniform rate 2
     knots_t, knots_d = segment_knots(
@@ -507,7 +501,7 @@ def test_timing_knots_move_database_events_onto_test_events():
 
 
 def test_amplitude_gains_bring_every_speaker_to_the_target_spread():
-    from stages.head.motion_blend import amplitude_gains, amplitude_target, speaker_spreads
+    from stages.head.amplitude import amplitude_gains, amplitude_target, speaker_spreads
 
     t = np.linspace(0, 4 * np.pi, 400)
     quiet = np.repeat(np.sin(t)[:, None], 6, axis=1)
@@ -532,7 +526,7 @@ def test_amplitude_gains_bring_every_speaker_to_the_target_spread():
 def test_per_angle_source_gains_bring_each_angle_to_the_target():
     """source_gain 'per_angle': a speaker moving (1, 2, 4) in (yaw, pitch, roll) brought to a target of (2, 2, 2)
     gets gains (2, 1, 0.5); the common gain (their geometric mean ratio) is 1 and keeps the proportions."""
-    from stages.head.motion_blend import amplitude_gains, speaker_spreads
+    from stages.head.amplitude import amplitude_gains, speaker_spreads
 
     t = np.linspace(0, 4 * np.pi, 400)
     wave = np.sin(t)[:, None] * np.array([1.0, 2.0, 4.0, 1.0, 1.0, 1.0])
@@ -545,7 +539,7 @@ def test_per_angle_source_gains_bring_each_angle_to_the_target():
 
 def test_the_reference_target_can_come_from_an_enrolment_stretch():
     """reference_seconds: the target spread is that of the first seconds of the performer's take only."""
-    from stages.head.motion_blend import reference_spreads
+    from stages.head.amplitude import reference_spreads
 
     phrase = synth_database(1, seed=3)[0]
     tracks = tracking_artifact([phrase], fps=30.0)
@@ -559,8 +553,8 @@ def test_the_reference_target_can_come_from_an_enrolment_stretch():
 
 
 def test_matched_amplitude_is_centred_with_the_target_spread():
+    from stages.head.amplitude import match_amplitude
     from stages.head.beats import kinematic_beats
-    from stages.head.motion_blend import match_amplitude
 
     t = np.arange(600) / 30.0
     motion = np.zeros((600, 6))
@@ -648,7 +642,7 @@ def test_the_automatic_amplitude_target_reads_only_performers_the_database_does_
     database's speaker) gets its own amplitude from its tracked take, each angle its own (``source_gain="auto"``:
     per angle where the target is the performer's), and so does an unlabelled one; the same take labelled as the
     database's speaker gets that speaker's amplitude from the database."""
-    from stages.head.motion_blend import knows_speaker
+    from stages.head.amplitude import knows_speaker
 
     spread = lambda a: np.prod(np.percentile(a, 95, axis=0)[:3] - np.percentile(a, 5, axis=0)[:3]) ** (1 / 3)
     headdb = run_stage(TrackedHeadDb, {}, {"tracks": tracking_artifact(phrases[8:16], fps=30.0, speaker="ann")})

@@ -75,7 +75,7 @@ def pose_and_project(points: np.ndarray, rotation: np.ndarray, translation: np.n
 
 def align_to_model(character_points: np.ndarray, model_points: np.ndarray):
     """The 3D similarity that carries the character's neutral landmarks onto the pose model's (rigid points)."""
-    from stages.retarget.keymorphs import fit_similarity
+    from stages.retarget.morph_fit import fit_similarity
 
     rigid = list(RIGID)
     return fit_similarity(np.asarray(character_points)[rigid], np.asarray(model_points)[rigid])

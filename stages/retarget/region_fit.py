@@ -1,0 +1,191 @@
+"""The keymorph fit in 3D, region by region (issue 13.1): jaw and lips, eyelids, brows, cheeks and nose, each
+region's morphs fitted to its own landmarks' deformation (head frame, pose removed) less what the regions before it
+explain, correctives bounded by their base morph (``robust_fit`` of ``stages.retarget.morph_fit`` per region).
+"""
+
+from __future__ import annotations
+
+import fnmatch
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from stages.retarget.keyshapes import inter_ocular_distance
+from stages.retarget.morph_fit import Similarity, fit_similarity, robust_fit
+from stages.retarget.regions import RIGID
+
+
+class FitRegion(BaseModel):
+    """One region of the 3D keymorph fit: the landmarks that show it and the morphs (fnmatch patterns,
+    case-insensitive) that move it; ``decomposition`` names the keyshape-decomposition region whose weights
+    drive these morphs in the blend (``stages.retarget.keyshapes.DECOMPOSITION_REGIONS``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    name: str
+    landmarks: list[int] = Field(min_length=1)
+    morphs: list[str] = Field(min_length=1)
+    decomposition: Literal["mouth", "eyes", "brows"]
+
+    @field_validator("landmarks")
+    @classmethod
+    def _ibug_ids(cls, landmarks):
+        bad = [i for i in landmarks if not 0 <= i < 68]
+        if bad:
+            raise ValueError(f"landmark ids must lie in 0..67 (iBUG-68), got {bad}")
+        return landmarks
+
+
+#: The mouth (jaw and lips together, on the chin and the lips), then eyelids, brows, and cheeks and nose with what
+#: the eyelids left (the lower lids are the eyes' before they are the cheeks'). Jaw and lips are one region: lips
+#: parted by a dropped jaw and by rounded lips look alike from the front, and apart in 3D only jointly (the jaw
+#: moves the chin down and back and the lower lip with it, rounding pushes both lips forward and the corners in,
+#: never the chin); fitted one after the other, the jaw's landmarks already move with the lips' morphs. The chin's
+#: sides (iBUG 4, 5, 11, 12) and the face contour are left out: FaceMesh's contour there follows the cheeks and the
+#: silhouette more than the jaw.
+DEFAULT_FIT_REGIONS = [
+    FitRegion(
+        name="mouth",
+        landmarks=[6, 7, 8, 9, 10, *range(48, 68)],
+        morphs=["jaw*", "mouth*", "cheekPuff*"],
+        decomposition="mouth",
+    ),
+    FitRegion(
+        name="eyes", landmarks=list(range(36, 48)), morphs=["eyeBlink*", "eyeSquint*", "eyeWide*"], decomposition="eyes"
+    ),
+    FitRegion(name="brows", landmarks=list(range(17, 27)), morphs=["brow*"], decomposition="brows"),
+    FitRegion(
+        name="cheeks", landmarks=[31, 32, 33, 34, 35, 40, 41, 46, 47], morphs=["cheek*", "nose*"], decomposition="mouth"
+    ),
+]
+
+
+def matching_any_case(names: list[str], patterns: list[str]) -> np.ndarray:
+    """Boolean mask of the names matching any fnmatch pattern, ignoring case."""
+    return np.array([any(fnmatch.fnmatchcase(n.lower(), p.lower()) for p in patterns) for n in names], dtype=bool)
+
+
+@dataclass
+class Rig3D:
+    """The character's 68 landmark vertices in 3D (its own units and axes) and their morph deltas."""
+
+    rest: np.ndarray  # (68, 3)
+    deltas: np.ndarray  # (M, 68, 3)
+
+    @classmethod
+    def build(cls, neutral, deltas, landmark_ids) -> Rig3D:
+        ids = np.asarray(landmark_ids, dtype=np.int64)
+        return cls(np.asarray(neutral, np.float64)[ids], np.asarray(deltas, np.float64)[:, ids])
+
+    @property
+    def iod(self) -> float:
+        return float(inter_ocular_distance(self.rest))
+
+    def to_character(self, rest: np.ndarray) -> Similarity:
+        """The 3D similarity carrying a performer's rest shape (head frame) onto the character (rigid points)."""
+        return fit_similarity(np.asarray(rest)[list(RIGID)], self.rest[list(RIGID)])
+
+    def deformations(self, keyshapes: np.ndarray, rests: np.ndarray) -> np.ndarray:
+        """Each keyshape's deformation from its performer's rest, in character units and axes (K, 68, 3)."""
+        keyshapes, rests = np.asarray(keyshapes, np.float64), np.asarray(rests, np.float64)
+        out = np.empty_like(keyshapes)
+        unique, inverse = np.unique(rests.reshape(len(rests), -1), axis=0, return_inverse=True)
+        for u, rest in enumerate(unique.reshape(-1, 68, 3)):
+            rows = np.flatnonzero(inverse.reshape(-1) == u)
+            out[rows] = self.to_character(rest).apply_linear(keyshapes[rows] - rest)
+        return out
+
+    def motion(self, weights: np.ndarray) -> np.ndarray:
+        """Landmark motion (K, 68, 3) of morph weights (K, M)."""
+        return np.einsum("km,mpc->kpc", np.asarray(weights, np.float64), self.deltas)
+
+
+def corrective_pairs(names: list[str], correctives) -> list[tuple[int, int]]:
+    """(corrective, base) morph index pairs the character has, e.g. (mouthClose, jawOpen)."""
+    lower = [n.lower() for n in names]
+    return [
+        (lower.index(c.lower()), lower.index(b.lower()))
+        for c, b in correctives
+        if c.lower() in lower and b.lower() in lower
+    ]
+
+
+def fit_region(
+    rig: Rig3D, targets: np.ndarray, points: list[int], columns: np.ndarray, names, pairs, regularisers, passes=8
+):
+    """One region's bounded fit (``bounded_fit``) with correctives bounded by their base morph: a first pass
+    without the correctives gives the base weights, each further pass bounds every corrective by its base's weight
+    from the pass before (a joint bound u_c <= u_b is not a box), until the weights settle; a corrective is
+    finally clipped to its base's final weight."""
+    K = len(targets)
+    J = rig.deltas[columns][:, points].reshape(len(columns), -1).T
+    local = {int(c): i for i, c in enumerate(columns)}
+    sub_names = [names[c] for c in columns]
+    mine = [(local[c], local.get(b)) for c, b in pairs if c in local]
+    upper = np.ones((K, len(columns)))
+    for c, _ in mine:
+        upper[:, c] = 0.0
+    sub, info = robust_fit(J, targets, sub_names, np.ones(len(columns), bool), upper=upper, **regularisers)
+    if not mine:
+        return sub, info
+    for _ in range(passes):  # the bound u_c <= u_b, fixed from the last pass, until the base stops moving
+        upper = np.ones((K, len(columns)))
+        for c, b in mine:
+            upper[:, c] = sub[:, b] if b is not None else 0.0
+        previous = sub
+        sub, info = robust_fit(J, targets, sub_names, np.ones(len(columns), bool), upper=upper, **regularisers)
+        if np.abs(sub - previous).max(initial=0.0) < 1e-3:
+            break
+    for c, b in mine:
+        sub[:, c] = np.minimum(sub[:, c], sub[:, b] if b is not None else 0.0)
+    return sub, info
+
+
+def fit_regions_3d(
+    rig: Rig3D,
+    deformation: np.ndarray,
+    names: list[str],
+    regions: list[FitRegion],
+    *,
+    exclude: list[str],
+    correctives: list[tuple[str, str]] = (),
+    robust_iod: float | None = None,
+    **regularisers,
+) -> tuple[np.ndarray, dict]:
+    """Keymorph weights fitted in 3D, region by region (issue 13.1), each region's morphs to its landmarks'
+    deformation less what the regions fitted before it already move there (``fit_region``, all keyshapes at
+    once). A morph belongs to the first region whose patterns match it; a corrective whose base is fitted in an
+    earlier region is bounded by the base's weight there. Returns weights (K, M) and per region the morphs it
+    fitted."""
+    K = len(deformation)
+    weights = np.zeros((K, len(names)))
+    explained = np.zeros_like(deformation)
+    assigned = matching_any_case(names, exclude)
+    pairs = corrective_pairs(names, correctives)
+    info = {"regions": {}, "morph_regions": {}, "iterations": 0, "kkt_max": 0.0}
+    regularisers = {**regularisers, "huber": None if robust_iod is None else robust_iod * rig.iod}
+    for region in regions:
+        columns = np.flatnonzero(matching_any_case(names, region.morphs) & ~assigned)
+        assigned[columns] = True
+        if not columns.size:
+            info["regions"][region.name] = []
+            continue
+        points = list(region.landmarks)
+        targets = (deformation - explained)[:, points].reshape(K, -1)
+        # a base fitted earlier acts as a fixed bound: pass it in as a pseudo-column the region does not fit
+        region_pairs = [(c, b) for c, b in pairs if c in columns and (b in columns or assigned[b])]
+        sub, sub_info = fit_region(
+            rig, targets, points, columns, names, [p for p in region_pairs if p[1] in columns], regularisers
+        )
+        for c, b in region_pairs:
+            if b not in columns:
+                i = list(columns).index(c)
+                sub[:, i] = np.minimum(sub[:, i], weights[:, b])
+        weights[:, columns] = sub
+        explained += np.einsum("km,mpc->kpc", sub, rig.deltas[columns])
+        info["regions"][region.name] = sub_info["usable_targets"]
+        info["morph_regions"].update({names[c]: region.decomposition for c in columns})
+        info["iterations"] = max(info["iterations"], sub_info["iterations"])
+        info["kkt_max"] = max(info["kkt_max"], sub_info["kkt_max"])
+    return weights, info
