@@ -7,6 +7,7 @@ and the default run's paper branch) and, given folders, the capture branch on ea
     python bench/eval_retarget.py --identity ../shared/data/talking-heads   # absolute mouth error, identity fitted
     python bench/eval_retarget.py --probes ../shared/data/talking-heads     # dead-where-moved probes, read two ways
     python bench/eval_retarget.py --focal ../shared/data/talking-heads      # the probes' focal length per take
+    python bench/eval_retarget.py --resting ../shared/data/talking-heads    # median morph weights per take
     python bench/eval_retarget.py --capture ../shared/data/talking-heads/{hdtf_kh,retalking_2,vlog_31}.mp4
     python bench/eval_retarget.py -S capture_character.fit_identity=true           # CREMA-D, identity fitted
     python bench/eval_retarget.py --capture -S character.fit_identity=true ../shared/data/talking-heads/hdtf_kh.mp4
@@ -261,7 +262,7 @@ def probes(folders: list[str]) -> None:
     much of the movement the animation makes, whichever morph makes it."""
     import msflow
     from stages.eval.retarget import RetargetEval, jaw_drop, performer_shapes, take_cameras
-    from stages.retarget.keyshapes import level, lip_gap_iod, rest_frames
+    from stages.retarget.keyshapes import level, lip_gap_iod, rest_frames, rest_pose
     from stages.retarget.movements import EXTRA_VERTICES, MovedLevels, landmark_probes, moved
     from stages.retarget.shapes3d import front_view, head_frame_shapes
 
@@ -273,8 +274,10 @@ def probes(folders: list[str]) -> None:
         relative = os.path.relpath(Path(folder).resolve(), PIPELINE.parent)
         runs.append(msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_eval"))
 
-    def rest_of(shapes):
-        return shapes[rest_frames(front_view(shapes[:, :68]))].mean(axis=0)
+    def rest_of(shapes, frames_of=None):  # as the evaluation takes it (RetargetEval's brow_rest)
+        typical = np.arange(len(shapes)) if params.brow_rest == "median" else None
+        closed = rest_frames(front_view((shapes if frames_of is None else frames_of)[:, :68]))
+        return rest_pose(shapes, closed, typical)
 
     print(
         "| take | column | probe peak / level, as evaluated | without perspective removal | 2D chin rise at the "
@@ -297,7 +300,7 @@ def probes(folders: list[str]) -> None:
             drop = jaw_drop(landmarks)
             chin = drop[rest_frames(landmarks)].mean() - drop
             animated = character_shapes(character, np.asarray(blend["weights"])[rows], rest_of(shapes))
-            at_rest = animated[rest_frames(front_view(shapes[:, :68]))].mean(axis=0)
+            at_rest = rest_of(animated, frames_of=shapes)
             animated = landmark_probes(animated, at_rest, lip_gap_iod(level(front_view(animated[:, :68]))), 0.03)
             for column in take["columns"]["dead_moved"]:
                 peak, at = take["movements"][column]
@@ -374,6 +377,53 @@ def focal(folders: list[str]) -> None:
             print(f"| {Path(label).stem} ({cameras[i][0, 0]:.0f}) | " + " | ".join(cells) + " |")
 
 
+#: morph groups whose median weight over a take says what expression the character holds at rest
+RESTING_GROUPS = {
+    "browDown": ("browDown_L", "browDown_R"),
+    "browInnerUp/OuterUp": ("browInnerUp_L", "browInnerUp_R", "browOuterUp_L", "browOuterUp_R"),
+    "eyeWide": ("eyeWide_L", "eyeWide_R"),
+    "eyeBlink": ("eyeBlink_L", "eyeBlink_R"),
+    "mouthFrown": ("mouthFrown_L", "mouthFrown_R"),
+    "mouthSmile": ("mouthSmile_L", "mouthSmile_R"),
+}
+
+
+def closed_mouth_brow_bias(mesh: np.ndarray) -> float:
+    """How much higher the brows sit above the eyes in a take's closed-mouth frames than their median (IOD)."""
+    from stages.retarget.keyshapes import rest_frames
+    from stages.retarget.shapes3d import front_view, head_frame_shapes
+
+    shapes = head_frame_shapes(np.asarray(mesh, np.float64))
+    shapes = shapes[np.isfinite(shapes).all(axis=(1, 2))]
+    height = shapes[:, 17:27, 1].mean(axis=1) - shapes[:, 36:48, 1].mean(axis=1)
+    return float(height[rest_frames(front_view(shapes))].mean() - np.median(height))
+
+
+def resting(folders: list[str], overrides: list[str] = ()) -> None:
+    """Per take, the median over its frames of the capture blend's weights (each group: the mean of its morphs)
+    and of their sum: what the character holds through the take; and the performer's brows in the take's
+    closed-mouth frames against their median (height above the eyes, IOD, head frame: the bias of a rest taken at
+    the closed-mouth frames). Overrides compare settings, e.g. -S capture_keyshapes.brow_rest=closed_mouth."""
+    import msflow
+
+    os.chdir(ROOT)
+    takes = ["../data/crema-d"] + [os.path.relpath(Path(f).resolve(), PIPELINE.parent) for f in folders]
+    print("| take | brows at closed mouth - median (IOD) | sum of the weights | " + " | ".join(RESTING_GROUPS) + " |")
+    print("|---|---|" + "---|" * (len(RESTING_GROUPS) + 1))
+    for folder in takes:
+        result = msflow.run(PIPELINE, [f"vars.takes={folder}", *overrides], until="capture_blend")
+        blend, tracks = result.artifact("capture_blend"), result.artifact("capture_track")
+        names, weights = list(blend.meta["target_names"]), np.asarray(blend["weights"], np.float64)
+        weights = weights.reshape(-1, weights.shape[-1])
+        sequence = np.asarray(tracks["sequence"])
+        for take, label in enumerate(tracks.meta["labels"]):
+            mine = weights[sequence == take]
+            cells = [closed_mouth_brow_bias(np.asarray(tracks["mesh"])[sequence == take]), np.median(mine.sum(axis=1))]
+            for group in RESTING_GROUPS.values():
+                cells.append(np.median(mine[:, [names.index(n) for n in group if n in names]].mean(axis=1)))
+            print(f"| {Path(label).stem} | {cells[0]:+.4f} | " + " | ".join(f"{c:.2f}" for c in cells[1:]) + " |")
+
+
 def dispatch(argv: list[str]) -> None:
     """The command line: the docstring's forms; -h prints it; a user error is one line, exit 2."""
     import msflow
@@ -386,6 +436,8 @@ def dispatch(argv: list[str]) -> None:
     try:
         if args[:1] == ["--capture"]:
             capture(args[1:], overrides)
+        elif args[:1] == ["--resting"]:
+            resting(args[1:], overrides)
         elif args[:1] and args[0] in modes:
             modes[args[0]](args[1:])
         elif args[:1] and args[0].startswith("-"):

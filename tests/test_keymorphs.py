@@ -671,3 +671,66 @@ def test_a_mistracked_landmark_does_not_recruit_other_morphs(character):
         robust = np.abs(fit(glitched) - reference[0.025]).max()
         squared = np.abs(fit(glitched, robust_iod=None) - reference[None]).max()
         assert robust < 0.1 < 0.15 < squared, (point, robust, squared)
+
+
+def brows_up_at_closures_take(frames=150, seed=3):
+    """A tracked take (FaceMesh in image axes) of the face model talking: the jaw opens and closes, the brows rest
+    but rise (browInnerUp and browOuterUp 0.6) at every lip closure, as speakers raise them at pauses; a brow
+    lowering (browDown 0.6) in a few frames. Returns the tracking artifact and the truth weights per frame."""
+    from test_keyshapes import mesh_from_landmarks
+
+    from stages.geometry.rotations import euler_to_quat, quat_to_matrix
+    from stages.tracking.face3d import load_face3d
+
+    face = load_face3d()
+    names = ["jawOpen", "browInnerUp_L", "browInnerUp_R", "browOuterUp_L", "browOuterUp_R", "browDown_L", "browDown_R"]
+    rng = np.random.default_rng(seed)
+    truth = np.zeros((frames, len(names)))
+    truth[:, 0] = np.clip(0.5 * np.sin(np.arange(frames) * 0.45) + 0.1, 0.0, None)  # talking: shut a third of the time
+    closed = truth[:, 0] == 0
+    truth[closed, 1:5] = 0.6
+    frown = np.flatnonzero(~closed)[::9][:6]
+    truth[frown, 5:7] = 0.6
+    offsets = np.stack([face.expression_offsets[n] for n in names])
+    points = face.neutral + np.einsum("fm,mpc->fpc", truth, offsets)
+    turn = quat_to_matrix(euler_to_quat(rng.normal(0, 0.1, frames), rng.normal(0, 0.05, frames), np.zeros(frames)))
+    seen = np.einsum("fij,fpj->fpi", turn, points) * 6.0 + [320.0, 240.0, 0.0]
+    mesh = mesh_from_landmarks(seen)
+    from stages.tracking.landmarks68 import mesh_to_ibug68
+
+    tracks = artifact(
+        {
+            "landmarks": mesh_to_ibug68(mesh)[..., :2].astype(np.float32),
+            "mesh": mesh.astype(np.float32),
+            "sequence": np.zeros(frames, np.int32),
+        },
+        meta={"labels": ["take"], "fps": [30.0]},
+    )
+    return tracks, truth, names
+
+
+@pytest.mark.parametrize("brow_rest", ["median", "closed_mouth"])
+def test_brows_raised_at_every_closure_do_not_make_the_character_frown(character, brow_rest):
+    """Known answer: closed-mouth frames pick the mouth's rest, not the brows'. A performer whose brows rise at
+    every lip closure and rest otherwise gets a character whose brows rest too (the brows' rest is their median
+    over the take); with the brows' rest at the closed-mouth frames (the behaviour before) every frame with
+    resting brows read as a frown."""
+    from stages.retarget.keyshapes import CaptureKeyshapes
+
+    tracks, truth, truth_names = brows_up_at_closures_take()
+    keyshapes = run_stage(CaptureKeyshapes, {"k": 10, "brow_rest": brow_rest}, {"tracks": tracks})
+    out = run_stage(KeymorphFit, {"contact_sheet": False}, {"keyshapes": keyshapes.view(), "character": character})
+    names = character.meta["target_names"]
+    weights = out.arrays["keymorph_weights"]
+    brows_down = weights[:, [names.index("browDown_L"), names.index("browDown_R")]].mean(axis=1)
+    brows_up = weights[:, [names.index(n) for n in names if n.startswith(("browInnerUp", "browOuterUp"))]].max(axis=1)
+    frames = keyshapes.arrays["keyshape_frame"]
+    resting = truth[frames, 1:].max(axis=1) == 0  # keyshapes whose brows are at rest
+    raised, lowered = truth[frames, 1] > 0, truth[frames, 5] > 0
+    assert resting.sum() >= 2 and raised.any()
+    if brow_rest == "median":
+        assert brows_down[resting].max() < 0.1 and brows_up[resting].max() < 0.1, (brows_down, brows_up)
+        assert brows_up[raised].min() > 0.3
+        assert not lowered.any() or brows_down[lowered].min() > 0.3
+    else:
+        assert brows_down[resting].min() > 0.2  # the old rest: resting brows read as lowered

@@ -12,6 +12,7 @@ from pydantic import ValidationError
 from msflow import UserError
 from msflow.testing import artifact, run_stage
 from stages.retarget.keyshapes import (
+    BROWS,
     Keyshapes,
     decompose_into_keyshapes,
     inter_ocular_distance,
@@ -110,6 +111,33 @@ def test_duplicate_extreme_is_dropped_from_the_lower_variance_axis():
     assert len(refilled.frames) == 4 and refilled.axes[-1] == 2
 
 
+def test_frames_at_rest_get_no_weight_when_decomposed_from_rest():
+    """Known answer: a face talking with the jaw, a smile and the brows about its rest, every third frame at rest.
+    On the absolute shapes (the paper's Eq 8) a frame at rest is a mix of opposite extremes, both ends of an axis
+    weighted (their keymorphs, a smile and a frown, never quite cancel on the character); decomposed as
+    deformations from rest it gets no weight at all. Both reconstruct every frame."""
+    from stages.retarget.keyshapes import decompose, relative_rms_error
+
+    rng = np.random.default_rng(4)
+    coeff = rng.normal(size=(90, 3)) * [2.0, 1.5, 1.0]
+    coeff[::3] = 0.0
+    template, modes = face_template(), face_modes()
+    shapes = template + np.einsum("nm,mpc->npc", coeff, modes)
+    selection = select_keyshapes(shapes, 6, dedupe_threshold=0.0)
+    keyshapes, groups, own = shapes[selection.frames], np.zeros(90, int), np.zeros(len(selection.frames), int)
+    absolute = decompose(shapes, groups, keyshapes, own)
+    from_rest = decompose(shapes - template, groups, keyshapes - template, own)
+    at_rest = np.arange(0, 90, 3)
+    assert from_rest.weights[at_rest].sum(axis=1).max() < 1e-6
+    pairs = absolute.weights[at_rest].reshape(len(at_rest), 3, 2)
+    assert (pairs.min(axis=2) > 0.05).any(axis=1).mean() > 0.5
+    # the deformations span a cone (any non-negative mix of the extremes' deformations): every frame is
+    # reconstructed; the absolute shapes reach most frames too, not all (a frame whose mix would need weights
+    # summing far from 1)
+    assert relative_rms_error(from_rest.reconstruction + template, shapes, 1.1).max() < 1e-9
+    assert np.median(relative_rms_error(absolute.reconstruction, shapes, 1.1)) < 1e-9
+
+
 def test_dedupe_threshold_is_a_mean_squared_distance_relative_to_scale():
     base = face_template()
     near = base + 0.01 * face_modes()[0] / np.abs(face_modes()[0]).max()
@@ -191,9 +219,12 @@ def test_stage_outputs_follow_the_schema(synthetic_run):
     for s in range(3):
         np.testing.assert_array_equal(a["keyshape_index"][a["keyshape_expression"] == s], np.arange(counts[s]))
     assert out.meta["keyshape_ids"][0] == "neutral/0"
-    # the rest pose: closed-mouth frames of the neutral take
+    # the rest pose: closed-mouth frames of the neutral take, the brows at their median over that take
     assert np.all(sequence[a["rest_frames"]] == 0)
-    np.testing.assert_allclose(a["rest_shape"], shapes[a["rest_frames"]].mean(axis=0), atol=1e-5)
+    upper = list(BROWS)
+    lower = [i for i in range(68) if i not in BROWS]
+    np.testing.assert_allclose(a["rest_shape"][lower], shapes[a["rest_frames"]][:, lower].mean(axis=0), atol=1e-5)
+    np.testing.assert_allclose(a["rest_shape"][upper], np.median(shapes[sequence == 0][:, upper], axis=0), atol=1e-5)
     assert a["weights"].min() >= 0
 
 
@@ -206,14 +237,16 @@ def test_weights_are_zero_outside_the_targets_own_keyshapes(synthetic_run):
 
 
 def region_reconstruction(out):
-    """sum_i w_i B_i with each region's landmarks from its own weights, the others from the whole-face weights."""
+    """rest + sum_i w_i (B_i - rest) (``from_rest``; sum_i w_i B_i for ``absolute``) with each region's landmarks
+    from its own weights, the others from the whole-face weights."""
     a = out.arrays
-    keyshapes = a["keyshapes"].astype(np.float64)
+    rest = a["rest_shape"].astype(np.float64) if out.meta["decomposition"] == "from_rest" else 0.0
+    keyshapes = a["keyshapes"].astype(np.float64) - rest
     recon = np.einsum("tfk,kpc->tfpc", a["weights"].astype(np.float64), keyshapes)
     for r, points in enumerate(out.meta["regions"].values()):
         w = a["region_weights"][:, :, r].astype(np.float64)
         recon[:, :, points] = np.einsum("tfk,kpc->tfpc", w, keyshapes[:, points])
-    return recon
+    return recon + rest
 
 
 def test_weights_reconstruct_the_edited_shapes(synthetic_run):
@@ -347,8 +380,12 @@ def test_crema_keyshapes_cover_each_take_and_decompose_the_edit():
     assert ks.metrics["residual_rms_iod"] <= 0.03
     w = ks["weights"]
     assert w.min() >= 0 and w.shape[:2] == branch.edit["shapes"].shape[:2]
-    # raw-shape NNLS keeps the face's scale: the weights of a frame sum to about one
+    # the paper's raw-shape NNLS keeps the face's scale: the weights of a frame sum to about one
     np.testing.assert_allclose(w.sum(axis=-1), 1.0, atol=0.1)
+    # decomposed from rest, they need not (and the edit is reached as well)
+    from_rest = run_stage(Keyshapes, {"decomposition": "from_rest"}, {"aam": aam, "edit": branch.edit}).view()
+    assert from_rest.metrics["residual_rms_iod"] <= 0.03
+    assert np.abs(from_rest["weights"].sum(axis=-1) - 1.0).max() > 0.1
     assert np.all(sequence[ks["rest_frames"]] == labels.index("neutral"))
 
 

@@ -286,7 +286,7 @@ def take_movements(data: dict, rows: np.ndarray, gap: np.ndarray, params) -> tup
     """Per ARKit column with a probe: did the performer make that movement in this take
     (``stages.retarget.movements``)? With the focal length the probes took the perspective out with (None without
     a FaceMesh)."""
-    from stages.retarget.keyshapes import rest_frames
+    from stages.retarget.keyshapes import rest_frames, rest_pose
     from stages.retarget.movements import MovedLevels, eye_probes, landmark_probes, moved
     from stages.retarget.shapes3d import front_view
 
@@ -294,7 +294,8 @@ def take_movements(data: dict, rows: np.ndarray, gap: np.ndarray, params) -> tup
     if data.get("mesh") is not None:  # 2D landmarks read a turn of the head as a sideways jaw or a frown
         camera = data["camera"][np.flatnonzero(rows)[0]]
         shapes, focal = performer_shapes(data["mesh"], rows, camera, params.probe_focal)
-        rest = shapes[rest_frames(front_view(shapes[:, :68]))].mean(axis=0)
+        typical = np.arange(len(shapes)) if params.brow_rest == "median" else None
+        rest = rest_pose(shapes, rest_frames(front_view(shapes[:, :68])), typical)
         probes = landmark_probes(shapes, rest, gap[rows], params.closure_gap)
     aperture = data["aperture"][rows] if data["aperture"] is not None else eye_aperture(data["landmarks"][rows])
     gaze = data["gaze"][rows] if data["gaze"] is not None else None
@@ -416,6 +417,10 @@ class RetargetEval(Stage):
         #: each take's rigid points most rigid (``estimated``, shapes3d.estimate_focal) or tracking's assumption,
         #: the frame width (``tracked``)
         probe_focal: Literal["estimated", "tracked"] = "estimated"
+        #: the performer's rest for the probes and the rest-aligned errors: the closed-mouth frames' mean, the brows
+        #: at their median over the take (``median``, as the capture keyshapes measure deformation since
+        #: 2026-12-03: stages.retarget.keyshapes.rest_pose) or at the closed-mouth frames like the mouth
+        brow_rest: Literal["median", "closed_mouth"] = "median"
 
         @model_validator(mode="after")
         def _narrowing_above_dip(self):
@@ -551,7 +556,7 @@ def evaluate(params, **data) -> dict:
     """All the metrics from validated inputs (see the module docstring): pooled over the takes in ``metrics``,
     per take in ``meta["takes"]``."""
     sequence, weights, names = data["sequence"], data["weights"], data["names"]
-    frames = posed_frames(data)
+    frames = posed_frames(data, brows_median=params.brow_rest == "median")
     context = event_context(params, data, frames)
     from stages.formats.live_link import ARKIT_NAMES, UNTRACKED_COLUMNS, arkit_weights
 
@@ -582,13 +587,14 @@ def evaluate(params, **data) -> dict:
     return pack_evaluation(metrics, takes, context, frames, dead_morphs, data)
 
 
-def posed_frames(data) -> dict[str, np.ndarray]:
+def posed_frames(data, brows_median: bool = True) -> dict[str, np.ndarray]:
     """The character's landmark vertices posed with the tracked head and projected: the animation
     (``predicted``), the same rolled by half of each take (``shifted``) and the neutral face (``neutral``); with
     their error vectors against the tracked landmarks (``face_frame_errors``): ``absolute``, ``neutral_aligned``
-    (less each take's error of the neutral face at the performer's rest frames: the fixed difference of two faces
-    at rest), ``motion`` (less each take's mean error) and ``motion_shifted``."""
-    from stages.retarget.keyshapes import level, rest_frames
+    (less each take's error of the neutral face at the performer's rest: the fixed difference of two faces at
+    rest; the brows' median error over the take with ``brows_median``, like
+    ``keyshapes.rest_pose``), ``motion`` (less each take's mean error) and ``motion_shifted``."""
+    from stages.retarget.keyshapes import level, rest_frames, rest_pose
 
     sequence, tracked, weights = data["sequence"], data["landmarks"], data["weights"]
     neutral_points = character_landmarks(data["neutral"], data["deltas"], data["landmark_ids"], weights[:1] * 0)[0]
@@ -605,8 +611,9 @@ def posed_frames(data) -> dict[str, np.ndarray]:
     out["neutral_aligned"] = out["absolute"].copy()
     for take in np.unique(sequence):
         rows = np.flatnonzero(sequence == take)
-        rest = rows[rest_frames(level(tracked[rows]))]
-        out["neutral_aligned"][rows] -= at_rest[rest].mean(axis=0)
+        rest = rest_frames(level(tracked[rows]))
+        typical = np.arange(len(rows)) if brows_median else None
+        out["neutral_aligned"][rows] -= rest_pose(at_rest[rows], rest, typical)
     out["motion"] = remove_take_offsets(out["absolute"], sequence)
     out["motion_shifted"] = remove_take_offsets(face_frame_errors(out["shifted"], tracked), sequence)
     out["scale"] = np.array(to_model.scale)

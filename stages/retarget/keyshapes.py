@@ -21,6 +21,7 @@ from pydantic import Field, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
 from stages.geometry.nnls import batched_nnls
+from stages.retarget.regions import BROWS
 
 #: iBUG-68 polylines (point ranges; closed ones repeat their first point) for drawing shapes
 IBUG68_CONTOURS: tuple[tuple[int, ...], ...] = (
@@ -166,6 +167,25 @@ def rest_shape(shapes: np.ndarray, quantile: float = 0.1) -> np.ndarray:
     """The mean shape of ``rest_frames``."""
     shapes = np.asarray(shapes, np.float64)
     return shapes[rest_frames(shapes, quantile)].mean(axis=0)
+
+
+def rest_pose(
+    shapes: np.ndarray, rest: np.ndarray, typical: np.ndarray | None = None, points: tuple[int, ...] = BROWS
+) -> np.ndarray:
+    """The rest pose deformations are measured from: the mean of the closed-mouth ``rest`` frames
+    (``rest_frames``), with the ``points`` (the brows, iBUG 17-26) at their median over the ``typical`` frames
+    when given (per coordinate; shapes (frames, n >= 68, d)).
+
+    Closed-mouth frames are picked by the mouth alone, and what the brows do there is not their rest: speakers
+    raise their brows at the pauses and lip closures where the mouth closes. On 9 of 11 talking-head clips the
+    brows sat higher in those frames than their median over the clip (by up to 0.015 IOD, half a unit of ICT's
+    browDown), so a character whose brows rest there frowns through the take. The median over the take is where
+    the brows spend most of their time (docs/retarget.md, "The rest pose")."""
+    shapes = np.asarray(shapes, np.float64)
+    out = shapes[np.asarray(rest)].mean(axis=0)
+    if typical is not None and len(typical):
+        out[list(points)] = np.nanmedian(shapes[np.asarray(typical)][:, list(points)], axis=0)
+    return out
 
 
 #: the regions decomposed apart (Eq 8 per region, ``regions: true``). The mouth region holds the jaw line and the
@@ -536,6 +556,14 @@ class KeyshapeParams(Stage.Params):
     regions: bool = True
     #: expression whose closed-mouth frames define the rest pose (falls back to all frames if absent)
     rest_expression: str = "neutral"
+    #: where the brows rest (``rest_pose``): their median over the rest take, or the mean of its closed-mouth
+    #: frames like the mouth (the behaviour before 2026-12-03: characters frowned through a take)
+    brow_rest: Literal["median", "closed_mouth"] = "median"
+    #: Eq 8 on the shapes as they are (``absolute``, the paper's: a frame's weights sum to about 1) or on their
+    #: deformations from the rest pose, frames and keyshapes alike (``from_rest``: a frame exactly at rest gets no
+    #: weight, any mix of the keyshapes' deformations is reached, but the weights are unbounded in sum; on the
+    #: talking heads it moved more morphs at once and fitted slightly worse, docs/retarget.md)
+    decomposition: Literal["absolute", "from_rest"] = "absolute"
 
     @field_validator("k")
     @classmethod
@@ -605,37 +633,47 @@ def decomposition_metrics(residual: np.ndarray, targets: list[str], kkt: float, 
     return metrics
 
 
-def decompose_targets(targets: np.ndarray, groups: np.ndarray, keyshapes: np.ndarray, selection, params, scale):
+def decompose_targets(
+    targets: np.ndarray, groups: np.ndarray, keyshapes: np.ndarray, selection, params, scale, rests=None
+):
     """Eq 8 for every target sequence (T, F, 68, d) with per-frame groups (T, F): weights, region weights (or
-    None), reconstruction, residual / IOD, the largest KKT violation."""
+    None), reconstruction, residual / IOD, the largest KKT violation. With ``params.decomposition == "from_rest"``
+    and ``rests`` (T, F, 68, d) the frames' and (K, 68, d) the keyshapes' rest poses, deformations from rest are
+    decomposed (``from_rest_offsets``)."""
     regions = DECOMPOSITION_REGIONS if params.regions else None
+    offset, key_offset = 0.0, 0.0
+    if params.decomposition == "from_rest" and rests is not None:
+        offset, key_offset = rests
     parts = [
-        decompose(target, group, keyshapes, selection.expression, regions, **nnls_options(params))
-        for target, group in zip(targets, groups)
+        decompose(target - o, group, keyshapes - key_offset, selection.expression, regions, **nnls_options(params))
+        for target, group, o in zip(targets, groups, np.broadcast_to(offset, targets.shape))
     ]
-    reconstruction = np.stack([p.reconstruction for p in parts])
+    reconstruction = np.stack([p.reconstruction for p in parts]) + offset
     residual = relative_rms_error(reconstruction, targets, scale)
     region_weights = np.stack([p.region_weights for p in parts]) if params.regions else None
     return np.stack([p.weights for p in parts]), region_weights, reconstruction, residual, max(p.kkt for p in parts)
 
 
-def head_frame_keyshapes(tracks, frames: np.ndarray, rests: np.ndarray) -> dict[str, np.ndarray]:
-    """3D keyshapes and their rest poses from the tracked FaceMesh at the keyshapes' source frames; ``rests``
-    (K, n) lists each keyshape's rest frames (-1 = unused). Empty without a mesh."""
+def head_frame_keyshapes(
+    tracks, frames: np.ndarray, rest: np.ndarray, typical: np.ndarray | None = None
+) -> dict[str, np.ndarray]:
+    """3D keyshapes and their (common) rest pose from the tracked FaceMesh at the keyshapes' source frames: the
+    ``rest`` frames, the brows over the ``typical`` ones (``rest_pose``). Empty without a mesh."""
     if tracks is None or "mesh" not in tracks:
         return {}
     from stages.retarget.shapes3d import head_frame_shapes
 
     mesh = np.asarray(tracks["mesh"], np.float64)
-    if max(frames.max(initial=0), rests.max(initial=0)) >= len(mesh):
+    reach = max(frames.max(initial=0), rest.max(initial=0), -1 if typical is None else typical.max(initial=0))
+    if reach >= len(mesh):
         raise UserError(
-            f"keyshape source frames reach {int(max(frames.max(), rests.max()))} but the tracking input has "
+            f"keyshape source frames reach {int(reach)} but the tracking input has "
             f"{len(mesh)} frames: wire the training tracking the aam was built from",
             field="inputs.tracks",
         )
     shapes = head_frame_shapes(mesh)
-    rest = np.stack([shapes[r[r >= 0]].mean(axis=0) for r in rests])
-    return {"keyshapes3d": shapes[frames].astype(np.float32), "keyshape_rest3d": rest.astype(np.float32)}
+    pose = np.broadcast_to(rest_pose(shapes, rest, typical), (len(frames), *shapes.shape[1:]))
+    return {"keyshapes3d": shapes[frames].astype(np.float32), "keyshape_rest3d": pose.astype(np.float32)}
 
 
 class Keyshapes(Stage):
@@ -665,6 +703,11 @@ class Keyshapes(Stage):
         aligned, sequence, labels, usable, scale = self._training(inputs["aam"])
         targets, edited = self._edited(inputs["edit"], labels)
         counts = keyshape_counts(params.k, labels)
+        rest_label = params.rest_expression if params.rest_expression in labels else None
+        candidates = np.flatnonzero(usable & ((sequence == labels.index(rest_label)) if rest_label else True))
+        rest_idx = candidates[rest_frames(aligned[candidates])]
+        typical = candidates if params.brow_rest == "median" else None
+        rest = rest_pose(aligned, rest_idx, typical) if rest_idx.size else None
         try:
             selection = select_all_keyshapes(
                 aligned, sequence, labels, counts, usable,
@@ -675,25 +718,23 @@ class Keyshapes(Stage):
         keyshapes = aligned[selection.frames]
         groups = np.repeat(np.array([labels.index(t) for t in targets])[:, None], edited.shape[1], axis=1)
         weights, region_weights, reconstruction, residual, kkt = decompose_targets(
-            edited, groups, keyshapes, selection, params, scale
+            edited, groups, keyshapes, selection, params, scale, rests=(rest, rest)
         )
-        train = decompose(aligned[usable], sequence[usable], keyshapes, selection.expression)
-        train_residual = relative_rms_error(train.reconstruction, aligned[usable], scale)
-        rest_label = params.rest_expression if params.rest_expression in labels else None
-        candidates = np.flatnonzero(usable & ((sequence == labels.index(rest_label)) if rest_label else True))
-        rest_idx = candidates[rest_frames(aligned[candidates])]
+        offset = rest if params.decomposition == "from_rest" else 0.0
+        train = decompose(aligned[usable] - offset, sequence[usable], keyshapes - offset, selection.expression)
+        train_residual = relative_rms_error(train.reconstruction + offset, aligned[usable], scale)
         arrays = keyshape_arrays(selection, aligned)
         arrays.update(
             weights=weights.astype(np.float32),
             reconstruction=reconstruction.astype(np.float32),
             residual=residual.astype(np.float32),
             lip_gap=lip_gap_iod(edited).astype(np.float32),
-            rest_shape=aligned[rest_idx].mean(axis=0).astype(np.float32),
+            rest_shape=rest.astype(np.float32),
             rest_frames=rest_idx.astype(np.int32),
             expression_mean=np.stack([aligned[(sequence == s) & usable].mean(0) for s in range(len(labels))]).astype(
                 np.float32
             ),
-            **head_frame_keyshapes(inputs.get("tracks"), selection.frames, np.tile(rest_idx, (len(keyshapes), 1))),
+            **head_frame_keyshapes(inputs.get("tracks"), selection.frames, rest_idx, typical),
         )
         if region_weights is not None:
             arrays["region_weights"] = region_weights.astype(np.float32)
@@ -704,6 +745,7 @@ class Keyshapes(Stage):
             targets=targets,
             target_expression=[labels.index(name) for name in targets],
             rest_expression=rest_label,
+            decomposition=params.decomposition,
             regions={name: list(points) for name, points in DECOMPOSITION_REGIONS.items()} if params.regions else {},
             fps=inputs["edit"].meta.get("fps", inputs["aam"].meta.get("fps")),
             space="2d",
@@ -764,17 +806,19 @@ def speaker_groups(labels: list[str], fields: dict) -> list[str]:
 
 def capture_rest_frames(
     shapes: np.ndarray, sequence: np.ndarray, usable: np.ndarray, labels: list[str], fields: dict, rest_expression: str
-) -> list[np.ndarray]:
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Per take, the rest frames of its performer: the closed-mouth frames of the performer's take whose
-    ``expression`` field is ``rest_expression`` when there is one, else of all the performer's takes."""
+    ``expression`` field is ``rest_expression`` when there is one, else of all the performer's takes; and the
+    frames they were picked from (where the brows' rest is taken, ``rest_pose``)."""
     speakers = speaker_groups(labels, fields)
-    out = []
+    rests, typical = [], []
     for s in range(len(labels)):
         mine = [i for i, speaker in enumerate(speakers) if speaker == speakers[s]]
         neutral = [i for i in mine if (fields.get(labels[i]) or {}).get("expression") == rest_expression]
         candidates = np.flatnonzero(np.isin(sequence, neutral or mine) & usable)
-        out.append(candidates[rest_frames(shapes[candidates])])
-    return out
+        rests.append(candidates[rest_frames(shapes[candidates])])
+        typical.append(candidates)
+    return rests, typical
 
 
 class CaptureKeyshapes(Stage):
@@ -802,6 +846,10 @@ class CaptureKeyshapes(Stage):
         shapes, flat, sequence, labels, usable, space = self._shapes(params, tracks)
         fields = dict(tracks.meta.get("fields") or {})
         counts = keyshape_counts(params.k, labels)
+        rests, typical = capture_rest_frames(shapes, sequence, usable, labels, fields, params.rest_expression)
+        if params.brow_rest != "median":
+            typical = [None] * len(rests)
+        poses = [rest_pose(shapes, r, u) if r.size else None for r, u in zip(rests, typical)]
         try:
             selection = select_all_keyshapes(
                 shapes, sequence, labels, counts, usable,
@@ -810,11 +858,12 @@ class CaptureKeyshapes(Stage):
         except ValueError as exc:
             raise UserError(f"{exc} (no tracked face)", field="inputs.tracks") from None
         keyshapes = shapes[selection.frames]
+        frame_rests = np.stack([np.zeros(shapes.shape[1:]) if p is None else p for p in poses])
         weights, region_weights, reconstruction, residual, kkt = decompose_targets(
-            shapes[None], sequence[None], keyshapes, selection, params, 1.0
-        )
-        rests = capture_rest_frames(shapes, sequence, usable, labels, fields, params.rest_expression)
-        arrays = self._pack_arrays(selection, shapes, flat, space, rests, sequence)
+            shapes[None], sequence[None], keyshapes, selection, params, 1.0,
+            rests=(frame_rests[sequence][None], frame_rests[selection.expression]),
+        )  # fmt: skip
+        arrays = self._pack_arrays(selection, shapes, flat, space, poses, rests, typical, sequence)
         arrays.update(
             weights=weights.astype(np.float32),
             reconstruction=flat_view(reconstruction, space).astype(np.float32),
@@ -830,6 +879,7 @@ class CaptureKeyshapes(Stage):
             target_expression=[-1],
             test_labels=labels,
             rest_expression=params.rest_expression,
+            decomposition=params.decomposition,
             regions={name: list(points) for name, points in DECOMPOSITION_REGIONS.items()} if params.regions else {},
             fps=fps[0],
             take_fps=fps,
@@ -865,16 +915,18 @@ class CaptureKeyshapes(Stage):
         return shapes, shapes, sequence, labels, usable, space
 
     @staticmethod
-    def _pack_arrays(selection, shapes, flat, space, rests, sequence) -> dict:
+    def _pack_arrays(selection, shapes, flat, space, poses, rests, typical, sequence) -> dict:
+        """The keyshapes' outputs; ``poses`` each take's rest pose (``rest_pose`` of its ``rests`` frames and
+        ``typical`` ones) in the keyshapes' space."""
         arrays = keyshape_arrays(selection, flat)
-        rest_of_take = [shapes[r].mean(axis=0) for r in rests]
-        keyshape_rest = np.stack([rest_of_take[e] for e in selection.expression])
+        keyshape_rest = np.stack([poses[e] for e in selection.expression])
         arrays["keyshape_rest"] = flat_view(keyshape_rest, space).astype(np.float32)
         if space == "3d":
             arrays["keyshapes3d"] = shapes[selection.frames].astype(np.float32)
             arrays["keyshape_rest3d"] = keyshape_rest.astype(np.float32)
         all_rest = np.concatenate(rests)
-        arrays["rest_shape"] = flat[all_rest].mean(axis=0).astype(np.float32)
+        all_typical = None if typical[0] is None else np.unique(np.concatenate(typical))
+        arrays["rest_shape"] = rest_pose(flat, all_rest, all_typical).astype(np.float32)
         arrays["rest_frames"] = all_rest.astype(np.int32)
         arrays["expression_mean"] = np.stack([flat[sequence == s].mean(0) for s in range(len(rests))]).astype(
             np.float32
