@@ -176,11 +176,11 @@ def rest_pose(
     (``rest_frames``), with the ``points`` (the brows, iBUG 17-26) at their median over the ``typical`` frames
     when given (per coordinate; shapes (frames, n >= 68, d)).
 
-    Closed-mouth frames are picked by the mouth alone, and what the brows do there is not their rest: speakers
-    raise their brows at the pauses and lip closures where the mouth closes. On 9 of 11 talking-head clips the
-    brows sat higher in those frames than their median over the clip (by up to 0.015 IOD, half a unit of ICT's
-    browDown), so a character whose brows rest there frowns through the take. The median over the take is where
-    the brows spend most of their time (docs/retarget.md, "The rest pose")."""
+    Closed-mouth frames are a tenth of the take, picked by the mouth alone, and what the brows do there is not
+    their rest: speakers tend to raise their brows at the pauses and lip closures where the mouth closes. In 7 of
+    11 talking-head clips the brows sat higher in those frames than their median over the clip (by up to 0.011
+    IOD, a third of a unit of ICT's browDown), so a character whose brows rest there frowns through the take. The
+    median over the take is where the brows spend most of their time (docs/retarget.md, "The rest pose")."""
     shapes = np.asarray(shapes, np.float64)
     out = shapes[np.asarray(rest)].mean(axis=0)
     if typical is not None and len(typical):
@@ -638,8 +638,9 @@ def decompose_targets(
 ):
     """Eq 8 for every target sequence (T, F, 68, d) with per-frame groups (T, F): weights, region weights (or
     None), reconstruction, residual / IOD, the largest KKT violation. With ``params.decomposition == "from_rest"``
-    and ``rests`` (T, F, 68, d) the frames' and (K, 68, d) the keyshapes' rest poses, deformations from rest are
-    decomposed (``from_rest_offsets``)."""
+    and ``rests`` = (the frames' rest poses, broadcastable to the targets; the keyshapes' (K, 68, d)), the
+    deformations from rest are decomposed instead of the shapes, and the reconstruction is rest + sum_i w_i
+    (B_i - rest_i)."""
     regions = DECOMPOSITION_REGIONS if params.regions else None
     offset, key_offset = 0.0, 0.0
     if params.decomposition == "from_rest" and rests is not None:
