@@ -403,7 +403,7 @@ def resting(folders: list[str], overrides: list[str] = ()) -> None:
     """Per take, the median over its frames of the capture blend's weights (each group: the mean of its morphs)
     and of their sum: what the character holds through the take; and the performer's brows in the take's
     closed-mouth frames against their median (height above the eyes, IOD, head frame: the bias of a rest taken at
-    the closed-mouth frames). Overrides compare settings, e.g. -S capture_keyshapes.brow_rest=closed_mouth."""
+    the closed-mouth frames). Overrides compare settings, e.g. -S capture_keyshapes.brow_rest=median."""
     import msflow
 
     os.chdir(ROOT)

@@ -673,14 +673,17 @@ def test_a_mistracked_landmark_does_not_recruit_other_morphs(character):
         assert robust < 0.1 < 0.15 < squared, (point, robust, squared)
 
 
-def brows_up_at_closures_take(frames=150, seed=3):
-    """A tracked take (FaceMesh in image axes) of the face model talking: the jaw opens and closes, the brows rest
-    but rise (browInnerUp and browOuterUp 0.6) at every lip closure, as speakers raise them at pauses; a brow
-    lowering (browDown 0.6) in a few frames. Returns the tracking artifact and the truth weights per frame."""
+def talking_take_with_brows(held: bool, frames=150, seed=3):
+    """A tracked take (FaceMesh in image axes) of the face model talking, the jaw opening and closing, and the
+    truth weights per frame. ``held=False``: the brows rest but rise (browInnerUp and browOuterUp 0.6) at every lip
+    closure, as speakers raise them at pauses, and lower (browDown 0.6) in a few frames. ``held=True``: the take
+    opens on 20 frames of a neutral face, mouth shut, then holds the brows raised while it talks (fear), as CREMA-D's
+    takes do."""
     from test_keyshapes import mesh_from_landmarks
 
     from stages.geometry.rotations import euler_to_quat, quat_to_matrix
     from stages.tracking.face3d import load_face3d
+    from stages.tracking.landmarks68 import mesh_to_ibug68
 
     face = load_face3d()
     names = ["jawOpen", "browInnerUp_L", "browInnerUp_R", "browOuterUp_L", "browOuterUp_R", "browDown_L", "browDown_R"]
@@ -688,16 +691,18 @@ def brows_up_at_closures_take(frames=150, seed=3):
     truth = np.zeros((frames, len(names)))
     truth[:, 0] = np.clip(0.5 * np.sin(np.arange(frames) * 0.45) + 0.1, 0.0, None)  # talking: shut a third of the time
     closed = truth[:, 0] == 0
-    truth[closed, 1:5] = 0.6
-    frown = np.flatnonzero(~closed)[::9][:6]
-    truth[frown, 5:7] = 0.6
+    if held:  # the lips part while it talks: its closed-mouth frames are the neutral start
+        truth[20:, 0] = np.maximum(truth[20:, 0], 0.08)
+        truth[:20, 0] = 0.0
+        truth[20:, 1:5] = 0.6
+    else:
+        truth[closed, 1:5] = 0.6
+        truth[np.flatnonzero(~closed)[::9][:6], 5:7] = 0.6
     offsets = np.stack([face.expression_offsets[n] for n in names])
     points = face.neutral + np.einsum("fm,mpc->fpc", truth, offsets)
     turn = quat_to_matrix(euler_to_quat(rng.normal(0, 0.1, frames), rng.normal(0, 0.05, frames), np.zeros(frames)))
     seen = np.einsum("fij,fpj->fpi", turn, points) * 6.0 + [320.0, 240.0, 0.0]
     mesh = mesh_from_landmarks(seen)
-    from stages.tracking.landmarks68 import mesh_to_ibug68
-
     tracks = artifact(
         {
             "landmarks": mesh_to_ibug68(mesh)[..., :2].astype(np.float32),
@@ -706,31 +711,40 @@ def brows_up_at_closures_take(frames=150, seed=3):
         },
         meta={"labels": ["take"], "fps": [30.0]},
     )
-    return tracks, truth, names
+    return tracks, truth
 
 
-@pytest.mark.parametrize("brow_rest", ["median", "closed_mouth"])
-def test_brows_raised_at_every_closure_do_not_make_the_character_frown(character, brow_rest):
-    """Known answer: closed-mouth frames pick the mouth's rest, not the brows'. A performer whose brows rise at
-    every lip closure and rest otherwise gets a character whose brows rest too (the brows' rest is their median
-    over the take); with the brows' rest at the closed-mouth frames (the behaviour before) every frame with
-    resting brows read as a frown."""
+def brow_keymorphs(character, tracks, truth, brow_rest):
+    """Per keyshape of the take: (mean browDown, largest brow raise) of its keymorph, and its truth row."""
     from stages.retarget.keyshapes import CaptureKeyshapes
 
-    tracks, truth, truth_names = brows_up_at_closures_take()
     keyshapes = run_stage(CaptureKeyshapes, {"k": 10, "brow_rest": brow_rest}, {"tracks": tracks})
     out = run_stage(KeymorphFit, {"contact_sheet": False}, {"keyshapes": keyshapes.view(), "character": character})
     names = character.meta["target_names"]
     weights = out.arrays["keymorph_weights"]
-    brows_down = weights[:, [names.index("browDown_L"), names.index("browDown_R")]].mean(axis=1)
-    brows_up = weights[:, [names.index(n) for n in names if n.startswith(("browInnerUp", "browOuterUp"))]].max(axis=1)
-    frames = keyshapes.arrays["keyshape_frame"]
-    resting = truth[frames, 1:].max(axis=1) == 0  # keyshapes whose brows are at rest
-    raised, lowered = truth[frames, 1] > 0, truth[frames, 5] > 0
+    down = weights[:, [names.index("browDown_L"), names.index("browDown_R")]].mean(axis=1)
+    up = weights[:, [names.index(n) for n in names if n.startswith(("browInnerUp", "browOuterUp"))]].max(axis=1)
+    return down, up, truth[keyshapes.arrays["keyshape_frame"]]
+
+
+@pytest.mark.parametrize("brow_rest", ["median", "closed_mouth"])
+def test_where_the_brows_rest(character, brow_rest):
+    """Known answers for ``brow_rest``. Closed-mouth frames pick the mouth's rest, not the brows'. A performer whose
+    brows rise at every lip closure and rest otherwise: with the brows resting at their median the character's
+    brows rest too; at the closed-mouth frames every resting-brow keyshape reads as a frown and the raise is lost.
+    A take that holds raised brows after a neutral start (fear): at the closed-mouth frames (the neutral start)
+    the raise is recovered; at the median the raise is the rest, lost, and the neutral start reads as a frown."""
+    down, up, truth = brow_keymorphs(character, *talking_take_with_brows(held=False), brow_rest)
+    resting, raised = truth[:, 1:].max(axis=1) == 0, truth[:, 1] > 0
     assert resting.sum() >= 2 and raised.any()
+    held_down, held_up, held_truth = brow_keymorphs(character, *talking_take_with_brows(held=True), brow_rest)
+    held_raised, neutral = held_truth[:, 1] > 0, held_truth[:, 1:].max(axis=1) == 0
+    assert held_raised.sum() >= 2
     if brow_rest == "median":
-        assert brows_down[resting].max() < 0.1 and brows_up[resting].max() < 0.1, (brows_down, brows_up)
-        assert brows_up[raised].min() > 0.3
-        assert not lowered.any() or brows_down[lowered].min() > 0.3
+        assert down[resting].max() < 0.1 and up[resting].max() < 0.1, (down, up)
+        assert up[raised].min() > 0.3
+        assert held_up[held_raised].max() < 0.15
+        assert not neutral.any() or held_down[neutral].min() > 0.3
     else:
-        assert brows_down[resting].min() > 0.2  # the old rest: resting brows read as lowered
+        assert down[resting].min() > 0.2 and up[raised].max() < 0.1
+        assert held_up[held_raised].min() > 0.3 and held_down[held_raised].max() < 0.1

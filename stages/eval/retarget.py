@@ -418,9 +418,9 @@ class RetargetEval(Stage):
         #: the frame width (``tracked``)
         probe_focal: Literal["estimated", "tracked"] = "estimated"
         #: the performer's rest for the probes and the rest-aligned errors: the closed-mouth frames' mean, the brows
-        #: at their median over the take (``median``, as the capture keyshapes measure deformation since
-        #: 2026-12-03: stages.retarget.keyshapes.rest_pose) or at the closed-mouth frames like the mouth
-        brow_rest: Literal["median", "closed_mouth"] = "median"
+        #: there too (``closed_mouth``) or at their median over the take (``median``); set it as the capture
+        #: keyshapes' ``brow_rest`` (stages.retarget.keyshapes.rest_pose)
+        brow_rest: Literal["closed_mouth", "median"] = "closed_mouth"
 
         @model_validator(mode="after")
         def _narrowing_above_dip(self):
@@ -587,7 +587,7 @@ def evaluate(params, **data) -> dict:
     return pack_evaluation(metrics, takes, context, frames, dead_morphs, data)
 
 
-def posed_frames(data, brows_median: bool = True) -> dict[str, np.ndarray]:
+def posed_frames(data, brows_median: bool = False) -> dict[str, np.ndarray]:
     """The character's landmark vertices posed with the tracked head and projected: the animation
     (``predicted``), the same rolled by half of each take (``shifted``) and the neutral face (``neutral``); with
     their error vectors against the tracked landmarks (``face_frame_errors``): ``absolute``, ``neutral_aligned``

@@ -25,14 +25,13 @@ IDENTITY_POINTS = tuple(range(17, 68))
 
 
 def performer_rest_face(mesh: np.ndarray) -> np.ndarray:
-    """The performer's rest face (68, 3) in the head frame, IOD units, from a tracked FaceMesh (frames, 468, 3):
-    the mean of the closed-mouth frames, the brows at their median (``keyshapes.rest_pose``)."""
-    from stages.retarget.keyshapes import rest_frames, rest_pose
+    """The performer's rest face (68, 3) in the head frame, IOD units: the mean of the closed-mouth frames of a
+    tracked FaceMesh (frames, 468, 3)."""
+    from stages.retarget.keyshapes import rest_frames
     from stages.retarget.shapes3d import front_view, head_frame_shapes
 
     shapes = head_frame_shapes(np.asarray(mesh, np.float64))
-    shapes = shapes[np.isfinite(shapes).all(axis=(1, 2))]
-    return rest_pose(shapes, rest_frames(front_view(shapes)), np.arange(len(shapes)))
+    return shapes[rest_frames(front_view(shapes))].mean(axis=0)
 
 
 def fit_identity(

@@ -176,11 +176,11 @@ def rest_pose(
     (``rest_frames``), with the ``points`` (the brows, iBUG 17-26) at their median over the ``typical`` frames
     when given (per coordinate; shapes (frames, n >= 68, d)).
 
-    Closed-mouth frames are a tenth of the take, picked by the mouth alone, and what the brows do there is not
-    their rest: speakers tend to raise their brows at the pauses and lip closures where the mouth closes. In 7 of
-    11 talking-head clips the brows sat higher in those frames than their median over the clip (by up to 0.011
-    IOD, a third of a unit of ICT's browDown), so a character whose brows rest there frowns through the take. The
-    median over the take is where the brows spend most of their time (docs/retarget.md, "The rest pose")."""
+    Closed-mouth frames are a tenth of the take, picked by the mouth alone: in 7 of 11 talking-head clips the
+    brows sat higher in those frames than their median over the clip (by up to 0.011 IOD, a third of a unit of
+    ICT's browDown), and a character whose brows rest there frowns through the take. The median is where the
+    brows spend most of their time, which is their rest only when the take does not hold an expression
+    (docs/retarget.md, "The rest pose")."""
     shapes = np.asarray(shapes, np.float64)
     out = shapes[np.asarray(rest)].mean(axis=0)
     if typical is not None and len(typical):
@@ -556,9 +556,11 @@ class KeyshapeParams(Stage.Params):
     regions: bool = True
     #: expression whose closed-mouth frames define the rest pose (falls back to all frames if absent)
     rest_expression: str = "neutral"
-    #: where the brows rest (``rest_pose``): their median over the rest take, or the mean of its closed-mouth
-    #: frames like the mouth (the behaviour before 2026-12-03: characters frowned through a take)
-    brow_rest: Literal["median", "closed_mouth"] = "median"
+    #: where the brows rest (``rest_pose``): at the mean of the rest take's closed-mouth frames like the mouth
+    #: (``closed_mouth``), or at their median over the rest take (``median``: for a neutral speaker whose brows rise
+    #: at the pauses; a take that holds an expression, such as fear's raised brows, would rest in it, and its
+    #: neutral frames read as the opposite: docs/retarget.md, "The rest pose")
+    brow_rest: Literal["closed_mouth", "median"] = "closed_mouth"
     #: Eq 8 on the shapes as they are (``absolute``, the paper's: a frame's weights sum to about 1) or on their
     #: deformations from the rest pose, frames and keyshapes alike (``from_rest``: a frame exactly at rest gets no
     #: weight, any mix of the keyshapes' deformations is reached, but the weights are unbounded in sum; on the
