@@ -262,7 +262,7 @@ def probes(folders: list[str]) -> None:
     much of the movement the animation makes, whichever morph makes it."""
     import msflow
     from stages.eval.retarget import RetargetEval, jaw_drop, performer_shapes, take_cameras
-    from stages.retarget.keyshapes import level, lip_gap_iod, rest_frames, rest_pose
+    from stages.retarget.face_measures import level, lip_gap_iod, rest_frames, rest_pose
     from stages.retarget.movements import EXTRA_VERTICES, MovedLevels, landmark_probes, moved
     from stages.retarget.shapes3d import front_view, head_frame_shapes
 
@@ -390,7 +390,7 @@ RESTING_GROUPS = {
 
 def closed_mouth_brow_bias(mesh: np.ndarray) -> float:
     """How much higher the brows sit above the eyes in a take's closed-mouth frames than their median (IOD)."""
-    from stages.retarget.keyshapes import rest_frames
+    from stages.retarget.face_measures import rest_frames
     from stages.retarget.shapes3d import front_view, head_frame_shapes
 
     shapes = head_frame_shapes(np.asarray(mesh, np.float64))

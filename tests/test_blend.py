@@ -542,7 +542,7 @@ def test_seal_follows_the_tracked_performer_over_the_edited_shapes(ict):
     weights = np.zeros((4, len(names)))
     weights[:, names.index("jawOpen")] = 0.3
     keyshapes, keymorphs = single_target_inputs(weights, names, np.full(4, 0.2))  # the edit: lips apart
-    from stages.retarget.keyshapes import level, lip_gap_iod
+    from stages.retarget.face_measures import level, lip_gap_iod
 
     rng = np.random.default_rng(0)
     landmarks = rng.normal(size=(4, 68, 2)) * 5 + 100

@@ -327,7 +327,7 @@ def test_probes_see_each_movement_and_not_the_jaw(character):
     """Known answers: the character's own landmark vertices (head frame, IOD units) talking with the jaw, and in
     a burst (frames 30-45) one more morph at 0.6. Each probe moves for its own morph; the talking jaw alone moves
     none but JawOpen (its chin drop is taken out of the others: a dropped jaw is not a frown or a pucker)."""
-    from stages.retarget.keyshapes import lip_gap_iod
+    from stages.retarget.face_measures import lip_gap_iod
     from stages.retarget.movements import MovedLevels, landmark_probes, moved
     from stages.retarget.shapes3d import front_view
 

@@ -7,9 +7,9 @@ import pytest
 from msflow import UserError
 from msflow.testing import artifact, run_stage
 from stages.retarget.character import GltfCharacter
+from stages.retarget.face_measures import inter_ocular_distance
 from stages.retarget.keymorph_yaml import format_keymorph_yaml, parse_keymorph_yaml
 from stages.retarget.keymorphs import KeymorphFile, KeymorphFit
-from stages.retarget.keyshapes import inter_ocular_distance
 from stages.retarget.morph_fit import LandmarkRig, antagonist_pairs, fit_similarity, project_front, symmetric_pairs
 
 ICT = "data/characters/ict-facekit.glb"

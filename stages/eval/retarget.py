@@ -40,7 +40,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.retarget.keyshapes import inter_ocular_distance
+from stages.retarget.face_measures import inter_ocular_distance
 from stages.retarget.regions import EVAL_REGIONS, RIGID, find_morph
 from stages.tracking.face3d import DEFAULT_FACE3D
 
@@ -152,8 +152,8 @@ def runs(mask: np.ndarray, sequence: np.ndarray, min_length: int = 1) -> list[tu
 
 def lip_gap(shapes: np.ndarray) -> np.ndarray:
     """Vertical inner-lip gap per frame (iBUG 61-67, 62-66, 63-65 mean, across the eye line) / inter-ocular
-    distance: the same measure the lip seal works with (``stages.retarget.keyshapes.lip_gap_iod``)."""
-    from stages.retarget.keyshapes import level, lip_gap_iod
+    distance: the same measure the lip seal works with (``stages.retarget.face_measures.lip_gap_iod``)."""
+    from stages.retarget.face_measures import level, lip_gap_iod
 
     return lip_gap_iod(level(shapes))
 
@@ -286,7 +286,7 @@ def take_movements(data: dict, rows: np.ndarray, gap: np.ndarray, params) -> tup
     """Per ARKit column with a probe: did the performer make that movement in this take
     (``stages.retarget.movements``)? With the focal length the probes took the perspective out with (None without
     a FaceMesh)."""
-    from stages.retarget.keyshapes import rest_frames, rest_pose
+    from stages.retarget.face_measures import rest_frames, rest_pose
     from stages.retarget.movements import MovedLevels, eye_probes, landmark_probes, moved
     from stages.retarget.shapes3d import front_view
 
@@ -419,7 +419,7 @@ class RetargetEval(Stage):
         probe_focal: Literal["estimated", "tracked"] = "estimated"
         #: the performer's rest for the probes and the rest-aligned errors: the closed-mouth frames' mean, the brows
         #: there too (``closed_mouth``) or at their median over the take (``median``); set it as the capture
-        #: keyshapes' ``brow_rest`` (stages.retarget.keyshapes.rest_pose)
+        #: keyshapes' ``brow_rest`` (stages.retarget.face_measures.rest_pose)
         brow_rest: Literal["closed_mouth", "median"] = "closed_mouth"
 
         @model_validator(mode="after")
@@ -593,8 +593,8 @@ def posed_frames(data, brows_median: bool = False) -> dict[str, np.ndarray]:
     their error vectors against the tracked landmarks (``face_frame_errors``): ``absolute``, ``neutral_aligned``
     (less each take's error of the neutral face at the performer's rest: the fixed difference of two faces at
     rest; the brows' median error over the take with ``brows_median``, like
-    ``keyshapes.rest_pose``), ``motion`` (less each take's mean error) and ``motion_shifted``."""
-    from stages.retarget.keyshapes import level, rest_frames, rest_pose
+    ``face_measures.rest_pose``), ``motion`` (less each take's mean error) and ``motion_shifted``."""
+    from stages.retarget.face_measures import level, rest_frames, rest_pose
 
     sequence, tracked, weights = data["sequence"], data["landmarks"], data["weights"]
     neutral_points = character_landmarks(data["neutral"], data["deltas"], data["landmark_ids"], weights[:1] * 0)[0]

@@ -635,7 +635,7 @@ def performer_lip_gap(tracks, target_gap, alpha) -> tuple[np.ndarray | None, str
     """The inner-lip gap (frames,) the seal follows: the tracked performer's, when the blend has the tracking of
     the take it animates (lip closures are speech, not expression: a re-expressed take keeps its performer's), else
     the decomposed shapes' (keyshapes ``lip_gap``) blended by alpha."""
-    from stages.retarget.keyshapes import level, lip_gap_iod
+    from stages.retarget.face_measures import level, lip_gap_iod
 
     if tracks is not None:
         with np.errstate(invalid="ignore", divide="ignore"):  # a frame without a face: NaN, never sealed

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from msflow import UserError
-from stages.retarget.keyshapes import IBUG68_CONTOURS
+from stages.retarget.face_measures import IBUG68_CONTOURS
 
 
 def draw_landmarks(image: np.ndarray, points: np.ndarray, color=(40, 200, 40)) -> np.ndarray:
@@ -181,7 +181,7 @@ def figure_contact_sheet(view, inputs):
 def figure_landmark_fit(view, inputs):
     """Keyshape landmarks (black) against the landmarks the keymorph gives the character (red), per keyshape
     (the 3D fit: both in the head frame, seen from the front)."""
-    from stages.retarget.keyshapes import plot_keyshape_grid
+    from stages.retarget.keyshape_figures import plot_keyshape_grid
 
     keyshapes = inputs["keyshapes"]
     reference = keyshapes["keyshapes"]

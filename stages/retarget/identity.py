@@ -27,7 +27,7 @@ IDENTITY_POINTS = tuple(range(17, 68))
 def performer_rest_face(mesh: np.ndarray) -> np.ndarray:
     """The performer's rest face (68, 3) in the head frame, IOD units: the mean of the closed-mouth frames of a
     tracked FaceMesh (frames, 468, 3)."""
-    from stages.retarget.keyshapes import rest_frames
+    from stages.retarget.face_measures import rest_frames
     from stages.retarget.shapes3d import front_view, head_frame_shapes
 
     shapes = head_frame_shapes(np.asarray(mesh, np.float64))

@@ -38,8 +38,8 @@ from stages.retarget.contact_sheet import (
     figure_contact_sheet,
     figure_landmark_fit,
 )
+from stages.retarget.face_measures import inter_ocular_distance
 from stages.retarget.keymorph_yaml import format_keymorph_yaml, parse_keymorph_yaml, rounded_weights
-from stages.retarget.keyshapes import inter_ocular_distance
 from stages.retarget.morph_fit import LandmarkRig, fit_keymorph_weights, landmark_errors, matching_targets
 from stages.retarget.region_fit import DEFAULT_FIT_REGIONS, FitRegion, Rig3D, fit_regions_3d, matching_any_case
 

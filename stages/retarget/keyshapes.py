@@ -21,41 +21,16 @@ from pydantic import Field, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
 from stages.geometry.nnls import batched_nnls
-from stages.retarget.regions import BROWS
-
-#: iBUG-68 polylines (point ranges; closed ones repeat their first point) for drawing shapes
-IBUG68_CONTOURS: tuple[tuple[int, ...], ...] = (
-    tuple(range(0, 17)),
-    tuple(range(17, 22)),
-    tuple(range(22, 27)),
-    tuple(range(27, 31)),
-    tuple(range(31, 36)),
-    tuple(range(36, 42)) + (36,),
-    tuple(range(42, 48)) + (42,),
-    tuple(range(48, 60)) + (48,),
-    tuple(range(60, 68)) + (60,),
+from stages.retarget.face_measures import (
+    inter_ocular_distance,
+    level,
+    lip_gap_iod,
+    mean_squared_landmark_distance,
+    relative_rms_error,
+    rest_frames,
+    rest_pose,
 )
-OUTER_EYE_CORNERS = (36, 45)
-INNER_LIP_PAIRS = ((61, 67), (62, 66), (63, 65))
-
-
-def inter_ocular_distance(shapes: np.ndarray) -> np.ndarray:
-    """Distance between the outer eye corners (iBUG 36, 45) of each (..., 68, 2) shape."""
-    shapes = np.asarray(shapes, np.float64)
-    return np.linalg.norm(shapes[..., OUTER_EYE_CORNERS[1], :] - shapes[..., OUTER_EYE_CORNERS[0], :], axis=-1)
-
-
-def mouth_opening(shapes: np.ndarray) -> np.ndarray:
-    """Mean gap between the inner lips (iBUG 61-67, 62-66, 63-65) of each (..., 68, 2) shape."""
-    shapes = np.asarray(shapes, np.float64)
-    upper = shapes[..., [a for a, _ in INNER_LIP_PAIRS], :]
-    lower = shapes[..., [b for _, b in INNER_LIP_PAIRS], :]
-    return np.linalg.norm(lower - upper, axis=-1).mean(axis=-1)
-
-
-def mean_squared_landmark_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Mean over landmarks of the squared point distance between shapes a (..., 68, 2) and b (..., 68, 2)."""
-    return ((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2).sum(axis=-1).mean(axis=-1)
+from stages.retarget.keyshape_figures import figure_keyshapes, figure_residual, figure_weights
 
 
 @dataclass
@@ -145,47 +120,6 @@ def decompose_into_keyshapes(shapes: np.ndarray, keyshapes: np.ndarray, **nnls_o
     result = batched_nnls(dictionary, shapes.reshape(n, -1), **nnls_options)
     reconstruction = (result.weights @ dictionary.T).reshape(shapes.shape)
     return result.weights, reconstruction, result
-
-
-def relative_rms_error(shapes: np.ndarray, reference: np.ndarray, scale: float) -> np.ndarray:
-    """RMS over landmarks of the point error between two (..., 68, 2) shape sets, divided by ``scale``."""
-    return np.sqrt(mean_squared_landmark_distance(shapes, reference)) / scale
-
-
-def rest_frames(shapes: np.ndarray, quantile: float = 0.1) -> np.ndarray:
-    """Indices of a closed-mouth rest pose: the frames whose inner-lip gap is in the lowest ``quantile``.
-
-    The plain mean of a talking face has its mouth half open; retargeting measures deformations from a rest
-    pose that matches a character's closed-mouth neutral.
-    """
-    gap = mouth_opening(shapes)
-    count = max(1, int(np.ceil(quantile * len(gap))))
-    return np.sort(np.argsort(gap, kind="stable")[:count])
-
-
-def rest_shape(shapes: np.ndarray, quantile: float = 0.1) -> np.ndarray:
-    """The mean shape of ``rest_frames``."""
-    shapes = np.asarray(shapes, np.float64)
-    return shapes[rest_frames(shapes, quantile)].mean(axis=0)
-
-
-def rest_pose(
-    shapes: np.ndarray, rest: np.ndarray, typical: np.ndarray | None = None, points: tuple[int, ...] = BROWS
-) -> np.ndarray:
-    """The rest pose deformations are measured from: the mean of the closed-mouth ``rest`` frames
-    (``rest_frames``), with the ``points`` (the brows, iBUG 17-26) at their median over the ``typical`` frames
-    when given (per coordinate; shapes (frames, n >= 68, d)).
-
-    Closed-mouth frames are a tenth of the take, picked by the mouth alone: in 7 of 11 talking-head clips the
-    brows sat higher in those frames than their median over the clip (by up to 0.011 IOD, a third of a unit of
-    ICT's browDown), and a character whose brows rest there frowns through the take. The median is where the
-    brows spend most of their time, which is their rest only when the take does not hold an expression
-    (docs/retarget.md, "The rest pose")."""
-    shapes = np.asarray(shapes, np.float64)
-    out = shapes[np.asarray(rest)].mean(axis=0)
-    if typical is not None and len(typical):
-        out[list(points)] = np.nanmedian(shapes[np.asarray(typical)][:, list(points)], axis=0)
-    return out
 
 
 #: the regions decomposed apart (Eq 8 per region, ``regions: true``). The mouth region holds the jaw line and the
@@ -303,135 +237,6 @@ def decompose(
         kkt = max(kkt, region_kkt)
         reconstruction[:, list(points)] = np.einsum("fk,kpc->fpc", by_region[:, r], keyshapes[:, list(points)])
     return Decomposition(weights, by_region, reconstruction, kkt)
-
-
-def level(shapes: np.ndarray) -> np.ndarray:
-    """Image landmarks (..., 68, 2) turned about their eye line's midpoint so the eye line is horizontal."""
-    shapes = np.asarray(shapes, np.float64)
-    eye = shapes[..., 45, :] - shapes[..., 36, :]
-    angle = np.arctan2(eye[..., 1], eye[..., 0])[..., None]
-    c, s = np.cos(-angle), np.sin(-angle)
-    d = shapes - 0.5 * (shapes[..., 45:46, :] + shapes[..., 36:37, :])
-    return np.stack([c * d[..., 0] - s * d[..., 1], s * d[..., 0] + c * d[..., 1]], axis=-1)
-
-
-def lip_gap_iod(shapes: np.ndarray) -> np.ndarray:
-    """Vertical inner-lip gap / inter-ocular distance of (..., 68, 2) shapes in image convention (y down), the
-    eye line about level: mean over the pairs 61-67, 62-66, 63-65 of lower y minus upper y (negative when the lips
-    press into each other). Vertical, because the lip seal's model of the character's gap is (stages.retarget.lips):
-    at a closure the inner-lip points are a millimetre apart sideways and in depth, which a distance would count."""
-    shapes = np.asarray(shapes, np.float64)
-    upper = shapes[..., [a for a, _ in INNER_LIP_PAIRS], 1]
-    lower = shapes[..., [b for _, b in INNER_LIP_PAIRS], 1]
-    return (lower - upper).mean(axis=-1) / inter_ocular_distance(shapes)
-
-
-# ---------------------------------------------------------------------------------------------------- figures
-
-
-def plot_shape(ax, shape: np.ndarray, **style):
-    """Draw one iBUG-68 shape as polylines on a matplotlib axis (image convention: y down)."""
-    for contour in IBUG68_CONTOURS:
-        pts = shape[list(contour)]
-        ax.plot(pts[:, 0], pts[:, 1], **style)
-
-
-def plot_keyshape_grid(layers, expression, labels, title, caption):
-    """Grid of shapes, one row per expression; ``layers`` = [(shapes (k, 68, 2), line style), ...] drawn over each
-    other, ``caption(index, column)`` titles each cell. Shapes are in the aam mean-shape frame (y down)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    expression = np.asarray(expression)
-    cols = max(int(np.bincount(expression, minlength=len(labels)).max(initial=1)), 1)
-    fig, axes = plt.subplots(len(labels), cols, figsize=(1.2 * cols, 1.4 * len(labels)), squeeze=False)
-    first = layers[0][0]
-    lo, hi = first.reshape(-1, 2).min(0), first.reshape(-1, 2).max(0)
-    for s, label in enumerate(labels):
-        mine = np.flatnonzero(expression == s)
-        for c in range(cols):
-            ax = axes[s, c]
-            ax.set_xticks([])
-            ax.set_yticks([])
-            ax.set_aspect("equal")
-            if c >= len(mine):
-                ax.axis("off")
-                continue
-            for shapes, style in layers:
-                plot_shape(ax, shapes[mine[c]], **style)
-            ax.set_xlim(lo[0], hi[0])
-            ax.set_ylim(hi[1], lo[1])
-            ax.set_title(caption(mine[c], c), fontsize=6)
-        axes[s, 0].set_ylabel(label)
-    fig.suptitle(title)
-    fig.tight_layout()
-    return fig
-
-
-def plot_keyshapes(keyshapes, expression, labels, frames):
-    """Grid of keyshapes: one row per expression, with each keyshape's source frame."""
-    return plot_keyshape_grid(
-        [(keyshapes, {"color": "k", "lw": 0.8})],
-        expression,
-        labels,
-        "Keyshapes per expression (PCA extremes, Sec 4.1)",
-        lambda i, c: f"{c} (f{int(frames[i])})",
-    )
-
-
-def plot_residual(residual, targets, fps):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 3))
-    time = np.arange(residual.shape[1]) / fps if fps else np.arange(residual.shape[1])
-    for t, name in enumerate(targets):
-        ax.plot(time, 100 * residual[t], label=name)
-    ax.axhline(3.0, color="r", ls="--", lw=0.8, label="3% goal")
-    ax.set_xlabel("time (s)" if fps else "frame")
-    ax.set_ylabel("RMS residual (% inter-ocular)")
-    ax.set_title("Keyshape decomposition residual (Eq 8)")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    return fig
-
-
-def plot_weights(weights, targets, keyshape_ids):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(len(targets), 1, figsize=(8, 2.2 * len(targets)), squeeze=False)
-    for t, name in enumerate(targets):
-        mine = np.flatnonzero(np.any(weights[t] != 0, axis=0))
-        ax = axes[t, 0]
-        ax.imshow(weights[t][:, mine].T, aspect="auto", interpolation="nearest", cmap="magma")
-        ax.set_yticks(range(len(mine)))
-        ax.set_yticklabels([keyshape_ids[i] for i in mine], fontsize=5)
-        ax.set_title(f"NNLS keyshape weights, target '{name}'", fontsize=8)
-    axes[-1, 0].set_xlabel("frame")
-    fig.tight_layout()
-    return fig
-
-
-def figure_keyshapes(view, inputs):
-    """The keyshapes of every expression as landmark drawings."""
-    return plot_keyshapes(view["keyshapes"], view["keyshape_expression"], view.meta["labels"], view["keyshape_frame"])
-
-
-def figure_residual(view, inputs):
-    """Per-frame decomposition residual against the 3% goal."""
-    return plot_residual(view["residual"], view.meta["targets"], view.meta.get("fps"))
-
-
-def figure_weights(view, inputs):
-    """NNLS weights over time per target."""
-    return plot_weights(view["weights"], view.meta["targets"], view.meta["keyshape_ids"])
 
 
 # ----------------------------------------------------------------------------------------------------- stage

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.retarget.keyshapes import INNER_LIP_PAIRS, inter_ocular_distance
+from stages.retarget.face_measures import INNER_LIP_PAIRS, inter_ocular_distance
 
 
 def lip_gap_model(neutral_landmarks: np.ndarray, landmark_deltas: np.ndarray) -> tuple[float, np.ndarray]:

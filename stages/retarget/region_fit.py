@@ -12,7 +12,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from stages.retarget.keyshapes import inter_ocular_distance
+from stages.retarget.face_measures import inter_ocular_distance
 from stages.retarget.morph_fit import Similarity, fit_similarity, robust_fit
 from stages.retarget.regions import RIGID
 
