@@ -275,9 +275,8 @@ def probes(folders: list[str]) -> None:
         runs.append(msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_eval"))
 
     def rest_of(shapes, frames_of=None):  # as the evaluation takes it (RetargetEval's brow_rest)
-        typical = np.arange(len(shapes)) if params.brow_rest == "median" else None
         closed = rest_frames(front_view((shapes if frames_of is None else frames_of)[:, :68]))
-        return rest_pose(shapes, closed, typical)
+        return rest_pose(shapes, closed, params.brow_rest)
 
     print(
         "| take | column | probe peak / level, as evaluated | without perspective removal | 2D chin rise at the "
@@ -391,11 +390,12 @@ RESTING_GROUPS = {
 def closed_mouth_brow_bias(mesh: np.ndarray) -> float:
     """How much higher the brows sit above the eyes in a take's closed-mouth frames than their median (IOD)."""
     from stages.retarget.face_measures import rest_frames
+    from stages.retarget.regions import BROWS, EYES
     from stages.retarget.shapes3d import front_view, head_frame_shapes
 
     shapes = head_frame_shapes(np.asarray(mesh, np.float64))
     shapes = shapes[np.isfinite(shapes).all(axis=(1, 2))]
-    height = shapes[:, 17:27, 1].mean(axis=1) - shapes[:, 36:48, 1].mean(axis=1)
+    height = shapes[:, list(BROWS), 1].mean(axis=1) - shapes[:, list(EYES), 1].mean(axis=1)
     return float(height[rest_frames(front_view(shapes))].mean() - np.median(height))
 
 
@@ -415,10 +415,10 @@ def resting(folders: list[str], overrides: list[str] = ()) -> None:
         blend, tracks = result.artifact("capture_blend"), result.artifact("capture_track")
         names, weights = list(blend.meta["target_names"]), np.asarray(blend["weights"], np.float64)
         weights = weights.reshape(-1, weights.shape[-1])
-        sequence = np.asarray(tracks["sequence"])
+        sequence, mesh = np.asarray(tracks["sequence"]), np.asarray(tracks["mesh"])
         for take, label in enumerate(tracks.meta["labels"]):
             mine = weights[sequence == take]
-            cells = [closed_mouth_brow_bias(np.asarray(tracks["mesh"])[sequence == take]), np.median(mine.sum(axis=1))]
+            cells = [closed_mouth_brow_bias(mesh[sequence == take]), np.median(mine.sum(axis=1))]
             for group in RESTING_GROUPS.values():
                 cells.append(np.median(mine[:, [names.index(n) for n in group if n in names]].mean(axis=1)))
             print(f"| {Path(label).stem} | {cells[0]:+.4f} | " + " | ".join(f"{c:.2f}" for c in cells[1:]) + " |")

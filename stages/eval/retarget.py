@@ -294,8 +294,7 @@ def take_movements(data: dict, rows: np.ndarray, gap: np.ndarray, params) -> tup
     if data.get("mesh") is not None:  # 2D landmarks read a turn of the head as a sideways jaw or a frown
         camera = data["camera"][np.flatnonzero(rows)[0]]
         shapes, focal = performer_shapes(data["mesh"], rows, camera, params.probe_focal)
-        typical = np.arange(len(shapes)) if params.brow_rest == "median" else None
-        rest = rest_pose(shapes, rest_frames(front_view(shapes[:, :68])), typical)
+        rest = rest_pose(shapes, rest_frames(front_view(shapes[:, :68])), params.brow_rest)
         probes = landmark_probes(shapes, rest, gap[rows], params.closure_gap)
     aperture = data["aperture"][rows] if data["aperture"] is not None else eye_aperture(data["landmarks"][rows])
     gaze = data["gaze"][rows] if data["gaze"] is not None else None
@@ -556,7 +555,7 @@ def evaluate(params, **data) -> dict:
     """All the metrics from validated inputs (see the module docstring): pooled over the takes in ``metrics``,
     per take in ``meta["takes"]``."""
     sequence, weights, names = data["sequence"], data["weights"], data["names"]
-    frames = posed_frames(data, brows_median=params.brow_rest == "median")
+    frames = posed_frames(data, params.brow_rest)
     context = event_context(params, data, frames)
     from stages.formats.live_link import ARKIT_NAMES, UNTRACKED_COLUMNS, arkit_weights
 
@@ -587,13 +586,12 @@ def evaluate(params, **data) -> dict:
     return pack_evaluation(metrics, takes, context, frames, dead_morphs, data)
 
 
-def posed_frames(data, brows_median: bool = False) -> dict[str, np.ndarray]:
+def posed_frames(data, brow_rest: str = "closed_mouth") -> dict[str, np.ndarray]:
     """The character's landmark vertices posed with the tracked head and projected: the animation
     (``predicted``), the same rolled by half of each take (``shifted``) and the neutral face (``neutral``); with
     their error vectors against the tracked landmarks (``face_frame_errors``): ``absolute``, ``neutral_aligned``
     (less each take's error of the neutral face at the performer's rest: the fixed difference of two faces at
-    rest; the brows' median error over the take with ``brows_median``, like
-    ``face_measures.rest_pose``), ``motion`` (less each take's mean error) and ``motion_shifted``."""
+    rest, the brows' as ``brow_rest`` says: ``face_measures.rest_pose``), ``motion`` (less each take's mean error) and ``motion_shifted``."""
     from stages.retarget.face_measures import level, rest_frames, rest_pose
 
     sequence, tracked, weights = data["sequence"], data["landmarks"], data["weights"]
@@ -612,8 +610,7 @@ def posed_frames(data, brows_median: bool = False) -> dict[str, np.ndarray]:
     for take in np.unique(sequence):
         rows = np.flatnonzero(sequence == take)
         rest = rest_frames(level(tracked[rows]))
-        typical = np.arange(len(rows)) if brows_median else None
-        out["neutral_aligned"][rows] -= rest_pose(at_rest[rows], rest, typical)
+        out["neutral_aligned"][rows] -= rest_pose(at_rest[rows], rest, brow_rest)
     out["motion"] = remove_take_offsets(out["absolute"], sequence)
     out["motion_shifted"] = remove_take_offsets(face_frame_errors(out["shifted"], tracked), sequence)
     out["scale"] = np.array(to_model.scale)

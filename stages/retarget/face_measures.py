@@ -67,11 +67,11 @@ def rest_shape(shapes: np.ndarray, quantile: float = 0.1) -> np.ndarray:
 
 
 def rest_pose(
-    shapes: np.ndarray, rest: np.ndarray, typical: np.ndarray | None = None, points: tuple[int, ...] = BROWS
+    shapes: np.ndarray, rest: np.ndarray, brow_rest: str = "closed_mouth", typical: np.ndarray | None = None
 ) -> np.ndarray:
     """The rest pose deformations are measured from: the mean of the closed-mouth ``rest`` frames
-    (``rest_frames``), with the ``points`` (the brows, iBUG 17-26) at their median over the ``typical`` frames
-    when given (per coordinate; shapes (frames, n >= 68, d)).
+    (``rest_frames``) of shapes (frames, n >= 68, d); with ``brow_rest="median"`` the brows (iBUG 17-26) at their
+    per-coordinate median over the ``typical`` frames instead (all frames when None).
 
     Closed-mouth frames are a tenth of the take, picked by the mouth alone: in 7 of 11 talking-head clips the
     brows sat higher in those frames than their median over the clip (by up to 0.011 IOD, a third of a unit of
@@ -80,8 +80,9 @@ def rest_pose(
     (docs/retarget.md, "The rest pose")."""
     shapes = np.asarray(shapes, np.float64)
     out = shapes[np.asarray(rest)].mean(axis=0)
-    if typical is not None and len(typical):
-        out[list(points)] = np.nanmedian(shapes[np.asarray(typical)][:, list(points)], axis=0)
+    if brow_rest == "median":
+        pool = shapes if typical is None else shapes[np.asarray(typical)]
+        out[list(BROWS)] = np.nanmedian(pool[:, list(BROWS)], axis=0)
     return out
 
 

@@ -221,14 +221,19 @@ def decompose(
     keyshapes: np.ndarray,
     keyshape_group: np.ndarray,
     regions: dict[str, tuple[int, ...]] | None = None,
+    rest: np.ndarray | float = 0.0,
+    keyshape_rest: np.ndarray | float = 0.0,
     **nnls_options,
 ) -> Decomposition:
     """Eq 8, whole-face and (given ``regions``) region by region. A landmark in a region is reconstructed from
-    its region's weights, any other from the whole-face weights."""
+    its region's weights, any other from the whole-face weights. With ``rest`` (the frames' rest poses,
+    broadcastable to ``shapes``) and ``keyshape_rest`` (the keyshapes'), the deformations from rest are decomposed
+    (``decomposition: from_rest``) and the reconstruction is rest + sum_i w_i (B_i - rest_i)."""
+    shapes, keyshapes = np.asarray(shapes, np.float64) - rest, np.asarray(keyshapes, np.float64) - keyshape_rest
     weights, kkt = decompose_groups(shapes, groups, keyshapes, keyshape_group, **nnls_options)
     reconstruction = np.einsum("fk,kpc->fpc", weights, keyshapes)
     if not regions:
-        return Decomposition(weights, None, reconstruction, kkt)
+        return Decomposition(weights, None, reconstruction + rest, kkt)
     by_region = np.zeros((len(shapes), len(regions), len(keyshapes)))
     for r, points in enumerate(regions.values()):
         by_region[:, r], region_kkt = decompose_groups(
@@ -236,7 +241,7 @@ def decompose(
         )
         kkt = max(kkt, region_kkt)
         reconstruction[:, list(points)] = np.einsum("fk,kpc->fpc", by_region[:, r], keyshapes[:, list(points)])
-    return Decomposition(weights, by_region, reconstruction, kkt)
+    return Decomposition(weights, by_region, reconstruction + rest, kkt)
 
 
 # ----------------------------------------------------------------------------------------------------- stage
@@ -441,38 +446,35 @@ def decomposition_metrics(residual: np.ndarray, targets: list[str], kkt: float, 
 
 
 def decompose_targets(
-    targets: np.ndarray, groups: np.ndarray, keyshapes: np.ndarray, selection, params, scale, rests=None
+    targets: np.ndarray, groups: np.ndarray, keyshapes: np.ndarray, selection, params, scale, rests=(0.0, 0.0)
 ):
     """Eq 8 for every target sequence (T, F, 68, d) with per-frame groups (T, F): weights, region weights (or
-    None), reconstruction, residual / IOD, the largest KKT violation. With ``params.decomposition == "from_rest"``
-    and ``rests`` = (the frames' rest poses, broadcastable to the targets; the keyshapes' (K, 68, d)), the
-    deformations from rest are decomposed instead of the shapes, and the reconstruction is rest + sum_i w_i
-    (B_i - rest_i)."""
+    None), reconstruction, residual / IOD, the largest KKT violation. ``rests`` = (the frames' rest poses,
+    broadcastable to the targets; the keyshapes'): what ``decompose`` measures from (0: the absolute shapes)."""
     regions = DECOMPOSITION_REGIONS if params.regions else None
-    offset, key_offset = 0.0, 0.0
-    if params.decomposition == "from_rest" and rests is not None:
-        offset, key_offset = rests
+    rest, keyshape_rest = rests
     parts = [
-        decompose(target - o, group, keyshapes - key_offset, selection.expression, regions, **nnls_options(params))
-        for target, group, o in zip(targets, groups, np.broadcast_to(offset, targets.shape))
+        decompose(target, group, keyshapes, selection.expression, regions, r, keyshape_rest, **nnls_options(params))
+        for target, group, r in zip(targets, groups, np.broadcast_to(rest, targets.shape))
     ]
-    reconstruction = np.stack([p.reconstruction for p in parts]) + offset
+    reconstruction = np.stack([p.reconstruction for p in parts])
     residual = relative_rms_error(reconstruction, targets, scale)
     region_weights = np.stack([p.region_weights for p in parts]) if params.regions else None
     return np.stack([p.weights for p in parts]), region_weights, reconstruction, residual, max(p.kkt for p in parts)
 
 
 def head_frame_keyshapes(
-    tracks, frames: np.ndarray, rest: np.ndarray, typical: np.ndarray | None = None
+    tracks, frames: np.ndarray, rest: np.ndarray, brow_rest: str, typical: np.ndarray
 ) -> dict[str, np.ndarray]:
     """3D keyshapes and their (common) rest pose from the tracked FaceMesh at the keyshapes' source frames: the
-    ``rest`` frames, the brows over the ``typical`` ones (``rest_pose``). Empty without a mesh."""
+    ``rest`` frames, the brows as ``brow_rest`` says over the ``typical`` ones (``rest_pose``). Empty without a
+    mesh."""
     if tracks is None or "mesh" not in tracks:
         return {}
     from stages.retarget.shapes3d import head_frame_shapes
 
     mesh = np.asarray(tracks["mesh"], np.float64)
-    reach = max(frames.max(initial=0), rest.max(initial=0), -1 if typical is None else typical.max(initial=0))
+    reach = max(frames.max(initial=0), rest.max(initial=0), typical.max(initial=0))
     if reach >= len(mesh):
         raise UserError(
             f"keyshape source frames reach {int(reach)} but the tracking input has "
@@ -480,7 +482,7 @@ def head_frame_keyshapes(
             field="inputs.tracks",
         )
     shapes = head_frame_shapes(mesh)
-    pose = np.broadcast_to(rest_pose(shapes, rest, typical), (len(frames), *shapes.shape[1:]))
+    pose = np.broadcast_to(rest_pose(shapes, rest, brow_rest, typical), (len(frames), *shapes.shape[1:]))
     return {"keyshapes3d": shapes[frames].astype(np.float32), "keyshape_rest3d": pose.astype(np.float32)}
 
 
@@ -511,11 +513,6 @@ class Keyshapes(Stage):
         aligned, sequence, labels, usable, scale = self._training(inputs["aam"])
         targets, edited = self._edited(inputs["edit"], labels)
         counts = keyshape_counts(params.k, labels)
-        rest_label = params.rest_expression if params.rest_expression in labels else None
-        candidates = np.flatnonzero(usable & ((sequence == labels.index(rest_label)) if rest_label else True))
-        rest_idx = candidates[rest_frames(aligned[candidates])]
-        typical = candidates if params.brow_rest == "median" else None
-        rest = rest_pose(aligned, rest_idx, typical) if rest_idx.size else None
         try:
             selection = select_all_keyshapes(
                 aligned, sequence, labels, counts, usable,
@@ -524,13 +521,17 @@ class Keyshapes(Stage):
         except ValueError as exc:
             raise UserError(str(exc), field="inputs.aam") from None
         keyshapes = aligned[selection.frames]
+        rest_label = params.rest_expression if params.rest_expression in labels else None
+        candidates = np.flatnonzero(usable & ((sequence == labels.index(rest_label)) if rest_label else True))
+        rest_idx = candidates[rest_frames(aligned[candidates])]
+        rest = rest_pose(aligned, rest_idx, params.brow_rest, candidates)
+        offset = rest if params.decomposition == "from_rest" else 0.0
         groups = np.repeat(np.array([labels.index(t) for t in targets])[:, None], edited.shape[1], axis=1)
         weights, region_weights, reconstruction, residual, kkt = decompose_targets(
-            edited, groups, keyshapes, selection, params, scale, rests=(rest, rest)
+            edited, groups, keyshapes, selection, params, scale, rests=(offset, offset)
         )
-        offset = rest if params.decomposition == "from_rest" else 0.0
-        train = decompose(aligned[usable] - offset, sequence[usable], keyshapes - offset, selection.expression)
-        train_residual = relative_rms_error(train.reconstruction + offset, aligned[usable], scale)
+        train = decompose(aligned[usable], sequence[usable], keyshapes, selection.expression, None, offset, offset)
+        train_residual = relative_rms_error(train.reconstruction, aligned[usable], scale)
         arrays = keyshape_arrays(selection, aligned)
         arrays.update(
             weights=weights.astype(np.float32),
@@ -542,7 +543,7 @@ class Keyshapes(Stage):
             expression_mean=np.stack([aligned[(sequence == s) & usable].mean(0) for s in range(len(labels))]).astype(
                 np.float32
             ),
-            **head_frame_keyshapes(inputs.get("tracks"), selection.frames, rest_idx, typical),
+            **head_frame_keyshapes(inputs.get("tracks"), selection.frames, rest_idx, params.brow_rest, candidates),
         )
         if region_weights is not None:
             arrays["region_weights"] = region_weights.astype(np.float32)
@@ -654,10 +655,6 @@ class CaptureKeyshapes(Stage):
         shapes, flat, sequence, labels, usable, space = self._shapes(params, tracks)
         fields = dict(tracks.meta.get("fields") or {})
         counts = keyshape_counts(params.k, labels)
-        rests, typical = capture_rest_frames(shapes, sequence, usable, labels, fields, params.rest_expression)
-        if params.brow_rest != "median":
-            typical = [None] * len(rests)
-        poses = [rest_pose(shapes, r, u) if r.size else None for r, u in zip(rests, typical)]
         try:
             selection = select_all_keyshapes(
                 shapes, sequence, labels, counts, usable,
@@ -666,12 +663,14 @@ class CaptureKeyshapes(Stage):
         except ValueError as exc:
             raise UserError(f"{exc} (no tracked face)", field="inputs.tracks") from None
         keyshapes = shapes[selection.frames]
-        frame_rests = np.stack([np.zeros(shapes.shape[1:]) if p is None else p for p in poses])
+        rests, typical = capture_rest_frames(shapes, sequence, usable, labels, fields, params.rest_expression)
+        poses = np.stack([rest_pose(shapes, r, params.brow_rest, u) for r, u in zip(rests, typical)])
+        from_rest = params.decomposition == "from_rest"
         weights, region_weights, reconstruction, residual, kkt = decompose_targets(
             shapes[None], sequence[None], keyshapes, selection, params, 1.0,
-            rests=(frame_rests[sequence][None], frame_rests[selection.expression]),
+            rests=(poses[sequence][None], poses[selection.expression]) if from_rest else (0.0, 0.0),
         )  # fmt: skip
-        arrays = self._pack_arrays(selection, shapes, flat, space, poses, rests, typical, sequence)
+        arrays = self._pack_arrays(selection, shapes, flat, space, poses, rests, params.brow_rest, typical, sequence)
         arrays.update(
             weights=weights.astype(np.float32),
             reconstruction=flat_view(reconstruction, space).astype(np.float32),
@@ -723,18 +722,18 @@ class CaptureKeyshapes(Stage):
         return shapes, shapes, sequence, labels, usable, space
 
     @staticmethod
-    def _pack_arrays(selection, shapes, flat, space, poses, rests, typical, sequence) -> dict:
-        """The keyshapes' outputs; ``poses`` each take's rest pose (``rest_pose`` of its ``rests`` frames and
-        ``typical`` ones) in the keyshapes' space."""
+    def _pack_arrays(selection, shapes, flat, space, poses, rests, brow_rest, typical, sequence) -> dict:
+        """The keyshapes' outputs; ``poses`` (takes, 68, d) each take's rest pose (``rest_pose`` of its ``rests``
+        frames, the brows as ``brow_rest`` says over its ``typical`` ones) in the keyshapes' space."""
         arrays = keyshape_arrays(selection, flat)
-        keyshape_rest = np.stack([poses[e] for e in selection.expression])
+        keyshape_rest = poses[selection.expression]
         arrays["keyshape_rest"] = flat_view(keyshape_rest, space).astype(np.float32)
         if space == "3d":
             arrays["keyshapes3d"] = shapes[selection.frames].astype(np.float32)
             arrays["keyshape_rest3d"] = keyshape_rest.astype(np.float32)
         all_rest = np.concatenate(rests)
-        all_typical = None if typical[0] is None else np.unique(np.concatenate(typical))
-        arrays["rest_shape"] = rest_pose(flat, all_rest, all_typical).astype(np.float32)
+        all_typical = np.unique(np.concatenate(typical))
+        arrays["rest_shape"] = rest_pose(flat, all_rest, brow_rest, all_typical).astype(np.float32)
         arrays["rest_frames"] = all_rest.astype(np.int32)
         arrays["expression_mean"] = np.stack([flat[sequence == s].mean(0) for s in range(len(rests))]).astype(
             np.float32
