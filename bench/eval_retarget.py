@@ -47,6 +47,7 @@ COLUMNS = [
     ("false blinks", "false_blinks", "{:.0f}"),
     ("jaw > funnel", "jaw_over_funnel_fraction", "{:.0%}"),
     ("jawOpen at widest", "jaw_open_at_widest", "{:.2f}"),
+    ("press, lips apart", "press_apart_fraction", "{:.0%}"),
     ("env r char/perf/shift", ("envelope_r_character", "envelope_r_performer", "envelope_r_shifted"), "{:.2f}"),
     ("dead ARKit: moved / not", ("dead_arkit_moved", "dead_arkit_not_moved"), "{:.0f} / {:.0f}"),
 ]

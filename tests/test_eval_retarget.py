@@ -235,6 +235,24 @@ def test_funnel_instead_of_jaw_is_caught(character, truth):
     assert out.metrics["jaw_over_funnel_fraction"] == 0.0 and out.metrics["jaw_minus_funnel"] < 0
 
 
+def test_a_press_over_open_lips_is_counted(character, truth):
+    """The character's own animation presses no lips; a press added over the performer's open-lip frames is
+    counted there (and only there: a press while the lips are closed is contact)."""
+    weights, tracks, out = truth
+    names = character.meta["target_names"]
+    assert out.metrics["press_apart_fraction"] == 0.0
+    from stages.eval.retarget import lip_gap
+
+    apart = lip_gap(np.asarray(tracks["landmarks"], np.float64)) > 0.1
+    assert 0 < apart.sum() < FRAMES
+    pressed = weights.copy()
+    pressed[:, names.index("mouthPress_L")] = np.where(apart, 0.5, 0.0)
+    assert evaluate(character, tracks, pressed).metrics["press_apart_fraction"] == 1.0
+    closed_only = weights.copy()
+    closed_only[:, names.index("mouthPress_R")] = np.where(apart, 0.0, 0.5)
+    assert evaluate(character, tracks, closed_only).metrics["press_apart_fraction"] == 0.0
+
+
 def test_tracking_eye_aperture_is_preferred(character, truth):
     weights, tracks, _ = truth
     aperture = np.full((FRAMES, 2), 0.3, np.float32)

@@ -7,10 +7,11 @@ import pytest
 from msflow import UserError
 from msflow.testing import artifact, run_stage
 from stages.retarget.character import GltfCharacter
-from stages.retarget.face_measures import inter_ocular_distance
+from stages.retarget.face_measures import inter_ocular_distance, lip_gap_iod
 from stages.retarget.keymorph_yaml import format_keymorph_yaml, parse_keymorph_yaml
 from stages.retarget.keymorphs import KeymorphFile, KeymorphFit
 from stages.retarget.morph_fit import LandmarkRig, antagonist_pairs, fit_similarity, project_front, symmetric_pairs
+from stages.retarget.shapes3d import front_view
 
 ICT = "data/characters/ict-facekit.glb"
 
@@ -748,3 +749,33 @@ def test_where_the_brows_rest(character, brow_rest):
     else:
         assert down[resting].min() > 0.2 and up[raised].max() < 0.1
         assert held_up[held_raised].min() > 0.3 and held_down[held_raised].max() < 0.1
+
+
+def test_lips_apart_are_not_pressed(character):
+    """Known answer: mouthPress presses the lips together, so a keyshape whose lips are apart gets none
+    (``contact_gap``), even one the character makes with a press (jawOpen 0.3 and mouthPress 0.7: the press lifts
+    the chin and lower lip, the lips stay 0.09 IOD apart; CREMA-D fear used a press so, 0.25-0.45 over an open
+    mouth), while a closed-lip keyshape keeps its press. ``contact_gap: null`` gives the press back (0.29: the
+    jaw takes the rest of the lift)."""
+    names = character.meta["target_names"]
+    open_press = {"jawOpen": 0.3, "mouthPress_L": 0.7, "mouthPress_R": 0.7}
+    poses = [("neutral", {}), ("neutral", open_press), ("happy", {"mouthPress_L": 0.7}), ("angry", {})]
+    keyshapes, _ = keyshapes3d_from_weights(character, poses)
+    gaps = lip_gap_iod(front_view(np.asarray(keyshapes["keyshapes3d"], np.float64)))
+    assert gaps[1] > 0.06 > gaps[2], gaps
+    press = [names.index("mouthPress_L"), names.index("mouthPress_R")]
+
+    def fit(**params):
+        inputs = {"keyshapes": keyshapes, "character": character}
+        return run_stage(KeymorphFit, {"contact_sheet": False, **params}, inputs)
+
+    held, free = fit(), fit(contact_gap=None)
+    assert held.metrics["contact_held_keyshapes"] == 1 and free.metrics["contact_held_keyshapes"] == 0
+    w, w_free = held.arrays["keymorph_weights"], free.arrays["keymorph_weights"]
+    assert not w[1, press].any() and (w_free[1, press] > 0.2).all(), (w[1, press], w_free[1, press])
+    assert w[2, press[0]] > 0.4 and w_free[2, press[0]] > 0.4
+    assert w[1, names.index("jawOpen")] > 0.2  # the open mouth is still the jaw's, and still fits
+    assert held.arrays["landmark_error"][1] < 0.01
+    # the 2D fit holds the same keyshape's press
+    w2d = fit(space="2d").arrays["keymorph_weights"]
+    assert not w2d[1, press].any()

@@ -24,6 +24,8 @@ first aligned to that model by a 3D similarity on the rigid landmarks), then com
   performer (the reference) and the character shifted by half a take (no timing: the chance level).
 - **jaw vs funnel**: at the performer's widest-jaw frames (chin-to-nose-bridge distance, top ``widest_fraction``
   of each take), jawOpen minus mouthFunnel, and how often jawOpen is the larger.
+- **pressed lips apart**: how often a lip press (mouthPress) is on while the performer's lips are apart
+  (``press_apart_fraction``: an ARKit rig shows pressed lips over an open mouth).
 - **dead ARKit columns**: columns (the export's mapping, ``stages.formats.live_link``) that never exceed
   ``dead_level`` in a take, sorted by whether the performer made that movement there (the movement probes of
   ``stages.retarget.movements`` on the tracked FaceMesh; eyes from ``eye_aperture`` and ``gaze``).
@@ -402,6 +404,10 @@ class RetargetEval(Stage):
         blink_max_seconds: float = Field(0.5, gt=0)
         #: the performer's widest-jaw frames: this top fraction of each take
         widest_fraction: float = Field(0.1, gt=0, le=1)
+        #: lips apart: the performer's inner-lip gap above this (IOD) ...
+        apart_gap: float = Field(0.1, gt=0)
+        #: ... where a lip press (mouthPress*) above this is pressing lips that do not touch (``press_apart_fraction``)
+        press_level: float = Field(0.2, gt=0, le=1)
         #: an ARKit column or morph is dead when its weight never exceeds this ...
         dead_level: float = Field(0.02, ge=0)
         #: ... and the performer made its movement when its probe (stages.retarget.movements) held above this
@@ -692,6 +698,8 @@ def summary(params, data, frames, context, rows: np.ndarray) -> dict[str, float]
         blink_recall=float(blinks["recall"]), false_blink_rate=float(blinks["false_rate"]),
     )  # fmt: skip
     metrics.update(jaw_metrics(data["weights"], data["names"], context["widest"][rows[context["widest"]]]))
+    apart = np.flatnonzero(rows & (context["performer_gap"] > params.apart_gap))
+    metrics.update(press_metrics(data["weights"], data["names"], apart, params.press_level))
     metrics.update(take_envelope(context, data["sequence"], rows))
     return metrics
 
@@ -707,6 +715,16 @@ def jaw_metrics(weights: np.ndarray, names: list[str], widest: np.ndarray) -> di
         "jaw_over_funnel_fraction": float((diff > 0).mean()),
         "jaw_open_at_widest": float(weights[widest, jaw].mean()),
     }
+
+
+def press_metrics(weights: np.ndarray, names: list[str], apart: np.ndarray, level: float) -> dict[str, float]:
+    """How often a lip press (mouthPress*, either side, above ``level``) presses lips that are apart: at the
+    frames ``apart`` where the performer's lips are apart (none when the character has no press or the lips never
+    part)."""
+    press = [i for i, n in enumerate(names) if n.lower().startswith("mouthpress")]
+    if not press or not len(apart):
+        return {}
+    return {"press_apart_fraction": float((weights[np.ix_(apart, press)].max(axis=1) > level).mean())}
 
 
 def take_envelope(context, sequence: np.ndarray, rows: np.ndarray) -> dict[str, float]:

@@ -38,7 +38,7 @@ from stages.retarget.contact_sheet import (
     figure_contact_sheet,
     figure_landmark_fit,
 )
-from stages.retarget.face_measures import inter_ocular_distance
+from stages.retarget.face_measures import inter_ocular_distance, lip_gap_iod
 from stages.retarget.keymorph_yaml import format_keymorph_yaml, parse_keymorph_yaml, rounded_weights
 from stages.retarget.morph_fit import LandmarkRig, fit_keymorph_weights, landmark_errors, matching_targets
 from stages.retarget.region_fit import DEFAULT_FIT_REGIONS, FitRegion, Rig3D, fit_regions_3d, matching_any_case
@@ -80,6 +80,16 @@ _INPUTS = {
         "the pose correction",
     ),
 }
+
+
+def contact_bounds(lip_gaps: np.ndarray, names: list[str], contact_morphs: list[str], gap: float | None) -> np.ndarray:
+    """Upper bounds (K, M) of the keymorph weights: 1, but 0 for the lip-contact morphs (``contact_morphs``,
+    fnmatch patterns) of the keyshapes whose inner-lip gap ``lip_gaps`` (K,) / IOD is above ``gap`` (lips apart:
+    nothing to press). ``gap`` None bounds nothing."""
+    bounds = np.ones((len(lip_gaps), len(names)))
+    if gap is not None:
+        bounds[np.ix_(np.asarray(lip_gaps) > gap, matching_any_case(names, contact_morphs))] = 0.0
+    return bounds
 
 
 def morph_decomposition_regions(names: list[str], regions: list[FitRegion], exclude: list[str]) -> dict[str, str]:
@@ -127,6 +137,10 @@ class Prepared:
         for k, rest in enumerate(self.rests3d):
             out[k] = rest + self.rig3d.to_character(rest).inverse_linear(motion[k])
         return front_view(out)
+
+    def lip_gaps(self) -> np.ndarray:
+        """Each keyshape's inner-lip gap / IOD (``lip_gap_iod``, in 3D seen from the front)."""
+        return lip_gap_iod(self.reference())
 
     def reference(self) -> np.ndarray:
         """The keyshapes as ``landmarks`` draws them."""
@@ -298,6 +312,13 @@ class KeymorphFitParams(Stage.Params):
     #: (corrective, base) pairs: the corrective's weight never exceeds the base's (ARKit's mouthClose closes the
     #: lips of an opened jaw only). The 3D fit bounds it; the 2D fit, solved jointly, leaves correctives at 0
     correctives: list[tuple[str, str]] = [("mouthClose", "jawOpen")]
+    #: morphs that press the lips together (fnmatch patterns): held at 0 in a keyshape whose lips are apart, so
+    #: they never stand in for another shape there (CREMA-D fear: mouthPress 0.25-0.45 with the lips 0.2 IOD
+    #: apart, holding the chin up against the jaw; an ARKit rig shows pressed lips over an open mouth)
+    contact_morphs: list[str] = ["mouthPress*"]
+    #: a keyshape's lips are apart above this inner-lip gap (IOD; twice the closure gap of the evaluation); None:
+    #: contact morphs everywhere, as before
+    contact_gap: float | None = Field(0.06, gt=0)
     #: fit in 3D region by region when the keyshapes carry FaceMesh depth (auto), or always on the 2D front view
     space: Literal["auto", "3d", "2d"] = "auto"
     #: the regions of the 3D fit, in order (the blend drives each region's morphs with its decomposition region's
@@ -355,7 +376,8 @@ class KeymorphFit(_KeymorphStage):
             "morph_regions": info.get("morph_regions")
             or morph_decomposition_regions(names, list(params.regions), list(params.exclude)),
         }
-        return self._common(params, inputs, prepared, weights, yaml_text, {"fit_kkt_max": info["kkt_max"]}, meta)
+        metrics = {"fit_kkt_max": info["kkt_max"], "contact_held_keyshapes": float(info["lips_apart"])}
+        return self._common(params, inputs, prepared, weights, yaml_text, metrics, meta)
 
     @staticmethod
     def _fit(params, prepared: Prepared, names: list[str]) -> tuple[np.ndarray, dict]:
@@ -366,6 +388,7 @@ class KeymorphFit(_KeymorphStage):
             "antagonists": [tuple(p) for p in params.antagonists],
             "antagonism": params.antagonism,
         }
+        bounds = contact_bounds(prepared.lip_gaps(), names, list(params.contact_morphs), params.contact_gap)
         if prepared.space == "3d":
             weights, info = fit_regions_3d(
                 prepared.rig3d,
@@ -375,20 +398,24 @@ class KeymorphFit(_KeymorphStage):
                 exclude=list(params.exclude),
                 correctives=[tuple(p) for p in params.correctives],
                 robust_iod=params.robust_iod,
+                upper=bounds,
                 l1_scaling=params.l1_scaling,
                 **regularisers,
             )
             info["usable_targets"] = [n for region in info["regions"].values() for n in region]
-            return weights, info
-        return fit_keymorph_weights(
-            prepared.rig,
-            prepared.shapes,
-            names,
-            exclude=list(params.exclude) + [c for c, _ in params.correctives],
-            contour_weight=params.contour_weight,
-            pose=prepared.pose,
-            **regularisers,
-        )
+        else:
+            weights, info = fit_keymorph_weights(
+                prepared.rig,
+                prepared.shapes,
+                names,
+                exclude=list(params.exclude) + [c for c, _ in params.correctives],
+                contour_weight=params.contour_weight,
+                pose=prepared.pose,
+                upper=bounds,
+                **regularisers,
+            )
+        info["lips_apart"] = int((bounds < 1).any(axis=1).sum())
+        return weights, info
 
 
 class KeymorphFile(_KeymorphStage):

@@ -177,8 +177,9 @@ def fit_keymorph_weights(
     pose: np.ndarray | None = None,
     rtol: float = 1e-7,
     l1_scaling: float = 0.0,
+    upper: float | np.ndarray = 1.0,
 ) -> tuple[np.ndarray, dict]:
-    """Morph weights u in [0, 1]^M per keyshape minimising (Sec 4.3 keymorphs, automated)
+    """Morph weights u in [0, ``upper``] (1, or (K, M) bounds) per keyshape minimising (Sec 4.3 keymorphs, automated)
 
         1/2 sum_p c_p ||sum_m u_m d_mp - delta_p||^2 + e (l2/2 ||u||^2 + l1 sum_m u_m)
             + symmetry/2 sum_(L,R pairs) e_LR (u_L - u_R)^2 + antagonism/2 sum_(antagonists a,b) e_ab u_a u_b
@@ -200,7 +201,7 @@ def fit_keymorph_weights(
     usable = ~matching_targets(names, exclude)
     return bounded_fit(
         J, targets, names, usable, l2=l2, l1=l1, symmetry=symmetry, antagonists=antagonists,
-        antagonism=antagonism, rtol=rtol, l1_scaling=l1_scaling,
+        antagonism=antagonism, rtol=rtol, l1_scaling=l1_scaling, upper=upper,
     )  # fmt: skip
 
 

@@ -112,27 +112,34 @@ def corrective_pairs(names: list[str], correctives) -> list[tuple[int, int]]:
 
 
 def fit_region(
-    rig: Rig3D, targets: np.ndarray, points: list[int], columns: np.ndarray, names, pairs, regularisers, passes=8
+    rig: Rig3D,
+    targets: np.ndarray,
+    points: list[int],
+    columns: np.ndarray,
+    names,
+    pairs,
+    regularisers,
+    bounds,
+    passes=8,
 ):
-    """One region's bounded fit (``bounded_fit``) with correctives bounded by their base morph: a first pass
-    without the correctives gives the base weights, each further pass bounds every corrective by its base's weight
-    from the pass before (a joint bound u_c <= u_b is not a box), until the weights settle; a corrective is
-    finally clipped to its base's final weight."""
-    K = len(targets)
+    """One region's bounded fit (``bounded_fit``, weights in [0, ``bounds``], (K, columns)) with correctives
+    bounded by their base morph: a first pass without the correctives gives the base weights, each further pass
+    bounds every corrective by its base's weight from the pass before (a joint bound u_c <= u_b is not a box),
+    until the weights settle; a corrective is finally clipped to its base's final weight."""
     J = rig.deltas[columns][:, points].reshape(len(columns), -1).T
     local = {int(c): i for i, c in enumerate(columns)}
     sub_names = [names[c] for c in columns]
     mine = [(local[c], local.get(b)) for c, b in pairs if c in local]
-    upper = np.ones((K, len(columns)))
+    upper = bounds.copy()
     for c, _ in mine:
         upper[:, c] = 0.0
     sub, info = robust_fit(J, targets, sub_names, np.ones(len(columns), bool), upper=upper, **regularisers)
     if not mine:
         return sub, info
     for _ in range(passes):  # the bound u_c <= u_b, fixed from the last pass, until the base stops moving
-        upper = np.ones((K, len(columns)))
+        upper = bounds.copy()
         for c, b in mine:
-            upper[:, c] = sub[:, b] if b is not None else 0.0
+            upper[:, c] = np.minimum(bounds[:, c], sub[:, b]) if b is not None else 0.0
         previous = sub
         sub, info = robust_fit(J, targets, sub_names, np.ones(len(columns), bool), upper=upper, **regularisers)
         if np.abs(sub - previous).max(initial=0.0) < 1e-3:
@@ -151,14 +158,16 @@ def fit_regions_3d(
     exclude: list[str],
     correctives: list[tuple[str, str]] = (),
     robust_iod: float | None = None,
+    upper: np.ndarray | None = None,
     **regularisers,
 ) -> tuple[np.ndarray, dict]:
     """Keymorph weights fitted in 3D, region by region (issue 13.1), each region's morphs to its landmarks'
     deformation less what the regions fitted before it already move there (``fit_region``, all keyshapes at
-    once). A morph belongs to the first region whose patterns match it; a corrective whose base is fitted in an
+    once), within [0, ``upper``] ((K, M) bounds; None: 1). A morph belongs to the first region whose patterns match it; a corrective whose base is fitted in an
     earlier region is bounded by the base's weight there. Returns weights (K, M) and per region the morphs it
     fitted."""
     K = len(deformation)
+    bounds = np.ones((K, len(names))) if upper is None else np.asarray(upper, np.float64)
     weights = np.zeros((K, len(names)))
     explained = np.zeros_like(deformation)
     assigned = matching_any_case(names, exclude)
@@ -176,8 +185,9 @@ def fit_regions_3d(
         # a base fitted earlier acts as a fixed bound: pass it in as a pseudo-column the region does not fit
         region_pairs = [(c, b) for c, b in pairs if c in columns and (b in columns or assigned[b])]
         sub, sub_info = fit_region(
-            rig, targets, points, columns, names, [p for p in region_pairs if p[1] in columns], regularisers
-        )
+            rig, targets, points, columns, names, [p for p in region_pairs if p[1] in columns], regularisers,
+            bounds[:, columns],
+        )  # fmt: skip
         for c, b in region_pairs:
             if b not in columns:
                 i = list(columns).index(c)
