@@ -771,6 +771,8 @@ def test_lips_apart_are_not_pressed(character):
 
     held, free = fit(), fit(contact_gap=None)
     assert held.metrics["contact_held_keyshapes"] == 1 and free.metrics["contact_held_keyshapes"] == 0
+    assert held.meta["fit"]["unmatched_contact_patterns"] == []
+    assert fit(contact_morphs=["lipSeal*"]).meta["fit"]["unmatched_contact_patterns"] == ["lipSeal*"]
     w, w_free = held.arrays["keymorph_weights"], free.arrays["keymorph_weights"]
     assert not w[1, press].any() and (w_free[1, press] > 0.2).all(), (w[1, press], w_free[1, press])
     assert w[2, press[0]] > 0.4 and w_free[2, press[0]] > 0.4

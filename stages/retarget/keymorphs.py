@@ -366,12 +366,14 @@ class KeymorphFit(_KeymorphStage):
             decimals=params.decimals,
         )
         unknown = [p for p in params.exclude if not matching_targets(names, [p]).any()]
+        no_contact = [p for p in params.contact_morphs if not matching_targets(names, [p]).any()]
         meta = {
             "fit": {
                 "usable_targets": info["usable_targets"],
                 "regions": info.get("regions", {}),
                 "iterations": info["iterations"],
                 "unmatched_exclude_patterns": unknown,
+                "unmatched_contact_patterns": no_contact,
             },
             "morph_regions": info.get("morph_regions")
             or morph_decomposition_regions(names, list(params.regions), list(params.exclude)),
