@@ -366,7 +366,7 @@ class KeymorphFit(_KeymorphStage):
             decimals=params.decimals,
         )
         unknown = [p for p in params.exclude if not matching_targets(names, [p]).any()]
-        no_contact = [p for p in params.contact_morphs if not matching_targets(names, [p]).any()]
+        no_contact = [p for p in params.contact_morphs if not matching_any_case(names, [p]).any()]
         meta = {
             "fit": {
                 "usable_targets": info["usable_targets"],
