@@ -50,6 +50,11 @@ COLUMNS = [
     ("press, lips apart", "press_apart_fraction", "{:.0%}"),
     ("env r char/perf/shift", ("envelope_r_character", "envelope_r_performer", "envelope_r_shifted"), "{:.2f}"),
     ("dead ARKit: moved / not", ("dead_arkit_moved", "dead_arkit_not_moved"), "{:.0f} / {:.0f}"),
+    (
+        "following r (chance); weak",
+        ("following_r_median", "following_r_median_shifted", "following_weak"),
+        "{:.2f} ({:.2f}); {:.0%}",
+    ),
 ]
 
 
@@ -92,6 +97,24 @@ def column_report(name: str, view) -> list[str]:
     return lines + [""]
 
 
+def following_report(name: str, view) -> list[str]:
+    """Per ARKit column, how closely it follows the movement the performer made (the takes where the probe moved):
+    the median correlation of weight and probe over those takes, its chance level, and the weakest takes."""
+    per_column: dict[str, list[tuple[float, float, str]]] = {}
+    for label, take in view.meta["takes"].items():
+        for column, (r, shifted) in take.get("following", {}).items():
+            per_column.setdefault(column, []).append((r, shifted, Path(label).stem))
+    if not per_column:
+        return []
+    lines = [f"**{name}**: how closely each column follows the movement where the performer made it", ""]
+    lines += ["| column | takes | median r | chance | weakest |", "|---|---|---|---|---|"]
+    for column, values in sorted(per_column.items(), key=lambda kv: float(np.median([v[0] for v in kv[1]]))):
+        weakest = ", ".join(f"{t} {r:+.2f}" for r, _, t in sorted(values)[:2])
+        median, chance = np.median([v[0] for v in values]), np.median([v[1] for v in values])
+        lines.append(f"| {column} | {len(values)} | {median:+.2f} | {chance:+.2f} | {weakest} |")
+    return lines + [""]
+
+
 def split_overrides(args: list[str]) -> tuple[list[str], list[str]]:
     """``-S key=value`` pairs out of the command line: (overrides, the other arguments)."""
     overrides, rest = [], []
@@ -127,6 +150,7 @@ def main(folders: list[str], overrides: list[str] = ()) -> None:
     print()
     for name, view in runs:
         print("\n".join(column_report(name, view)))
+        print("\n".join(following_report(name, view)))
 
 
 def blinks(folders: list[str]) -> None:

@@ -26,6 +26,10 @@ first aligned to that model by a 3D similarity on the rigid landmarks), then com
   of each take), jawOpen minus mouthFunnel, and how often jawOpen is the larger.
 - **pressed lips apart**: how often a lip press (mouthPress) is on while the performer's lips are apart
   (``press_apart_fraction``: an ARKit rig shows pressed lips over an open mouth).
+- **columns that follow the movement**: per take and column whose movement the performer made, the correlation of
+  the column's weight with its probe over the frames (``meta["takes"][...]["following"]``, with the weight rolled
+  by half the take as chance), pooled as ``following_r_median`` and the share below 0.3 (``following_weak``). The
+  probes are not specific to one morph (below), so a low r flags a column to look at, not a proven fault.
 - **dead ARKit columns**: columns (the export's mapping, ``stages.formats.live_link``) that never exceed
   ``dead_level`` in a take, sorted by whether the performer made that movement there (the movement probes of
   ``stages.retarget.movements`` on the tracked FaceMesh; eyes from ``eye_aperture`` and ``gaze``).
@@ -284,10 +288,10 @@ def performer_shapes(tracks_mesh, rows: np.ndarray, camera: np.ndarray, focal: s
     return head_frame_shapes(undo_perspective(mesh, scaled), EXTRA_VERTICES), used
 
 
-def take_movements(data: dict, rows: np.ndarray, gap: np.ndarray, params) -> tuple[dict[str, dict], float | None]:
+def take_movements(data: dict, rows: np.ndarray, gap: np.ndarray, params) -> tuple[dict, dict, float | None]:
     """Per ARKit column with a probe: did the performer make that movement in this take
-    (``stages.retarget.movements``)? With the focal length the probes took the perspective out with (None without
-    a FaceMesh)."""
+    (``stages.retarget.movements``)? With the probes themselves (column -> (frames,)) and the focal length the
+    probes took the perspective out with (None without a FaceMesh)."""
     from stages.retarget.face_measures import rest_frames, rest_pose
     from stages.retarget.movements import MovedLevels, eye_probes, landmark_probes, moved
     from stages.retarget.shapes3d import front_view
@@ -302,7 +306,28 @@ def take_movements(data: dict, rows: np.ndarray, gap: np.ndarray, params) -> tup
     gaze = data["gaze"][rows] if data["gaze"] is not None else None
     probes.update(eye_probes(aperture, gaze))
     levels = MovedLevels(params.moved_level, params.moved_closure, params.moved_degrees, params.moved_frames)
-    return moved(probes, levels), focal
+    return moved(probes, levels), probes, focal
+
+
+def column_following(arkit: np.ndarray, columns: list[str], probes: dict, movements: dict) -> dict[str, list[float]]:
+    """Per column whose movement the performer made in this take: the Pearson correlation over its frames of
+    the column's weight with its probe, and of the weight rolled by half the take (chance: no timing)."""
+    out = {}
+    for c, column in enumerate(columns):
+        probe = probes.get(column)
+        if probe is None or not movements[column]["moved"]:
+            continue
+        weight = np.asarray(arkit[:, c], np.float64)
+        pair = [correlation(probe, weight), correlation(probe, np.roll(weight, len(weight) // 2))]
+        out[column] = [round(r, 3) for r in pair]
+    return out
+
+
+def correlation(a: np.ndarray, b: np.ndarray) -> float:
+    """Pearson's r, 0 where either does not vary."""
+    a, b = np.asarray(a, np.float64) - np.mean(a), np.asarray(b, np.float64) - np.mean(b)
+    scale = float(np.sqrt((a @ a) * (b @ b)))
+    return float(a @ b / scale) if scale > 1e-12 else 0.0
 
 
 def dead_where_moved(arkit: np.ndarray, columns: list[str], movements: dict, rows: np.ndarray, level: float) -> dict:
@@ -571,17 +596,19 @@ def evaluate(params, **data) -> dict:
     takes, labels = {}, data["labels"]
     for take in np.unique(sequence):
         rows = sequence == take
-        movements, focal = take_movements(data, rows, context["performer_gap"], params)
+        movements, probes, focal = take_movements(data, rows, context["performer_gap"], params)
         dead = dead_where_moved(arkit, columns, movements, rows, params.dead_level)
         label = labels[take] if take < len(labels) else f"take{take}"
         takes[label] = {
             "metrics": summary(params, data, frames, context, rows),
             "columns": dead,
             "movements": {c: [round(v["peak"], 4), round(v["level"], 4)] for c, v in movements.items()},
+            "following": column_following(arkit[rows], columns, probes, movements),
             "probe_focal_length": None if focal is None or not np.isfinite(focal) else round(focal, 1),
         }
     metrics = summary(params, data, frames, context, np.ones(len(sequence), bool))
     metrics.update(pooled_dead(takes, arkit, columns, params.dead_level))
+    metrics.update(pooled_following(takes))
     peak = weights.max(axis=0, initial=0.0)
     dead_morphs = [n for n, p in zip(names, peak) if p < params.dead_level]
     metrics["dead_morphs"] = float(len(dead_morphs))
@@ -755,6 +782,20 @@ def pooled_dead(takes: dict, arkit: np.ndarray, columns: list[str], level: float
         "dead_arkit_unmeasured": float(len(dead - measured)),
         "moved_arkit_columns": float(len(moved_anywhere)),
         "movements_missed": float(sum(len(t["columns"]["dead_moved"]) for t in takes.values()) / max(moves, 1)),
+    }
+
+
+def pooled_following(takes: dict) -> dict[str, float]:
+    """How closely the columns follow the movements the performer made (``column_following``), over every
+    (take, column) pair: the median correlation, the same for the weights rolled by half a take (chance), and the
+    share of pairs below 0.3."""
+    pairs = np.array([r for t in takes.values() for r in t["following"].values()], np.float64).reshape(-1, 2)
+    if not len(pairs):
+        return {}
+    return {
+        "following_r_median": float(np.median(pairs[:, 0])),
+        "following_r_median_shifted": float(np.median(pairs[:, 1])),
+        "following_weak": float(np.mean(pairs[:, 0] < 0.3)),
     }
 
 

@@ -691,6 +691,18 @@ def apply_eyes(weights, names, character, tracks, sequence, full_degrees):
 
     weights = weights.copy()
     meta, warnings = {}, []
+    gaze = np.asarray(tracks["gaze"], np.float64) if "gaze" in tracks else None
+    if gaze is None:
+        meta["gaze_source"] = "none (tracking has no gaze)"
+    else:
+        morphs = gaze_morphs(names)
+        if morphs:
+            looked = gaze_weights(gaze, morphs, full_degrees, len(names))
+            columns = list(morphs.values())
+            weights[:, columns] = looked[:, columns]
+        else:
+            warnings.append("the character has no eyeLook morphs: gaze goes to the blend's gaze output only")
+        meta["gaze_source"] = "tracking gaze"
     blinks = [find_side_morph(names, "eyeBlink", side) for side in ("L", "R")]
     if "eye_aperture" in tracks:
         aperture, meta["blink_source"] = np.asarray(tracks["eye_aperture"], np.float64), "tracking eye_aperture"
@@ -704,21 +716,9 @@ def apply_eyes(weights, names, character, tracks, sequence, full_degrees):
         rest, deltas = character_landmarks(character)
         c = closure(aperture, sequence)
         weights[:, blinks] = 0.0
-        others = np.einsum("fm,mpc->fpc", weights, deltas)  # everything but the blink: squint, brows, cheeks
+        others = np.einsum("fm,mpc->fpc", weights, deltas)  # everything but the blink: squint, brows, gaze
         opened = eye_aperture_2d(rest[None])[0]  # the character's open eye: its neutral's
         for eye, m in enumerate(blinks):
             weights[:, m] = blink_for_aperture(rest, others, deltas[m], eye, opened[eye] * (1.0 - c[:, eye]))
         meta["blink_peak"] = [float(weights[:, m].max(initial=0.0)) for m in blinks]
-    gaze = np.asarray(tracks["gaze"], np.float64) if "gaze" in tracks else None
-    if gaze is None:
-        meta["gaze_source"] = "none (tracking has no gaze)"
-        return weights, None, meta, warnings
-    morphs = gaze_morphs(names)
-    if morphs:
-        looked = gaze_weights(gaze, morphs, full_degrees, len(names))
-        columns = list(morphs.values())
-        weights[:, columns] = looked[:, columns]
-    else:
-        warnings.append("the character has no eyeLook morphs: gaze goes to the blend's gaze output only")
-    meta["gaze_source"] = "tracking gaze"
     return weights, gaze, meta, warnings

@@ -6,7 +6,8 @@ from tracking directly:
 - the performer's closure c(t) = clip(1 - a(t) / a_open, 0, 1) per eye, a(t) the aperture (lid gap / eye width:
   tracking ``eye_aperture``, or the same ratio from the 68 landmarks) and a_open its 90th percentile over the take;
 - the character's eye is to be open by the same fraction of its neutral opening A(0), 1 - c(t), all its morphs
-  together: the expression's squint, a lowered or raised brow and the blink. The blink weight w solves
+  together: the expression's squint, a lowered or raised brow, the gaze (ICT's eyeLook morphs move the lids with
+  the eyes, so the gaze morphs are set first) and the blink. The blink weight w solves
   A(u_others + w e_blink) = A(0) (1 - c(t)) per frame and eye (A: the eye's aperture on the landmark vertices,
   front view; bisection on [0, 1], the aperture falling as w grows); 0 where the other morphs already close the
   eye that far. The blink morph follows the aperture alone, replacing what the
