@@ -159,7 +159,8 @@ def blinks(folders: list[str]) -> None:
     from bench_tracking import HAND_BLINKS
 
     import msflow
-    from stages.eval.retarget import RetargetEval, blink_events, blink_frame_limits, event_agreement
+    from stages.eval.events import blink_events, blink_frame_limits, event_agreement
+    from stages.eval.retarget import RetargetEval
 
     os.chdir(ROOT)
     params = RetargetEval.Params()
@@ -286,7 +287,8 @@ def probes(folders: list[str]) -> None:
     vertices, and the vertices nearest to the FaceMesh cheek points, rest at the performer's rest frames): how
     much of the movement the animation makes, whichever morph makes it."""
     import msflow
-    from stages.eval.retarget import RetargetEval, jaw_drop, performer_shapes, take_cameras
+    from stages.eval.columns import performer_shapes
+    from stages.eval.retarget import RetargetEval, jaw_drop, take_cameras
     from stages.retarget.face_measures import level, lip_gap_iod, rest_frames, rest_pose
     from stages.retarget.movements import EXTRA_VERTICES, MovedLevels, landmark_probes, moved
     from stages.retarget.shapes3d import front_view, head_frame_shapes

@@ -8,18 +8,14 @@ import pytest
 
 from msflow import UserError
 from msflow.testing import artifact, run_stage
+from stages.eval.events import closure_agreement, event_agreement, eye_aperture, lip_gap, runs
 from stages.eval.retarget import (
     RetargetEval,
     align_to_model,
     audio_envelope,
     character_landmarks,
-    closure_agreement,
-    event_agreement,
-    eye_aperture,
-    lip_gap,
     pose_and_project,
     pose_on_tracked_face,
-    runs,
 )
 from stages.retarget.character import GltfCharacter
 from stages.tracking.face3d import load_face3d
@@ -241,8 +237,6 @@ def test_a_press_over_open_lips_is_counted(character, truth):
     weights, tracks, out = truth
     names = character.meta["target_names"]
     assert out.metrics["press_apart_fraction"] == 0.0
-    from stages.eval.retarget import lip_gap
-
     apart = lip_gap(np.asarray(tracks["landmarks"], np.float64)) > 0.1
     assert 0 < apart.sum() < FRAMES
     pressed = weights.copy()

@@ -46,6 +46,22 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from msflow import Input, Output, Result, Stage, UserError
+from stages.eval.columns import (
+    column_following,
+    dead_where_moved,
+    pearson,
+    pooled_dead,
+    pooled_following,
+    take_movements,
+)
+from stages.eval.events import (
+    blink_events,
+    blink_frame_limits,
+    closure_agreement,
+    event_agreement,
+    eye_aperture,
+    lip_gap,
+)
 from stages.retarget.face_measures import inter_ocular_distance
 from stages.retarget.regions import EVAL_REGIONS, RIGID, find_morph
 from stages.tracking.face3d import DEFAULT_FACE3D
@@ -137,98 +153,6 @@ def shift_within_takes(values: np.ndarray, sequence: np.ndarray) -> np.ndarray:
     return out
 
 
-# ------------------------------------------------------------------------------------------------ events
-
-
-def runs(mask: np.ndarray, sequence: np.ndarray, min_length: int = 1) -> list[tuple[int, int]]:
-    """[start, stop) of the runs of True at least ``min_length`` frames long, never across a take boundary."""
-    mask = np.asarray(mask, bool)
-    sequence = np.asarray(sequence)
-    edges = np.diff(np.r_[0, mask.astype(np.int8), 0])
-    cut = np.r_[False, sequence[1:] != sequence[:-1]]
-    out = []
-    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-    for a, b in zip(starts, stops):
-        breaks = np.flatnonzero(cut[a + 1 : b]) + a + 1
-        for lo, hi in zip(np.r_[a, breaks], np.r_[breaks, b]):
-            if hi - lo >= min_length:
-                out.append((int(lo), int(hi)))
-    return out
-
-
-def lip_gap(shapes: np.ndarray) -> np.ndarray:
-    """Vertical inner-lip gap per frame (iBUG 61-67, 62-66, 63-65 mean, across the eye line) / inter-ocular
-    distance: the same measure the lip seal works with (``stages.retarget.face_measures.lip_gap_iod``)."""
-    from stages.retarget.face_measures import level, lip_gap_iod
-
-    return lip_gap_iod(level(shapes))
-
-
-def eye_aperture(shapes: np.ndarray) -> np.ndarray:
-    """(frames, 2) lid gap / eye-corner distance from iBUG landmarks; index 0 = the performer's left eye
-    (iBUG 42-47, ARKit ``_L``), 1 = right (36-41), as tracking's ``eye_aperture``."""
-    from stages.retarget.eyes import eye_aperture_2d
-
-    return eye_aperture_2d(shapes)
-
-
-def blink_frames(aperture: np.ndarray, sequence: np.ndarray, ratio: float, open_quantile: float = 0.9) -> np.ndarray:
-    """Frames whose aperture (mean of both eyes) is below ``ratio`` x the take's open aperture (its 90th
-    percentile: the eyes' usual opening, whatever the expression narrows them to for a while)."""
-    mean = np.asarray(aperture, np.float64).reshape(len(sequence), -1).mean(axis=1)
-    closed = np.zeros(len(mean), dtype=bool)
-    for take in np.unique(sequence):
-        rows = sequence == take
-        closed[rows] = mean[rows] < ratio * np.quantile(mean[rows], open_quantile)
-    return closed
-
-
-def blink_frame_limits(fps: list[float], sequence: np.ndarray, seconds: float) -> np.ndarray:
-    """Per take, the most frames a blink may last."""
-    takes = int(np.max(sequence, initial=0)) + 1
-    return np.array([max(1, int(round(seconds * (fps[i] if i < len(fps) else fps[-1])))) for i in range(takes)])
-
-
-def blink_events(aperture, sequence, ratio: float, narrow: float, longest: np.ndarray) -> list[tuple[int, int]]:
-    """Blinks: quick dips. A run of frames narrowed below ``narrow`` x open, no longer than its take's
-    ``longest``, that reaches below ``ratio`` x open somewhere (a longer narrowing is a squint or closed eyes, and
-    a squint hovering about the threshold is not a string of blinks)."""
-    closed = blink_frames(aperture, sequence, ratio)
-    narrowed = blink_frames(aperture, sequence, narrow)
-    return [(a, b) for a, b in runs(narrowed, sequence) if b - a <= longest[sequence[a]] and closed[a:b].any()]
-
-
-def event_agreement(reference: list[tuple[int, int]], predicted: list[tuple[int, int]], tolerance: int) -> dict:
-    """Recall (reference events overlapped by a predicted one, within ``tolerance`` frames) and the false rate
-    (predicted events that overlap no reference event)."""
-
-    def overlaps(a, b):
-        return a[0] - tolerance < b[1] and b[0] - tolerance < a[1]
-
-    found = sum(any(overlaps(r, p) for p in predicted) for r in reference)
-    false = sum(not any(overlaps(p, r) for r in reference) for p in predicted)
-    return {
-        "reference": len(reference),
-        "predicted": len(predicted),
-        "found": int(found),
-        "false": int(false),
-        "recall": found / len(reference) if reference else 1.0,
-        "false_rate": false / len(predicted) if predicted else 0.0,
-    }
-
-
-def closure_agreement(
-    performer_gap: np.ndarray, character_gap: np.ndarray, sequence: np.ndarray, *, gap: float, frames: int, ratio: float
-) -> list[dict]:
-    """Each performer lip closure (gap < ``gap`` for >= ``frames`` frames) with the mean gaps of performer and
-    character over it, and whether the character's is at most ``ratio`` times the performer's."""
-    out = []
-    for a, b in runs(performer_gap < gap, sequence, frames):
-        p, c = float(performer_gap[a:b].mean()), float(character_gap[a:b].mean())
-        out.append({"start": a, "stop": b, "performer_gap": p, "character_gap": c, "reproduced": c <= ratio * p})
-    return out
-
-
 # ------------------------------------------------------------------------------------------------ audio, jaw
 
 
@@ -245,14 +169,6 @@ def audio_envelope(samples: np.ndarray, rate: float, offset: float, fps: float, 
     return np.sqrt((power[hi] - power[lo]) / count)
 
 
-def pearson(a: np.ndarray, b: np.ndarray) -> float:
-    """Pearson correlation; 0 when either series is constant."""
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    a, b = a - a.mean(), b - b.mean()
-    denominator = np.sqrt((a * a).sum() * (b * b).sum())
-    return float((a * b).sum() / denominator) if denominator > 0 else 0.0
-
-
 def jaw_drop(shapes: np.ndarray) -> np.ndarray:
     """Chin (iBUG 8) to nose bridge (27) distance / inter-ocular distance."""
     shapes = np.asarray(shapes, np.float64)
@@ -267,85 +183,6 @@ def widest_frames(values: np.ndarray, sequence: np.ndarray, fraction: float) -> 
         count = max(1, int(np.ceil(fraction * len(rows))))
         chosen.append(rows[np.argsort(-values[rows], kind="stable")[:count]])
     return np.sort(np.concatenate(chosen)) if chosen else np.zeros(0, np.int64)
-
-
-# ------------------------------------------------------------------------------------------------ movements
-
-
-def performer_shapes(tracks_mesh, rows: np.ndarray, camera: np.ndarray, focal: str = "estimated"):
-    """One take's performer in the head frame, IOD units (frames, 68 + cheek points, 3), from the tracked FaceMesh
-    with a pinhole's perspective taken out, and the focal length used (pixels; inf: none). ``focal``: the one
-    ``shapes3d.estimate_focal`` finds in the take (``estimated``), or the tracked ``camera``'s (``tracked``: the
-    frame width, which tracking assumes)."""
-    from stages.retarget.movements import EXTRA_VERTICES
-    from stages.retarget.shapes3d import estimate_focal, head_frame_shapes, undo_perspective
-
-    index = np.flatnonzero(rows)  # a take's frames are contiguous: read them as one slice of the stored mesh
-    mesh = np.asarray(tracks_mesh[index[0] : index[-1] + 1], np.float64)
-    used = estimate_focal(mesh, camera)[0] if focal == "estimated" else float(camera[0, 0])
-    scaled = np.asarray(camera, np.float64).copy()
-    scaled[0, 0] = scaled[1, 1] = used
-    return head_frame_shapes(undo_perspective(mesh, scaled), EXTRA_VERTICES), used
-
-
-def take_movements(data: dict, rows: np.ndarray, gap: np.ndarray, params) -> tuple[dict, dict, float | None]:
-    """Per ARKit column with a probe: did the performer make that movement in this take
-    (``stages.retarget.movements``)? With the probes themselves (column -> (frames,)) and the focal length the
-    probes took the perspective out with (None without a FaceMesh)."""
-    from stages.retarget.face_measures import rest_frames, rest_pose
-    from stages.retarget.movements import MovedLevels, eye_probes, landmark_probes, moved
-    from stages.retarget.shapes3d import front_view
-
-    probes, focal = {}, None
-    if data.get("mesh") is not None:  # 2D landmarks read a turn of the head as a sideways jaw or a frown
-        camera = data["camera"][np.flatnonzero(rows)[0]]
-        shapes, focal = performer_shapes(data["mesh"], rows, camera, params.probe_focal)
-        rest = rest_pose(shapes, rest_frames(front_view(shapes[:, :68])), params.brow_rest)
-        probes = landmark_probes(shapes, rest, gap[rows], params.closure_gap)
-    aperture = data["aperture"][rows] if data["aperture"] is not None else eye_aperture(data["landmarks"][rows])
-    gaze = data["gaze"][rows] if data["gaze"] is not None else None
-    probes.update(eye_probes(aperture, gaze))
-    levels = MovedLevels(params.moved_level, params.moved_closure, params.moved_degrees, params.moved_frames)
-    return moved(probes, levels), probes, focal
-
-
-def column_following(arkit: np.ndarray, columns: list[str], probes: dict, movements: dict) -> dict[str, list[float]]:
-    """Per column whose movement the performer made in this take: the Pearson correlation over its frames of
-    the column's weight with its probe, and of the weight rolled by half the take (chance: no timing)."""
-    out = {}
-    for c, column in enumerate(columns):
-        probe = probes.get(column)
-        if probe is None or not movements[column]["moved"]:
-            continue
-        weight = np.asarray(arkit[:, c], np.float64)
-        pair = [correlation(probe, weight), correlation(probe, np.roll(weight, len(weight) // 2))]
-        out[column] = [round(r, 3) for r in pair]
-    return out
-
-
-def correlation(a: np.ndarray, b: np.ndarray) -> float:
-    """Pearson's r, 0 where either does not vary."""
-    a, b = np.asarray(a, np.float64) - np.mean(a), np.asarray(b, np.float64) - np.mean(b)
-    scale = float(np.sqrt((a @ a) * (b @ b)))
-    return float(a @ b / scale) if scale > 1e-12 else 0.0
-
-
-def dead_where_moved(arkit: np.ndarray, columns: list[str], movements: dict, rows: np.ndarray, level: float) -> dict:
-    """One take's ARKit columns sorted by what the animation and the performer did: ``dead_moved`` (never above
-    ``level`` though the performer made the movement), ``dead_not_moved``, ``dead_unmeasured`` (no probe)."""
-    peak = np.asarray(arkit)[rows].max(axis=0, initial=0.0)
-    out = {"dead_moved": [], "dead_not_moved": [], "dead_unmeasured": [], "moved": [], "measured": []}
-    for c, column in enumerate(columns):
-        if movements.get(column) is not None:
-            out["measured"].append(column)
-        probe = movements.get(column)
-        if probe is not None and probe["moved"]:
-            out["moved"].append(column)
-        if peak[c] >= level:
-            continue
-        key = "dead_unmeasured" if probe is None else "dead_moved" if probe["moved"] else "dead_not_moved"
-        out[key].append(column)
-    return out
 
 
 # ------------------------------------------------------------------------------------------------ figures
@@ -763,40 +600,6 @@ def take_envelope(context, sequence: np.ndarray, rows: np.ndarray) -> dict[str, 
         if values:
             out[key] = float(np.mean(values))
     return out
-
-
-def pooled_dead(takes: dict, arkit: np.ndarray, columns: list[str], level: float) -> dict[str, float]:
-    """Dead ARKit columns over all takes: never above ``level`` anywhere (``dead_arkit_columns``), dead in some take
-    where the performer made the movement (``dead_arkit_moved``), dead everywhere and the movement never made
-    (``dead_arkit_not_moved``), and the share of (take, column) movements the animation never showed."""
-    peak = np.asarray(arkit).max(axis=0, initial=0.0)
-    dead = {c for c, p in zip(columns, peak) if p < level}
-    moved_anywhere = {c for t in takes.values() for c in t["columns"]["moved"]}
-    dead_moved = {c for t in takes.values() for c in t["columns"]["dead_moved"]}
-    measured = {c for t in takes.values() for c in t["columns"]["measured"]}
-    moves = sum(len(t["columns"]["moved"]) for t in takes.values())
-    return {
-        "dead_arkit_columns": float(len(dead)),
-        "dead_arkit_moved": float(len(dead_moved)),
-        "dead_arkit_not_moved": float(len((dead & measured) - moved_anywhere)),
-        "dead_arkit_unmeasured": float(len(dead - measured)),
-        "moved_arkit_columns": float(len(moved_anywhere)),
-        "movements_missed": float(sum(len(t["columns"]["dead_moved"]) for t in takes.values()) / max(moves, 1)),
-    }
-
-
-def pooled_following(takes: dict) -> dict[str, float]:
-    """How closely the columns follow the movements the performer made (``column_following``), over every
-    (take, column) pair: the median correlation, the same for the weights rolled by half a take (chance), and the
-    share of pairs below 0.3."""
-    pairs = np.array([r for t in takes.values() for r in t["following"].values()], np.float64).reshape(-1, 2)
-    if not len(pairs):
-        return {}
-    return {
-        "following_r_median": float(np.median(pairs[:, 0])),
-        "following_r_median_shifted": float(np.median(pairs[:, 1])),
-        "following_weak": float(np.mean(pairs[:, 0] < 0.3)),
-    }
 
 
 def pack_evaluation(metrics, takes, context, frames, dead_morphs, data) -> dict:

@@ -1,0 +1,121 @@
+"""Retargeting evaluation, the ARKit columns against the performer's movements: which columns never move in a take
+though the performer made their movement (dead where moved), and how closely each follows its movement over the
+frames. The movements are the probes of ``stages.retarget.movements`` on the tracked FaceMesh (pose and perspective
+taken out) and the eye outputs of tracking; ``stages.eval.retarget`` calls these per take and pools them."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stages.eval.events import eye_aperture
+
+
+def pearson(a: np.ndarray, b: np.ndarray) -> float:
+    """Pearson correlation; 0 when either series is constant."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    a, b = a - a.mean(), b - b.mean()
+    denominator = np.sqrt((a * a).sum() * (b * b).sum())
+    return float((a * b).sum() / denominator) if denominator > 0 else 0.0
+
+
+def performer_shapes(tracks_mesh, rows: np.ndarray, camera: np.ndarray, focal: str = "estimated"):
+    """One take's performer in the head frame, IOD units (frames, 68 + cheek points, 3), from the tracked FaceMesh
+    with a pinhole's perspective taken out, and the focal length used (pixels; inf: none). ``focal``: the one
+    ``shapes3d.estimate_focal`` finds in the take (``estimated``), or the tracked ``camera``'s (``tracked``: the
+    frame width, which tracking assumes)."""
+    from stages.retarget.movements import EXTRA_VERTICES
+    from stages.retarget.shapes3d import estimate_focal, head_frame_shapes, undo_perspective
+
+    index = np.flatnonzero(rows)  # a take's frames are contiguous: read them as one slice of the stored mesh
+    mesh = np.asarray(tracks_mesh[index[0] : index[-1] + 1], np.float64)
+    used = estimate_focal(mesh, camera)[0] if focal == "estimated" else float(camera[0, 0])
+    scaled = np.asarray(camera, np.float64).copy()
+    scaled[0, 0] = scaled[1, 1] = used
+    return head_frame_shapes(undo_perspective(mesh, scaled), EXTRA_VERTICES), used
+
+
+def take_movements(data: dict, rows: np.ndarray, gap: np.ndarray, params) -> tuple[dict, dict, float | None]:
+    """Per ARKit column with a probe: did the performer make that movement in this take
+    (``stages.retarget.movements``)? With the probes themselves (column -> (frames,)) and the focal length the
+    probes took the perspective out with (None without a FaceMesh)."""
+    from stages.retarget.face_measures import rest_frames, rest_pose
+    from stages.retarget.movements import MovedLevels, eye_probes, landmark_probes, moved
+    from stages.retarget.shapes3d import front_view
+
+    probes, focal = {}, None
+    if data.get("mesh") is not None:  # 2D landmarks read a turn of the head as a sideways jaw or a frown
+        camera = data["camera"][np.flatnonzero(rows)[0]]
+        shapes, focal = performer_shapes(data["mesh"], rows, camera, params.probe_focal)
+        rest = rest_pose(shapes, rest_frames(front_view(shapes[:, :68])), params.brow_rest)
+        probes = landmark_probes(shapes, rest, gap[rows], params.closure_gap)
+    aperture = data["aperture"][rows] if data["aperture"] is not None else eye_aperture(data["landmarks"][rows])
+    gaze = data["gaze"][rows] if data["gaze"] is not None else None
+    probes.update(eye_probes(aperture, gaze))
+    levels = MovedLevels(params.moved_level, params.moved_closure, params.moved_degrees, params.moved_frames)
+    return moved(probes, levels), probes, focal
+
+
+def column_following(arkit: np.ndarray, columns: list[str], probes: dict, movements: dict) -> dict[str, list[float]]:
+    """Per column whose movement the performer made in this take: the Pearson correlation over its frames of
+    the column's weight with its probe, and of the weight rolled by half the take (chance: no timing)."""
+    out = {}
+    for c, column in enumerate(columns):
+        probe = probes.get(column)
+        if probe is None or not movements[column]["moved"]:
+            continue
+        weight = np.asarray(arkit[:, c], np.float64)
+        pair = [pearson(probe, weight), pearson(probe, np.roll(weight, len(weight) // 2))]
+        out[column] = [round(r, 3) for r in pair]
+    return out
+
+
+def dead_where_moved(arkit: np.ndarray, columns: list[str], movements: dict, rows: np.ndarray, level: float) -> dict:
+    """One take's ARKit columns sorted by what the animation and the performer did: ``dead_moved`` (never above
+    ``level`` though the performer made the movement), ``dead_not_moved``, ``dead_unmeasured`` (no probe)."""
+    peak = np.asarray(arkit)[rows].max(axis=0, initial=0.0)
+    out = {"dead_moved": [], "dead_not_moved": [], "dead_unmeasured": [], "moved": [], "measured": []}
+    for c, column in enumerate(columns):
+        if movements.get(column) is not None:
+            out["measured"].append(column)
+        probe = movements.get(column)
+        if probe is not None and probe["moved"]:
+            out["moved"].append(column)
+        if peak[c] >= level:
+            continue
+        key = "dead_unmeasured" if probe is None else "dead_moved" if probe["moved"] else "dead_not_moved"
+        out[key].append(column)
+    return out
+
+
+def pooled_dead(takes: dict, arkit: np.ndarray, columns: list[str], level: float) -> dict[str, float]:
+    """Dead ARKit columns over all takes: never above ``level`` anywhere (``dead_arkit_columns``), dead in some take
+    where the performer made the movement (``dead_arkit_moved``), dead everywhere and the movement never made
+    (``dead_arkit_not_moved``), and the share of (take, column) movements the animation never showed."""
+    peak = np.asarray(arkit).max(axis=0, initial=0.0)
+    dead = {c for c, p in zip(columns, peak) if p < level}
+    moved_anywhere = {c for t in takes.values() for c in t["columns"]["moved"]}
+    dead_moved = {c for t in takes.values() for c in t["columns"]["dead_moved"]}
+    measured = {c for t in takes.values() for c in t["columns"]["measured"]}
+    moves = sum(len(t["columns"]["moved"]) for t in takes.values())
+    return {
+        "dead_arkit_columns": float(len(dead)),
+        "dead_arkit_moved": float(len(dead_moved)),
+        "dead_arkit_not_moved": float(len((dead & measured) - moved_anywhere)),
+        "dead_arkit_unmeasured": float(len(dead - measured)),
+        "moved_arkit_columns": float(len(moved_anywhere)),
+        "movements_missed": float(sum(len(t["columns"]["dead_moved"]) for t in takes.values()) / max(moves, 1)),
+    }
+
+
+def pooled_following(takes: dict) -> dict[str, float]:
+    """How closely the columns follow the movements the performer made (``column_following``), over every
+    (take, column) pair: the median correlation, the same for the weights rolled by half a take (chance), and the
+    share of pairs below 0.3."""
+    pairs = np.array([r for t in takes.values() for r in t["following"].values()], np.float64).reshape(-1, 2)
+    if not len(pairs):
+        return {}
+    return {
+        "following_r_median": float(np.median(pairs[:, 0])),
+        "following_r_median_shifted": float(np.median(pairs[:, 1])),
+        "following_weak": float(np.mean(pairs[:, 0] < 0.3)),
+    }
