@@ -7,15 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.eval.events import eye_aperture
-
-
-def pearson(a: np.ndarray, b: np.ndarray) -> float:
-    """Pearson correlation; 0 when either series is constant."""
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    a, b = a - a.mean(), b - b.mean()
-    denominator = np.sqrt((a * a).sum() * (b * b).sum())
-    return float((a * b).sum() / denominator) if denominator > 0 else 0.0
+from stages.eval.events import eye_aperture, pearson
 
 
 def performer_shapes(tracks_mesh, rows: np.ndarray, camera: np.ndarray, focal: str = "estimated"):

@@ -1,6 +1,6 @@
 """Retargeting evaluation, the events compared frame by frame: runs of frames, lip gaps and closures, eye apertures
-and blinks, and how two lists of events agree (``stages.eval.retarget`` compares the performer's with the
-character's)."""
+and blinks, how two lists of events agree (``stages.eval.retarget`` compares the performer's with the
+character's), and the correlation of two per-frame series."""
 
 from __future__ import annotations
 
@@ -94,3 +94,11 @@ def closure_agreement(
         p, c = float(performer_gap[a:b].mean()), float(character_gap[a:b].mean())
         out.append({"start": a, "stop": b, "performer_gap": p, "character_gap": c, "reproduced": c <= ratio * p})
     return out
+
+
+def pearson(a: np.ndarray, b: np.ndarray) -> float:
+    """Pearson correlation; 0 when either series is constant."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    a, b = a - a.mean(), b - b.mean()
+    denominator = np.sqrt((a * a).sum() * (b * b).sum())
+    return float((a * b).sum() / denominator) if denominator > 0 else 0.0

@@ -49,7 +49,6 @@ from msflow import Input, Output, Result, Stage, UserError
 from stages.eval.columns import (
     column_following,
     dead_where_moved,
-    pearson,
     pooled_dead,
     pooled_following,
     take_movements,
@@ -61,9 +60,10 @@ from stages.eval.events import (
     event_agreement,
     eye_aperture,
     lip_gap,
+    pearson,
 )
 from stages.retarget.face_measures import inter_ocular_distance
-from stages.retarget.regions import EVAL_REGIONS, RIGID, find_morph
+from stages.retarget.regions import EVAL_REGIONS, RIGID, find_morph, find_side_morph
 from stages.tracking.face3d import DEFAULT_FACE3D
 
 # ------------------------------------------------------------------------------------------------ geometry
@@ -585,7 +585,7 @@ def press_metrics(weights: np.ndarray, names: list[str], apart: np.ndarray, leve
     """How often a lip press (mouthPress*, either side, above ``level``) presses lips that are apart: at the
     frames ``apart`` where the performer's lips are apart (none when the character has no press or the lips never
     part)."""
-    press = [i for i, n in enumerate(names) if n.lower().startswith("mouthpress")]
+    press = [m for m in (find_side_morph(names, "mouthPress", side) for side in ("L", "R")) if m is not None]
     if not press or not len(apart):
         return {}
     return {"press_apart_fraction": float((weights[np.ix_(apart, press)].max(axis=1) > level).mean())}
