@@ -290,7 +290,7 @@ def probes(folders: list[str]) -> None:
     from stages.eval.columns import performer_shapes
     from stages.eval.retarget import RetargetEval, jaw_drop, take_cameras
     from stages.retarget.face_measures import level, lip_gap_iod, rest_frames, rest_pose
-    from stages.retarget.movements import EXTRA_VERTICES, MovedLevels, landmark_probes, moved
+    from stages.retarget.movements import EXTRA_VERTICES, SMILE_CHEEK_LIFT, MovedLevels, landmark_probes, moved
     from stages.retarget.shapes3d import front_view, head_frame_shapes
 
     os.chdir(ROOT)
@@ -339,6 +339,28 @@ def probes(folders: list[str]) -> None:
                 made = moved({column: animated[column]}, levels)[column] if column in animated else None
                 cells.append(f"{made['peak']:.4f} / {made['level']:.4f}" if made else "-")
                 print(f"| {Path(label).stem} | {column} | " + " | ".join(cells) + " |")
+    character, tracks = runs[0].artifact("capture_character"), runs[0].artifact("capture_track")
+    rows = np.flatnonzero(np.asarray(tracks["sequence"]) == 0)
+    rest = rest_of(head_frame_shapes(np.asarray(tracks["mesh"][rows[0] : rows[-1] + 1], np.float64), EXTRA_VERTICES))
+    shares = " / ".join(f"{share:.2f}" for share in smile_cheek_shares(character, rest))
+    print(f"\nThe character's smile lifts the skin below its lids by {shares} of its corner's rise (left / right; the")
+    print(f"cheek-raise probe takes out SMILE_CHEEK_LIFT = {SMILE_CHEEK_LIFT} of the performer's corner rise)")
+
+
+def smile_cheek_shares(character, performer_rest: np.ndarray) -> list[float]:
+    """Per side (left, right), how far the character's mouthSmile lifts the skin below the lower lid (its vertices
+    nearest to the FaceMesh cheek-raise points, ``character_shapes``) per unit of its lip corner's rise."""
+    from stages.retarget.movements import CHEEK_VERTICES, EXTRA_VERTICES, SIDE_POINTS
+
+    names = list(character.meta["target_names"])
+    out = []
+    for side, suffix in (("Left", "L"), ("Right", "R")):
+        weights = np.zeros((2, len(names)))
+        weights[1, names.index(f"mouthSmile_{suffix}")] = 1.0
+        moved = np.diff(character_shapes(character, weights, performer_rest), axis=0)[0]
+        cheek = [68 + EXTRA_VERTICES.index(v) for v in CHEEK_VERTICES[side]["raise"]]
+        out.append(float(moved[cheek, 1].mean() / moved[SIDE_POINTS[side]["corner"], 1]))
+    return out
 
 
 def capture(clips: list[str], overrides: list[str] = ()) -> None:

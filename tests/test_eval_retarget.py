@@ -364,6 +364,38 @@ def test_probes_see_each_movement_and_not_the_jaw(character):
         assert column in moved_columns(morph), morph
 
 
+def test_the_cheek_a_smile_lifts_is_no_cheek_squint():
+    """Known answer: the skin below the lids rising with the lip corners by SMILE_CHEEK_LIFT of their rise (what a
+    smile, FACS AU12, does to it) moves MouthSmile and not CheekSquint; rising a further 0.03 IOD (a cheek raise,
+    AU6) moves CheekSquint. Before, the smile's share was a cheek squint: every smiling take 'moved' its cheeks."""
+    from stages.retarget.movements import (
+        EXTRA_VERTICES,
+        SIDE_POINTS,
+        SMILE_CHEEK_LIFT,
+        MovedLevels,
+        cheek_probes,
+        moved,
+    )
+
+    frames, points = 90, 68 + len(EXTRA_VERTICES)
+    burst = np.zeros(frames)
+    burst[30:46] = 1.0
+    cheeks = [68 + i for i in range(len(EXTRA_VERTICES))]
+
+    def moved_columns(corner_rise, cheek_raise):
+        d = np.zeros((frames, points, 3))
+        d[:, SIDE_POINTS["Left"]["corner"], 1] = corner_rise * burst
+        d[:, cheeks, 1] = (SMILE_CHEEK_LIFT * corner_rise + cheek_raise) * burst[:, None]
+        probes = cheek_probes(d, np.zeros(frames))
+        probes["MouthSmileLeft"] = d[:, SIDE_POINTS["Left"]["corner"], 1]
+        return {c for c, v in moved(probes, MovedLevels()).items() if v["moved"]}
+
+    smile = moved_columns(0.1, 0.0)
+    assert "MouthSmileLeft" in smile and "CheekSquintLeft" not in smile
+    assert "CheekSquintLeft" in moved_columns(0.1, 0.03)
+    assert "CheekSquintLeft" in moved_columns(0.0, 0.03)
+
+
 def test_runs_stop_at_take_boundaries():
     mask = np.array([0, 1, 1, 1, 1, 0, 1, 1, 0, 1], bool)
     sequence = np.array([0, 0, 0, 1, 1, 1, 1, 1, 1, 1])

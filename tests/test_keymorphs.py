@@ -470,15 +470,16 @@ POSES_3D = [
 ]
 
 
-def keyshapes3d_from_weights(character, poses):
+def keyshapes3d_from_weights(character, poses, cheek_ids=()):
     """A keyshapes artifact whose 3D keyshapes are the character's landmark vertices under known weights, carried
     into another frame (inter-ocular distance 1, turned 11 and 6 degrees, shifted) as the head-frame FaceMesh would
-    be; the rest pose is the neutral face in that frame."""
+    be; the rest pose is the neutral face in that frame. With ``cheek_ids`` (12 vertices), those vertices are the
+    keyshapes' cheek points (``keyshape_cheeks3d``, as the FaceMesh's after the 68)."""
     from stages.geometry.rotations import euler_to_quat, quat_to_matrix
     from stages.retarget.shapes3d import front_view
 
     keyshapes, truth = keyshapes_from_weights(character, poses)
-    ids = character["landmark_ids"]
+    ids = np.concatenate([character["landmark_ids"], np.asarray(cheek_ids, np.int64)])
     rest = character["neutral"][ids].astype(np.float64)
     posed = rest + np.einsum("km,mpc->kpc", truth, character["deltas"][:, ids])
     turn = quat_to_matrix(euler_to_quat(np.array(0.2), np.array(0.1), np.array(0.0)))
@@ -488,12 +489,16 @@ def keyshapes3d_from_weights(character, poses):
         return scale * points @ turn.T + [0.3, -0.1, 2.0]
 
     arrays = {name: keyshapes[name] for name in keyshapes.names}
+    shapes3d, rests3d = performer(posed), np.repeat(performer(rest)[None], len(poses), axis=0)
     arrays.update(
-        keyshapes3d=performer(posed).astype(np.float32),
-        keyshape_rest3d=np.repeat(performer(rest)[None], len(poses), axis=0).astype(np.float32),
-        keyshapes=front_view(performer(posed)).astype(np.float32),
-        rest_shape=front_view(performer(rest)).astype(np.float32),
+        keyshapes3d=shapes3d[:, :68].astype(np.float32),
+        keyshape_rest3d=rests3d[:, :68].astype(np.float32),
+        keyshapes=front_view(shapes3d[:, :68]).astype(np.float32),
+        rest_shape=front_view(performer(rest)[:68]).astype(np.float32),
     )
+    if len(cheek_ids):
+        arrays.update(keyshape_cheeks3d=shapes3d[:, 68:].astype(np.float32))
+        arrays.update(keyshape_cheek_rest3d=rests3d[:, 68:].astype(np.float32))
     return artifact(arrays, meta=keyshapes.meta), truth
 
 
@@ -645,6 +650,48 @@ def test_a_stretched_open_mouth_is_no_funnel(character):
     before = [p for p in KeymorphFit.Params().antagonists if tuple(p) != ("mouthFunnel", "mouthStretch")]
     old = fit(antagonists=before)
     assert old[funnel] > 0.1 and old[stretch] > 0.3, (old[funnel], old[stretch])
+
+
+def cheek_skin_vertices(character):
+    """Twelve vertices standing in for the FaceMesh cheek points (stages.retarget.movements.EXTRA_VERTICES): per
+    side, three where a puff bulges most and three of the skin a cheek raise lifts most that the lids' morphs leave
+    still (not the lid itself)."""
+    names, deltas = character.meta["target_names"], np.asarray(character["deltas"], np.float64)
+
+    def most(morph, side, away_from=()):
+        moved = deltas[names.index(f"{morph}_{side}")]
+        score = np.linalg.norm(moved, axis=1) if morph == "cheekPuff" else moved[:, 1]
+        lids = sum(np.abs(deltas[names.index(f"{m}_{side}")]).sum(axis=1) for m in away_from)
+        return np.argsort(np.where(lids < 0.1 * score.max(), score, -np.inf) if away_from else score)[-3:].tolist()
+
+    lids = ("eyeBlink", "eyeLookUp")
+    return [v for side in "LR" for v in most("cheekPuff", side) + most("cheekSquint", side, lids)]
+
+
+def test_the_cheeks_skin_tells_a_cheek_raise_from_lids_that_follow_the_gaze(character):
+    """Known answer (issue 13.4): the cheek region is fitted on the skin below the lids too (the FaceMesh cheek
+    points after the 68). Lids raised by a look up (eyeLookUp, which the fit leaves out) are no cheek raise, nor is
+    the cheek a smile lifts; a cheek raise is found. On the lids and nose alone (no cheek points) the look up was a
+    cheek raise and the cheek raise mostly missed: the ARKit CheekSquint moved with the gaze."""
+    poses = [
+        ("neutral", {}),
+        ("neutral", {"eyeLookUp_L": 0.8, "eyeLookUp_R": 0.8}),
+        ("happy", {"cheekSquint_L": 0.6, "cheekSquint_R": 0.6}),
+        ("happy", {"mouthSmile_L": 0.6, "mouthSmile_R": 0.6}),
+    ]
+    names = character.meta["target_names"]
+    squint = [names.index("cheekSquint_L"), names.index("cheekSquint_R")]
+    weights = {}
+    for label, cheeks in (("skin", cheek_skin_vertices(character)), ("lids", ())):
+        keyshapes, _ = keyshapes3d_from_weights(character, poses, cheeks)
+        out = run_stage(KeymorphFit, {"contact_sheet": False}, {"keyshapes": keyshapes, "character": character})
+        weights[label] = out.arrays["keymorph_weights"][:, squint]
+    skin, lids = weights["skin"], weights["lids"]
+    assert skin[1].max() < 0.05 and skin[3].max() < 0.05, skin
+    assert skin[2].min() > 0.4, skin  # the lower lid's share goes to eyeSquint, fitted first
+    # the failures the cheek points mend: on the lids alone the look up raised the cheek (0.11) and the cheek
+    # raise was found at a sixth of its weight
+    assert lids[1].min() > 0.08 and lids[2].max() < 0.2, lids
 
 
 def test_a_mistracked_landmark_does_not_recruit_other_morphs(character):

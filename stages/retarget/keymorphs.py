@@ -122,7 +122,7 @@ class Prepared:
     def errors(self, weights: np.ndarray) -> np.ndarray:
         """Per keyshape RMS landmark distance keyshape vs keymorph / inter-ocular distance."""
         if self.space == "3d":
-            diff = self.rig3d.motion(weights) - self.deformation
+            diff = (self.rig3d.motion(weights) - self.deformation)[:, :68]
             return np.sqrt((diff**2).sum(-1).mean(-1)) / self.rig3d.iod
         return landmark_errors(self.rig, self.shapes, weights, self.scale, self.pose)
 
@@ -132,9 +132,9 @@ class Prepared:
             return self.rig.keymorph_landmarks(weights, self.pose)
         from stages.retarget.shapes3d import front_view
 
-        motion = self.rig3d.motion(weights)
+        motion = self.rig3d.motion(weights)[:, :68]
         out = np.empty_like(motion)
-        for k, rest in enumerate(self.rests3d):
+        for k, rest in enumerate(self.rests3d[:, :68]):
             out[k] = rest + self.rig3d.to_character(rest).inverse_linear(motion[k])
         return front_view(out)
 
@@ -148,7 +148,7 @@ class Prepared:
             return self.shapes
         from stages.retarget.shapes3d import front_view
 
-        return front_view(self.keyshapes3d)
+        return front_view(self.keyshapes3d[:, :68])
 
 
 class _KeymorphStage(Stage):
@@ -172,6 +172,12 @@ class _KeymorphStage(Stage):
             rig3d = Rig3D.build(character["neutral"], character["deltas"], character["landmark_ids"])
             shapes3d = np.asarray(keyshapes["keyshapes3d"], np.float64)
             rests3d = np.asarray(keyshapes["keyshape_rest3d"], np.float64)
+            if "keyshape_cheeks3d" in keyshapes and "keyshape_cheek_rest3d" in keyshapes:
+                shapes3d = np.concatenate([shapes3d, np.asarray(keyshapes["keyshape_cheeks3d"], np.float64)], 1)
+                rests3d = np.concatenate([rests3d, np.asarray(keyshapes["keyshape_cheek_rest3d"], np.float64)], 1)
+                rig3d = rig3d.with_points_near(
+                    character["neutral"], character["deltas"], character["landmark_ids"], rests3d
+                )
             return Prepared(
                 "3d", rig, shapes, scale, None, "not needed: the 3D keyshapes are in the head's frame", rig3d,
                 rig3d.deformations(shapes3d, rests3d), shapes3d, rests3d,

@@ -335,6 +335,20 @@ KEYSHAPES_OUTPUTS = {
         optional=True,
         doc="each keyshape's rest pose in 3D (same frame)",
     ),
+    "keyshape_cheeks3d": Output.array(
+        "f",
+        shape=("total_k", 12, 3),
+        dtype="float32",
+        optional=True,
+        doc="the FaceMesh cheek points (stages.retarget.movements.EXTRA_VERTICES) of each 3D keyshape, same frame",
+    ),
+    "keyshape_cheek_rest3d": Output.array(
+        "f",
+        shape=("total_k", 12, 3),
+        dtype="float32",
+        optional=True,
+        doc="the cheek points of each keyshape's rest pose in 3D (same frame)",
+    ),
     "expression_mean": Output.array(
         "f", shape=("labels", 68, 2), dtype="float32", doc="mean training shape per expression"
     ),
@@ -471,6 +485,7 @@ def head_frame_keyshapes(
     mesh."""
     if tracks is None or "mesh" not in tracks:
         return {}
+    from stages.retarget.movements import EXTRA_VERTICES
     from stages.retarget.shapes3d import head_frame_shapes
 
     mesh = np.asarray(tracks["mesh"], np.float64)
@@ -481,9 +496,19 @@ def head_frame_keyshapes(
             f"{len(mesh)} frames: wire the training tracking the aam was built from",
             field="inputs.tracks",
         )
-    shapes = head_frame_shapes(mesh)
+    shapes = head_frame_shapes(mesh, EXTRA_VERTICES)
     pose = np.broadcast_to(rest_pose(shapes, rest, brow_rest, typical), (len(frames), *shapes.shape[1:]))
-    return {"keyshapes3d": shapes[frames].astype(np.float32), "keyshape_rest3d": pose.astype(np.float32)}
+    return split_cheeks(shapes[frames], pose)
+
+
+def split_cheeks(keyshapes: np.ndarray, rests: np.ndarray) -> dict[str, np.ndarray]:
+    """The 3D keyshape outputs from keyshapes and their rests with the cheek points after the 68 (K, 68 + 12, 3)."""
+    return {
+        "keyshapes3d": keyshapes[:, :68].astype(np.float32),
+        "keyshape_rest3d": rests[:, :68].astype(np.float32),
+        "keyshape_cheeks3d": keyshapes[:, 68:].astype(np.float32),
+        "keyshape_cheek_rest3d": rests[:, 68:].astype(np.float32),
+    }
 
 
 class Keyshapes(Stage):
@@ -653,6 +678,7 @@ class CaptureKeyshapes(Stage):
     def run(self, params, inputs):
         tracks = inputs["tracks"]
         shapes, flat, sequence, labels, usable, space = self._shapes(params, tracks)
+        shapes, cheeks = shapes[:, :68], shapes[:, 68:]  # the keymorph fit's cheek points (3D only)
         fields = dict(tracks.meta.get("fields") or {})
         counts = keyshape_counts(params.k, labels)
         try:
@@ -671,6 +697,10 @@ class CaptureKeyshapes(Stage):
             rests=(poses[sequence][None], poses[selection.expression]) if from_rest else (0.0, 0.0),
         )  # fmt: skip
         arrays = self._pack_arrays(selection, shapes, flat, space, poses, rests, params.brow_rest, typical, sequence)
+        if space == "3d":  # each take's cheeks at rest: the mean over its rest frames, as rest_pose takes them
+            cheek_rests = np.stack([cheeks[r].mean(axis=0) for r in rests])
+            arrays["keyshape_cheeks3d"] = cheeks[selection.frames].astype(np.float32)
+            arrays["keyshape_cheek_rest3d"] = cheek_rests[selection.expression].astype(np.float32)
         arrays.update(
             weights=weights.astype(np.float32),
             reconstruction=flat_view(reconstruction, space).astype(np.float32),
@@ -715,9 +745,11 @@ class CaptureKeyshapes(Stage):
         space = "3d" if params.space != "2d" and "mesh" in tracks else "2d"
         usable = np.asarray(tracks["valid"]).astype(bool) if "valid" in tracks else np.ones(len(landmarks), bool)
         usable &= np.isfinite(landmarks).all(axis=(1, 2))
-        if space == "3d":
-            shapes = head_frame_shapes(np.asarray(tracks["mesh"], np.float64))
-            return shapes, front_view(shapes), sequence, labels, usable, space
+        if space == "3d":  # with the cheek points after the 68, which only the keymorph fit uses
+            from stages.retarget.movements import EXTRA_VERTICES
+
+            shapes = head_frame_shapes(np.asarray(tracks["mesh"], np.float64), EXTRA_VERTICES)
+            return shapes, front_view(shapes[:, :68]), sequence, labels, usable, space
         shapes = remove_pose(landmarks)
         return shapes, shapes, sequence, labels, usable, space
 

@@ -63,7 +63,8 @@ MOVEMENT_TABLE: dict[str, str] = {
     "BrowOuterUp": "outer brow end (iBUG 26 / 17) up",
     "CheekPuff": "both mid-cheeks (FaceMesh 411, 425, 376 / 187, 205, 147) outwards and forward beyond what the "
     "corner's rise explains (a smile bulges them too), jaw-free",
-    "CheekSquint": "the skin below the lower lid (FaceMesh 346, 347, 330 / 117, 118, 101) up, jaw-free",
+    "CheekSquint": "the skin below the lower lid (FaceMesh 346, 347, 330 / 117, 118, 101) up beyond what the lip "
+    "corner's rise lifts it (SMILE_CHEEK_LIFT), jaw-free",
     "NoseSneer": "nostril wing (iBUG 35 / 31) up, jaw-free",
 }
 
@@ -102,6 +103,12 @@ CHEEK_VERTICES = {
     "Right": {"puff": (187, 205, 147), "raise": (117, 118, 101)},
 }
 EXTRA_VERTICES = tuple(v for side in CHEEK_VERTICES.values() for group in side.values() for v in group)
+#: How far a smile lifts the skin below the lower lid per unit of the lip corner's rise. A lip-corner puller
+#: (FACS AU12) raises the cheek too; a cheek raise (AU6, ARKit's cheekSquint) is the lift beyond that. ICT
+#: FaceKit's mouthSmile, built on FACS, lifts those FaceMesh points 0.035-0.040 IOD while it raises its corner
+#: 0.118 IOD (``python bench/eval_retarget.py --probes`` measures it on the character). The performers' cheek lift
+#: follows their corner rise at r 0.45-0.95 (median 0.8) over the 17 takes of docs/retarget.md
+SMILE_CHEEK_LIFT = 0.32
 #: movements of the eyelids and the skin below them: a tenth of an open eye's height, half the landmark level
 FINE_MOVEMENTS = ("EyeSquint", "EyeWide", "CheekSquint")
 CHIN = 8
@@ -175,7 +182,8 @@ def cheek_probes(d: np.ndarray, chin_down: np.ndarray) -> dict:
         bulge = (p["out"] * d[:, points(side, "puff"), 0] + d[:, points(side, "puff"), 2]).mean(axis=1)
         smile = jaw_free(d[:, p["corner"], 1], chin_down)  # a smile bulges the cheeks too, lifting the corners
         puff.append(jaw_free(bulge, chin_down) - np.maximum(smile, 0.0))
-        out[f"CheekSquint{side}"] = jaw_free(d[:, points(side, "raise"), 1].mean(axis=1), chin_down)
+        lift = jaw_free(d[:, points(side, "raise"), 1].mean(axis=1), chin_down)
+        out[f"CheekSquint{side}"] = lift - SMILE_CHEEK_LIFT * np.maximum(smile, 0.0)
     out["CheekPuff"] = 0.5 * (puff[0] + puff[1])
     return out
 

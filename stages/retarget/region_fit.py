@@ -14,7 +14,14 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from stages.retarget.face_measures import inter_ocular_distance
 from stages.retarget.morph_fit import Similarity, fit_similarity, robust_fit
+from stages.retarget.movements import CHEEK_VERTICES, EXTRA_VERTICES
 from stages.retarget.regions import RIGID
+
+#: Points of the 3D fit beyond iBUG's 68: the FaceMesh cheek vertices (``movements.EXTRA_VERTICES``) as points 68,
+#: 69, ... (the keyshapes' ``keyshape_cheeks3d``); no iBUG point lies on the cheek's skin
+FIT_POINTS = 68 + len(EXTRA_VERTICES)
+#: the skin below each lower lid, which a cheek raise lifts (FaceMesh 346, 347, 330 / 117, 118, 101)
+CHEEK_RAISE_POINTS = [68 + EXTRA_VERTICES.index(v) for side in CHEEK_VERTICES.values() for v in side["raise"]]
 
 
 class FitRegion(BaseModel):
@@ -31,9 +38,12 @@ class FitRegion(BaseModel):
     @field_validator("landmarks")
     @classmethod
     def _ibug_ids(cls, landmarks):
-        bad = [i for i in landmarks if not 0 <= i < 68]
+        bad = [i for i in landmarks if not 0 <= i < FIT_POINTS]
         if bad:
-            raise ValueError(f"landmark ids must lie in 0..67 (iBUG-68), got {bad}")
+            raise ValueError(
+                f"landmark ids must lie in 0..67 (iBUG-68) or 68..{FIT_POINTS - 1} (the FaceMesh cheek points, "
+                f"stages.retarget.movements.EXTRA_VERTICES), got {bad}"
+            )
         return landmarks
 
 
@@ -56,7 +66,10 @@ DEFAULT_FIT_REGIONS = [
     ),
     FitRegion(name="brows", landmarks=list(range(17, 27)), morphs=["brow*"], decomposition="brows"),
     FitRegion(
-        name="cheeks", landmarks=[31, 32, 33, 34, 35, 40, 41, 46, 47], morphs=["cheek*", "nose*"], decomposition="mouth"
+        name="cheeks",
+        landmarks=[31, 32, 33, 34, 35, 40, 41, 46, 47, *CHEEK_RAISE_POINTS],
+        morphs=["cheek*", "nose*"],
+        decomposition="mouth",
     ),
 ]
 
@@ -86,12 +99,22 @@ class Rig3D:
         """The 3D similarity carrying a performer's rest shape (head frame) onto the character (rigid points)."""
         return fit_similarity(np.asarray(rest)[list(RIGID)], self.rest[list(RIGID)])
 
+    def with_points_near(self, neutral, deltas, landmark_ids, rests: np.ndarray) -> Rig3D:
+        """The rig with, after its 68 landmark vertices, the character's vertices nearest to the performer's points
+        beyond 68 (``rests`` (R, P, 3), head frame), each rest carried onto the character by the similarity of
+        its rigid points and the carried points averaged over the rests."""
+        neutral = np.asarray(neutral, np.float64)
+        rests = np.unique(np.asarray(rests, np.float64).reshape(len(rests), -1), axis=0).reshape(-1, *rests.shape[1:])
+        carried = np.mean([self.to_character(r[:68]).apply(r[68:]) for r in rests], axis=0)
+        nearest = [int(np.argmin(((neutral - p) ** 2).sum(axis=1))) for p in carried]
+        return Rig3D.build(neutral, deltas, np.concatenate([np.asarray(landmark_ids), nearest]))
+
     def deformations(self, keyshapes: np.ndarray, rests: np.ndarray) -> np.ndarray:
         """Each keyshape's deformation from its performer's rest, in character units and axes (K, 68, 3)."""
         keyshapes, rests = np.asarray(keyshapes, np.float64), np.asarray(rests, np.float64)
         out = np.empty_like(keyshapes)
         unique, inverse = np.unique(rests.reshape(len(rests), -1), axis=0, return_inverse=True)
-        for u, rest in enumerate(unique.reshape(-1, 68, 3)):
+        for u, rest in enumerate(unique.reshape(-1, *rests.shape[1:])):
             rows = np.flatnonzero(inverse.reshape(-1) == u)
             out[rows] = self.to_character(rest).apply_linear(keyshapes[rows] - rest)
         return out
@@ -180,7 +203,7 @@ def fit_regions_3d(
         if not columns.size:
             info["regions"][region.name] = []
             continue
-        points = list(region.landmarks)
+        points = [p for p in region.landmarks if p < deformation.shape[1]]  # cheek points only in 3D keyshapes
         targets = (deformation - explained)[:, points].reshape(K, -1)
         # a base fitted earlier acts as a fixed bound: pass it in as a pseudo-column the region does not fit
         region_pairs = [(c, b) for c, b in pairs if c in columns and (b in columns or assigned[b])]
