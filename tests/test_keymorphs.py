@@ -11,6 +11,7 @@ from stages.retarget.face_measures import inter_ocular_distance, lip_gap_iod
 from stages.retarget.keymorph_yaml import format_keymorph_yaml, parse_keymorph_yaml
 from stages.retarget.keymorphs import KeymorphFile, KeymorphFit
 from stages.retarget.morph_fit import LandmarkRig, antagonist_pairs, fit_similarity, project_front, symmetric_pairs
+from stages.retarget.region_fit import CHEEK_RAISE_POINTS
 from stages.retarget.shapes3d import front_view
 
 ICT = "data/characters/ict-facekit.glb"
@@ -692,6 +693,25 @@ def test_the_cheeks_skin_tells_a_cheek_raise_from_lids_that_follow_the_gaze(char
     # the failures the cheek points mend: on the lids alone the look up raised the cheek (0.11) and the cheek
     # raise was found at a sixth of its weight
     assert lids[1].min() > 0.08 and lids[2].max() < 0.2, lids
+
+
+def test_keyshapes_without_cheek_points_fit_on_the_68(character):
+    """Keyshapes without the cheek points (older runs) fit the cheeks on the lids and nose and say which points
+    they lacked; a region left with none of its points is a user error naming params.regions."""
+    keyshapes, _ = keyshapes3d_from_weights(character, [("neutral", {}), ("happy", {"cheekSquint_L": 0.5})])
+    out = run_stage(KeymorphFit, {"contact_sheet": False}, {"keyshapes": keyshapes, "character": character})
+    assert out.meta["fit"]["points_not_in_keyshapes"] == {"cheeks": CHEEK_RAISE_POINTS}
+    assert "cheekSquint_L" in out.meta["fit"]["regions"]["cheeks"]
+    cheeks_only = {
+        "name": "cheek skin",
+        "landmarks": CHEEK_RAISE_POINTS,
+        "morphs": ["cheek*"],
+        "decomposition": "mouth",
+    }
+    params = {"contact_sheet": False, "regions": [cheeks_only]}
+    with pytest.raises(UserError, match="cheek skin") as error:
+        run_stage(KeymorphFit, params, {"keyshapes": keyshapes, "character": character})
+    assert error.value.field == "params.regions"
 
 
 def test_a_mistracked_landmark_does_not_recruit_other_morphs(character):

@@ -380,6 +380,7 @@ class KeymorphFit(_KeymorphStage):
                 "iterations": info["iterations"],
                 "unmatched_exclude_patterns": unknown,
                 "unmatched_contact_patterns": no_contact,
+                "points_not_in_keyshapes": info.get("points_not_in_keyshapes", {}),
             },
             "morph_regions": info.get("morph_regions")
             or morph_decomposition_regions(names, list(params.regions), list(params.exclude)),
@@ -398,6 +399,15 @@ class KeymorphFit(_KeymorphStage):
         }
         bounds = contact_bounds(prepared.lip_gaps(), names, list(params.contact_morphs), params.contact_gap)
         if prepared.space == "3d":
+            available = prepared.deformation.shape[1]  # 68, or 80 with the keyshapes' cheek points
+            for region in params.regions:
+                if min(region.landmarks) >= available:
+                    raise UserError(
+                        f"fit region '{region.name}' has none of its landmarks in the keyshapes: points 68 and up "
+                        "are the FaceMesh cheek points, which these keyshapes do not carry (rerun the keyshapes "
+                        "stage with the tracking's FaceMesh, or give the region iBUG points 0-67)",
+                        field="params.regions",
+                    )
             weights, info = fit_regions_3d(
                 prepared.rig3d,
                 prepared.deformation,

@@ -195,7 +195,7 @@ def fit_regions_3d(
     explained = np.zeros_like(deformation)
     assigned = matching_any_case(names, exclude)
     pairs = corrective_pairs(names, correctives)
-    info = {"regions": {}, "morph_regions": {}, "iterations": 0, "kkt_max": 0.0}
+    info = {"regions": {}, "morph_regions": {}, "iterations": 0, "kkt_max": 0.0, "points_not_in_keyshapes": {}}
     regularisers = {**regularisers, "huber": None if robust_iod is None else robust_iod * rig.iod}
     for region in regions:
         columns = np.flatnonzero(matching_any_case(names, region.morphs) & ~assigned)
@@ -204,6 +204,13 @@ def fit_regions_3d(
             info["regions"][region.name] = []
             continue
         points = [p for p in region.landmarks if p < deformation.shape[1]]  # cheek points only in 3D keyshapes
+        if len(points) < len(region.landmarks):
+            info["points_not_in_keyshapes"][region.name] = [p for p in region.landmarks if p not in points]
+        if not points:
+            raise ValueError(
+                f"region '{region.name}' has none of its points in the keyshapes (points 68 and up are the "
+                "FaceMesh cheek points, which keyshapes from 2D tracking or older runs do not carry)"
+            )
         targets = (deformation - explained)[:, points].reshape(K, -1)
         # a base fitted earlier acts as a fixed bound: pass it in as a pseudo-column the region does not fit
         region_pairs = [(c, b) for c, b in pairs if c in columns and (b in columns or assigned[b])]
