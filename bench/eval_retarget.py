@@ -270,12 +270,9 @@ def character_shapes(character, weights: np.ndarray, performer_rest: np.ndarray)
     (``performer_rest`` (68 + 12, 3)) carried onto the character by the similarity of the rigid points."""
     from stages.retarget.region_fit import Rig3D
 
-    neutral, deltas = np.asarray(character["neutral"], np.float64), np.asarray(character["deltas"], np.float64)
-    rig = Rig3D.build(neutral, deltas, character["landmark_ids"])
-    cheeks = rig.to_character(performer_rest[:68]).apply(performer_rest[68:])
-    nearest = [int(np.argmin(((neutral - p) ** 2).sum(axis=1))) for p in cheeks]
-    ids = np.concatenate([np.asarray(character["landmark_ids"]), nearest])
-    return (neutral[ids][None] + np.einsum("fm,mpc->fpc", weights, deltas[:, ids])) / rig.iod
+    neutral, deltas, ids = character["neutral"], character["deltas"], character["landmark_ids"]
+    rig = Rig3D.build(neutral, deltas, ids).with_points_near(neutral, deltas, ids, performer_rest[None])
+    return (rig.rest[None] + rig.motion(weights)) / rig.iod
 
 
 def probes(folders: list[str]) -> None:
