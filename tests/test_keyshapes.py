@@ -448,6 +448,23 @@ def test_head_frame_takes_the_pose_out_of_the_mesh():
     assert residual.max() < 0.02
 
 
+def test_head_frame_keyshapes_carry_the_cheek_points():
+    """The paper's keyshapes in 3D: the 68 points and, for the keymorph fit, the FaceMesh cheek points of the same
+    frames, carried by the same alignment, with their rest (the mean of the rest frames)."""
+    from stages.retarget.keyshapes import head_frame_keyshapes
+    from stages.retarget.movements import EXTRA_VERTICES
+    from stages.retarget.shapes3d import head_frame_shapes
+
+    tracks, _ = face3d_takes()
+    frames, rest = np.array([3, 17, 40]), np.array([0, 1, 2])
+    out = head_frame_keyshapes(tracks, frames, rest, "closed_mouth", np.arange(10))
+    shapes = head_frame_shapes(tracks["mesh"], EXTRA_VERTICES)
+    np.testing.assert_allclose(out["keyshapes3d"], shapes[frames, :68], atol=1e-6)
+    np.testing.assert_allclose(out["keyshape_cheeks3d"], shapes[frames, 68:], atol=1e-6)
+    np.testing.assert_allclose(out["keyshape_cheek_rest3d"][0], shapes[rest, 68:].mean(axis=0), atol=1e-6)
+    assert out["keyshape_rest3d"].shape == (3, 68, 3)
+
+
 def test_capture_keyshapes_decompose_each_take_onto_its_own_keyshapes():
     from stages.retarget.keyshapes import CaptureKeyshapes
 
@@ -470,8 +487,17 @@ def test_capture_keyshapes_decompose_each_take_onto_its_own_keyshapes():
     )
     # each take's rest is its own closed-mouth frames
     assert set(sequence[a["rest_frames"]]) == {0, 1}
+    # the keymorph fit's cheek points: the FaceMesh's, carried by the same alignment; at rest, each take's mean
+    # over its rest frames
+    from stages.retarget.movements import EXTRA_VERTICES
+    from stages.retarget.shapes3d import head_frame_shapes
+
+    cheeks = head_frame_shapes(tracks["mesh"], EXTRA_VERTICES)[:, 68:]
+    np.testing.assert_allclose(a["keyshape_cheeks3d"], cheeks[a["keyshape_frame"]], atol=1e-6)
+    rests = [cheeks[a["rest_frames"][sequence[a["rest_frames"]] == take]].mean(axis=0) for take in (0, 1)]
+    np.testing.assert_allclose(a["keyshape_cheek_rest3d"], np.stack(rests)[a["keyshape_expression"]], atol=1e-6)
     flat = run_stage(CaptureKeyshapes, {"k": 8, "space": "2d"}, {"tracks": tracks})
-    assert flat.meta["space"] == "2d" and "keyshapes3d" not in flat.arrays
+    assert flat.meta["space"] == "2d" and "keyshapes3d" not in flat.arrays and "keyshape_cheeks3d" not in flat.arrays
     no_mesh = artifact({n: tracks[n] for n in ("landmarks", "sequence")}, meta=tracks.meta)
     assert run_stage(CaptureKeyshapes, {"k": 8}, {"tracks": no_mesh}).meta["space"] == "2d"
     with pytest.raises(UserError, match="space: 3d needs the tracking's FaceMesh"):
