@@ -271,7 +271,7 @@ def character_shapes(character, weights: np.ndarray, performer_rest: np.ndarray)
     from stages.retarget.region_fit import Rig3D
 
     neutral, deltas, ids = character["neutral"], character["deltas"], character["landmark_ids"]
-    rig = Rig3D.build(neutral, deltas, ids).with_points_near(neutral, deltas, ids, performer_rest[None])
+    rig = Rig3D.build_with_points_near(neutral, deltas, ids, performer_rest[None])
     return (rig.rest[None] + rig.motion(weights)) / rig.iod
 
 
@@ -350,11 +350,14 @@ def smile_cheek_shares(character, performer_rest: np.ndarray) -> list[float]:
     from stages.retarget.movements import CHEEK_VERTICES, EXTRA_VERTICES, SIDE_POINTS
 
     names = list(character.meta["target_names"])
+    sides = (("Left", "L"), ("Right", "R"))
+    weights = np.zeros((3, len(names)))  # the neutral face, then each side's smile
+    for row, (_, suffix) in enumerate(sides, start=1):
+        weights[row, names.index(f"mouthSmile_{suffix}")] = 1.0
+    shapes = character_shapes(character, weights, performer_rest)
     out = []
-    for side, suffix in (("Left", "L"), ("Right", "R")):
-        weights = np.zeros((2, len(names)))
-        weights[1, names.index(f"mouthSmile_{suffix}")] = 1.0
-        moved = np.diff(character_shapes(character, weights, performer_rest), axis=0)[0]
+    for row, (side, _) in enumerate(sides, start=1):
+        moved = shapes[row] - shapes[0]
         cheek = [68 + EXTRA_VERTICES.index(v) for v in CHEEK_VERTICES[side]["raise"]]
         out.append(float(moved[cheek, 1].mean() / moved[SIDE_POINTS[side]["corner"], 1]))
     return out

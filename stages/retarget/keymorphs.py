@@ -41,7 +41,14 @@ from stages.retarget.contact_sheet import (
 from stages.retarget.face_measures import inter_ocular_distance, lip_gap_iod
 from stages.retarget.keymorph_yaml import format_keymorph_yaml, parse_keymorph_yaml, rounded_weights
 from stages.retarget.morph_fit import LandmarkRig, fit_keymorph_weights, landmark_errors, matching_targets
-from stages.retarget.region_fit import DEFAULT_FIT_REGIONS, FitRegion, Rig3D, fit_regions_3d, matching_any_case
+from stages.retarget.region_fit import (
+    DEFAULT_FIT_REGIONS,
+    FitRegion,
+    Rig3D,
+    fit_regions_3d,
+    matching_any_case,
+    points_not_in_keyshapes,
+)
 
 KEYMORPHS_OUTPUTS = {
     "keymorph_weights": Output.array(
@@ -169,15 +176,13 @@ class _KeymorphStage(Stage):
                 field="params.space",
             )
         if has_3d and params.space != "2d":
-            rig3d = Rig3D.build(character["neutral"], character["deltas"], character["landmark_ids"])
+            mesh = (character["neutral"], character["deltas"], character["landmark_ids"])
             shapes3d = np.asarray(keyshapes["keyshapes3d"], np.float64)
             rests3d = np.asarray(keyshapes["keyshape_rest3d"], np.float64)
             if "keyshape_cheeks3d" in keyshapes and "keyshape_cheek_rest3d" in keyshapes:
                 shapes3d = np.concatenate([shapes3d, np.asarray(keyshapes["keyshape_cheeks3d"], np.float64)], 1)
                 rests3d = np.concatenate([rests3d, np.asarray(keyshapes["keyshape_cheek_rest3d"], np.float64)], 1)
-                rig3d = rig3d.with_points_near(
-                    character["neutral"], character["deltas"], character["landmark_ids"], rests3d
-                )
+            rig3d = Rig3D.build_with_points_near(*mesh, rests3d) if rests3d.shape[1] > 68 else Rig3D.build(*mesh)
             return Prepared(
                 "3d", rig, shapes, scale, None, "not needed: the 3D keyshapes are in the head's frame", rig3d,
                 rig3d.deformations(shapes3d, rests3d), shapes3d, rests3d,
@@ -399,9 +404,9 @@ class KeymorphFit(_KeymorphStage):
         }
         bounds = contact_bounds(prepared.lip_gaps(), names, list(params.contact_morphs), params.contact_gap)
         if prepared.space == "3d":
-            available = prepared.deformation.shape[1]  # 68, or 80 with the keyshapes' cheek points
+            missing = points_not_in_keyshapes(params.regions, prepared.deformation.shape[1])
             for region in params.regions:
-                if min(region.landmarks) >= available:
+                if len(missing.get(region.name, [])) == len(region.landmarks):
                     raise UserError(
                         f"fit region '{region.name}' has none of its landmarks in the keyshapes: points 68 and up "
                         "are the FaceMesh cheek points, which these keyshapes do not carry (rerun the keyshapes "

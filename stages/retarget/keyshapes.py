@@ -677,8 +677,8 @@ class CaptureKeyshapes(Stage):
 
     def run(self, params, inputs):
         tracks = inputs["tracks"]
-        shapes, flat, sequence, labels, usable, space = self._shapes(params, tracks)
-        shapes, cheeks = shapes[:, :68], shapes[:, 68:]  # the keymorph fit's cheek points (3D only)
+        points, flat, sequence, labels, usable, space = self._shapes(params, tracks)
+        shapes = points[:, :68]  # 3D: the cheek points after the 68 are for the keymorph fit only
         fields = dict(tracks.meta.get("fields") or {})
         counts = keyshape_counts(params.k, labels)
         try:
@@ -690,17 +690,16 @@ class CaptureKeyshapes(Stage):
             raise UserError(f"{exc} (no tracked face)", field="inputs.tracks") from None
         keyshapes = shapes[selection.frames]
         rests, typical = capture_rest_frames(shapes, sequence, usable, labels, fields, params.rest_expression)
-        poses = np.stack([rest_pose(shapes, r, params.brow_rest, u) for r, u in zip(rests, typical)])
+        rest_points = np.stack([rest_pose(points, r, params.brow_rest, u) for r, u in zip(rests, typical)])
+        poses = rest_points[:, :68]
         from_rest = params.decomposition == "from_rest"
         weights, region_weights, reconstruction, residual, kkt = decompose_targets(
             shapes[None], sequence[None], keyshapes, selection, params, 1.0,
             rests=(poses[sequence][None], poses[selection.expression]) if from_rest else (0.0, 0.0),
         )  # fmt: skip
-        arrays = self._pack_arrays(selection, shapes, flat, space, poses, rests, params.brow_rest, typical, sequence)
-        if space == "3d":  # each take's cheeks at rest: the mean over its rest frames, as rest_pose takes them
-            cheek_rests = np.stack([cheeks[r].mean(axis=0) for r in rests])
-            arrays["keyshape_cheeks3d"] = cheeks[selection.frames].astype(np.float32)
-            arrays["keyshape_cheek_rest3d"] = cheek_rests[selection.expression].astype(np.float32)
+        arrays = self._pack_arrays(
+            selection, points, flat, space, rest_points, rests, params.brow_rest, typical, sequence
+        )  # fmt: skip
         arrays.update(
             weights=weights.astype(np.float32),
             reconstruction=flat_view(reconstruction, space).astype(np.float32),
@@ -729,7 +728,8 @@ class CaptureKeyshapes(Stage):
 
     @staticmethod
     def _shapes(params, tracks):
-        """(shapes (F, 68, d) in IOD units, their 2D front view, sequence, labels, usable, space)."""
+        """(shapes (F, 68, d) in IOD units, in 3D with the FaceMesh cheek points after the 68; their 2D front
+        view, sequence, labels, usable, space)."""
         from stages.retarget.shapes3d import front_view, head_frame_shapes, remove_pose
 
         landmarks = np.asarray(tracks["landmarks"], np.float64)
@@ -745,7 +745,7 @@ class CaptureKeyshapes(Stage):
         space = "3d" if params.space != "2d" and "mesh" in tracks else "2d"
         usable = np.asarray(tracks["valid"]).astype(bool) if "valid" in tracks else np.ones(len(landmarks), bool)
         usable &= np.isfinite(landmarks).all(axis=(1, 2))
-        if space == "3d":  # with the cheek points after the 68, which only the keymorph fit uses
+        if space == "3d":
             from stages.retarget.movements import EXTRA_VERTICES
 
             shapes = head_frame_shapes(np.asarray(tracks["mesh"], np.float64), EXTRA_VERTICES)
@@ -754,15 +754,15 @@ class CaptureKeyshapes(Stage):
         return shapes, shapes, sequence, labels, usable, space
 
     @staticmethod
-    def _pack_arrays(selection, shapes, flat, space, poses, rests, brow_rest, typical, sequence) -> dict:
-        """The keyshapes' outputs; ``poses`` (takes, 68, d) each take's rest pose (``rest_pose`` of its ``rests``
-        frames, the brows as ``brow_rest`` says over its ``typical`` ones) in the keyshapes' space."""
+    def _pack_arrays(selection, points, flat, space, poses, rests, brow_rest, typical, sequence) -> dict:
+        """The keyshapes' outputs from the tracked ``points`` (frames, 68 [+ cheek points in 3D], d); ``poses``
+        (takes, same points, d) each take's rest pose (``rest_pose`` of its ``rests`` frames, the brows as
+        ``brow_rest`` says over its ``typical`` ones) in the keyshapes' space."""
         arrays = keyshape_arrays(selection, flat)
         keyshape_rest = poses[selection.expression]
-        arrays["keyshape_rest"] = flat_view(keyshape_rest, space).astype(np.float32)
+        arrays["keyshape_rest"] = flat_view(keyshape_rest[:, :68], space).astype(np.float32)
         if space == "3d":
-            arrays["keyshapes3d"] = shapes[selection.frames].astype(np.float32)
-            arrays["keyshape_rest3d"] = keyshape_rest.astype(np.float32)
+            arrays.update(split_cheeks(points[selection.frames], keyshape_rest))
         all_rest = np.concatenate(rests)
         all_typical = np.unique(np.concatenate(typical))
         arrays["rest_shape"] = rest_pose(flat, all_rest, brow_rest, all_typical).astype(np.float32)

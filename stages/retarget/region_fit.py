@@ -99,15 +99,17 @@ class Rig3D:
         """The 3D similarity carrying a performer's rest shape (head frame) onto the character (rigid points)."""
         return fit_similarity(np.asarray(rest)[list(RIGID)], self.rest[list(RIGID)])
 
-    def with_points_near(self, neutral, deltas, landmark_ids, rests: np.ndarray) -> Rig3D:
-        """The rig with, after its 68 landmark vertices, the character's vertices nearest to the performer's points
-        beyond 68 (``rests`` (R, P, 3), head frame), each rest carried onto the character by the similarity of
-        its rigid points and the carried points averaged over the rests."""
-        neutral = np.asarray(neutral, np.float64)
-        rests = np.unique(np.asarray(rests, np.float64).reshape(len(rests), -1), axis=0).reshape(-1, *rests.shape[1:])
-        carried = np.mean([self.to_character(r[:68]).apply(r[68:]) for r in rests], axis=0)
+    @classmethod
+    def build_with_points_near(cls, neutral, deltas, landmark_ids, rests: np.ndarray) -> Rig3D:
+        """The rig of the 68 landmark vertices followed by the character's vertices nearest to the performer's
+        points beyond 68 (``rests`` (R, P, 3), head frame), each rest carried onto the character by the similarity
+        of its rigid points (``to_character``) and the carried points averaged over the rests."""
+        neutral, rests = np.asarray(neutral, np.float64), np.asarray(rests, np.float64)
+        landmarks = cls.build(neutral, deltas, landmark_ids)
+        unique = np.unique(rests.reshape(len(rests), -1), axis=0).reshape(-1, *rests.shape[1:])
+        carried = np.mean([landmarks.to_character(r[:68]).apply(r[68:]) for r in unique], axis=0)
         nearest = [int(np.argmin(((neutral - p) ** 2).sum(axis=1))) for p in carried]
-        return Rig3D.build(neutral, deltas, np.concatenate([np.asarray(landmark_ids), nearest]))
+        return cls.build(neutral, deltas, np.concatenate([np.asarray(landmark_ids), nearest]))
 
     def deformations(self, keyshapes: np.ndarray, rests: np.ndarray) -> np.ndarray:
         """Each keyshape's deformation from its performer's rest, in character units and axes (K, 68, 3)."""
@@ -132,6 +134,13 @@ def corrective_pairs(names: list[str], correctives) -> list[tuple[int, int]]:
         for c, b in correctives
         if c.lower() in lower and b.lower() in lower
     ]
+
+
+def points_not_in_keyshapes(regions: list[FitRegion], available: int) -> dict[str, list[int]]:
+    """Per region listing points the keyshapes lack (ids >= ``available``: the cheek points, which 2D or older
+    keyshapes do not carry), those points."""
+    missing = {region.name: [p for p in region.landmarks if p >= available] for region in regions}
+    return {name: points for name, points in missing.items() if points}
 
 
 def fit_region(
@@ -195,7 +204,8 @@ def fit_regions_3d(
     explained = np.zeros_like(deformation)
     assigned = matching_any_case(names, exclude)
     pairs = corrective_pairs(names, correctives)
-    info = {"regions": {}, "morph_regions": {}, "iterations": 0, "kkt_max": 0.0, "points_not_in_keyshapes": {}}
+    info = {"regions": {}, "morph_regions": {}, "iterations": 0, "kkt_max": 0.0}
+    info["points_not_in_keyshapes"] = points_not_in_keyshapes(regions, deformation.shape[1])
     regularisers = {**regularisers, "huber": None if robust_iod is None else robust_iod * rig.iod}
     for region in regions:
         columns = np.flatnonzero(matching_any_case(names, region.morphs) & ~assigned)
@@ -203,10 +213,8 @@ def fit_regions_3d(
         if not columns.size:
             info["regions"][region.name] = []
             continue
-        points = [p for p in region.landmarks if p < deformation.shape[1]]  # cheek points only in 3D keyshapes
-        if len(points) < len(region.landmarks):
-            info["points_not_in_keyshapes"][region.name] = [p for p in region.landmarks if p not in points]
-        if not points:
+        points = [p for p in region.landmarks if p < deformation.shape[1]]
+        if not points:  # KeymorphFit says so as a user error before fitting
             raise ValueError(
                 f"region '{region.name}' has none of its points in the keyshapes (points 68 and up are the "
                 "FaceMesh cheek points, which keyshapes from 2D tracking or older runs do not carry)"
