@@ -49,7 +49,11 @@ COLUMNS = [
     ("jawOpen at widest", "jaw_open_at_widest", "{:.2f}"),
     ("press, lips apart", "press_apart_fraction", "{:.0%}"),
     ("env r char/perf/shift", ("envelope_r_character", "envelope_r_performer", "envelope_r_shifted"), "{:.2f}"),
-    ("dead ARKit: moved / not", ("dead_arkit_moved", "dead_arkit_not_moved"), "{:.0f} / {:.0f}"),
+    (
+        "dead ARKit: moved (missing) / not",
+        ("dead_arkit_moved", "dead_arkit_moved_missing", "dead_arkit_not_moved"),
+        "{:.0f} ({:.0f}) / {:.0f}",
+    ),
     (
         "following r (chance); weak",
         ("following_r_median", "following_r_median_shifted", "following_weak"),
@@ -82,12 +86,14 @@ def take_rows(view) -> list[str]:
 
 def column_report(name: str, view) -> list[str]:
     """The ARKit columns that stay dead in some take, with the takes where the performer moved them or not."""
-    lines = [f"**{name}**: ARKit columns dead in some take (the animation never above 0.02)", ""]
+    lines = [f"**{name}**: ARKit columns dead in some take (the animation never above 0.02; made: the character's"]
+    lines += ["face makes the movement through other morphs, read by the performer's probes)", ""]
     lines += ["| column | performer moved (takes) | dead where moved | dead, not moved |", "|---|---|---|---|"]
     for column, where in view.meta["arkit_columns"].items():
         if not where.get("dead_moved") and not where.get("dead_not_moved") and not where.get("dead_unmeasured"):
             continue
-        names = {k: ", ".join(Path(t).stem for t in v) for k, v in where.items()}
+        made = set(where.get("dead_moved_made", []))  # the character's face makes the movement, other morphs
+        names = {k: ", ".join(Path(t).stem + (" (made)" if t in made else "") for t in v) for k, v in where.items()}
         moved = len(where.get("moved", []))
         unmeasured = " (no probe)" if where.get("dead_unmeasured") else ""
         lines.append(
@@ -280,9 +286,9 @@ def probes(folders: list[str]) -> None:
     (the FaceMesh with a pinhole's perspective taken out, the focal length found in the take) beside
     the same probe on the FaceMesh as the retarget reads it (no perspective removal), and for the chin raise a
     check on the 2D landmarks: how far the chin-to-nose-bridge distance is below its closed-mouth rest (IOD) at
-    the frame where the evaluated probe peaks; last, the same probe on the character's animation (its landmark
-    vertices, and the vertices nearest to the FaceMesh cheek points, rest at the performer's rest frames): how
-    much of the movement the animation makes, whichever morph makes it."""
+    the frame where the evaluated probe peaks; last, the evaluation's reading of the character's animation by
+    the performer's probes (``stages.eval.columns.character_movements``): how much of the movement the animation
+    makes, whichever morph makes it."""
     import msflow
     from stages.eval.columns import performer_shapes
     from stages.eval.retarget import RetargetEval, jaw_drop, take_cameras
@@ -298,9 +304,8 @@ def probes(folders: list[str]) -> None:
         relative = os.path.relpath(Path(folder).resolve(), PIPELINE.parent)
         runs.append(msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_eval"))
 
-    def rest_of(shapes, frames_of=None):  # as the evaluation takes it (RetargetEval's brow_rest)
-        closed = rest_frames(front_view((shapes if frames_of is None else frames_of)[:, :68]))
-        return rest_pose(shapes, closed, params.brow_rest)
+    def rest_of(shapes):  # as the evaluation takes it (RetargetEval's brow_rest)
+        return rest_pose(shapes, rest_frames(front_view(shapes[:, :68])), params.brow_rest)
 
     print(
         "| take | column | probe peak / level, as evaluated | without perspective removal | 2D chin rise at the "
@@ -309,7 +314,6 @@ def probes(folders: list[str]) -> None:
     print("|---|---|---|---|---|---|")
     for result in runs:
         tracks, view = result.artifact("capture_track"), result.artifact("capture_eval")
-        blend, character = result.artifact("capture_blend"), result.artifact("capture_character")
         sequence, labels = np.asarray(tracks["sequence"]), list(tracks.meta["labels"])
         for label, take in view.meta["takes"].items():
             rows = np.flatnonzero(sequence == labels.index(label))
@@ -322,9 +326,6 @@ def probes(folders: list[str]) -> None:
             evaluated = landmark_probes(evaluated, rest_of(evaluated), gap, params.closure_gap)
             drop = jaw_drop(landmarks)
             chin = drop[rest_frames(landmarks)].mean() - drop
-            animated = character_shapes(character, np.asarray(blend["weights"])[rows], rest_of(shapes))
-            at_rest = rest_of(animated, frames_of=shapes)
-            animated = landmark_probes(animated, at_rest, lip_gap_iod(level(front_view(animated[:, :68]))), 0.03)
             for column in take["columns"]["dead_moved"]:
                 peak, at = take["movements"][column]
                 seen = moved({column: plain[column]}, levels)[column] if column in plain else None
@@ -333,8 +334,8 @@ def probes(folders: list[str]) -> None:
                 cells.append(
                     f"{chin[peak_frame]:.3f} (frame {rows[0] + peak_frame})" if column == "MouthShrugLower" else ""
                 )
-                made = moved({column: animated[column]}, levels)[column] if column in animated else None
-                cells.append(f"{made['peak']:.4f} / {made['level']:.4f}" if made else "-")
+                made = take["character_movements"].get(column)
+                cells.append(f"{made[0]:.4f} / {made[1]:.4f}" if made else "-")
                 print(f"| {Path(label).stem} | {column} | " + " | ".join(cells) + " |")
     character, tracks = runs[0].artifact("capture_character"), runs[0].artifact("capture_track")
     rows = np.flatnonzero(np.asarray(tracks["sequence"]) == 0)

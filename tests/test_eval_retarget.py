@@ -276,6 +276,26 @@ def test_a_movement_the_animation_never_makes_is_a_dead_column_where_moved(chara
     assert evaluate(character, performance(character, smiling), smiling).metrics["dead_arkit_moved"] == 0
 
 
+def test_a_movement_other_morphs_make_is_told_from_one_missing(character, truth):
+    """The performer raises its left upper lip (mouthUpperUp_L 0.8, frames 0-12), which lifts the nostril wing
+    with it: NoseSneerLeft's probe moves. An animation with the same weights leaves the NoseSneerLeft column dead
+    where the performer moved it, but the character's face makes the movement (through mouthUpperUp): made, not
+    missing. Without the lip raise the movement is missing."""
+    weights, _, _ = truth
+    names = character.meta["target_names"]
+    raised = weights.copy()
+    raised[0:13, names.index("mouthUpperUp_L")] = 0.8
+    tracks = performance(character, raised)
+    made = evaluate(character, tracks, raised)
+    take = made.meta["takes"]["take"]["columns"]
+    assert "NoseSneerLeft" in take["dead_moved"] and "NoseSneerLeft" in take["dead_moved_made"]
+    assert made.metrics["dead_arkit_moved"] >= 1 and made.metrics["dead_arkit_moved_missing"] == 0
+    missing = evaluate(character, tracks, weights)
+    take = missing.meta["takes"]["take"]["columns"]
+    assert "NoseSneerLeft" in take["dead_moved"] and "NoseSneerLeft" not in take["dead_moved_made"]
+    assert missing.metrics["dead_arkit_moved_missing"] >= 1
+
+
 def test_without_a_facemesh_only_the_eyes_are_probed(character, truth):
     weights, _, _ = truth
     out = evaluate(character, performance(character, weights, mesh=False), weights)
@@ -362,6 +382,35 @@ def test_probes_see_each_movement_and_not_the_jaw(character):
     assert moved_columns(None) == {"JawOpen"}
     for morph, column in PROBED.items():
         assert column in moved_columns(morph), morph
+
+
+def test_another_face_is_read_with_the_performers_regressions():
+    """Known answers for ``probes_read_on``: the performer's own motion read this way gives its probes exactly. A
+    face whose jaw lowers the lip corners by 0.44 of the chin's drop, where the performer's lowers them by 0.6,
+    reads by its own regression as making no corner movement; read with the performer's, its corners rise by
+    0.16 of the chin's drop above where the performer's jaw would put them (what the performer's probe reads)."""
+    from stages.retarget.movements import landmark_probes, probes_read_on
+
+    frames = 60
+    chin = 0.15 * np.clip(np.sin(2 * np.pi * np.arange(frames) / 20), 0, None)
+    rest = np.random.default_rng(0).normal(scale=0.3, size=(68, 3))
+
+    def talking(corner_share):
+        d = np.zeros((frames, 68, 3))
+        d[:, 8, 1] = -chin
+        d[:, [48, 54], 1] = -corner_share * chin[:, None]
+        return rest + d
+
+    performer, other = talking(0.6), talking(0.44)
+    own = landmark_probes(performer, rest, chin, 0.03)
+    same = probes_read_on(performer, rest, chin, 0.03, performer - rest, chin)
+    assert same.keys() == own.keys()
+    for column in own:
+        np.testing.assert_allclose(same[column], own[column], atol=1e-12, err_msg=column)
+    assert np.abs(landmark_probes(other, rest, chin, 0.03)["MouthSmileLeft"]).max() < 1e-9
+    read = probes_read_on(performer, rest, chin, 0.03, other - rest, chin)
+    np.testing.assert_allclose(read["MouthSmileLeft"], 0.16 * chin, atol=1e-9)
+    np.testing.assert_allclose(read["MouthSmileRight"], 0.16 * chin, atol=1e-9)
 
 
 def test_the_cheek_a_smile_lifts_is_no_cheek_squint():

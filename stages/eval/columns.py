@@ -5,6 +5,8 @@ taken out) and the eye outputs of tracking; ``stages.eval.retarget`` calls these
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from stages.eval.events import eye_aperture, pearson
@@ -26,25 +28,73 @@ def performer_shapes(tracks_mesh, rows: np.ndarray, camera: np.ndarray, focal: s
     return head_frame_shapes(undo_perspective(mesh, scaled), EXTRA_VERTICES), used
 
 
-def take_movements(data: dict, rows: np.ndarray, gap: np.ndarray, params) -> tuple[dict, dict, float | None]:
-    """Per ARKit column with a probe: did the performer make that movement in this take
-    (``stages.retarget.movements``)? With the probes themselves (column -> (frames,)) and the focal length the
-    probes took the perspective out with (None without a FaceMesh)."""
+@dataclass(frozen=True)
+class PerformerFrame:
+    """One take's performer as the probes read it: head-frame shapes (frames, 68 + cheek points, 3) in IOD, the
+    closed-mouth frames its rest is the mean of, that rest, and the focal length the perspective came out with."""
+
+    shapes: np.ndarray
+    rest_frames: np.ndarray
+    rest: np.ndarray
+    focal: float
+
+
+def performer_frame(data: dict, rows: np.ndarray, params) -> PerformerFrame | None:
+    """The take's ``PerformerFrame`` from its FaceMesh (None without one: 2D landmarks read a turn of the head
+    as a sideways jaw or a frown)."""
     from stages.retarget.face_measures import rest_frames, rest_pose
-    from stages.retarget.movements import MovedLevels, eye_probes, landmark_probes, moved
     from stages.retarget.shapes3d import front_view
 
-    probes, focal = {}, None
-    if data.get("mesh") is not None:  # 2D landmarks read a turn of the head as a sideways jaw or a frown
-        camera = data["camera"][np.flatnonzero(rows)[0]]
-        shapes, focal = performer_shapes(data["mesh"], rows, camera, params.probe_focal)
-        rest = rest_pose(shapes, rest_frames(front_view(shapes[:, :68])), params.brow_rest)
-        probes = landmark_probes(shapes, rest, gap[rows], params.closure_gap)
+    if data.get("mesh") is None:
+        return None
+    camera = data["camera"][np.flatnonzero(rows)[0]]
+    shapes, focal = performer_shapes(data["mesh"], rows, camera, params.probe_focal)
+    closed = rest_frames(front_view(shapes[:, :68]))
+    return PerformerFrame(shapes, closed, rest_pose(shapes, closed, params.brow_rest), focal)
+
+
+def take_movements(data: dict, rows: np.ndarray, gap: np.ndarray, performer: PerformerFrame | None, params):
+    """Per ARKit column with a probe: did the performer make that movement in this take
+    (``stages.retarget.movements``)? With the probes themselves (column -> (frames,))."""
+    from stages.retarget.movements import eye_probes, landmark_probes, moved
+
+    probes = {}
+    if performer is not None:
+        probes = landmark_probes(performer.shapes, performer.rest, gap[rows], params.closure_gap)
     aperture = data["aperture"][rows] if data["aperture"] is not None else eye_aperture(data["landmarks"][rows])
     gaze = data["gaze"][rows] if data["gaze"] is not None else None
     probes.update(eye_probes(aperture, gaze))
-    levels = MovedLevels(params.moved_level, params.moved_closure, params.moved_degrees, params.moved_frames)
-    return moved(probes, levels), probes, focal
+    return moved(probes, moved_levels(params)), probes
+
+
+def moved_levels(params):
+    """The evaluation's ``MovedLevels`` from its params."""
+    from stages.retarget.movements import MovedLevels
+
+    return MovedLevels(params.moved_level, params.moved_closure, params.moved_degrees, params.moved_frames)
+
+
+def character_movements(data: dict, weights: np.ndarray, performer: PerformerFrame, gaps: tuple, params) -> dict:
+    """The landmark movements the character's animation makes in one take, whichever morphs make them, measured
+    as the performer's are: its landmark vertices (and those nearest to the performer's cheek points) under
+    ``weights`` (frames, M), each frame carried onto the performer's rest by the similarity of the rigid points
+    (so a rigid point that moves tilts the head frame as it does the performer's), taken from their pose at the
+    performer's rest frames and read by the performer's probes (``movements.probes_read_on``). ``gaps``: the
+    performer's and the character's inner-lip gaps / IOD over the take's frames."""
+    from stages.retarget.face_measures import rest_pose
+    from stages.retarget.movements import moved, probes_read_on
+    from stages.retarget.region_fit import Rig3D
+    from stages.retarget.shapes3d import similarity_align
+
+    rest = performer.rest
+    if len(rest) > 68:
+        rig = Rig3D.build_with_points_near(data["neutral"], data["deltas"], data["landmark_ids"], rest[None])
+    else:
+        rig = Rig3D.build(data["neutral"], data["deltas"], data["landmark_ids"])
+    animated = similarity_align(rig.rest[None] + rig.motion(weights), rest)
+    motion = animated - rest_pose(animated, performer.rest_frames, params.brow_rest)
+    probes = probes_read_on(performer.shapes, rest, gaps[0], params.closure_gap, motion, gaps[1])
+    return moved(probes, moved_levels(params))
 
 
 def column_following(arkit: np.ndarray, columns: list[str], probes: dict, movements: dict) -> dict[str, list[float]]:
@@ -61,11 +111,16 @@ def column_following(arkit: np.ndarray, columns: list[str], probes: dict, moveme
     return out
 
 
-def dead_where_moved(arkit: np.ndarray, columns: list[str], movements: dict, rows: np.ndarray, level: float) -> dict:
+def dead_where_moved(
+    arkit: np.ndarray, columns: list[str], movements: dict, rows: np.ndarray, level: float, made: dict | None = None
+) -> dict:
     """One take's ARKit columns sorted by what the animation and the performer did: ``dead_moved`` (never above
-    ``level`` though the performer made the movement), ``dead_not_moved``, ``dead_unmeasured`` (no probe)."""
+    ``level`` though the performer made the movement), ``dead_not_moved``, ``dead_unmeasured`` (no probe); of the
+    ``dead_moved``, ``dead_moved_made``: those whose movement the character's face makes all the same, through
+    other morphs (``made``: ``character_movements``)."""
     peak = np.asarray(arkit)[rows].max(axis=0, initial=0.0)
-    out = {"dead_moved": [], "dead_not_moved": [], "dead_unmeasured": [], "moved": [], "measured": []}
+    out: dict[str, list[str]] = {k: [] for k in ("dead_moved", "dead_moved_made", "dead_not_moved", "dead_unmeasured")}
+    out.update(moved=[], measured=[])
     for c, column in enumerate(columns):
         if movements.get(column) is not None:
             out["measured"].append(column)
@@ -76,22 +131,30 @@ def dead_where_moved(arkit: np.ndarray, columns: list[str], movements: dict, row
             continue
         key = "dead_unmeasured" if probe is None else "dead_moved" if probe["moved"] else "dead_not_moved"
         out[key].append(column)
+        if key == "dead_moved" and (made or {}).get(column, {}).get("moved"):
+            out["dead_moved_made"].append(column)
     return out
 
 
 def pooled_dead(takes: dict, arkit: np.ndarray, columns: list[str], level: float) -> dict[str, float]:
     """Dead ARKit columns over all takes: never above ``level`` anywhere (``dead_arkit_columns``), dead in some take
-    where the performer made the movement (``dead_arkit_moved``), dead everywhere and the movement never made
-    (``dead_arkit_not_moved``), and the share of (take, column) movements the animation never showed."""
+    where the performer made the movement (``dead_arkit_moved``; ``dead_arkit_moved_missing``: of those, the ones
+    whose movement the character's face did not make through other morphs either, in some take), dead everywhere
+    and the movement never made (``dead_arkit_not_moved``), and the share of (take, column) movements the
+    animation never showed."""
     peak = np.asarray(arkit).max(axis=0, initial=0.0)
     dead = {c for c, p in zip(columns, peak) if p < level}
     moved_anywhere = {c for t in takes.values() for c in t["columns"]["moved"]}
     dead_moved = {c for t in takes.values() for c in t["columns"]["dead_moved"]}
+    missing = {
+        c for t in takes.values() for c in set(t["columns"]["dead_moved"]) - set(t["columns"]["dead_moved_made"])
+    }
     measured = {c for t in takes.values() for c in t["columns"]["measured"]}
     moves = sum(len(t["columns"]["moved"]) for t in takes.values())
     return {
         "dead_arkit_columns": float(len(dead)),
         "dead_arkit_moved": float(len(dead_moved)),
+        "dead_arkit_moved_missing": float(len(missing)),
         "dead_arkit_not_moved": float(len((dead & measured) - moved_anywhere)),
         "dead_arkit_unmeasured": float(len(dead - measured)),
         "moved_arkit_columns": float(len(moved_anywhere)),

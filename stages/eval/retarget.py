@@ -32,7 +32,11 @@ first aligned to that model by a 3D similarity on the rigid landmarks), then com
   probes are not specific to one morph (below), so a low r flags a column to look at, not a proven fault.
 - **dead ARKit columns**: columns (the export's mapping, ``stages.formats.live_link``) that never exceed
   ``dead_level`` in a take, sorted by whether the performer made that movement there (the movement probes of
-  ``stages.retarget.movements`` on the tracked FaceMesh; eyes from ``eye_aperture`` and ``gaze``).
+  ``stages.retarget.movements`` on the tracked FaceMesh; eyes from ``eye_aperture`` and ``gaze``). A column dead
+  where moved is *made* when the character's face makes the movement all the same, through other morphs: its
+  landmark vertices under the animation, aligned and read by the performer's own probes
+  (``columns.character_movements``; ``dead_arkit_moved_missing`` counts the others, the movements the animation
+  lacks; the reading per column in ``meta["takes"][...]["character_movements"]``).
 - **keyshape residual**: the decomposition residual (Eq 8) of the keyshapes artifact, when given.
 
 Pooled over the takes as stage metrics, per take in ``meta["takes"]``.
@@ -47,8 +51,10 @@ from pydantic import Field, model_validator
 
 from msflow import Input, Output, Result, Stage, UserError
 from stages.eval.columns import (
+    character_movements,
     column_following,
     dead_where_moved,
+    performer_frame,
     pooled_dead,
     pooled_following,
     take_movements,
@@ -433,13 +439,24 @@ def evaluate(params, **data) -> dict:
     takes, labels = {}, data["labels"]
     for take in np.unique(sequence):
         rows = sequence == take
-        movements, probes, focal = take_movements(data, rows, context["performer_gap"], params)
-        dead = dead_where_moved(arkit, columns, movements, rows, params.dead_level)
+        performer = performer_frame(data, rows, params)
+        movements, probes = take_movements(data, rows, context["performer_gap"], performer, params)
+        made = None
+        if performer is not None:
+            gaps = (context["performer_gap"][rows], context["character_gap"][rows])
+            made = character_movements(data, weights[rows], performer, gaps, params)
+        dead = dead_where_moved(arkit, columns, movements, rows, params.dead_level, made)
+        focal = None if performer is None else performer.focal
         label = labels[take] if take < len(labels) else f"take{take}"
         takes[label] = {
             "metrics": summary(params, data, frames, context, rows),
             "columns": dead,
             "movements": {c: [round(v["peak"], 4), round(v["level"], 4)] for c, v in movements.items()},
+            "character_movements": {
+                c: [round(made[c]["peak"], 4), round(made[c]["level"], 4)]
+                for c in dead["dead_moved"]
+                if made is not None and c in made
+            },
             "following": column_following(arkit[rows], columns, probes, movements),
             "probe_focal_length": None if focal is None or not np.isfinite(focal) else round(focal, 1),
         }
@@ -614,6 +631,8 @@ def pack_evaluation(metrics, takes, context, frames, dead_morphs, data) -> dict:
     for take in takes.values():
         for key in ("dead_moved", "dead_not_moved", "dead_unmeasured"):
             take["metrics"][key.replace("dead_", "dead_arkit_")] = float(len(take["columns"][key]))
+        missing = len(take["columns"]["dead_moved"]) - len(take["columns"]["dead_moved_made"])
+        take["metrics"]["dead_arkit_moved_missing"] = float(missing)
     blinks = event_agreement(context["performer_blinks"], context["character_blinks"], 0)
     meta = {
         "regions": list(EVAL_REGIONS),

@@ -116,25 +116,30 @@ LIPS = tuple(range(48, 68))
 INNER_GAP = ((61, 67), (62, 66), (63, 65))
 
 
-def jaw_free(values: np.ndarray, chin_down: np.ndarray, rounds: int = 8) -> np.ndarray:
+def jaw_free(values: np.ndarray, chin_down: np.ndarray, rounds: int = 8, fit: np.ndarray | None = None) -> np.ndarray:
     """``values`` (frames,) less their regression on the chin drop over the frames given: the part of a measure
     the jaw opening does not explain (at the rest, where the chin is up, the measure is kept). The slope is a
     robust one (Huber's, by iteratively reweighted least squares, scale from the residuals' MAD): a smile held
     while talking must not teach the regression that the jaw lifts the corners, or every later open vowel would
-    read as a frown."""
+    read as a frown. ``fit`` (frames,) bool: learn the slope on those frames only and take it out of all of them
+    (``probes_read_on``: another face read with the performer's regressions)."""
     x, y = np.asarray(chin_down, np.float64), np.asarray(values, np.float64)
-    weights = np.ones_like(x)
+    learn = np.ones(len(x), bool) if fit is None else np.asarray(fit, bool)
+    xs, ys = x[learn], y[learn]
+    weights = np.ones_like(xs)
     slope = 0.0
     for _ in range(rounds):
-        mx, my = (weights @ x) / weights.sum(), (weights @ y) / weights.sum()
-        slope = float((weights * (x - mx)) @ (y - my) / max(float((weights * (x - mx)) @ (x - mx)), 1e-12))
-        residual = y - my - slope * (x - mx)
+        mx, my = (weights @ xs) / weights.sum(), (weights @ ys) / weights.sum()
+        slope = float((weights * (xs - mx)) @ (ys - my) / max(float((weights * (xs - mx)) @ (xs - mx)), 1e-12))
+        residual = ys - my - slope * (xs - mx)
         scale = 1.4826 * np.median(np.abs(residual - np.median(residual))) + 1e-12
         weights = np.minimum(1.0, 1.345 * scale / np.maximum(np.abs(residual), 1e-300))
     return y - slope * x
 
 
-def landmark_probes(shapes: np.ndarray, rest: np.ndarray, lip_gap: np.ndarray, closure_gap: float) -> dict:
+def landmark_probes(
+    shapes: np.ndarray, rest: np.ndarray, lip_gap: np.ndarray, closure_gap: float, fit: np.ndarray | None = None
+) -> dict:
     """Column -> per-frame movement (frames,) in IOD from one take's head-frame shapes (frames, 68, 3) and its
     rest (68, 3); ``lip_gap`` (frames,) the inner-lip gap / IOD (``MOVEMENT_TABLE`` says what each one is). With
     the ``EXTRA_VERTICES`` after the 68 points (frames, 68 + 12, 3), the cheeks too."""
@@ -146,30 +151,48 @@ def landmark_probes(shapes: np.ndarray, rest: np.ndarray, lip_gap: np.ndarray, c
     sideways = lips_sideways - d[:, CHIN, 0]
     out = {
         "JawOpen": chin_down,
-        "JawForward": jaw_free(d[:, CHIN, 2], chin_down),
+        "JawForward": jaw_free(d[:, CHIN, 2], chin_down, fit=fit),
         "JawLeft": d[:, CHIN, 0],
         "JawRight": -d[:, CHIN, 0],
         "MouthClose": np.where(closed, chin_down - lip_gap, 0.0),
         "MouthLeft": sideways,
         "MouthRight": -sideways,
         "MouthShrugLower": -chin_down,
-        "MouthShrugUpper": jaw_free(d[:, 51, 1], chin_down),
+        "MouthShrugUpper": jaw_free(d[:, 51, 1], chin_down, fit=fit),
         "MouthRollUpper": -(d[:, 51, 1] - d[:, 62, 1]),
         "MouthRollLower": -(d[:, 66, 1] - d[:, 57, 1]),
         "BrowInnerUp": d[:, [21, 22], 1].mean(axis=1),
     }
     width = np.linalg.norm(shapes[:, 54] - shapes[:, 48], axis=-1) - np.linalg.norm(rest[54] - rest[48])
-    out["MouthPucker"] = jaw_free(-width, chin_down)
+    out["MouthPucker"] = jaw_free(-width, chin_down, fit=fit)
     forward = d[:, [50, 51, 52, 56, 57, 58], 2].mean(axis=1)
-    out["MouthFunnel"] = np.where(closed, 0.0, jaw_free(forward, chin_down))
+    out["MouthFunnel"] = np.where(closed, 0.0, jaw_free(forward, chin_down, fit=fit))
     for side, p in SIDE_POINTS.items():
-        out.update({f"{name}{side}": value for name, value in side_probes(d, shapes, rest, p, chin_down, closed)})
+        out.update({f"{name}{side}": value for name, value in side_probes(d, shapes, rest, p, chin_down, closed, fit)})
     if d.shape[1] >= 68 + len(EXTRA_VERTICES):
-        out.update(cheek_probes(d, chin_down))
+        out.update(cheek_probes(d, chin_down, fit=fit))
     return out
 
 
-def cheek_probes(d: np.ndarray, chin_down: np.ndarray) -> dict:
+def probes_read_on(
+    shapes: np.ndarray, rest: np.ndarray, lip_gap: np.ndarray, closure_gap: float, motion: np.ndarray, gap: np.ndarray
+) -> dict:
+    """The landmark probes of another face's ``motion`` (frames, 68 [+ 12], 3: its deformation from its own rest,
+    in the performer's head frame and IOD units; e.g. the character's animation) as the performer's probes read
+    it: on the performer's rest, with each jaw-free probe's slope learned on the performer's ``shapes`` and
+    ``rest`` (``landmark_probes``) and the lips' closed height the performer's. A face whose jaw lowers the lip
+    corners less than the performer's jaw does reads, by its own regression, as making no smile where the
+    performer's probe reads one, though both corners sit at the same place; read this way it makes the same
+    movement. ``gap`` (frames,) is that face's inner-lip gap / IOD."""
+    points = np.shape(motion)[1]  # without the cheek points the other face is read on the 68
+    rest = np.asarray(rest, np.float64)[:points]
+    stacked = np.concatenate([np.asarray(shapes, np.float64)[:, :points], rest + np.asarray(motion, np.float64)])
+    fit = np.arange(len(stacked)) < len(shapes)
+    gaps = np.concatenate([np.asarray(lip_gap, np.float64), np.asarray(gap, np.float64)])
+    return {c: v[len(shapes) :] for c, v in landmark_probes(stacked, rest, gaps, closure_gap, fit=fit).items()}
+
+
+def cheek_probes(d: np.ndarray, chin_down: np.ndarray, fit: np.ndarray | None = None) -> dict:
     """CheekPuff (both mid-cheeks outwards and forward beyond what a smile's corner rise explains, one column)
     and CheekSquint per side (the skin below the lower lid up), jaw-free, from the ``EXTRA_VERTICES`` of
     deformations ``d`` (frames, 68 + 12, 3)."""
@@ -180,23 +203,24 @@ def cheek_probes(d: np.ndarray, chin_down: np.ndarray) -> dict:
     out, puff = {}, []
     for side, p in SIDE_POINTS.items():
         bulge = (p["out"] * d[:, points(side, "puff"), 0] + d[:, points(side, "puff"), 2]).mean(axis=1)
-        smile = jaw_free(d[:, p["corner"], 1], chin_down)  # a smile bulges the cheeks too, lifting the corners
-        puff.append(jaw_free(bulge, chin_down) - np.maximum(smile, 0.0))
-        lift = jaw_free(d[:, points(side, "raise"), 1].mean(axis=1), chin_down)
+        smile = jaw_free(d[:, p["corner"], 1], chin_down, fit=fit)  # a smile bulges the cheeks too, lifting the corners
+        puff.append(jaw_free(bulge, chin_down, fit=fit) - np.maximum(smile, 0.0))
+        lift = jaw_free(d[:, points(side, "raise"), 1].mean(axis=1), chin_down, fit=fit)
         out[f"CheekSquint{side}"] = lift - SMILE_CHEEK_LIFT * np.maximum(smile, 0.0)
     out["CheekPuff"] = 0.5 * (puff[0] + puff[1])
     return out
 
 
-def side_probes(d, shapes, rest, p, chin_down, closed):
+def side_probes(d, shapes, rest, p, chin_down, closed, fit=None):
     """(name, movement) of one side's probes (``landmark_probes``)."""
     corner = p["corner"]
-    rise = jaw_free(d[:, corner, 1], chin_down)
-    outwards = jaw_free(p["out"] * (d[:, corner, 0] - d[:, list(LIPS), 0].mean(axis=1)), chin_down)
-    back = jaw_free(-d[:, corner, 2], chin_down)
+    rise = jaw_free(d[:, corner, 1], chin_down, fit=fit)
+    outwards = jaw_free(p["out"] * (d[:, corner, 0] - d[:, list(LIPS), 0].mean(axis=1)), chin_down, fit=fit)
+    back = jaw_free(-d[:, corner, 2], chin_down, fit=fit)
     eye_line = d[:, list(p["eye"]), 1].mean(axis=1)
     height = shapes[:, p["upper"], 1] - shapes[:, p["lower"], 1]
-    closed_height = np.median(height[closed]) if closed.any() else 0.0  # the lips' usual height when closed
+    learned = closed if fit is None else closed & fit
+    closed_height = np.median(height[learned]) if learned.any() else 0.0  # the lips' usual height when closed
     brow = d[:, list(p["brow"])]
     return [
         ("MouthSmile", rise),
@@ -204,13 +228,13 @@ def side_probes(d, shapes, rest, p, chin_down, closed):
         ("MouthStretch", outwards - np.maximum(rise, 0.0)),
         ("MouthDimple", back - np.maximum(rise, 0.0)),
         ("MouthPress", np.where(closed, closed_height - height, 0.0)),
-        ("MouthLowerDown", jaw_free(-d[:, p["lower"], 1], chin_down)),
-        ("MouthUpperUp", jaw_free(d[:, p["upper"], 1], chin_down)),
+        ("MouthLowerDown", jaw_free(-d[:, p["lower"], 1], chin_down, fit=fit)),
+        ("MouthUpperUp", jaw_free(d[:, p["upper"], 1], chin_down, fit=fit)),
         ("EyeSquint", d[:, list(p["lid_low"]), 1].mean(axis=1) - eye_line),
         ("EyeWide", d[:, list(p["lid_up"]), 1].mean(axis=1) - eye_line),
         ("BrowDown", (-brow[..., 1] - p["out"] * brow[..., 0]).mean(axis=1)),
         ("BrowOuterUp", d[:, p["outer_brow"], 1]),
-        ("NoseSneer", jaw_free(d[:, p["nostril"], 1], chin_down)),
+        ("NoseSneer", jaw_free(d[:, p["nostril"], 1], chin_down, fit=fit)),
     ]
 
 
