@@ -59,6 +59,7 @@ COLUMNS = [
         ("following_r_median", "following_r_median_shifted", "following_weak"),
         "{:.2f} ({:.2f}); {:.0%}",
     ),
+    ("movement gain; below 0.5", ("movement_gain_median", "movement_gain_below_half"), "{:.2f}; {:.0%}"),
 ]
 
 
@@ -107,17 +108,22 @@ def following_report(name: str, view) -> list[str]:
     """Per ARKit column, how closely it follows the movement the performer made (the takes where the probe moved):
     the median correlation of weight and probe over those takes, its chance level, and the weakest takes."""
     per_column: dict[str, list[tuple[float, float, str]]] = {}
+    gains: dict[str, list[float]] = {}
     for label, take in view.meta["takes"].items():
         for column, (r, shifted) in take.get("following", {}).items():
             per_column.setdefault(column, []).append((r, shifted, Path(label).stem))
+        for column, gain in take.get("movement_gains", {}).items():
+            gains.setdefault(column, []).append(gain)
     if not per_column:
         return []
-    lines = [f"**{name}**: how closely each column follows the movement where the performer made it", ""]
-    lines += ["| column | takes | median r | chance | weakest |", "|---|---|---|---|---|"]
+    lines = [f"**{name}**: how closely each column follows the movement where the performer made it, and how large"]
+    lines += ["the character's face makes it (movement gain: its probe's spread over the performer's)", ""]
+    lines += ["| column | takes | median r | chance | weakest | gain |", "|---|---|---|---|---|---|"]
     for column, values in sorted(per_column.items(), key=lambda kv: float(np.median([v[0] for v in kv[1]]))):
         weakest = ", ".join(f"{t} {r:+.2f}" for r, _, t in sorted(values)[:2])
         median, chance = np.median([v[0] for v in values]), np.median([v[1] for v in values])
-        lines.append(f"| {column} | {len(values)} | {median:+.2f} | {chance:+.2f} | {weakest} |")
+        gain = f"{np.median(gains[column]):.2f}" if column in gains else "-"
+        lines.append(f"| {column} | {len(values)} | {median:+.2f} | {chance:+.2f} | {weakest} | {gain} |")
     return lines + [""]
 
 

@@ -296,6 +296,24 @@ def test_a_movement_other_morphs_make_is_told_from_one_missing(character, truth)
     assert missing.metrics["dead_arkit_moved_missing"] >= 1
 
 
+def test_movement_gain_is_the_share_of_the_performers_movement(character, truth):
+    """Known answers: the character's own animation makes every movement the performer (the character itself)
+    made as large (gain 1); the same animation at half its weights makes each half as large."""
+    weights, _, _ = truth
+    names = character.meta["target_names"]
+    moving = weights.copy()
+    moving[0:13, names.index("mouthUpperUp_L")] = 0.8
+    moving[50:66, names.index("mouthSmile_R")] = 0.6
+    tracks = performance(character, moving)
+    for share in (1.0, 0.5):
+        out = evaluate(character, tracks, moving * share)
+        gains = out.meta["takes"]["take"]["movement_gains"]
+        assert {"JawOpen", "MouthUpperUpLeft", "MouthSmileLeft"} <= gains.keys(), gains
+        np.testing.assert_allclose(list(gains.values()), share, rtol=0.07, err_msg=str(gains))
+        assert out.metrics["movement_gain_median"] == pytest.approx(share, rel=0.02)
+        assert share < 1.0 or out.metrics["movement_gain_below_half"] == 0.0
+
+
 def test_without_a_facemesh_only_the_eyes_are_probed(character, truth):
     weights, _, _ = truth
     out = evaluate(character, performance(character, weights, mesh=False), weights)

@@ -74,13 +74,14 @@ def moved_levels(params):
     return MovedLevels(params.moved_level, params.moved_closure, params.moved_degrees, params.moved_frames)
 
 
-def character_movements(data: dict, weights: np.ndarray, performer: PerformerFrame, gaps: tuple, params) -> dict:
+def character_movements(data: dict, weights: np.ndarray, performer: PerformerFrame, gaps: tuple, params):
     """The landmark movements the character's animation makes in one take, whichever morphs make them, measured
     as the performer's are: its landmark vertices (and those nearest to the performer's cheek points) under
     ``weights`` (frames, M), each frame carried onto the performer's rest by the similarity of the rigid points
     (so a rigid point that moves tilts the head frame as it does the performer's), taken from their pose at the
     performer's rest frames and read by the performer's probes (``movements.probes_read_on``). ``gaps``: the
-    performer's and the character's inner-lip gaps / IOD over the take's frames."""
+    performer's and the character's inner-lip gaps / IOD over the take's frames. Returns ``moved`` of those probes
+    and the probes themselves (column -> (frames,))."""
     from stages.retarget.face_measures import rest_pose
     from stages.retarget.movements import moved, probes_read_on
     from stages.retarget.region_fit import Rig3D
@@ -94,7 +95,33 @@ def character_movements(data: dict, weights: np.ndarray, performer: PerformerFra
     animated = similarity_align(rig.rest[None] + rig.motion(weights), rest)
     motion = animated - rest_pose(animated, performer.rest_frames, params.brow_rest)
     probes = probes_read_on(performer.shapes, rest, gaps[0], params.closure_gap, motion, gaps[1])
-    return moved(probes, moved_levels(params))
+    return moved(probes, moved_levels(params)), probes
+
+
+def movement_gains(performer: dict, character: dict, movements: dict) -> dict[str, float]:
+    """Per column whose movement the performer made in a take (landmark probes the character is read by,
+    ``character_movements``): how large the character's movement is against the performer's, the standard
+    deviation of its probe over the take's frames over the performer's, the performer's taken without its
+    frame-to-frame jitter (``movements.jitter``: tracking noise the animation should not copy). 1: as large; the
+    slower part of the tracking noise still counts as movement, so a faithful animation reads somewhat below 1."""
+    from stages.retarget.movements import jitter
+
+    out = {}
+    for column, probe in performer.items():
+        if column not in character or not movements[column]["moved"]:
+            continue
+        spread = float(np.var(probe) - jitter(probe) ** 2)
+        if spread > 0:
+            out[column] = round(float(np.std(character[column]) / np.sqrt(spread)), 3)
+    return out
+
+
+def pooled_gains(takes: dict) -> dict[str, float]:
+    """The median of ``movement_gains`` over every (take, column) pair, and the share of pairs below a half."""
+    gains = np.array([g for t in takes.values() for g in t.get("movement_gains", {}).values()], np.float64)
+    if not gains.size:
+        return {}
+    return {"movement_gain_median": float(np.median(gains)), "movement_gain_below_half": float(np.mean(gains < 0.5))}
 
 
 def column_following(arkit: np.ndarray, columns: list[str], probes: dict, movements: dict) -> dict[str, list[float]]:

@@ -54,9 +54,11 @@ from stages.eval.columns import (
     character_movements,
     column_following,
     dead_where_moved,
+    movement_gains,
     performer_frame,
     pooled_dead,
     pooled_following,
+    pooled_gains,
     take_movements,
 )
 from stages.eval.events import (
@@ -441,10 +443,10 @@ def evaluate(params, **data) -> dict:
         rows = sequence == take
         performer = performer_frame(data, rows, params)
         movements, probes = take_movements(data, rows, context["performer_gap"], performer, params)
-        made = None
+        made, character_probes = None, {}
         if performer is not None:
             gaps = (context["performer_gap"][rows], context["character_gap"][rows])
-            made = character_movements(data, weights[rows], performer, gaps, params)
+            made, character_probes = character_movements(data, weights[rows], performer, gaps, params)
         dead = dead_where_moved(arkit, columns, movements, rows, params.dead_level, made)
         focal = None if performer is None else performer.focal
         label = labels[take] if take < len(labels) else f"take{take}"
@@ -458,11 +460,13 @@ def evaluate(params, **data) -> dict:
                 if made is not None and c in made
             },
             "following": column_following(arkit[rows], columns, probes, movements),
+            "movement_gains": movement_gains(probes, character_probes, movements),
             "probe_focal_length": None if focal is None or not np.isfinite(focal) else round(focal, 1),
         }
     metrics = summary(params, data, frames, context, np.ones(len(sequence), bool))
     metrics.update(pooled_dead(takes, arkit, columns, params.dead_level))
     metrics.update(pooled_following(takes))
+    metrics.update(pooled_gains(takes))
     peak = weights.max(axis=0, initial=0.0)
     dead_morphs = [n for n, p in zip(names, peak) if p < params.dead_level]
     metrics["dead_morphs"] = float(len(dead_morphs))
