@@ -1,7 +1,10 @@
 """Retargeting evaluation, the ARKit columns against the performer's movements: which columns never move in a take
-though the performer made their movement (dead where moved), and how closely each follows its movement over the
-frames. The movements are the probes of ``stages.retarget.movements`` on the tracked FaceMesh (pose and perspective
-taken out) and the eye outputs of tracking; ``stages.eval.retarget`` calls these per take and pools them."""
+though the performer made their movement (dead where moved), whether the character's face makes such a movement
+through other morphs all the same (made or missing), how closely each column follows its movement over the frames,
+and how large the face makes each movement (movement gain). The movements are the probes of
+``stages.retarget.movements`` on the tracked FaceMesh (pose and perspective taken out) and the eye outputs of
+tracking; the character's face is read by the same probes (``character_movements``); ``stages.eval.retarget``
+calls these per take and pools them."""
 
 from __future__ import annotations
 
