@@ -314,6 +314,27 @@ def test_movement_gain_is_the_share_of_the_performers_movement(character, truth)
         assert share < 1.0 or out.metrics["movement_gain_below_half"] == 0.0
 
 
+def test_movement_gain_leaves_blinks_out(character, truth, monkeypatch):
+    """The performer widens its eyes (frames 2-12); the animation does so too and blinks once more (36-38), as a
+    character whose lids follow the eye aperture closes them further than FaceMesh's lids go. Outside the blinks
+    the widening is as large (gain 1); over every frame the extra blink would read as a larger movement."""
+    import stages.eval.retarget as evaluation
+
+    weights, _, _ = truth
+    names = character.meta["target_names"]
+    wide = weights.copy()
+    wide[2:13, [names.index("eyeWide_L"), names.index("eyeWide_R")]] = 0.8
+    blinking = wide.copy()
+    blinking[36:39, [names.index("eyeBlink_L"), names.index("eyeBlink_R")]] = 1.0
+    tracks = performance(character, wide)
+    gains = evaluate(character, tracks, blinking).meta["takes"]["take"]["movement_gains"]
+    assert gains["EyeWideLeft"] == pytest.approx(1.0, abs=0.03) and gains["EyeWideRight"] == pytest.approx(
+        1.0, abs=0.03
+    )
+    monkeypatch.setattr(evaluation, "outside_blinks", lambda blinks, frames: np.ones(frames, bool))
+    assert evaluate(character, tracks, blinking).meta["takes"]["take"]["movement_gains"]["EyeWideLeft"] > 1.1
+
+
 def test_without_a_facemesh_only_the_eyes_are_probed(character, truth):
     weights, _, _ = truth
     out = evaluate(character, performance(character, weights, mesh=False), weights)

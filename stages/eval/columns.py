@@ -101,21 +101,31 @@ def character_movements(data: dict, weights: np.ndarray, performer: PerformerFra
     return moved(probes, moved_levels(params)), probes
 
 
-def movement_gains(performer: dict, character: dict, movements: dict) -> dict[str, float]:
+def movement_gains(performer: dict, character: dict, movements: dict, frames: np.ndarray) -> dict[str, float]:
     """Per column whose movement the performer made in a take (landmark probes the character is read by,
     ``character_movements``): how large the character's movement is against the performer's, the standard
-    deviation of its probe over the take's frames over the performer's, the performer's taken without its
-    frame-to-frame jitter (``movements.jitter``: tracking noise the animation should not copy). 1: as large; the
-    slower part of the tracking noise still counts as movement, so a faithful animation reads somewhat below 1."""
+    deviation of its probe over the take's ``frames`` (bool mask) over the performer's, the performer's taken
+    without its frame-to-frame jitter (``movements.jitter``: tracking noise the animation should not copy). 1: as
+    large; the slower part of the tracking noise still counts as movement, so a faithful animation reads somewhat
+    below 1."""
     from stages.retarget.movements import jitter
 
     out = {}
     for column, probe in performer.items():
         if column not in character or not movements[column]["moved"]:
             continue
-        spread = float(np.var(probe) - jitter(probe) ** 2)
+        own = np.asarray(probe)[frames]
+        spread = float(np.var(own) - jitter(own) ** 2)
         if spread > 0:
-            out[column] = round(float(np.std(character[column]) / np.sqrt(spread)), 3)
+            out[column] = round(float(np.std(np.asarray(character[column])[frames]) / np.sqrt(spread)), 3)
+    return out
+
+
+def outside_blinks(blinks: list[tuple[int, int]], frames: int, margin: int = 1) -> np.ndarray:
+    """(frames,) bool: the frames outside every blink event (start, stop), ``margin`` frames either side."""
+    out = np.ones(frames, bool)
+    for start, stop in blinks:
+        out[max(start - margin, 0) : stop + margin] = False
     return out
 
 

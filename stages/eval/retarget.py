@@ -55,6 +55,7 @@ from stages.eval.columns import (
     column_following,
     dead_where_moved,
     movement_gains,
+    outside_blinks,
     performer_frame,
     pooled_dead,
     pooled_following,
@@ -439,6 +440,8 @@ def evaluate(params, **data) -> dict:
     columns = [c for c in ARKIT_NAMES if c not in UNTRACKED_COLUMNS]
     arkit = arkit[:, [ARKIT_NAMES.index(c) for c in columns]]
     takes, labels = {}, data["labels"]
+    # the character's lids close as far as the eye aperture says, FaceMesh's lids less: gains outside blinks
+    still_lids = outside_blinks(context["performer_blinks"] + context["character_blinks"], len(sequence))
     for take in np.unique(sequence):
         rows = sequence == take
         performer = performer_frame(data, rows, params)
@@ -460,7 +463,7 @@ def evaluate(params, **data) -> dict:
                 if made is not None and c in made
             },
             "following": column_following(arkit[rows], columns, probes, movements),
-            "movement_gains": movement_gains(probes, character_probes, movements),
+            "movement_gains": movement_gains(probes, character_probes, movements, still_lids[rows]),
             "probe_focal_length": None if focal is None or not np.isfinite(focal) else round(focal, 1),
         }
     metrics = summary(params, data, frames, context, np.ones(len(sequence), bool))
