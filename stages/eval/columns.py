@@ -58,12 +58,13 @@ def performer_frame(data: dict, rows: np.ndarray, params) -> PerformerFrame | No
 
 def take_movements(data: dict, rows: np.ndarray, gap: np.ndarray, performer: PerformerFrame | None, params):
     """Per ARKit column with a probe: did the performer make that movement in this take
-    (``stages.retarget.movements``)? With the probes themselves (column -> (frames,))."""
+    (``stages.retarget.movements``)? With the probes themselves (column -> (frames,)). ``gap``: the take's
+    inner-lip gap / IOD."""
     from stages.retarget.movements import eye_probes, landmark_probes, moved
 
     probes = {}
     if performer is not None:
-        probes = landmark_probes(performer.shapes, performer.rest, gap[rows], params.closure_gap)
+        probes = landmark_probes(performer.shapes, performer.rest, gap, params.closure_gap)
     aperture = data["aperture"][rows] if data["aperture"] is not None else eye_aperture(data["landmarks"][rows])
     gaze = data["gaze"][rows] if data["gaze"] is not None else None
     probes.update(eye_probes(aperture, gaze))
@@ -91,10 +92,7 @@ def character_movements(data: dict, weights: np.ndarray, performer: PerformerFra
     from stages.retarget.shapes3d import similarity_align
 
     rest = performer.rest
-    if len(rest) > 68:
-        rig = Rig3D.build_with_points_near(data["neutral"], data["deltas"], data["landmark_ids"], rest[None])
-    else:
-        rig = Rig3D.build(data["neutral"], data["deltas"], data["landmark_ids"])
+    rig = Rig3D.build_with_points_near(data["neutral"], data["deltas"], data["landmark_ids"], rest[None])
     animated = similarity_align(rig.rest[None] + rig.motion(weights), rest)
     motion = animated - rest_pose(animated, performer.rest_frames, params.brow_rest)
     probes = probes_read_on(performer.shapes, rest, gaps[0], params.closure_gap, motion, gaps[1])

@@ -445,10 +445,10 @@ def evaluate(params, **data) -> dict:
     for take in np.unique(sequence):
         rows = sequence == take
         performer = performer_frame(data, rows, params)
-        movements, probes = take_movements(data, rows, context["performer_gap"], performer, params)
+        gaps = (context["performer_gap"][rows], context["character_gap"][rows])
+        movements, probes = take_movements(data, rows, gaps[0], performer, params)
         made, character_probes = None, {}
         if performer is not None:
-            gaps = (context["performer_gap"][rows], context["character_gap"][rows])
             made, character_probes = character_movements(data, weights[rows], performer, gaps, params)
         dead = dead_where_moved(arkit, columns, movements, rows, params.dead_level, made)
         focal = None if performer is None else performer.focal

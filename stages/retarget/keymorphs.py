@@ -182,7 +182,7 @@ class _KeymorphStage(Stage):
             if "keyshape_cheeks3d" in keyshapes and "keyshape_cheek_rest3d" in keyshapes:
                 shapes3d = np.concatenate([shapes3d, np.asarray(keyshapes["keyshape_cheeks3d"], np.float64)], 1)
                 rests3d = np.concatenate([rests3d, np.asarray(keyshapes["keyshape_cheek_rest3d"], np.float64)], 1)
-            rig3d = Rig3D.build_with_points_near(*mesh, rests3d) if rests3d.shape[1] > 68 else Rig3D.build(*mesh)
+            rig3d = Rig3D.build_with_points_near(*mesh, rests3d)
             return Prepared(
                 "3d", rig, shapes, scale, None, "not needed: the 3D keyshapes are in the head's frame", rig3d,
                 rig3d.deformations(shapes3d, rests3d), shapes3d, rests3d,

@@ -103,9 +103,12 @@ class Rig3D:
     def build_with_points_near(cls, neutral, deltas, landmark_ids, rests: np.ndarray) -> Rig3D:
         """The rig of the 68 landmark vertices followed by the character's vertices nearest to the performer's
         points beyond 68 (``rests`` (R, P, 3), head frame), each rest carried onto the character by the similarity
-        of its rigid points (``to_character``) and the carried points averaged over the rests."""
+        of its rigid points (``to_character``) and the carried points averaged over the rests. Rests of the 68
+        points alone give the rig of the 68."""
         neutral, rests = np.asarray(neutral, np.float64), np.asarray(rests, np.float64)
         landmarks = cls.build(neutral, deltas, landmark_ids)
+        if rests.shape[1] <= 68:
+            return landmarks
         unique = np.unique(rests.reshape(len(rests), -1), axis=0).reshape(-1, *rests.shape[1:])
         carried = np.mean([landmarks.to_character(r[:68]).apply(r[68:]) for r in unique], axis=0)
         nearest = [int(np.argmin(((neutral - p) ** 2).sum(axis=1))) for p in carried]
