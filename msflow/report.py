@@ -107,38 +107,43 @@ def render_stage_figures(job: dict[str, Any]) -> list[dict[str, Any]]:
         key = figure_key(entry["key"], entry["uses"], name)
         started = time.perf_counter()
         if store.has(key):
-            cached = store.open(key)
-            out.append(
-                {
-                    "name": name,
-                    "key": key,
-                    "media": cached.meta["media"],
-                    "cached": True,
-                    "seconds": time.perf_counter() - started,
-                }
-            )
+            out.append(_cached_figure_item(store, key, name, started))
             continue
         try:
-            if view is None:
+            if view is None:  # opened once, and only if some figure is not cached
                 view = store.open(entry["key"])
                 inputs = stage_inputs(record, stage, store, Path(job["root"]))
             media, data = to_media(func(view, inputs))
         except Exception as exc:
             out.append({"name": name, "error": f"{type(exc).__name__}: {exc}", "seconds": 0.0})
             continue
-        import numpy as np
-
-        with store.lock(key):
-            if not store.has(key):
-                store.write(
-                    key,
-                    {"data": np.frombuffer(data, np.uint8)},
-                    {"meta": {"media": media, "stage": stage, "figure": name, "stage_key": entry["key"]}},
-                )
+        meta = {"media": media, "stage": stage, "figure": name, "stage_key": entry["key"]}
+        _store_figure(store, key, data, meta)
         out.append(
             {"name": name, "key": key, "media": media, "cached": False, "seconds": time.perf_counter() - started}
         )
     return out
+
+
+def _cached_figure_item(store: Store, key: str, name: str, started: float) -> dict[str, Any]:
+    """A worker's answer for a figure already in the store."""
+    cached = store.open(key)
+    return {
+        "name": name,
+        "key": key,
+        "media": cached.meta["media"],
+        "cached": True,
+        "seconds": time.perf_counter() - started,
+    }
+
+
+def _store_figure(store: Store, key: str, data: bytes, meta: dict[str, Any]) -> None:
+    """Write a rendered figure under its key, unless another worker wrote it meanwhile."""
+    import numpy as np
+
+    with store.lock(key):
+        if not store.has(key):
+            store.write(key, {"data": np.frombuffer(data, np.uint8)}, {"meta": meta})
 
 
 def _render_job(job_json: str) -> str:
@@ -150,36 +155,57 @@ def _render_job(job_json: str) -> str:
 
 def collect_figures(session: Session, record: dict[str, Any], jobs: int) -> list[Figure]:
     """Figures of every settled stage of a run, rendered in parallel worker processes when ``jobs`` > 1."""
-    stages = [
+    stages = _settled_stages(session, record)
+    payloads = {s: _render_payload(session, record, s) for s in stages}
+    results: dict[str, list[dict[str, Any]]] = {}
+    pending = []
+    for stage in stages:  # cheap pass: stages whose figures are all cached need no worker
+        cached = _all_cached_items(session, stage, record["stages"][stage])
+        if cached is None:
+            pending.append(stage)
+        else:
+            results[stage] = cached
+    results.update(_render_pending(payloads, pending, jobs))
+    return _figures_from_items(session, stages, results)
+
+
+def _settled_stages(session: Session, record: dict[str, Any]) -> list[str]:
+    """The run's stages that ran or were cached and whose artifact is still in the store, in pipeline order."""
+    return [
         s
         for s in session.pipeline.stages
         if record["stages"].get(s, {}).get("state") in (StageStatus.CACHED, StageStatus.RAN)
         and session.store.has(record["stages"][s]["key"])
     ]
-    payloads = {
-        s: json.dumps(
-            {
-                "root": str(session.pipeline.root),
-                "store": session.store.url,
-                "store_options": session.store.options,
-                "record": _slim(record),
-                "stage": s,
-            }
-        )
-        for s in stages
-    }
+
+
+def _render_payload(session: Session, record: dict[str, Any], stage: str) -> str:
+    """The JSON job a figure worker gets for one stage (see ``render_stage_figures``)."""
+    return json.dumps(
+        {
+            "root": str(session.pipeline.root),
+            "store": session.store.url,
+            "store_options": session.store.options,
+            "record": _slim(record),
+            "stage": stage,
+        }
+    )
+
+
+def _all_cached_items(session: Session, stage: str, entry: dict[str, Any]) -> list[dict[str, Any]] | None:
+    """The worker's answer for a stage whose declared figures are all in the store, or None if one is missing."""
+    names = session.plans[stage].interface.get("figures") if stage in session.plans else None
+    if names and all(session.store.has(figure_key(entry["key"], entry["uses"], n)) for n in names):
+        return [
+            {"name": n, "key": figure_key(entry["key"], entry["uses"], n), "cached": True, "seconds": 0.0}
+            for n in names
+        ]
+    return None
+
+
+def _render_pending(payloads: dict[str, str], pending: list[str], jobs: int) -> dict[str, list[dict[str, Any]]]:
+    """Figure items of the ``pending`` stages: in a spawned process pool when ``jobs`` > 1 and it pays, else here."""
     results: dict[str, list[dict[str, Any]]] = {}
-    pending = []
-    for stage in stages:  # cheap pass: stages whose figures are all cached need no worker
-        entry = record["stages"][stage]
-        names = session.plans[stage].interface.get("figures") if stage in session.plans else None
-        if names and all(session.store.has(figure_key(entry["key"], entry["uses"], n)) for n in names):
-            results[stage] = [
-                {"name": n, "key": figure_key(entry["key"], entry["uses"], n), "cached": True, "seconds": 0.0}
-                for n in names
-            ]
-        else:
-            pending.append(stage)
     if jobs > 1 and len(pending) > 1:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
@@ -196,6 +222,11 @@ def collect_figures(session: Session, record: dict[str, Any], jobs: int) -> list
     else:
         for stage in pending:
             results[stage] = json.loads(_render_job(payloads[stage]))
+    return results
+
+
+def _figures_from_items(session: Session, stages: list[str], results: dict[str, list[dict[str, Any]]]) -> list[Figure]:
+    """The workers' items as Figures, stage by stage in ``stages`` order, their bytes read from the store."""
     figures = []
     for stage in stages:
         for item in results.get(stage, []):
@@ -217,11 +248,38 @@ def _slim(record: dict[str, Any]) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------------------------------------------- DAG svg
+_BOX_W, _BOX_H, _GAP_X, _GAP_Y = 128, 44, 40, 16  # a stage box in the graph and the space between boxes
+
+
 def dag_svg(pipeline: Pipeline, record: dict[str, Any]) -> str:
     """The stage graph as inline SVG: columns by dependency depth, boxes coloured by state, times inside."""
     from msflow.spec import topological_order
 
     order = topological_order(pipeline.stages)
+    columns = _dag_columns(pipeline, order)
+    pos = {}
+    for col, names in columns.items():
+        for row, name in enumerate(names):
+            pos[name] = (20 + col * (_BOX_W + _GAP_X), 20 + row * (_BOX_H + _GAP_Y))
+    width = 40 + len(columns) * (_BOX_W + _GAP_X)
+    height = 40 + max(len(v) for v in columns.values()) * (_BOX_H + _GAP_Y)
+    parts = [
+        f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
+        f'viewBox="0 0 {width} {height}" style="max-width:100%;height:auto" role="img" '
+        f'aria-label="stage graph">',
+        '<defs><marker id="arrow" viewBox="0 0 10 10" refX="10" refY="5" markerWidth="7" markerHeight="7" '
+        'orient="auto"><path d="M0,0 L10,5 L0,10 z" fill="#666"/></marker></defs>',
+    ]
+    for name in order:
+        parts.extend(_dag_edge(pos[dep], pos[name]) for dep in pipeline.stages[name].deps)
+    for name in order:
+        parts.append(_dag_box(name, pos[name], record["stages"].get(name, {})))
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+def _dag_columns(pipeline: Pipeline, order: list[str]) -> dict[int, list[str]]:
+    """Stages by dependency depth (column), each column ordered to keep edges short."""
     depth: dict[str, int] = {}
     for name in order:
         deps = pipeline.stages[name].deps
@@ -236,47 +294,36 @@ def dag_svg(pipeline: Pipeline, record: dict[str, Any]) -> str:
                 key=lambda n: sum(row_of[d] for d in pipeline.stages[n].deps) / max(1, len(pipeline.stages[n].deps))
             )
             row_of.update({n: i for i, n in enumerate(columns[col])})
-    box_w, box_h, gap_x, gap_y = 128, 44, 40, 16
-    pos = {}
-    for col, names in columns.items():
-        for row, name in enumerate(names):
-            pos[name] = (20 + col * (box_w + gap_x), 20 + row * (box_h + gap_y))
-    width = 40 + len(columns) * (box_w + gap_x)
-    height = 40 + max(len(v) for v in columns.values()) * (box_h + gap_y)
-    parts = [
-        f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
-        f'viewBox="0 0 {width} {height}" style="max-width:100%;height:auto" role="img" '
-        f'aria-label="stage graph">',
-        '<defs><marker id="arrow" viewBox="0 0 10 10" refX="10" refY="5" markerWidth="7" markerHeight="7" '
-        'orient="auto"><path d="M0,0 L10,5 L0,10 z" fill="#666"/></marker></defs>',
-    ]
-    for name in order:
-        x2, y2 = pos[name]
-        for dep in pipeline.stages[name].deps:
-            x1, y1 = pos[dep]
-            sx, sy, ex, ey = x1 + box_w, y1 + box_h / 2, x2, y2 + box_h / 2
-            mid = (sx + ex) / 2
-            parts.append(
-                f'<path d="M{sx},{sy} C{mid},{sy} {mid},{ey} {ex},{ey}" fill="none" stroke="#888" '
-                f'stroke-width="1.2" marker-end="url(#arrow)"/>'
-            )
-    for name in order:
-        x, y = pos[name]
-        entry = record["stages"].get(name, {})
-        state = entry.get("state", StageStatus.PENDING)
-        seconds = entry.get("seconds") or 0.0
-        timing = f"{seconds:.2f}s" if state in (StageStatus.RAN, StageStatus.FAILED) else state
-        parts.append(
-            f"<g><title>{html.escape(name)}: {html.escape(state)}</title>"
-            f'<rect x="{x}" y="{y}" width="{box_w}" height="{box_h}" rx="7" '
-            f'fill="{STATE_COLOURS.get(state, "#eee")}" stroke="#555"/>'
-            f'<text x="{x + box_w / 2}" y="{y + 18}" text-anchor="middle" font-size="13" '
-            f'font-family="sans-serif" font-weight="bold">{html.escape(name)}</text>'
-            f'<text x="{x + box_w / 2}" y="{y + 34}" text-anchor="middle" font-size="11" '
-            f'font-family="sans-serif">{html.escape(timing)}</text></g>'
-        )
-    parts.append("</svg>")
-    return "".join(parts)
+    return columns
+
+
+def _dag_edge(source: tuple[int, int], target: tuple[int, int]) -> str:
+    """An arrow from the right side of one box to the left side of another, as an S curve."""
+    x1, y1 = source
+    x2, y2 = target
+    sx, sy, ex, ey = x1 + _BOX_W, y1 + _BOX_H / 2, x2, y2 + _BOX_H / 2
+    mid = (sx + ex) / 2
+    return (
+        f'<path d="M{sx},{sy} C{mid},{sy} {mid},{ey} {ex},{ey}" fill="none" stroke="#888" '
+        f'stroke-width="1.2" marker-end="url(#arrow)"/>'
+    )
+
+
+def _dag_box(name: str, corner: tuple[int, int], entry: dict[str, Any]) -> str:
+    """A stage's box: its name, and its time if it ran or failed, else its state; coloured by state."""
+    x, y = corner
+    state = entry.get("state", StageStatus.PENDING)
+    seconds = entry.get("seconds") or 0.0
+    timing = f"{seconds:.2f}s" if state in (StageStatus.RAN, StageStatus.FAILED) else state
+    return (
+        f"<g><title>{html.escape(name)}: {html.escape(state)}</title>"
+        f'<rect x="{x}" y="{y}" width="{_BOX_W}" height="{_BOX_H}" rx="7" '
+        f'fill="{STATE_COLOURS.get(state, "#eee")}" stroke="#555"/>'
+        f'<text x="{x + _BOX_W / 2}" y="{y + 18}" text-anchor="middle" font-size="13" '
+        f'font-family="sans-serif" font-weight="bold">{html.escape(name)}</text>'
+        f'<text x="{x + _BOX_W / 2}" y="{y + 34}" text-anchor="middle" font-size="11" '
+        f'font-family="sans-serif">{html.escape(timing)}</text></g>'
+    )
 
 
 # ---------------------------------------------------------------------------------------------------------- page
@@ -315,51 +362,17 @@ def _media_html(fig: Figure) -> str:
 
 
 def run_page(session: Session, record: dict[str, Any], figures: list[Figure]) -> str:
+    """The report page of one run: header, failures, warnings, stage graph, stage table, metrics, figures."""
     pipeline = session.pipeline
     from msflow.spec import topological_order
 
     order = [s for s in topological_order(pipeline.stages) if s in record["stages"]]
     counts = ", ".join(f"{v} {k}" for k, v in record.get("counts", {}).items() if v)
-    rows = []
-    for name in order:
-        entry = record["stages"][name]
-        params = "\n".join(
-            f"{k}: {json.dumps(v)}" for k, v in (record["config"].get(name) or {}).get("params", {}).items()
-        )
-        rows.append(
-            f"<tr><td><b>{html.escape(name)}</b><br><span class='muted'>{html.escape(entry['uses'])}"
-            f"</span></td><td>{_state_badge(entry['state'])}</td><td>{entry.get('seconds', 0):.2f}s</td>"
-            f"<td><code>{html.escape(str(entry.get('key') or '')[:16])}</code></td>"
-            f"<td><pre>{html.escape(params)}</pre></td></tr>"
-        )
-    metric_rows = []
-    for name in order:
-        for metric, value in (record["stages"][name].get("metrics") or {}).items():
-            metric_rows.append(
-                f"<tr><td>{html.escape(name)}</td><td>{html.escape(metric)}</td><td>{_cell_html(value)}</td></tr>"
-            )
-    errors = [
-        f"<li><b>{html.escape(n)}</b>: {html.escape(str(record['stages'][n].get('error')))}</li>"
-        for n in order
-        if record["stages"][n]["state"] == StageStatus.FAILED
-    ]
-    warnings = [
-        f"<li><b>{html.escape(n)}</b>: {html.escape(w)}</li>"
-        for n in order
-        for w in record["stages"][n].get("warnings") or []
-    ]
-    by_stage: dict[str, list[Figure]] = {}
-    for fig in figures:
-        by_stage.setdefault(fig.stage, []).append(fig)
-    sections = []
-    for name in order:
-        if name in by_stage:
-            entry = record["stages"][name]
-            sections.append(
-                f"<h3 id='stage-{html.escape(name)}'>{html.escape(name)} "
-                f"<span class='muted'>{html.escape(entry['uses'])}</span></h3>"
-                + "".join(_media_html(f) for f in by_stage[name])
-            )
+    rows = _stage_rows(record, order)
+    metric_rows = _metric_rows(record, order)
+    errors = _failure_items(record, order)
+    warnings = _warning_items(record, order)
+    sections = _figure_sections(record, order, figures)
     legend = "".join(
         f"<span>{_state_badge(s)}</span>"
         for s in (StageStatus.RAN, StageStatus.CACHED, StageStatus.FAILED, StageStatus.SKIPPED)
@@ -381,6 +394,69 @@ def run_page(session: Session, record: dict[str, Any], figures: list[Figure]) ->
 <h2>Environment</h2><p class="muted">{html.escape(versions)}</p>
 </body></html>
 """
+
+
+def _stage_rows(record: dict[str, Any], order: list[str]) -> list[str]:
+    """Table rows of the stages: name and class, state, time, key (abbreviated) and resolved params."""
+    rows = []
+    for name in order:
+        entry = record["stages"][name]
+        params = "\n".join(
+            f"{k}: {json.dumps(v)}" for k, v in (record["config"].get(name) or {}).get("params", {}).items()
+        )
+        rows.append(
+            f"<tr><td><b>{html.escape(name)}</b><br><span class='muted'>{html.escape(entry['uses'])}"
+            f"</span></td><td>{_state_badge(entry['state'])}</td><td>{entry.get('seconds', 0):.2f}s</td>"
+            f"<td><code>{html.escape(str(entry.get('key') or '')[:16])}</code></td>"
+            f"<td><pre>{html.escape(params)}</pre></td></tr>"
+        )
+    return rows
+
+
+def _metric_rows(record: dict[str, Any], order: list[str]) -> list[str]:
+    """Table rows of every stage's metrics, one metric a row."""
+    metric_rows = []
+    for name in order:
+        for metric, value in (record["stages"][name].get("metrics") or {}).items():
+            metric_rows.append(
+                f"<tr><td>{html.escape(name)}</td><td>{html.escape(metric)}</td><td>{_cell_html(value)}</td></tr>"
+            )
+    return metric_rows
+
+
+def _failure_items(record: dict[str, Any], order: list[str]) -> list[str]:
+    """List items of the failed stages and their errors."""
+    return [
+        f"<li><b>{html.escape(n)}</b>: {html.escape(str(record['stages'][n].get('error')))}</li>"
+        for n in order
+        if record["stages"][n]["state"] == StageStatus.FAILED
+    ]
+
+
+def _warning_items(record: dict[str, Any], order: list[str]) -> list[str]:
+    """List items of the stages' warnings, one warning an item."""
+    return [
+        f"<li><b>{html.escape(n)}</b>: {html.escape(w)}</li>"
+        for n in order
+        for w in record["stages"][n].get("warnings") or []
+    ]
+
+
+def _figure_sections(record: dict[str, Any], order: list[str], figures: list[Figure]) -> list[str]:
+    """One section per stage with figures: a heading (stage and class), then its figures."""
+    by_stage: dict[str, list[Figure]] = {}
+    for fig in figures:
+        by_stage.setdefault(fig.stage, []).append(fig)
+    sections = []
+    for name in order:
+        if name in by_stage:
+            entry = record["stages"][name]
+            sections.append(
+                f"<h3 id='stage-{html.escape(name)}'>{html.escape(name)} "
+                f"<span class='muted'>{html.escape(entry['uses'])}</span></h3>"
+                + "".join(_media_html(f) for f in by_stage[name])
+            )
+    return sections
 
 
 def sweep_page(pipeline_name: str, sweep: dict[str, Any], metric: str | None) -> str:
