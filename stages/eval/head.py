@@ -472,13 +472,22 @@ def paired_z(a: np.ndarray, b: np.ndarray) -> float:
 
 def pooled_metrics(w: WindowScores, ranges: RangeScores, per_take: dict, params) -> dict[str, float]:
     """The stage metrics: pooled means, the relative beat alignment with its interval, win rates, guards."""
+    metrics = {"takes": int(len(per_take["drift"])), "utterances": int(len(w.take))}
+    metrics.update(_beat_metrics(w, params))
+    metrics.update(_motion_and_range_metrics(w, ranges))
+    metrics.update(_drift_and_join_metrics(per_take))
+    return {k: (v if np.isfinite(v) else 0.0) for k, v in metrics.items()}
+
+
+def _beat_metrics(w: WindowScores, params) -> dict[str, float]:
+    """Beat alignment pooled per motion, relative to the real motion over the random baseline (with its bootstrap
+    interval), the win rates and the paired z-scores against the baselines."""
     col = {name: i for i, name in enumerate(MOTIONS)}
     ba, acc = w.beat_onset, w.beat_accent
     rng = np.random.default_rng(params.seed + 2)
     rel, lo, hi = bootstrap_ratio(ba[:, 0], ba[:, 1], ba[:, col["random"]], w.take, params.bootstrap, rng)
     rel_accent = bootstrap_ratio(acc[:, 0], acc[:, 1], acc[:, col["random"]], w.take, params.bootstrap, rng)
-    metrics = {"takes": int(len(per_take["drift"])), "utterances": int(len(w.take))}
-    metrics.update({f"ba_{m}": float(ba[:, i].mean()) for m, i in col.items()})
+    metrics = {f"ba_{m}": float(ba[:, i].mean()) for m, i in col.items()}
     metrics.update({f"ba_accent_{m}": float(acc[:, i].mean()) for m, i in col.items()})
     metrics.update(
         {
@@ -498,7 +507,15 @@ def pooled_metrics(w: WindowScores, ranges: RangeScores, per_take: dict, params)
             "z_synth_random": paired_z(ba[:, 0], ba[:, col["random"]]),
         }
     )
-    for m, i in col.items():
+    return metrics
+
+
+def _motion_and_range_metrics(w: WindowScores, ranges: RangeScores) -> dict[str, float]:
+    """Per motion: speed and acceleration distances and correlation to the real motion, amplitude and how well it
+    fits the speaker's range; the range fit of the real motion's halves, overall and for speakers the database
+    knows."""
+    metrics = {}
+    for i, m in enumerate(MOTIONS):
         if m != "real":
             metrics[f"speed_w1_{m}"] = float(np.nanmean(w.speed_w1[:, i]))
             metrics[f"accel_w1_{m}"] = float(np.nanmean(w.accel_w1[:, i]))
@@ -515,25 +532,28 @@ def pooled_metrics(w: WindowScores, ranges: RangeScores, per_take: dict, params)
     if known.any():
         metrics["range_fit_known_synth"] = float(ranges.fit[known, 0].mean())
         metrics["range_fit_known_halves"] = float(ranges.halves_fit[known].mean())
+    return metrics
+
+
+def _drift_and_join_metrics(per_take: dict) -> dict[str, float]:
+    """Drift of each motion, and the acceleration at the synthesis's joins against the speakers' real 99th
+    percentile (raw and in the head-motion band)."""
     drift, joins, p99 = per_take["drift"], per_take["join_acc_max"], per_take["real_acc_p99"]
     p99_band = per_take["real_acc_p99_band"]
     over = per_take["joins_over_p99"]
-    metrics.update(
-        {
-            "drift_synth": float(drift[:, 0].mean()),
-            "drift_real": float(drift[:, 1].mean()),
-            "drift_path": float(np.nanmean(drift[:, 2])) if np.isfinite(drift[:, 2]).any() else 0.0,
-            "join_acc_max": float(joins[:, 0].max()) if len(joins) else 0.0,
-            "join_acc_max_real": float(joins[:, 1].max()) if len(joins) else 0.0,
-            "join_acc_over_p99": float((joins[:, 0] / np.maximum(p99, 1e-9)).max()) if len(joins) else 0.0,
-            "joins_over_p99_synth": float(over[:, 0].sum() / max(over[:, 2].sum(), 1)),
-            "joins_over_p99_real": float(over[:, 1].sum() / max(over[:, 2].sum(), 1)),
-            "real_acc_p99": float(p99.min()) if len(p99) else 0.0,
-            "real_acc_p99_band": float(p99_band.min()) if len(p99_band) else 0.0,
-            "join_acc_over_p99_band": float((joins[:, 0] / np.maximum(p99_band, 1e-9)).max()) if len(joins) else 0.0,
-        }
-    )
-    return {k: (v if np.isfinite(v) else 0.0) for k, v in metrics.items()}
+    return {
+        "drift_synth": float(drift[:, 0].mean()),
+        "drift_real": float(drift[:, 1].mean()),
+        "drift_path": float(np.nanmean(drift[:, 2])) if np.isfinite(drift[:, 2]).any() else 0.0,
+        "join_acc_max": float(joins[:, 0].max()) if len(joins) else 0.0,
+        "join_acc_max_real": float(joins[:, 1].max()) if len(joins) else 0.0,
+        "join_acc_over_p99": float((joins[:, 0] / np.maximum(p99, 1e-9)).max()) if len(joins) else 0.0,
+        "joins_over_p99_synth": float(over[:, 0].sum() / max(over[:, 2].sum(), 1)),
+        "joins_over_p99_real": float(over[:, 1].sum() / max(over[:, 2].sum(), 1)),
+        "real_acc_p99": float(p99.min()) if len(p99) else 0.0,
+        "real_acc_p99_band": float(p99_band.min()) if len(p99_band) else 0.0,
+        "join_acc_over_p99_band": float((joins[:, 0] / np.maximum(p99_band, 1e-9)).max()) if len(joins) else 0.0,
+    }
 
 
 # ------------------------------------------------------------------------------------------- the stage

@@ -208,26 +208,13 @@ def build_database(
 ) -> Result:
     """Resample every recording to ``fps`` (after cutting it into pieces of about ``piece`` seconds), optionally
     low-pass and centre it and add its mirror image; one artifact."""
-    if not recordings:
-        raise UserError("the database has no recordings", field="inputs")
-    rates = {r.audio_rate for r in recordings}
-    if len(rates) != 1:
-        raise UserError(f"audio rates differ between recordings: {sorted(rates)}", field="inputs")
-    for rec in recordings:
-        check_motion_finite(rec)
-        check_lengths(rec, max_length_mismatch)
+    audio_rate = _check_recordings(recordings, max_length_mismatch)
     if piece:
         recordings = [part for rec in recordings for part in cut_recording(rec, piece)]
     sequences = []
     audio_chunks, audio_cursor = [], 0
     for rec in recordings:
-        grid, rot, trans = resample_motion(rec.time, quat_normalize(rec.rotation), rec.translation, fps)
-        if jitter_cutoff:
-            rot, trans = lowpass_motion(rot, trans, fps, jitter_cutoff)
-        if smoothing > 0:
-            rot, trans = smooth_motion(rot, trans, smoothing * fps)
-        if center:
-            rot, trans = center_motion(rot, trans)
+        grid, rot, trans = _prepared_motion(rec, fps, jitter_cutoff, smoothing, center)
         bounds = (audio_cursor, audio_cursor + len(rec.samples))
         audio_chunks.append(np.asarray(rec.samples, dtype=np.float32))
         audio_cursor = bounds[1]
@@ -235,16 +222,6 @@ def build_database(
         if mirror:
             mrot, mtrans = mirror_motion(rot, trans)
             sequences.append((f"{rec.label}~mirror", rec, grid, mrot, mtrans, bounds, True))
-    rotation = np.concatenate([s[3] for s in sequences])
-    arrays = {
-        "rotation": rotation,
-        "translation": np.concatenate([s[4] for s in sequences]),
-        "angles": quat_to_euler(rotation),
-        "time": np.concatenate([s[2] for s in sequences]),
-        "sequence": np.concatenate([np.full(len(s[2]), k, np.int32) for k, s in enumerate(sequences)]),
-        "audio": np.concatenate(audio_chunks),
-        "audio_bounds": np.array([s[5] for s in sequences], dtype=np.int64).reshape(-1, 2),
-    }
     frames = [len(s[2]) for s in sequences]
     meta = {
         "labels": [s[0] for s in sequences],
@@ -253,7 +230,7 @@ def build_database(
         "mirrored": [s[6] for s in sequences],
         "fps": float(fps),
         "frames": frames,
-        "audio_rate": int(rates.pop()),
+        "audio_rate": audio_rate,
         "audio_offset": [float(s[1].audio_offset) for s in sequences],
         "speakers": [s[1].speaker for s in sequences],
         "center": center,
@@ -266,7 +243,50 @@ def build_database(
         "motion_seconds": float(sum(frames) / fps),
         "audio_seconds": float(audio_cursor / meta["audio_rate"]),
     }
-    return Result(arrays, meta, metrics)
+    return Result(_database_arrays(sequences, audio_chunks), meta, metrics)
+
+
+def _check_recordings(recordings: list[Recording], max_length_mismatch: float) -> int:
+    """The recordings' one audio rate, after checking that there are some, that they share it, and that each one's
+    motion is finite and about as long as its audio."""
+    if not recordings:
+        raise UserError("the database has no recordings", field="inputs")
+    rates = {r.audio_rate for r in recordings}
+    if len(rates) != 1:
+        raise UserError(f"audio rates differ between recordings: {sorted(rates)}", field="inputs")
+    for rec in recordings:
+        check_motion_finite(rec)
+        check_lengths(rec, max_length_mismatch)
+    return int(rates.pop())
+
+
+def _prepared_motion(
+    rec: Recording, fps: float, jitter_cutoff: float | None, smoothing: float, center: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One recording's motion as the database holds it: resampled to ``fps``, then optionally low-passed,
+    smoothed and centred on its mean pose; returns the time grid, rotations and translations."""
+    grid, rot, trans = resample_motion(rec.time, quat_normalize(rec.rotation), rec.translation, fps)
+    if jitter_cutoff:
+        rot, trans = lowpass_motion(rot, trans, fps, jitter_cutoff)
+    if smoothing > 0:
+        rot, trans = smooth_motion(rot, trans, smoothing * fps)
+    if center:
+        rot, trans = center_motion(rot, trans)
+    return grid, rot, trans
+
+
+def _database_arrays(sequences: list[tuple], audio_chunks: list[np.ndarray]) -> dict[str, np.ndarray]:
+    """The artifact's arrays: the sequences' motion laid end to end, and the audio with each sequence's range."""
+    rotation = np.concatenate([s[3] for s in sequences])
+    return {
+        "rotation": rotation,
+        "translation": np.concatenate([s[4] for s in sequences]),
+        "angles": quat_to_euler(rotation),
+        "time": np.concatenate([s[2] for s in sequences]),
+        "sequence": np.concatenate([np.full(len(s[2]), k, np.int32) for k, s in enumerate(sequences)]),
+        "audio": np.concatenate(audio_chunks),
+        "audio_bounds": np.array([s[5] for s in sequences], dtype=np.int64).reshape(-1, 2),
+    }
 
 
 class HeadDbParams(Stage.Params):
@@ -366,8 +386,9 @@ def _first(value):
 
 
 def recordings_from_tracking(view, labels: list[str] | None, field: str = "inputs.tracks") -> list[Recording]:
+    """The takes ``labels`` (None: all) of a tracking artifact, each sequence's motion with its range of the audio;
+    sequences without a label are named ``sequence<k>``."""
     meta = view.meta
-    all_labels = list(meta.get("labels") or [])
     if "audio" not in view or "audio_bounds" not in view:
         raise UserError(
             "the tracking artifact has no audio; the head-motion database pairs motion with speech "
@@ -375,22 +396,15 @@ def recordings_from_tracking(view, labels: list[str] | None, field: str = "input
             field=field,
         )
     sequence = np.asarray(view["sequence"])
-    n = max(len(all_labels), int(sequence.max()) + 1 if len(sequence) else 0)
-    all_labels += [f"sequence{k}" for k in range(len(all_labels), n)]
+    all_labels = _sequence_labels(meta, sequence)
+    n = len(all_labels)
     wanted = list(labels) if labels is not None else all_labels
     unknown = [w for w in wanted if w not in all_labels]
     if unknown:
         raise UserError(f"labels {unknown} are not in the tracking artifact ({all_labels})", field="params.labels")
-
-    def per_sequence(key, default):
-        value = meta.get(key)
-        if isinstance(value, (list, tuple)):
-            return list(value)
-        return [default if value is None else value] * n
-
-    sources = per_sequence("sources", None)
-    offsets = per_sequence("audio_offset", 0.0)
-    has_audio = per_sequence("has_audio", True)
+    sources = _per_sequence(meta, "sources", None, n)
+    offsets = _per_sequence(meta, "audio_offset", 0.0, n)
+    has_audio = _per_sequence(meta, "has_audio", True, n)
     rate = int(meta.get("audio_rate") or 16000)
     audio, bounds = view["audio"], np.asarray(view["audio_bounds"]).reshape(-1, 2)
     rotation, translation, time = view["rotation"], view["translation"], view["time"]
@@ -401,12 +415,7 @@ def recordings_from_tracking(view, labels: list[str] | None, field: str = "input
         if not mask.any():
             raise UserError(f"sequence '{label}' has no frames", field=field)
         a, b = bounds[k]
-        if not has_audio[k] or b <= a:
-            raise UserError(
-                f"take '{label}' has no audio (a silent video); the head-motion database pairs motion with speech",
-                file=str(sources[k] or label),
-                field=f"{field}[{label}]",
-            )
+        _check_take_audio(label, has_audio[k], a, b, sources[k], field)
         out.append(
             Recording(
                 label,
@@ -421,6 +430,31 @@ def recordings_from_tracking(view, labels: list[str] | None, field: str = "input
             )
         )
     return out
+
+
+def _sequence_labels(meta: dict, sequence: np.ndarray) -> list[str]:
+    """The labels of every sequence of a tracking artifact: meta ``labels``, ``sequence<k>`` for those beyond."""
+    all_labels = list(meta.get("labels") or [])
+    n = max(len(all_labels), int(sequence.max()) + 1 if len(sequence) else 0)
+    return all_labels + [f"sequence{k}" for k in range(len(all_labels), n)]
+
+
+def _per_sequence(meta: dict, key: str, default, n: int) -> list:
+    """Meta ``key`` as one value per sequence: a list as is, a single value (or ``default``) repeated."""
+    value = meta.get(key)
+    if isinstance(value, (list, tuple)):
+        return list(value)
+    return [default if value is None else value] * n
+
+
+def _check_take_audio(label: str, has_audio: bool, a: int, b: int, source, field: str) -> None:
+    """A take of the database needs audio: the tracking saw some, and its range [a, b) is not empty."""
+    if not has_audio or b <= a:
+        raise UserError(
+            f"take '{label}' has no audio (a silent video); the head-motion database pairs motion with speech",
+            file=str(source or label),
+            field=f"{field}[{label}]",
+        )
 
 
 def _paired(motion: dict, audio: dict, kind: str) -> list[tuple[str, object, object]]:

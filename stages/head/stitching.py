@@ -500,38 +500,14 @@ def crossfade_segments(
 
     starts = np.asarray(subsentence_start, dtype=bool).copy()
     starts[0] = True
-    # chain: each segment starts where the previous one ends; a sub-sentence starts at its recorded pose
-    offset = np.zeros((n, out.shape[1]))
     start_value = np.stack([raw(k, a[k : k + 1])[0] for k in range(n)])
     end_value = np.stack([raw(k, e[k : k + 1])[0] for k in range(n)])
-    for k in range(1, n):
-        if not starts[k]:
-            offset[k] = end_value[k - 1] + offset[k - 1] - start_value[k]
-    # drift correction: warp each sub-sentence linearly so it ends where the next one starts
-    group = np.cumsum(starts) - 1
-    first_of = np.flatnonzero(starts)
-    last_of = np.append(first_of[1:] - 1, n - 1)
-    ramp_total = np.zeros((len(first_of), out.shape[1]))
-    if drift_correction:
-        for g in range(len(first_of) - 1):
-            last, nxt = last_of[g], first_of[g + 1]
-            ramp_total[g] = start_value[nxt] - (end_value[last] + offset[last])
-    ramp_t0, ramp_t1 = a[first_of], e[last_of]
-
+    offset = _chain_offsets(start_value, end_value, starts)
+    drift = _drift_ramps(start_value, end_value, offset, starts, a, e, drift_correction)
     # crossfade weights: segment k's indicator [a_k, e_k) with its edges smoothed over +-window of each join,
     # written as ramp_k - ramp_k+1 so that the weights sum to one however close the joins are
     window = np.where(starts, break_blend_window, blend_window)
     window[0] = 0.0
-
-    def ramp(j: int, t: np.ndarray) -> np.ndarray:
-        if j == 0:
-            return np.ones(len(t))
-        if j >= n:
-            return np.zeros(len(t))
-        if window[j] <= 0:
-            return (t >= a[j]).astype(float)
-        return smootherstep((t - a[j] + window[j]) / (2 * window[j]))
-
     total = np.zeros(len(times))
     for k in range(n):
         lo_t = -np.inf if k == 0 else a[k] - window[k]
@@ -540,12 +516,70 @@ def crossfade_segments(
         if len(idx) == 0:
             continue
         t = times[idx]
-        weight = np.maximum(ramp(k, t) - ramp(k + 1, t), 0.0)
-        g = group[k]
-        span = max(ramp_t1[g] - ramp_t0[g], 1e-9)
-        curve = raw(k, t) + offset[k] + ramp_total[g] * np.clip((t - ramp_t0[g]) / span, 0.0, 1.0)[:, None]
-        out[idx] += weight[:, None] * curve
+        weight = np.maximum(_crossfade_ramp(k, t, a, window) - _crossfade_ramp(k + 1, t, a, window), 0.0)
+        out[idx] += weight[:, None] * (raw(k, t) + offset[k] + drift.at(k, t))
         total[idx] += weight
     out /= np.maximum(total, 1e-12)[:, None]
     windows = np.stack([a[1:] - window[1:], a[1:] + window[1:]], axis=1)
     return Stitched(out, a[1:].copy(), windows, np.full(n - 1, np.nan))
+
+
+def _chain_offsets(start_value: np.ndarray, end_value: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Offset of each segment's curve so that it starts where the previous one ended; a sub-sentence's first
+    segment keeps its recorded pose (offset 0)."""
+    offset = np.zeros(start_value.shape)
+    for k in range(1, len(start_value)):
+        if not starts[k]:
+            offset[k] = end_value[k - 1] + offset[k - 1] - start_value[k]
+    return offset
+
+
+@dataclass
+class _DriftRamps:
+    """Per sub-sentence, the linear warp that makes its chained curve end where the next sub-sentence starts."""
+
+    group: np.ndarray  # (segments,) sub-sentence of each segment
+    total: np.ndarray  # (sub-sentences, channels) correction reached at the sub-sentence's end
+    t0: np.ndarray  # (sub-sentences,) start of the ramp (its first segment's start)
+    t1: np.ndarray  # (sub-sentences,) end of the ramp (its last segment's end)
+
+    def at(self, k: int, t: np.ndarray) -> np.ndarray:
+        """The correction added to segment ``k``'s curve at times ``t``."""
+        g = self.group[k]
+        span = max(self.t1[g] - self.t0[g], 1e-9)
+        return self.total[g] * np.clip((t - self.t0[g]) / span, 0.0, 1.0)[:, None]
+
+
+def _drift_ramps(
+    start_value: np.ndarray,
+    end_value: np.ndarray,
+    offset: np.ndarray,
+    starts: np.ndarray,
+    a: np.ndarray,
+    e: np.ndarray,
+    drift_correction: bool,
+) -> _DriftRamps:
+    """The drift correction's ramps (all zero without ``drift_correction``): each sub-sentence warped linearly so
+    that it ends where the next one starts."""
+    n = len(start_value)
+    group = np.cumsum(starts) - 1
+    first_of = np.flatnonzero(starts)
+    last_of = np.append(first_of[1:] - 1, n - 1)
+    total = np.zeros((len(first_of), start_value.shape[1]))
+    if drift_correction:
+        for g in range(len(first_of) - 1):
+            last, nxt = last_of[g], first_of[g + 1]
+            total[g] = start_value[nxt] - (end_value[last] + offset[last])
+    return _DriftRamps(group, total, a[first_of], e[last_of])
+
+
+def _crossfade_ramp(j: int, t: np.ndarray, a: np.ndarray, window: np.ndarray) -> np.ndarray:
+    """Rise of segment j's crossfade weight at times ``t``: a smootherstep over +-window[j] of its start (a step
+    when the window is empty), 1 for the first segment, 0 past the last."""
+    if j == 0:
+        return np.ones(len(t))
+    if j >= len(a):
+        return np.zeros(len(t))
+    if window[j] <= 0:
+        return (t >= a[j]).astype(float)
+    return smootherstep((t - a[j] + window[j]) / (2 * window[j]))

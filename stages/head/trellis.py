@@ -667,42 +667,64 @@ def _plot_trellis(view, inputs=None, utterance: int = 0, max_segments: int = 40)
     chosen = view["chosen"][mask]
     seq = view["db_segment_sequence"][chosen]
     pos = view["db_segment_position"][chosen]
-    db_labels = view.meta.get("db_labels", [])
     n, k = cost.shape if cost.ndim == 2 else (0, 0)
     fig, ax = plt.subplots(figsize=(max(8, 0.45 * n + 2), 5), constrained_layout=True)
     if n:
-        xs, ys = np.meshgrid(np.arange(n), np.arange(k), indexing="ij")
-        for t in range(n - 1):
-            for i in range(k):
-                ax.plot([t, t + 1], [i, i], color="0.92", lw=0.5, zorder=0)
-        sc = ax.scatter(xs.ravel(), ys.ravel(), c=cost.ravel(), cmap="viridis_r", s=40, zorder=2)
-        fig.colorbar(sc, ax=ax, label="node cost D (Eq. 12)")
-        sub = view["subsentence_start"][mask]
-        for t in range(n):
-            if sub[t]:
-                ax.axvline(t - 0.5, color="k", ls="--", lw=0.8)
-        for a in range(n):
-            if a + 1 < n and not sub[a + 1]:
-                consecutive = seq[a] == seq[a + 1] and pos[a] + 1 == pos[a + 1]
-                ax.plot(
-                    [a, a + 1],
-                    [rank[a], rank[a + 1]],
-                    color="crimson" if not consecutive else "orange",
-                    lw=2.5 if consecutive else 1.8,
-                    zorder=3,
-                )
-        ax.scatter(np.arange(n), rank, facecolors="none", edgecolors="crimson", s=120, lw=1.5, zorder=4)
-        for t in range(n):
-            name = db_labels[seq[t]] if seq[t] < len(db_labels) else str(seq[t])
-            ax.annotate(
-                f"{name}:{pos[t]}",
-                (t, rank[t]),
-                textcoords="offset points",
-                xytext=(0, 9),
-                fontsize=6,
-                ha="center",
-                rotation=60,
+        _draw_candidates(fig, ax, cost)
+        _draw_chosen_path(ax, view["subsentence_start"][mask], rank, seq, pos)
+        _label_chosen(ax, rank, seq, pos, view.meta.get("db_labels", []))
+    labels = view.meta.get("labels", [])
+    _finish_trellis_axes(ax, k, labels[utterance] if labels else "the test")
+    return fig
+
+
+def _draw_candidates(fig, ax, cost: np.ndarray) -> None:
+    """The trellis's nodes: every candidate (test segment, rank) coloured by its node cost, on faint grid lines."""
+    n, k = cost.shape
+    xs, ys = np.meshgrid(np.arange(n), np.arange(k), indexing="ij")
+    for t in range(n - 1):
+        for i in range(k):
+            ax.plot([t, t + 1], [i, i], color="0.92", lw=0.5, zorder=0)
+    sc = ax.scatter(xs.ravel(), ys.ravel(), c=cost.ravel(), cmap="viridis_r", s=40, zorder=2)
+    fig.colorbar(sc, ax=ax, label="node cost D (Eq. 12)")
+
+
+def _draw_chosen_path(ax, sub: np.ndarray, rank: np.ndarray, seq: np.ndarray, pos: np.ndarray) -> None:
+    """Dashed lines at sub-sentence starts, and the chosen path: red, orange where it continues a database take."""
+    n = len(rank)
+    for t in range(n):
+        if sub[t]:
+            ax.axvline(t - 0.5, color="k", ls="--", lw=0.8)
+    for a in range(n):
+        if a + 1 < n and not sub[a + 1]:
+            consecutive = seq[a] == seq[a + 1] and pos[a] + 1 == pos[a + 1]
+            ax.plot(
+                [a, a + 1],
+                [rank[a], rank[a + 1]],
+                color="crimson" if not consecutive else "orange",
+                lw=2.5 if consecutive else 1.8,
+                zorder=3,
             )
+    ax.scatter(np.arange(n), rank, facecolors="none", edgecolors="crimson", s=120, lw=1.5, zorder=4)
+
+
+def _label_chosen(ax, rank: np.ndarray, seq: np.ndarray, pos: np.ndarray, db_labels: list) -> None:
+    """Each chosen node labelled with its database take and segment (take:segment)."""
+    for t in range(len(rank)):
+        name = db_labels[seq[t]] if seq[t] < len(db_labels) else str(seq[t])
+        ax.annotate(
+            f"{name}:{pos[t]}",
+            (t, rank[t]),
+            textcoords="offset points",
+            xytext=(0, 9),
+            fontsize=6,
+            ha="center",
+            rotation=60,
+        )
+
+
+def _finish_trellis_axes(ax, k: int, name: str) -> None:
+    """Axis labels, ticks and the title of the trellis figure of the test take ``name``."""
     from matplotlib.ticker import MaxNLocator
 
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
@@ -710,13 +732,11 @@ def _plot_trellis(view, inputs=None, utterance: int = 0, max_segments: int = 40)
     ax.set_ylabel("candidate rank (0 = best D)")
     ax.set_ylim(k - 0.5 if k else 1, -2.2)  # rank 0 on top, room for the database labels above it
     ax.set_yticks(range(k))
-    labels = view.meta.get("labels", [])
     ax.set_title(
-        f"trellis of {labels[utterance] if labels else 'the test'}: chosen path in red, orange where "
+        f"trellis of {name}: chosen path in red, orange where "
         f"database-consecutive;\nlabels: database take:segment; dashed lines: sub-sentence starts",
         fontsize=10,
     )
-    return fig
 
 
 class TrellisParams(Stage.Params):
@@ -870,17 +890,8 @@ def test_phrase_features(test_view, shift: np.ndarray) -> np.ndarray:
 
 def search(db: Database, test_view, params, length: int, db_meta: dict) -> Result:
     """The search for every test utterance, packed as the trellis artifact."""
-    unknown = [x for x in params.exclude_labels if x not in db.labels and x not in db.recordings]
-    if unknown:
-        raise UserError(f"exclude_labels {unknown} are not database labels", field="params.exclude_labels")
     test_labels = list(test_view.meta.get("labels") or [])
-    takes = {take_of(x) for x in [*db.labels, *test_labels]}
-    strangers = sorted({x for group in params.same_performance for x in group} - takes)
-    if strangers:
-        raise UserError(
-            f"same_performance names {strangers}, which are neither database nor test takes",
-            field="params.same_performance",
-        )
+    _check_named_takes(db, params, test_labels)
     test_sources = list(test_view.meta.get("sources") or test_labels)
     test_speakers = list(test_view.meta.get("speakers") or [None] * len(test_labels))
     reference, shift = reference_for_test(test_view, db, params.test_speaker)
@@ -908,9 +919,34 @@ def search(db: Database, test_view, params, length: int, db_meta: dict) -> Resul
         "labels": test_labels,
         "sources": test_sources,
         "speakers": test_speakers,
+        **_search_meta(test_view, db, params, length, db_meta),
+        "phrases_searched": [int(r.phrase_selected.sum()) for r in results],
+        "excluded": excluded,
+    }
+    return pack_search(test, db, results, params, meta)
+
+
+def _check_named_takes(db: Database, params, test_labels: list[str]) -> None:
+    """Every take that ``exclude_labels`` and ``same_performance`` name is a database or test take."""
+    unknown = [x for x in params.exclude_labels if x not in db.labels and x not in db.recordings]
+    if unknown:
+        raise UserError(f"exclude_labels {unknown} are not database labels", field="params.exclude_labels")
+    takes = {take_of(x) for x in [*db.labels, *test_labels]}
+    strangers = sorted({x for group in params.same_performance for x in group} - takes)
+    if strangers:
+        raise UserError(
+            f"same_performance names {strangers}, which are neither database nor test takes",
+            field="params.same_performance",
+        )
+
+
+def _search_meta(test_view, db: Database, params, length: int, db_meta: dict) -> dict:
+    """The trellis artifact's meta that does not depend on the search: the test's clocks and the settings."""
+    count = len(test_view.meta.get("labels") or [])
+    return {
         "durations": [float(x) for x in np.asarray(test_view["utterance_duration"])],
-        "fps": list(test_view.meta.get("fps") or [None] * len(test_labels)),
-        "frames": list(test_view.meta.get("frames") or [None] * len(test_labels)),
+        "fps": list(test_view.meta.get("fps") or [None] * count),
+        "frames": list(test_view.meta.get("frames") or [None] * count),
         "db_labels": db.labels,
         "db_fps": float(db_meta["fps"]),
         "k": params.k,
@@ -921,10 +957,7 @@ def search(db: Database, test_view, params, length: int, db_meta: dict) -> Resul
         "test_speaker": params.test_speaker,
         "holdout": params.holdout,
         "smoothness_weights": db.weights.tolist(),
-        "phrases_searched": [int(r.phrase_selected.sum()) for r in results],
-        "excluded": excluded,
     }
-    return pack_search(test, db, results, params, meta)
 
 
 def pack_search(test: SegmentTable, db: Database, results: list[SearchResult], params, meta: dict) -> Result:
