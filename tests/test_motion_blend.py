@@ -637,6 +637,68 @@ def test_the_amplitude_target_from_the_reference_is_the_performers_own(phrases):
     np.testing.assert_allclose(missing.arrays["angles"], default.arrays["angles"])
 
 
+def test_the_mirror_image_is_the_head_motion_seen_in_a_mirror_and_turns_it_to_the_targets_side():
+    """MIRROR negates yaw, roll and the sideways translation: the rotation seen in a mirror (M R M with M =
+    diag(-1, 1, 1)). ``mirrored_to_side`` mirrors a motion that turns mostly one way when the target turns mostly
+    the other, keeps it when the target turns its way, and changes no angular speed."""
+    from scipy.spatial.transform import Rotation
+
+    from stages.head.amplitude import MIRROR, mirrored_to_side
+    from stages.head.measures import angular_speed
+
+    t = np.arange(600) / 30.0
+    motion = np.zeros((600, 6))
+    motion[:, 0] = -0.2 * np.sin(1.3 * t) ** 4  # yaw: mostly at rest, turns to one side only
+    motion[:, 1] = 0.05 * np.sin(2.1 * t)
+    motion[:, 2] = -0.05 * np.sin(0.9 * t + 1) ** 4  # roll: one side only
+    motion[:, 3:] = np.column_stack([np.sin(t), np.cos(t), 0.5 * np.sin(2 * t)])
+    matrix = lambda a: Rotation.from_euler("YXZ", a[:, :3]).as_matrix()
+    flip = np.diag([-1.0, 1.0, 1.0])
+    np.testing.assert_allclose(matrix(motion * MIRROR), flip @ matrix(motion) @ flip, atol=1e-12)
+
+    def sides(m):
+        return np.percentile(m[:, :3] - m[:, :3].mean(axis=0), [5, 95], axis=0).tolist()
+
+    np.testing.assert_array_equal(mirrored_to_side(motion, sides(motion * MIRROR)), motion * MIRROR)
+    np.testing.assert_array_equal(mirrored_to_side(motion, sides(motion)), motion)
+    np.testing.assert_allclose(angular_speed(motion * MIRROR, 30.0), angular_speed(motion, 30.0), atol=1e-9)
+
+
+def test_the_output_turns_to_the_performers_side(phrases):
+    """``side="performer"`` (the default) with the performer's own amplitude: the same performer filmed in a
+    mirror (yaw and roll negated) gets the mirror image of the motion, so the head turns the way the performer's
+    does; ``side="as_stitched"`` gives both the same motion (their spreads are equal)."""
+    from stages.geometry.rotations import euler_to_quat, quat_to_euler
+
+    tracks = tracking_artifact(phrases[:8], fps=30.0)
+    angles = quat_to_euler(np.asarray(tracks["rotation"]))
+    mirrored = artifact(
+        {**{k: tracks[k] for k in tracks.names}, "rotation": euler_to_quat(-angles[:, 0], angles[:, 1], -angles[:, 2])},
+        tracks.meta,
+    )
+    headdb = run_stage(TrackedHeadDb, {}, {"tracks": tracks})
+    inputs = {
+        "database": headdb,
+        "database_pitch": run_stage(Pitch, {}, {"source": headdb}),
+        "test_pitch": run_stage(Pitch, {}, {"source": tracks}),
+    }
+    tr = run_stage(Trellis, {"holdout": "take", "test_speaker": "own"}, inputs)
+    runs = {}
+    for side in ("performer", "as_stitched"):
+        params = {"amplitude": "match", "amplitude_target": "reference", "side": side}
+        for name, reference in (("as filmed", tracks), ("mirrored", mirrored)):
+            runs[side, name] = run_stage(
+                MotionBlend, params, {"trellis": tr, "database": headdb, "reference": reference}
+            )
+    filmed, seen = runs["performer", "as filmed"].arrays, runs["performer", "mirrored"].arrays
+    assert np.abs(filmed["angles"][:, 0]).max() > 0.01
+    np.testing.assert_allclose(seen["angles"], filmed["angles"] * [-1, 1, -1], atol=1e-9)
+    np.testing.assert_allclose(seen["translation"], filmed["translation"] * [-1, 1, 1], atol=1e-9)
+    np.testing.assert_allclose(
+        runs["as_stitched", "mirrored"].arrays["angles"], runs["as_stitched", "as filmed"].arrays["angles"], atol=1e-9
+    )
+
+
 def test_the_automatic_amplitude_target_reads_only_performers_the_database_does_not_know(phrases):
     """``amplitude_target="auto"`` (the default): a performer the database does not know (moving 8x more than the
     database's speaker) gets its own amplitude from its tracked take, each angle its own (``source_gain="auto"``:

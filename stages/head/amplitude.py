@@ -126,8 +126,21 @@ def reference_spreads(
     """Per test utterance, the spread (p95 - p5 about its mean) of each angle of the performer's real motion in
     the reference (a tracking artifact; its first ``seconds`` when given): the amplitude target of
     ``amplitude_target="reference"``; None where the reference has no such take or it is too short."""
+    return [None if r is None else range_spread(r) for r in reference_ranges(reference, labels, fps, seconds)]
 
-    out: list[list[float] | None] = []
+
+def range_spread(ends) -> list[float]:
+    """p95 - p5 per angle of a ``reference_ranges`` entry ([p5, p95])."""
+    return (np.asarray(ends[1]) - np.asarray(ends[0])).tolist()
+
+
+def reference_ranges(
+    reference, labels: list[str], fps: float, seconds: float | None = None
+) -> list[list[list[float]] | None]:
+    """Per test utterance, [p5, p95] (each per angle, about its mean) of the performer's real motion in the
+    reference (a tracking artifact; its first ``seconds`` when given); None where the reference has no such take
+    or it is too short."""
+    out: list[list[list[float]] | None] = []
     for label in labels:
         angles = reference_angles(reference, label, len(labels), fps)
         if angles is not None and seconds is not None:
@@ -136,5 +149,31 @@ def reference_spreads(
             out.append(None)
             continue
         centred = angles - angles.mean(axis=0)
-        out.append((np.percentile(centred, 95, axis=0) - np.percentile(centred, 5, axis=0)).tolist())
+        out.append(np.percentile(centred, [5, 95], axis=0).tolist())
     return out
+
+
+# The head motion seen in a mirror (the sagittal plane): with R = Ry(yaw) Rx(pitch) Rz(roll), M R M for
+# M = diag(-1, 1, 1) negates yaw and roll and keeps pitch; the sideways translation changes sign.
+MIRROR = np.array([-1.0, 1.0, -1.0, -1.0, 1.0, 1.0])
+
+
+def mirrored_to_side(channels: np.ndarray, sides) -> np.ndarray:
+    """The channels (frames, 6), or their mirror image (``MIRROR``) when that brings the yaw's and the roll's
+    side closer to ``sides``' ([p5, p95] per angle about the mean, ``reference_ranges``): a speaker who turns
+    mostly to one side keeps doing so. An angle's side is ``range_asymmetry`` (mirroring negates it); the
+    differences of the two angles are summed, and a tie keeps the channels as they are. Mirroring changes no
+    speed, so the strokes' timing stays."""
+    if len(channels) < 2:
+        return channels
+    target = range_asymmetry(np.asarray(sides, dtype=np.float64)[:, [0, 2]])
+    centred = channels[:, [0, 2]] - channels[:, [0, 2]].mean(axis=0)
+    found = range_asymmetry(np.percentile(centred, [5, 95], axis=0))
+    return channels * MIRROR if np.abs(-found - target).sum() < np.abs(found - target).sum() else channels
+
+
+def range_asymmetry(ends: np.ndarray) -> np.ndarray:
+    """Per column of ``ends`` ([p5, p95] about the mean), where the range sits: (p5 + p95) / (p95 - p5), -1..1;
+    0 for a range centred on the mean (or none), positive when the motion reaches farther the positive way."""
+    span = ends[1] - ends[0]
+    return np.where(span > 1e-12, (ends[0] + ends[1]) / np.where(span > 1e-12, span, 1.0), 0.0)

@@ -27,8 +27,10 @@ from stages.head.amplitude import (
     amplitude_target,
     knows_speaker,
     match_amplitude,
+    mirrored_to_side,
     proportion_correction,
-    reference_spreads,
+    range_spread,
+    reference_ranges,
     speaker_spreads,
 )
 from stages.head.measures import (
@@ -165,6 +167,13 @@ class MotionBlendParams(Stage.Params):
         description="where the sources are scaled per angle (source_gain), stitch a second time with their gains "
         "corrected by the first output's proportions between yaw, pitch and roll (blending changes them)",
     )
+    side: Literal["performer", "as_stitched"] = Field(
+        "performer",
+        description="'performer': where the angles' target is the performer's own motion (amplitude_target), the "
+        "output mirrored (yaw, roll and the sideways translation negated) when that brings its yaw and roll "
+        "p5..p95 closer to the performer's, so a speaker who turns mostly one way keeps doing so; 'as_stitched': "
+        "never mirrored",
+    )
     output_cutoff: float | None = Field(
         4.0,
         gt=0,
@@ -224,7 +233,10 @@ class MotionBlend(Stage):
                     "amplitude_target 'reference' needs the reference input (the test take's tracking)",
                     field="inputs.reference",
                 )
-            options["targets"] = reference_spreads(inputs["reference"], labels, fps, params.reference_seconds)
+            ranges = reference_ranges(inputs["reference"], labels, fps, params.reference_seconds)
+            options["targets"] = [None if r is None else range_spread(r) for r in ranges]
+            if params.side == "performer":
+                options["sides"] = ranges
         synth = synthesise(trellis, db, fps, **options)
         arrays = pack_motion(synth, fps, params)
         metrics = motion_metrics(arrays, fps, JOIN_MEASURE_WINDOW, inputs.get("reference"), labels)
@@ -277,6 +289,7 @@ def stitch_options(params, db: DatabaseMotion, trellis) -> dict:
         "source_gain": params.source_gain,
         "targets": None,  # per utterance, the angles' target spread from the reference (amplitude_target)
         "targets_for": "unknown" if params.amplitude_target == "auto" else "all",
+        "sides": None,  # per utterance, the performer's p5..p95 per angle (side), where its amplitude is the target
         "refine_proportions": params.refine_proportions,
         "output_cutoff": params.output_cutoff,
         "rest_anchor": params.rest_anchor,
@@ -462,6 +475,7 @@ def synthesise(
     targets: list | None = None,
     targets_for: str = "all",
     refine_proportions: bool = False,
+    sides: list | None = None,
     **blend,
 ) -> list[Stitched]:
     """The stitched motion of each test utterance of a trellis artifact (a still head where silent). ``timing``:
@@ -475,8 +489,9 @@ def synthesise(
     angles' spread or None) replaces the database's amplitude target of the angles (``targets_for="unknown"``:
     only where the database does not know the utterance's speaker). ``refine_proportions``: where the sources
     were scaled per angle and the output is matched, stitch a second time with the per-angle gains corrected by
-    the first output's proportions (``proportion_correction``). ``blend``: keyword arguments of
-    ``stitch_segments``."""
+    the first output's proportions (``proportion_correction``). ``sides`` (per utterance, the performer's
+    p5..p95 per angle, or None): where the angles' target is the performer's, the output is mirrored when that
+    matches its side better (``mirrored_to_side``). ``blend``: keyword arguments of ``stitch_segments``."""
     path = TrellisPath.of(trellis)
     shared_events = database_events(trellis, db, timing) if timing != "segment" else None
     finishing = {"rest_anchor": rest_anchor, "max_gain": max_amplitude_gain, "cutoff": output_cutoff}
@@ -484,7 +499,7 @@ def synthesise(
     for u in range(len(path.labels)):
         given = targets[u] if targets is not None and u < len(targets) else None
         duration = utterance_frames(trellis, u, fps) / fps
-        source, target, per_angle = amplitude_source(
+        source, target, per_angle, performers = amplitude_source(
             db, path, u, duration, amplitude, given, source_gain, targets_for == "unknown"
         )
         rows = np.flatnonzero(path.utterance == u)
@@ -512,6 +527,9 @@ def synthesise(
         stitched = render(source)
         if refine_proportions and per_angle and amplitude == "match" and len(rows):
             stitched = render(source.scaled(proportion_correction(stitched.channels, target, len(db.frames))))
+        side = sides[u] if sides is not None and u < len(sides) else None
+        if performers and side is not None and len(rows):
+            stitched.channels = mirrored_to_side(stitched.channels, side)
         out.append(stitched)
     return out
 
@@ -540,16 +558,17 @@ def amplitude_source(
     angles_target=None,
     source_gain: str = "common",
     database_first: bool = False,
-) -> tuple[DatabaseMotion, np.ndarray | None, bool]:
+) -> tuple[DatabaseMotion, np.ndarray | None, bool, bool]:
     """The database motion utterance ``u`` is stitched from and its amplitude target: as recorded
     (``amplitude="database"``), or every source speaker brought to the target spread at the utterance's
     ``duration`` (``speaker_spreads`` over the sequences its search could use, ``amplitude_target``), the angles'
     part replaced by ``angles_target`` when given (the performer's own, ``reference_spreads``; with
     ``database_first`` only when the database does not know the speaker, ``knows_speaker``). ``source_gain``:
     each source speaker scaled by one gain for its angles, by one per angle, or (``"auto"``) per angle only where
-    the angles' target is the performer's own: only then are its proportions between the angles known."""
+    the angles' target is the performer's own: only then are its proportions between the angles known. Returns
+    the motion, the target, whether the gains are per angle and whether the angles' target is the performer's."""
     if amplitude == "database":
-        return db, None, False
+        return db, None, False, False
     spreads = speaker_spreads(db, path.allowed(u), duration)
     target = amplitude_target(spreads, path.speakers[u])
     performers = angles_target is not None and not (database_first and knows_speaker(spreads, path.speakers[u]))
@@ -557,7 +576,7 @@ def amplitude_source(
         target = np.array(target, dtype=np.float64)
         target[:3] = angles_target
     per_angle = source_gain == "per_angle" or (source_gain == "auto" and performers)
-    return db.scaled(amplitude_gains(db, spreads, target, per_angle)), target, per_angle
+    return db.scaled(amplitude_gains(db, spreads, target, per_angle)), target, per_angle, performers
 
 
 def lowpass_channels(channels: np.ndarray, fps: float, cutoff: float) -> np.ndarray:
