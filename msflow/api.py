@@ -19,6 +19,7 @@ if TYPE_CHECKING:
     from collections.abc import Callable
 
     from msflow.artifact import ArtifactView
+    from msflow.executors import LazyExecutor
     from msflow.shipping import CodeTree
 
 
@@ -102,7 +103,6 @@ def run_sessions(
     ``msflow run`` (one session) and ``msflow sweep`` (one per variant). Work shared by sessions (same key)
     is done once. ``labels`` are the sessions' variant parameters; ``extra`` goes into every record."""
     from msflow.executors import make_executor
-    from msflow.records import build_record
     from msflow.runner import schedule
     from msflow.worker import pin_blas_threads
 
@@ -116,7 +116,41 @@ def run_sessions(
         on_start=sessions[0].store.clean_tmp,
         code_trees=code_trees_of(sessions),
     )
-    runners = [
+    runners = _runners_for(sessions, pool, jobs=jobs, until=until, force=force, reporters=reporters)
+    try:
+        schedule(runners, pool)
+    finally:
+        pool.shutdown()
+    executions = [
+        _record_execution(
+            session,
+            runner,
+            started=started,
+            executor=pool.name,
+            jobs=jobs,
+            force=force,
+            label=labels[index] if labels else None,
+            argv=argv,
+            extra=extra,
+        )
+        for index, (session, runner) in enumerate(zip(sessions, runners))
+    ]
+    for session in {id(s.memo): s for s in sessions}.values():  # sessions may share one memo
+        session.save_memo()
+    return executions
+
+
+def _runners_for(
+    sessions: list[Session],
+    pool: LazyExecutor,
+    *,
+    jobs: int,
+    until: str | None,
+    force: tuple[str, ...],
+    reporters: list[Reporter | None] | None,
+) -> list[Runner]:
+    """One runner per session, all on the one executor."""
+    return [
         Runner(
             session.pipeline,
             session.plans,
@@ -130,33 +164,40 @@ def run_sessions(
         )
         for index, session in enumerate(sessions)
     ]
-    try:
-        schedule(runners, pool)
-    finally:
-        pool.shutdown()
-    executions = []
-    for index, (session, runner) in enumerate(zip(sessions, runners)):
-        label = labels[index] if labels else None
-        record = build_record(
-            new_run_id(),
-            session.pipeline,
-            session.plans,
-            runner.states,
-            started=started,
-            finished=time.time(),
-            executor=pool.name,
-            jobs=jobs,
-            argv=argv,
-            label=label,
-        )
-        record.update(extra or {})
-        if runner.repairs:
-            record["repairs"] = runner.repairs
-        write_record(session, record, noop=not runner.repairs and not force)
-        executions.append(Execution(session, runner.states, record, runner.file_memo.seen))
-    for session in {id(s.memo): s for s in sessions}.values():  # sessions may share one memo
-        session.save_memo()
-    return executions
+
+
+def _record_execution(
+    session: Session,
+    runner: Runner,
+    *,
+    started: float,
+    executor: str,
+    jobs: int,
+    force: tuple[str, ...],
+    label: dict[str, Any] | None,
+    argv: list[str] | None,
+    extra: dict[str, Any] | None,
+) -> Execution:
+    """Build and write the run record of one session's part of the run."""
+    from msflow.records import build_record
+
+    record = build_record(
+        new_run_id(),
+        session.pipeline,
+        session.plans,
+        runner.states,
+        started=started,
+        finished=time.time(),
+        executor=executor,
+        jobs=jobs,
+        argv=argv,
+        label=label,
+    )
+    record.update(extra or {})
+    if runner.repairs:
+        record["repairs"] = runner.repairs
+    write_record(session, record, noop=not runner.repairs and not force)
+    return Execution(session, runner.states, record, runner.file_memo.seen)
 
 
 def code_trees_of(sessions: list[Session]) -> Callable[[str], CodeTree]:

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 from msflow.errors import UserError, field_path
 from msflow.fingerprint import PROJECT_ROOTS, STDLIB, CodeIndex, distribution_versions
 from msflow.hashing import json_hash
-from msflow.spec import FilesRef, Pipeline, StageRef, rel_to, suggest
+from msflow.spec import FilesRef, Pipeline, StageNode, StageRef, rel_to, suggest
 from msflow.syspath import holds_installed_packages
 
 if TYPE_CHECKING:
@@ -177,97 +177,125 @@ def canonical_params(cls: type[Stage], raw: dict[str, Any], *, file: str, stage:
 
 def resolve(pipeline: Pipeline, memo: dict[str, Any]) -> dict[str, StagePlan]:
     """Fingerprint, interface and canonical params for every stage; checks every input against its declaration."""
-    file = str(pipeline.path)
     index = CodeIndex(pipeline.root, memo.setdefault("code", {}))
-    interfaces = memo.setdefault("interfaces", {})
-    params_memo = memo.setdefault("params", {})
+    interfaces: dict[str, Any] = memo.setdefault("interfaces", {})
+    params_memo: dict[str, Any] = memo.setdefault("params", {})
     plans: dict[str, StagePlan] = {}
     ensure_importable(pipeline.root)
     for name, node in pipeline.stages.items():
-        module_name = node.uses.partition(":")[0]
-        in_project = index.project_file(module_name)
-        if in_project is not None:
-            try:
-                closure = index.closure(module_name)
-            except UserError as exc:
-                raise exc.located(file=file, stage=name, field="uses") from None
-        else:
-            import importlib.util
+        plans[name] = _plan_stage(pipeline, name, node, index, interfaces, params_memo)
+    for name in pipeline.stages:
+        check_inputs(pipeline, plans, name)
+    _check_publish_outputs(pipeline, plans)
+    return plans
 
-            top = module_name.split(".")[0]
-            if top in STDLIB:
-                raise UserError(
-                    f"'{node.uses}' is not a msflow Stage subclass: '{top}' is Python's standard library",
-                    file=file,
-                    stage=name,
-                    field="uses",
-                )
-            if importlib.util.find_spec(top) is None:
-                raise UserError(
-                    f"unknown stage module '{module_name}' (not in the project at {pipeline.root} and not installed)",
-                    file=file,
-                    stage=name,
-                    field="uses",
-                )
-            closure = {"modules": {}, "external": [top]}
+
+def _plan_stage(
+    pipeline: Pipeline,
+    name: str,
+    node: StageNode,
+    index: CodeIndex,
+    interfaces: dict[str, Any],
+    params_memo: dict[str, Any],
+) -> StagePlan:
+    """One stage's plan; its class is imported only when the interface or the params are not memoised yet."""
+    file = str(pipeline.path)
+    code = _stage_code(pipeline, name, node, index)
+    code_digest = json_hash(code)
+    iface_key = json_hash([node.uses, code_digest])
+    interface = interfaces.get(iface_key)
+    cls: type[Stage] | None = None
+    if interface is None:
+        cls = import_stage_class(node.uses, file=file, stage=name, root=pipeline.root)
+        interface = _class_interface(cls, pipeline.root)
+        interfaces[iface_key] = interface
+    _check_resources(pipeline, name, node, interface)
+    params_key = json_hash([iface_key, node.params])
+    params = params_memo.get(params_key)
+    if params is None:
+        cls = cls or import_stage_class(node.uses, file=file, stage=name, root=pipeline.root)
+        params = canonical_params(cls, node.params, file=file, stage=name)
+        params_memo[params_key] = params
+    return StagePlan(name, node.uses, code, code_digest, interface, params)
+
+
+def _stage_code(pipeline: Pipeline, name: str, node: StageNode, index: CodeIndex) -> dict[str, Any]:
+    """The code a stage runs: its project modules' digests, its third-party distributions and the Python version."""
+    closure = _module_closure(pipeline, name, node, index)
+    try:
+        dists = distribution_versions(closure["external"], index.memo, pipeline.root)
+    except UserError as exc:
+        raise exc.located(file=str(pipeline.path), stage=name, field="uses") from None
+    return {"modules": closure["modules"], "dists": dists, "python": PYTHON}
+
+
+def _module_closure(pipeline: Pipeline, name: str, node: StageNode, index: CodeIndex) -> dict[str, Any]:
+    """The project modules a stage's module imports; an installed module counts as one external distribution."""
+    file = str(pipeline.path)
+    module_name = node.uses.partition(":")[0]
+    if index.project_file(module_name) is not None:
         try:
-            dists = distribution_versions(closure["external"], index.memo, pipeline.root)
+            return index.closure(module_name)
         except UserError as exc:
             raise exc.located(file=file, stage=name, field="uses") from None
-        code = {"modules": closure["modules"], "dists": dists, "python": PYTHON}
-        code_digest = json_hash(code)
-        iface_key = json_hash([node.uses, code_digest])
-        interface = interfaces.get(iface_key)
-        cls = None
-        if interface is None:
-            cls = import_stage_class(node.uses, file=file, stage=name, root=pipeline.root)
-            interface = cls.interface()
-            interface["resources"] = {
-                k: rel_to(Path(v), pipeline.root) for k, v in interface.get("resources", {}).items()
-            }
-            interfaces[iface_key] = interface
-        for resource, path in interface.get("resources", {}).items():
-            if not (pipeline.root / path).exists():
-                raise UserError(
-                    f"{node.uses} needs its data file '{path}' (resource '{resource}'), which is missing",
-                    file=file,
-                    stage=name,
-                    field="uses",
-                )
-        params_key = json_hash([iface_key, node.params])
-        params = params_memo.get(params_key)
-        if params is None:
-            cls = cls or import_stage_class(node.uses, file=file, stage=name, root=pipeline.root)
-            params = canonical_params(cls, node.params, file=file, stage=name)
-            params_memo[params_key] = params
-        plans[name] = StagePlan(name, node.uses, code, code_digest, interface, params)
-    for name, node in pipeline.stages.items():
-        check_inputs(pipeline, plans, name)
+    import importlib.util
+
+    top = module_name.split(".")[0]
+    if top in STDLIB:
+        raise UserError(
+            f"'{node.uses}' is not a msflow Stage subclass: '{top}' is Python's standard library",
+            file=file,
+            stage=name,
+            field="uses",
+        )
+    if importlib.util.find_spec(top) is None:
+        raise UserError(
+            f"unknown stage module '{module_name}' (not in the project at {pipeline.root} and not installed)",
+            file=file,
+            stage=name,
+            field="uses",
+        )
+    return {"modules": {}, "external": [top]}
+
+
+def _class_interface(cls: type[Stage], root: Path) -> dict[str, Any]:
+    """A stage class's interface, its resource paths made relative to the project root (so the memo can move)."""
+    interface = cls.interface()
+    interface["resources"] = {k: rel_to(Path(v), root) for k, v in interface.get("resources", {}).items()}
+    return interface
+
+
+def _check_resources(pipeline: Pipeline, name: str, node: StageNode, interface: dict[str, Any]) -> None:
+    """Every data file the stage class declares as a resource exists (checked even when the interface is memoised)."""
+    for resource, path in interface.get("resources", {}).items():
+        if not (pipeline.root / path).exists():
+            raise UserError(
+                f"{node.uses} needs its data file '{path}' (resource '{resource}'), which is missing",
+                file=str(pipeline.path),
+                stage=name,
+                field="uses",
+            )
+
+
+def _check_publish_outputs(pipeline: Pipeline, plans: dict[str, StagePlan]) -> None:
+    """Every publish target names an output its stage declares."""
     for target in pipeline.publish:
         stage, _, output = target.partition(".")
         outputs = plans[stage].interface["outputs"]
         if output not in outputs:
             raise UserError(
                 f"stage '{stage}' has no output '{output}'{suggest(output, outputs)}; outputs: {', '.join(outputs)}",
-                file=file,
+                file=str(pipeline.path),
                 field=f"publish.{target}",
             )
-    return plans
 
 
 def check_inputs(pipeline: Pipeline, plans: dict[str, StagePlan], name: str) -> None:
+    """Check a stage's inputs against its declared ones: none unknown, none required missing, each of its kind."""
     file = str(pipeline.path)
     node = pipeline.stages[name]
     declared: dict[str, Any] = plans[name].interface["inputs"]
-    for input_name in node.inputs:
-        if input_name not in declared:
-            raise UserError(
-                f"unknown input '{input_name}'{suggest(input_name, declared)}; "
-                f"{node.uses} takes: {', '.join(declared) or 'no inputs'}",
-                file=file,
-                stage=name,
-                field=f"inputs.{input_name}",
-            )
+    _check_no_unknown_inputs(node, declared, file=file, stage=name)
     for input_name, decl in declared.items():
         where = f"inputs.{input_name}"
         ref = node.inputs.get(input_name)
@@ -277,8 +305,7 @@ def check_inputs(pipeline: Pipeline, plans: dict[str, StagePlan], name: str) -> 
                     f"missing required input '{input_name}' ({decl['kind']})", file=file, stage=name, field=where
                 )
             continue
-        kind = decl["kind"]
-        if kind == "files":
+        if decl["kind"] == "files":
             if not isinstance(ref, FilesRef):
                 raise UserError(
                     f"expects data files ({{path: ...}} or {{label: path}}), got stage reference '{ref.describe()}'",
@@ -287,42 +314,70 @@ def check_inputs(pipeline: Pipeline, plans: dict[str, StagePlan], name: str) -> 
                     field=where,
                 )
             continue
-        if not isinstance(ref, StageRef):
+        _check_stage_input(ref, decl, plans, file=file, stage=name, where=where)
+
+
+def _check_no_unknown_inputs(node: StageNode, declared: dict[str, Any], *, file: str, stage: str) -> None:
+    """Every input the pipeline gives a stage is one its class declares."""
+    for input_name in node.inputs:
+        if input_name not in declared:
             raise UserError(
-                "expects a stage reference ('stage' or 'stage.output'), got data files",
+                f"unknown input '{input_name}'{suggest(input_name, declared)}; "
+                f"{node.uses} takes: {', '.join(declared) or 'no inputs'}",
                 file=file,
-                stage=name,
-                field=where,
+                stage=stage,
+                field=f"inputs.{input_name}",
             )
-        upstream = plans[ref.stage].interface["outputs"]
-        if ref.output is not None and ref.output not in upstream:
-            raise UserError(
-                f"stage '{ref.stage}' has no output '{ref.output}'{suggest(ref.output, upstream)}; "
-                f"outputs: {', '.join(upstream)}",
-                file=file,
-                stage=name,
-                field=where,
-            )
-        if kind == "array" and ref.output is None:
-            raise UserError(
-                f"expects one array: write '{ref.stage}.<output>' (outputs: {', '.join(upstream)})",
-                file=file,
-                stage=name,
-                field=where,
-            )
-        if kind == "artifact":
-            if ref.output is not None:
-                raise UserError(
-                    f"expects a whole artifact: write '{ref.stage}' instead of '{ref.describe()}'",
-                    file=file,
-                    stage=name,
-                    field=where,
-                )
-            missing = [r for r in decl["requires"] if r not in upstream]
-            if missing:
-                raise UserError(
-                    f"stage '{ref.stage}' ({plans[ref.stage].uses}) lacks outputs {missing} this input requires",
-                    file=file,
-                    stage=name,
-                    field=where,
-                )
+
+
+def _check_stage_input(
+    ref: StageRef | FilesRef, decl: dict[str, Any], plans: dict[str, StagePlan], *, file: str, stage: str, where: str
+) -> None:
+    """An array or artifact input is a reference to an upstream stage of the shape its kind needs."""
+    if not isinstance(ref, StageRef):
+        raise UserError(
+            "expects a stage reference ('stage' or 'stage.output'), got data files",
+            file=file,
+            stage=stage,
+            field=where,
+        )
+    upstream = plans[ref.stage].interface["outputs"]
+    if ref.output is not None and ref.output not in upstream:
+        raise UserError(
+            f"stage '{ref.stage}' has no output '{ref.output}'{suggest(ref.output, upstream)}; "
+            f"outputs: {', '.join(upstream)}",
+            file=file,
+            stage=stage,
+            field=where,
+        )
+    if decl["kind"] == "array" and ref.output is None:
+        raise UserError(
+            f"expects one array: write '{ref.stage}.<output>' (outputs: {', '.join(upstream)})",
+            file=file,
+            stage=stage,
+            field=where,
+        )
+    if decl["kind"] == "artifact":
+        _check_whole_artifact(ref, decl, plans, file=file, stage=stage, where=where)
+
+
+def _check_whole_artifact(
+    ref: StageRef, decl: dict[str, Any], plans: dict[str, StagePlan], *, file: str, stage: str, where: str
+) -> None:
+    """An artifact input names a whole upstream stage that has every output the input requires."""
+    if ref.output is not None:
+        raise UserError(
+            f"expects a whole artifact: write '{ref.stage}' instead of '{ref.describe()}'",
+            file=file,
+            stage=stage,
+            field=where,
+        )
+    upstream = plans[ref.stage].interface["outputs"]
+    missing = [r for r in decl["requires"] if r not in upstream]
+    if missing:
+        raise UserError(
+            f"stage '{ref.stage}' ({plans[ref.stage].uses}) lacks outputs {missing} this input requires",
+            file=file,
+            stage=stage,
+            field=where,
+        )

@@ -288,6 +288,23 @@ def load_pipeline(
     ``publish_dir``: publish entries are relative to it (and may leave the project), not to the pipeline file."""
     path = Path(path)
     file = str(path)
+    text, signature = _read_pipeline_file(path, file)
+    raw = _top_level_mapping(text, file)
+    overrides = tuple(overrides)
+    apply_overrides(raw, overrides, file)
+    spec = _validated_spec(_substituted(raw, file), file)
+    pipeline_dir = path.resolve().parent
+    root = find_root(pipeline_dir)
+    store = _store_location(spec.store, pipeline_dir)
+    nodes = _stage_nodes(spec, pipeline_dir, root, file)
+    _check_references(nodes, spec.publish, file)
+    check_cycles(nodes, file)
+    publish = publish_targets(spec.publish, root, pipeline_dir, publish_dir, file)
+    return Pipeline(path.resolve(), root, store, nodes, publish, overrides, spec.store_options, signature)
+
+
+def _read_pipeline_file(path: Path, file: str) -> tuple[str, str]:
+    """The pipeline file's text and its stat signature when it was read."""
     if not path.exists():
         raise UserError("pipeline file not found", file=file)
     if path.is_dir():
@@ -297,6 +314,11 @@ def load_pipeline(
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise UserError(f"cannot read: {exc}", file=file) from None
+    return text, signature
+
+
+def _top_level_mapping(text: str, file: str) -> dict[str, Any]:
+    """Parse the pipeline YAML, which must be a non-empty mapping with string keys."""
     raw = parse_yaml(text, file)
     if raw is None:
         raise UserError("the file is empty; it needs at least 'stages:'", file=file)
@@ -305,25 +327,39 @@ def load_pipeline(
     for key in raw:
         if not isinstance(key, str):
             raise UserError(f"top-level key {key!r} is not a string", file=file)
-    overrides = tuple(overrides)
-    apply_overrides(raw, overrides, file)
+    return raw
+
+
+def _substituted(raw: dict[str, Any], file: str) -> dict[str, Any]:
+    """Every top-level entry but ``vars`` with its ``${name}`` references replaced by the values in ``vars``."""
     variables = raw.get("vars", {})
     if not isinstance(variables, dict):
         raise UserError("'vars' must be a mapping of name: value", file=file, field="vars")
     variables = {str(k): v for k, v in variables.items()}
-    substituted = {k: (v if k == "vars" else substitute_vars(v, variables, file, k)) for k, v in raw.items()}
+    return {k: (v if k == "vars" else substitute_vars(v, variables, file, k)) for k, v in raw.items()}
+
+
+def _validated_spec(substituted: dict[str, Any], file: str) -> PipelineSpec:
+    """The pipeline's schema check, with at least one stage."""
     try:
         spec = PipelineSpec.model_validate(substituted)
     except ValidationError as exc:
         raise _user_error_from_validation(exc, file) from None
     if not spec.stages:
         raise UserError("'stages' is empty: a pipeline needs at least one stage", file=file, field="stages")
+    return spec
 
-    pipeline_dir = path.resolve().parent
-    root = find_root(pipeline_dir)
-    store = spec.store or ".msflow"
+
+def _store_location(store: str | None, pipeline_dir: Path) -> str:
+    """The store as an absolute path (relative ones are to the pipeline's folder) or a URL, left as written."""
+    store = store or ".msflow"
     if "://" not in store:
         store = str((pipeline_dir / store).resolve())
+    return store
+
+
+def _stage_nodes(spec: PipelineSpec, pipeline_dir: Path, root: Path, file: str) -> dict[str, StageNode]:
+    """One node per stage, its name checked and its input references parsed (data files resolved)."""
     nodes: dict[str, StageNode] = {}
     for name, stage in spec.stages.items():
         if not NAME_RE.match(name):
@@ -336,6 +372,11 @@ def load_pipeline(
         for input_name, ref in stage.inputs.items():
             inputs[input_name] = parse_ref(ref, pipeline_dir, root, file, name, f"inputs.{input_name}")
         nodes[name] = StageNode(name, stage.uses, stage.params, inputs, stage.description)
+    return nodes
+
+
+def _check_references(nodes: dict[str, StageNode], publish: dict[str, str], file: str) -> None:
+    """Stage inputs refer to known stages; publish targets are ``stage.output`` of known stages."""
     for name, node in nodes.items():
         for input_name, ref in node.inputs.items():
             if isinstance(ref, StageRef) and ref.stage not in nodes:
@@ -345,13 +386,10 @@ def load_pipeline(
                     stage=name,
                     field=f"inputs.{input_name}",
                 )
-    for target in spec.publish:
+    for target in publish:
         m = REF_RE.match(target)
         if not m or not m.group("output") or m.group("stage") not in nodes:
             raise UserError(f"'{target}' is not stage.output of a known stage", file=file, field=f"publish.{target}")
-    check_cycles(nodes, file)
-    publish = publish_targets(spec.publish, root, pipeline_dir, publish_dir, file)
-    return Pipeline(path.resolve(), root, store, nodes, publish, overrides, spec.store_options, signature)
 
 
 def publish_targets(
