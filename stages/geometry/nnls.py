@@ -89,6 +89,109 @@ def solve_restricted(Q: np.ndarray, C: np.ndarray, passive: np.ndarray, ridge: f
     return S
 
 
+#: the phases of a frame in the batched active-set loop
+_OUTER, _INNER, _DONE = 1, 2, 0
+
+
+@dataclass
+class _ActiveSetFrames:
+    """Per-frame state of the batched active-set loop; the steps below update it in place."""
+
+    W: np.ndarray  # (n, k) current feasible weights
+    passive: np.ndarray  # (n, k) bool, the passive (free) set P
+    iterations: np.ndarray  # (n,) inner iterations spent
+    state: np.ndarray  # (n,) _OUTER, _INNER or _DONE
+    added: np.ndarray  # (n,) variable added by the last outer step
+    first_inner: np.ndarray  # (n,) bool: the next inner step is the first after an outer one
+
+
+def _start_frames(n: int, k: int, initial_passive: np.ndarray | None) -> _ActiveSetFrames:
+    """Every frame at w = 0 with an empty passive set, or (``initial_passive``) at a tiny feasible point on its
+    guessed support, ready for the inner loop."""
+    frames = _ActiveSetFrames(
+        W=np.zeros((n, k)),
+        passive=np.zeros((n, k), dtype=bool),
+        iterations=np.zeros(n, dtype=np.int64),
+        state=np.full(n, _OUTER, dtype=np.int8),
+        added=np.full(n, -1, dtype=np.int64),
+        first_inner=np.zeros(n, dtype=bool),
+    )
+    if initial_passive is not None:
+        frames.passive = np.asarray(initial_passive, dtype=bool).copy()
+        warm = frames.passive.any(axis=1)
+        # any strictly positive point on the guessed support is feasible; the inner loop walks from it towards
+        # the restricted least-squares solution and drops the guesses that block
+        frames.W[frames.passive] = 1e-12
+        frames.state[warm] = _INNER
+    return frames
+
+
+def _free_best_variable(frames: _ActiveSetFrames, Q: np.ndarray, C: np.ndarray, tol: np.ndarray, max_iter: int) -> None:
+    """The outer step, for the frames waiting for it: free the active variable with the largest negative
+    gradient, or finish the frame when none exceeds its tolerance (the KKT conditions hold) or its iterations
+    ran out."""
+    outer = np.flatnonzero(frames.state == _OUTER)
+    if not outer.size:
+        return
+    neg_grad = C[outer] - frames.W[outer] @ Q
+    candidates = np.where(frames.passive[outer], -np.inf, neg_grad)
+    j = np.argmax(candidates, axis=1)
+    best = candidates[np.arange(outer.size), j]
+    finished = ~(best > tol[outer]) | (frames.iterations[outer] >= max_iter)
+    frames.state[outer[finished]] = _DONE
+    go = outer[~finished]
+    frames.passive[go, j[~finished]] = True
+    frames.added[go] = j[~finished]
+    frames.first_inner[go] = True
+    frames.state[go] = _INNER
+
+
+def _inner_step(frames: _ActiveSetFrames, inner: np.ndarray, Q: np.ndarray, C: np.ndarray, ridge: float) -> None:
+    """One pass of the inner loop for the frames in it: solve on the passive set; a feasible solution is taken
+    (back to the outer loop), a stalled frame stops, the others step back towards feasibility."""
+    frames.iterations[inner] += 1
+    P = frames.passive[inner]
+    S = solve_restricted(Q, C[inner], P, ridge)
+    feasible = np.all((S > 0) | ~P, axis=1)
+    # the variable just added got a non-positive value: its positive gradient was round-off, so stop there
+    # rather than cycle (Lawson & Hanson's own safeguard)
+    stalled = (
+        ~feasible & frames.first_inner[inner] & (S[np.arange(inner.size), np.maximum(frames.added[inner], 0)] <= 0)
+    )
+    frames.first_inner[inner] = False
+
+    ok = inner[feasible]
+    frames.W[ok] = S[feasible]
+    frames.state[ok] = _OUTER
+
+    st = inner[stalled]
+    frames.passive[st, frames.added[st]] = False
+    frames.state[st] = _DONE
+
+    step = ~feasible & ~stalled
+    idx = inner[step]
+    if idx.size:
+        _step_back_to_feasibility(frames, idx, S[step], P[step])
+
+
+def _step_back_to_feasibility(frames: _ActiveSetFrames, idx: np.ndarray, S: np.ndarray, P: np.ndarray) -> None:
+    """Move the frames ``idx`` from their feasible weights towards their infeasible restricted solutions ``S``
+    (passive sets ``P``) as far as feasibility allows, until the first passive variable reaches zero, and make
+    the variables that reached zero active again."""
+    W = frames.W[idx]
+    blocking = P & (S <= 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(blocking, W / (W - S), np.inf)
+    alpha = np.clip(ratio.min(axis=1), 0.0, 1.0)
+    W = W + alpha[:, None] * (S - W)
+    drop = P & (W <= 0)
+    # the blocking variable leaves exactly, even when round-off leaves it a hair above zero
+    drop[np.arange(idx.size), np.argmin(ratio, axis=1)] = True
+    frames.passive[idx] = P & ~drop
+    W[~frames.passive[idx]] = 0.0
+    frames.W[idx] = W
+
+
 def nnls_active_set(
     Q: np.ndarray,
     C: np.ndarray,
@@ -115,75 +218,20 @@ def nnls_active_set(
     # a tiny ridge keeps the masked solves non-singular when two keyshapes are (nearly) collinear
     ridge = 1e-13 * max(np.trace(Q) / max(k, 1), EPS)
 
-    W = np.zeros((n, k))
-    passive = np.zeros((n, k), dtype=bool)
-    iterations = np.zeros(n, dtype=np.int64)
-    OUTER, INNER, DONE = 1, 2, 0
-    state = np.full(n, OUTER, dtype=np.int8)
-    added = np.full(n, -1, dtype=np.int64)  # variable added by the last outer step
-    first_inner = np.zeros(n, dtype=bool)
-    if initial_passive is not None:
-        passive = np.asarray(initial_passive, dtype=bool).copy()
-        warm = passive.any(axis=1)
-        # any strictly positive point on the guessed support is feasible; the inner loop walks from it towards
-        # the restricted least-squares solution and drops the guesses that block
-        W[passive] = 1e-12
-        state[warm] = INNER
+    frames = _start_frames(n, k, initial_passive)
     for _ in range(max_iter * 3):
-        outer = np.flatnonzero(state == OUTER)
-        if outer.size:
-            neg_grad = C[outer] - W[outer] @ Q
-            candidates = np.where(passive[outer], -np.inf, neg_grad)
-            j = np.argmax(candidates, axis=1)
-            best = candidates[np.arange(outer.size), j]
-            finished = ~(best > tol[outer]) | (iterations[outer] >= max_iter)
-            state[outer[finished]] = DONE
-            go = outer[~finished]
-            passive[go, j[~finished]] = True
-            added[go] = j[~finished]
-            first_inner[go] = True
-            state[go] = INNER
-        inner = np.flatnonzero(state == INNER)
+        _free_best_variable(frames, Q, C, tol, max_iter)
+        inner = np.flatnonzero(frames.state == _INNER)
         if not inner.size:
-            if not (state == OUTER).any():
+            if not (frames.state == _OUTER).any():
                 break
             continue
-        iterations[inner] += 1
-        P = passive[inner]
-        S = solve_restricted(Q, C[inner], P, ridge)
-        feasible = np.all((S > 0) | ~P, axis=1)
-        # the variable just added got a non-positive value: its positive gradient was round-off, so stop there
-        # rather than cycle (Lawson & Hanson's own safeguard)
-        stalled = ~feasible & first_inner[inner] & (S[np.arange(inner.size), np.maximum(added[inner], 0)] <= 0)
-        first_inner[inner] = False
-
-        ok = inner[feasible]
-        W[ok] = S[feasible]
-        state[ok] = OUTER
-
-        st = inner[stalled]
-        passive[st, added[st]] = False
-        state[st] = DONE
-
-        step = ~feasible & ~stalled
-        idx = inner[step]
-        if idx.size:
-            Wi, Si, Pi = W[idx], S[step], P[step]
-            blocking = Pi & (Si <= 0)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                ratio = np.where(blocking, Wi / (Wi - Si), np.inf)
-            alpha = np.clip(ratio.min(axis=1), 0.0, 1.0)
-            Wi = Wi + alpha[:, None] * (Si - Wi)
-            drop = Pi & (Wi <= 0)
-            # the blocking variable leaves exactly, even when round-off leaves it a hair above zero
-            drop[np.arange(idx.size), np.argmin(ratio, axis=1)] = True
-            passive[idx] = Pi & ~drop
-            Wi[~passive[idx]] = 0.0
-            W[idx] = Wi
-    converged = state == DONE
-    converged &= iterations < max_iter
+        _inner_step(frames, inner, Q, C, ridge)
+    converged = frames.state == _DONE
+    converged &= frames.iterations < max_iter
+    W, passive = frames.W, frames.passive
     W[~passive] = 0.0
-    return W, iterations, converged
+    return W, frames.iterations, converged
 
 
 def solve_box_qp(
@@ -275,6 +323,75 @@ def scipy_nnls_rows(A: np.ndarray, X: np.ndarray, max_iter: int | None = None) -
     return W, np.zeros(len(X), dtype=np.int64)
 
 
+def _fit_problem(A: np.ndarray, X: np.ndarray, sum_to_one: float, energy: float) -> tuple[np.ndarray, np.ndarray]:
+    """The least-squares problem actually solved: (A, X), with the soft sum-to-one row when ``sum_to_one`` > 0."""
+    if sum_to_one <= 0:
+        return A, X
+    n, k = X.shape[0], A.shape[1]
+    # the soft constraint is one more least-squares row: sqrt(mu) * (1'w - 1)
+    root_mu = np.sqrt(sum_to_one * energy)
+    A_fit = np.vstack([A, np.full((1, k), root_mu)])
+    X_fit = np.hstack([X, np.full((n, 1), root_mu)])
+    return A_fit, X_fit
+
+
+def _active_set_with_retry(
+    Q: np.ndarray,
+    C: np.ndarray,
+    x_norms: np.ndarray,
+    A_fit: np.ndarray,
+    X_fit: np.ndarray,
+    guess: np.ndarray | None,
+    rtol: float | None,
+    max_iter: int | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The batched active set, warm-started from ``guess``; frames the warm start left short of optimal are
+    solved again from scratch."""
+    W, iterations, converged = nnls_active_set(
+        Q, C, x_norms, rtol=rtol or 1e-10, max_iter=max_iter, initial_passive=guess
+    )
+    if guess is not None:
+        # a warm start is only a shortcut: frames it left short of optimal start again from scratch
+        retry = ~converged | (kkt_violation(A_fit, X_fit, W) > 1e-6)
+        if retry.any():
+            W[retry], iterations[retry], converged[retry] = nnls_active_set(
+                Q, C[retry], x_norms[retry], rtol=rtol or 1e-10, max_iter=max_iter
+            )
+    return W, iterations, converged
+
+
+def _box_qp_solution(
+    Q: np.ndarray,
+    C: np.ndarray,
+    x_norms: np.ndarray,
+    guess: np.ndarray | None,
+    *,
+    method: str,
+    smoothing: float,
+    energy: float,
+    rtol: float | None,
+    max_iter: int | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """FISTA on the Gram form, with temporal smoothing if asked; warm-started from the per-frame active-set
+    solution unless the method is plain "fista" without smoothing."""
+    W0 = None
+    if smoothing > 0 or method != "fista":
+        W0, _, _ = nnls_active_set(Q, C, x_norms, rtol=1e-10, initial_passive=guess)
+    W, it, res = solve_box_qp(
+        Q,
+        C,
+        lower=0.0,
+        upper=np.inf,
+        smoothing=smoothing * energy,
+        W0=W0,
+        rtol=rtol or 1e-8,
+        max_iter=max_iter or 50000,
+    )
+    iterations = np.full(len(C), it, dtype=np.int64)
+    converged = res <= (rtol or 1e-8)
+    return W, iterations, converged
+
+
 def batched_nnls(
     A: np.ndarray,
     X: np.ndarray,
@@ -305,57 +422,24 @@ def batched_nnls(
         raise ValueError(f"batched_nnls: unknown method {method!r} (scipy, active_set, fista)")
     n, k = X.shape[0], A.shape[1]
     energy = float((A * A).sum()) / max(k, 1)
-    A_fit, X_fit = A, X
-    if sum_to_one > 0:
-        # the soft constraint is one more least-squares row: sqrt(mu) * (1'w - 1)
-        root_mu = np.sqrt(sum_to_one * energy)
-        A_fit = np.vstack([A, np.full((1, k), root_mu)])
-        X_fit = np.hstack([X, np.full((n, 1), root_mu)])
+    A_fit, X_fit = _fit_problem(A, X, sum_to_one, energy)
     if method == "scipy" and smoothing <= 0:
         W, iterations = scipy_nnls_rows(A_fit, X_fit, max_iter)
         converged = np.ones(n, dtype=bool)
-        return NnlsResult(
-            weights=W,
-            residual_norm=np.linalg.norm(W @ A.T - X, axis=1),
-            iterations=iterations,
-            kkt=kkt_violation(A_fit, X_fit, W),
-            converged=converged,
-        )
-    Q = A_fit.T @ A_fit
-    C = X_fit @ A_fit
-    x_norms = np.linalg.norm(X_fit, axis=1)
-    guess = support_guess(Q, C)
-    if method == "active_set" and smoothing <= 0:
-        W, iterations, converged = nnls_active_set(
-            Q, C, x_norms, rtol=rtol or 1e-10, max_iter=max_iter, initial_passive=guess
-        )
-        if guess is not None:
-            # a warm start is only a shortcut: frames it left short of optimal start again from scratch
-            retry = ~converged | (kkt_violation(A_fit, X_fit, W) > 1e-6)
-            if retry.any():
-                W[retry], iterations[retry], converged[retry] = nnls_active_set(
-                    Q, C[retry], x_norms[retry], rtol=rtol or 1e-10, max_iter=max_iter
-                )
     else:
-        W0 = None
-        if smoothing > 0 or method != "fista":
-            W0, _, _ = nnls_active_set(Q, C, x_norms, rtol=1e-10, initial_passive=guess)
-        W, it, res = solve_box_qp(
-            Q,
-            C,
-            lower=0.0,
-            upper=np.inf,
-            smoothing=smoothing * energy,
-            W0=W0,
-            rtol=rtol or 1e-8,
-            max_iter=max_iter or 50000,
-        )
-        iterations = np.full(n, it, dtype=np.int64)
-        converged = res <= (rtol or 1e-8)
-    residual = np.linalg.norm(W @ A.T - X, axis=1)
+        Q = A_fit.T @ A_fit
+        C = X_fit @ A_fit
+        x_norms = np.linalg.norm(X_fit, axis=1)
+        guess = support_guess(Q, C)
+        if method == "active_set" and smoothing <= 0:
+            W, iterations, converged = _active_set_with_retry(Q, C, x_norms, A_fit, X_fit, guess, rtol, max_iter)
+        else:
+            W, iterations, converged = _box_qp_solution(
+                Q, C, x_norms, guess, method=method, smoothing=smoothing, energy=energy, rtol=rtol, max_iter=max_iter
+            )
     return NnlsResult(
         weights=W,
-        residual_norm=residual,
+        residual_norm=np.linalg.norm(W @ A.T - X, axis=1),
         iterations=iterations,
         kkt=kkt_violation(A_fit, X_fit, W),
         converged=converged,

@@ -645,46 +645,15 @@ def speaker_statistics(keys: list[str], analyses: list[dict]) -> tuple[np.ndarra
 
 
 def pitch_result(utterances: list[Utterance], params) -> Result:
+    """The stage's result: per-utterance analyses, pooled per speaker, laid out as the ``PITCH_OUTPUTS``."""
     keys = speaker_keys(utterances, params.median_over)
     analyses = analyse_utterances(utterances, params)
     medians, spreads = speaker_statistics(keys, analyses)
-    features = np.stack(
-        [phrase_features(a["times"], a["clean"], a["segmentation"].segments, m) for a, m in zip(analyses, medians)]
-    )
     seg_counts = [len(a["segmentation"].segments) for a in analyses]
-    arrays = {
-        "f0": np.concatenate([a["clean"] for a in analyses]).astype(np.float32),
-        "f0_raw": np.concatenate([a["raw"] for a in analyses]).astype(np.float32),
-        "energy": np.concatenate([a["energy"] for a in analyses]).astype(np.float32),
-        "pitch_time": np.concatenate([a["times"] for a in analyses]),
-        "pitch_utterance": np.concatenate([np.full(len(a["times"]), k, np.int32) for k, a in enumerate(analyses)]),
-        "segments": np.concatenate([a["segmentation"].segments for a in analyses]).reshape(-1, 3),
-        "segment_utterance": np.repeat(np.arange(len(analyses), dtype=np.int32), seg_counts),
-        "subsentence_start": np.concatenate([a["segmentation"].subsentence_start for a in analyses]).astype(bool),
-        "phrase_features": features,
-        "speaker_median": medians,
-        "speaker_spread": spreads,
-        "onsets": np.concatenate([a["onsets"] for a in analyses]),
-        "onset_utterance": np.concatenate([np.full(len(a["onsets"]), k, np.int32) for k, a in enumerate(analyses)]),
-        "utterance_duration": np.array([u.duration for u in utterances]),
-    }
+    arrays = _pitch_arrays(utterances, analyses, medians, spreads, seg_counts)
     arrays.update(praat_exports(utterances, analyses))
     voiced = np.concatenate([np.isfinite(a["clean"]) for a in analyses])
-    meta = {
-        "labels": [u.label for u in utterances],
-        "sources": [u.source for u in utterances],
-        "speakers": [u.speaker for u in utterances],
-        "fps": [u.fps for u in utterances],
-        "frames": [u.frames for u in utterances],
-        "audio_offset": [u.offset for u in utterances],
-        "feature_names": list(PHRASE_FEATURES),
-        "level_features": list(LEVEL_FEATURES),
-        "feature_unit": "semitones relative to speaker_median; seconds; voiced runs per second",
-        "time_step": params.time_step,
-        "method": params.method,
-        "breath_pause": params.breath_pause,
-        "silent": [u.label for u, n in zip(utterances, seg_counts) if n == 0],
-    }
+    meta = _pitch_meta(utterances, params, seg_counts)
     metrics = {
         "segments": int(sum(seg_counts)),
         "utterances": len(utterances),
@@ -702,52 +671,70 @@ def pitch_result(utterances: list[Utterance], params) -> Result:
     return Result(arrays, meta, metrics, warnings)
 
 
+def _pitch_arrays(
+    utterances: list[Utterance],
+    analyses: list[dict],
+    medians: np.ndarray,
+    spreads: np.ndarray,
+    seg_counts: list[int],
+) -> dict[str, np.ndarray]:
+    """The numeric outputs: every utterance's frames, segments and onsets concatenated (with the index of their
+    utterance), and one row of phrase features and speaker statistics per utterance."""
+    features = np.stack(
+        [phrase_features(a["times"], a["clean"], a["segmentation"].segments, m) for a, m in zip(analyses, medians)]
+    )
+    return {
+        "f0": np.concatenate([a["clean"] for a in analyses]).astype(np.float32),
+        "f0_raw": np.concatenate([a["raw"] for a in analyses]).astype(np.float32),
+        "energy": np.concatenate([a["energy"] for a in analyses]).astype(np.float32),
+        "pitch_time": np.concatenate([a["times"] for a in analyses]),
+        "pitch_utterance": np.concatenate([np.full(len(a["times"]), k, np.int32) for k, a in enumerate(analyses)]),
+        "segments": np.concatenate([a["segmentation"].segments for a in analyses]).reshape(-1, 3),
+        "segment_utterance": np.repeat(np.arange(len(analyses), dtype=np.int32), seg_counts),
+        "subsentence_start": np.concatenate([a["segmentation"].subsentence_start for a in analyses]).astype(bool),
+        "phrase_features": features,
+        "speaker_median": medians,
+        "speaker_spread": spreads,
+        "onsets": np.concatenate([a["onsets"] for a in analyses]),
+        "onset_utterance": np.concatenate([np.full(len(a["onsets"]), k, np.int32) for k, a in enumerate(analyses)]),
+        "utterance_duration": np.array([u.duration for u in utterances]),
+    }
+
+
+def _pitch_meta(utterances: list[Utterance], params, seg_counts: list[int]) -> dict:
+    """The per-utterance labels and clocks, what the features are, the analysis settings, the silent utterances."""
+    return {
+        "labels": [u.label for u in utterances],
+        "sources": [u.source for u in utterances],
+        "speakers": [u.speaker for u in utterances],
+        "fps": [u.fps for u in utterances],
+        "frames": [u.frames for u in utterances],
+        "audio_offset": [u.offset for u in utterances],
+        "feature_names": list(PHRASE_FEATURES),
+        "level_features": list(LEVEL_FEATURES),
+        "feature_unit": "semitones relative to speaker_median; seconds; voiced runs per second",
+        "time_step": params.time_step,
+        "method": params.method,
+        "breath_pause": params.breath_pause,
+        "silent": [u.label for u, n in zip(utterances, seg_counts) if n == 0],
+    }
+
+
 def praat_exports(utterances: list[Utterance], analyses: list[dict]) -> dict[str, bytes]:
     """TextGrid, PitchTier and WAV over the distinct utterances' audio laid back to back."""
     rate = utterances[0].rate
-    chunks, utt_tier, seg_tier, voiced_tier, sub_tier, tier_times, tier_values = [], [], [], [], [], [], []
-    placed: dict[tuple, float] = {}
-    base = 0.0
-    for utt, analysis in zip(utterances, analyses):
-        if utt.audio_key in placed:
-            continue
-        samples = utt.samples
-        if utt.rate != rate:
-            new_n = int(round(len(samples) * rate / utt.rate))
-            samples = np.interp(np.arange(new_n) * utt.rate / rate, np.arange(len(samples)), samples)
-        placed[utt.audio_key] = base
-        length = len(samples) / rate
-        shift = base - utt.offset  # sequence clock -> wav time
-        names = "|".join(u.label for u in utterances if u.audio_key == utt.audio_key)
-        utt_tier.append((base, base + length, names))
-        seg = analysis["segmentation"]
-        for k, (a, v, b) in enumerate(seg.segments):
-            seg_tier.append((a + shift, b + shift, str(k + 1)))
-            voiced_tier.append((a + shift, v + shift, "V"))
-        starts = seg.segments[seg.subsentence_start, 0] if len(seg.segments) else np.zeros(0)
-        bounds = np.concatenate([starts, [seg.segments[-1, 2]]]) if len(starts) else np.zeros(0)
-        for k in range(len(starts)):
-            sub_tier.append((bounds[k] + shift, bounds[k + 1] + shift, f"s{k + 1}"))
-        ok = np.isfinite(analysis["clean"])
-        tier_times.append(analysis["times"][ok] + shift)
-        tier_values.append(analysis["clean"][ok])
-        chunks.append(samples)
-        base += length
+    chunks, tiers, tier_times, tier_values, base = _lay_out_utterances(utterances, analyses, rate)
     xmax = max(base, 1e-3)
-
-    def clip(intervals):
-        return [(max(a, 0.0), min(b, xmax), label) for a, b, label in intervals if min(b, xmax) > max(a, 0.0)]
-
     times = np.concatenate(tier_times) if tier_times else np.zeros(0)
     values = np.concatenate(tier_values) if tier_values else np.zeros(0)
     inside = (times >= 0) & (times <= xmax)
     textgrid = textgrid_text(
         xmax,
         [
-            ("utterance", utt_tier),
-            ("segment", clip(seg_tier)),
-            ("voiced", clip(voiced_tier)),
-            ("subsentence", clip(sub_tier)),
+            ("utterance", tiers["utterance"]),
+            ("segment", _clip_intervals(tiers["segment"], xmax)),
+            ("voiced", _clip_intervals(tiers["voiced"], xmax)),
+            ("subsentence", _clip_intervals(tiers["subsentence"], xmax)),
         ],
     )
     return {
@@ -755,3 +742,61 @@ def praat_exports(utterances: list[Utterance], analyses: list[dict]) -> dict[str
         "pitchtier": pitchtier_text(xmax, times[inside], values[inside]).encode("utf-8"),
         "sound": wav_bytes(np.concatenate(chunks), rate),
     }
+
+
+def _lay_out_utterances(utterances: list[Utterance], analyses: list[dict], rate: int) -> tuple:
+    """The distinct utterances' audio back to back at ``rate`` (utterances sharing audio are placed once): the
+    audio chunks, the TextGrid tiers' intervals and the cleaned pitch points (times, Hz), all on the wav's clock,
+    and the total length in seconds."""
+    chunks, tier_times, tier_values = [], [], []
+    tiers: dict[str, list[tuple[float, float, str]]] = {"utterance": [], "segment": [], "voiced": [], "subsentence": []}
+    placed: dict[tuple, float] = {}
+    base = 0.0
+    for utt, analysis in zip(utterances, analyses):
+        if utt.audio_key in placed:
+            continue
+        samples = _samples_at_rate(utt, rate)
+        placed[utt.audio_key] = base
+        length = len(samples) / rate
+        shift = base - utt.offset  # sequence clock -> wav time
+        names = "|".join(u.label for u in utterances if u.audio_key == utt.audio_key)
+        tiers["utterance"].append((base, base + length, names))
+        segment, voiced, subsentence = _segment_intervals(analysis["segmentation"], shift)
+        tiers["segment"] += segment
+        tiers["voiced"] += voiced
+        tiers["subsentence"] += subsentence
+        ok = np.isfinite(analysis["clean"])
+        tier_times.append(analysis["times"][ok] + shift)
+        tier_values.append(analysis["clean"][ok])
+        chunks.append(samples)
+        base += length
+    return chunks, tiers, tier_times, tier_values, base
+
+
+def _samples_at_rate(utt: Utterance, rate: int) -> np.ndarray:
+    """The utterance's audio at ``rate``, linearly interpolated when it was decoded at another rate."""
+    samples = utt.samples
+    if utt.rate != rate:
+        new_n = int(round(len(samples) * rate / utt.rate))
+        samples = np.interp(np.arange(new_n) * utt.rate / rate, np.arange(len(samples)), samples)
+    return samples
+
+
+def _segment_intervals(seg: Segmentation, shift: float) -> tuple[list, list, list]:
+    """One utterance's segment (numbered), voiced ("V") and sub-sentence ("s1", ...) intervals, moved by
+    ``shift`` from the sequence clock to the wav's."""
+    seg_tier, voiced_tier, sub_tier = [], [], []
+    for k, (a, v, b) in enumerate(seg.segments):
+        seg_tier.append((a + shift, b + shift, str(k + 1)))
+        voiced_tier.append((a + shift, v + shift, "V"))
+    starts = seg.segments[seg.subsentence_start, 0] if len(seg.segments) else np.zeros(0)
+    bounds = np.concatenate([starts, [seg.segments[-1, 2]]]) if len(starts) else np.zeros(0)
+    for k in range(len(starts)):
+        sub_tier.append((bounds[k] + shift, bounds[k + 1] + shift, f"s{k + 1}"))
+    return seg_tier, voiced_tier, sub_tier
+
+
+def _clip_intervals(intervals: list[tuple[float, float, str]], xmax: float) -> list[tuple[float, float, str]]:
+    """The intervals cut to [0, xmax], those left empty dropped: on the sequence clock a segment can reach before
+    the first audio sample or past the last."""
+    return [(max(a, 0.0), min(b, xmax), label) for a, b, label in intervals if min(b, xmax) > max(a, 0.0)]
