@@ -52,13 +52,31 @@ def timed(fn, repeats):
 
 
 def main(argv=None):
+    args = _parse_args(argv)
+    train = track(["neutral", "happy", "disgust"])
+    sad = track(["sad"])
+    aam, bilinear = _bench_fit(train, args.repeats)
+    model = AamModel.from_view(aam.view())
+    _bench_warp(model, train, args.repeats)
+    bil = BilinearModel.from_view(bilinear.view())
+    proj = model.project(sad["landmarks"], sad["crops"], sad["crop_landmarks"])
+    _bench_analysis(model, bil, proj, args.analysis_frames, max(1, args.repeats // 2))
+    _bench_edited_images(model, proj, sad, args.repeats)
+    for seconds in [float(x) for x in args.long.split(",") if x]:
+        bench_long_edit(aam.view(), bilinear.view(), sad, seconds)
+
+
+def _parse_args(argv):
+    """The command line: repeats, analysis frames and the long takes' lengths."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--analysis-frames", type=int, default=20000)
     parser.add_argument("--long", default="60", help="comma-separated take lengths in seconds for the edit (or '')")
-    args = parser.parse_args(argv)
-    train = track(["neutral", "happy", "disgust"])
-    sad = track(["sad"])
+    return parser.parse_args(argv)
+
+
+def _bench_fit(train, repeats):
+    """Time the aam + alignment + bilinear fit of the training takes (and the aam alone); returns both results."""
     n_train = len(train["landmarks"])
 
     def fit_all():
@@ -66,29 +84,38 @@ def main(argv=None):
         bilinear = run_stage(BilinearFit, {}, {"aam": aam, "tracks": train})
         return aam, bilinear
 
-    fit_time, (aam, bilinear) = timed(fit_all, args.repeats)
-    aam_time, _ = timed(lambda: run_stage(AamPca, {}, {"tracks": train}), args.repeats)
+    fit_time, (aam, bilinear) = timed(fit_all, repeats)
+    aam_time, _ = timed(lambda: run_stage(AamPca, {}, {"tracks": train}), repeats)
     print(
         f"fit: aam + DTW alignment + bilinear on the 3 training takes ({n_train} frames): {fit_time:.3f} s "
         f"(aam alone {aam_time:.3f} s)  [target < 2 s]"
     )
+    return aam, bilinear
 
-    model = AamModel.from_view(aam.view())
+
+def _bench_warp(model, train, repeats):
+    """Time the texture warp on the training crops repeated four times."""
     crops = np.concatenate([train["crops"]] * 4)
     crop_landmarks = np.concatenate([train["crop_landmarks"]] * 4)
-    warp_time, _ = timed(lambda: model.warp.warp(crops, crop_landmarks), args.repeats)
+    warp_time, _ = timed(lambda: model.warp.warp(crops, crop_landmarks), repeats)
     print(
         f"texture warp: {len(crops) / warp_time:,.0f} frames/s ({len(crops)} crops "
         f"{crops.shape[2]}x{crops.shape[1]} -> {model.texture_size[0]}x{model.texture_size[1]}, "
         f"{model.warp.n_pixels} pixels)  [target >= 500]"
     )
 
-    bil = BilinearModel.from_view(bilinear.view())
-    proj = model.project(sad["landmarks"], sad["crops"], sad["crop_landmarks"])
+
+def _analysis_frames(proj, n_frames):
+    """The sad take's parameters repeated to ``n_frames`` with a little noise (seeded): the analysis input."""
     rng = np.random.default_rng(0)
-    reps = int(np.ceil(args.analysis_frames / len(proj.y)))
-    y = np.concatenate([proj.y] * reps)[: args.analysis_frames]
-    y = y + rng.normal(0, 0.05, y.shape) * proj.y.std(0)
+    reps = int(np.ceil(n_frames / len(proj.y)))
+    y = np.concatenate([proj.y] * reps)[:n_frames]
+    return y + rng.normal(0, 0.05, y.shape) * proj.y.std(0)
+
+
+def _bench_analysis(model, bil, proj, n_frames, repeats):
+    """Time the Eq 5-6 analysis in the paper's setting, the stage default and two variants."""
+    y = _analysis_frames(proj, n_frames)
     y_model = bil.augment(y)
     default_weight = ExpressionEdit.Params().analysis_shape_weight
     rows = component_weights(model.n_shape, y_model.shape[1], default_weight)
@@ -107,7 +134,7 @@ def main(argv=None):
                 )
             return analyse_takes(bil, y_model, frames, init=init, smooth=smooth, weights=weights)
 
-        t, result = timed(run, max(1, args.repeats // 2))
+        t, result = timed(run, repeats)
         target = "[target >= 10,000]" if smooth == 0 else "[beyond the paper; no target]"
         print(
             f"analysis {label}: {len(y) / t:,.0f} frames/s ({len(y)} frames, I={bil.w.shape[0]} "
@@ -115,6 +142,9 @@ def main(argv=None):
             f"{result.converged})  {target}"
         )
 
+
+def _bench_edited_images(model, proj, sad, repeats):
+    """Time the edited images (inverse warp + paste) of the sad take's first 60 frames."""
     y_edit = proj.y[:60]
     images_time, _ = timed(
         lambda: edited_crops(
@@ -125,11 +155,9 @@ def main(argv=None):
             proj.texture_offset[:60],
             proj.texture_scale[:60],
         ),
-        args.repeats,
+        repeats,
     )
     print(f"edited images (inverse warp + paste): {60 / images_time:,.0f} frames/s")
-    for seconds in [float(x) for x in args.long.split(",") if x]:
-        bench_long_edit(aam.view(), bilinear.view(), sad, seconds)
 
 
 class Tiled:

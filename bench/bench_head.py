@@ -53,7 +53,15 @@ def main():
         f"test utterance: {utterance.duration:.1f} s, {len(utterance.onsets)} syllables, "
         f"{len(utterance.sentence_starts)} sentences"
     )
+    _bench_pitch(utterance, test_tracks)
+    headdb, db_pitch = _bench_database()
+    test_pitch = run_stage(Pitch, {}, {"source": test_tracks})
+    tr = _bench_search_and_blend(utterance, headdb, db_pitch, test_pitch)
+    _bench_blend_variants(tr, headdb)
 
+
+def _bench_pitch(utterance, test_tracks):
+    """Praat's pitch alone and the whole pitch stage on the test utterance, both methods."""
     for method in ("ac", "cc"):
         seconds, _ = best_of(3, lambda: praat_pitch(utterance.audio, utterance.audio_rate, method=method))
         print(
@@ -66,6 +74,9 @@ def main():
             f"{utterance.duration / seconds:.0f}x real time"
         )
 
+
+def _bench_database():
+    """Synthesise the 67-phrase database, time its headdb and its pitch; returns both."""
     start = time.perf_counter()
     phrases = synth_database(67, seed=0)
     database_tracks = tracking_artifact(phrases, fps=30.0)
@@ -81,7 +92,11 @@ def main():
         f"pitch over the database ({audio_seconds:.0f} s of audio; mirrors share it): {seconds:.3f} s = "
         f"{audio_seconds / seconds:.0f}x real time, {db_pitch.metrics['segments']} segments"
     )
-    test_pitch = run_stage(Pitch, {}, {"source": test_tracks})
+    return headdb, db_pitch
+
+
+def _bench_search_and_blend(utterance, headdb, db_pitch, test_pitch):
+    """Time the trellis search + the default blend (and the trellis alone); returns the trellis result."""
 
     def search_and_blend():
         tr = run_stage(Trellis, {}, {"database": headdb, "database_pitch": db_pitch, "test_pitch": test_pitch})
@@ -97,6 +112,11 @@ def main():
         f"against {tr.metrics['db_segments']} database segments: {seconds:.3f} s "
         f"(trellis alone {trellis_seconds:.3f} s); {len(mb.arrays['rotation'])} frames out"
     )
+    return tr
+
+
+def _bench_blend_variants(tr, headdb):
+    """Time the blend alone in its default setting and the alternatives it offers."""
     for label, params in (
         ("velocity blend, adaptive windows, stroke timing (default)", {}),
         ("the paper's uniform resampling", {"timing": "segment"}),

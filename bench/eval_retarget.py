@@ -296,11 +296,8 @@ def probes(folders: list[str]) -> None:
     the performer's probes (``stages.eval.columns.character_movements``): how much of the movement the animation
     makes, whichever morph makes it."""
     import msflow
-    from stages.eval.columns import performer_shapes
-    from stages.eval.retarget import RetargetEval, jaw_drop, take_cameras
-    from stages.retarget.face_measures import level, lip_gap_iod, rest_frames, rest_pose
-    from stages.retarget.movements import EXTRA_VERTICES, SMILE_CHEEK_LIFT, MovedLevels, landmark_probes, moved
-    from stages.retarget.shapes3d import front_view, head_frame_shapes
+    from stages.eval.retarget import RetargetEval
+    from stages.retarget.movements import MovedLevels
 
     os.chdir(ROOT)
     params = RetargetEval.Params()
@@ -309,43 +306,80 @@ def probes(folders: list[str]) -> None:
     for folder in folders:
         relative = os.path.relpath(Path(folder).resolve(), PIPELINE.parent)
         runs.append(msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_eval"))
-
-    def rest_of(shapes):  # as the evaluation takes it (RetargetEval's brow_rest)
-        return rest_pose(shapes, rest_frames(front_view(shapes[:, :68])), params.brow_rest)
-
     print(
         "| take | column | probe peak / level, as evaluated | without perspective removal | 2D chin rise at the "
         "peak | the character's probe peak / level |"
     )
     print("|---|---|---|---|---|---|")
     for result in runs:
-        tracks, view = result.artifact("capture_track"), result.artifact("capture_eval")
-        sequence, labels = np.asarray(tracks["sequence"]), list(tracks.meta["labels"])
-        for label, take in view.meta["takes"].items():
-            rows = np.flatnonzero(sequence == labels.index(label))
-            landmarks = np.asarray(tracks["landmarks"])[rows[0] : rows[-1] + 1]
-            shapes = head_frame_shapes(np.asarray(tracks["mesh"][rows[0] : rows[-1] + 1], np.float64), EXTRA_VERTICES)
-            gap = lip_gap_iod(level(landmarks))
-            plain = landmark_probes(shapes, rest_of(shapes), gap, params.closure_gap)
-            camera = take_cameras(tracks.meta, sequence)[labels.index(label)]
-            evaluated, _ = performer_shapes(tracks["mesh"], sequence == labels.index(label), camera, params.probe_focal)
-            evaluated = landmark_probes(evaluated, rest_of(evaluated), gap, params.closure_gap)
-            drop = jaw_drop(landmarks)
-            chin = drop[rest_frames(landmarks)].mean() - drop
-            for column in take["columns"]["dead_moved"]:
-                peak, at = take["movements"][column]
-                seen = moved({column: plain[column]}, levels)[column] if column in plain else None
-                cells = [f"{peak:.4f} / {at:.4f}", f"{seen['peak']:.4f} / {seen['level']:.4f}" if seen else "-"]
-                peak_frame = int(np.argmax(evaluated[column]))
-                cells.append(
-                    f"{chin[peak_frame]:.3f} (frame {rows[0] + peak_frame})" if column == "MouthShrugLower" else ""
-                )
-                made = take["character_movements"].get(column)
-                cells.append(f"{made[0]:.4f} / {made[1]:.4f}" if made else "-")
-                print(f"| {Path(label).stem} | {column} | " + " | ".join(cells) + " |")
-    character, tracks = runs[0].artifact("capture_character"), runs[0].artifact("capture_track")
+        _print_dead_moved_probes(result, params, levels)
+    _print_smile_cheek_shares(runs[0], params.brow_rest)
+
+
+def _probe_rest(shapes: np.ndarray, brow_rest: str) -> np.ndarray:
+    """The rest pose of head-frame ``shapes`` as the evaluation takes it (RetargetEval's brow_rest)."""
+    from stages.retarget.face_measures import rest_frames, rest_pose
+    from stages.retarget.shapes3d import front_view
+
+    return rest_pose(shapes, rest_frames(front_view(shapes[:, :68])), brow_rest)
+
+
+def _print_dead_moved_probes(result, params, levels) -> None:
+    """One table row per take of the run and ARKit column dead where the performer moved it."""
+    tracks, view = result.artifact("capture_track"), result.artifact("capture_eval")
+    sequence, labels = np.asarray(tracks["sequence"]), list(tracks.meta["labels"])
+    for label, take in view.meta["takes"].items():
+        rows = np.flatnonzero(sequence == labels.index(label))
+        plain, evaluated, chin = _take_probes(tracks, sequence, labels.index(label), rows, params)
+        for column in take["columns"]["dead_moved"]:
+            cells = _probe_cells(column, take, plain, evaluated, chin, rows[0], levels)
+            print(f"| {Path(label).stem} | {column} | " + " | ".join(cells) + " |")
+
+
+def _take_probes(tracks, sequence: np.ndarray, index: int, rows: np.ndarray, params):
+    """One take's movement probes without perspective removal and as evaluated (perspective taken out), and the
+    2D chin rise above its closed-mouth rest per frame (IOD)."""
+    from stages.eval.columns import performer_shapes
+    from stages.eval.retarget import jaw_drop, take_cameras
+    from stages.retarget.face_measures import level, lip_gap_iod, rest_frames
+    from stages.retarget.movements import EXTRA_VERTICES, landmark_probes
+    from stages.retarget.shapes3d import head_frame_shapes
+
+    landmarks = np.asarray(tracks["landmarks"])[rows[0] : rows[-1] + 1]
+    shapes = head_frame_shapes(np.asarray(tracks["mesh"][rows[0] : rows[-1] + 1], np.float64), EXTRA_VERTICES)
+    gap = lip_gap_iod(level(landmarks))
+    plain = landmark_probes(shapes, _probe_rest(shapes, params.brow_rest), gap, params.closure_gap)
+    camera = take_cameras(tracks.meta, sequence)[index]
+    evaluated, _ = performer_shapes(tracks["mesh"], sequence == index, camera, params.probe_focal)
+    evaluated = landmark_probes(evaluated, _probe_rest(evaluated, params.brow_rest), gap, params.closure_gap)
+    drop = jaw_drop(landmarks)
+    chin = drop[rest_frames(landmarks)].mean() - drop
+    return plain, evaluated, chin
+
+
+def _probe_cells(column: str, take: dict, plain: dict, evaluated: dict, chin, first_row: int, levels) -> list[str]:
+    """The row's cells after take and column: the evaluated probe, the plain one, the chin rise, the character's."""
+    from stages.retarget.movements import moved
+
+    peak, at = take["movements"][column]
+    seen = moved({column: plain[column]}, levels)[column] if column in plain else None
+    cells = [f"{peak:.4f} / {at:.4f}", f"{seen['peak']:.4f} / {seen['level']:.4f}" if seen else "-"]
+    peak_frame = int(np.argmax(evaluated[column]))
+    cells.append(f"{chin[peak_frame]:.3f} (frame {first_row + peak_frame})" if column == "MouthShrugLower" else "")
+    made = take["character_movements"].get(column)
+    cells.append(f"{made[0]:.4f} / {made[1]:.4f}" if made else "-")
+    return cells
+
+
+def _print_smile_cheek_shares(result, brow_rest: str) -> None:
+    """The character's smile cheek lift per unit corner rise, beside the probe's SMILE_CHEEK_LIFT."""
+    from stages.retarget.movements import EXTRA_VERTICES, SMILE_CHEEK_LIFT
+    from stages.retarget.shapes3d import head_frame_shapes
+
+    character, tracks = result.artifact("capture_character"), result.artifact("capture_track")
     rows = np.flatnonzero(np.asarray(tracks["sequence"]) == 0)
-    rest = rest_of(head_frame_shapes(np.asarray(tracks["mesh"][rows[0] : rows[-1] + 1], np.float64), EXTRA_VERTICES))
+    mesh = np.asarray(tracks["mesh"][rows[0] : rows[-1] + 1], np.float64)
+    rest = _probe_rest(head_frame_shapes(mesh, EXTRA_VERTICES), brow_rest)
     shares = " / ".join(f"{share:.2f}" for share in smile_cheek_shares(character, rest))
     print(f"\nThe character's smile lifts the skin below its lids by {shares} of its corner's rise (left / right; the")
     print(f"cheek-raise probe takes out SMILE_CHEEK_LIFT = {SMILE_CHEEK_LIFT} of the performer's corner rise)")

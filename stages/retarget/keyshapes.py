@@ -55,23 +55,44 @@ def select_keyshapes(
     axes until k keyshapes are found (the paper stops at k/2 axes, so duplicates leave fewer than k).
     """
     shapes = np.asarray(shapes, np.float64)
-    n = shapes.shape[0]
-    if n == 0:
+    if shapes.shape[0] == 0:
         raise ValueError("select_keyshapes: no shapes")
+    variance, rank, projections = _principal_projections(shapes)
+    if rank == 0:  # every frame identical: the one shape is the only keyshape
+        return KeyshapeSelection(np.array([0]), np.array([0]), np.array([1]), variance, [])
+    chosen, axes, extremes, dropped = _pick_extremes(
+        shapes, projections, rank, k, threshold=dedupe_threshold * scale**2, scale=scale, refill=refill
+    )
+    return KeyshapeSelection(
+        np.array(chosen, dtype=np.int64),
+        np.array(axes, dtype=np.int64),
+        np.array(extremes, dtype=np.int64),
+        variance,
+        dropped,
+    )
+
+
+def _principal_projections(shapes: np.ndarray) -> tuple[np.ndarray, int, np.ndarray]:
+    """PCA of ``shapes`` (n, 68, d): the variance along each axis, the rank (0 when every frame is the same) and
+    each frame's projection on the first ``rank`` axes (n, max(rank, 1))."""
+    n = shapes.shape[0]
     flat = shapes.reshape(n, -1)
     centred = flat - flat.mean(axis=0)
     _, singular, axes_t = np.linalg.svd(centred, full_matrices=False)
     variance = singular**2 / max(n - 1, 1)
     rank = int((singular > singular.max(initial=0.0) * 1e-9).sum()) if n > 1 else 0
-    projections = centred @ axes_t[: max(rank, 1)].T
+    return variance, rank, centred @ axes_t[: max(rank, 1)].T
 
+
+def _pick_extremes(
+    shapes: np.ndarray, projections: np.ndarray, rank: int, k: int, *, threshold: float, scale: float, refill: bool
+) -> tuple[list[int], list[int], list[int], list[dict]]:
+    """The candidates of ``select_keyshapes`` in order (axis 0 max, axis 0 min, axis 1 max, ...), each kept unless
+    it duplicates one already chosen: the chosen frames, their axes and extremes, and the dropped candidates."""
     chosen: list[int] = []
     axes: list[int] = []
     extremes: list[int] = []
     dropped: list[dict] = []
-    if rank == 0:  # every frame identical: the one shape is the only keyshape
-        return KeyshapeSelection(np.array([0]), np.array([0]), np.array([1]), variance, dropped)
-    threshold = dedupe_threshold * scale**2
     candidates_tried = 0
     for axis in range(rank):
         for sign in (1, -1):
@@ -81,31 +102,27 @@ def select_keyshapes(
                 break
             candidates_tried += 1
             frame = int(np.argmax(sign * projections[:, axis]))
-            if chosen:
-                distance = mean_squared_landmark_distance(shapes[chosen], shapes[frame])
-                nearest = int(np.argmin(distance))
-                # the same frame again (an extreme of several axes) is always a duplicate
-                if distance[nearest] < threshold or frame in chosen:
-                    dropped.append(
-                        {
-                            "frame": frame,
-                            "axis": axis,
-                            "extreme": sign,
-                            "duplicate_of": chosen[nearest],
-                            "distance": float(distance[nearest] / scale**2),
-                        }
-                    )
-                    continue
+            duplicate = _duplicate_of(shapes, chosen, frame, threshold, scale)
+            if duplicate is not None:
+                dropped.append({"frame": frame, "axis": axis, "extreme": sign, **duplicate})
+                continue
             chosen.append(frame)
             axes.append(axis)
             extremes.append(sign)
-    return KeyshapeSelection(
-        np.array(chosen, dtype=np.int64),
-        np.array(axes, dtype=np.int64),
-        np.array(extremes, dtype=np.int64),
-        variance,
-        dropped,
-    )
+    return chosen, axes, extremes, dropped
+
+
+def _duplicate_of(shapes: np.ndarray, chosen: list[int], frame: int, threshold: float, scale: float) -> dict | None:
+    """The chosen keyshape nearest to ``frame`` and its distance (per ``scale**2``) when ``frame`` is within
+    ``threshold`` of it (mean squared landmark distance), else None."""
+    if not chosen:
+        return None
+    distance = mean_squared_landmark_distance(shapes[chosen], shapes[frame])
+    nearest = int(np.argmin(distance))
+    # the same frame again (an extreme of several axes) is always a duplicate
+    if distance[nearest] < threshold or frame in chosen:
+        return {"duplicate_of": chosen[nearest], "distance": float(distance[nearest] / scale**2)}
+    return None
 
 
 def decompose_into_keyshapes(shapes: np.ndarray, keyshapes: np.ndarray, **nnls_options):
@@ -419,6 +436,34 @@ def keyshape_counts(k, labels: list[str]) -> dict[str, int]:
     return {label: int(k[label]) for label in labels}
 
 
+def _select_or_fail(
+    params,
+    shapes: np.ndarray,
+    sequence: np.ndarray,
+    labels: list[str],
+    usable: np.ndarray,
+    scale: float,
+    *,
+    field: str,
+    hint: str = "",
+) -> KeyshapeSet:
+    """``select_all_keyshapes`` with the stage's settings; a group without usable frames is the user's error, on
+    ``field`` (its message followed by ``hint``)."""
+    counts = keyshape_counts(params.k, labels)
+    try:
+        return select_all_keyshapes(
+            shapes, sequence, labels, counts, usable,
+            dedupe_threshold=params.dedupe_threshold, scale=scale, refill=params.refill,
+        )  # fmt: skip
+    except ValueError as exc:
+        raise UserError(f"{exc}{hint}", field=field) from None
+
+
+def _regions_meta(params) -> dict[str, list[int]]:
+    """meta['regions']: the decomposition regions' landmarks when the stage decomposes region by region."""
+    return {name: list(points) for name, points in DECOMPOSITION_REGIONS.items()} if params.regions else {}
+
+
 def nnls_options(params) -> dict:
     return {"method": params.solver, "sum_to_one": params.sum_to_one, "smoothing": params.smoothing}
 
@@ -537,19 +582,9 @@ class Keyshapes(Stage):
     def run(self, params, inputs):
         aligned, sequence, labels, usable, scale = self._training(inputs["aam"])
         targets, edited = self._edited(inputs["edit"], labels)
-        counts = keyshape_counts(params.k, labels)
-        try:
-            selection = select_all_keyshapes(
-                aligned, sequence, labels, counts, usable,
-                dedupe_threshold=params.dedupe_threshold, scale=scale, refill=params.refill,
-            )  # fmt: skip
-        except ValueError as exc:
-            raise UserError(str(exc), field="inputs.aam") from None
+        selection = _select_or_fail(params, aligned, sequence, labels, usable, scale, field="inputs.aam")
         keyshapes = aligned[selection.frames]
-        rest_label = params.rest_expression if params.rest_expression in labels else None
-        candidates = np.flatnonzero(usable & ((sequence == labels.index(rest_label)) if rest_label else True))
-        rest_idx = candidates[rest_frames(aligned[candidates])]
-        rest = rest_pose(aligned, rest_idx, params.brow_rest, candidates)
+        rest_label, candidates, rest_idx, rest = self._rest(params, aligned, sequence, labels, usable)
         offset = rest if params.decomposition == "from_rest" else 0.0
         groups = np.repeat(np.array([labels.index(t) for t in targets])[:, None], edited.shape[1], axis=1)
         weights, region_weights, reconstruction, residual, kkt = decompose_targets(
@@ -574,17 +609,34 @@ class Keyshapes(Stage):
             arrays["region_weights"] = region_weights.astype(np.float32)
         metrics = decomposition_metrics(residual, targets, kkt, selection)
         metrics["train_residual_rms_iod"] = float(np.sqrt(np.mean(train_residual**2)))
+        meta = self._meta(params, inputs, selection, labels, scale, targets, rest_label)
+        return Result(arrays, meta=meta, metrics=metrics)
+
+    @staticmethod
+    def _rest(params, aligned, sequence, labels, usable):
+        """The rest pose of the training shapes: the rest expression's label (None when it is not a training
+        expression: then every usable frame is a candidate), the candidate frames, the closed-mouth rest frames
+        among them and their pose."""
+        rest_label = params.rest_expression if params.rest_expression in labels else None
+        candidates = np.flatnonzero(usable & ((sequence == labels.index(rest_label)) if rest_label else True))
+        rest_idx = candidates[rest_frames(aligned[candidates])]
+        rest = rest_pose(aligned, rest_idx, params.brow_rest, candidates)
+        return rest_label, candidates, rest_idx, rest
+
+    @staticmethod
+    def _meta(params, inputs, selection, labels, scale, targets, rest_label) -> dict:
+        """The stage's meta: the selection's, then the targets and the settings the decomposition used."""
         meta = selection_meta(selection, labels, scale)
         meta.update(
             targets=targets,
             target_expression=[labels.index(name) for name in targets],
             rest_expression=rest_label,
             decomposition=params.decomposition,
-            regions={name: list(points) for name, points in DECOMPOSITION_REGIONS.items()} if params.regions else {},
+            regions=_regions_meta(params),
             fps=inputs["edit"].meta.get("fps", inputs["aam"].meta.get("fps")),
             space="2d",
         )
-        return Result(arrays, meta=meta, metrics=metrics)
+        return meta
 
     @staticmethod
     def _training(aam):
@@ -680,14 +732,9 @@ class CaptureKeyshapes(Stage):
         points, flat, sequence, labels, usable, space = self._shapes(params, tracks)
         shapes = points[:, :68]  # 3D: the cheek points after the 68 are for the keymorph fit only
         fields = dict(tracks.meta.get("fields") or {})
-        counts = keyshape_counts(params.k, labels)
-        try:
-            selection = select_all_keyshapes(
-                shapes, sequence, labels, counts, usable,
-                dedupe_threshold=params.dedupe_threshold, scale=1.0, refill=params.refill,
-            )  # fmt: skip
-        except ValueError as exc:
-            raise UserError(f"{exc} (no tracked face)", field="inputs.tracks") from None
+        selection = _select_or_fail(
+            params, shapes, sequence, labels, usable, 1.0, field="inputs.tracks", hint=" (no tracked face)"
+        )
         keyshapes = shapes[selection.frames]
         rests, typical = capture_rest_frames(shapes, sequence, usable, labels, fields, params.rest_expression)
         rest_points = np.stack([rest_pose(points, r, params.brow_rest, u) for r, u in zip(rests, typical)])
@@ -708,6 +755,15 @@ class CaptureKeyshapes(Stage):
         )
         if region_weights is not None:
             arrays["region_weights"] = region_weights.astype(np.float32)
+        meta = self._meta(params, tracks, selection, labels, space, fields)
+        metrics = decomposition_metrics(residual, ["performance"], kkt, selection)
+        metrics["invalid_frames"] = int((~usable).sum())
+        return Result(arrays, meta=meta, metrics=metrics)
+
+    @staticmethod
+    def _meta(params, tracks, selection, labels, space, fields) -> dict:
+        """The stage's meta: the selection's, then the one ``performance`` target over the takes, the settings
+        the decomposition used and the takes' frame rates and fields."""
         fps = [float(f) for f in (tracks.meta.get("fps") or [30.0])]
         meta = selection_meta(selection, labels, 1.0)
         meta.update(
@@ -716,15 +772,13 @@ class CaptureKeyshapes(Stage):
             test_labels=labels,
             rest_expression=params.rest_expression,
             decomposition=params.decomposition,
-            regions={name: list(points) for name, points in DECOMPOSITION_REGIONS.items()} if params.regions else {},
+            regions=_regions_meta(params),
             fps=fps[0],
             take_fps=fps,
             space=space,
             fields=fields,
         )
-        metrics = decomposition_metrics(residual, ["performance"], kkt, selection)
-        metrics["invalid_frames"] = int((~usable).sum())
-        return Result(arrays, meta=meta, metrics=metrics)
+        return meta
 
     @staticmethod
     def _shapes(params, tracks):
