@@ -192,7 +192,8 @@ def long_take(sad, seconds: float):
     arrays.update(sequence=np.zeros(frames, dtype=np.int32), time=np.arange(frames) / fps, crops=sad["crops"][:1])
     view = artifact(arrays, dict(sad.meta))
     crops = Tiled(sad["crops"], frames)
-    view.lazy = lambda name: crops if name == "crops" else view[name]
+    stored = view.lazy  # the view's own reader: view[name] reads through view.lazy, so it must not call back
+    view.lazy = lambda name: crops if name == "crops" else stored(name)
     return view, crops
 
 
