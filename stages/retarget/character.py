@@ -328,6 +328,31 @@ def load_obj_blendshapes(
 ) -> tuple[MorphMesh, dict]:
     """Read a neutral OBJ and its blendshape OBJs: returns the mesh (deltas = shape - neutral) and the
     identity deltas by name (files whose name starts with ``identity_prefix``)."""
+    by_name = _obj_files_by_shape_name(files, field)
+    neutral = _neutral_shape_name(by_name, neutral)
+    base, triangles, tri_groups, groups = _read_neutral_obj(by_name.pop(neutral), mtl)
+    expression_names = [n for n in by_name if not (identity_prefix and n.startswith(identity_prefix))]
+    identity_names = sorted(n for n in by_name if identity_prefix and n.startswith(identity_prefix))
+    if not expression_names:
+        raise UserError(
+            "the character has no morph targets: only the neutral mesh (and identities) were given", field=field
+        )
+    deltas = np.stack([_shape_delta(by_name[n], n, base, field) for n in expression_names])
+    identities = {n: _shape_delta(by_name[n], n, base, field) for n in identity_names}
+    mesh = MorphMesh(
+        positions=base.astype(np.float32),
+        triangles=triangles,
+        target_names=expression_names,
+        deltas=deltas,
+        triangle_groups=tri_groups,
+        groups=groups,
+        name=neutral,
+    )
+    return mesh, identities
+
+
+def _obj_files_by_shape_name(files: dict[str, Path], field: str) -> dict[str, Path]:
+    """The .obj/.obj.gz inputs by blendshape name (other files ignored); a name given twice is an error."""
     paths = [Path(p) for p in files.values() if re.search(r"\.obj(\.gz)?$", Path(p).name, re.IGNORECASE)]
     if not paths:
         raise UserError("no .obj or .obj.gz files among the inputs", field=field)
@@ -337,6 +362,11 @@ def load_obj_blendshapes(
         if name in by_name:
             raise UserError(f"two files give the blendshape name '{name}': {by_name[name]} and {p}", field=field)
         by_name[name] = p
+    return by_name
+
+
+def _neutral_shape_name(by_name: dict[str, Path], neutral: str | None) -> str:
+    """The neutral mesh's name: the one given, else the one name with 'neutral' in it."""
     if neutral is None:
         candidates = [n for n in by_name if "neutral" in n.lower()]
         if len(candidates) != 1:
@@ -351,44 +381,31 @@ def load_obj_blendshapes(
             f"no file named '{neutral}' (.obj/.obj.gz) for the neutral mesh; files: {sorted(by_name)}",
             field="params.neutral",
         )
-    neutral_path = by_name.pop(neutral)
-    text = read_obj_text(neutral_path)
-    base = parse_obj_vertices(text, neutral_path)
-    triangles, tri_groups, group_names = parse_obj_faces(text, len(base), neutral_path)
+    return neutral
+
+
+def _read_neutral_obj(path: Path, mtl: Path | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[MaterialGroup]]:
+    """The neutral OBJ's vertices, triangles, triangle groups and material groups (colours from the .mtl, if
+    any; grey otherwise)."""
+    text = read_obj_text(path)
+    base = parse_obj_vertices(text, path)
+    triangles, tri_groups, group_names = parse_obj_faces(text, len(base), path)
     colors = read_mtl_colors(mtl) if mtl is not None else {}
     groups = [MaterialGroup(n, colors.get(n, (0.75, 0.75, 0.75, 1.0))) for n in group_names]
+    return base, triangles, tri_groups, groups
 
-    expression_names = [n for n in by_name if not (identity_prefix and n.startswith(identity_prefix))]
-    identity_names = sorted(n for n in by_name if identity_prefix and n.startswith(identity_prefix))
-    if not expression_names:
+
+def _shape_delta(path: Path, name: str, base: np.ndarray, field: str) -> np.ndarray:
+    """One blendshape OBJ minus the neutral (float32); it must have the neutral's vertex count."""
+    verts = parse_obj_vertices(read_obj_text(path), path)
+    if len(verts) != len(base):
         raise UserError(
-            "the character has no morph targets: only the neutral mesh (and identities) were given", field=field
+            f"blendshape '{name}' has {len(verts)} vertices but the neutral mesh has {len(base)}; "
+            f"every blendshape must share the neutral's topology",
+            file=str(path),
+            field=field,
         )
-
-    def delta(name: str) -> np.ndarray:
-        path = by_name[name]
-        verts = parse_obj_vertices(read_obj_text(path), path)
-        if len(verts) != len(base):
-            raise UserError(
-                f"blendshape '{name}' has {len(verts)} vertices but the neutral mesh has {len(base)}; "
-                f"every blendshape must share the neutral's topology",
-                file=str(path),
-                field=field,
-            )
-        return (verts - base).astype(np.float32)
-
-    deltas = np.stack([delta(n) for n in expression_names])
-    identities = {n: delta(n) for n in identity_names}
-    mesh = MorphMesh(
-        positions=base.astype(np.float32),
-        triangles=triangles,
-        target_names=expression_names,
-        deltas=deltas,
-        triangle_groups=tri_groups,
-        groups=groups,
-        name=neutral,
-    )
-    return mesh, identities
+    return (verts - base).astype(np.float32)
 
 
 def split_identity_targets(mesh: MorphMesh, identity_names: list[str]) -> tuple[MorphMesh, dict[str, np.ndarray]]:
@@ -646,50 +663,13 @@ def build_ict_character(source: Path, destination: Path, *, sparse_tolerance: fl
     """Build the embedded default character from an ICT FaceKit folder (the project's own code: OBJ reader,
     identity split, sparse GLB writer). Writes the GLB plus LICENSE, CREDITS.md and README.md beside it."""
     source, destination = Path(source), Path(destination)
-    indices = json.loads((source / "vertex_indices.json").read_text())
-    files = {p.name: p for p in sorted(source.iterdir()) if re.search(r"\.obj(\.gz)?$", p.name)}
-    mtl = next(iter(sorted(source.glob("*.mtl"))), None)
-    mesh, identities = load_obj_blendshapes(files, "generic_neutral_mesh", "identity", mtl)
-    # ICT's canonical expression order first (vertex_indices.json), the extra shapes after
-    order = [n for n in indices["expressions"] if n in mesh.target_names]
-    order += sorted(n for n in mesh.target_names if n not in order)
-    perm = [mesh.target_names.index(n) for n in order]
-    mesh.target_names, mesh.deltas = order, mesh.deltas[perm]
-    ids = check_landmark_ids(
-        indices["idx_to_landmark_verts"], len(mesh.positions), file=str(source / "vertex_indices.json")
-    )
+    mesh, ids, identities = _read_ict_facekit(source)
     identity_names = sorted(identities)
     identity_deltas = np.stack([identities[n] for n in identity_names])
     drop = [g for g in ICT_OVERLAY_GROUPS if g in [x.name for x in mesh.groups]]
     mesh, ids, identity_deltas = drop_triangle_groups(mesh, ids, drop, identity_deltas)
-    group_names = [x.name for x in mesh.groups]
-    shells = np.zeros(len(mesh.triangles), dtype=bool)
-    for shell, ball in ICT_EYES:
-        if shell in group_names and ball in group_names:
-            shells |= paint_eyeball(mesh, shell, ball)
-    mesh, ids, identity_deltas = drop_triangles(mesh, ~shells, ids, identity_deltas)
-    scale = 0.01  # centimetres -> metres (glTF)
-    mesh.positions = (mesh.positions * scale).astype(np.float32)
-    all_deltas = np.concatenate([mesh.deltas, identity_deltas]) * scale
-    n_expr = len(mesh.target_names)
-    pivot = head_pivot(mesh.positions, ids)
-    out = MorphMesh(
-        positions=mesh.positions,
-        triangles=mesh.triangles,
-        target_names=list(mesh.target_names) + identity_names,
-        deltas=all_deltas.astype(np.float32),
-        triangle_groups=mesh.triangle_groups,
-        groups=mesh.groups,
-        name="ICTFaceKit",
-        extras={
-            EXTRAS_LANDMARKS: [int(i) for i in ids],
-            "landmarkScheme": LANDMARK_SCHEME,
-            EXTRAS_IDENTITY: identity_names,
-            EXTRAS_PIVOT: [float(v) for v in pivot],
-            "source": "ICT FaceKit light face model (generic neutral, 57 expressions, 10 identity "
-            "components), built by msflow stages.retarget.character",
-        },
-    )
+    mesh, ids, identity_deltas, shells = _ict_without_eye_shells(mesh, ids, identity_deltas)
+    out = _ict_glb_mesh(mesh, ids, identity_names, identity_deltas)
     glb = write_morph_glb(
         out,
         sparse_tolerance=sparse_tolerance,
@@ -706,25 +686,114 @@ def build_ict_character(source: Path, destination: Path, *, sparse_tolerance: fl
         "bytes": len(glb),
         "vertices": int(len(out.positions)),
         "triangles": int(len(out.triangles)),
-        "expression_targets": n_expr,
+        "expression_targets": len(mesh.target_names),
         "identity_targets": len(identity_names),
         "dropped_groups": drop,
         "eye_shell_triangles_removed": int(shells.sum()),
         "sparse_tolerance_m": sparse_tolerance,
     }
-    (destination.parent / "README.md").write_text(_readme(summary, order, identity_names))
+    (destination.parent / "README.md").write_text(_readme(summary, list(mesh.target_names), identity_names))
     return summary
 
 
+def _read_ict_facekit(source: Path) -> tuple[MorphMesh, np.ndarray, dict[str, np.ndarray]]:
+    """ICT FaceKit's generic neutral with its expressions in ICT's order, the 68 landmark ids and the identity
+    deltas by name, in ICT's centimetres."""
+    indices = json.loads((source / "vertex_indices.json").read_text())
+    files = {p.name: p for p in sorted(source.iterdir()) if re.search(r"\.obj(\.gz)?$", p.name)}
+    mtl = next(iter(sorted(source.glob("*.mtl"))), None)
+    mesh, identities = load_obj_blendshapes(files, "generic_neutral_mesh", "identity", mtl)
+    # ICT's canonical expression order first (vertex_indices.json), the extra shapes after
+    order = [n for n in indices["expressions"] if n in mesh.target_names]
+    order += sorted(n for n in mesh.target_names if n not in order)
+    perm = [mesh.target_names.index(n) for n in order]
+    mesh.target_names, mesh.deltas = order, mesh.deltas[perm]
+    ids = check_landmark_ids(
+        indices["idx_to_landmark_verts"], len(mesh.positions), file=str(source / "vertex_indices.json")
+    )
+    return mesh, ids, identities
+
+
+def _ict_without_eye_shells(mesh: MorphMesh, ids: np.ndarray, identity_deltas: np.ndarray):
+    """Paint each inner eyeball (sclera, iris, pupil) and remove the outer eye shell in front of it; also returns
+    which triangles were the shells."""
+    group_names = [x.name for x in mesh.groups]
+    shells = np.zeros(len(mesh.triangles), dtype=bool)
+    for shell, ball in ICT_EYES:
+        if shell in group_names and ball in group_names:
+            shells |= paint_eyeball(mesh, shell, ball)
+    mesh, ids, identity_deltas = drop_triangles(mesh, ~shells, ids, identity_deltas)
+    return mesh, ids, identity_deltas, shells
+
+
+def _ict_glb_mesh(
+    mesh: MorphMesh, ids: np.ndarray, identity_names: list[str], identity_deltas: np.ndarray
+) -> MorphMesh:
+    """The mesh as the GLB holds it: metres, the identity targets after the expressions, and the landmark ids,
+    identity names and head pivot in its extras."""
+    scale = 0.01  # centimetres -> metres (glTF)
+    mesh.positions = (mesh.positions * scale).astype(np.float32)
+    all_deltas = np.concatenate([mesh.deltas, identity_deltas]) * scale
+    pivot = head_pivot(mesh.positions, ids)
+    return MorphMesh(
+        positions=mesh.positions,
+        triangles=mesh.triangles,
+        target_names=list(mesh.target_names) + identity_names,
+        deltas=all_deltas.astype(np.float32),
+        triangle_groups=mesh.triangle_groups,
+        groups=mesh.groups,
+        name="ICTFaceKit",
+        extras={
+            EXTRAS_LANDMARKS: [int(i) for i in ids],
+            "landmarkScheme": LANDMARK_SCHEME,
+            EXTRAS_IDENTITY: identity_names,
+            EXTRAS_PIVOT: [float(v) for v in pivot],
+            "source": "ICT FaceKit light face model (generic neutral, 57 expressions, 10 identity "
+            "components), built by msflow stages.retarget.character",
+        },
+    )
+
+
 def _readme(summary: dict, expressions: list[str], identities: list[str]) -> str:
+    """The README.md beside the built GLB: provenance, the command that built it, and what it contains."""
+    return "\n".join(
+        [
+            "# Embedded default character: ICT FaceKit",
+            "",
+            f"`{summary['file']}` is the default character of the retargeting stages (`stages.retarget.character:GltfCharacter`).",
+            "",
+            "## Provenance",
+            _readme_paragraph(
+                "Built from the ICT FaceKit light face model (USC Institute for Creative Technologies, MIT licence: "
+                "see `LICENSE` and `CREDITS.md` in this folder; https://github.com/ICT-VGL/ICT-FaceKit) with this "
+                "project's own code (OBJ reader, identity split, sparse glTF writer in `stages/`):"
+            ),
+            "",
+            f"    python -m stages.retarget.character build /path/to/ict-facekit data/characters/{summary['file']}",
+            "",
+            _readme_paragraph(
+                "The source folder holds `generic_neutral_mesh.obj.gz`, one `.obj.gz` per blendshape, "
+                "`identity000..009.obj.gz`, `ICTFaceModelMaterial.mtl`, `vertex_indices.json`, `LICENSE` and "
+                "`CREDITS.md`. The build is deterministic (same input, same bytes)."
+            ),
+            "",
+            "## Contents",
+            *[_readme_paragraph(item, "- ") for item in _readme_contents(summary, expressions, identities)],
+            "",
+        ]
+    )
+
+
+def _readme_paragraph(text: str, indent: str = "") -> str:
+    """``text`` with its whitespace collapsed, wrapped at 110 columns; later lines indented under ``indent``."""
     import textwrap
 
-    def para(text: str, indent: str = "") -> str:
-        return textwrap.fill(
-            " ".join(text.split()), width=110, initial_indent=indent, subsequent_indent=" " * len(indent)
-        )
+    return textwrap.fill(" ".join(text.split()), width=110, initial_indent=indent, subsequent_indent=" " * len(indent))
 
-    contents = [
+
+def _readme_contents(summary: dict, expressions: list[str], identities: list[str]) -> list[str]:
+    """The README's "Contents" items: mesh, what was left out, expression and identity targets, extras, size."""
+    return [
         f"One mesh `ICTFaceKit`: {summary['vertices']} vertices, {summary['triangles']} triangles (ICT's quads split "
         f"in two), one primitive per material; metres (ICT's centimetres x 0.01), +y up, facing +z.",
         f"Left out: the overlay geometry made for alpha textures ({', '.join(summary['dropped_groups'])}) and the "
@@ -742,32 +811,6 @@ def _readme(summary: dict, expressions: list[str], identities: list[str]) -> str
         "remapped); `mesh.extras.headPivot`: the point the head turns about (metres).",
         f"Size: {summary['bytes']} bytes. Passes the Khronos glTF Validator without errors or warnings.",
     ]
-    return "\n".join(
-        [
-            "# Embedded default character: ICT FaceKit",
-            "",
-            f"`{summary['file']}` is the default character of the retargeting stages (`stages.retarget.character:GltfCharacter`).",
-            "",
-            "## Provenance",
-            para(
-                "Built from the ICT FaceKit light face model (USC Institute for Creative Technologies, MIT licence: "
-                "see `LICENSE` and `CREDITS.md` in this folder; https://github.com/ICT-VGL/ICT-FaceKit) with this "
-                "project's own code (OBJ reader, identity split, sparse glTF writer in `stages/`):"
-            ),
-            "",
-            f"    python -m stages.retarget.character build /path/to/ict-facekit data/characters/{summary['file']}",
-            "",
-            para(
-                "The source folder holds `generic_neutral_mesh.obj.gz`, one `.obj.gz` per blendshape, "
-                "`identity000..009.obj.gz`, `ICTFaceModelMaterial.mtl`, `vertex_indices.json`, `LICENSE` and "
-                "`CREDITS.md`. The build is deterministic (same input, same bytes)."
-            ),
-            "",
-            "## Contents",
-            *[para(item, "- ") for item in contents],
-            "",
-        ]
-    )
 
 
 def main(argv: list[str] | None = None) -> int:
