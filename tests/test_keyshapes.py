@@ -1,4 +1,5 @@
-"""Keyshape selection (Sec 4.1) and the NNLS decomposition of edited sequences (Eq 8), stage stages.retarget.keyshapes."""
+"""Keyshape selection (Sec 4.1, stages.retarget.keyshape_selection) and the NNLS decomposition of edited sequences
+(Eq 8, stages.retarget.decomposition), stage stages.retarget.keyshapes."""
 
 import functools
 from types import SimpleNamespace
@@ -11,8 +12,10 @@ from pydantic import ValidationError
 
 from msflow import UserError
 from msflow.testing import artifact, run_stage
+from stages.retarget.decomposition import decompose_into_keyshapes
 from stages.retarget.face_measures import inter_ocular_distance, mouth_opening, rest_shape
-from stages.retarget.keyshapes import Keyshapes, decompose_into_keyshapes, select_keyshapes
+from stages.retarget.keyshape_selection import select_keyshapes
+from stages.retarget.keyshapes import Keyshapes
 from stages.retarget.regions import BROWS
 
 
@@ -110,8 +113,8 @@ def test_frames_at_rest_get_no_weight_when_decomposed_from_rest():
     On the absolute shapes (the paper's Eq 8) a frame at rest is a mix of opposite extremes, both ends of an axis
     weighted (their keymorphs, a smile and a frown, never quite cancel on the character); decomposed as
     deformations from rest it gets no weight at all. Both reconstruct every frame."""
+    from stages.retarget.decomposition import decompose
     from stages.retarget.face_measures import relative_rms_error
-    from stages.retarget.keyshapes import decompose
 
     rng = np.random.default_rng(4)
     coeff = rng.normal(size=(90, 3)) * [2.0, 1.5, 1.0]

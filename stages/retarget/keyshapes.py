@@ -1,10 +1,9 @@
-"""Keyshape selection (paper Sec 4.1) and the non-negative keyshape decomposition of edited sequences (Eq 8).
+"""The keyshape stages: ``Keyshapes`` (keyshapes of the training expressions, the edited sequences decomposed onto
+them) and ``CaptureKeyshapes`` (performance capture: each tracked take's keyshapes, every tracked frame decomposed
+onto its own take's), with their params, outputs, meta and metrics, and the rest poses and 3D keyshapes they add.
 
-Per training expression s, PCA of that expression's aligned landmark shapes; from the first (largest-variance)
-axis on, the frames with the maximum and the minimum projection are keyshapes B^(s), k_s of them from the first
-k_s/2 axes; a candidate within ``dedupe_threshold`` of an already chosen keyshape is dropped (being chosen
-later, it comes from the lower-variance axis). Every frame x^(s)(t) of the sequence edited towards expression s
-is then written as x^(s)(t) ~ sum_i w_i(t) B_i^(s), w_i >= 0, solved for all frames at once (stages.geometry.nnls).
+The keyshape selection (paper Sec 4.1, PCA-extreme frames) is in ``stages.retarget.keyshape_selection``, the
+non-negative decomposition x^(s)(t) ~ sum_i w_i(t) B_i^(s), w_i >= 0 (Eq 8) in ``stages.retarget.decomposition``.
 
 Distances are measured in the aam mean-shape frame relative to the inter-ocular distance (outer eye corners,
 iBUG points 36 and 45, the 300-W convention) of the mean training shape, so thresholds and residuals do not
@@ -13,253 +12,23 @@ depend on the aam's choice of units.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 from pydantic import Field, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
-from stages.geometry.nnls import batched_nnls
+from stages.retarget.decomposition import DECOMPOSITION_REGIONS, decompose, decompose_targets
 from stages.retarget.face_measures import (
     inter_ocular_distance,
     level,
     lip_gap_iod,
-    mean_squared_landmark_distance,
     relative_rms_error,
     rest_frames,
     rest_pose,
 )
 from stages.retarget.keyshape_figures import figure_keyshapes, figure_residual, figure_weights
-
-
-@dataclass
-class KeyshapeSelection:
-    """Keyshapes of one expression: source frames (indices into the shapes given), their PCA axis and end."""
-
-    frames: np.ndarray  # (k,) int
-    axes: np.ndarray  # (k,) int, PCA axis the keyshape is an extreme of (0 = largest variance)
-    extremes: np.ndarray  # (k,) int, +1 maximum / -1 minimum projection
-    explained_variance: np.ndarray  # (n_axes,) variance along each PCA axis
-    dropped: list[dict] = field(default_factory=list)  # candidates removed as duplicates
-
-
-def select_keyshapes(
-    shapes: np.ndarray, k: int, *, dedupe_threshold: float, scale: float = 1.0, refill: bool = False
-) -> KeyshapeSelection:
-    """Pick up to ``k`` keyshapes among ``shapes`` (n, 68, 2) by PCA extremes (paper Sec 4.1).
-
-    Candidates in order: axis 0 max, axis 0 min, axis 1 max, ... (the first ceil(k/2) axes, the k-th candidate
-    last). A candidate whose mean squared landmark distance to an already chosen keyshape, divided by
-    ``scale**2``, is below ``dedupe_threshold`` is dropped. With ``refill`` the search continues on further
-    axes until k keyshapes are found (the paper stops at k/2 axes, so duplicates leave fewer than k).
-    """
-    shapes = np.asarray(shapes, np.float64)
-    if shapes.shape[0] == 0:
-        raise ValueError("select_keyshapes: no shapes")
-    variance, rank, projections = _principal_projections(shapes)
-    if rank == 0:  # every frame identical: the one shape is the only keyshape
-        return KeyshapeSelection(np.array([0]), np.array([0]), np.array([1]), variance, [])
-    chosen, axes, extremes, dropped = _pick_extremes(
-        shapes, projections, rank, k, threshold=dedupe_threshold * scale**2, scale=scale, refill=refill
-    )
-    return KeyshapeSelection(
-        np.array(chosen, dtype=np.int64),
-        np.array(axes, dtype=np.int64),
-        np.array(extremes, dtype=np.int64),
-        variance,
-        dropped,
-    )
-
-
-def _principal_projections(shapes: np.ndarray) -> tuple[np.ndarray, int, np.ndarray]:
-    """PCA of ``shapes`` (n, 68, d): the variance along each axis, the rank (0 when every frame is the same) and
-    each frame's projection on the first ``rank`` axes (n, max(rank, 1))."""
-    n = shapes.shape[0]
-    flat = shapes.reshape(n, -1)
-    centred = flat - flat.mean(axis=0)
-    _, singular, axes_t = np.linalg.svd(centred, full_matrices=False)
-    variance = singular**2 / max(n - 1, 1)
-    rank = int((singular > singular.max(initial=0.0) * 1e-9).sum()) if n > 1 else 0
-    return variance, rank, centred @ axes_t[: max(rank, 1)].T
-
-
-def _pick_extremes(
-    shapes: np.ndarray, projections: np.ndarray, rank: int, k: int, *, threshold: float, scale: float, refill: bool
-) -> tuple[list[int], list[int], list[int], list[dict]]:
-    """The candidates of ``select_keyshapes`` in order (axis 0 max, axis 0 min, axis 1 max, ...), each kept unless
-    it duplicates one already chosen: the chosen frames, their axes and extremes, and the dropped candidates."""
-    chosen: list[int] = []
-    axes: list[int] = []
-    extremes: list[int] = []
-    dropped: list[dict] = []
-    candidates_tried = 0
-    for axis in range(rank):
-        for sign in (1, -1):
-            if not refill and candidates_tried >= k:
-                break
-            if len(chosen) >= k:
-                break
-            candidates_tried += 1
-            frame = int(np.argmax(sign * projections[:, axis]))
-            duplicate = _duplicate_of(shapes, chosen, frame, threshold, scale)
-            if duplicate is not None:
-                dropped.append({"frame": frame, "axis": axis, "extreme": sign, **duplicate})
-                continue
-            chosen.append(frame)
-            axes.append(axis)
-            extremes.append(sign)
-    return chosen, axes, extremes, dropped
-
-
-def _duplicate_of(shapes: np.ndarray, chosen: list[int], frame: int, threshold: float, scale: float) -> dict | None:
-    """The chosen keyshape nearest to ``frame`` and its distance (per ``scale**2``) when ``frame`` is within
-    ``threshold`` of it (mean squared landmark distance), else None."""
-    if not chosen:
-        return None
-    distance = mean_squared_landmark_distance(shapes[chosen], shapes[frame])
-    nearest = int(np.argmin(distance))
-    # the same frame again (an extreme of several axes) is always a duplicate
-    if distance[nearest] < threshold or frame in chosen:
-        return {"duplicate_of": chosen[nearest], "distance": float(distance[nearest] / scale**2)}
-    return None
-
-
-def decompose_into_keyshapes(shapes: np.ndarray, keyshapes: np.ndarray, **nnls_options):
-    """Non-negative weights w (n, k) with shapes ~ sum_i w_i keyshapes_i for every frame (paper Eq 8).
-
-    shapes (n, 68, 2), keyshapes (k, 68, 2); returns (weights, reconstruction (n, 68, 2), NnlsResult).
-    """
-    shapes = np.asarray(shapes, np.float64)
-    keyshapes = np.asarray(keyshapes, np.float64)
-    n = shapes.shape[0]
-    dictionary = keyshapes.reshape(keyshapes.shape[0], -1).T
-    result = batched_nnls(dictionary, shapes.reshape(n, -1), **nnls_options)
-    reconstruction = (result.weights @ dictionary.T).reshape(shapes.shape)
-    return result.weights, reconstruction, result
-
-
-#: the regions decomposed apart (Eq 8 per region, ``regions: true``). The mouth region holds the jaw line and the
-#: nostrils with the lips, so the jaw and the lips share one set of weights: a lip keymorph was fitted with its own
-#: keyshape's jaw
-DECOMPOSITION_REGIONS: dict[str, tuple[int, ...]] = {
-    "mouth": tuple(range(0, 17)) + tuple(range(31, 36)) + tuple(range(48, 68)),
-    "eyes": tuple(range(36, 48)),
-    "brows": tuple(range(17, 27)),
-}
-
-
-@dataclass
-class KeyshapeSet:
-    """The keyshapes of every expression (or take): source frames and where each comes from."""
-
-    frames: np.ndarray  # (K,) frame index into the shapes given
-    expression: np.ndarray  # (K,) group (expression or take) index
-    index: np.ndarray  # (K,) id within the group
-    axes: np.ndarray  # (K,) PCA axis
-    extremes: np.ndarray  # (K,) +1 / -1
-    dropped: dict  # label -> duplicates dropped (frame indices global)
-    variance_covered: dict  # label -> fraction of the group's variance on the axes used
-
-
-def select_all_keyshapes(
-    shapes: np.ndarray,
-    groups: np.ndarray,
-    labels: list[str],
-    counts: dict[str, int],
-    usable: np.ndarray,
-    *,
-    dedupe_threshold: float,
-    scale: float,
-    refill: bool,
-) -> KeyshapeSet:
-    """``select_keyshapes`` for every group (expression or take) of frames; frames not ``usable`` are never
-    keyshapes. Returns global frame indices."""
-    parts = {key: [] for key in ("frames", "expression", "index", "axes", "extremes")}
-    dropped, covered = {}, {}
-    for s, label in enumerate(labels):
-        frames = np.flatnonzero((groups == s) & usable)
-        if frames.size == 0:
-            raise ValueError(f"expression '{label}' has no usable frames")
-        selection = select_keyshapes(
-            shapes[frames], counts[label], dedupe_threshold=dedupe_threshold, scale=scale, refill=refill
-        )
-        parts["frames"].append(frames[selection.frames])
-        parts["expression"].append(np.full(len(selection.frames), s))
-        parts["index"].append(np.arange(len(selection.frames)))
-        parts["axes"].append(selection.axes)
-        parts["extremes"].append(selection.extremes)
-        dropped[label] = [
-            dict(d, frame=int(frames[d["frame"]]), duplicate_of=int(frames[d["duplicate_of"]]))
-            for d in selection.dropped
-        ]
-        total = selection.explained_variance.sum()
-        used = int(selection.axes.max()) + 1
-        covered[label] = float(selection.explained_variance[:used].sum() / total) if total else 1.0
-    joined = {key: np.concatenate(value).astype(np.int64) for key, value in parts.items()}
-    return KeyshapeSet(**joined, dropped=dropped, variance_covered=covered)
-
-
-@dataclass
-class Decomposition:
-    """Eq 8 for a set of frames: whole-face weights, optional per-region weights, and the reconstruction."""
-
-    weights: np.ndarray  # (F, K)
-    region_weights: np.ndarray | None  # (F, R, K)
-    reconstruction: np.ndarray  # (F, 68, d)
-    kkt: float
-
-
-def decompose_groups(
-    shapes: np.ndarray,
-    groups: np.ndarray,
-    keyshapes: np.ndarray,
-    keyshape_group: np.ndarray,
-    points: tuple[int, ...] | None = None,
-    **nnls_options,
-) -> tuple[np.ndarray, float]:
-    """Eq 8 for frames that each use their own group's keyshapes: weights (F, K), zero outside the frame's group;
-    ``points`` restricts the fit to those landmarks. Returns the weights and the largest KKT violation."""
-    points = list(points) if points is not None else slice(None)
-    weights = np.zeros((len(shapes), len(keyshapes)))
-    kkt = 0.0
-    for g in np.unique(groups):
-        rows, mine = np.flatnonzero(groups == g), np.flatnonzero(keyshape_group == g)
-        w, _, result = decompose_into_keyshapes(shapes[rows][:, points], keyshapes[mine][:, points], **nnls_options)
-        weights[np.ix_(rows, mine)] = w
-        if not nnls_options.get("smoothing"):
-            kkt = max(kkt, float(result.kkt.max(initial=0.0)))
-    return weights, kkt
-
-
-def decompose(
-    shapes: np.ndarray,
-    groups: np.ndarray,
-    keyshapes: np.ndarray,
-    keyshape_group: np.ndarray,
-    regions: dict[str, tuple[int, ...]] | None = None,
-    rest: np.ndarray | float = 0.0,
-    keyshape_rest: np.ndarray | float = 0.0,
-    **nnls_options,
-) -> Decomposition:
-    """Eq 8, whole-face and (given ``regions``) region by region. A landmark in a region is reconstructed from
-    its region's weights, any other from the whole-face weights. With ``rest`` (the frames' rest poses,
-    broadcastable to ``shapes``) and ``keyshape_rest`` (the keyshapes'), the deformations from rest are decomposed
-    (``decomposition: from_rest``) and the reconstruction is rest + sum_i w_i (B_i - rest_i)."""
-    shapes, keyshapes = np.asarray(shapes, np.float64) - rest, np.asarray(keyshapes, np.float64) - keyshape_rest
-    weights, kkt = decompose_groups(shapes, groups, keyshapes, keyshape_group, **nnls_options)
-    reconstruction = np.einsum("fk,kpc->fpc", weights, keyshapes)
-    if not regions:
-        return Decomposition(weights, None, reconstruction + rest, kkt)
-    by_region = np.zeros((len(shapes), len(regions), len(keyshapes)))
-    for r, points in enumerate(regions.values()):
-        by_region[:, r], region_kkt = decompose_groups(
-            shapes, groups, keyshapes, keyshape_group, points, **nnls_options
-        )
-        kkt = max(kkt, region_kkt)
-        reconstruction[:, list(points)] = np.einsum("fk,kpc->fpc", by_region[:, r], keyshapes[:, list(points)])
-    return Decomposition(weights, by_region, reconstruction + rest, kkt)
-
+from stages.retarget.keyshape_selection import KeyshapeSet, select_all_keyshapes
 
 # ----------------------------------------------------------------------------------------------------- stage
 
@@ -464,10 +233,6 @@ def _regions_meta(params) -> dict[str, list[int]]:
     return {name: list(points) for name, points in DECOMPOSITION_REGIONS.items()} if params.regions else {}
 
 
-def nnls_options(params) -> dict:
-    return {"method": params.solver, "sum_to_one": params.sum_to_one, "smoothing": params.smoothing}
-
-
 def keyshape_arrays(selection: KeyshapeSet, shapes: np.ndarray) -> dict[str, np.ndarray]:
     """The selection as output arrays (the keyshapes' own shapes from ``shapes``)."""
     return {
@@ -502,24 +267,6 @@ def decomposition_metrics(residual: np.ndarray, targets: list[str], kkt: float, 
     for t, name in enumerate(targets):
         metrics[f"residual_rms_iod_{name}"] = float(np.sqrt(np.mean(residual[t] ** 2)))
     return metrics
-
-
-def decompose_targets(
-    targets: np.ndarray, groups: np.ndarray, keyshapes: np.ndarray, selection, params, scale, rests=(0.0, 0.0)
-):
-    """Eq 8 for every target sequence (T, F, 68, d) with per-frame groups (T, F): weights, region weights (or
-    None), reconstruction, residual / IOD, the largest KKT violation. ``rests`` = (the frames' rest poses,
-    broadcastable to the targets; the keyshapes'): what ``decompose`` measures from (0: the absolute shapes)."""
-    regions = DECOMPOSITION_REGIONS if params.regions else None
-    rest, keyshape_rest = rests
-    parts = [
-        decompose(target, group, keyshapes, selection.expression, regions, r, keyshape_rest, **nnls_options(params))
-        for target, group, r in zip(targets, groups, np.broadcast_to(rest, targets.shape))
-    ]
-    reconstruction = np.stack([p.reconstruction for p in parts])
-    residual = relative_rms_error(reconstruction, targets, scale)
-    region_weights = np.stack([p.region_weights for p in parts]) if params.regions else None
-    return np.stack([p.weights for p in parts]), region_weights, reconstruction, residual, max(p.kkt for p in parts)
 
 
 def head_frame_keyshapes(

@@ -27,7 +27,7 @@ CHEEK_RAISE_POINTS = [68 + EXTRA_VERTICES.index(v) for side in CHEEK_VERTICES.va
 class FitRegion(BaseModel):
     """One region of the 3D keymorph fit: the landmarks that show it and the morphs (fnmatch patterns,
     case-insensitive) that move it; ``decomposition`` names the keyshape-decomposition region whose weights
-    drive these morphs in the blend (``stages.retarget.keyshapes.DECOMPOSITION_REGIONS``)."""
+    drive these morphs in the blend (``stages.retarget.decomposition.DECOMPOSITION_REGIONS``)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     name: str
