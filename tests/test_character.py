@@ -11,14 +11,9 @@ import pytest
 from msflow import UserError
 from msflow.testing import run_stage
 from stages.formats.gltf import MaterialGroup, MorphMesh, read_morph_mesh, validate_glb, write_morph_glb
-from stages.retarget.character import (
-    GltfCharacter,
-    ObjBlendshapes,
-    build_ict_character,
-    mix_identity,
-    parse_obj_faces,
-    parse_obj_vertices,
-)
+from stages.retarget.character import GltfCharacter, ObjBlendshapes, mix_identity
+from stages.retarget.ict_facekit import build_ict_character
+from stages.retarget.obj_blendshapes import parse_obj_faces, parse_obj_vertices
 
 ROOT = Path(__file__).resolve().parents[1]
 ICT_GLB = ROOT / "data" / "characters" / "ict-facekit.glb"
@@ -511,7 +506,7 @@ def test_embedded_character_files_size_and_validity(node_modules):
     assert "MIT License" in (folder / "LICENSE").read_text()
     assert "Bladin" in (folder / "CREDITS.md").read_text()
     readme = (folder / "README.md").read_text()
-    assert "python -m stages.retarget.character build" in readme
+    assert "python -m stages.retarget.ict_facekit build" in readme
     report = validate_glb(ICT_GLB.read_bytes())
     assert report["numErrors"] == 0 and report["numWarnings"] == 0, report["messages"]
 
