@@ -107,7 +107,7 @@ def build_ict_character(source: Path, destination: Path, *, sparse_tolerance: fl
     glb = write_morph_glb(
         out,
         sparse_tolerance=sparse_tolerance,
-        generator="msflow stages.retarget.character build",
+        generator="msflow stages.retarget.ict_facekit build",
         copyright=ICT_COPYRIGHT,
     )
     destination.parent.mkdir(parents=True, exist_ok=True)
@@ -183,7 +183,7 @@ def _ict_glb_mesh(
             EXTRAS_IDENTITY: identity_names,
             EXTRAS_PIVOT: [float(v) for v in pivot],
             "source": "ICT FaceKit light face model (generic neutral, 57 expressions, 10 identity "
-            "components), built by msflow stages.retarget.character",
+            "components), built by msflow stages.retarget.ict_facekit",
         },
     )
 
