@@ -90,6 +90,11 @@ def test_msflow_and_stages_have_no_import_cycles():
     graph = import_graph(ROOT, "msflow", "stages")
     assert "msflow.stores.remote" in graph and graph["msflow.api"]  # the graph is really built
     assert "stages.head.trellis" in graph and graph["stages.retarget.blend"]
+    # the trellis stage's layers: segments (Eq. 10-12) <- search (Eq. 13-15) <- trellis (the stage)
+    assert {"stages.head.segments", "stages.head.search"} <= graph["stages.head.trellis"]
+    assert "stages.head.segments" in graph["stages.head.search"]
+    assert "stages.head.trellis" not in graph["stages.head.search"]
+    assert not {"stages.head.search", "stages.head.trellis"} & graph["stages.head.segments"]
     assert cycles(graph) == []
     assert not [m for m in graph if m.startswith("msflow") and any(d.startswith("stages") for d in graph[m])]
 

@@ -13,20 +13,16 @@ from msflow import UserError
 from msflow.testing import artifact, run_stage
 from stages.head.database import TrackedHeadDb
 from stages.head.pitch import Pitch
-from stages.head.trellis import (
-    Database,
+from stages.head.search import Database, smoothness_weights, transition_costs, viterbi
+from stages.head.segments import (
     SegmentScales,
     SegmentTable,
     SegmentWeights,
     SpeakerReference,
-    Trellis,
     contour_geometry,
-    reference_for_test,
     segment_distances,
-    smoothness_weights,
-    transition_costs,
-    viterbi,
 )
+from stages.head.trellis import Trellis, reference_for_test
 
 
 @pytest.fixture(scope="module")
@@ -268,7 +264,7 @@ def test_same_performance_leaves_out_a_copy_of_the_held_out_take(phrases):
     and its mirror belong to the take (take_of); an unknown label is an error."""
     import dataclasses
 
-    from stages.head.trellis import take_of
+    from stages.head.copies import take_of
 
     copy = dataclasses.replace(phrases[0], label="copy")
     headdb = run_stage(TrackedHeadDb, {}, {"tracks": tracking_artifact([*phrases[:8], copy])})
@@ -339,7 +335,7 @@ def test_sub_sentences_are_searched_separately(database, take_pitch):
 
 def _transition_costs_of(run, chosen, database):
     """C of a given path under the run's weights (for comparing paths)."""
-    from stages.head.trellis import build_database
+    from stages.head.search import build_database
 
     db, _ = build_database(database[0].view(), database[1].view(), unit="semitones", length=None, window=0.1)
     sub = run.arrays["subsentence_start"]

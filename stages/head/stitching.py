@@ -110,8 +110,8 @@ def join_velocity_mismatch(
     """Velocity step (joins, channels) per output second between the outgoing segment's continuation (database
     ``prev_time``) and the incoming segment's start (``next_time``), each time-warped by its ``scale`` (database
     seconds per output second). Velocities are the same least-squares parabola fits over +-``window`` database
-    seconds that the trellis's transition cost H uses (stages.head.trellis.boundary_kinematics)."""
-    from stages.head.trellis import boundary_kinematics
+    seconds that the trellis's transition cost H uses (stages.head.search.boundary_kinematics)."""
+    from stages.head.search import boundary_kinematics
 
     if len(prev_time) == 0:
         return np.zeros((0, db.channels.shape[1]))
