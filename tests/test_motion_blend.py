@@ -602,6 +602,18 @@ def test_the_amplitude_target_never_comes_from_the_held_out_take(phrases):
     assert spread(angles[seq == 0]) == pytest.approx(quiet_real, rel=0.1)
 
 
+def each_take_searched_without_itself(tracks):
+    """The head database of ``tracks`` and the trellis that searches it for each of its takes, leaving the take
+    itself out (every take labelled as the database's speaker)."""
+    headdb = run_stage(TrackedHeadDb, {}, {"tracks": tracks})
+    inputs = {
+        "database": headdb,
+        "database_pitch": run_stage(Pitch, {}, {"source": headdb}),
+        "test_pitch": run_stage(Pitch, {}, {"source": tracks}),
+    }
+    return headdb, run_stage(Trellis, {"holdout": "take", "test_speaker": "own"}, inputs)
+
+
 def test_the_amplitude_target_from_the_reference_is_the_performers_own(phrases):
     """``amplitude_target="reference"``: a performer the database does not know (held out, moving 8x more than
     every database take) gets its own amplitude, read from its tracked take, not the database's; a take missing
@@ -612,13 +624,7 @@ def test_the_amplitude_target_from_the_reference_is_the_performers_own(phrases):
     rotation[loud, 1:] *= 8.0
     rotation /= np.linalg.norm(rotation, axis=1, keepdims=True)
     tracks = artifact({**{k: tracks[k] for k in tracks.names}, "rotation": rotation}, tracks.meta)
-    headdb = run_stage(TrackedHeadDb, {}, {"tracks": tracks})
-    inputs = {
-        "database": headdb,
-        "database_pitch": run_stage(Pitch, {}, {"source": headdb}),
-        "test_pitch": run_stage(Pitch, {}, {"source": tracks}),
-    }
-    tr = run_stage(Trellis, {"holdout": "take", "test_speaker": "own"}, inputs)
+    headdb, tr = each_take_searched_without_itself(tracks)
     spread = lambda a: np.prod(np.percentile(a, 95, axis=0)[:3] - np.percentile(a, 5, axis=0)[:3]) ** (1 / 3)
     loud_real = spread(reference_angles(tracks, tracks.meta["labels"][0], 8, 30.0))
     params = {"amplitude": "match", "amplitude_target": "reference"}
@@ -676,13 +682,7 @@ def test_the_output_turns_to_the_performers_side(phrases):
         {**{k: tracks[k] for k in tracks.names}, "rotation": euler_to_quat(-angles[:, 0], angles[:, 1], -angles[:, 2])},
         tracks.meta,
     )
-    headdb = run_stage(TrackedHeadDb, {}, {"tracks": tracks})
-    inputs = {
-        "database": headdb,
-        "database_pitch": run_stage(Pitch, {}, {"source": headdb}),
-        "test_pitch": run_stage(Pitch, {}, {"source": tracks}),
-    }
-    tr = run_stage(Trellis, {"holdout": "take", "test_speaker": "own"}, inputs)
+    headdb, tr = each_take_searched_without_itself(tracks)
     runs = {}
     for side in ("performer", "as_stitched"):
         params = {"amplitude": "match", "amplitude_target": "reference", "side": side}
