@@ -1,6 +1,8 @@
 """Head-motion amplitude (beyond the paper, issue 12): how far each speaker's head moves (the spread p95 - p5 of
 each angle and the translation about the rest pose), and the gains that bring database motion, or a stitched
-output, to a target speaker's spread (one gain for the angles, so the head strokes stay on the voice's onsets).
+output, to a target speaker's spread (one gain for the angles, so the head strokes stay on the voice's onsets);
+and the side a speaker turns to (``mirrored_to_side``: the output mirrored when the performer turns mostly the
+other way).
 """
 
 from __future__ import annotations
