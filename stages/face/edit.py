@@ -9,7 +9,6 @@ into the test take's face crops.
 
 from __future__ import annotations
 
-import io
 import warnings
 from dataclasses import dataclass
 
@@ -27,6 +26,7 @@ from stages.face.analysis import (
     jitter,
 )
 from stages.face.bilinear import BilinearModel, synthesise
+from stages.formats.video import Mp4Writer
 
 #: frames projected, rendered and encoded at a time: bounds the memory of the image work whatever the take's length
 BLOCK_FRAMES = 256
@@ -228,63 +228,6 @@ def side_by_side(panels: list[np.ndarray], names: list[str]) -> np.ndarray:
     return out
 
 
-class Mp4Encoder:
-    """Grey frames to H.264 MP4 bytes with PyAV, written block by block (sizes padded to even numbers).
-
-    The same frames give the same bytes: x264's macroblock-tree rate control is off (with it, the encoded frames
-    varied from run to run, so the artifact's content hash did too); frames carry explicit timestamps and go in
-    as YUV planes (grey: constant chroma), with no colour conversion.
-    """
-
-    def __init__(self, fps: float, crf: int = 18):
-        import av
-
-        self.buffer = io.BytesIO()
-        self.container = av.open(self.buffer, mode="w", format="mp4")
-        self.fps, self.crf = fps, crf
-        self.stream = None
-        self.count = 0
-
-    def write(self, frames: np.ndarray) -> None:
-        """Append frames (F, H, W) uint8."""
-        import av
-
-        h, w = np.shape(frames)[1:]
-        frames = np.pad(np.asarray(frames), ((0, 0), (0, h % 2), (0, w % 2)), mode="edge")
-        if self.stream is None:
-            from fractions import Fraction
-
-            self.rate = Fraction(self.fps).limit_denominator(1001)
-            self.stream = self.container.add_stream("libx264", rate=self.rate)
-            self.stream.width, self.stream.height = frames.shape[2], frames.shape[1]
-            self.stream.pix_fmt = "yuv420p"
-            self.stream.options = {"crf": str(self.crf), "preset": "medium", "x264-params": "mbtree=0"}
-        h, w = frames.shape[1:]
-        chroma = np.full((h // 2, w), 128, dtype=np.uint8)  # U and V planes (h/2 x w/2 each), grey: no colour
-        for frame in frames:
-            luma = np.round(16 + frame * (219 / 255)).astype(np.uint8)  # video (limited) range, as players expect
-            video_frame = av.VideoFrame.from_ndarray(np.concatenate([luma, chroma]), format="yuv420p")
-            video_frame.pts, video_frame.time_base = self.count, 1 / self.rate
-            self.count += 1
-            for packet in self.stream.encode(video_frame):
-                self.container.mux(packet)
-
-    def close(self) -> bytes:
-        """Flush the encoder; the MP4 file's bytes."""
-        if self.stream is not None:
-            for packet in self.stream.encode():
-                self.container.mux(packet)
-        self.container.close()
-        return self.buffer.getvalue()
-
-
-def encode_mp4(frames: np.ndarray, fps: float, crf: int = 18) -> bytes:
-    """Grey frames (F, H, W) uint8 to H.264 MP4 bytes (``Mp4Encoder`` in one go)."""
-    encoder = Mp4Encoder(fps, crf)
-    encoder.write(frames)
-    return encoder.close()
-
-
 def encode_png(image: np.ndarray) -> bytes:
     import cv2
 
@@ -481,7 +424,8 @@ def render_edits(
     y = np.zeros((n_edits, n_frames, bilinear.w.shape[2]))
     shapes = np.zeros((n_edits, n_frames, 68, 2), dtype=np.float32)
     crop_shapes = np.zeros_like(shapes)
-    encoder = Mp4Encoder(take.fps) if video else None
+    # grey frames as YUV planes at crf 18 (the crops' detail); libx264, else FFmpeg's MPEG-4 fallback
+    encoder = Mp4Writer(take.fps, crf=18, preset="medium", pixels="gray") if video else None
     for a, crops in zip(range(0, n_frames, block), iter_blocks(take.crops, block)):
         b = a + len(crops)
         frames = np.zeros((b - a, n_edits) + crops.shape[1:], dtype=np.uint8)

@@ -1,1 +1,1 @@
-"""File formats read and written by the stages: glTF (GLB), BVH, audio decoding; no stage classes here."""
+"""File formats read and written by the stages: glTF (GLB), BVH, audio decoding, MP4 writing; no stage classes here."""
