@@ -318,10 +318,9 @@ def probes(folders: list[str]) -> None:
 
 def _probe_rest(shapes: np.ndarray, brow_rest: str) -> np.ndarray:
     """The rest pose of head-frame ``shapes`` as the evaluation takes it (RetargetEval's brow_rest)."""
-    from stages.retarget.face_measures import rest_frames, rest_pose
-    from stages.retarget.shapes3d import front_view
+    from stages.eval.columns import closed_mouth_rest
 
-    return rest_pose(shapes, rest_frames(front_view(shapes[:, :68])), brow_rest)
+    return closed_mouth_rest(shapes, brow_rest)[1]
 
 
 def _print_dead_moved_probes(result, params, levels) -> None:

@@ -45,15 +45,21 @@ class PerformerFrame:
 def performer_frame(data: dict, rows: np.ndarray, params) -> PerformerFrame | None:
     """The take's ``PerformerFrame`` from its FaceMesh (None without one: 2D landmarks read a turn of the head
     as a sideways jaw or a frown)."""
-    from stages.retarget.face_measures import rest_frames, rest_pose
-    from stages.retarget.shapes3d import front_view
-
     if data.get("mesh") is None:
         return None
     camera = data["camera"][np.flatnonzero(rows)[0]]
     shapes, focal = performer_shapes(data["mesh"], rows, camera, params.probe_focal)
+    return PerformerFrame(shapes, *closed_mouth_rest(shapes, params.brow_rest), focal)
+
+
+def closed_mouth_rest(shapes: np.ndarray, brow_rest: str) -> tuple[np.ndarray, np.ndarray]:
+    """The closed-mouth frames of head-frame ``shapes`` (frames, 68 [+ cheek points], 3), seen from the front,
+    and the rest pose they give (``face_measures.rest_pose`` with ``brow_rest``)."""
+    from stages.retarget.face_measures import rest_frames, rest_pose
+    from stages.retarget.shapes3d import front_view
+
     closed = rest_frames(front_view(shapes[:, :68]))
-    return PerformerFrame(shapes, closed, rest_pose(shapes, closed, params.brow_rest), focal)
+    return closed, rest_pose(shapes, closed, brow_rest)
 
 
 def take_movements(data: dict, rows: np.ndarray, gap: np.ndarray, performer: PerformerFrame | None, params):

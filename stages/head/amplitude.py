@@ -128,12 +128,12 @@ def reference_spreads(
     """Per test utterance, the spread (p95 - p5 about its mean) of each angle of the performer's real motion in
     the reference (a tracking artifact; its first ``seconds`` when given): the amplitude target of
     ``amplitude_target="reference"``; None where the reference has no such take or it is too short."""
-    return [None if r is None else range_spread(r) for r in reference_ranges(reference, labels, fps, seconds)]
+    return range_spreads(reference_ranges(reference, labels, fps, seconds))
 
 
-def range_spread(ends) -> list[float]:
-    """p95 - p5 per angle of a ``reference_ranges`` entry ([p5, p95])."""
-    return (np.asarray(ends[1]) - np.asarray(ends[0])).tolist()
+def range_spreads(ranges: list) -> list[list[float] | None]:
+    """p95 - p5 per angle of each ``reference_ranges`` entry ([p5, p95]; None stays None)."""
+    return [None if r is None else (np.asarray(r[1]) - np.asarray(r[0])).tolist() for r in ranges]
 
 
 def reference_ranges(

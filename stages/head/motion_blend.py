@@ -29,7 +29,7 @@ from stages.head.amplitude import (
     match_amplitude,
     mirrored_to_side,
     proportion_correction,
-    range_spread,
+    range_spreads,
     reference_ranges,
     speaker_spreads,
 )
@@ -234,7 +234,7 @@ class MotionBlend(Stage):
                     field="inputs.reference",
                 )
             ranges = reference_ranges(inputs["reference"], labels, fps, params.reference_seconds)
-            options["targets"] = [None if r is None else range_spread(r) for r in ranges]
+            options["targets"] = range_spreads(ranges)
             if params.side == "performer":
                 options["sides"] = ranges
         synth = synthesise(trellis, db, fps, **options)

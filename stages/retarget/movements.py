@@ -26,6 +26,7 @@ A column without a probe (the tongue: no tracker here sees it) is *not measurabl
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -149,26 +150,27 @@ def landmark_probes(
     closed = lip_gap < closure_gap
     lips_sideways = d[:, list(LIPS), 0].mean(axis=1)
     sideways = lips_sideways - d[:, CHIN, 0]
+    free = partial(jaw_free, chin_down=chin_down, fit=fit)
     out = {
         "JawOpen": chin_down,
-        "JawForward": jaw_free(d[:, CHIN, 2], chin_down, fit=fit),
+        "JawForward": free(d[:, CHIN, 2]),
         "JawLeft": d[:, CHIN, 0],
         "JawRight": -d[:, CHIN, 0],
         "MouthClose": np.where(closed, chin_down - lip_gap, 0.0),
         "MouthLeft": sideways,
         "MouthRight": -sideways,
         "MouthShrugLower": -chin_down,
-        "MouthShrugUpper": jaw_free(d[:, 51, 1], chin_down, fit=fit),
+        "MouthShrugUpper": free(d[:, 51, 1]),
         "MouthRollUpper": -(d[:, 51, 1] - d[:, 62, 1]),
         "MouthRollLower": -(d[:, 66, 1] - d[:, 57, 1]),
         "BrowInnerUp": d[:, [21, 22], 1].mean(axis=1),
     }
     width = np.linalg.norm(shapes[:, 54] - shapes[:, 48], axis=-1) - np.linalg.norm(rest[54] - rest[48])
-    out["MouthPucker"] = jaw_free(-width, chin_down, fit=fit)
+    out["MouthPucker"] = free(-width)
     forward = d[:, [50, 51, 52, 56, 57, 58], 2].mean(axis=1)
-    out["MouthFunnel"] = np.where(closed, 0.0, jaw_free(forward, chin_down, fit=fit))
+    out["MouthFunnel"] = np.where(closed, 0.0, free(forward))
     for side, p in SIDE_POINTS.items():
-        out.update({f"{name}{side}": value for name, value in side_probes(d, shapes, rest, p, chin_down, closed, fit)})
+        out.update({f"{name}{side}": value for name, value in side_probes(d, shapes, rest, p, free, closed, fit)})
     if d.shape[1] >= 68 + len(EXTRA_VERTICES):
         out.update(cheek_probes(d, chin_down, fit=fit))
     return out
@@ -196,6 +198,7 @@ def cheek_probes(d: np.ndarray, chin_down: np.ndarray, fit: np.ndarray | None = 
     """CheekPuff (both mid-cheeks outwards and forward beyond what a smile's corner rise explains, one column)
     and CheekSquint per side (the skin below the lower lid up), jaw-free, from the ``EXTRA_VERTICES`` of
     deformations ``d`` (frames, 68 + 12, 3)."""
+    free = partial(jaw_free, chin_down=chin_down, fit=fit)
 
     def points(side, group):
         return [68 + EXTRA_VERTICES.index(v) for v in CHEEK_VERTICES[side][group]]
@@ -203,20 +206,20 @@ def cheek_probes(d: np.ndarray, chin_down: np.ndarray, fit: np.ndarray | None = 
     out, puff = {}, []
     for side, p in SIDE_POINTS.items():
         bulge = (p["out"] * d[:, points(side, "puff"), 0] + d[:, points(side, "puff"), 2]).mean(axis=1)
-        smile = jaw_free(d[:, p["corner"], 1], chin_down, fit=fit)  # a smile bulges the cheeks too, lifting the corners
-        puff.append(jaw_free(bulge, chin_down, fit=fit) - np.maximum(smile, 0.0))
-        lift = jaw_free(d[:, points(side, "raise"), 1].mean(axis=1), chin_down, fit=fit)
+        smile = free(d[:, p["corner"], 1])  # a smile bulges the cheeks too, lifting the corners
+        puff.append(free(bulge) - np.maximum(smile, 0.0))
+        lift = free(d[:, points(side, "raise"), 1].mean(axis=1))
         out[f"CheekSquint{side}"] = lift - SMILE_CHEEK_LIFT * np.maximum(smile, 0.0)
     out["CheekPuff"] = 0.5 * (puff[0] + puff[1])
     return out
 
 
-def side_probes(d, shapes, rest, p, chin_down, closed, fit=None):
-    """(name, movement) of one side's probes (``landmark_probes``)."""
+def side_probes(d, shapes, rest, p, free, closed, fit=None):
+    """(name, movement) of one side's probes (``landmark_probes``; ``free``: ``jaw_free`` of the take)."""
     corner = p["corner"]
-    rise = jaw_free(d[:, corner, 1], chin_down, fit=fit)
-    outwards = jaw_free(p["out"] * (d[:, corner, 0] - d[:, list(LIPS), 0].mean(axis=1)), chin_down, fit=fit)
-    back = jaw_free(-d[:, corner, 2], chin_down, fit=fit)
+    rise = free(d[:, corner, 1])
+    outwards = free(p["out"] * (d[:, corner, 0] - d[:, list(LIPS), 0].mean(axis=1)))
+    back = free(-d[:, corner, 2])
     eye_line = d[:, list(p["eye"]), 1].mean(axis=1)
     height = shapes[:, p["upper"], 1] - shapes[:, p["lower"], 1]
     learned = closed if fit is None else closed & fit
@@ -228,13 +231,13 @@ def side_probes(d, shapes, rest, p, chin_down, closed, fit=None):
         ("MouthStretch", outwards - np.maximum(rise, 0.0)),
         ("MouthDimple", back - np.maximum(rise, 0.0)),
         ("MouthPress", np.where(closed, closed_height - height, 0.0)),
-        ("MouthLowerDown", jaw_free(-d[:, p["lower"], 1], chin_down, fit=fit)),
-        ("MouthUpperUp", jaw_free(d[:, p["upper"], 1], chin_down, fit=fit)),
+        ("MouthLowerDown", free(-d[:, p["lower"], 1])),
+        ("MouthUpperUp", free(d[:, p["upper"], 1])),
         ("EyeSquint", d[:, list(p["lid_low"]), 1].mean(axis=1) - eye_line),
         ("EyeWide", d[:, list(p["lid_up"]), 1].mean(axis=1) - eye_line),
         ("BrowDown", (-brow[..., 1] - p["out"] * brow[..., 0]).mean(axis=1)),
         ("BrowOuterUp", d[:, p["outer_brow"], 1]),
-        ("NoseSneer", jaw_free(d[:, p["nostril"], 1], chin_down, fit=fit)),
+        ("NoseSneer", free(d[:, p["nostril"], 1])),
     ]
 
 
