@@ -66,10 +66,12 @@ def opencv_projection(points, rotation, translation):
 
 def facemesh_of(points, rotation, translation, orthographic=False):
     """A 468-point FaceMesh whose iBUG points are ``points`` (frames, 68, 3) posed and seen by the camera: image x,
-    y and a relative depth z in pixels (away from the camera), as the tracker gives them; every other vertex (the
-    cheeks' among them) rides rigidly on the nose tip. ``orthographic``: seen without perspective, every point
+    y and a relative depth z in pixels (away from the camera), as the tracker gives them; every other vertex rides
+    rigidly on the nose tip, but for the cheek points (``movements.EXTRA_VERTICES``) when ``points`` carries them
+    (frames, 68 + 12, 3). ``orthographic``: seen without perspective, every point
     scaled as the face's mean depth would be (a scaled orthographic view: a very long lens from far away)."""
     from stages.geometry.rotations import quat_to_matrix
+    from stages.retarget.movements import EXTRA_VERTICES
     from stages.tracking.landmarks68 import MESH_TO_IBUG68
 
     cam = np.einsum("fij,fpj->fpi", quat_to_matrix(rotation), points) + translation[:, None]
@@ -83,6 +85,8 @@ def facemesh_of(points, rotation, translation, orthographic=False):
     mesh = np.repeat(posed[:, 30:31], 468, axis=1)
     for point, vertices in enumerate(MESH_TO_IBUG68):
         mesh[:, list(vertices)] = posed[:, point : point + 1]
+    if points.shape[1] > 68:
+        mesh[:, list(EXTRA_VERTICES)] = posed[:, 68:]
     return mesh
 
 
@@ -602,3 +606,50 @@ def test_columns_follow_the_movements_they_name(character, truth):
     assert out.metrics["following_r_median_shifted"] < 0.5
     late = evaluate(character, tracks, np.roll(weights, FRAMES // 2, axis=0))
     assert late.metrics["following_r_median"] < 0.5 and late.metrics["following_weak"] > 0.5
+
+
+def test_the_ceiling_fit_recovers_the_characters_own_weights_in_the_head_frame(character):
+    """bench/retarget_ceiling.py's frame-by-frame fit (the basis's ceiling) on a performer who is the character
+    (its cheek points too: vertices of the character's cheeks), seen without perspective. With the morphs as the
+    head frame sees them, every frame's jaw and funnel come back as animated and no other morph
+    moves. With the deltas as they are (the keymorph fit's model) the jaw comes back short: it lowers the
+    nostrils, rigid points, and the head frame takes part of that out of the performer's face but not out of the
+    morph. (No blink: the eye corners it moves are rigid points too.)"""
+    import sys
+
+    from conftest import ROOT
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    from retarget_ceiling import take_frame_fit
+
+    from stages.retarget.movements import EXTRA_VERTICES
+    from stages.retarget.shapes3d import head_frame_shapes
+
+    names = character.meta["target_names"]
+    weights = known_weights(names)
+    weights[:, [names.index("eyeBlink_L"), names.index("eyeBlink_R")]] = 0.0
+    data = {k: np.asarray(character[k]) for k in ("neutral", "deltas", "landmark_ids")} | {"names": names}
+    rest = data["neutral"][data["landmark_ids"]]
+    # each side's cheek points: vertices between the lower lid, the nostril, the lip corner and the jaw line
+    between = [(41, 48), (40, 48), (40, 31), (48, 4), (48, 3), (31, 2), (46, 54), (47, 54), (47, 35), (54, 12)]
+    between += [(54, 13), (35, 14)]
+    assert len(between) == len(EXTRA_VERTICES)
+    cheeks = [int(np.argmin(((data["neutral"] - (rest[a] + rest[b]) / 2) ** 2).sum(1))) for a, b in between]
+    ids = np.concatenate([data["landmark_ids"], cheeks])
+    points = align_to_model(rest, load_face3d().neutral).apply(
+        character_landmarks(data["neutral"], data["deltas"], ids, weights)
+    )
+    mesh = facemesh_of(points, *head_motion(), orthographic=True)
+    rest_shape = head_frame_shapes(mesh, EXTRA_VERTICES)[40:48].mean(axis=0)  # frames 40-47: every weight 0
+    usable = np.array([not n.lower().startswith("eyelook") for n in names])
+    moving = [names.index(n) for n in ("jawOpen", "mouthFunnel")]
+    still = [i for i in range(len(names)) if i not in moving]
+
+    fitted = take_frame_fit(data, mesh, rest_shape, usable, head_frame=True)
+    np.testing.assert_allclose(fitted[:, moving], weights[:, moving], atol=0.02)
+    assert np.abs(fitted[:, still]).max() < 0.025  # the head frame's share, to first order
+
+    as_they_are = take_frame_fit(data, mesh, rest_shape, usable)
+    jaw = names.index("jawOpen")
+    widest = weights[:, jaw] > 0.5
+    assert np.all(as_they_are[widest, jaw] < weights[widest, jaw] - 0.005)
