@@ -31,7 +31,10 @@ from types import SimpleNamespace
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "bench")]  # this checkout's msflow and stages, and eval_retarget's tables
+sys.path[:0] = [
+    str(ROOT),
+    str(ROOT / "bench"),
+]  # this checkout's msflow and stages, and eval_retarget's tables
 PIPELINE = ROOT / "eval" / "retarget.yaml"
 
 
@@ -61,7 +64,14 @@ def frame_fit_weights(data: dict, keyshapes, gaze_weights: np.ndarray, head_fram
     return out
 
 
-def take_frame_fit(data: dict, mesh, rest: np.ndarray, usable: np.ndarray, head_frame=False, priors=False):
+def take_frame_fit(
+    data: dict,
+    mesh,
+    rest: np.ndarray,
+    usable: np.ndarray,
+    head_frame=False,
+    priors=False,
+):
     """One take's frames (its FaceMesh, ``mesh``) fitted one by one: each frame's fit points in the head frame,
     carried onto the take's ``rest`` (the keyshapes' closed-mouth rest, 68 + cheek points) by the similarity of the
     rigid points, their deformation from it carried into the character's units and axes
@@ -106,8 +116,9 @@ def prior_fit(rig, deformation: np.ndarray, shapes: np.ndarray, names: list[str]
 
 
 def ceiling_view(result, head_frame: bool = False, priors: bool = False):
-    """The capture branch's evaluation of ``result`` (an msflow run) and of its ceiling animation, as views with
-    ``metrics`` and ``meta`` (what ``bench/eval_retarget.py``'s tables read)."""
+    """The capture branch's evaluation of ``result`` (an msflow run), the same evaluation of its ceiling animation
+    (a view with ``metrics`` and ``meta``: what ``bench/eval_retarget.py``'s tables read), the evaluation's
+    validated inputs and the ceiling's weights."""
     from stages.eval.retarget import RetargetEval, evaluate
 
     inputs = {
@@ -119,7 +130,41 @@ def ceiling_view(result, head_frame: bool = False, priors: bool = False):
     data = RetargetEval._validate(inputs)
     weights = frame_fit_weights(data, inputs["keyshapes"], data["weights"], head_frame, priors)
     ceiling = evaluate(RetargetEval.Params(), **{**data, "weights": weights})
-    return result.artifact("capture_eval"), SimpleNamespace(metrics=ceiling["metrics"], meta=ceiling["meta"])
+    view = SimpleNamespace(metrics=ceiling["metrics"], meta=ceiling["meta"])
+    return result.artifact("capture_eval"), view, data, weights
+
+
+def dead_column_rows(animation, ceiling, data: dict, weights: np.ndarray) -> list[str]:
+    """A row per take and ARKit column the animation leaves dead where the performer moved it: the performer's
+    probe peak over its level, the animation's and the ceiling's movement read by the performer's probes
+    (``columns.character_movements``), the ceiling's column peak and its following (r, chance)."""
+    from stages.eval.columns import character_movements, performer_frame
+    from stages.eval.retarget import RetargetEval, event_context, posed_frames
+    from stages.formats.live_link import ARKIT_NAMES, arkit_weights
+
+    params = RetargetEval.Params()
+    context = event_context(
+        params,
+        {**data, "weights": weights},
+        posed_frames({**data, "weights": weights}, params.brow_rest),
+    )
+    arkit, _ = arkit_weights(weights, data["names"], data["deltas"])
+    rows = []
+    for label, take in animation.meta["takes"].items():
+        frames = data["sequence"] == data["labels"].index(label)
+        performer = performer_frame(data, frames, params)
+        gaps = (context["performer_gap"][frames], context["character_gap"][frames])
+        made, _ = character_movements(data, weights[frames], performer, gaps, params)
+        for column in take["columns"]["dead_moved"]:
+            peak, level = take["movements"][column]
+            own = take["character_movements"].get(column, ["-", "-"])[0]
+            r, chance = ceiling.meta["takes"][label]["following"].get(column, ["-", "-"])
+            column_peak = float(arkit[frames, list(ARKIT_NAMES).index(column)].max())
+            rows.append(
+                f"| {Path(label).stem} | {column} | {peak:.4f} / {level:.4f} | {own} | {made[column]['peak']:.4f} | "
+                f"{column_peak:.2f} | {r} ({chance}) |"
+            )
+    return rows
 
 
 def main(args: list[str]) -> None:
@@ -133,16 +178,33 @@ def main(args: list[str]) -> None:
     runs = [("CREMA-D 1001, 6 takes", msflow.run(PIPELINE, until="capture_eval"))]
     for folder in folders:
         relative = os.path.relpath(folder, PIPELINE.parent)
-        runs.append((folder.name, msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_eval")))
+        runs.append(
+            (
+                folder.name,
+                msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_eval"),
+            )
+        )
     views = [(name, *ceiling_view(result, head_frame, priors)) for name, result in runs]
     model = ("head-frame morphs" if head_frame else "the fit's morphs") + (", the fit's priors" if priors else "")
     print(header())
-    for name, animation, ceiling in views:
-        for label, view in ((f"{name}, the animation", animation), (f"{name}, ceiling ({model})", ceiling)):
+    for name, animation, ceiling, _, _ in views:
+        for label, view in (
+            (f"{name}, the animation", animation),
+            (f"{name}, ceiling ({model})", ceiling),
+        ):
             print(row(label, view.metrics))
             print("\n".join(take_rows(view)))
+    print("\nColumns the animation leaves dead where the performer moved them, and the ceiling's (movements read by")
+    print("the performer's probes, IOD):\n")
+    print(
+        "| take | column | performer: peak / level | the animation's | the ceiling's | ceiling column peak | "
+        "ceiling following r (chance) |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    for _, animation, ceiling, data, weights in views:
+        print("\n".join(dead_column_rows(animation, ceiling, data, weights)))
     print()
-    for name, _, ceiling in views:
+    for name, _, ceiling, _, _ in views:
         print("\n".join(column_report(f"{name}, ceiling", ceiling)))
         print("\n".join(following_report(f"{name}, ceiling", ceiling)))
 
