@@ -608,18 +608,16 @@ def test_columns_follow_the_movements_they_name(character, truth):
     assert late.metrics["following_r_median"] < 0.5 and late.metrics["following_weak"] > 0.5
 
 
-def test_the_ceiling_fit_recovers_the_characters_own_weights_in_the_head_frame(character):
+def test_the_ceiling_fit_recovers_the_characters_own_weights_in_the_head_frame(character, monkeypatch):
     """bench/retarget_ceiling.py's frame-by-frame fit (the basis's ceiling) on a performer who is the character
     (its cheek points too: vertices of the character's cheeks), seen without perspective. With the morphs as the
     head frame sees them, every frame's jaw and funnel come back as animated and no other morph
     moves. With the deltas as they are (the keymorph fit's model) the jaw comes back short: it lowers the
     nostrils, rigid points, and the head frame takes part of that out of the performer's face but not out of the
     morph. (No blink: the eye corners it moves are rigid points too.)"""
-    import sys
-
     from conftest import ROOT
 
-    sys.path.insert(0, str(ROOT / "bench"))
+    monkeypatch.syspath_prepend(str(ROOT / "bench"))
     from retarget_ceiling import take_frame_fit
 
     from stages.retarget.movements import EXTRA_VERTICES
