@@ -16,9 +16,12 @@ head frame frame by frame by the similarity of its rigid points, nostrils among 
 mouthUpperUp and noseSneer move (0.02-0.07 IOD per unit), so part of those morphs' motion never reaches the
 keyshapes. ``--priors`` fits every frame with the keymorph fit itself instead (``region_fit.fit_regions_3d`` with
 ``KeymorphFit``'s default regions, penalties, antagonisms, correctives, Huber's loss and lip-contact bounds): what
-the penalties and priors cost, keyshapes aside. Prints, per run (CREMA-D's six takes, then each folder), the evaluation table's row for the animation
-and for the ceiling, one row per take of each, then the ceiling's dead ARKit columns and how its columns follow
-their movements (the tables of ``bench/eval_retarget.py``).
+the penalties and priors cost, keyshapes aside.
+
+Prints, per run (CREMA-D's six takes, then each folder), the evaluation table's row for the animation and for the
+ceiling, one row per take of each; then, for every column the animation leaves dead where the performer moved it,
+the movement on the performer, the animation and the ceiling; then the ceiling's dead ARKit columns and how its
+columns follow their movements (the tables of ``bench/eval_retarget.py``).
 """
 
 from __future__ import annotations
@@ -31,10 +34,8 @@ from types import SimpleNamespace
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [
-    str(ROOT),
-    str(ROOT / "bench"),
-]  # this checkout's msflow and stages, and eval_retarget's tables
+# this checkout's msflow and stages, and eval_retarget's tables
+sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 PIPELINE = ROOT / "eval" / "retarget.yaml"
 
 
@@ -48,7 +49,7 @@ def head_frame_rig(rig, step: float = 1e-3):
     return Rig3D(rig.rest, aligned / step)
 
 
-def frame_fit_weights(data: dict, keyshapes, gaze_weights: np.ndarray, head_frame=False, priors=False) -> np.ndarray:
+def frame_fit_weights(data: dict, keyshapes, gaze_weights, head_frame: bool = False, priors: bool = False):
     """(frames, M) morph weights: every frame of every take fitted on its own (``take_frame_fit``); the morphs
     named eyeLook* keep ``gaze_weights``' values."""
     names = data["names"]
@@ -64,14 +65,7 @@ def frame_fit_weights(data: dict, keyshapes, gaze_weights: np.ndarray, head_fram
     return out
 
 
-def take_frame_fit(
-    data: dict,
-    mesh,
-    rest: np.ndarray,
-    usable: np.ndarray,
-    head_frame=False,
-    priors=False,
-):
+def take_frame_fit(data: dict, mesh, rest, usable, head_frame: bool = False, priors: bool = False) -> np.ndarray:
     """One take's frames (its FaceMesh, ``mesh``) fitted one by one: each frame's fit points in the head frame,
     carried onto the take's ``rest`` (the keyshapes' closed-mouth rest, 68 + cheek points) by the similarity of the
     rigid points, their deformation from it carried into the character's units and axes
@@ -143,11 +137,8 @@ def dead_column_rows(animation, ceiling, data: dict, weights: np.ndarray) -> lis
     from stages.formats.live_link import ARKIT_NAMES, arkit_weights
 
     params = RetargetEval.Params()
-    context = event_context(
-        params,
-        {**data, "weights": weights},
-        posed_frames({**data, "weights": weights}, params.brow_rest),
-    )
+    animated = {**data, "weights": weights}
+    context = event_context(params, animated, posed_frames(animated, params.brow_rest))
     arkit, _ = arkit_weights(weights, data["names"], data["deltas"])
     rows = []
     for label, take in animation.meta["takes"].items():
@@ -178,20 +169,13 @@ def main(args: list[str]) -> None:
     runs = [("CREMA-D 1001, 6 takes", msflow.run(PIPELINE, until="capture_eval"))]
     for folder in folders:
         relative = os.path.relpath(folder, PIPELINE.parent)
-        runs.append(
-            (
-                folder.name,
-                msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_eval"),
-            )
-        )
+        result = msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_eval")
+        runs.append((folder.name, result))
     views = [(name, *ceiling_view(result, head_frame, priors)) for name, result in runs]
     model = ("head-frame morphs" if head_frame else "the fit's morphs") + (", the fit's priors" if priors else "")
     print(header())
     for name, animation, ceiling, _, _ in views:
-        for label, view in (
-            (f"{name}, the animation", animation),
-            (f"{name}, ceiling ({model})", ceiling),
-        ):
+        for label, view in ((f"{name}, the animation", animation), (f"{name}, ceiling ({model})", ceiling)):
             print(row(label, view.metrics))
             print("\n".join(take_rows(view)))
     print("\nColumns the animation leaves dead where the performer moved them, and the ceiling's (movements read by")
