@@ -91,27 +91,21 @@ def take_frame_fit(data: dict, mesh, rest, usable, head_frame: bool = False, pri
 
 
 def prior_fit(rig, deformation: np.ndarray, shapes: np.ndarray, names: list[str]) -> np.ndarray:
-    """The keymorph fit (``fit_regions_3d`` with ``KeymorphFit``'s default params) of every frame's
+    """The keymorph fit with ``KeymorphFit``'s default params (``keymorphs.fit_3d``) of every frame's
     ``deformation`` (character units), the lip-contact bounds from each frame's ``shapes`` (head frame)."""
     from stages.retarget.face_measures import lip_gap_iod
-    from stages.retarget.keymorphs import KeymorphFit, contact_bounds
-    from stages.retarget.region_fit import fit_regions_3d
+    from stages.retarget.keymorphs import KeymorphFit, contact_bounds, fit_3d
     from stages.retarget.shapes3d import front_view
 
-    p = KeymorphFit.Params()
+    params = KeymorphFit.Params()
     gaps = lip_gap_iod(front_view(shapes[:, :68]))
-    weights, _ = fit_regions_3d(
-        rig, deformation, names, list(p.regions), exclude=list(p.exclude),
-        correctives=[tuple(c) for c in p.correctives], robust_iod=p.robust_iod,
-        upper=contact_bounds(gaps, names, list(p.contact_morphs), p.contact_gap), l1_scaling=p.l1_scaling,
-        l2=p.l2, l1=p.l1, symmetry=p.symmetry, antagonists=[tuple(a) for a in p.antagonists], antagonism=p.antagonism,
-    )  # fmt: skip
-    return weights
+    bounds = contact_bounds(gaps, names, list(params.contact_morphs), params.contact_gap)
+    return fit_3d(params, rig, deformation, names, bounds)[0]
 
 
 def ceiling_view(result, head_frame: bool = False, priors: bool = False):
     """The capture branch's evaluation of ``result`` (an msflow run), the same evaluation of its ceiling animation
-    (a view with ``metrics`` and ``meta``: what ``bench/eval_retarget.py``'s tables read), the evaluation's
+    (a view with ``metrics``, ``meta`` and ``arrays``: what ``bench/eval_retarget.py``'s tables read), the evaluation's
     validated inputs and the ceiling's weights."""
     from stages.eval.retarget import RetargetEval, evaluate
 
@@ -124,7 +118,7 @@ def ceiling_view(result, head_frame: bool = False, priors: bool = False):
     data = RetargetEval._validate(inputs)
     weights = frame_fit_weights(data, inputs["keyshapes"], data["weights"], head_frame, priors)
     ceiling = evaluate(RetargetEval.Params(), **{**data, "weights": weights})
-    view = SimpleNamespace(metrics=ceiling["metrics"], meta=ceiling["meta"])
+    view = SimpleNamespace(metrics=ceiling["metrics"], meta=ceiling["meta"], arrays=ceiling["arrays"])
     return result.artifact("capture_eval"), view, data, weights
 
 
@@ -133,18 +127,17 @@ def dead_column_rows(animation, ceiling, data: dict, weights: np.ndarray) -> lis
     probe peak over its level, the animation's and the ceiling's movement read by the performer's probes
     (``columns.character_movements``), the ceiling's column peak and its following (r, chance)."""
     from stages.eval.columns import character_movements, performer_frame
-    from stages.eval.retarget import RetargetEval, event_context, posed_frames
+    from stages.eval.retarget import RetargetEval
     from stages.formats.live_link import ARKIT_NAMES, arkit_weights
 
     params = RetargetEval.Params()
-    animated = {**data, "weights": weights}
-    context = event_context(params, animated, posed_frames(animated, params.brow_rest))
+    lip_gap = ceiling.arrays["lip_gap"]  # the performer's and the ceiling's, as its evaluation measured them
     arkit, _ = arkit_weights(weights, data["names"], data["deltas"])
     rows = []
     for label, take in animation.meta["takes"].items():
         frames = data["sequence"] == data["labels"].index(label)
         performer = performer_frame(data, frames, params)
-        gaps = (context["performer_gap"][frames], context["character_gap"][frames])
+        gaps = (lip_gap[frames, 0], lip_gap[frames, 1])
         made, _ = character_movements(data, weights[frames], performer, gaps, params)
         for column in take["columns"]["dead_moved"]:
             peak, level = take["movements"][column]

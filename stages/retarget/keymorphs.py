@@ -395,13 +395,6 @@ class KeymorphFit(_KeymorphStage):
 
     @staticmethod
     def _fit(params, prepared: Prepared, names: list[str]) -> tuple[np.ndarray, dict]:
-        regularisers = {
-            "l2": params.l2,
-            "l1": params.l1,
-            "symmetry": params.symmetry,
-            "antagonists": [tuple(p) for p in params.antagonists],
-            "antagonism": params.antagonism,
-        }
         bounds = contact_bounds(prepared.lip_gaps(), names, list(params.contact_morphs), params.contact_gap)
         if prepared.space == "3d":
             missing = points_not_in_keyshapes(params.regions, prepared.deformation.shape[1])
@@ -413,18 +406,7 @@ class KeymorphFit(_KeymorphStage):
                         "stage with the tracking's FaceMesh, or give the region iBUG points 0-67)",
                         field="params.regions",
                     )
-            weights, info = fit_regions_3d(
-                prepared.rig3d,
-                prepared.deformation,
-                names,
-                list(params.regions),
-                exclude=list(params.exclude),
-                correctives=[tuple(p) for p in params.correctives],
-                robust_iod=params.robust_iod,
-                upper=bounds,
-                l1_scaling=params.l1_scaling,
-                **regularisers,
-            )
+            weights, info = fit_3d(params, prepared.rig3d, prepared.deformation, names, bounds)
             info["usable_targets"] = [n for region in info["regions"].values() for n in region]
         else:
             weights, info = fit_keymorph_weights(
@@ -435,10 +417,39 @@ class KeymorphFit(_KeymorphStage):
                 contour_weight=params.contour_weight,
                 pose=prepared.pose,
                 upper=bounds,
-                **regularisers,
+                **regularisers(params),
             )
         info["lips_apart"] = int((bounds < 1).any(axis=1).sum())
         return weights, info
+
+
+def regularisers(params: KeymorphFitParams) -> dict:
+    """The penalties of the keymorph fit (``morph_fit.bounded_fit``) from the stage's params."""
+    return {
+        "l2": params.l2,
+        "l1": params.l1,
+        "symmetry": params.symmetry,
+        "antagonists": [tuple(p) for p in params.antagonists],
+        "antagonism": params.antagonism,
+    }
+
+
+def fit_3d(params: KeymorphFitParams, rig3d: Rig3D, deformation: np.ndarray, names: list[str], bounds: np.ndarray):
+    """The 3D keymorph fit as the stage makes it (``region_fit.fit_regions_3d`` with its regions, correctives,
+    Huber's loss, L1 scaling and penalties from ``params``) of ``deformation`` (K, P, 3; character units), within
+    ``bounds`` (K, M: ``contact_bounds``)."""
+    return fit_regions_3d(
+        rig3d,
+        deformation,
+        names,
+        list(params.regions),
+        exclude=list(params.exclude),
+        correctives=[tuple(p) for p in params.correctives],
+        robust_iod=params.robust_iod,
+        upper=bounds,
+        l1_scaling=params.l1_scaling,
+        **regularisers(params),
+    )
 
 
 class KeymorphFile(_KeymorphStage):
