@@ -17,9 +17,10 @@ and the default run's paper branch) and, given folders, the capture branch on ea
 
 Prints one markdown row per run (pooled over its takes) and one per take, then, per run, the ARKit columns that
 stay dead: where the performer made the movement (by the movement probes of ``stages.retarget.movements``) and
-where not. Every number is a stage metric or meta entry of ``stages.eval.retarget:RetargetEval``
-(``msflow show -f eval/retarget.yaml capture_eval`` shows the same). ``--capture`` runs the performance-capture
-pipeline ``pipelines/capture.yaml`` on each clip (GLB, CSV, preview in out/) and scores it the same way.
+where not, and the movements the character's face makes where the performer made none (false movements). Every
+number is a stage metric or meta entry of ``stages.eval.retarget:RetargetEval`` (``msflow show -f
+eval/retarget.yaml capture_eval`` shows the same). ``--capture`` runs the performance-capture pipeline
+``pipelines/capture.yaml`` on each clip (GLB, CSV, preview in out/) and scores it the same way.
 """
 
 from __future__ import annotations
@@ -60,6 +61,8 @@ COLUMNS = [
         "{:.2f} ({:.2f}); {:.0%}",
     ),
     ("movement gain; below 0.5", ("movement_gain_median", "movement_gain_below_half"), "{:.2f}; {:.0%}"),
+    ("false movements (rate)", ("false_movements", "false_movement_rate"), "{:.0f} ({:.0%})"),
+    ("false rate, takes paired wrongly", "false_movement_rate_shuffled", "{:.0%}"),
 ]
 
 
@@ -102,6 +105,22 @@ def column_report(name: str, view) -> list[str]:
             f"{len(where.get('dead_not_moved', []))} takes |"
         )
     return lines + [""]
+
+
+def false_report(name: str, view) -> list[str]:
+    """Per take, the movements the character's face makes where the performer's probe did not move (false
+    movements), with both probes' sustained peaks and levels (IOD)."""
+    rows = [
+        f"| {Path(label).stem} | {column} | {take['movements'][column][0]:.4f} / {take['movements'][column][1]:.4f} "
+        f"| {take['character_movements'][column][0]:.4f} / {take['character_movements'][column][1]:.4f} |"
+        for label, take in view.meta["takes"].items()
+        for column in take["columns"].get("made_not_moved", [])
+    ]
+    if not rows:
+        return []
+    lines = [f"**{name}**: movements the character's face makes where the performer made none (false movements;"]
+    lines += ["both read by the performer's probes, sustained peak / level, IOD)", ""]
+    return lines + ["| take | column | performer | character |", "|---|---|---|---|", *rows, ""]
 
 
 def following_report(name: str, view) -> list[str]:
@@ -162,6 +181,7 @@ def main(folders: list[str], overrides: list[str] = ()) -> None:
     print()
     for name, view in runs:
         print("\n".join(column_report(name, view)))
+        print("\n".join(false_report(name, view)))
         print("\n".join(following_report(name, view)))
 
 

@@ -280,6 +280,37 @@ def test_a_movement_the_animation_never_makes_is_a_dead_column_where_moved(chara
     assert evaluate(character, performance(character, smiling), smiling).metrics["dead_arkit_moved"] == 0
 
 
+def test_a_movement_the_performer_never_made_is_a_false_movement(character, truth):
+    """The converse of a dead column: the performer talks without smiling, the animation smiles on the left
+    (mouthSmile_L 0.7, frames 0-12). The character's face, read by the performer's probes, makes MouthSmileLeft
+    where the performer did not: a false movement, the right side none. The performer's own animation has none."""
+    weights, tracks, exact = truth
+    names = character.meta["target_names"]
+    smiling = weights.copy()
+    smiling[0:13, names.index("mouthSmile_L")] = 0.7
+    out = evaluate(character, tracks, smiling)
+    false = out.meta["takes"]["take"]["columns"]["made_not_moved"]
+    assert "MouthSmileLeft" in false and "MouthSmileRight" not in false
+    assert out.metrics["false_movements"] == len(false) and out.metrics["false_movement_rate"] > 0
+    assert out.meta["arkit_columns"]["MouthSmileLeft"]["made_not_moved"] == ["take"]
+    assert exact.metrics["false_movements"] == 0 and exact.metrics["false_movement_rate"] == 0
+    assert "false_movement_rate_shuffled" not in exact.metrics  # one take: no other take to pair it with
+
+
+def test_false_movements_chance_pairs_each_take_with_the_others():
+    """Known answer: take a's performer and character both move X, take b's both move Y, and Z is read but never
+    moved. Right pairs: no false movement. Wrong pairs: a's character against b's performer makes X where b did not
+    (1 of X, Z), and b's Y where a did not (1 of Y, Z): chance 0.5."""
+    from stages.eval.columns import pooled_false_movements
+
+    def take(moved):
+        read = {c: [0.03 if c == moved else 0.0, 0.02] for c in "XYZ"}
+        return {"columns": {"moved": [moved], "made": [moved]}, "movements": read, "character_movements": read}
+
+    out = pooled_false_movements({"a": take("X"), "b": take("Y")})
+    assert out == {"false_movements": 0.0, "false_movement_rate": 0.0, "false_movement_rate_shuffled": 0.5}
+
+
 def test_a_movement_other_morphs_make_is_told_from_one_missing(character, truth):
     """The performer raises its left upper lip (mouthUpperUp_L 0.8, frames 0-12), which lifts the nostril wing
     with it: NoseSneerLeft's probe moves. An animation with the same weights leaves the NoseSneerLeft column dead

@@ -4,7 +4,9 @@ through other morphs all the same (made or missing), how closely each column fol
 and how large the face makes each movement (movement gain). The movements are the probes of
 ``stages.retarget.movements`` on the tracked FaceMesh (pose and perspective taken out) and the eye outputs of
 tracking; the character's face is read by the same probes (``character_movements``); ``stages.eval.retarget``
-calls these per take and pools them."""
+calls these per take and pools them. The converse of a dead column is a *false movement*: the character's face
+makes a movement in a take where the performer made none (``false_movements``), with its chance level from the
+takes paired wrongly (``pooled_false_movements``)."""
 
 from __future__ import annotations
 
@@ -204,6 +206,37 @@ def pooled_dead(takes: dict, arkit: np.ndarray, columns: list[str], level: float
         "moved_arkit_columns": float(len(moved_anywhere)),
         "movements_missed": float(sum(len(t["columns"]["dead_moved"]) for t in takes.values()) / max(moves, 1)),
     }
+
+
+def false_movements(movements: dict, made: dict | None) -> list[str]:
+    """The columns whose movement the character's face makes in a take (``made``: ``character_movements``, read
+    by the performer's probes, whichever morphs make it) though the performer's probe did not move there
+    (``movements``: ``take_movements``): an animation that frowns, sneers or juts the jaw where the performer did
+    not. Landmark probes only (the character's face is not read for the eyes' aperture and gaze)."""
+    return sorted(c for c, m in (made or {}).items() if m["moved"] and c in movements and not movements[c]["moved"])
+
+
+def pooled_false_movements(takes: dict) -> dict[str, float]:
+    """False movements over every (take, column) pair the performer did not move and the character was read on
+    (``character_movements`` per take: column -> [peak, level]; ``columns["moved"]``, ``columns["made"]``): their
+    count, their share of those pairs, and the same share with the character's movements of each take set
+    against the performer's of every other take (chance: a real animation of the wrong take, with its own
+    movements; none with one take)."""
+
+    def count(animated: dict, performed: dict) -> tuple[int, int]:
+        moved, made = set(performed["columns"]["moved"]), set(animated["columns"]["made"])
+        still = [c for c in animated["character_movements"] if c in performed["movements"] and c not in moved]
+        return sum(c in made for c in still), len(still)
+
+    real = np.array([count(t, t) for t in takes.values()]).reshape(-1, 2).sum(axis=0)
+    out = {"false_movements": float(real[0])}
+    if real[1]:
+        out["false_movement_rate"] = float(real[0] / real[1])
+    pairs = [count(a, b) for i, a in enumerate(takes.values()) for j, b in enumerate(takes.values()) if i != j]
+    wrong = np.array(pairs).reshape(-1, 2).sum(axis=0)
+    if wrong[1]:
+        out["false_movement_rate_shuffled"] = float(wrong[0] / wrong[1])
+    return out
 
 
 def pooled_following(takes: dict) -> dict[str, float]:

@@ -37,6 +37,11 @@ first aligned to that model by a 3D similarity on the rigid landmarks), then com
   landmark vertices under the animation, aligned and read by the performer's own probes
   (``columns.character_movements``; ``dead_arkit_moved_missing`` counts the others, the movements the animation
   lacks; the reading per column in ``meta["takes"][...]["character_movements"]``).
+- **false movements**: the converse, the (take, column) pairs whose movement the character's face makes (read the
+  same way) where the performer's probe did not move: ``false_movements`` (count), ``false_movement_rate`` (their
+  share of the pairs the performer did not move), and its chance level ``false_movement_rate_shuffled`` (the
+  character's movements of each take against the performer's of every other take). Per take in
+  ``columns["made_not_moved"]``.
 - **keyshape residual**: the decomposition residual (Eq 8) of the keyshapes artifact, when given.
 
 Pooled over the takes as stage metrics, per take in ``meta["takes"]``.
@@ -54,10 +59,12 @@ from stages.eval.columns import (
     character_movements,
     column_following,
     dead_where_moved,
+    false_movements,
     movement_gains,
     outside_blinks,
     performer_frame,
     pooled_dead,
+    pooled_false_movements,
     pooled_following,
     pooled_gains,
     take_movements,
@@ -451,23 +458,22 @@ def evaluate(params, **data) -> dict:
         if performer is not None:
             made, character_probes = character_movements(data, weights[rows], performer, gaps, params)
         dead = dead_where_moved(arkit, columns, movements, rows, params.dead_level, made)
+        dead["made"] = sorted(c for c, m in (made or {}).items() if m["moved"])
+        dead["made_not_moved"] = false_movements(movements, made)
         focal = None if performer is None else performer.focal
         label = labels[take] if take < len(labels) else f"take{take}"
         takes[label] = {
             "metrics": summary(params, data, frames, context, rows),
             "columns": dead,
             "movements": {c: [round(v["peak"], 4), round(v["level"], 4)] for c, v in movements.items()},
-            "character_movements": {
-                c: [round(made[c]["peak"], 4), round(made[c]["level"], 4)]
-                for c in dead["dead_moved"]
-                if made is not None and c in made
-            },
+            "character_movements": {c: [round(m["peak"], 4), round(m["level"], 4)] for c, m in (made or {}).items()},
             "following": column_following(arkit[rows], columns, probes, movements),
             "movement_gains": movement_gains(probes, character_probes, movements, still_lids[rows]),
             "probe_focal_length": None if focal is None or not np.isfinite(focal) else round(focal, 1),
         }
     metrics = summary(params, data, frames, context, np.ones(len(sequence), bool))
     metrics.update(pooled_dead(takes, arkit, columns, params.dead_level))
+    metrics.update(pooled_false_movements(takes))
     metrics.update(pooled_following(takes))
     metrics.update(pooled_gains(takes))
     peak = weights.max(axis=0, initial=0.0)
@@ -635,11 +641,12 @@ def pack_evaluation(metrics, takes, context, frames, dead_morphs, data) -> dict:
         for key, names in take["columns"].items():
             for name in names if key != "measured" else ():
                 columns.setdefault(name, {}).setdefault(key, []).append(label)
-    for take in takes.values():
+    for label, take in takes.items():
         for key in ("dead_moved", "dead_not_moved", "dead_unmeasured"):
             take["metrics"][key.replace("dead_", "dead_arkit_")] = float(len(take["columns"][key]))
         missing = len(take["columns"]["dead_moved"]) - len(take["columns"]["dead_moved_made"])
         take["metrics"]["dead_arkit_moved_missing"] = float(missing)
+        take["metrics"].update(pooled_false_movements({label: take}))
     blinks = event_agreement(context["performer_blinks"], context["character_blinks"], 0)
     meta = {
         "regions": list(EVAL_REGIONS),
