@@ -377,6 +377,7 @@ def test_without_a_facemesh_only_the_eyes_are_probed(character, truth):
     assert "dead_not_moved" not in out.meta["arkit_columns"].get("MouthSmileLeft", {})
     assert out.meta["arkit_columns"]["MouthSmileLeft"]["dead_unmeasured"] == ["take"]
     assert out.meta["arkit_columns"]["EyeBlinkLeft"]["moved"] == ["take"]
+    assert "false_movements" not in out.metrics  # the face is not read: no count, rather than a count of 0
 
 
 def test_blink_narrowing_must_lie_above_the_dip():

@@ -221,7 +221,7 @@ def pooled_false_movements(takes: dict) -> dict[str, float]:
     (``character_movements`` per take: column -> [peak, level]; ``columns["moved"]``, ``columns["made"]``): their
     count, their share of those pairs, and the same share with the character's movements of each take set
     against the performer's of every other take (chance: a real animation of the wrong take, with its own
-    movements; none with one take)."""
+    movements; none with one take). Empty where the character was read on no column (no FaceMesh)."""
 
     def count(animated: dict, performed: dict) -> tuple[int, int]:
         moved, made = set(performed["columns"]["moved"]), set(animated["columns"]["made"])
@@ -229,9 +229,9 @@ def pooled_false_movements(takes: dict) -> dict[str, float]:
         return sum(c in made for c in still), len(still)
 
     real = np.array([count(t, t) for t in takes.values()]).reshape(-1, 2).sum(axis=0)
-    out = {"false_movements": float(real[0])}
-    if real[1]:
-        out["false_movement_rate"] = float(real[0] / real[1])
+    if not real[1]:  # the character read nowhere (no FaceMesh): nothing measured, not "none"
+        return {}
+    out = {"false_movements": float(real[0]), "false_movement_rate": float(real[0] / real[1])}
     pairs = [count(a, b) for i, a in enumerate(takes.values()) for j, b in enumerate(takes.values()) if i != j]
     wrong = np.array(pairs).reshape(-1, 2).sum(axis=0)
     if wrong[1]:
