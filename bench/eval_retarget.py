@@ -55,6 +55,7 @@ COLUMNS = [
         ("dead_arkit_moved", "dead_arkit_moved_missing", "dead_arkit_not_moved"),
         "{:.0f} ({:.0f}) / {:.0f}",
     ),
+    ("movements missed (chance)", ("movements_missed", "movements_missed_shuffled"), "{:.1%} ({:.1%})"),
     (
         "following r (chance); weak",
         ("following_r_median", "following_r_median_shifted", "following_weak"),

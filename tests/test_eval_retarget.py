@@ -297,18 +297,24 @@ def test_a_movement_the_performer_never_made_is_a_false_movement(character, trut
     assert "false_movement_rate_shuffled" not in exact.metrics  # one take: no other take to pair it with
 
 
-def test_false_movements_chance_pairs_each_take_with_the_others():
-    """Known answer: take a's performer and character both move X, take b's both move Y, and Z is read but never
-    moved. Right pairs: no false movement. Wrong pairs: a's character against b's performer makes X where b did not
-    (1 of X, Z), and b's Y where a did not (1 of Y, Z): chance 0.5."""
-    from stages.eval.columns import pooled_false_movements
+def test_chance_levels_pair_each_take_with_the_others():
+    """Known answers: take a's performer and character both move X, take b's both move Y (each animation leaves the
+    other's column dead), and Z is read but never moved. Right pairs: no false movement, no movement missed. Wrong
+    pairs: a's character against b's performer makes X where b did not (1 of X, Z) and b's Y where a did not
+    (1 of Y, Z): false movements by chance 0.5; each performer's one movement is dead in the other animation:
+    missed by chance 1."""
+    from stages.eval.columns import pooled_false_movements, pooled_missed
 
-    def take(moved):
+    def take(moved, dead):
         read = {c: [0.03 if c == moved else 0.0, 0.02] for c in "XYZ"}
-        return {"columns": {"moved": [moved], "made": [moved]}, "movements": read, "character_movements": read}
+        columns = {"moved": [moved], "made": [moved], "dead_moved": [], "dead_not_moved": [dead, "Z"]}
+        return {"columns": {**columns, "dead_unmeasured": []}, "movements": read, "character_movements": read}
 
-    out = pooled_false_movements({"a": take("X"), "b": take("Y")})
+    takes = {"a": take("X", "Y"), "b": take("Y", "X")}
+    out = pooled_false_movements(takes)
     assert out == {"false_movements": 0.0, "false_movement_rate": 0.0, "false_movement_rate_shuffled": 0.5}
+    assert pooled_missed(takes) == {"movements_missed": 0.0, "movements_missed_shuffled": 1.0}
+    assert pooled_missed({"a": takes["a"]}) == {"movements_missed": 0.0}  # one take: no chance level
 
 
 def test_a_movement_other_morphs_make_is_told_from_one_missing(character, truth):

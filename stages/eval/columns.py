@@ -196,7 +196,6 @@ def pooled_dead(takes: dict, arkit: np.ndarray, columns: list[str], level: float
         c for t in takes.values() for c in set(t["columns"]["dead_moved"]) - set(t["columns"]["dead_moved_made"])
     }
     measured = {c for t in takes.values() for c in t["columns"]["measured"]}
-    moves = sum(len(t["columns"]["moved"]) for t in takes.values())
     return {
         "dead_arkit_columns": float(len(dead)),
         "dead_arkit_moved": float(len(dead_moved)),
@@ -204,8 +203,35 @@ def pooled_dead(takes: dict, arkit: np.ndarray, columns: list[str], level: float
         "dead_arkit_not_moved": float(len((dead & measured) - moved_anywhere)),
         "dead_arkit_unmeasured": float(len(dead - measured)),
         "moved_arkit_columns": float(len(moved_anywhere)),
-        "movements_missed": float(sum(len(t["columns"]["dead_moved"]) for t in takes.values()) / max(moves, 1)),
+        **pooled_missed(takes),
     }
+
+
+def paired_wrongly(takes: dict, count) -> tuple[int, int]:
+    """``count(animated, performed)`` -> (hits, pairs), summed over every ordered pair of two different takes: a
+    metric's chance level, each take's real animation set against another take's performer."""
+    values = list(takes.values())
+    sums = np.array([count(a, b) for a in values for b in values if a is not b]).reshape(-1, 2).sum(axis=0)
+    return int(sums[0]), int(sums[1])
+
+
+def pooled_missed(takes: dict) -> dict[str, float]:
+    """The share of the performer's (take, column) movements whose column the animation leaves dead there
+    (``movements_missed``) and its chance level (``movements_missed_shuffled``, ``paired_wrongly``; none with one
+    take)."""
+
+    def count(animated: dict, performed: dict) -> tuple[int, int]:
+        columns = animated["columns"]
+        dead = {*columns["dead_moved"], *columns["dead_not_moved"], *columns["dead_unmeasured"]}
+        moved = set(performed["columns"]["moved"])
+        return len(moved & dead), len(moved)
+
+    moves = sum(len(t["columns"]["moved"]) for t in takes.values())
+    out = {"movements_missed": float(sum(len(t["columns"]["dead_moved"]) for t in takes.values()) / max(moves, 1))}
+    missed, pairs = paired_wrongly(takes, count)
+    if pairs:
+        out["movements_missed_shuffled"] = missed / pairs
+    return out
 
 
 def false_movements(movements: dict, made: dict | None) -> list[str]:
@@ -220,8 +246,8 @@ def pooled_false_movements(takes: dict) -> dict[str, float]:
     """False movements over every (take, column) pair the performer did not move and the character was read on
     (``character_movements`` per take: column -> [peak, level]; ``columns["moved"]``, ``columns["made"]``): their
     count, their share of those pairs, and the same share with the character's movements of each take set
-    against the performer's of every other take (chance: a real animation of the wrong take, with its own
-    movements; none with one take). Empty where the character was read on no column (no FaceMesh)."""
+    against the performer's of every other take (chance, ``paired_wrongly``; none with one take). Empty where
+    the character was read on no column (no FaceMesh)."""
 
     def count(animated: dict, performed: dict) -> tuple[int, int]:
         moved, made = set(performed["columns"]["moved"]), set(animated["columns"]["made"])
@@ -232,10 +258,9 @@ def pooled_false_movements(takes: dict) -> dict[str, float]:
     if not real[1]:  # the character read nowhere (no FaceMesh): nothing measured, not "none"
         return {}
     out = {"false_movements": float(real[0]), "false_movement_rate": float(real[0] / real[1])}
-    pairs = [count(a, b) for i, a in enumerate(takes.values()) for j, b in enumerate(takes.values()) if i != j]
-    wrong = np.array(pairs).reshape(-1, 2).sum(axis=0)
-    if wrong[1]:
-        out["false_movement_rate_shuffled"] = float(wrong[0] / wrong[1])
+    wrong, pairs = paired_wrongly(takes, count)
+    if pairs:
+        out["false_movement_rate_shuffled"] = wrong / pairs
     return out
 
 
