@@ -63,7 +63,9 @@ def test_outputs_follow_the_schema(facemesh):
     assert meta["landmark_scheme"] == "ibug68" and meta["translation_units"] == "cm"
     assert meta["fields"] == {label: {} for label in CLIPS}  # plain labels: no fields
     assert meta["audio_sources"] == [p.name for p in CLIPS.values()]
-    assert meta["frame_size"] == [[480, 360]] * 6 and meta["focal_length"] == [480.0] * 6
+    assert meta["frame_size"] == [[480, 360]] * 6
+    # estimated per take (test_tracking_pose.py has the known answer), at most 4x the frame width
+    assert len(meta["focal_length"]) == 6 and all(0 < f <= 4 * 480 for f in meta["focal_length"])
     for s in range(6):
         t = a["time"][a["sequence"] == s]
         assert t[0] == 0.0
@@ -92,7 +94,8 @@ def test_head_pose_is_plausible_and_smooth(facemesh):
         rows = a["sequence"] == s
         assert rotation_steps_deg(a["rotation"][rows]).max() < 3.0
         distance = -a["translation"][rows, 2]  # glTF camera axes: the head is at negative z
-        assert (distance > 30).all() and (distance < 200).all()
+        # cm; the focal length is estimated (up to a lens 4x the frame width), so a head may stand metres away
+        assert (distance > 30).all() and (distance < 600).all()
     assert (a["pose_rms"] < 6).all()
 
 

@@ -20,8 +20,8 @@ from stages.eval.events import eye_aperture, pearson
 def performer_shapes(tracks_mesh, rows: np.ndarray, camera: np.ndarray, focal: str = "estimated"):
     """One take's performer in the head frame, IOD units (frames, 68 + cheek points, 3), from the tracked FaceMesh
     with a pinhole's perspective taken out, and the focal length used (pixels; inf: none). ``focal``: the one
-    ``shapes3d.estimate_focal`` finds in the take (``estimated``), or the tracked ``camera``'s (``tracked``: the
-    frame width, which tracking assumes)."""
+    ``shapes3d.estimate_focal`` finds in the take (``estimated``), or the tracked ``camera``'s (``tracked``:
+    tracking's own estimate, or what it was given)."""
     from stages.retarget.movements import EXTRA_VERTICES
     from stages.retarget.shapes3d import estimate_focal, head_frame_shapes, undo_perspective
 

@@ -297,8 +297,8 @@ class RetargetEval(Stage):
         moved_degrees: float = Field(8.0, gt=0)
         moved_frames: int = Field(3, ge=1)
         #: the probes read the FaceMesh with a pinhole's perspective taken out, with the focal length that leaves
-        #: each take's rigid points most rigid (``estimated``, shapes3d.estimate_focal) or tracking's assumption,
-        #: the frame width (``tracked``)
+        #: each take's rigid points most rigid over the whole take (``estimated``, shapes3d.estimate_focal) or
+        #: tracking's (``tracked``: its estimate from the take's first frames, or what it was given)
         probe_focal: Literal["estimated", "tracked"] = "estimated"
         #: the performer's rest for the probes and the rest-aligned errors: the closed-mouth frames' mean, the brows
         #: there too (``closed_mouth``) or at their median over the take (``median``); set it as the capture

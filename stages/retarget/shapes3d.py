@@ -106,8 +106,9 @@ def estimate_focal(
     points (eye corners, nose) most rigid over its frames, with the scatter per multiple of ``camera``'s focal
     length tried (``rigid_scatter``). A pinhole's perspective changes the rigid points' image distances as the
     head turns, so the right focal length, taken out, leaves them one rigid shape; a wrong one leaves a scatter
-    that grows with the pose. Tracking assumes the frame width; cropped footage (a talking head cut out of a wider
-    frame) was filmed with a longer lens relative to the crop. At most ``max_frames`` frames, evenly spread; a tie
+    that grows with the pose. The frame width is a webcam's; cropped footage (a talking head cut out of a wider
+    frame) was filmed with a longer lens relative to the crop (tracking estimates its own with this, on a take's
+    first frames: ``stream.calibrate_focal``). At most ``max_frames`` frames, evenly spread; a tie
     with tracking's focal length (a still head) keeps it."""
     mesh = np.asarray(mesh, np.float64)
     mesh = mesh[np.isfinite(mesh).all(axis=(1, 2))]  # tracking fills its gaps; a frame without a face says nothing

@@ -36,16 +36,21 @@ class TrackingParams(Params):
         "face (landmarks, pose, crop) through it, marked valid = False and listed in meta['gaps'] with a warning; "
         "'error' fails naming the frames",
     )
-    focal_length: float | None = Field(
-        None,
-        gt=0,
-        description="camera focal length in pixels for head pose; "
-        "None assumes the frame width (about 53 degrees horizontal field of view)",
+    focal_length: Annotated[float, Field(gt=0)] | Literal["estimated"] | None = Field(
+        "estimated",
+        description="camera focal length in pixels for head pose; 'estimated': the one that leaves the FaceMesh's "
+        "rigid points most rigid over the take's first FOCAL_FRAMES frames (shapes3d.estimate_focal: cropped "
+        "talking heads are filmed with far longer lenses than the frame width, and a wrong focal length reads "
+        "about 0.8 of a head turn; track files without a mesh get the frame width); None: the frame width (about "
+        "53 degrees horizontal field of view)",
     )
-    pose_landmarks: Literal["rigid", "all"] = Field(
-        "rigid",
-        description="landmarks solvePnP fits: 'rigid' = the ICT FaceKit rigid subset (jaw ends, eye "
-        "corners, nose; mouth and brows excluded so expressions do not tilt the head), 'all' = the 68 points",
+    pose_landmarks: Literal["eyes_nose", "rigid", "all"] = Field(
+        "eyes_nose",
+        description="landmarks solvePnP fits: 'eyes_nose' = the eye corners and the nose's nine points "
+        "(landmarks68.RIGID; mouth and brows excluded so expressions do not tilt the head), 'rigid' = the ICT "
+        "FaceKit rigid subset (the same eye corners, the nose bridge and wings, and the jaw line's two ends: the "
+        "tracker's jaw ends slide along the jaw as the head nods, and held fixed they read about 0.6 of a nod on "
+        "a head turned by known angles, docs/tracking.md), 'all' = the 68 points",
     )
     crop_size: int = Field(128, ge=16, le=1024, description="side of the square grayscale face crops (pixels)")
     crop_eye_distance: float = Field(
@@ -158,7 +163,18 @@ def resolve_face3d(files: dict | None) -> tuple[Face3D, str]:
     return load_face3d(DEFAULT_FACE3D), DEFAULT_FACE3D.name
 
 
+def assumed_focal(params: TrackingParams) -> float | None:
+    """The focal length the pose starts from: the one given, or None (the frame width) when it is estimated
+    from the take (``focal_length: estimated``, ``stream.BlockWriter``) or not given."""
+    return None if params.focal_length == "estimated" else params.focal_length
+
+
 def pose_point_indices(params: TrackingParams, face3d: Face3D) -> np.ndarray | None:
+    """The landmarks the head pose is fitted to (``pose_landmarks``); None: all 68."""
+    from stages.tracking.landmarks68 import RIGID
+
+    if params.pose_landmarks == "eyes_nose":
+        return np.asarray(RIGID, dtype=np.int64)
     if params.pose_landmarks == "all" or not face3d.rigid:
         return None
     return np.asarray(face3d.rigid, dtype=np.int64)
@@ -208,7 +224,7 @@ def pose_of(
     """(rotation, translation, reprojection RMS, focal length) of one sequence: solvePnP of its landmarks, or
     the pose its track file carried (the RMS still measures how well the 3D face fits the landmarks)."""
     w, h = seq.frame_size
-    camera = camera_matrix(w, h, params.focal_length)
+    camera = camera_matrix(w, h, assumed_focal(params))
     rot, trans, rms = solve_head_pose(seq.landmarks, face3d.neutral, camera, pose_point_indices(params, face3d))
     if seq.rotation is not None:
         rot, trans = seq.rotation, seq.translation

@@ -44,7 +44,7 @@ class PoseSolver:
         for i in range(n):
             img = np.ascontiguousarray(landmarks[i, self.idx])
             if self.rvec is None:
-                _, self.rvec, self.tvec = cv2.solvePnP(self.obj, img, self.camera, dist, flags=cv2.SOLVEPNP_SQPNP)
+                self.rvec, self.tvec = first_pose(self.obj, img, self.camera)
             _, self.rvec, self.tvec = cv2.solvePnP(
                 self.obj,
                 img,
@@ -70,6 +70,20 @@ class PoseSolver:
         q = quat_continuous(np.concatenate([lead, q]) if lead else q)[len(lead) :]
         self.last_quat = q[-1]
         return q
+
+
+def first_pose(obj: np.ndarray, img: np.ndarray, camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV (rvec, tvec) of a take's first frame, with no pose to start from: SQPnP (a global optimum), or,
+    where the points span too little of the normalised image for it (a small face under a long lens, as an
+    estimated focal length gives a distant head), OpenCV's iterative solve from its own start."""
+    import cv2
+
+    dist = np.zeros(4)
+    try:
+        _, rvec, tvec = cv2.solvePnP(obj, img, camera, dist, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        _, rvec, tvec = cv2.solvePnP(obj, img, camera, dist, flags=cv2.SOLVEPNP_ITERATIVE)
+    return rvec, tvec
 
 
 def solve_head_pose(

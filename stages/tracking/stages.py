@@ -20,6 +20,7 @@ from stages.tracking.assemble import (
     TakeTrack,
     TrackingParams,
     assemble,
+    assumed_focal,
     pose_point_indices,
     resolve_face3d,
     write_sequence,
@@ -163,23 +164,26 @@ def track_facemesh_take(
 ) -> TakeTrack:
     """One take streamed through the landmark model into ``outputs`` (stages/tracking/stream.py)."""
     from stages.tracking.pose import PoseSolver, camera_matrix
-    from stages.tracking.stream import BlockWriter, CropSettings, check_gaps, stream_take
+    from stages.tracking.stream import FOCAL_FRAMES, BlockWriter, CropSettings, check_gaps, stream_take
     from stages.tracking.video import iter_planes
 
     field = f"inputs.videos.{label}"
     info = probe_video(path, field=field)
     tracker.reset()
     crop = CropSettings(params.crop_size, params.crop_eye_distance, params.crop_eye_height)
-    camera = camera_matrix(info.width, info.height, params.focal_length)
+    camera = camera_matrix(info.width, info.height, assumed_focal(params))
     solver = PoseSolver(face3d.neutral, camera, pose_point_indices(params, face3d))
     eyes = tracker.eye_offset if params.eyes else None
     rest = REST_OFFSETS.get(params.eyes)
-    writer = BlockWriter(tracker.points, crop, solver, outputs.append, params.output_mesh, eyes, eye_rest=rest)
+    focal_frames = FOCAL_FRAMES if params.focal_length == "estimated" else 0
+    writer = BlockWriter(
+        tracker.points, crop, solver, outputs.append, params.output_mesh, eyes, eye_rest=rest, focal_frames=focal_frames
+    )
     frames = iter_planes(path, field=field, threads=jobs)
     stream_take(frames, tracker, writer, crop, params.max_gap_frames, path, field)
     s = writer.finish()
     gaps = check_gaps(s, params.max_gap_frames, params.long_gaps, path, field)
-    size, focal = (info.width, info.height), float(camera[0, 0])
+    size, focal = (info.width, info.height), float(solver.camera[0, 0])
     meta = {"detector_runs": tracker.detections}
     return TakeTrack(
         label, path.name, field, info.fps, size, focal, s.time, s.valid, s.landmarks, s.rotation, s.pose_rms, audio,

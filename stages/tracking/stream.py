@@ -132,12 +132,20 @@ class TakeSummary:
     meta: dict = field(default_factory=dict)
 
 
+#: frames a take's focal length is estimated from (``BlockWriter`` ``focal_frames``): 20 s at 30 fps, every one of
+#: ``shapes3d.estimate_focal``'s frames; they wait, with their crops, until it is known (about 15 MB)
+FOCAL_FRAMES = 600
+
+
 class BlockWriter:
     """Gathers filled frames into blocks and hands each block's outputs to ``emit(arrays)``.
 
     Per block: the 68 points from the mesh, crops for frames filled in a short gap, crop landmarks, head pose
     (``pose_solver``, stateful across blocks), and the eyes from the 478-point layout starting at ``eye_offset``
     in each frame's points (None: no eye outputs). Keeps the small per-frame arrays for the take's summary.
+    With ``focal_frames``, the first blocks wait for that many frames (or the take's end) and the pose solver's
+    focal length is first set to the one their mesh says (``calibrate_focal``), so the result does not depend
+    on the block size.
     """
 
     def __init__(
@@ -150,8 +158,10 @@ class BlockWriter:
         eye_offset: int | None = None,
         block: int = 0,
         eye_rest: tuple[float, float] | None = None,
+        focal_frames: int = 0,
     ):
         self.n_points, self.crop, self.pose, self.emit = n_points, crop, pose_solver, emit
+        self.focal_frames = focal_frames
         self.keep_mesh, self.eye_offset, self.block = keep_mesh, eye_offset, block or BLOCK_FRAMES
         self.eye_rest = eye_rest  # the eye pass's straight-ahead iris position (eyes.REST_OFFSETS); None: v2's
         self.frames: list[FilledFrame] = []
@@ -159,16 +169,28 @@ class BlockWriter:
 
     def add(self, frames: list[FilledFrame]) -> None:
         self.frames.extend(frames)
+        if self.focal_frames and len(self.frames) < self.focal_frames:
+            return
+        self._calibrate()
         while len(self.frames) >= self.block:
             self._flush(self.frames[: self.block])
             self.frames = self.frames[self.block :]
 
     def finish(self) -> TakeSummary:
+        self._calibrate()
         if self.frames:
             self._flush(self.frames)
             self.frames = []
         cat = {k: np.concatenate(v) for k, v in self.summary.items()}
         return TakeSummary(**cat)
+
+    def _calibrate(self) -> None:
+        """Once, before the first block: the pose solver's focal length from the waiting frames' mesh."""
+        if not self.focal_frames or not self.frames:
+            return
+        mesh = np.stack([f.points for f in self.frames[: self.focal_frames]]).reshape(-1, self.n_points, 3)
+        self.pose.camera = calibrate_focal(mesh[:, :468], self.pose.camera)
+        self.focal_frames = 0
 
     def _flush(self, frames: list[FilledFrame]) -> None:
         arrays = block_arrays(frames, self.n_points, self.crop)
@@ -187,6 +209,22 @@ class BlockWriter:
         for key in ("time", "valid", "confidence", "landmarks", "rotation", "translation", "pose_rms", "kinds"):
             self.summary.setdefault(key, []).append(arrays[key])
         self.emit({k: v for k, v in arrays.items() if k != "kinds"})
+
+
+#: the longest lens ``calibrate_focal`` gives, as a multiple of ``camera``'s (the frame width): beyond it a head
+#: is seen almost without perspective, so the rigid points hardly tell lenses apart (a still head's estimate then
+#: wanders, up to "none at all"), and the pose hardly depends on which
+LONGEST_LENS = 4.0
+
+
+def calibrate_focal(mesh: np.ndarray, camera: np.ndarray) -> np.ndarray:
+    """``camera`` with the focal length that leaves the FaceMesh frames ``mesh`` (frames, 468, 3) most rigid
+    (``shapes3d.estimate_focal``; a still head keeps ``camera``'s), at most ``LONGEST_LENS`` times ``camera``'s."""
+    from stages.retarget.shapes3d import estimate_focal
+
+    out = np.array(camera, np.float64, copy=True)
+    out[0, 0] = out[1, 1] = min(estimate_focal(mesh, camera)[0], LONGEST_LENS * camera[0, 0])
+    return out
 
 
 def block_arrays(frames: list[FilledFrame], n_points: int, crop: CropSettings) -> dict:
@@ -263,4 +301,13 @@ def check_gaps(summary: TakeSummary, max_gap: int, long_gaps: str, path: Path, f
     return long
 
 
-__all__ = ["BLOCK_FRAMES", "GapFiller", "BlockWriter", "CropSettings", "TakeSummary", "stream_take", "check_gaps"]
+__all__ = [
+    "BLOCK_FRAMES",
+    "FOCAL_FRAMES",
+    "GapFiller",
+    "BlockWriter",
+    "CropSettings",
+    "TakeSummary",
+    "stream_take",
+    "check_gaps",
+]
