@@ -41,8 +41,8 @@ class TrackingParams(Params):
         description="camera focal length in pixels for head pose; 'estimated': the one that leaves the FaceMesh's "
         "rigid points most rigid over the take's first FOCAL_FRAMES frames (shapes3d.estimate_focal: cropped "
         "talking heads are filmed with far longer lenses than the frame width, and a wrong focal length reads "
-        "about 0.8 of a head turn; track files without a mesh get the frame width); None: the frame width (about "
-        "53 degrees horizontal field of view)",
+        "about 0.8 of a head turn; trackers and track files without a mesh get the frame width); None: the frame "
+        "width (about 53 degrees horizontal field of view)",
     )
     pose_landmarks: Literal["eyes_nose", "rigid", "all"] = Field(
         "eyes_nose",
