@@ -2,6 +2,7 @@
 
     python bench/bench_pose.py                                   # the rendered head, from the project root
     python bench/bench_pose.py ../shared/data/talking-heads      # and real clips, in eval/retarget.yaml's store
+    python bench/bench_pose.py --probes                          # and the movement probes on the rendered head
 
 The known answer: the ICT FaceKit head (the very face the pose solver fits) rendered neutral at 512 px, turned by
 known angles (yaw 20, pitch 12, roll 4 degrees, 240 frames; tests/pose_media.py) through a pinhole whose focal
@@ -152,7 +153,28 @@ def real(folders: list[str]) -> None:
         print(f"| median | {d[0]:.2f} / {d[1]:.2f} | {f[0]:.2f} / {f[1]:.2f} |")
 
 
+def rigid_face_probes(size: int = 512, frames: int = 240, fps: int = 30) -> None:
+    """The movement probes (stages.retarget.movements) on the rendered head, which moves no muscle: every probe that
+    "moved" is the tracker's (or the probes') reading of the pose alone. Runs ``eval/retarget.yaml``'s capture
+    branch on the video (in the project's store)."""
+    from pose_media import known_turns, turned_head_video
+
+    import msflow
+
+    with tempfile.TemporaryDirectory() as work:
+        turned_head_video(Path(work) / "turned.mp4", size, known_turns(frames, fps), fps, supersample=2)
+        overrides = [f"vars.takes={work}", "capture_track.audio=optional"]
+        result = msflow.run(ROOT / "eval" / "retarget.yaml", overrides, until="capture_eval")
+        take = next(iter(result.artifact("capture_eval").meta["takes"].values()))
+    moved = sorted(((p / level, c) for c, (p, level) in take["movements"].items() if p > level), reverse=True)
+    print(f"\nprobes on the rigid rendered head: {len(moved)} of {len(take['movements'])} columns 'moved': ")
+    print(", ".join(f"{c} {r:.2f}x" for r, c in moved))
+
+
 if __name__ == "__main__":
     os.chdir(ROOT)
+    args = sys.argv[1:]
     rendered()
-    real(sys.argv[1:])
+    if "--probes" in args:
+        rigid_face_probes()
+    real([a for a in args if a != "--probes"])
