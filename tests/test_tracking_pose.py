@@ -33,3 +33,12 @@ def test_a_head_turned_by_known_angles_is_tracked_at_their_size(turned_head):
         run_stage(FaceMesh, former, {"videos": {"turned": str(path)}}).arrays["rotation"], angles
     )
     assert yaw < 0.85 and pitch < 0.65
+
+
+def test_a_focal_length_is_pixels_estimated_or_the_frame_width():
+    """One message naming every choice for a bad value; numbers given as text are taken."""
+    for bad in ("abc", -5, 0, "inf"):
+        with pytest.raises(ValueError, match="focal length in pixels .* 'estimated' or null"):
+            FaceMesh.Params(focal_length=bad)
+    assert FaceMesh.Params(focal_length="700").focal_length == 700.0
+    assert FaceMesh.Params().focal_length == "estimated" and FaceMesh.Params(focal_length=None).focal_length is None

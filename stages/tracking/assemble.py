@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from msflow import Result, UserError
 from msflow.stage import Params
@@ -36,7 +36,7 @@ class TrackingParams(Params):
         "face (landmarks, pose, crop) through it, marked valid = False and listed in meta['gaps'] with a warning; "
         "'error' fails naming the frames",
     )
-    focal_length: Annotated[float, Field(gt=0)] | Literal["estimated"] | None = Field(
+    focal_length: float | Literal["estimated"] | None = Field(
         "estimated",
         description="camera focal length in pixels for head pose; 'estimated': the one that leaves the FaceMesh's "
         "rigid points most rigid over the take's first FOCAL_FRAMES frames (shapes3d.estimate_focal: cropped "
@@ -52,6 +52,21 @@ class TrackingParams(Params):
         "tracker's jaw ends slide along the jaw as the head nods, and held fixed they read about 0.6 of a nod on "
         "a head turned by known angles, docs/tracking.md), 'all' = the 68 points",
     )
+
+    @field_validator("focal_length", mode="before")
+    @classmethod
+    def _focal_length(cls, value):
+        """One message naming every choice, rather than one per member of the union."""
+        if value is None or value == "estimated":
+            return value
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            number = float("nan")
+        if not 0 < number < float("inf"):
+            raise ValueError("give a focal length in pixels (> 0), 'estimated' or null")
+        return number
+
     crop_size: int = Field(128, ge=16, le=1024, description="side of the square grayscale face crops (pixels)")
     crop_eye_distance: float = Field(
         0.30, gt=0.05, lt=0.9, description="distance between the eye centres in the crop, as a fraction of crop_size"
