@@ -7,7 +7,10 @@
 The known answer: the ICT FaceKit head (the very face the pose solver fits) rendered neutral at 512 px, turned by
 known angles (yaw 20, pitch 12, roll 4 degrees, 240 frames; tests/pose_media.py) through a pinhole whose focal
 length is 4 frame sides, tracked with each pose setting; per setting the focal length used and each angle's
-tracked size over its true size (1: right). The video is written to a temporary folder and removed.
+tracked size over its true size (1: right); then the solver fed the landmark vertices' true image positions, and
+how far the tracked landmarks slide vertically per 10 degrees of nod. The video is written to a temporary folder
+and removed. ``--probes`` also reads the rendered head, which moves no muscle, with the movement probes of the
+retargeting evaluation: every column that "moved" is the pose's doing.
 
 Real clips have no ground truth: the tracked head pose is set against the rotation of the tracked FaceMesh itself
 (each frame's Umeyama rotation onto the take's median mesh, perspective taken out with the take's focal length),
@@ -27,16 +30,17 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]  # this checkout's msflow and stages; tests/pose_media.py
-SETTINGS = {
-    "former defaults (frame width, ICT rigid subset with the jaw ends)": {
-        "focal_length": None,
-        "pose_landmarks": "rigid",
-    },
-    "true focal length, ICT rigid subset": {"focal_length": "true", "pose_landmarks": "rigid"},
-    "frame width, eyes and nose": {"focal_length": None, "pose_landmarks": "eyes_nose"},
-    "defaults (estimated focal length, eyes and nose)": {},
-}
-FORMER = ["capture_track.focal_length=null", "capture_track.pose_landmarks=rigid"]
+FORMER = {"focal_length": None, "pose_landmarks": "rigid"}  # the defaults until 2026-12-03
+
+
+def settings(true_focal: float) -> dict[str, dict]:
+    """The pose settings the known-answer table compares (FaceMesh params beyond the defaults)."""
+    return {
+        "former defaults (frame width, ICT rigid subset with the jaw ends)": FORMER,
+        "true focal length, ICT rigid subset": {"focal_length": true_focal, "pose_landmarks": "rigid"},
+        "frame width, eyes and nose": {"focal_length": None, "pose_landmarks": "eyes_nose"},
+        "defaults (estimated focal length, eyes and nose)": {},
+    }
 
 
 def rendered(size: int = 512, frames: int = 240, fps: int = 30) -> None:
@@ -53,11 +57,8 @@ def rendered(size: int = 512, frames: int = 240, fps: int = 30) -> None:
             f"| pose setting (true focal length {FOCAL_PER_SIDE * size:.0f} px) | focal length used | yaw / pitch / roll read at |"
         )
         print("|---|---|---|")
-        for name, setting in SETTINGS.items():
-            params = {"audio": "none", **setting}
-            if params.get("focal_length") == "true":
-                params["focal_length"] = FOCAL_PER_SIDE * size
-            run = run_stage(FaceMesh, params, {"videos": {"turned": str(video)}})
+        for name, setting in settings(FOCAL_PER_SIDE * size).items():
+            run = run_stage(FaceMesh, {"audio": "none", **setting}, {"videos": {"turned": str(video)}})
             gains = pose_gains(run.arrays["rotation"], angles)
             print(f"| {name} | {run.meta['focal_length'][0]:.0f} | {' / '.join(f'{g:.2f}' for g in gains)} |")
         perfect_tracker(size, angles, run.arrays["landmarks"])
@@ -141,7 +142,8 @@ def real(folders: list[str]) -> None:
     for folder in folders:
         relative = os.path.relpath(Path(folder).resolve(), pipeline.parent)
         rows = {}
-        for name, extra in (("defaults", []), ("former defaults", FORMER)):
+        former = [f"capture_track.{k}={'null' if v is None else v}" for k, v in FORMER.items()]
+        for name, extra in (("defaults", []), ("former defaults", former)):
             result = msflow.run(pipeline, [f"vars.takes={relative}", *extra], until="capture_track")
             rows[name] = against_the_mesh(result.artifact("capture_track"))
         print(f"\n{Path(folder).name}: tracked pitch / yaw over the FaceMesh's own\n")
