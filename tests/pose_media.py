@@ -4,6 +4,8 @@ bench/bench_pose.py)."""
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from tracking_media import write_video
 
@@ -22,14 +24,21 @@ def known_turns(frames: int, fps: float) -> np.ndarray:
     )
 
 
-def head_renderer(size: int, supersample: int = 1):
-    """(renderer, character): the ICT head framed whole, eyes in, ``size`` pixels square."""
+@functools.cache
+def ict_character():
+    """The embedded ICT FaceKit character artifact (built once per process)."""
     from msflow.testing import run_stage
-    from stages.export.animation import character_eyes
-    from stages.geometry.render import CharacterRenderer
     from stages.retarget.character import GltfCharacter
 
-    character = run_stage(GltfCharacter, {}, {"mesh": {"path": "data/characters/ict-facekit.glb"}}).view()
+    return run_stage(GltfCharacter, {}, {"mesh": {"path": "data/characters/ict-facekit.glb"}}).view()
+
+
+def head_renderer(size: int, supersample: int = 1):
+    """(renderer, character): the ICT head framed whole, eyes in, ``size`` pixels square."""
+    from stages.export.animation import character_eyes
+    from stages.geometry.render import CharacterRenderer
+
+    character = ict_character()
     eyes = [(eye.vertices, eye.center) for eye in character_eyes(character)]
     renderer = CharacterRenderer.from_artifact(character, size=size, framing="head", eyes=eyes, supersample=supersample)
     return renderer, character

@@ -23,14 +23,12 @@ def performer_shapes(tracks_mesh, rows: np.ndarray, camera: np.ndarray, focal: s
     ``shapes3d.estimate_focal`` finds in the take (``estimated``), or the tracked ``camera``'s (``tracked``:
     tracking's own estimate, or what it was given)."""
     from stages.retarget.movements import EXTRA_VERTICES
-    from stages.retarget.shapes3d import estimate_focal, head_frame_shapes, undo_perspective
+    from stages.retarget.shapes3d import estimate_focal, head_frame_shapes, undo_perspective, with_focal
 
     index = np.flatnonzero(rows)  # a take's frames are contiguous: read them as one slice of the stored mesh
     mesh = np.asarray(tracks_mesh[index[0] : index[-1] + 1], np.float64)
     used = estimate_focal(mesh, camera)[0] if focal == "estimated" else float(camera[0, 0])
-    scaled = np.asarray(camera, np.float64).copy()
-    scaled[0, 0] = scaled[1, 1] = used
-    return head_frame_shapes(undo_perspective(mesh, scaled), EXTRA_VERTICES), used
+    return head_frame_shapes(undo_perspective(mesh, with_focal(camera, used)), EXTRA_VERTICES), used
 
 
 @dataclass(frozen=True)

@@ -88,6 +88,13 @@ def undo_perspective(mesh: np.ndarray, camera: np.ndarray) -> np.ndarray:
     return np.concatenate([(mesh[..., :2] - centre) * stretch, mesh[..., 2:3]], axis=-1)
 
 
+def with_focal(camera: np.ndarray, focal: float) -> np.ndarray:
+    """A copy of the pinhole ``camera`` (3, 3) with focal length ``focal`` (pixels; inf: no perspective)."""
+    out = np.array(camera, np.float64, copy=True)
+    out[0, 0] = out[1, 1] = focal
+    return out
+
+
 #: focal lengths ``estimate_focal`` tries, as multiples of the tracked one (inf: no perspective, FaceMesh as it is)
 FOCAL_MULTIPLES = (*np.geomspace(0.25, 16.0, 13), np.inf)
 
@@ -119,9 +126,7 @@ def estimate_focal(
         mesh = mesh[np.linspace(0, len(mesh) - 1, max_frames).round().astype(int)]
     scatter = np.empty(len(multiples))
     for i, multiple in enumerate(multiples):
-        scaled = camera.copy()
-        scaled[0, 0] = scaled[1, 1] = camera[0, 0] * multiple
-        scatter[i] = rigid_scatter(mesh_landmarks(undo_perspective(mesh, scaled)))
+        scatter[i] = rigid_scatter(mesh_landmarks(undo_perspective(mesh, with_focal(camera, camera[0, 0] * multiple))))
     best = int(np.argmin(scatter))
     tracked = np.flatnonzero(np.isclose(np.asarray(multiples, np.float64), 1.0))
     if tracked.size and scatter[tracked[0]] <= scatter[best] * (1 + 1e-6) + 1e-12:

@@ -211,20 +211,20 @@ class BlockWriter:
         self.emit({k: v for k, v in arrays.items() if k != "kinds"})
 
 
-#: the longest lens ``calibrate_focal`` gives, as a multiple of ``camera``'s (the frame width): beyond it a head
-#: is seen almost without perspective, so the rigid points hardly tell lenses apart (a still head's estimate then
+#: the longest lens ``calibrate_focal`` tries, as a multiple of ``camera``'s (the frame width): beyond it a head is
+#: seen almost without perspective, so the rigid points hardly tell lenses apart (a still head's estimate then
 #: wanders, up to "none at all"), and the pose hardly depends on which
 LONGEST_LENS = 4.0
 
 
 def calibrate_focal(mesh: np.ndarray, camera: np.ndarray) -> np.ndarray:
     """``camera`` with the focal length that leaves the FaceMesh frames ``mesh`` (frames, 468, 3) most rigid
-    (``shapes3d.estimate_focal``; a still head keeps ``camera``'s), at most ``LONGEST_LENS`` times ``camera``'s."""
-    from stages.retarget.shapes3d import estimate_focal
+    (``shapes3d.estimate_focal`` over its lenses up to ``LONGEST_LENS`` times ``camera``'s; a still head keeps
+    ``camera``'s)."""
+    from stages.retarget.shapes3d import FOCAL_MULTIPLES, estimate_focal, with_focal
 
-    out = np.array(camera, np.float64, copy=True)
-    out[0, 0] = out[1, 1] = min(estimate_focal(mesh, camera)[0], LONGEST_LENS * camera[0, 0])
-    return out
+    lenses = [m for m in FOCAL_MULTIPLES if m <= LONGEST_LENS]
+    return with_focal(camera, estimate_focal(mesh, camera, lenses)[0])
 
 
 def block_arrays(frames: list[FilledFrame], n_points: int, crop: CropSettings) -> dict:
