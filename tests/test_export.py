@@ -28,7 +28,7 @@ from stages.formats.live_link import (
     live_link_csv,
     timecode_seconds,
 )
-from stages.geometry.rotations import euler_to_quat, quat_to_euler
+from stages.geometry.rotations import euler_to_quat, quat_to_euler, quat_to_matrix
 from stages.retarget.character import GltfCharacter
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -326,7 +326,7 @@ def make_audio(offset: float, rate=16000, beep_at=0.6, beep_len=0.2):
 def exported(character):
     out = run_stage(
         Export,
-        {"sequence": "beep", "video_size": 256},
+        {"sequence": "beep", "video_size": 256, "head_rotation": "absolute"},
         {
             "character": character.view(),
             "blend": make_blend(gaze=True),
@@ -496,7 +496,7 @@ def test_gaze_without_eyes_goes_to_the_csv_with_a_warning(character, tmp_path):
 def test_output_frame_rate(character):
     """fps: 60 from a 30 fps take: twice the frames, same duration, integer timecodes, streams interpolated."""
     inputs = {"character": character.view(), "blend": make_blend(gaze=True), "head": make_head()}
-    out = run_stage(Export, {"preview": False, "fps": 60}, inputs)
+    out = run_stage(Export, {"preview": False, "fps": 60, "head_rotation": "absolute"}, inputs)
     frames = 2 * FRAMES
     assert len(out.arrays["weights"]) == frames and out.meta["fps"] == 60.0
     assert np.allclose(out.arrays["time"], np.arange(frames) / 60)
@@ -573,6 +573,39 @@ def test_preview_video_frames_rate_and_audio_offset(exported):
     assert red[opened].min() > 5 * max(red[closed].max(), 10)
 
 
+def test_a_camera_below_the_face_is_taken_out_of_the_head_motion(character):
+    """A head that turns left and right, filmed by a camera tilted 15 degrees (and turned 5): its tracked rotation
+    is the tilt times the head's own. By default the export takes the mean orientation out (the character faces
+    the viewer on average), the head's positions left in the camera's axes (less their mean); "absolute" keeps the
+    camera's view."""
+    from stages.geometry.rotations import quat_multiply
+
+    frames = 60
+    phase = 2 * np.pi * np.arange(frames) / frames
+    own = euler_to_quat(0.3 * np.sin(phase), np.zeros(frames), np.zeros(frames))  # its mean is level
+    tilt = euler_to_quat(np.radians(5.0), np.radians(15.0), 0.0)
+    seen = quat_multiply(tilt, own)
+    position = np.c_[2.0 * np.sin(phase), np.zeros(frames), np.full(frames, 50.0)]  # cm, level axes
+    seen_position = position @ quat_to_matrix(tilt).T
+    head = artifact({"rotation": seen, "translation": seen_position}, {"fps": FPS, "translation_units": "cm"})
+    inputs = {"character": character.view(), "blend": make_blend(frames), "head": head}
+
+    out = run_stage(Export, {"preview": False}, inputs)
+    assert np.allclose(np.abs((out.arrays["head_rotation"] * own).sum(axis=1)), 1.0, atol=1e-9)
+    angles = csv_by_name(out.arrays["live_link"])
+    assert np.allclose(angles["HeadYaw"], 0.3 * np.sin(phase), atol=1e-5)
+    assert np.allclose(angles["HeadPitch"], 0.0, atol=1e-5) and np.allclose(angles["HeadRoll"], 0.0, atol=1e-5)
+    moved = (seen_position - seen_position.mean(axis=0)) * 0.01
+    assert np.allclose(out.arrays["head_translation"], moved, atol=1e-9)
+    taken_out = out.meta["head"]["orientation_taken_out_deg"]
+    assert taken_out["yaw"] == pytest.approx(5.0, abs=1e-3) and taken_out["pitch"] == pytest.approx(15.0, abs=1e-3)
+    assert out.metrics["head_levelled_deg"] == pytest.approx(np.degrees(2 * np.arccos(tilt[0])), abs=1e-6)
+
+    out = run_stage(Export, {"preview": False, "head_rotation": "absolute"}, inputs)
+    assert np.allclose(np.abs((out.arrays["head_rotation"] * seen).sum(axis=1)), 1.0, atol=1e-9)
+    assert "orientation_taken_out_deg" not in out.meta["head"] and "head_levelled_deg" not in out.metrics
+
+
 def test_bvh_carries_the_head_rotation(exported):
     from stages.formats.bvh import joint_rotation, parse_bvh
 
@@ -632,7 +665,7 @@ def test_export_errors(character):
     assert "unknown" in out.meta["head"]["translation_units"]
     out = run_stage(
         Export,
-        {"preview": False, "translation_scale": 0.5},
+        {"preview": False, "translation_scale": 0.5, "head_rotation": "absolute"},
         {"character": view, "blend": make_blend(), "head": make_head(units="unknown")},
     )
     tr = make_head()["translation"] * 0.5
@@ -661,7 +694,7 @@ def test_head_motion_of_several_takes_is_cut_to_the_chosen_one(character):
     )
     out = run_stage(
         Export,
-        {"preview": False, "sequence": "second"},
+        {"preview": False, "sequence": "second", "head_rotation": "absolute"},
         {"character": character.view(), "blend": make_blend(), "head": both},
     )
     assert out.meta["head"]["take"] == "second"

@@ -25,6 +25,7 @@ from pydantic import Field, field_validator
 from msflow import Input, Output, Result, Stage, UserError
 from stages.export.timeline import (
     align_head_motion,
+    level_head,
     output_frames,
     sample_linear,
     sample_positions,
@@ -138,6 +139,12 @@ def head_motion(head, params, label: str | None, frames: int, fps: float, out_fp
         if params.head_translation == "relative":
             translation = translation - translation.mean(axis=0)
     info["translation_exported"] = scale is not None
+    if params.head_rotation == "relative":
+        rotation, mean = level_head(rotation)
+        info["orientation_taken_out_deg"] = dict(
+            zip(("yaw", "pitch", "roll"), np.degrees(quat_to_euler(mean)).round(3).tolist())
+        )
+        info["levelled_deg"] = float(np.degrees(2.0 * np.arccos(min(1.0, abs(float(mean[0]))))))
     return quat_continuous(quat_normalize(rotation)), translation, info
 
 
@@ -162,6 +169,8 @@ def read_performance(params, inputs, names: list[str]) -> Performance:
         perf.meta["head"] = info
         perf.metrics["head_held_frames"] = info["held_frames"]
         perf.metrics["head_translation_exported"] = int(info.pop("translation_exported"))
+        if "levelled_deg" in info:  # the mean orientation taken out (head_rotation: relative)
+            perf.metrics["head_levelled_deg"] = info["levelled_deg"]
     return perf
 
 
@@ -277,7 +286,7 @@ def pack_preview(character, perf: Performance, eyes, params, audio_view, jobs: i
     from stages.export.preview import Poses, encode_mp4, rendered_frames
     from stages.export.rig import gaze_rotations
     from stages.export.timeline import take_audio
-    from stages.geometry.render import CharacterRenderer
+    from stages.geometry.render import CharacterRenderer, posed_points
 
     samples = rate = None
     meta: dict = {}
@@ -290,10 +299,21 @@ def pack_preview(character, perf: Performance, eyes, params, audio_view, jobs: i
         if samples is None:
             warnings.append(f"the take '{meta['audio']['audio_label']}' has no audio: the preview is silent")
     size = int(params.video_size) // (2 if params.preview == "low" else 1) // 2 * 2  # yuv420p needs even sides
+    pivot = np.asarray(character.meta.get("pivot") or np.zeros(3), np.float64)
+    face = posed_points(
+        character["neutral"],
+        character["deltas"],
+        character["landmark_ids"],
+        perf.weights,
+        perf.rotation,
+        perf.translation,
+        pivot,
+    )  # the "face" framing holds the face in every frame: a nod or a lean does not take it out of the picture
     renderer = CharacterRenderer.from_artifact(
         character,
         size=size,
         framing=params.framing,
+        face_points=face,
         yaw=params.view_yaw,
         supersample=params.supersample,
         eyes=[(eye.vertices, eye.center) for eye in eyes],
@@ -326,6 +346,11 @@ class Export(Stage):
         #: "relative": head position minus its mean; "absolute": as given; "none": rotation only (also what
         #: happens when the head's translation_units are unknown and translation_scale is not set)
         head_translation: Literal["relative", "absolute", "none"] = "relative"
+        #: "relative": the head's rotation relative to its mean orientation over the take (a camera below or above
+        #: the face, which makes a tracked head look up or down throughout, taken out: the character faces the
+        #: viewer on average; positions stay in the camera's axes); "absolute": as given (a tracked head: as the
+        #: camera saw it)
+        head_rotation: Literal["relative", "absolute"] = "relative"
         #: metres per unit of the head translation (default: from the head meta translation_units)
         translation_scale: float | None = Field(None, gt=0)
         #: Live Link Face angle columns (head and eyes) in "radians" or "degrees"

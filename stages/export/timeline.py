@@ -9,6 +9,9 @@ rows (slerp for rotations), the last row held past its end.
 A head motion at another frame rate than the blend is an error unless ``resample_head`` is set; a head motion
 shorter or longer than the face animation by at most ``max_length_mismatch`` seconds is held at its last frame or
 cut, more is an error.
+
+A tracked head's rotation is the camera's view of it: a phone held below the face reads as a head turned up for the
+whole take. ``level_head`` takes the take's mean orientation out (the character then faces the viewer on average).
 """
 
 from __future__ import annotations
@@ -16,7 +19,14 @@ from __future__ import annotations
 import numpy as np
 
 from msflow import UserError
-from stages.geometry.rotations import quat_continuous, quat_normalize, quat_slerp
+from stages.geometry.rotations import (
+    quat_conjugate,
+    quat_continuous,
+    quat_mean,
+    quat_multiply,
+    quat_normalize,
+    quat_slerp,
+)
 
 UNITS_TO_METRES = {"m": 1.0, "metre": 1.0, "meter": 1.0, "metres": 1.0, "meters": 1.0, "cm": 0.01, "mm": 0.001}
 
@@ -227,3 +237,29 @@ def place_audio(samples: np.ndarray, rate: int, offset: float, seconds: float) -
     if len(samples) < length:
         samples = np.concatenate([samples, np.zeros(length - len(samples), np.float32)])
     return samples[:length]
+
+
+def level_head(rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The head motion relative to its mean orientation: the camera's tilt taken out.
+
+    A tracked rotation R(t) maps the head's axes to the camera's: R(t) = C H(t), with C the camera's tilt from
+    level and H(t) the head's own orientation. Taking C as the mean orientation M (``quat_mean``: the head faces
+    the camera on average), H(t) = M^-1 R(t). Positions stay in the camera's axes: a tracked head's image
+    position is measured, its distance only estimated from its size (the lens's focal length, and the face's size
+    changes as it nods), and turning them with M^-1 would carry that depth's error into the height.
+
+    Parameters
+    ----------
+    rotation : ndarray (frames, 4)
+        Unit quaternions (w, x, y, z), head to camera.
+
+    Returns
+    -------
+    rotation : ndarray (frames, 4)
+        The levelled rotation.
+    mean : ndarray (4,)
+        The orientation taken out (M).
+    """
+    mean = quat_mean(rotation)
+    levelled = quat_multiply(np.broadcast_to(quat_conjugate(mean), np.shape(rotation)), rotation)
+    return quat_normalize(levelled), mean

@@ -468,10 +468,44 @@ def triangle_colors(triangle_groups: np.ndarray, groups: list[dict], *, srgb: bo
     return table[np.clip(np.asarray(triangle_groups), 0, len(table) - 1)]
 
 
+def face_box(landmarks: np.ndarray) -> np.ndarray:
+    """(2, 3) corners of the box the "face" framing shows around landmark vertices (..., 3): the landmarks run
+    from the jaw line to the brows, so the forehead and a little chin are added."""
+    points = np.asarray(landmarks, dtype=np.float64).reshape(-1, 3)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    span = hi - lo
+    return np.array([lo - span * np.array([0.15, 0.2, 0]), hi + span * np.array([0.15, 0.45, 0])])
+
+
+def posed_points(
+    neutral: np.ndarray,
+    deltas: np.ndarray,
+    ids: np.ndarray,
+    weights: np.ndarray,
+    rotation: np.ndarray | None,
+    translation: np.ndarray | None,
+    pivot: np.ndarray,
+) -> np.ndarray:
+    """(frames, len(ids), 3) vertices ``ids`` of every frame as ``CharacterRenderer.vertices`` poses them (eyes
+    aside): morph ``weights`` (frames, M), then ``rotation`` (frames, 4) about ``pivot``, then ``translation``."""
+    from stages.geometry.rotations import quat_to_matrix
+
+    ids = np.asarray(ids)
+    deltas = np.asarray(deltas, np.float64).reshape(len(deltas), -1, 3)[:, ids]
+    points = np.asarray(neutral, np.float64)[ids] + np.einsum("fm,mpi->fpi", np.asarray(weights, np.float64), deltas)
+    if rotation is not None:
+        points = np.einsum("fij,fpj->fpi", quat_to_matrix(rotation), points - pivot) + pivot
+    if translation is not None:
+        points = points + np.asarray(translation, np.float64)[:, None]
+    return points
+
+
 class CharacterRenderer:
     """Renders a morph-target character posed by weights (and optionally a head rotation) with a fixed framing.
 
-    ``framing``: "face" frames the 68 landmark vertices with room around them, "head" the whole mesh.
+    ``framing``: "face" frames the 68 landmark vertices with room around them (``face_box``; ``face_points``, e.g.
+    the landmarks of every posed frame of an animation (``posed_points``), instead of the neutral ones, so a head
+    that nods or leans stays in the picture), "head" the whole mesh.
     """
 
     def __init__(
@@ -491,6 +525,7 @@ class CharacterRenderer:
         view: View | None = None,
         supersample: int = 1,
         eyes: list[tuple[np.ndarray, np.ndarray]] | None = None,
+        face_points: np.ndarray | None = None,
     ):
         self.neutral = np.asarray(neutral, dtype=np.float32)
         #: (vertex ids, centre) of each eyeball, turned by ``eye_rotations`` about its centre
@@ -504,11 +539,8 @@ class CharacterRenderer:
         self.incidence = vertex_incidence(self.triangles, len(self.neutral))
         if view is None:
             if framing == "face" and landmark_ids is not None:
-                pts = self.neutral[np.asarray(landmark_ids)]
-                lo, hi = pts.min(axis=0), pts.max(axis=0)
-                span = hi - lo  # landmarks run from the jaw line to the brows: add the forehead, a little chin
-                box = np.array([lo - span * np.array([0.15, 0.2, 0]), hi + span * np.array([0.15, 0.45, 0])])
-                view = View.fit(box, yaw=yaw, pitch=pitch, margin=1.0)
+                framed = self.neutral[np.asarray(landmark_ids)] if face_points is None else face_points
+                view = View.fit(face_box(framed), yaw=yaw, pitch=pitch, margin=1.0)
             else:
                 view = View.fit(self.neutral, yaw=yaw, pitch=pitch, margin=1.05)
         self.view = view
