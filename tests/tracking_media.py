@@ -30,9 +30,10 @@ def encode_audio(out, stream, samples: np.ndarray, rate: int) -> None:
         out.mux(packet)
 
 
-def write_video(path, frames, fps=30, audio=None, rate=16000, times=None):
+def write_video(path, frames, fps=30, audio=None, rate=16000, times=None, display=None):
     """Encode BGR frames (MPEG-4 part 2) and optional mono float audio (AAC) with PyAV; ``times`` (seconds per
-    frame) makes a variable-frame-rate file."""
+    frame) makes a variable-frame-rate file; ``display``: a display matrix (nine integers, FFmpeg's layout) for
+    players to turn the stored frames by."""
     import av
 
     with av.open(str(path), "w") as out:
@@ -40,6 +41,8 @@ def write_video(path, frames, fps=30, audio=None, rate=16000, times=None):
         video.height, video.width = frames[0].shape[:2]
         video.pix_fmt = "yuv420p"
         video.bit_rate = 2_000_000
+        if display is not None:
+            video.set_display_matrix(list(display))
         if times is not None:
             video.codec_context.time_base = Fraction(1, 1000)
         sound = out.add_stream("aac", rate=rate) if audio is not None else None

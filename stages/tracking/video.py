@@ -1,5 +1,8 @@
 """Reading video frames with PyAV (FFmpeg): BGR frames with timestamps, and clear errors for broken files.
 
+Frames and sizes are as a player shows them: a display matrix (a phone's portrait video) is applied
+(stages/tracking/display.py).
+
 A file is reported as truncated when the demuxer meets a cut-off packet or when no stream reaches the
 duration the container declares (a copy that stopped early keeps its header's duration).
 """
@@ -13,6 +16,7 @@ from typing import Iterator
 import numpy as np
 
 from msflow import UserError
+from stages.tracking.display import IDENTITY, UprightPlanes, display_linear, displayed_size, show_upright
 
 #: a stream may end this much (seconds) before the declared container duration without being called truncated
 DURATION_SLACK = 0.25
@@ -54,8 +58,22 @@ def probe_video(path: str | Path, *, field: str | None = None) -> VideoInfo:
         if stream.duration is not None and stream.time_base is not None:
             duration = float(stream.duration * stream.time_base)
         frames = int(stream.frames) if stream.frames else int(round(duration * fps))
-        width, height = stream.codec_context.width, stream.codec_context.height
+        width, height = displayed_size(
+            _first_display(container, path, field), stream.codec_context.width, stream.codec_context.height
+        )
         return VideoInfo(path, width, height, fps, frames, duration, bool(container.streams.audio))
+
+
+def _first_display(container, path: Path, field: str | None) -> np.ndarray:
+    """The display matrix's 2 x 2 part of a video's first frame (identity when it has none or cannot decode: the
+    decoding reports that)."""
+    import av
+
+    try:
+        frame = next(container.decode(video=0))
+    except (av.error.FFmpegError, StopIteration, IndexError):
+        return IDENTITY
+    return display_linear(frame, file=str(path), field=field)
 
 
 def iter_decoded(path: str | Path, *, field: str | None = None, threads: int = 1) -> Iterator[tuple[float, object]]:
@@ -138,7 +156,7 @@ def iter_frames(
     implementation that reads BGR frames crops alike. Errors as ``iter_decoded``.
     """
     for t, frame in iter_decoded(path, field=field):
-        image = frame.to_ndarray(format="bgr24")
+        image = show_upright(frame.to_ndarray(format="bgr24"), display_linear(frame, file=str(path), field=field))
         yield t, (_bgr_to_gray(image) if gray else image)
 
 
@@ -149,7 +167,8 @@ def iter_planes(path: str | Path, *, field: str | None = None, threads: int = 1)
 
     converter = RegionConverter()
     for t, frame in iter_decoded(path, field=field, threads=threads):
-        yield t, frame_planes(frame, converter)
+        planes, linear = frame_planes(frame, converter), display_linear(frame, file=str(path), field=field)
+        yield t, (planes if np.array_equal(linear, IDENTITY) else UprightPlanes(planes, linear))
 
 
 def _bgr_to_gray(image: np.ndarray) -> np.ndarray:
