@@ -539,6 +539,12 @@ def test_threejs_plays_the_glb_in_headless_chromium(exported, node_modules, chro
     assert len(set(images)) == len(images) and min(images) > 0  # something is drawn, and it moves
 
 
+def av_container(data: bytes):
+    import av
+
+    return av.open(io.BytesIO(bytes(data)))
+
+
 def decode_mp4(data: bytes):
     import av
 
@@ -552,6 +558,30 @@ def decode_mp4(data: bytes):
         duration = float(a.duration * a.time_base)
         chunks = [f.to_ndarray().reshape(-1) for f in container.decode(audio=0)]
     return rate, frames, np.concatenate(chunks), audio_rate, duration
+
+
+def test_the_preview_shows_the_performer_beside_the_character(character):
+    """Given the performer's tracking, the preview is twice as wide: each frame's left half is the take's face crop
+    of the same moment (crops of known grey levels, one level per tracked frame; a 60 fps preview of a 30 fps take
+    shows each crop twice), its right half the character; the other take of the tracking is never shown."""
+    frames, crop = 20, 32
+    levels = 40 + 8 * np.arange(frames)  # take "face": a level per frame; take "other": white
+    crops = np.concatenate([np.full((10, crop, crop), 255), levels[:, None, None] * np.ones((frames, crop, crop))])
+    arrays = {"crops": crops.astype(np.uint8), "sequence": np.r_[np.zeros(10, np.int32), np.ones(frames, np.int32)]}
+    tracking = artifact(arrays, {"labels": ["other", "face"], "fps": [FPS, FPS]})
+    inputs = {"character": character.view(), "blend": make_blend(frames), "performer": tracking}
+    out = run_stage(Export, {"video_size": 64, "sequence": "face", "fps": 60}, inputs)
+    assert out.meta["video"]["performer"] == "face"
+    with av_container(out.arrays["preview"]) as container:
+        shown = [f.to_ndarray(format="gray") for f in container.decode(video=0)]
+    assert len(shown) == 2 * frames and shown[0].shape == (64, 128)
+    left = np.array([f[8:56, 8:56].mean() for f in shown])
+    assert np.abs(left - np.repeat(levels, 2)).max() < 3  # codec error only
+    assert all(f[:, 64:].std() > 10 for f in shown)  # the character, drawn
+    slow = artifact(arrays, {"labels": ["other", "face"], "fps": [25.0, 25.0]})
+    with pytest.raises(UserError, match="tracked at 25 fps") as error:
+        run_stage(Export, {"video_size": 64, "sequence": "face"}, dict(inputs, performer=slow))
+    assert error.value.field == "inputs.performer"
 
 
 def test_preview_video_frames_rate_and_audio_offset(exported):

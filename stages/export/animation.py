@@ -281,12 +281,32 @@ def live_link_report(mapping: ArkitMapping, weights: np.ndarray, angle_units: st
     return meta, warnings
 
 
-def pack_preview(character, perf: Performance, eyes, params, audio_view, jobs: int) -> tuple[bytes, dict, list[str]]:
-    """The preview MP4 with the take's audio, its meta and warnings (a silent take)."""
-    from stages.export.preview import Poses, encode_mp4, rendered_frames
+def posed_face(character, perf: Performance) -> np.ndarray:
+    """The character's landmark vertices in every output frame, posed (``render.posed_points``): what the "face"
+    framing must hold, so a nod or a lean does not take the face out of the picture."""
+    from stages.geometry.render import posed_points
+
+    pivot = np.asarray(character.meta.get("pivot") or np.zeros(3), np.float64)
+    return posed_points(
+        character["neutral"],
+        character["deltas"],
+        character["landmark_ids"],
+        perf.weights,
+        perf.rotation,
+        perf.translation,
+        pivot,
+    )
+
+
+def pack_preview(
+    character, perf: Performance, eyes, params, audio_view, jobs: int, performer_view=None
+) -> tuple[bytes, dict, list[str]]:
+    """The preview MP4 with the take's audio (and the performer's face crops beside the character, given their
+    tracking), its meta and warnings (a silent take)."""
+    from stages.export.preview import Poses, beside_performer, encode_mp4, rendered_frames
     from stages.export.rig import gaze_rotations
-    from stages.export.timeline import take_audio
-    from stages.geometry.render import CharacterRenderer, posed_points
+    from stages.export.timeline import performer_rows, take_audio
+    from stages.geometry.render import CharacterRenderer
 
     samples = rate = None
     meta: dict = {}
@@ -299,21 +319,11 @@ def pack_preview(character, perf: Performance, eyes, params, audio_view, jobs: i
         if samples is None:
             warnings.append(f"the take '{meta['audio']['audio_label']}' has no audio: the preview is silent")
     size = int(params.video_size) // (2 if params.preview == "low" else 1) // 2 * 2  # yuv420p needs even sides
-    pivot = np.asarray(character.meta.get("pivot") or np.zeros(3), np.float64)
-    face = posed_points(
-        character["neutral"],
-        character["deltas"],
-        character["landmark_ids"],
-        perf.weights,
-        perf.rotation,
-        perf.translation,
-        pivot,
-    )  # the "face" framing holds the face in every frame: a nod or a lean does not take it out of the picture
     renderer = CharacterRenderer.from_artifact(
         character,
         size=size,
         framing=params.framing,
-        face_points=face,
+        face_points=posed_face(character, perf) if params.framing == "face" else None,
         yaw=params.view_yaw,
         supersample=params.supersample,
         eyes=[(eye.vertices, eye.center) for eye in eyes],
@@ -321,8 +331,15 @@ def pack_preview(character, perf: Performance, eyes, params, audio_view, jobs: i
     eye_rotations = gaze_rotations(perf.gaze) if eyes and perf.gaze is not None else None
     poses = Poses(perf.weights, perf.rotation, perf.translation, eye_rotations)
     frames = rendered_frames(renderer, poses, jobs=jobs)
-    video, codec = encode_mp4(frames, perf.fps, (size, size), audio=samples, audio_rate=rate, codec=params.video_codec)
+    width, performer = size, None
+    if performer_view is not None:
+        rows, performer = performer_rows(
+            performer_view, params.sequence, perf.label, perf.meta["source_fps"], perf.frames, perf.fps
+        )
+        frames, width = beside_performer(frames, performer_view.lazy("crops"), rows, size), 2 * size
+    video, codec = encode_mp4(frames, perf.fps, (width, size), audio=samples, audio_rate=rate, codec=params.video_codec)
     meta["video"] = {"codec": codec, "size": size, "framing": params.framing, "level": params.preview}
+    meta["video"]["performer"] = performer
     meta["video"]["audio"] = samples is not None
     return video, meta, warnings
 
@@ -389,6 +406,11 @@ class Export(Stage):
         ),
         "head": Input.artifact("rotation", "translation", optional=True, doc="head motion, meta fps"),
         "audio": Input.artifact(optional=True, doc="a tracking artifact with the take's audio"),
+        "performer": Input.artifact(
+            "crops",
+            optional=True,
+            doc="a tracking artifact: the take's face crops go beside the character in the preview (twice as wide)",
+        ),
     }
     outputs = {
         "animation": Output.file(".glb", doc="the skinned character with morph-weight, head and eye animation"),
@@ -456,7 +478,7 @@ class Export(Stage):
             arrays["head_bvh"] = head_bvh(perf.rotation, perf.translation * 100.0, perf.fps).encode("utf-8")
         if params.preview:
             arrays["preview"], video_meta, video_warnings = pack_preview(
-                character, perf, eyes, params, inputs["audio"], self.jobs
+                character, perf, eyes, params, inputs["audio"], self.jobs, inputs["performer"]
             )
             meta.update(video_meta)
             warnings += video_warnings

@@ -45,6 +45,26 @@ def encode_mp4(
     return writer.close(), writer.codec
 
 
+#: output frames whose performer crops are read from the store at once
+PERFORMER_BLOCK = 64
+
+
+def beside_performer(frames, crops, rows: np.ndarray, size: int) -> Iterator[np.ndarray]:
+    """Each rendered frame (size, size, 3) with the performer's face crop of the same moment on its left, scaled
+    to ``size``: the capture beside what it was made from. ``crops``: the tracking's grey face crops, unread
+    (``ArtifactView.lazy``), read a block of frames at a time; ``rows``: its row for each frame."""
+    import cv2
+
+    frames = iter(frames)
+    for start in range(0, len(rows), PERFORMER_BLOCK):
+        wanted = rows[start : start + PERFORMER_BLOCK]
+        first = int(wanted.min())
+        block = np.asarray(crops[first : int(wanted.max()) + 1])
+        for row in wanted:
+            face = cv2.resize(block[row - first], (size, size), interpolation=cv2.INTER_LINEAR)
+            yield np.concatenate([np.repeat(face[..., None], 3, axis=-1), next(frames)], axis=1)
+
+
 @dataclass
 class Poses:
     """The character's pose per output frame: morph weights, head rotation (w, x, y, z) and translation (metres)

@@ -213,15 +213,15 @@ def take_has_audio(meta: dict, index: int, label: str | None) -> bool:
     return bool(has_audio)
 
 
-def check_take_fps(meta: dict, index: int, label: str | None, fps: float) -> None:
-    """The audio take must have been tracked at the blend's frame rate (its frames are the blend's rows)."""
+def check_take_fps(meta: dict, index: int, label: str | None, fps: float, field: str = "inputs.audio") -> None:
+    """The take must have been tracked at the blend's frame rate (its frames are the blend's rows)."""
     take_fps = meta.get("fps")
     take_fps = take_fps[index] if isinstance(take_fps, (list, tuple)) else take_fps
     if take_fps and abs(float(take_fps) - fps) > 1e-3 * fps:
         raise UserError(
             f"frame-rate mismatch: the take '{label if label is not None else index}' was tracked at "
             f"{float(take_fps):g} fps but the blend weights are at {fps:g} fps",
-            field="inputs.audio",
+            field=field,
         )
 
 
@@ -263,3 +263,21 @@ def level_head(rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     mean = quat_mean(rotation)
     levelled = quat_multiply(np.broadcast_to(quat_conjugate(mean), np.shape(rotation)), rotation)
     return quat_normalize(levelled), mean
+
+
+def performer_rows(
+    view, explicit: str | None, preferred: str | None, fps: float, frames_out: int, out_fps: float
+) -> tuple[np.ndarray, str | None]:
+    """Per output frame, the row of a tracking artifact (``view``) holding the chosen take's frame on screen at that
+    time, the last one that started at or before it (the take tracked at ``fps``, the blend's source rate; output
+    frames at ``out_fps``), and the take's label."""
+    labels = list(view.meta.get("labels") or [])
+    index = choose_take(labels, explicit, preferred, "the performer input")
+    label = labels[index] if labels else None
+    check_take_fps(view.meta, index, label, fps, field="inputs.performer")
+    if "sequence" in view:
+        rows = np.flatnonzero(np.asarray(view["sequence"]) == index)
+    else:
+        rows = np.arange(len(view.lazy("crops")))
+    position = sample_positions(frames_out, out_fps, fps, len(rows))
+    return rows[np.floor(position + 1e-9).astype(int)], label
