@@ -535,6 +535,36 @@ def test_blinks_and_gaze_come_from_tracking(ict):
     assert not keyed.arrays["weights"].any() and "gaze" not in keyed.arrays
 
 
+def test_the_performers_usual_line_of_sight_becomes_straight_ahead(ict):
+    """A performer looking at a lens 10 degrees below and 4 to the left of straight ahead (the right eye read 3
+    degrees further in by the tracker), glancing 15 degrees left for three frames: by default the character looks
+    straight ahead, at the viewer, but for the glance; with gaze_reference 'tracked' it looks down throughout."""
+    names = ict.meta["target_names"]
+    frames = 20
+    gaze = np.zeros((frames, 2, 2))
+    gaze[:, :, 0], gaze[:, :, 1] = 4.0, -10.0
+    gaze[:, 1, 0] += 3.0
+    gaze[12:15, :, 0] += 15.0
+    keyshapes, keymorphs = single_target_inputs(np.zeros((frames, len(names))), names)
+    inputs = {
+        "keyshapes": keyshapes,
+        "keymorphs": keymorphs,
+        "character": ict,
+        "tracks": tracking_with_eyes(frames, np.full((frames, 2), 0.3), gaze),
+    }
+    out = run_stage(Blend, {"lip_seal": False}, inputs)
+    w = out.arrays["weights"]
+    look = [n for n in names if n.startswith("eyeLook")]
+    calm = np.r_[0:12, 15:frames]
+    assert np.abs(w[np.ix_(calm, [names.index(n) for n in look])]).max() < 1e-6
+    assert w[12, names.index("eyeLookOut_L")] == pytest.approx(0.5, abs=1e-6)
+    assert w[12, names.index("eyeLookIn_R")] == pytest.approx(0.5, abs=1e-6)
+    np.testing.assert_allclose(out.arrays["gaze"][12], [[15.0, 0.0], [15.0, 0.0]], atol=1e-6)
+    assert out.meta["eyes"]["gaze_median_taken_out"] == [[[4.0, -10.0], [7.0, -10.0]]]
+    tracked = run_stage(Blend, {"lip_seal": False, "gaze_reference": "tracked"}, inputs).arrays["weights"]
+    assert np.allclose(tracked[calm, names.index("eyeLookDown_L")], 10.0 / 30.0, atol=1e-6)
+
+
 def test_lids_that_follow_the_gaze_are_not_closed_twice(ict):
     """Known answer: ICT FaceKit's eyeLookDown lowers the lids with the eyes (the upper lid 0.1 IOD per unit), as a
     performer's do. A performer looking down 30 degrees whose eyes narrow by exactly that much has made no blink:

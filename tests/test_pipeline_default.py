@@ -79,4 +79,15 @@ def test_default_run_blinks_with_the_performer(default_run):
     assert blend.meta["eyes"]["blink_source"] == "tracking eye_aperture"
     names, weights = blend.meta["target_names"], blend["weights"]
     blink = weights[:, [names.index("eyeBlink_L"), names.index("eyeBlink_R")]].mean(axis=1)
-    assert blink[6:8].min() > 0.6 and blink[:4].max() < 0.2 and blink[20:].max() < 0.5
+    assert blink[6:8].min() > 0.5 and blink[:4].max() < 0.2 and blink[20:].max() < 0.5
+    # the character's eyes open by the fraction the performer's are, blink and gaze morphs together (the eyes drop
+    # as the lids cover the irises, and ICT's eyeLookDown lowers the lids too)
+    from stages.retarget.blend import character_landmarks
+    from stages.retarget.eyes import eye_aperture_2d
+
+    rest, deltas = character_landmarks(result.artifact("character"))
+    shapes = rest[None] + np.einsum("fm,mpc->fpc", np.asarray(weights, np.float64), deltas)
+    opened = eye_aperture_2d(shapes) / eye_aperture_2d(rest[None])
+    performer = np.asarray(tracks["eye_aperture"]) / np.quantile(tracks["eye_aperture"], 0.9, axis=0)
+    assert opened[6:8].max() < 0.4 and np.abs(opened[6:8] - performer[6:8]).max() < 0.05
+    assert opened[:4].min() > 0.9 and opened[20:].min() > 0.7

@@ -285,6 +285,11 @@ class BlendParams(Stage.Params):
     eyes: Literal["tracking", "keyshapes"] = "tracking"
     #: gaze angle (degrees) that an eyeLook weight of 1 stands for
     gaze_full_degrees: float = Field(30.0, gt=0)
+    #: "median": the gaze relative to its median over each take: the performer's usual line of sight (the lens, for
+    #: a talking head) becomes straight ahead, so the character, whose head the export levels the same way
+    #: (export.head_rotation: relative), looks at the viewer; "tracked": relative to the head's straight ahead, as
+    #: the tracker reads it (pair it with export.head_rotation: absolute)
+    gaze_reference: Literal["median", "tracked"] = "median"
     #: also output posed vertices per frame (needs the character input)
     vertices: bool = False
 
@@ -617,7 +622,7 @@ def finish_weights(params, data, raw: np.ndarray, alpha: np.ndarray) -> dict:
             out["warnings"].append("eyes from tracking: no tracks input, blinks and gaze come from the keymorphs only")
         else:
             weights, gaze, eyes_meta, eyes_warnings = apply_eyes(
-                weights, names, character, tracks, data["sequence"], params.gaze_full_degrees
+                weights, names, character, tracks, data["sequence"], params.gaze_full_degrees, params.gaze_reference
             )
             out["gaze"], out["meta"]["eyes"] = gaze, eyes_meta
             out["warnings"] += eyes_warnings
@@ -677,9 +682,24 @@ def apply_lip_seal(weights, character, gap, seal_gap, correctives=()) -> tuple[n
     }
 
 
-def apply_eyes(weights, names, character, tracks, sequence, full_degrees):
-    """Blink morphs from the eyelid aperture, eyeLook morphs from the gaze; returns (weights, gaze or None,
-    meta, warnings)."""
+def gaze_about_median(gaze: np.ndarray, sequence: np.ndarray) -> tuple[np.ndarray, list]:
+    """The gaze (frames, 2, 2) degrees less each take's median per eye and angle (``sequence``: the take of each
+    frame), and the medians taken out (takes, 2, 2) as lists. A performer speaking to a camera mostly looks at its
+    lens, so the median is that line of sight (and the tracker's bias for this face's eyes, up to 14 degrees
+    between the two eyes of one talking-head clip)."""
+    gaze = np.array(gaze, np.float64)
+    medians = []
+    for take in np.unique(sequence):
+        rows = sequence == take
+        median = np.nanmedian(gaze[rows], axis=0)
+        gaze[rows] -= np.nan_to_num(median)
+        medians.append(np.round(median, 3).tolist())
+    return gaze, medians
+
+
+def apply_eyes(weights, names, character, tracks, sequence, full_degrees, reference: str = "median"):
+    """Blink morphs from the eyelid aperture, eyeLook morphs from the gaze (about its median per take, or as
+    tracked: ``reference``); returns (weights, gaze or None, meta, warnings)."""
     from stages.retarget.eyes import (
         blink_for_aperture,
         closure,
@@ -695,6 +715,8 @@ def apply_eyes(weights, names, character, tracks, sequence, full_degrees):
     if gaze is None:
         meta["gaze_source"] = "none (tracking has no gaze)"
     else:
+        if reference == "median":
+            gaze, meta["gaze_median_taken_out"] = gaze_about_median(gaze, np.asarray(sequence))
         morphs = gaze_morphs(names)
         if morphs:
             looked = gaze_weights(gaze, morphs, full_degrees, len(names))
