@@ -51,6 +51,8 @@ ANCHORS = ssd_anchor_centres()
 class Detections:
     """Faces found in one image, best first. Coordinates in the pixels of the image given to ``detect``."""
 
+    FIELDS = ("scores", "boxes", "keypoints")
+
     scores: np.ndarray  # (k,)
     boxes: np.ndarray  # (k, 4) x_min, y_min, x_max, y_max
     keypoints: np.ndarray  # (k, 6, 2) see KEYPOINTS
@@ -121,6 +123,37 @@ def letterbox_transform(width: int, height: int, size: int = INPUT_SIZE) -> np.n
     return np.array([[scale, 0.0, (size - width * scale) / 2], [0.0, scale, (size - height * scale) / 2]])
 
 
+#: tile sides of the search for small faces (``BlazeFaceDetector.detect``), as fractions of the frame's shorter
+#: side: with the model finding faces down to about a fifth of its input, they find faces down to about a tenth
+#: and a twentieth of the frame's height
+TILE_FRACTIONS = (0.5, 0.25)
+#: no tile smaller than this (pixels): a face a fifth of it is too small for the landmark model to be of use
+MIN_TILE = 64
+
+
+def tile_transforms(width: int, height: int, fractions=TILE_FRACTIONS, overlap: float = 0.5) -> list[np.ndarray]:
+    """2x3 affines mapping image pixels into the model's input square for overlapping square tiles covering the
+    frame: each side of ``fractions`` x the shorter side (at least ``MIN_TILE``), consecutive tiles overlapping by
+    ``overlap`` of a side, the last flush with the frame's edge."""
+    out = []
+    for fraction in fractions:
+        side = fraction * min(width, height)
+        if side < MIN_TILE:
+            continue
+        scale = INPUT_SIZE / side
+        for y0 in tile_starts(height, side, overlap):
+            for x0 in tile_starts(width, side, overlap):
+                out.append(np.array([[scale, 0.0, -x0 * scale], [0.0, scale, -y0 * scale]]))
+    return out
+
+
+def tile_starts(length: int, side: float, overlap: float) -> np.ndarray:
+    """Start positions (pixels) of tiles of ``side`` along ``length``, evenly spread, overlapping by at least
+    ``overlap`` of a side."""
+    count = int(np.ceil(max(length - side, 0.0) / (side * (1.0 - overlap)))) + 1
+    return np.linspace(0.0, max(length - side, 0.0), count)
+
+
 def sigmoid(x: np.ndarray) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-x))
 
@@ -135,16 +168,33 @@ class BlazeFaceDetector:
         self.min_score = min_score
         self.iou_threshold = iou_threshold
 
-    def detect(self, frame, max_faces: int | None = None) -> Detections:
-        """Faces in a frame: a BGR array, or anything with ``shape`` and ``warp_bgr`` (``planes.FramePlanes``)."""
-        import cv2
+    def detect(self, frame, max_faces: int | None = None, tiles: bool = False) -> Detections:
+        """Faces in a frame: a BGR array, or anything with ``shape`` and ``warp_bgr`` (``planes.FramePlanes``).
 
+        The whole frame is searched at once (letterboxed to the model's input). With ``tiles``, when that finds
+        nothing, overlapping square tiles are searched too (``tile_transforms``): the short-range model sees a face
+        filling at least about a fifth of its input, and a medium or wide shot's face is a tenth of the frame or
+        less. Only faces whole within a tile count (every face smaller than half a tile lies whole in one)."""
         if not hasattr(frame, "warp_bgr"):
             from stages.tracking.planes import BgrImage
 
             frame = BgrImage(np.asarray(frame))
         height, width = frame.shape[:2]
-        to_input = letterbox_transform(width, height)
+        found = self._detect_in(frame, letterbox_transform(width, height), max_faces)
+        if len(found) or not tiles:
+            return found
+        parts = [self._detect_in(frame, to_input, None, whole=True) for to_input in tile_transforms(width, height)]
+        if not any(len(part) for part in parts):
+            return found
+        scores, boxes, keypoints = (np.concatenate([getattr(p, name) for p in parts]) for name in Detections.FIELDS)
+        return Detections(*weighted_nms(scores, boxes, keypoints, self.iou_threshold, max_faces))
+
+    def _detect_in(self, frame, to_input: np.ndarray, max_faces: int | None, whole: bool = False) -> Detections:
+        """Faces in the square the affine ``to_input`` (image pixels -> the model's input) cuts out of ``frame``, in
+        image pixels; ``whole``: only boxes inside that square (a face cut by a tile's edge is left to the tile
+        that holds it whole)."""
+        import cv2
+
         square = frame.warp_bgr(to_input, INPUT_SIZE)  # black padding
         # the detector was trained on RGB in [-1, 1]
         blob = cv2.dnn.blobFromImage(square, 1 / 127.5, mean=(127.5, 127.5, 127.5), swapRB=True)
@@ -158,6 +208,9 @@ class BlazeFaceDetector:
         scores, boxes, keypoints = weighted_nms(
             scores[keep], boxes[keep], keypoints[keep], self.iou_threshold, max_faces
         )
+        if whole:
+            inside = ((boxes >= -0.02) & (boxes <= 1.02)).all(axis=1)
+            scores, boxes, keypoints = scores[inside], boxes[inside], keypoints[inside]
         # [0, 1] model coordinates -> image pixels (undo the letterbox)
         scale, ox, oy = to_input[0, 0], to_input[0, 2], to_input[1, 2]
         offset = np.array([ox, oy])

@@ -12,7 +12,8 @@ Per frame: the model input is the frame warped from a square ROI that is rotated
 returns the points (x, y in input pixels, z relative depth in the same units) and a face-presence logit. In
 tracking mode the next frame's ROI comes from the current points (their bounding box, scaled 1.5x, squared,
 rotated by the eye line: MediaPipe's face_landmark_landmarks_to_roi); BlazeFace runs only on the first frame and
-whenever the presence score falls below the threshold.
+whenever the presence score falls below the threshold, on the whole frame and, while that finds no face, now and
+then on tiles of it (a face too small for the whole-frame pass: a medium or wide shot).
 
 Frames are anything with ``warp_bgr(affine, size)`` (``stages.tracking.planes``: a decoded frame converted only
 where the patch reads it, or a BGR image).
@@ -28,6 +29,10 @@ import numpy as np
 
 from stages.tracking.blazeface import BlazeFaceDetector, Detections, sigmoid
 
+#: while no face is found, the detector's tile search for small faces (``BlazeFaceDetector.detect``) runs on the
+#: first such frame and every this many after (a frame's search costs about 0.3 s on a 720p frame; a face
+#: appearing in a wide shot is found within a third of a second at 30 fps)
+TILE_SEARCH_EVERY = 10
 MESH_INPUT = 192
 ROI_SCALE = 1.5
 MESH_POINTS = 468
@@ -189,6 +194,7 @@ class FaceMeshTracker:
     def reset(self) -> None:
         """Forget the face (the next frame starts with detection)."""
         self.roi: Roi | None = None
+        self.faceless = 0  # frames in a row without a face
         self.since_detection = 0
         self.detections = 0
         self.detector_scores: list[float] = []
@@ -219,7 +225,8 @@ class FaceMeshTracker:
         if roi is not None:
             points, score = self.mesh.infer(frame, roi)
         if roi is None or score < self.min_presence:
-            found = self.detector.detect(frame, max_faces=1)
+            # the tile search for small faces on the first frame without one, then every TILE_SEARCH_EVERY-th
+            found = self.detector.detect(frame, max_faces=1, tiles=self.faceless % TILE_SEARCH_EVERY == 0)
             self.detections += 1
             self.since_detection = 0
             roi, points, score = None, None, 0.0
@@ -229,9 +236,9 @@ class FaceMeshTracker:
                 points, score = self.mesh.infer(frame, roi)
         self.since_detection += 1
         if points is None or score < self.min_presence:
-            self.roi = None
+            self.roi, self.faceless = None, self.faceless + 1
             return None, 0.0
-        self.roi = roi_from_mesh(points)
+        self.roi, self.faceless = roi_from_mesh(points), 0
         if self.eyes is not None:
             points = np.concatenate([points, eye_pass_points(self.eyes, frame, roi, points)])
         return points, score

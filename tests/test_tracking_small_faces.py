@@ -1,0 +1,82 @@
+"""Faces too small for the detector's whole-frame pass (a medium or wide shot): found by its tile search
+(stages/tracking/blazeface.py) and tracked."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from tracking_media import CLIPS, first_frames, write_video
+
+from msflow.testing import run_stage
+from stages.tracking import FaceMesh
+from stages.tracking.blazeface import INPUT_SIZE, BlazeFaceDetector, tile_transforms
+
+MODEL = Path(__file__).resolve().parents[1] / "data" / "models" / "mediapipe-face" / "face_detection_short_range.tflite"
+
+
+def tile_rects(width, height):
+    """(x0, y0, side) of each tile."""
+    return [(-t[0, 2] / t[0, 0], -t[1, 2] / t[1, 1], INPUT_SIZE / t[0, 0]) for t in tile_transforms(width, height)]
+
+
+@pytest.mark.parametrize("width,height", [(1280, 720), (720, 1280), (640, 480), (300, 200)])
+def test_every_face_up_to_half_a_tile_lies_whole_in_a_tile(width, height):
+    rects = tile_rects(width, height)
+    sides = sorted({round(side, 6) for _, _, side in rects})
+    rng = np.random.default_rng(0)
+    for side in sides:
+        face = side / 2
+        for x, y in rng.uniform([0, 0], [width - face, height - face], size=(200, 2)):
+            assert any(
+                x0 - 1e-6 <= x and x + face <= x0 + s + 1e-6 and y0 - 1e-6 <= y and y + face <= y0 + s + 1e-6
+                for x0, y0, s in rects
+                if round(s, 6) == side
+            )
+    for x0, y0, side in rects:  # inside the frame
+        assert x0 >= 0 and y0 >= 0 and x0 + side <= width + 1e-6 and y0 + side <= height + 1e-6
+
+
+@pytest.fixture(scope="module")
+def take():
+    return first_frames(CLIPS["HAP"], 12)
+
+
+def in_wide_shot(frames, scale, at=(700, 400), size=(720, 1280)):
+    import cv2
+
+    out = []
+    for frame in frames:
+        canvas = np.full((*size, 3), 90, np.uint8)
+        small = cv2.resize(frame, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        canvas[at[1] : at[1] + small.shape[0], at[0] : at[0] + small.shape[1]] = small
+        out.append(canvas)
+    return out
+
+
+def test_a_face_a_tenth_of_the_frame_is_found_by_the_tile_search(take):
+    detector = BlazeFaceDetector(MODEL)
+    wide = in_wide_shot(take[:1], 0.3)[0]
+    assert len(detector.detect(wide)) == 0  # the whole frame at the model's 128 px: the face is 6 px wide
+    found = detector.detect(wide, tiles=True)
+    assert len(found) == 1
+    full = detector.detect(take[0])
+    expected = np.asarray(full.boxes[0]) * 0.3 + [700, 400, 700, 400]
+    assert np.abs(found.boxes[0] - expected).max() < 0.1 * (expected[2] - expected[0])
+
+
+def test_a_medium_and_a_wide_shot_track_as_the_close_up(tmp_path, take):
+    """The happy take at 0.5 and 0.3 of its size in a 1280 x 720 frame (a face a tenth and a sixteenth of its
+    height): every frame tracked, the landmarks (scaled back) near the close-up's; before the tile search, no face
+    was found in any frame."""
+    videos = {"close": write_video(tmp_path / "close.mp4", take)}
+    for name, scale in {"medium": 0.5, "wide": 0.3}.items():
+        videos[name] = write_video(tmp_path / f"{name}.mp4", in_wide_shot(take, scale))
+    run = run_stage(FaceMesh, {"audio": "none"}, {"videos": videos}, store=tmp_path / "store")
+    labels, sequence = run.meta["labels"], run.arrays["sequence"]
+    rows = {name: sequence == labels.index(name) for name in videos}
+    assert run.arrays["valid"].all()
+    close = run.arrays["landmarks"][rows["close"]]
+    iod = np.linalg.norm(close[:, 45] - close[:, 36], axis=-1).mean()
+    for name, scale, tolerance in (("medium", 0.5, 0.03), ("wide", 0.3, 0.06)):
+        back = (run.arrays["landmarks"][rows[name]] - [700, 400]) / scale
+        assert np.median(np.linalg.norm(back - close, axis=-1)) < tolerance * iod, name
