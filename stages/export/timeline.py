@@ -261,7 +261,7 @@ def level_head(rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         The orientation taken out (M).
     """
     mean = quat_mean(rotation)
-    levelled = quat_multiply(np.broadcast_to(quat_conjugate(mean), np.shape(rotation)), rotation)
+    levelled = quat_multiply(quat_conjugate(mean), rotation)  # broadcast over the frames
     return quat_normalize(levelled), mean
 
 

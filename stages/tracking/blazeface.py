@@ -189,6 +189,17 @@ class BlazeFaceDetector:
         scores, boxes, keypoints = (np.concatenate([getattr(p, name) for p in parts]) for name in Detections.FIELDS)
         return Detections(*weighted_nms(scores, boxes, keypoints, self.iou_threshold, max_faces))
 
+    def detect_near(self, frame, cx: float, cy: float, side: float) -> Detections:
+        """Faces whole within the square of ``side`` pixels centred on (``cx``, ``cy``) (padded black beyond the
+        frame): where a face lost a moment ago most likely still is, found in one inference however small."""
+        if not hasattr(frame, "warp_bgr"):
+            from stages.tracking.planes import BgrImage
+
+            frame = BgrImage(np.asarray(frame))
+        scale = INPUT_SIZE / side
+        to_input = np.array([[scale, 0.0, -(cx - side / 2) * scale], [0.0, scale, -(cy - side / 2) * scale]])
+        return self._detect_in(frame, to_input, None, whole=True)
+
     def _detect_in(self, frame, to_input: np.ndarray, max_faces: int | None, whole: bool = False) -> Detections:
         """Faces in the square the affine ``to_input`` (image pixels -> the model's input) cuts out of ``frame``, in
         image pixels; ``whole``: only boxes inside that square (a face cut by a tile's edge is left to the tile

@@ -12,8 +12,9 @@ Per frame: the model input is the frame warped from a square ROI that is rotated
 returns the points (x, y in input pixels, z relative depth in the same units) and a face-presence logit. In
 tracking mode the next frame's ROI comes from the current points (their bounding box, scaled 1.5x, squared,
 rotated by the eye line: MediaPipe's face_landmark_landmarks_to_roi); BlazeFace runs only on the first frame and
-whenever the presence score falls below the threshold, on the whole frame and, while that finds no face, now and
-then on tiles of it (a face too small for the whole-frame pass: a medium or wide shot).
+whenever the presence score falls below the threshold: around where the face was last seen, then on the whole
+frame and, while that finds no face, now and then on tiles of it (a face too small for the whole-frame pass: a
+medium or wide shot); of several faces it follows the one nearest where the performer's was.
 
 Frames are anything with ``warp_bgr(affine, size)`` (``stages.tracking.planes``: a decoded frame converted only
 where the patch reads it, or a BGR image).
@@ -33,6 +34,9 @@ from stages.tracking.blazeface import BlazeFaceDetector, Detections, sigmoid
 #: first such frame and every this many after (a frame's search costs about 0.3 s on a 720p frame; a face
 #: appearing in a wide shot is found within a third of a second at 30 fps)
 TILE_SEARCH_EVERY = 10
+#: a face lost a moment ago is looked for first in a square this many times its last ROI (which is 1.5 times the
+#: face's box), centred where it was: the face fills a third of it, as the detector likes
+NEAR_SEARCH = 2.0
 MESH_INPUT = 192
 ROI_SCALE = 1.5
 MESH_POINTS = 468
@@ -195,6 +199,7 @@ class FaceMeshTracker:
         """Forget the face (the next frame starts with detection)."""
         self.roi: Roi | None = None
         self.faceless = 0  # frames in a row without a face
+        self.last_seen: Roi | None = None  # the ROI of the last frame with a face
         self.since_detection = 0
         self.detections = 0
         self.detector_scores: list[float] = []
@@ -225,23 +230,44 @@ class FaceMeshTracker:
         if roi is not None:
             points, score = self.mesh.infer(frame, roi)
         if roi is None or score < self.min_presence:
-            # the tile search for small faces on the first frame without one, then every TILE_SEARCH_EVERY-th
-            found = self.detector.detect(frame, max_faces=1, tiles=self.faceless % TILE_SEARCH_EVERY == 0)
+            found = self.find_face(frame)
             self.detections += 1
             self.since_detection = 0
             roi, points, score = None, None, 0.0
             if len(found):
-                self.detector_scores.append(float(found.scores[0]))
-                roi = roi_from_detection(found)
+                index = self.follow(found)
+                self.detector_scores.append(float(found.scores[index]))
+                roi = roi_from_detection(found, index)
                 points, score = self.mesh.infer(frame, roi)
         self.since_detection += 1
         if points is None or score < self.min_presence:
             self.roi, self.faceless = None, self.faceless + 1
             return None, 0.0
         self.roi, self.faceless = roi_from_mesh(points), 0
+        self.last_seen = self.roi
         if self.eyes is not None:
             points = np.concatenate([points, eye_pass_points(self.eyes, frame, roi, points)])
         return points, score
+
+    def find_face(self, frame) -> Detections:
+        """Faces in a frame without a tracked one: first around where the face was last seen (a square
+        ``NEAR_SEARCH`` times its ROI: it is most likely still there, and found in one inference however small),
+        then in the whole frame, and on the first frame without a face and every ``TILE_SEARCH_EVERY``-th after,
+        in the frame's tiles (a face too small for the whole-frame pass)."""
+        if self.last_seen is not None:
+            seen = self.last_seen
+            near = self.detector.detect_near(frame, seen.cx, seen.cy, NEAR_SEARCH * seen.size)
+            if len(near):
+                return near
+        return self.detector.detect(frame, tiles=self.faceless % TILE_SEARCH_EVERY == 0)
+
+    def follow(self, found: Detections) -> int:
+        """Which detection is the performer: the one nearest where the face was last seen (another face in the
+        shot is someone else), or on a take's first detection the most certain."""
+        if self.last_seen is None:
+            return 0
+        centres = found.boxes.reshape(-1, 2, 2).mean(axis=1)
+        return int(np.argmin(np.linalg.norm(centres - [self.last_seen.cx, self.last_seen.cy], axis=1)))
 
     def track(self, frames: Iterable) -> tuple[np.ndarray, np.ndarray]:
         """All frames at once: (points (n, points, 3) with NaN where no face, presence scores (n,))."""

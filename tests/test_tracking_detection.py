@@ -1,5 +1,6 @@
-"""Faces too small for the detector's whole-frame pass (a medium or wide shot): found by its tile search
-(stages/tracking/blazeface.py) and tracked."""
+"""Detection beyond a close-up: faces too small for the detector's whole-frame pass (a medium or wide shot), found
+by its tile search (stages/tracking/blazeface.py), and a face lost for a moment in a shot with two, found again
+where it was (stages/tracking/facemesh.py)."""
 
 from pathlib import Path
 
@@ -80,3 +81,37 @@ def test_a_medium_and_a_wide_shot_track_as_the_close_up(tmp_path, take):
     for name, scale, tolerance in (("medium", 0.5, 0.03), ("wide", 0.3, 0.06)):
         back = (run.arrays["landmarks"][rows[name]] - [700, 400]) / scale
         assert np.median(np.linalg.norm(back - close, axis=-1)) < tolerance * iod, name
+
+
+def test_a_face_lost_for_a_moment_is_found_again_where_it_was(tmp_path, take):
+    """Two performers side by side (the happy and the angry take), the picture blank for 5 frames: the tracker
+    follows the face it started with and finds it on the frame it comes back. Before, it re-detected the more
+    certain face, the other performer, and found nothing for 10 frames (the tile search waited its turn)."""
+    other = first_frames(CLIPS["ANG"], len(take))
+    frames = []
+    for i, (left, right) in enumerate(zip(take, other)):
+        canvas = np.full((400, 1000, 3), 90, np.uint8)
+        if not 5 <= i < 8:
+            canvas[20:380, 20:500], canvas[20:380, 500:980] = left, right
+        frames.append(canvas)
+    run = run_stage(FaceMesh, {"audio": "none"}, {"videos": {"two": write_video(tmp_path / "two.mp4", frames)}})
+    valid, nose = run.arrays["valid"], run.arrays["landmarks"][:, 30, 0]
+    assert valid[:5].all() and not valid[5:8].any() and valid[8:].all()
+    assert np.abs(nose[8:] - nose[:5].mean()).max() < 30  # the same performer (the faces' noses are 480 px apart)
+
+
+def test_of_several_faces_the_one_nearest_where_the_performer_was_is_followed():
+    """Known answer: two detections, the more certain one far from the face last seen: the near one is followed;
+    with no face seen yet in the take, the most certain."""
+    from stages.tracking.blazeface import Detections
+    from stages.tracking.facemesh import FaceMeshTracker, Roi
+
+    models = MODEL.parent
+    tracker = FaceMeshTracker(MODEL, models / "face_landmark.tflite")
+    far, near = [600.0, 100.0, 700.0, 200.0], [90.0, 110.0, 150.0, 170.0]
+    found = Detections(np.array([0.95, 0.7]), np.array([far, near]), np.zeros((2, 6, 2)))
+    assert tracker.follow(found) == 0
+    tracker.last_seen = Roi(115.0, 135.0, 90.0, 0.0)
+    assert tracker.follow(found) == 1
+    tracker.reset()
+    assert tracker.follow(found) == 0
