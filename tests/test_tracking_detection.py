@@ -83,17 +83,40 @@ def test_a_medium_and_a_wide_shot_track_as_the_close_up(tmp_path, take):
         assert np.median(np.linalg.norm(back - close, axis=-1)) < tolerance * iod, name
 
 
-def test_a_face_lost_for_a_moment_is_found_again_where_it_was(tmp_path, take):
-    """Two performers side by side (the happy and the angry take), the picture blank for 5 frames: the tracker
-    follows the face it started with and finds it on the frame it comes back. Before, it re-detected the more
-    certain face, the other performer, and found nothing for 10 frames (the tile search waited its turn)."""
+def two_performers(take, blank=(), right_scale=1.0):
+    """The happy take on the left and the angry one on the right of a 1000 x 400 picture (the right one scaled by
+    ``right_scale``), the frames in ``blank`` empty."""
+    import cv2
+
     other = first_frames(CLIPS["ANG"], len(take))
     frames = []
     for i, (left, right) in enumerate(zip(take, other)):
         canvas = np.full((400, 1000, 3), 90, np.uint8)
-        if not 5 <= i < 8:
-            canvas[20:380, 20:500], canvas[20:380, 500:980] = left, right
+        if i not in blank:
+            right = cv2.resize(right, None, fx=right_scale, fy=right_scale, interpolation=cv2.INTER_AREA)
+            canvas[20:380, 20:500] = left
+            canvas[20 : 20 + right.shape[0], 500 : 500 + right.shape[1]] = right
         frames.append(canvas)
+    return frames
+
+
+def test_the_face_param_picks_the_performer_among_several(tmp_path, take):
+    """face: leftmost / rightmost / largest track the performer named from the first frame on (the right one
+    at 0.6 of the left's size)."""
+    path = write_video(tmp_path / "two.mp4", two_performers(take[:6], right_scale=0.6))
+    for face, side in (("leftmost", "left"), ("rightmost", "right"), ("largest", "left")):
+        run = run_stage(FaceMesh, {"audio": "none", "face": face}, {"videos": {"two": path}})
+        nose = run.arrays["landmarks"][:, 30, 0]
+        assert run.arrays["valid"].all() and ((nose < 500) if side == "left" else (nose > 500)).all(), face
+    with pytest.raises(ValueError, match="face"):
+        FaceMesh.Params(face="nearest")
+
+
+def test_a_face_lost_for_a_moment_is_found_again_where_it_was(tmp_path, take):
+    """Two performers side by side (the happy and the angry take), the picture blank for 5 frames: the tracker
+    follows the face it started with and finds it on the frame it comes back. Before, it re-detected the more
+    certain face, the other performer, and found nothing for 10 frames (the tile search waited its turn)."""
+    frames = two_performers(take, blank=range(5, 8))
     run = run_stage(FaceMesh, {"audio": "none"}, {"videos": {"two": write_video(tmp_path / "two.mp4", frames)}})
     valid, nose = run.arrays["valid"], run.arrays["landmarks"][:, 30, 0]
     assert valid[:5].all() and not valid[5:8].any() and valid[8:].all()
@@ -115,3 +138,9 @@ def test_of_several_faces_the_one_nearest_where_the_performer_was_is_followed():
     assert tracker.follow(found) == 1
     tracker.reset()
     assert tracker.follow(found) == 0
+    for first, expected in (("largest", 0), ("leftmost", 1), ("rightmost", 0)):
+        tracker.first_face = first
+        assert tracker.follow(found) == expected, first
+    wide = Detections(np.array([0.9, 0.8]), np.array([near, [300.0, 50.0, 500.0, 250.0]]), np.zeros((2, 6, 2)))
+    tracker.first_face = "largest"
+    assert tracker.follow(wide) == 1

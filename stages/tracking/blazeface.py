@@ -168,22 +168,25 @@ class BlazeFaceDetector:
         self.min_score = min_score
         self.iou_threshold = iou_threshold
 
-    def detect(self, frame, max_faces: int | None = None, tiles: bool = False) -> Detections:
+    def detect(self, frame, max_faces: int | None = None, tiles: bool = False, every_scale: bool = False) -> Detections:
         """Faces in a frame: a BGR array, or anything with ``shape`` and ``warp_bgr`` (``planes.FramePlanes``).
 
         The whole frame is searched at once (letterboxed to the model's input). With ``tiles``, when that finds
         nothing, overlapping square tiles are searched too (``tile_transforms``): the short-range model sees a face
         filling at least about a fifth of its input, and a medium or wide shot's face is a tenth of the frame or
-        less. Only faces whole within a tile count (every face smaller than half a tile lies whole in one)."""
+        less. Only faces whole within a tile count (every face smaller than half a tile lies whole in one).
+        ``every_scale``: search the tiles even when the whole frame shows a face (every face in the shot, small
+        ones beside a large one)."""
         if not hasattr(frame, "warp_bgr"):
             from stages.tracking.planes import BgrImage
 
             frame = BgrImage(np.asarray(frame))
         height, width = frame.shape[:2]
-        found = self._detect_in(frame, letterbox_transform(width, height), max_faces)
-        if len(found) or not tiles:
+        found = self._detect_in(frame, letterbox_transform(width, height), None if every_scale else max_faces)
+        if (len(found) and not every_scale) or not tiles:
             return found
         parts = [self._detect_in(frame, to_input, None, whole=True) for to_input in tile_transforms(width, height)]
+        parts.append(found)
         if not any(len(part) for part in parts):
             return found
         scores, boxes, keypoints = (np.concatenate([getattr(p, name) for p in parts]) for name in Detections.FIELDS)

@@ -34,6 +34,9 @@ from stages.tracking.blazeface import BlazeFaceDetector, Detections, sigmoid
 #: first such frame and every this many after (a frame's search costs about 0.3 s on a 720p frame; a face
 #: appearing in a wide shot is found within a third of a second at 30 fps)
 TILE_SEARCH_EVERY = 10
+#: which face a take starts with when its first frame shows several: the detector's most certain, the largest, or
+#: the one furthest left or right in the picture; after that the tracker follows it (``FaceMeshTracker.follow``)
+FIRST_FACE = ("most_certain", "largest", "leftmost", "rightmost")
 #: a face lost a moment ago is looked for first in a square this many times its last ROI (which is 1.5 times the
 #: face's box), centred where it was: the face fills a third of it, as the detector likes
 NEAR_SEARCH = 2.0
@@ -185,6 +188,7 @@ class FaceMeshTracker:
         model: str = "face_mesh_v1",
         eye_model_path: str | Path | None = None,
         eye_pass: str = "landmarker_v2",
+        first_face: str = "most_certain",
     ):
         self.detector = BlazeFaceDetector(detector_path, min_score=min_detection_score)
         self.mesh = FaceMeshModel(landmark_path, LANDMARK_MODELS[model])
@@ -193,6 +197,8 @@ class FaceMeshTracker:
         self.eyes = new_eye_pass(eye_pass, eye_model_path) if eye_model_path else None
         self.min_presence = min_presence
         self.redetect_every = redetect_every
+        #: which of several faces a take starts with (``FIRST_FACE``)
+        self.first_face = first_face
         self.reset()
 
     def reset(self) -> None:
@@ -259,15 +265,20 @@ class FaceMeshTracker:
             near = self.detector.detect_near(frame, seen.cx, seen.cy, NEAR_SEARCH * seen.size)
             if len(near):
                 return near
-        return self.detector.detect(frame, tiles=self.faceless % TILE_SEARCH_EVERY == 0)
+        choose = self.last_seen is None and self.first_face != "most_certain"  # every face, at every scale
+        return self.detector.detect(frame, tiles=choose or self.faceless % TILE_SEARCH_EVERY == 0, every_scale=choose)
 
     def follow(self, found: Detections) -> int:
         """Which detection is the performer: the one nearest where the face was last seen (another face in the
-        shot is someone else), or on a take's first detection the most certain."""
-        if self.last_seen is None:
-            return 0
+        shot is someone else), or on a take's first detection the one ``first_face`` names (``FIRST_FACE``)."""
         centres = found.boxes.reshape(-1, 2, 2).mean(axis=1)
-        return int(np.argmin(np.linalg.norm(centres - [self.last_seen.cx, self.last_seen.cy], axis=1)))
+        if self.last_seen is not None:
+            return int(np.argmin(np.linalg.norm(centres - [self.last_seen.cx, self.last_seen.cy], axis=1)))
+        if self.first_face == "largest":
+            return int(np.argmax(np.prod(found.boxes[:, 2:] - found.boxes[:, :2], axis=1)))
+        if self.first_face in ("leftmost", "rightmost"):
+            return int(np.argmin(centres[:, 0]) if self.first_face == "leftmost" else np.argmax(centres[:, 0]))
+        return 0
 
     def track(self, frames: Iterable) -> tuple[np.ndarray, np.ndarray]:
         """All frames at once: (points (n, points, 3) with NaN where no face, presence scores (n,))."""

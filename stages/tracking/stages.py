@@ -101,6 +101,12 @@ class FaceMeshParams(TrackingParams):
     redetect_every: int = Field(
         0, ge=0, description="also re-run the detector every this many frames (0: only when the face is lost)"
     )
+    face: Literal["most_certain", "largest", "leftmost", "rightmost"] = Field(
+        "most_certain",
+        description="the face to track when the first frame with a face shows several (two people in the shot): "
+        "the detector's most certain, the largest, or the one furthest left or right in the picture; after that "
+        "the tracker follows that face, also when it is lost and found again",
+    )
     output_mesh: bool = Field(True, description="include the 468-point mesh output")
     model: Literal["face_mesh_v1", "face_landmarker_v2"] = Field(
         "face_mesh_v1",
@@ -137,6 +143,7 @@ def new_tracker(params, models: dict | None):
         model=model,
         eye_model_path=eyes if second_pass else None,
         eye_pass=eye_pass or DEFAULT_EYES,
+        first_face=getattr(params, "face", "most_certain"),
     )
 
 
