@@ -575,6 +575,9 @@ def test_audio_envelope_is_the_frame_rms():
     # audio starting one second after the first frame: frame 0 is silent
     late = audio_envelope(samples, rate=100.0, offset=1.0, fps=1.0, frames=3)
     assert late[0] == 0.0 and late[1] == pytest.approx(0.5) and late[2] == pytest.approx(2.0)
+    # a variable frame rate: the second frame dropped, the third at 2 s, where the audio is 1.0
+    dropped = audio_envelope(samples, rate=100.0, offset=0.0, fps=1.0, frames=2, times=np.array([0.0, 2.0]))
+    assert dropped == pytest.approx([0.5, 1.0])
 
 
 # ------------------------------------------------------------------------------------------------ the pipeline

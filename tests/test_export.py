@@ -636,6 +636,43 @@ def test_a_camera_below_the_face_is_taken_out_of_the_head_motion(character):
     assert "orientation_taken_out_deg" not in out.meta["head"] and "head_levelled_deg" not in out.metrics
 
 
+def test_a_variable_frame_rate_take_is_exported_by_its_frame_times(character):
+    """A phone's take at 30 fps that dropped frames (its tracking's frame times), whose jaw opens and head turns in
+    proportion to time: exported at 30 fps by those times, every output frame's jaw and yaw are those of its
+    time (exactly: linear in time, interpolated linearly). Read as rows at the average rate, the jaw ran up to two
+    frames (67 ms) off its time around the dropped ones, a lip-sync error one sees."""
+    kept = np.setdiff1d(np.arange(60), [10, 11, 12, 30, 31, 45])
+    times = kept / 30.0 + 0.0004 * np.sin(kept)  # millisecond jitter, as containers store them
+    average = len(kept) / ((kept[-1] + 1) / 30.0)
+    w = np.zeros((len(kept), len(DRIVEN)))
+    w[:, 0] = times / 2.0  # jawOpen
+    blend = artifact({"weights": w}, {"target_names": DRIVEN, "fps": average})
+    zeros = np.zeros(len(kept))
+    tracking = artifact(
+        {
+            "rotation": euler_to_quat(0.3 * times, zeros, zeros),
+            "translation": np.zeros((len(kept), 3)),
+            "time": times,
+            "sequence": np.zeros(len(kept), np.int32),
+        },
+        {"labels": ["take"], "fps": [average], "translation_units": "cm"},
+    )
+    inputs = {"character": character.view(), "blend": blend, "head": tracking}
+    out = run_stage(Export, {"preview": False, "head_rotation": "absolute"}, inputs)
+    assert out.meta["fps"] == 30.0 and out.meta["variable_frame_rate"] and out.meta["head"]["frame_times"]
+    t = np.arange(60) / 30.0
+    assert len(out.arrays["weights"]) == 60
+    jaw = out.arrays["weights"][:, out.meta["target_names"].index("jawOpen")]
+    inside = t <= times[-1]
+    np.testing.assert_allclose(jaw[inside], t[inside] / 2.0, atol=1e-6)
+    np.testing.assert_allclose(quat_to_euler(out.arrays["head_rotation"])[inside, 0], 0.3 * t[inside], atol=1e-6)
+    rows = run_stage(Export, {"preview": False}, dict(inputs, head=None))  # no frame times: rows at the average rate
+    assert not rows.meta["variable_frame_rate"] and rows.meta["fps"] == pytest.approx(average)
+    read_as_rows = rows.arrays["weights"][:, rows.meta["target_names"].index("jawOpen")]
+    early = read_as_rows - np.arange(len(read_as_rows)) / average / 2.0  # against its output frame's time
+    assert np.abs(early).max() > 0.025  # 50 ms or more off its time (the ramp rises 0.5 a second)
+
+
 def test_bvh_carries_the_head_rotation(exported):
     from stages.formats.bvh import joint_rotation, parse_bvh
 

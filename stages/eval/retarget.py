@@ -172,11 +172,15 @@ def shift_within_takes(values: np.ndarray, sequence: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------ audio, jaw
 
 
-def audio_envelope(samples: np.ndarray, rate: float, offset: float, fps: float, frames: int) -> np.ndarray:
+def audio_envelope(
+    samples: np.ndarray, rate: float, offset: float, fps: float, frames: int, times: np.ndarray | None = None
+) -> np.ndarray:
     """RMS of the audio in a window of one frame centred on each video frame (``offset``: seconds of the first
-    sample relative to the first frame)."""
+    sample relative to the first frame), the frames at ``times`` (seconds, the take's tracked frame times: a
+    variable-frame-rate video's frames are not at i / fps) or at i / ``fps``."""
     samples = np.asarray(samples, np.float64)
-    centre = (np.arange(frames) / fps - offset) * rate
+    at = np.arange(frames) / fps if times is None else np.asarray(times, np.float64) - float(times[0])
+    centre = (at - offset) * rate
     half = 0.5 * rate / fps
     lo = np.clip(np.round(centre - half).astype(np.int64), 0, len(samples))
     hi = np.clip(np.round(centre + half).astype(np.int64), 0, len(samples))
@@ -375,6 +379,7 @@ class RetargetEval(Stage):
             "mesh": tracks.lazy("mesh") if "mesh" in tracks else None,
             "audio": _take_audio(tracks, sequence),
             "fps": [float(f) for f in (meta.get("fps") or [30.0])],
+            "time": np.asarray(tracks["time"], np.float64) if "time" in tracks else None,
         }
         return data
 
@@ -685,7 +690,10 @@ def pack_evaluation(metrics, takes, context, frames, dead_morphs, data) -> dict:
 
 
 def envelope_correlations(data, performer_gap, character_gap, shifted_gap) -> tuple[np.ndarray, dict]:
-    """Audio envelope per frame and, per take, its correlation with each mouth opening."""
+    """Audio envelope per frame (a variable-frame-rate take's frames at their own times) and, per take, its
+    correlation with each mouth opening."""
+    from stages.export.timeline import frame_clock
+
     sequence = data["sequence"]
     envelope = np.zeros(len(sequence))
     r: dict[str, dict[int, float]] = {"envelope_r_character": {}, "envelope_r_performer": {}, "envelope_r_shifted": {}}
@@ -695,7 +703,8 @@ def envelope_correlations(data, performer_gap, character_gap, shifted_gap) -> tu
             continue
         rows = np.flatnonzero(sequence == take)
         fps = data["fps"][take] if take < len(data["fps"]) else data["fps"][0]
-        envelope[rows] = audio_envelope(audio[0], audio[1], audio[2], fps, len(rows))
+        clock = None if data.get("time") is None else frame_clock(data["time"][rows], fps)  # None: a constant rate
+        envelope[rows] = audio_envelope(audio[0], audio[1], audio[2], fps, len(rows), clock)
         for key, gap in (("character", character_gap), ("performer", performer_gap), ("shifted", shifted_gap)):
             r[f"envelope_r_{key}"][int(take)] = pearson(gap[rows], envelope[rows])
     return envelope, r

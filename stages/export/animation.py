@@ -25,11 +25,14 @@ from pydantic import Field, field_validator
 from msflow import Input, Output, Result, Stage, UserError
 from stages.export.timeline import (
     align_head_motion,
+    clock_frames,
+    clock_positions,
     level_head,
-    output_frames,
+    nominal_rate,
     sample_linear,
-    sample_positions,
+    sample_rotations,
     select_take,
+    take_clock,
     translation_scale,
 )
 from stages.formats.live_link import ARKIT_NAMES, UNTRACKED_COLUMNS, ArkitMapping, arkit_mapping, check_aliases
@@ -107,8 +110,9 @@ def character_weights(blend_weights: np.ndarray, blend_names: list[str], charact
     return out
 
 
-def head_motion(head, params, label: str | None, frames: int, fps: float, out_fps: float):
-    """Head rotation and translation (metres, as exported) on the output timeline, and what was done."""
+def head_motion(head, params, label: str | None, frames: int, fps: float, out_fps: float, frames_out: int):
+    """Head rotation and translation (metres, as exported) on the output timeline (``frames_out`` at ``out_fps``),
+    and what was done. A tracked head of a variable-frame-rate take is sampled by its frame times."""
     head_fps = head.meta.get("fps")
     if not head_fps:
         raise UserError("the head motion has no meta fps", field="inputs.head")
@@ -118,16 +122,24 @@ def head_motion(head, params, label: str | None, frames: int, fps: float, out_fp
     if isinstance(head_fps, (list, tuple)):  # a tracking artifact as the head motion: one rate per take
         labels = list(head.meta.get("labels") or [])
         head_fps = head_fps[labels.index(head_label)] if head_label in labels else head_fps[0]
-    rotation, translation, info = align_head_motion(
-        np.asarray(rotation, np.float64),
-        np.asarray(translation, np.float64),
-        float(head_fps),
-        fps,
-        frames,
-        resample=params.resample_head,
-        max_mismatch=params.max_length_mismatch,
-        out_fps=out_fps,
-    )
+    rotation, translation = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
+    clock = take_clock(head, head_label, len(rotation), float(head_fps))
+    if clock is None:
+        rotation, translation, info = align_head_motion(
+            rotation,
+            translation,
+            float(head_fps),
+            fps,
+            frames,
+            resample=params.resample_head,
+            max_mismatch=params.max_length_mismatch,
+            out_fps=out_fps,
+            frames_out=frames_out,
+        )
+    else:  # the tracked head of a variable-frame-rate take: each output frame at its time
+        position = clock_positions(clock, len(rotation), float(head_fps), frames_out, out_fps)
+        rotation, translation = sample_rotations(rotation, position), sample_linear(translation, position)
+        info = {"head_fps": float(head_fps), "head_frames": len(clock), "held_frames": 0, "frame_times": True}
     info["take"] = head_label
     scale = None
     if params.head_translation != "none":
@@ -148,24 +160,39 @@ def head_motion(head, params, label: str | None, frames: int, fps: float, out_fp
     return quat_continuous(quat_normalize(rotation)), translation, info
 
 
+#: inputs whose tracking may carry the take's frame times (``timeline.take_clock``), in this order
+CLOCKS = ("audio", "performer", "head")
+
+
 def read_performance(params, inputs, names: list[str]) -> Performance:
     """Validate the blend and head inputs and put every stream on the output timeline."""
     blend_weights, gaze, label, fps = blend_take(inputs["blend"], params.sequence)
     weights = character_weights(blend_weights, list(inputs["blend"].meta.get("target_names")), names)
     clipped = float(np.mean((blend_weights < -1e-6) | (blend_weights > 1 + 1e-6)))  # of the blend's entries
-    out_fps = float(params.fps or fps)
-    frames_out = output_frames(len(weights), fps, out_fps)
-    position = sample_positions(frames_out, out_fps, fps, len(weights))
+    # a variable-frame-rate take (its tracking's frame times) is put on the output timeline by those times, at
+    # the rate it was shot at unless params.fps says otherwise (its average rate is no camera's)
+    clock = next((c for c in (take_clock(inputs[n], label, len(weights), fps) for n in CLOCKS) if c is not None), None)
+    out_fps = float(params.fps or (fps if clock is None else nominal_rate(clock)))
+    frames_out = clock_frames(clock, len(weights), fps, out_fps)
+    position = clock_positions(clock, len(weights), fps, frames_out, out_fps)
     perf = Performance(
         label,
         out_fps,
         np.clip(sample_linear(weights, position), 0.0, 1.0),
         gaze=None if gaze is None else sample_linear(gaze, position),
-        meta={"fps": out_fps, "source_fps": fps, "target_names": names, "take": label},
+        meta={
+            "fps": out_fps,
+            "source_fps": fps,
+            "target_names": names,
+            "take": label,
+            "variable_frame_rate": clock is not None,
+        },
         metrics={"frames": frames_out, "duration_s": frames_out / out_fps, "clipped_fraction": clipped},
     )
     if inputs["head"] is not None:
-        perf.rotation, perf.translation, info = head_motion(inputs["head"], params, label, len(weights), fps, out_fps)
+        perf.rotation, perf.translation, info = head_motion(
+            inputs["head"], params, label, len(weights), fps, out_fps, frames_out
+        )
         perf.meta["head"] = info
         perf.metrics["head_held_frames"] = info["held_frames"]
         perf.metrics["head_translation_exported"] = int(info.pop("translation_exported"))

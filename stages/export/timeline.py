@@ -42,6 +42,67 @@ def sample_positions(frames_out: int, out_fps: float, source_fps: float, source_
     return np.clip(position, 0, source_frames - 1)
 
 
+#: a take whose frame times stray from a constant rate's by more than this fraction of a frame has a variable
+#: frame rate (a phone drops frames in dim light); a container's millisecond timestamps stray by 0.015 at 30 fps
+VFR_TOLERANCE = 0.25
+
+
+def frame_clock(times: np.ndarray | None, fps: float) -> np.ndarray | None:
+    """A take's frame times (seconds from its first frame) when they are not a constant rate's, else None (rows
+    are then at i / fps, as ``sample_positions`` has them)."""
+    if times is None or len(times) < 2:
+        return None
+    clock = np.asarray(times, np.float64) - float(times[0])
+    if np.abs(clock - np.arange(len(clock)) / fps).max() <= VFR_TOLERANCE / fps:
+        return None
+    return clock
+
+
+#: frame rates a variable-frame-rate take's typical frame interval is snapped to (within 0.5%)
+STANDARD_RATES = (23.976, 24.0, 25.0, 29.97, 30.0, 48.0, 50.0, 59.94, 60.0)
+
+
+def nominal_rate(clock: np.ndarray) -> float:
+    """The frame rate a variable-frame-rate take was shot at: the mean of its frame intervals up to 1.5 times the
+    median (a dropped frame's longer interval left out; millisecond timestamps alternate 33 and 34 ms at 30 fps),
+    snapped to a standard rate within 0.5%."""
+    steps = np.diff(clock)
+    rate = 1.0 / float(steps[steps <= 1.5 * np.median(steps)].mean())
+    nearest = min(STANDARD_RATES, key=lambda r: abs(r - rate))
+    return nearest if abs(nearest - rate) <= 0.005 * nearest else rate
+
+
+def clock_frames(clock: np.ndarray | None, rows: int, fps: float, out_fps: float) -> int:
+    """Output frames covering a take of ``rows`` rows: ``output_frames``, or with a clock its span plus a frame."""
+    if clock is None:
+        return output_frames(rows, fps, out_fps)
+    return max(1, int(round((clock[-1] + 1.0 / fps) * out_fps)))
+
+
+def clock_positions(clock: np.ndarray | None, rows: int, fps: float, frames_out: int, out_fps: float) -> np.ndarray:
+    """Fractional row of each output frame k (time k / out_fps): ``sample_positions``, or with a clock the row
+    whose frame time it is (linear between the frames around it, the ends held)."""
+    if clock is None:
+        return sample_positions(frames_out, out_fps, fps, rows)
+    return np.interp(np.arange(frames_out) / out_fps, clock, np.arange(rows, dtype=np.float64))
+
+
+def take_clock(view, label: str | None, rows: int, fps: float) -> np.ndarray | None:
+    """The ``frame_clock`` of take ``label`` of a tracking artifact (its ``time`` output), when it has that take
+    with ``rows`` frames; None otherwise (no clock: rows at a constant rate)."""
+    if view is None or "time" not in view:
+        return None
+    labels = list(view.meta.get("labels") or [])
+    if "sequence" in view and labels:
+        label = labels[0] if label is None and len(labels) == 1 else label
+        if label not in labels:
+            return None
+        times = np.asarray(view["time"])[np.asarray(view["sequence"]) == labels.index(label)]
+    else:
+        times = np.asarray(view["time"])
+    return frame_clock(times, fps) if len(times) == rows else None
+
+
 def sample_linear(values: np.ndarray, position: np.ndarray) -> np.ndarray:
     """Rows of ``values`` (frames, ...) at fractional rows ``position``: linear between neighbours.
 
@@ -105,12 +166,14 @@ def align_head_motion(
     resample: bool,
     max_mismatch: float,
     out_fps: float | None = None,
+    frames_out: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """The head motion checked against the face animation (``frames`` at ``fps``) and sampled at the output
-    frames (``out_fps``, default ``fps``): see the module docstring."""
+    frames (``frames_out`` at ``out_fps``, default the animation's span at ``fps``): see the module docstring."""
     info = check_head_timing(len(rotation), head_fps, frames, fps, resample=resample, max_mismatch=max_mismatch)
     out_fps = out_fps or fps
-    rot, trans = resample_head_motion(rotation, translation, head_fps, out_fps, output_frames(frames, fps, out_fps))
+    frames_out = frames_out or output_frames(frames, fps, out_fps)
+    rot, trans = resample_head_motion(rotation, translation, head_fps, out_fps, frames_out)
     return rot, trans, info
 
 
@@ -279,5 +342,5 @@ def performer_rows(
         rows = np.flatnonzero(np.asarray(view["sequence"]) == index)
     else:
         rows = np.arange(len(view.lazy("crops")))
-    position = sample_positions(frames_out, out_fps, fps, len(rows))
+    position = clock_positions(take_clock(view, label, len(rows), fps), len(rows), fps, frames_out, out_fps)
     return rows[np.floor(position + 1e-9).astype(int)], label
