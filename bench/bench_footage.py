@@ -59,14 +59,6 @@ def write(path: Path, frames, times=None, display=None) -> Path:
     return path
 
 
-def display_matrix(angle: float, hflip: int = 0) -> list[int]:
-    """FFmpeg's av_display_rotation_set(angle), then a horizontal flip."""
-    r = -np.radians(angle)
-    m = [int(v * 65536) for v in (np.cos(r), -np.sin(r), 0, np.sin(r), np.cos(r), 0, 0, 0, 0)]
-    m[8] = 1 << 30
-    return [v * (1 - 2 * hflip) if i % 3 == 0 else v for i, v in enumerate(m)]
-
-
 def pasted(frames, scale: float, others=None, blank=()) -> list[np.ndarray]:
     """The frames at ``scale`` in a 1280 x 720 grey picture (and ``others`` beside them), ``blank`` frames empty."""
     import cv2
@@ -86,18 +78,16 @@ def pasted(frames, scale: float, others=None, blank=()) -> list[np.ndarray]:
 
 def variants(work: Path) -> dict[str, tuple[Path, object]]:
     """label -> (video, how its landmarks map back to the close-up's pixels)."""
-    from stages.tracking.display import show_upright
+    from stages.tracking.display import display_matrix, stored_picture
 
     frames, times = frames_of(TAKE)
     n = len(frames)
     out = {"close-up": (write(work / "close.mp4", frames), lambda p: p)}
     for label, matrix in {
         "portrait (display 90)": display_matrix(90),
-        "portrait, mirrored (270)": display_matrix(270, 1),
+        "portrait, mirrored (270)": display_matrix(270, hflip=True),
     }.items():
-        shown = np.rint(np.array([[matrix[0], matrix[3]], [matrix[1], matrix[4]]]) / 65536).astype(int)
-        back = np.rint(np.linalg.inv(shown)).astype(int)  # stored so that the matrix shows the take upright
-        stored = [show_upright(f, back) for f in frames]
+        stored = [stored_picture(f, matrix) for f in frames]  # what the matrix shows upright
         out[label] = (write(work / f"{len(out)}.mp4", stored, display=matrix), lambda p: p)
     for scale in (0.5, 0.3, 0.2):
         path = write(work / f"wide{scale}.mp4", pasted(frames, scale))

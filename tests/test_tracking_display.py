@@ -1,7 +1,6 @@
 """Videos stored turned or mirrored with a display matrix (a phone's portrait video, a front camera's mirror image):
 tracked as a player shows them (stages/tracking/display.py)."""
 
-import math
 import shutil
 import subprocess
 
@@ -14,30 +13,11 @@ from msflow import UserError
 from msflow.testing import run_stage
 from stages.geometry.rotations import quat_to_euler
 from stages.tracking import FaceMesh
-from stages.tracking.display import show_upright
+from stages.tracking.display import display_matrix, stored_picture
 from stages.tracking.video import iter_frames, probe_video
 
 #: every quarter turn, with and without each mirror
 TURNS = [(angle, h, v) for angle in (0, 90, 180, 270) for h in (0, 1) for v in (0, 1)]
-
-
-def display_matrix(angle: float, hflip: int = 0, vflip: int = 0) -> list[int]:
-    """FFmpeg's av_display_rotation_set(angle) then av_display_matrix_flip(hflip, vflip), written out."""
-    r = -math.radians(angle)
-    m = [0] * 9
-    m[0], m[1], m[3], m[4], m[8] = (int(v * 65536) for v in (math.cos(r), -math.sin(r), math.sin(r), math.cos(r), 0))
-    m[8] = 1 << 30
-    flip = (1 - 2 * hflip, 1 - 2 * vflip, 1)
-    return [m[i] * flip[i % 3] for i in range(9)]
-
-
-def linear_of(matrix: list[int]) -> np.ndarray:
-    return np.rint(np.array([[matrix[0], matrix[3]], [matrix[1], matrix[4]]]) / 65536).astype(int)
-
-
-def stored_for(upright: np.ndarray, matrix: list[int]) -> np.ndarray:
-    """The picture to store so that ``matrix`` shows ``upright``."""
-    return show_upright(upright, np.rint(np.linalg.inv(linear_of(matrix))).astype(int))
 
 
 def picture() -> np.ndarray:
@@ -54,7 +34,7 @@ def test_a_turned_or_mirrored_video_is_read_as_shown(tmp_path, angle, hflip, vfl
     """Known answer: the stored frames are the picture turned back, so reading them as shown gives the picture."""
     matrix = display_matrix(angle, hflip, vflip)
     upright = picture()
-    path = write_video(tmp_path / "turned.mp4", [stored_for(upright, matrix)] * 3, display=matrix)
+    path = write_video(tmp_path / "turned.mp4", [stored_picture(upright, matrix)] * 3, display=matrix)
     info = probe_video(path)
     assert (info.width, info.height) == (64, 48)
     for _, frame in iter_frames(path):
@@ -68,7 +48,7 @@ def test_the_display_convention_is_ffmpegs(tmp_path, angle, hflip, vflip):
     if shutil.which("ffmpeg") is None:
         missing_tool("FFmpeg's command-line tool is not installed: apt-get install -y ffmpeg")
     matrix = display_matrix(angle, hflip, vflip)
-    path = write_video(tmp_path / "turned.mp4", [stored_for(picture(), matrix)] * 3, display=matrix)
+    path = write_video(tmp_path / "turned.mp4", [stored_picture(picture(), matrix)] * 3, display=matrix)
     raw = subprocess.run(
         ["ffmpeg", "-v", "error", "-i", str(path), "-frames:v", "1", "-pix_fmt", "bgr24", "-f", "rawvideo", "-"],
         capture_output=True,
@@ -92,7 +72,9 @@ def test_a_portrait_phone_video_is_tracked_upright(tmp_path):
     frames = first_frames(CLIPS["SAD"], 20)
     videos = {"upright": write_video(tmp_path / "upright.mp4", frames)}
     for name, matrix in {"turned": display_matrix(90), "mirrored": display_matrix(270, 1, 0)}.items():
-        videos[name] = write_video(tmp_path / f"{name}.mp4", [stored_for(f, matrix) for f in frames], display=matrix)
+        videos[name] = write_video(
+            tmp_path / f"{name}.mp4", [stored_picture(f, matrix) for f in frames], display=matrix
+        )
     run = run_stage(FaceMesh, {"audio": "none"}, {"videos": videos}, store=tmp_path / "store")
     labels, sequence = run.meta["labels"], run.arrays["sequence"]
     rows = {name: sequence == labels.index(name) for name in videos}

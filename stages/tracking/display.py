@@ -22,6 +22,26 @@ from msflow import UserError
 IDENTITY = np.eye(2, dtype=np.int64)
 
 
+def display_matrix(angle: float, hflip: bool = False, vflip: bool = False) -> list[int]:
+    """The nine integers of a display matrix that turns a picture by ``angle`` degrees and mirrors it: FFmpeg's
+    ``av_display_rotation_set`` then ``av_display_matrix_flip``, written out (for writing videos that carry one)."""
+    r = -np.radians(angle)
+    m = [int(v * 65536) for v in (np.cos(r), -np.sin(r), 0.0, np.sin(r), np.cos(r), 0.0, 0.0, 0.0, 0.0)]
+    m[8] = 1 << 30
+    flip = (1 - 2 * int(hflip), 1 - 2 * int(vflip), 1)
+    return [m[i] * flip[i % 3] for i in range(9)]
+
+
+def matrix_linear(matrix) -> np.ndarray:
+    """The (2, 2) part of a display matrix (nine integers), in pixels: x' = a x + c y, y' = b x + d y."""
+    return np.array([[matrix[0], matrix[3]], [matrix[1], matrix[4]]], dtype=np.float64) / 65536.0
+
+
+def stored_picture(image: np.ndarray, matrix) -> np.ndarray:
+    """The picture to store so that a player applying ``matrix`` (a quarter turn or mirror) shows ``image``."""
+    return show_upright(image, np.rint(np.linalg.inv(np.rint(matrix_linear(matrix)))).astype(np.int64))
+
+
 def display_linear(frame, *, file: str | None = None, field: str | None = None) -> np.ndarray:
     """The (2, 2) integer matrix L that shows a decoded PyAV frame upright (identity without a display matrix).
 
@@ -30,8 +50,7 @@ def display_linear(frame, *, file: str | None = None, field: str | None = None) 
     for data in frame.side_data:
         if "DISPLAYMATRIX" not in str(data.type):
             continue
-        m = struct.unpack("<9i", bytes(data)[:36])
-        linear = np.array([[m[0], m[3]], [m[1], m[4]]], dtype=np.float64) / 65536.0
+        linear = matrix_linear(struct.unpack("<9i", bytes(data)[:36]))
         rounded = np.rint(linear)
         if np.abs(linear - rounded).max() > 1e-3 or abs(abs(np.linalg.det(rounded)) - 1.0) > 1e-9:
             angle = np.degrees(np.arctan2(linear[1, 0], linear[0, 0]))
