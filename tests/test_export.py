@@ -900,6 +900,34 @@ def test_h264_encoding_is_deterministic(character):
     assert len(outputs) == 1
 
 
+def test_the_face_framing_holds_the_face_in_every_posed_frame(character):
+    """A nod of 30 degrees and a lean of 3 cm with the jaw open: the face framing built from the posed landmarks of
+    every frame shows all of them; the neutral face's box, the framing before, loses the chin."""
+    from stages.geometry.render import CharacterRenderer, posed_points, project
+
+    view = character.view()
+    names = view.meta["target_names"]
+    frames = 4
+    weights = np.zeros((frames, len(names)))
+    weights[:, names.index("jawOpen")] = [0.0, 0.5, 1.0, 1.0]
+    rotation = euler_to_quat(np.zeros(frames), np.radians([0.0, 10.0, 20.0, 30.0]), np.zeros(frames))
+    translation = np.c_[np.zeros(frames), [0.0, -0.01, -0.02, -0.03], np.zeros(frames)]
+    pivot = np.asarray(view.meta["pivot"], np.float64)
+    face = posed_points(view["neutral"], view["deltas"], view["landmark_ids"], weights, rotation, translation, pivot)
+
+    def shown(renderer) -> bool:
+        _, xy = project(face.reshape(-1, 3), renderer.view, 128)
+        return bool(((xy >= 0) & (xy <= 128)).all())
+
+    renderer = CharacterRenderer.from_artifact(view, size=128, framing="face", face_points=face)
+    ids = np.asarray(view["landmark_ids"])
+    for k in range(frames):  # the points are where the renderer poses those vertices
+        posed = renderer.vertices(weights[k], rotation[k], translation[k])[ids]
+        np.testing.assert_allclose(posed, face[k], atol=1e-5)
+    assert shown(renderer)
+    assert not shown(CharacterRenderer.from_artifact(view, size=128, framing="face"))
+
+
 def test_preview_frames_come_in_order_whatever_the_jobs():
     """Blocks rendered by a thread pool reach the encoder in frame order (a renderer that draws its frame index)."""
     from stages.export.preview import Poses, rendered_frames
