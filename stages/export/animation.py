@@ -27,6 +27,7 @@ from stages.export.timeline import (
     align_head_motion,
     clock_frames,
     clock_positions,
+    frame_clock,
     level_head,
     nominal_rate,
     sample_linear,
@@ -36,7 +37,7 @@ from stages.export.timeline import (
     translation_scale,
 )
 from stages.formats.live_link import ARKIT_NAMES, UNTRACKED_COLUMNS, ArkitMapping, arkit_mapping, check_aliases
-from stages.geometry.rotations import quat_continuous, quat_normalize, quat_to_euler
+from stages.geometry.rotations import quat_continuous, quat_normalize, quat_to_euler, quat_to_rotvec
 
 #: preview levels: "full" renders every triangle at params.video_size; "low" renders half the pixels of each side
 PREVIEW_LEVELS = ("low", "full")
@@ -116,14 +117,14 @@ def head_motion(head, params, label: str | None, frames: int, fps: float, out_fp
     head_fps = head.meta.get("fps")
     if not head_fps:
         raise UserError("the head motion has no meta fps", field="inputs.head")
-    (rotation, translation), head_label = select_take(
-        head, ("rotation", "translation"), params.sequence, label, "the head motion"
+    (rotation, translation, times), head_label = select_take(
+        head, ("rotation", "translation", "time"), params.sequence, label, "the head motion"
     )
     if isinstance(head_fps, (list, tuple)):  # a tracking artifact as the head motion: one rate per take
         labels = list(head.meta.get("labels") or [])
         head_fps = head_fps[labels.index(head_label)] if head_label in labels else head_fps[0]
     rotation, translation = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
-    clock = take_clock(head, head_label, len(rotation), float(head_fps))
+    clock = frame_clock(times, float(head_fps))  # a tracked head's frame times
     if clock is None:
         rotation, translation, info = align_head_motion(
             rotation,
@@ -156,7 +157,7 @@ def head_motion(head, params, label: str | None, frames: int, fps: float, out_fp
         info["orientation_taken_out_deg"] = dict(
             zip(("yaw", "pitch", "roll"), np.degrees(quat_to_euler(mean)).round(3).tolist())
         )
-        info["levelled_deg"] = float(np.degrees(2.0 * np.arccos(min(1.0, abs(float(mean[0]))))))
+        info["levelled_deg"] = float(np.degrees(np.linalg.norm(quat_to_rotvec(mean))))
     return quat_continuous(quat_normalize(rotation)), translation, info
 
 
@@ -313,7 +314,6 @@ def posed_face(character, perf: Performance) -> np.ndarray:
     framing must hold, so a nod or a lean does not take the face out of the picture."""
     from stages.geometry.render import posed_points
 
-    pivot = np.asarray(character.meta.get("pivot") or np.zeros(3), np.float64)
     return posed_points(
         character["neutral"],
         character["deltas"],
@@ -321,7 +321,7 @@ def posed_face(character, perf: Performance) -> np.ndarray:
         perf.weights,
         perf.rotation,
         perf.translation,
-        pivot,
+        np.asarray(pivot_of(character)),
     )
 
 

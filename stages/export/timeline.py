@@ -342,5 +342,6 @@ def performer_rows(
         rows = np.flatnonzero(np.asarray(view["sequence"]) == index)
     else:
         rows = np.arange(len(view.lazy("crops")))
-    position = clock_positions(take_clock(view, label, len(rows), fps), len(rows), fps, frames_out, out_fps)
+    clock = frame_clock(np.asarray(view["time"])[rows], fps) if "time" in view else None
+    position = clock_positions(clock, len(rows), fps, frames_out, out_fps)
     return rows[np.floor(position + 1e-9).astype(int)], label

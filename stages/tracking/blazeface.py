@@ -177,10 +177,9 @@ class BlazeFaceDetector:
         less. Only faces whole within a tile count (every face smaller than half a tile lies whole in one).
         ``every_scale``: search the tiles even when the whole frame shows a face (every face in the shot, small
         ones beside a large one)."""
-        if not hasattr(frame, "warp_bgr"):
-            from stages.tracking.planes import BgrImage
+        from stages.tracking.planes import as_image
 
-            frame = BgrImage(np.asarray(frame))
+        frame = as_image(frame)
         height, width = frame.shape[:2]
         found = self._detect_in(frame, letterbox_transform(width, height), None if every_scale else max_faces)
         if (len(found) and not every_scale) or not tiles:
@@ -195,10 +194,9 @@ class BlazeFaceDetector:
     def detect_near(self, frame, cx: float, cy: float, side: float) -> Detections:
         """Faces whole within the square of ``side`` pixels centred on (``cx``, ``cy``) (padded black beyond the
         frame): where a face lost a moment ago most likely still is, found in one inference however small."""
-        if not hasattr(frame, "warp_bgr"):
-            from stages.tracking.planes import BgrImage
+        from stages.tracking.planes import as_image
 
-            frame = BgrImage(np.asarray(frame))
+        frame = as_image(frame)
         scale = INPUT_SIZE / side
         to_input = np.array([[scale, 0.0, -(cx - side / 2) * scale], [0.0, scale, -(cy - side / 2) * scale]])
         return self._detect_in(frame, to_input, None, whole=True)

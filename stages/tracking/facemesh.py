@@ -29,14 +29,12 @@ from typing import Iterable
 import numpy as np
 
 from stages.tracking.blazeface import BlazeFaceDetector, Detections, sigmoid
+from stages.tracking.planes import as_image
 
 #: while no face is found, the detector's tile search for small faces (``BlazeFaceDetector.detect``) runs on the
 #: first such frame and every this many after (a frame's search costs about 0.3 s on a 720p frame; a face
 #: appearing in a wide shot is found within a third of a second at 30 fps)
 TILE_SEARCH_EVERY = 10
-#: which face a take starts with when its first frame shows several: the detector's most certain, the largest, or
-#: the one furthest left or right in the picture; after that the tracker follows it (``FaceMeshTracker.follow``)
-FIRST_FACE = ("most_certain", "largest", "leftmost", "rightmost")
 #: a face lost a moment ago is looked for first in a square this many times its last ROI (which is 1.5 times the
 #: face's box), centred where it was: the face fills a third of it, as the detector likes
 NEAR_SEARCH = 2.0
@@ -119,15 +117,6 @@ LANDMARK_MODELS = {
 }
 
 
-def as_image(frame):
-    """Frames given as BGR arrays get the planes' interface; anything with ``warp_bgr`` passes through."""
-    if hasattr(frame, "warp_bgr"):
-        return frame
-    from stages.tracking.planes import BgrImage
-
-    return BgrImage(np.asarray(frame))
-
-
 class FaceMeshModel:
     """A face landmark model (``LANDMARK_MODELS``) through OpenCV's DNN module."""
 
@@ -197,7 +186,8 @@ class FaceMeshTracker:
         self.eyes = new_eye_pass(eye_pass, eye_model_path) if eye_model_path else None
         self.min_presence = min_presence
         self.redetect_every = redetect_every
-        #: which of several faces a take starts with (``FIRST_FACE``)
+        #: which of several faces a take starts with: "most_certain" (the detector's), "largest", "leftmost" or
+        #: "rightmost" (in the picture); after that the tracker follows it (``follow``)
         self.first_face = first_face
         self.reset()
 
@@ -270,7 +260,7 @@ class FaceMeshTracker:
 
     def follow(self, found: Detections) -> int:
         """Which detection is the performer: the one nearest where the face was last seen (another face in the
-        shot is someone else), or on a take's first detection the one ``first_face`` names (``FIRST_FACE``)."""
+        shot is someone else), or on a take's first detection the one ``first_face`` names."""
         centres = found.boxes.reshape(-1, 2, 2).mean(axis=1)
         if self.last_seen is not None:
             return int(np.argmin(np.linalg.norm(centres - [self.last_seen.cx, self.last_seen.cy], axis=1)))

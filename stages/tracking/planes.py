@@ -194,6 +194,12 @@ class BgrImage:
         return cv2.cvtColor(self.bgr, cv2.COLOR_BGR2GRAY) if self.bgr.ndim == 3 else self.bgr
 
 
+def as_image(frame):
+    """Frames given as BGR arrays get the planes' interface (``BgrImage``); anything with ``warp_bgr`` passes
+    through."""
+    return frame if hasattr(frame, "warp_bgr") else BgrImage(np.asarray(frame))
+
+
 def frame_planes(frame, converter: RegionConverter | None = None) -> FramePlanes:
     """A decoded PyAV VideoFrame as a ``FramePlanes`` (``converter``: one per stream, reused frame to frame)."""
     return FramePlanes(frame, converter or RegionConverter())
