@@ -90,10 +90,10 @@ def facemesh_of(points, rotation, translation, orthographic=False):
     return mesh
 
 
-def performance(character, weights, audio_gain=None, mesh=True):
+def performance(character, weights, audio_gain=None, mesh=True, motion=None):
     """A tracking artifact of the character itself: landmarks = its landmark vertices under ``weights`` (and a
-    FaceMesh made of them)."""
-    rotation, translation = head_motion()
+    FaceMesh made of them), the head moving as ``motion`` says (rotations, translations; ``head_motion()``)."""
+    rotation, translation = head_motion() if motion is None else motion
     model = load_face3d().neutral
     neutral = character_landmarks(character["neutral"], character["deltas"], character["landmark_ids"], weights[:1] * 0)
     points = align_to_model(neutral[0], model).apply(
@@ -233,6 +233,28 @@ def test_funnel_instead_of_jaw_is_caught(character, truth):
     swapped[:, names.index("mouthFunnel")] = weights[:, names.index("jawOpen")]
     out = evaluate(character, tracks, swapped)
     assert out.metrics["jaw_over_funnel_fraction"] == 0.0 and out.metrics["jaw_minus_funnel"] < 0
+
+
+def test_the_widest_jaw_frames_are_the_jaws_not_the_heads_turn(character):
+    """A jaw opened at frames 10-18 with the head facing the camera, the mouth closed at 50-80 while the head turns
+    40 degrees aside: in the image, the turn narrows the eyes' distance and so lengthens the chin-to-nose-bridge
+    distance over it more than the jaw does; the chin's drop in the head frame picks the open jaw."""
+    from stages.geometry.rotations import euler_to_quat
+
+    names = character.meta["target_names"]
+    weights = np.zeros((FRAMES, len(names)))
+    weights[10:19, names.index("jawOpen")] = 0.4
+    t = np.arange(FRAMES)
+    yaw = np.radians(40.0) * np.sin(np.pi * (t - 50) / 30.0) * ((t >= 50) & (t < 80))
+    translation = np.tile([0.0, 0.0, -60.0], (FRAMES, 1))
+    tracks = performance(character, weights, motion=(euler_to_quat(yaw, 0 * t, 0 * t), translation))
+    opened = set(range(10, 19))
+    by_head = evaluate(character, tracks, weights)
+    by_image = evaluate(character, tracks, weights, widest_by="image")
+    assert set(by_head.meta["widest_jaw_frames"]) <= opened
+    assert by_head.metrics["jaw_over_funnel_fraction"] == 1.0
+    assert not set(by_image.meta["widest_jaw_frames"]) & opened
+    assert by_image.metrics["jaw_over_funnel_fraction"] == 0.0
 
 
 def test_a_press_over_open_lips_is_counted(character, truth):

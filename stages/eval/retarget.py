@@ -22,8 +22,9 @@ first aligned to that model by a 3D similarity on the rigid landmarks), then com
   of ``blink_tolerance`` frames.
 - **audio**: Pearson correlation of the mouth opening with the audio's RMS envelope, for the character, the
   performer (the reference) and the character shifted by half a take (no timing: the chance level).
-- **jaw vs funnel**: at the performer's widest-jaw frames (chin-to-nose-bridge distance, top ``widest_fraction``
-  of each take), jawOpen minus mouthFunnel, and how often jawOpen is the larger.
+- **jaw vs funnel**: at the performer's widest-jaw frames (top ``widest_fraction`` of each take by the chin's drop
+  in the head's frame, or with ``widest_by: image`` by the chin-to-nose-bridge distance in the image), jawOpen
+  minus mouthFunnel, and how often jawOpen is the larger.
 - **pressed lips apart**: how often a lip press (mouthPress) is on while the performer's lips are apart
   (``press_apart_fraction``: an ARKit rig shows pressed lips over an open mouth).
 - **columns that follow the movement**: per take and column whose movement the performer made, the correlation of
@@ -284,8 +285,11 @@ class RetargetEval(Stage):
         blink_tolerance: int = Field(1, ge=0)
         #: a narrowing longer than this (seconds) is a squint or closed eyes, not a blink
         blink_max_seconds: float = Field(0.5, gt=0)
-        #: the performer's widest-jaw frames: this top fraction of each take
+        #: the performer's widest-jaw frames: this top fraction of each take ...
         widest_fraction: float = Field(0.1, gt=0, le=1)
+        #: ... by the chin's drop in the head's frame (the JawOpen probe; the image's measure for a take without a
+        #: FaceMesh) or in the image (chin to nose bridge over the eye distance, which a nod or a turn changes too)
+        widest_by: Literal["head_frame", "image"] = "head_frame"
         #: lips apart: the performer's inner-lip gap above this (IOD) ...
         apart_gap: float = Field(0.1, gt=0)
         #: ... where a lip press (mouthPress*) above this is pressing lips that do not touch (``press_apart_fraction``)
@@ -459,6 +463,8 @@ def evaluate(params, **data) -> dict:
         performer = performer_frame(data, rows, params)
         gaps = (context["performer_gap"][rows], context["character_gap"][rows])
         movements, probes = take_movements(data, rows, gaps[0], performer, params)
+        if params.widest_by == "head_frame" and "JawOpen" in probes:
+            use_jaw_opening(context, rows, probes["JawOpen"], sequence, params.widest_fraction)
         made, character_probes = None, {}
         if performer is not None:
             made, character_probes = character_movements(data, weights[rows], performer, gaps, params)
@@ -558,6 +564,7 @@ def event_context(params, data, frames) -> dict:
         "character_aperture": character_aperture,
         "performer_blinks": blink_events(performer_aperture, sequence, *ratios, longest),
         "character_blinks": blink_events(character_aperture, sequence, *ratios, longest),
+        "jaw_opening": jaw_drop(tracked),  # the head frame's chin drop replaces it take by take (evaluate)
         "widest": widest_frames(jaw_drop(tracked), sequence, params.widest_fraction),
         "envelope": None,
         "envelope_r": {},
@@ -601,6 +608,15 @@ def summary(params, data, frames, context, rows: np.ndarray) -> dict[str, float]
     metrics.update(press_metrics(data["weights"], data["names"], apart, params.press_level))
     metrics.update(take_envelope(context, data["sequence"], rows))
     return metrics
+
+
+def use_jaw_opening(context: dict, rows: np.ndarray, opening: np.ndarray, sequence: np.ndarray, fraction: float):
+    """The take ``rows``' widest-jaw frames from ``opening`` (its frames' chin drop in the head frame) instead of
+    the image's chin-to-nose-bridge distance over the eye distance, which the head's pose changes too: a turn of
+    30 degrees narrows the eyes' distance by 13%, more than an open vowel's chin drop (5-11% at the widest frames
+    of the CREMA-D and talking-head takes)."""
+    context["jaw_opening"][rows] = opening
+    context["widest"] = widest_frames(context["jaw_opening"], sequence, fraction)
 
 
 def jaw_metrics(weights: np.ndarray, names: list[str], widest: np.ndarray) -> dict[str, float]:
