@@ -255,6 +255,10 @@ def test_the_widest_jaw_frames_are_the_jaws_not_the_heads_turn(character):
     assert by_head.metrics["jaw_over_funnel_fraction"] == 1.0
     assert not set(by_image.meta["widest_jaw_frames"]) & opened
     assert by_image.metrics["jaw_over_funnel_fraction"] == 0.0
+    assert [by_head.meta["takes"]["take"]["widest_by"], by_image.meta["takes"]["take"]["widest_by"]] == [
+        "head_frame",
+        "image",
+    ]
 
 
 def test_a_press_over_open_lips_is_counted(character, truth):
@@ -402,6 +406,7 @@ def test_without_a_facemesh_only_the_eyes_are_probed(character, truth):
     weights, _, _ = truth
     out = evaluate(character, performance(character, weights, mesh=False), weights)
     assert out.meta["movement_source"] == "2D landmarks" and any("no FaceMesh" in w for w in out.warnings)
+    assert out.meta["takes"]["take"]["widest_by"] == "image"  # asked head_frame, which needs the FaceMesh
     assert "dead_not_moved" not in out.meta["arkit_columns"].get("MouthSmileLeft", {})
     assert out.meta["arkit_columns"]["MouthSmileLeft"]["dead_unmeasured"] == ["take"]
     assert out.meta["arkit_columns"]["EyeBlinkLeft"]["moved"] == ["take"]

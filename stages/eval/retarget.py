@@ -463,7 +463,8 @@ def evaluate(params, **data) -> dict:
         performer = performer_frame(data, rows, params)
         gaps = (context["performer_gap"][rows], context["character_gap"][rows])
         movements, probes = take_movements(data, rows, gaps[0], performer, params)
-        if params.widest_by == "head_frame" and "JawOpen" in probes:
+        widest_by = "head_frame" if params.widest_by == "head_frame" and "JawOpen" in probes else "image"
+        if widest_by == "head_frame":
             use_jaw_opening(context, rows, probes["JawOpen"], sequence, params.widest_fraction)
         made, character_probes = None, {}
         if performer is not None:
@@ -481,6 +482,7 @@ def evaluate(params, **data) -> dict:
             "following": column_following(arkit[rows], columns, probes, movements),
             "movement_gains": movement_gains(probes, character_probes, movements, still_lids[rows]),
             "probe_focal_length": None if focal is None or not np.isfinite(focal) else round(focal, 1),
+            "widest_by": widest_by,  # the image's measure where head_frame was asked but the take has no FaceMesh
         }
     metrics = summary(params, data, frames, context, np.ones(len(sequence), bool))
     metrics.update(pooled_dead(takes, arkit, columns, params.dead_level))
@@ -698,7 +700,8 @@ def pack_evaluation(metrics, takes, context, frames, dead_morphs, data) -> dict:
     if data.get("mesh") is None:
         warnings.append(
             "the tracking has no FaceMesh: whether the performer moved the face (dead ARKit columns) is measured for "
-            "the eyes only (2D landmarks read a turn of the head as a sideways jaw or a frown)"
+            "the eyes only (2D landmarks read a turn of the head as a sideways jaw or a frown), and the widest-jaw "
+            "frames by the image (a turn of the head lengthens the chin's distance to the nose bridge too)"
         )
     if find_morph(data["names"], "jawOpen") is None or find_morph(data["names"], "mouthFunnel") is None:
         warnings.append("the character has no jawOpen/mouthFunnel morphs: jaw vs funnel not measured")
