@@ -463,7 +463,7 @@ def evaluate(params, **data) -> dict:
         performer = performer_frame(data, rows, params)
         gaps = (context["performer_gap"][rows], context["character_gap"][rows])
         movements, probes = take_movements(data, rows, gaps[0], performer, params)
-        widest_by = "head_frame" if params.widest_by == "head_frame" and "JawOpen" in probes else "image"
+        widest_by = params.widest_by if performer is not None else "image"  # the head frame needs the FaceMesh
         if widest_by == "head_frame":
             use_jaw_opening(context, rows, probes["JawOpen"], sequence, params.widest_fraction)
         made, character_probes = None, {}
@@ -482,7 +482,7 @@ def evaluate(params, **data) -> dict:
             "following": column_following(arkit[rows], columns, probes, movements),
             "movement_gains": movement_gains(probes, character_probes, movements, still_lids[rows]),
             "probe_focal_length": None if focal is None or not np.isfinite(focal) else round(focal, 1),
-            "widest_by": widest_by,  # the image's measure where head_frame was asked but the take has no FaceMesh
+            "widest_by": widest_by,
         }
     metrics = summary(params, data, frames, context, np.ones(len(sequence), bool))
     metrics.update(pooled_dead(takes, arkit, columns, params.dead_level))
