@@ -183,6 +183,19 @@ def test_a_shifted_animation_scores_badly(character, truth):
     assert late.metrics["envelope_r_character"] < 0.3
 
 
+def test_a_silent_take_has_no_envelope_correlation(character, truth):
+    """A take tracked without sound (the tracking's ``audio: optional``) has empty audio bounds. It has no
+    envelope to correlate with, so it gives no envelope r, instead of an r of 0 pooled with the other takes'."""
+    weights, tracks, _ = truth
+    arrays = {name: np.asarray(tracks[name]) for name in tracks.names}
+    arrays["audio_bounds"] = np.array([[arrays["audio"].size, arrays["audio"].size]])
+    silent = artifact(arrays, meta={**tracks.meta, "has_audio": [False]})
+    out = evaluate(character, silent, weights)
+    assert not [key for key in out.metrics if key.startswith("envelope_r")]
+    assert any("no audio in take" in warning for warning in out.warnings)
+    assert out.metrics["mouth_motion_error_iod"] < 1e-4  # the rest is scored as before
+
+
 def test_pose_on_tracked_face_recovers_a_known_similarity():
     """Head-frame points seen through a known similarity (FaceMesh image axes: y down, z away) come back exactly."""
     from stages.geometry.rotations import euler_to_quat, quat_to_matrix
@@ -661,6 +674,35 @@ def test_capture_pipeline_turns_a_clip_into_animation_files(tmp_path):
     yaw = np.array([float(r[rows[0].index("HeadYaw")]) for r in rows[1:]])
     assert np.ptp(yaw) > 0  # the tracked head moves
     assert result.artifact("export").meta["head"]["head_fps"] == pytest.approx(result.artifact("blend").meta["fps"])
+
+
+def test_a_silent_clip_is_captured_with_a_silent_preview(tmp_path):
+    """A clip without a sound track (a silent reference recording) still becomes an animation: the capture reads
+    only the face, so the files come out, and the preview, with nothing to play, is silent and says so."""
+    import shutil
+    from pathlib import Path
+
+    import av
+    from tracking_media import first_frames, write_video
+
+    import msflow
+
+    root = Path(__file__).resolve().parents[1]
+    project = tmp_path / "project"
+    project.mkdir()
+    for name in ("pipelines", "stages", "data"):
+        shutil.copytree(root / name, project / name, ignore=shutil.ignore_patterns("__pycache__", ".msflow", "*.lock"))
+    shutil.copy2(root / "pyproject.toml", project)
+    frames = first_frames(root / "data" / "crema-d" / "1001_DFA_HAP_XX.flv", 30)
+    write_video(project / "silent.mp4", frames, fps=30)  # no audio stream
+    result = msflow.run(
+        project / "pipelines" / "capture.yaml", ["vars.take=../silent.mp4", "vars.name=silent", "export.video_size=96"]
+    )
+    rows = (project / "out" / "silent_live_link.csv").read_text().splitlines()
+    assert len(rows) - 1 == len(frames)
+    assert any("no audio" in w and "silent" in w for w in result.warnings.get("export", []))
+    with av.open(str(project / "out" / "silent_preview.mp4")) as preview:
+        assert preview.streams.video and not preview.streams.audio
 
 
 def test_columns_follow_the_movements_they_name(character, truth):

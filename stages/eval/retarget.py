@@ -434,10 +434,11 @@ def _take_audio(tracks, sequence) -> list | None:
 
     out = []
     for i in range(takes):
-        if i >= len(bounds) or not per_take("audio_rate", i, None):
+        start, stop = (int(v) for v in bounds[i]) if i < len(bounds) else (0, 0)
+        # a take tracked without sound (audio: optional) has empty bounds: no envelope, rather than one of zeros
+        if stop <= start or not per_take("audio_rate", i, None) or per_take("has_audio", i, True) is False:
             out.append(None)
             continue
-        start, stop = (int(v) for v in bounds[i])
         out.append(
             (audio[start:stop], float(per_take("audio_rate", i, 0)), float(per_take("audio_offset", i, 0.0) or 0.0))
         )
@@ -696,6 +697,11 @@ def pack_evaluation(metrics, takes, context, frames, dead_morphs, data) -> dict:
     }
     if context["envelope"] is not None:
         arrays["envelope"] = context["envelope"]
+    return {"metrics": metrics, "meta": meta, "arrays": arrays, "warnings": evaluation_warnings(data)}
+
+
+def evaluation_warnings(data) -> list[str]:
+    """What the evaluation could not measure, and why."""
     warnings = []
     if data.get("mesh") is None:
         warnings.append(
@@ -705,7 +711,13 @@ def pack_evaluation(metrics, takes, context, frames, dead_morphs, data) -> dict:
         )
     if find_morph(data["names"], "jawOpen") is None or find_morph(data["names"], "mouthFunnel") is None:
         warnings.append("the character has no jawOpen/mouthFunnel morphs: jaw vs funnel not measured")
-    return {"metrics": metrics, "meta": meta, "arrays": arrays, "warnings": warnings}
+    audio = data["audio"] or [None] * len(data["labels"])
+    silent = [label for label, take_audio in zip(data["labels"], audio) if take_audio is None]
+    if silent:
+        warnings.append(
+            f"no audio in {', '.join(silent)}: the mouth's correlation with the sound is not measured there"
+        )
+    return warnings
 
 
 def envelope_correlations(data, performer_gap, character_gap, shifted_gap) -> tuple[np.ndarray, dict]:
