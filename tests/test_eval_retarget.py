@@ -650,21 +650,27 @@ def test_eval_pipeline_runs_on_a_folder_of_takes(tmp_path):
     assert "paper_eval" not in result.executed
 
 
+def capture_project(root, project):
+    """A fresh copy of the project for pipelines/capture.yaml: its code, data and pipelines, no store or locks."""
+    import shutil
+
+    project.mkdir()
+    for name in ("pipelines", "stages", "data"):
+        shutil.copytree(root / name, project / name, ignore=shutil.ignore_patterns("__pycache__", ".msflow", "*.lock"))
+    shutil.copy2(root / "pyproject.toml", project)
+    return project
+
+
 def test_capture_pipeline_turns_a_clip_into_animation_files(tmp_path):
     """pipelines/capture.yaml from a fresh copy: a clip in, GLB and Live Link CSV out, with the clip's own head
     motion (the tracking as the head input) and a mouth that follows the clip."""
     import csv
-    import shutil
     from pathlib import Path
 
     import msflow
 
     root = Path(__file__).resolve().parents[1]
-    project = tmp_path / "project"
-    project.mkdir()
-    for name in ("pipelines", "stages", "data"):
-        shutil.copytree(root / name, project / name, ignore=shutil.ignore_patterns("__pycache__", ".msflow", "*.lock"))
-    shutil.copy2(root / "pyproject.toml", project)
+    project = capture_project(root, tmp_path / "project")
     result = msflow.run(project / "pipelines" / "capture.yaml", ["vars.name=happy", "export.video_size=96"])
     rows = list(csv.reader((project / "out" / "happy_live_link.csv").open()))
     frames = len(result.load("track.landmarks"))
@@ -679,7 +685,6 @@ def test_capture_pipeline_turns_a_clip_into_animation_files(tmp_path):
 def test_a_silent_clip_is_captured_with_a_silent_preview(tmp_path):
     """A clip without a sound track (a silent reference recording) still becomes an animation: the capture reads
     only the face, so the files come out, and the preview, with nothing to play, is silent and says so."""
-    import shutil
     from pathlib import Path
 
     import av
@@ -688,11 +693,7 @@ def test_a_silent_clip_is_captured_with_a_silent_preview(tmp_path):
     import msflow
 
     root = Path(__file__).resolve().parents[1]
-    project = tmp_path / "project"
-    project.mkdir()
-    for name in ("pipelines", "stages", "data"):
-        shutil.copytree(root / name, project / name, ignore=shutil.ignore_patterns("__pycache__", ".msflow", "*.lock"))
-    shutil.copy2(root / "pyproject.toml", project)
+    project = capture_project(root, tmp_path / "project")
     frames = first_frames(root / "data" / "crema-d" / "1001_DFA_HAP_XX.flv", 30)
     write_video(project / "silent.mp4", frames, fps=30)  # no audio stream
     result = msflow.run(
