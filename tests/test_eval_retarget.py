@@ -196,6 +196,18 @@ def test_a_silent_take_has_no_envelope_correlation(character, truth):
     assert out.metrics["mouth_motion_error_iod"] < 1e-4  # the rest is scored as before
 
 
+def test_the_silent_takes_warning_names_the_first_five():
+    """A folder tracked without sound (``audio: none``) warns once, naming five takes and counting the rest."""
+    from stages.eval.retarget import evaluation_warnings
+
+    labels = [f"take{i}" for i in range(7)]
+    data = {"mesh": np.zeros(1), "names": ["jawOpen", "mouthFunnel"], "labels": labels, "audio": None}
+    (warning,) = evaluation_warnings(data)
+    assert warning.startswith("no audio in take0, take1, take2, take3, take4 and 2 more takes:")
+    data["audio"] = [(np.ones(8), 16000.0, 0.0)] * 7
+    assert evaluation_warnings(data) == []
+
+
 def test_pose_on_tracked_face_recovers_a_known_similarity():
     """Head-frame points seen through a known similarity (FaceMesh image axes: y down, z away) come back exactly."""
     from stages.geometry.rotations import euler_to_quat, quat_to_matrix

@@ -714,9 +714,8 @@ def evaluation_warnings(data) -> list[str]:
     audio = data["audio"] or [None] * len(data["labels"])
     silent = [label for label, take_audio in zip(data["labels"], audio) if take_audio is None]
     if silent:
-        warnings.append(
-            f"no audio in {', '.join(silent)}: the mouth's correlation with the sound is not measured there"
-        )
+        named = ", ".join(silent[:5]) + (f" and {len(silent) - 5} more takes" if len(silent) > 5 else "")
+        warnings.append(f"no audio in {named}: the mouth's correlation with the sound is not measured there")
     return warnings
 
 
