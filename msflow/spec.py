@@ -292,7 +292,9 @@ def load_pipeline(
     raw = _top_level_mapping(text, file)
     overrides = tuple(overrides)
     apply_overrides(raw, overrides, file)
-    spec = _validated_spec(_substituted(raw, file), file)
+    substituted = _substituted(raw, file)
+    _reject_nul_characters(substituted, file)
+    spec = _validated_spec(substituted, file)
     pipeline_dir = path.resolve().parent
     root = find_root(pipeline_dir)
     store = _store_location(spec.store, pipeline_dir)
@@ -337,6 +339,17 @@ def _substituted(raw: dict[str, Any], file: str) -> dict[str, Any]:
         raise UserError("'vars' must be a mapping of name: value", file=file, field="vars")
     variables = {str(k): v for k, v in variables.items()}
     return {k: (v if k == "vars" else substitute_vars(v, variables, file, k)) for k, v in raw.items()}
+
+
+def _reject_nul_characters(value: Any, file: str, where: str = "") -> None:
+    """A UserError for a string holding a NUL character (a YAML ``"\\0"``): no path can hold one, and the
+    operating system would refuse it with a ValueError deep inside a file lookup."""
+    if isinstance(value, str) and "\0" in value:
+        raise UserError(f"a NUL character in {value!r}: no file name can hold one", file=file, field=where or None)
+    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+    for key, item in items:
+        _reject_nul_characters(key, file, where)  # a label or stage name becomes part of a file name too
+        _reject_nul_characters(item, file, f"{where}.{key}" if where else str(key))
 
 
 def _validated_spec(substituted: dict[str, Any], file: str) -> PipelineSpec:
@@ -465,7 +478,12 @@ def _file_form(ref: dict[str, Any], base: Path, root: Path, file: str, stage: st
         matches = sorted(globlib.glob(str(base / spec), recursive=True))
         matches = [m for m in matches if Path(m).is_file() or Path(m).is_dir()]
         if not matches:
-            raise UserError(f"the glob '{spec}' matches no files", file=file, stage=stage, field=where)
+            raise UserError(
+                f"the glob '{spec}' matches no files{_relative_hint(base, spec, globlib.glob(spec, recursive=True))}",
+                file=file,
+                stage=stage,
+                field=where,
+            )
         files, form = [(rel_to(Path(m), root), m) for m in matches], "glob"
         listed = glob_folders(base, spec)
     else:
@@ -592,10 +610,24 @@ def _labelled_mapping(ref: dict[str, Any], base: Path, file: str, stage: str, wh
 def _existing_file(base: Path, value: str, file: str, stage: str, where: str) -> str:
     target = (base / value).resolve()
     if not target.exists():
-        raise UserError(f"data file not found: {value}", file=file, stage=stage, field=where)
+        hint = _relative_hint(base, value, [value] if Path(value).exists() else [])
+        raise UserError(f"data file not found: {value}{hint}", file=file, stage=stage, field=where)
     if not (target.is_file() or target.is_dir()):
         raise UserError(f"not a file or folder: {value}", file=file, stage=stage, field=where)
     return str(target)
+
+
+def _relative_hint(base: Path, value: str, found_from_cwd: list[str]) -> str:
+    """For a relative path that names nothing: where relative paths start (the pipeline file's folder), and the
+    path to write when ``value`` does name something from the working directory (``found_from_cwd``), the usual
+    slip on the command line (``-S vars.take=clip.mp4`` beside a pipeline in a subfolder)."""
+    if Path(value).is_absolute():
+        return ""
+    folder = os.path.relpath(base) if base.resolve() != Path.cwd().resolve() else "."
+    hint = f" (paths are relative to the pipeline file's folder, {folder}"
+    if found_from_cwd and base.resolve() != Path.cwd().resolve():
+        hint += f"; from there it is '{os.path.relpath(Path(value).resolve(), base.resolve())}'"
+    return hint + ")"
 
 
 def check_cycles(nodes: dict[str, StageNode], file: str) -> None:

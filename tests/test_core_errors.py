@@ -110,6 +110,18 @@ CASES = {
         [],
         ["stage 'csv'", "field 'inputs.table'", "data file not found: data/nothere.csv"],
     ),
+    "nul_character_in_a_path": (
+        "version: 1\nstages:\n  csv:\n    uses: numstages.basic:LoadCsv\n"
+        '    inputs: {table: {path: "data/a\\0b.csv"}}\n',
+        [],
+        ["field 'stages.csv.inputs.table.path'", "a NUL character in 'data/a\\x00b.csv'"],
+    ),
+    "nul_character_in_a_label": (
+        "version: 1\nstages:\n  csv:\n    uses: numstages.basic:LoadCsv\n"
+        '    inputs: {table: {"fir\\0st": data/table.csv}}\n',
+        [],
+        ["field 'stages.csv.inputs.table'", "a NUL character in 'fir\\x00st'"],
+    ),
     "glob_matching_nothing": (
         "version: 1\nstages:\n  csv:\n    uses: numstages.basic:LoadCsv\n    inputs: {table: {glob: 'data/*.tsv'}}\n",
         [],
@@ -209,6 +221,31 @@ def test_missing_pipeline_file(numproject):
     assert result.returncode == 2 and "nothere.yaml: pipeline file not found" in result.stderr
 
 
+@pytest.mark.parametrize(
+    "table, expected",
+    [
+        ("{path: data/table.csv}", "data file not found: data/table.csv (paths are relative to the pipeline file's "
+         "folder, sub; from there it is '../data/table.csv')"),
+        ("{glob: 'data/*.csv'}", "the glob 'data/*.csv' matches no files (paths are relative to the pipeline file's "
+         "folder, sub; from there it is '../data/*.csv')"),
+        ("{path: data/gone.csv}", "data file not found: data/gone.csv (paths are relative to the pipeline file's "
+         "folder, sub)"),
+    ],
+)  # fmt: skip
+def test_a_path_written_from_the_working_directory_gets_the_path_to_write(numproject, table, expected):
+    """Paths in a pipeline start at its file's folder. A path that names a file only from the working directory
+    (``-S vars.take=clip.mp4`` for a pipeline in a subfolder) is the usual slip: the error says where paths start
+    and what to write instead."""
+    (numproject / "sub").mkdir()
+    (numproject / "sub" / "p.yaml").write_text(
+        f"version: 1\nstages:\n  csv:\n    uses: numstages.basic:LoadCsv\n    inputs: {{table: {table}}}\n"
+    )
+    result = run_cli(numproject, "run", "sub/p.yaml")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert expected in result.stderr, result.stderr
+    assert not list(numproject.rglob(".msflow"))  # nothing written
+
+
 def test_stage_user_error_exits_2_and_keeps_earlier_results(numproject):
     assert run_cli(numproject, "run", "-q").returncode == 0
     before = sorted(p.name for p in (numproject / ".msflow" / "artifacts").glob("*/*"))
@@ -279,6 +316,7 @@ KEYS = [
     "${n}",
     "${x}",
     "data/table.csv",
+    "data/\x00.csv",  # a path the operating system refuses with a ValueError, not an OSError
 ]
 scalars = (
     st.none() | st.booleans() | st.integers() | st.floats(allow_nan=True) | st.text(max_size=12) | st.sampled_from(KEYS)
