@@ -718,6 +718,40 @@ def test_a_silent_clip_is_captured_with_a_silent_preview(tmp_path):
         assert preview.streams.video and not preview.streams.audio
 
 
+def test_a_face_found_after_a_long_gap_is_eased_into_not_jumped_to(tmp_path):
+    """20 black frames (longer than the tracker's max_gap_frames, 15: the face is held through them) before the
+    face comes back smiling. With the default ease the last quarter second of the gap moves into the found face;
+    with 0 the smile and the head jump in one frame. The frames before the ease and the found face itself are the
+    same either way."""
+    import csv
+    from pathlib import Path
+
+    from tracking_media import first_frames, write_video
+
+    import msflow
+
+    root = Path(__file__).resolve().parents[1]
+    project = capture_project(root, tmp_path / "project")
+    frames = first_frames(root / "data" / "crema-d" / "1001_DFA_HAP_XX.flv", 50)
+    frames[15:35] = [frame * 0 for frame in frames[15:35]]  # the face is found again at frame 35
+    write_video(project / "gap.mp4", frames, fps=30)
+
+    def columns(ease: str, name: str) -> dict[str, np.ndarray]:
+        overrides = [f"blend.held_gap_ease={ease}", f"export.held_gap_ease={ease}", "export.video_size=96"]
+        msflow.run(project / "pipelines" / "capture.yaml", ["vars.take=../gap.mp4", f"vars.name={name}", *overrides])
+        rows = list(csv.reader((project / "out" / f"{name}_live_link.csv").open()))
+        return {c: np.array([float(r[rows[0].index(c)]) for r in rows[1:]]) for c in ("MouthSmileLeft", "HeadPitch")}
+
+    jumped, eased = columns("0", "jumped"), columns("0.25", "eased")
+    smile = jumped["MouthSmileLeft"]
+    assert smile[35] - smile[34] > 0.3 and np.all(smile[15:35] == smile[14])  # held, then the pop
+    for column in ("MouthSmileLeft", "HeadPitch"):
+        jump = abs(jumped[column][35] - jumped[column][34])
+        assert np.abs(np.diff(eased[column][25:36])).max() < 0.4 * jump, column  # up to the found face
+    np.testing.assert_allclose(eased["MouthSmileLeft"][:27], smile[:27], atol=1e-6)  # before the last 0.25 s
+    np.testing.assert_allclose(eased["MouthSmileLeft"][35:], smile[35:], atol=1e-6)
+
+
 def test_columns_follow_the_movements_they_name(character, truth):
     """The character's own animation follows every movement the performer made (the probes measure what the
     morphs did: jaw r 1.0, blinks 0.98); the same animation half a take late does not (median -0.04)."""

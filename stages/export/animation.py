@@ -37,6 +37,7 @@ from stages.export.timeline import (
     translation_scale,
 )
 from stages.formats.live_link import ARKIT_NAMES, UNTRACKED_COLUMNS, ArkitMapping, arkit_mapping, check_aliases
+from stages.geometry.held_gaps import ease_into_found_face, found_again_spans
 from stages.geometry.rotations import quat_continuous, quat_normalize, quat_to_euler, quat_to_rotvec
 
 #: preview levels: "full" renders every triangle at params.video_size; "low" renders half the pixels of each side
@@ -111,6 +112,19 @@ def character_weights(blend_weights: np.ndarray, blend_names: list[str], charact
     return out
 
 
+def ease_held_head(head, label, rotation: np.ndarray, translation: np.ndarray, fps: float, params):
+    """The take's head eased from the pose the tracker held through each long gap into the one it found after it
+    (``stages.geometry.held_gaps``; the head input's meta gaps, a tracking artifact's); and how many gaps."""
+    labels, gaps = list(head.meta.get("labels") or []), head.meta.get("gaps")
+    if not gaps or label not in labels:
+        return rotation, translation, 0
+    take = [np.zeros(len(rotation), np.int64), [gaps[labels.index(label)]], [float(fps)]]
+    spans = found_again_spans(*take, params.held_gap_ease)
+    if not spans:
+        return rotation, translation, 0
+    return ease_into_found_face(rotation, spans, rotations=True), ease_into_found_face(translation, spans), len(spans)
+
+
 def head_motion(head, params, label: str | None, frames: int, fps: float, out_fps: float, frames_out: int):
     """Head rotation and translation (metres, as exported) on the output timeline (``frames_out`` at ``out_fps``),
     and what was done. A tracked head of a variable-frame-rate take is sampled by its frame times."""
@@ -124,6 +138,7 @@ def head_motion(head, params, label: str | None, frames: int, fps: float, out_fp
         labels = list(head.meta.get("labels") or [])
         head_fps = head_fps[labels.index(head_label)] if head_label in labels else head_fps[0]
     rotation, translation = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
+    rotation, translation, eased = ease_held_head(head, head_label, rotation, translation, head_fps, params)
     clock = frame_clock(times, float(head_fps))  # a tracked head's frame times
     if clock is None:
         rotation, translation, info = align_head_motion(
@@ -141,7 +156,7 @@ def head_motion(head, params, label: str | None, frames: int, fps: float, out_fp
         position = clock_positions(clock, len(rotation), float(head_fps), frames_out, out_fps)
         rotation, translation = sample_rotations(rotation, position), sample_linear(translation, position)
         info = {"head_fps": float(head_fps), "head_frames": len(clock), "held_frames": 0, "frame_times": True}
-    info["take"] = head_label
+    info["take"], info["held_gaps_eased"] = head_label, eased
     scale = None
     if params.head_translation != "none":
         scale, info["translation_units"] = translation_scale(head.meta, params.translation_scale)
@@ -387,6 +402,9 @@ class Export(Stage):
         resample_head: bool = False
         #: longest tolerated difference in duration between head motion and face animation, seconds
         max_length_mismatch: float = Field(0.25, ge=0)
+        #: where the tracker held the head through a long gap (the head input's meta gaps) and found it again, the
+        #: last this many seconds of the gap turn from the held pose into the found one instead of jumping; 0: jump
+        held_gap_ease: float = Field(0.25, ge=0, le=10)
         #: "relative": head position minus its mean; "absolute": as given; "none": rotation only (also what
         #: happens when the head's translation_units are unknown and translation_scale is not set)
         head_translation: Literal["relative", "absolute", "none"] = "relative"

@@ -36,6 +36,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
+from stages.geometry.held_gaps import ease_into_found_face, found_again_spans
 
 ALPHA_FORMS = (
     "alpha is 'from_analysis', constant weights such as {happy: 0.5, neutral: 0.5}, or "
@@ -290,6 +291,9 @@ class BlendParams(Stage.Params):
     #: (export.head_rotation: relative), looks at the viewer; "tracked": relative to the head's straight ahead, as
     #: the tracker reads it (pair it with export.head_rotation: absolute)
     gaze_reference: Literal["median", "tracked"] = "median"
+    #: where the tracker held the face through a long gap (tracks' meta gaps) and found it again, the last this many
+    #: seconds of the gap ease from the held face into the found one instead of jumping in one frame; 0: the jump
+    held_gap_ease: float = Field(0.25, ge=0, le=10)
     #: also output posed vertices per frame (needs the character input)
     vertices: bool = False
 
@@ -626,8 +630,22 @@ def finish_weights(params, data, raw: np.ndarray, alpha: np.ndarray) -> dict:
             )
             out["gaze"], out["meta"]["eyes"] = gaze, eyes_meta
             out["warnings"] += eyes_warnings
+    spans = held_gap_spans(tracks, params.held_gap_ease)
+    if spans:
+        weights = ease_into_found_face(weights, spans)
+        out["gaze"] = None if out["gaze"] is None else ease_into_found_face(out["gaze"], spans)
+        out["meta"]["held_gaps_eased"] = [list(span) for span in spans]
     out["weights"] = weights
     return out
+
+
+def held_gap_spans(tracks, seconds: float) -> list[tuple[int, int]]:
+    """The frames that ease into a face the tracker found again after holding it (``stages.geometry.held_gaps``),
+    from the tracking's meta; none without tracks or gaps."""
+    if tracks is None or not tracks.meta.get("gaps") or "sequence" not in tracks:
+        return []
+    fps = tracks.meta.get("fps") or [30.0]
+    return found_again_spans(np.asarray(tracks["sequence"]), tracks.meta["gaps"], list(fps), seconds)
 
 
 def character_landmarks(character) -> tuple[np.ndarray, np.ndarray]:
