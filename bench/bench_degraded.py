@@ -15,6 +15,8 @@ Per condition, pooled over the clips (frames weigh alike):
 
 - **landmarks**: distance of the tracked 68 landmarks from the original's tracking, per frame, mean over the points /
   the original's eye distance (IOD): the median frame and the 95th percentile; the mouth's points alone;
+- **head**: per frame, the angle between the copy's tracked head rotation and the original's, less the take's mean
+  difference (the export writes the head relative to its mean orientation), degrees;
 - **blinks** against the blinks marked by hand (``bench_tracking.HAND_BLINKS``) where the clip has them;
 - **animation**: per morph that moves in the original's animation (weight spread above 0.05), the correlation of its
   weight with the original's over the frames; the median over (clip, morph) pairs, and jawOpen's;
@@ -137,6 +139,20 @@ def landmark_distances(original, degraded, rows_o, rows_d, scale: float) -> tupl
     return distance.mean(axis=1), distance[:, 48:].mean(axis=1)
 
 
+def head_angles(original, degraded, rows_o, rows_d) -> np.ndarray:
+    """Per frame, the angle (degrees) by which the copy's tracked head rotation differs from the original's, less
+    the take's mean difference: the head motion the export writes (relative to its mean orientation) as the copy
+    gives it, against the original's."""
+    from stages.geometry.rotations import quat_conjugate, quat_continuous, quat_multiply, quat_normalize
+
+    a = quat_normalize(np.asarray(original["rotation"], np.float64)[rows_o])
+    b = quat_normalize(np.asarray(degraded["rotation"], np.float64)[rows_d])
+    difference = quat_continuous(quat_multiply(quat_conjugate(a), b))
+    mean = quat_normalize(difference.mean(axis=0))
+    dot = np.abs(np.sum(difference * mean, axis=1))
+    return np.degrees(2.0 * np.arccos(np.clip(dot, 0.0, 1.0)))
+
+
 def weight_correlations(original, degraded, rows_o, rows_d) -> dict[str, float]:
     """Per morph moving in the original's animation, the correlation of the degraded capture's weight with it."""
     names = original.meta["target_names"]
@@ -188,7 +204,7 @@ def compare(reference, runs) -> dict:
     tracks_o, blend_o, _ = reference
     tracks_d, blend_d, evaluation = runs
     rows_o, rows_d = takes_by_stem(tracks_o), takes_by_stem(tracks_d)
-    whole, mouth, correlations, jaw = [], [], [], []
+    whole, mouth, head, correlations, jaw = [], [], [], [], []
     for stem, ro in rows_o.items():
         rd = rows_d[stem]
         if len(rd) != len(ro):
@@ -198,13 +214,15 @@ def compare(reference, runs) -> dict:
         distances = landmark_distances(tracks_o, tracks_d, ro, rd, scale)
         whole.append(distances[0])
         mouth.append(distances[1])
+        head.append(head_angles(tracks_o, tracks_d, ro, rd))
         r = weight_correlations(blend_o, blend_d, ro, rd)
         correlations += list(r.values())
         jaw.append(r.get("jawOpen", np.nan))
-    whole, mouth = np.concatenate(whole), np.concatenate(mouth)
+    whole, mouth, head = np.concatenate(whole), np.concatenate(mouth), np.concatenate(head)
     return {
         "landmarks": (np.median(whole), np.percentile(whole, 95)),
         "mouth": (np.median(mouth), np.percentile(mouth, 95)),
+        "head": (np.median(head), np.percentile(head, 95)),
         "r": (float(np.median(correlations)), float(np.nanmedian(jaw))),
         "metrics": evaluation.metrics,
         "closures": closures_against_original(reference, runs),
@@ -221,18 +239,19 @@ def main(clips: list[str]) -> None:
     params = RetargetEval.Params()
     print(f"{len(clips)} clips: {', '.join(c.stem for c in clips)}\n")
     print(
-        "| condition | landmarks from the original's, median; p95 (IOD) | mouth, median; p95 | blinks found / marked, "
+        "| condition | landmarks from the original's, median; p95 (IOD) | mouth, median; p95 | head motion from "
+        "the original's, median; p95 (degrees) | blinks found / marked, "
         "false | animation r with the original's: median morph; jawOpen | lip closures: the original's found, "
         "others | mouth err, rest aligned | closures reproduced | jaw > funnel |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for condition, result in runs.items():
         c = compare(runs["original"], result)
         blinks = hand_blinks(result[0], params)
         m = c["metrics"]
         print(
             f"| {condition} | {c['landmarks'][0]:.3f}; {c['landmarks'][1]:.3f} | {c['mouth'][0]:.3f}; "
-            f"{c['mouth'][1]:.3f} | {blinks['found']}/{blinks['reference']}, {blinks['false']} | {c['r'][0]:.2f}; "
+            f"{c['mouth'][1]:.3f} | {c['head'][0]:.2f}; {c['head'][1]:.2f} | {blinks['found']}/{blinks['reference']}, {blinks['false']} | {c['r'][0]:.2f}; "
             f"{c['r'][1]:.2f} | {c['closures']['found']}/{c['closures']['reference']}, {c['closures']['false']} | "
             f"{m['mouth_neutral_error_iod']:.1%} | {m['closures_reproduced']:.0f}/"
             f"{m['closures']:.0f} | {m['jaw_over_funnel_fraction']:.0%} |"
