@@ -165,30 +165,6 @@ def weight_correlations(original, degraded, rows_o, rows_d) -> dict[str, float]:
     return out
 
 
-def hand_blinks(tracks, evaluation_params) -> dict[str, int]:
-    """Blinks found in the condition's tracking against the hand marks (the evaluation's detector)."""
-    from bench_tracking import HAND_BLINKS
-
-    from stages.eval.events import blink_events, blink_frame_limits, event_agreement
-
-    total = {"reference": 0, "found": 0, "false": 0}
-    aperture = np.asarray(tracks["eye_aperture"])
-    for take, (stem, rows) in enumerate(takes_by_stem(tracks).items()):
-        limit, hand = HAND_BLINKS.get(stem, (None, None))
-        if hand is None:
-            continue
-        rows = rows[: limit or None]
-        one = np.zeros(len(rows), np.int64)
-        longest = blink_frame_limits([tracks.meta["fps"][take]], one, evaluation_params.blink_max_seconds)
-        found = blink_events(
-            aperture[rows], one, evaluation_params.blink_ratio, evaluation_params.blink_narrow_ratio, longest
-        )
-        agreement = event_agreement([(a, b + 1) for a, b in hand], found, 0)
-        for key in total:
-            total[key] += agreement[key]
-    return total
-
-
 def closures_against_original(reference, runs) -> dict[str, int]:
     """The performer's lip closures in the condition's tracking against those in the original's (the frames line up:
     the same clips in the same order, every frame kept): original closures found again, and closures the original
@@ -230,6 +206,8 @@ def compare(reference, runs) -> dict:
 
 
 def main(clips: list[str]) -> None:
+    from eval_retarget import hand_blink_agreement
+
     from stages.eval.retarget import RetargetEval
 
     clips = [Path(c).resolve() for c in clips]
@@ -247,7 +225,7 @@ def main(clips: list[str]) -> None:
     print("|---|---|---|---|---|---|---|---|---|---|")
     for condition, result in runs.items():
         c = compare(runs["original"], result)
-        blinks = hand_blinks(result[0], params)
+        blinks = hand_blink_agreement(result[0], params)
         m = c["metrics"]
         print(
             f"| {condition} | {c['landmarks'][0]:.3f}; {c['landmarks'][1]:.3f} | {c['mouth'][0]:.3f}; "

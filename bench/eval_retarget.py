@@ -189,10 +189,8 @@ def main(folders: list[str], overrides: list[str] = ()) -> None:
 def blinks(folders: list[str]) -> None:
     """The evaluation's blink detector on the performer's eyelid aperture against the blinks marked by hand
     (``bench/bench_tracking.py`` HAND_BLINKS: CREMA-D and three talking-head clips)."""
-    from bench_tracking import HAND_BLINKS
 
     import msflow
-    from stages.eval.events import blink_events, blink_frame_limits, event_agreement
     from stages.eval.retarget import RetargetEval
 
     os.chdir(ROOT)
@@ -203,23 +201,37 @@ def blinks(folders: list[str]) -> None:
         tracks.append(msflow.run(PIPELINE, [f"vars.takes={relative}"], until="capture_track").artifact("capture_track"))
     total = {"reference": 0, "predicted": 0, "found": 0, "false": 0}
     for view in tracks:
-        sequence, aperture = np.asarray(view["sequence"]), np.asarray(view["eye_aperture"])
-        for take, label in enumerate(view.meta["labels"]):
-            limit, hand = HAND_BLINKS.get(Path(label).stem, (None, None))
-            if hand is None:
-                continue
-            rows = np.flatnonzero(sequence == take)[: limit or None]
-            one = np.zeros(len(rows), np.int64)
-            longest = blink_frame_limits([view.meta["fps"][take]], one, params.blink_max_seconds)
-            found = blink_events(aperture[rows], one, params.blink_ratio, params.blink_narrow_ratio, longest)
-            agreement = event_agreement([(a, b + 1) for a, b in hand], found, 0)
-            for key in total:
-                total[key] += agreement[key]
+        for key, count in hand_blink_agreement(view, params).items():
+            total[key] += count
     print(
         f"blink_ratio {params.blink_ratio}, blink_narrow_ratio {params.blink_narrow_ratio}, blink_max_seconds "
         f"{params.blink_max_seconds}: {total['found']}/{total['reference']} hand-marked blinks found, "
         f"{total['predicted']} detected, {total['false']} false"
     )
+
+
+def hand_blink_agreement(tracks, params) -> dict[str, int]:
+    """The evaluation's blink detector (``params``: RetargetEval's) on a tracking artifact's eyelid aperture,
+    against the blinks marked by hand (``bench_tracking.HAND_BLINKS``) in its takes that have them: marked
+    ("reference"), detected ("predicted"), marked and found, detected but not marked ("false")."""
+    from bench_tracking import HAND_BLINKS
+
+    from stages.eval.events import blink_events, blink_frame_limits, event_agreement
+
+    total = {"reference": 0, "predicted": 0, "found": 0, "false": 0}
+    sequence, aperture = np.asarray(tracks["sequence"]), np.asarray(tracks["eye_aperture"])
+    for take, label in enumerate(tracks.meta["labels"]):
+        limit, hand = HAND_BLINKS.get(Path(label).stem, (None, None))
+        if hand is None:
+            continue
+        rows = np.flatnonzero(sequence == take)[: limit or None]
+        one = np.zeros(len(rows), np.int64)
+        longest = blink_frame_limits([tracks.meta["fps"][take]], one, params.blink_max_seconds)
+        found = blink_events(aperture[rows], one, params.blink_ratio, params.blink_narrow_ratio, longest)
+        agreement = event_agreement([(a, b + 1) for a, b in hand], found, 0)
+        for key in total:
+            total[key] += agreement[key]
+    return total
 
 
 def identity(folders: list[str]) -> None:

@@ -479,7 +479,7 @@ def _file_form(ref: dict[str, Any], base: Path, root: Path, file: str, stage: st
         matches = [m for m in matches if Path(m).is_file() or Path(m).is_dir()]
         if not matches:
             raise UserError(
-                f"the glob '{spec}' matches no files{_relative_hint(base, spec, globlib.glob(spec, recursive=True))}",
+                f"the glob '{spec}' matches no files{_relative_hint(base, spec, bool(globlib.glob(spec, recursive=True)))}",
                 file=file,
                 stage=stage,
                 field=where,
@@ -610,22 +610,22 @@ def _labelled_mapping(ref: dict[str, Any], base: Path, file: str, stage: str, wh
 def _existing_file(base: Path, value: str, file: str, stage: str, where: str) -> str:
     target = (base / value).resolve()
     if not target.exists():
-        hint = _relative_hint(base, value, [value] if Path(value).exists() else [])
+        hint = _relative_hint(base, value, Path(value).exists())
         raise UserError(f"data file not found: {value}{hint}", file=file, stage=stage, field=where)
     if not (target.is_file() or target.is_dir()):
         raise UserError(f"not a file or folder: {value}", file=file, stage=stage, field=where)
     return str(target)
 
 
-def _relative_hint(base: Path, value: str, found_from_cwd: list[str]) -> str:
+def _relative_hint(base: Path, value: str, found_from_cwd: bool) -> str:
     """For a relative path that names nothing: where relative paths start (the pipeline file's folder), and the
     path to write when ``value`` does name something from the working directory (``found_from_cwd``), the usual
     slip on the command line (``-S vars.take=clip.mp4`` beside a pipeline in a subfolder)."""
     if Path(value).is_absolute():
         return ""
-    folder = os.path.relpath(base) if base.resolve() != Path.cwd().resolve() else "."
+    folder = os.path.relpath(base)  # "." when the pipeline sits in the working directory
     hint = f" (paths are relative to the pipeline file's folder, {folder}"
-    if found_from_cwd and base.resolve() != Path.cwd().resolve():
+    if found_from_cwd and folder != ".":
         hint += f"; from there it is '{os.path.relpath(Path(value).resolve(), base.resolve())}'"
     return hint + ")"
 

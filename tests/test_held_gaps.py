@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from stages.geometry.held_gaps import ease_into_found_face, found_again_spans, smoothstep
+from stages.geometry.held_gaps import ease_into_found_face, found_again_spans
+from stages.geometry.ramps import smoothstep
 from stages.geometry.rotations import euler_to_quat, quat_to_euler
 
 

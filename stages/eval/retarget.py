@@ -436,7 +436,7 @@ def _take_audio(tracks, sequence) -> list | None:
     for i in range(takes):
         start, stop = (int(v) for v in bounds[i]) if i < len(bounds) else (0, 0)
         # a take tracked without sound (audio: optional) has empty bounds: no envelope, rather than one of zeros
-        if stop <= start or not per_take("audio_rate", i, None) or per_take("has_audio", i, True) is False:
+        if stop <= start or not per_take("audio_rate", i, None):
             out.append(None)
             continue
         out.append(

@@ -118,10 +118,8 @@ def ease_held_head(head, label, rotation: np.ndarray, translation: np.ndarray, f
     labels, gaps = list(head.meta.get("labels") or []), head.meta.get("gaps")
     if not gaps or label not in labels:
         return rotation, translation, 0
-    take = [np.zeros(len(rotation), np.int64), [gaps[labels.index(label)]], [float(fps)]]
-    spans = found_again_spans(*take, params.held_gap_ease)
-    if not spans:
-        return rotation, translation, 0
+    one_take = np.zeros(len(rotation), np.int64)
+    spans = found_again_spans(one_take, [gaps[labels.index(label)]], [float(fps)], params.held_gap_ease)
     return ease_into_found_face(rotation, spans, rotations=True), ease_into_found_face(translation, spans), len(spans)
 
 

@@ -13,11 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def smoothstep(t: np.ndarray) -> np.ndarray:
-    """3t^2 - 2t^3: from 0 to 1 with zero slope at both ends."""
-    t = np.clip(np.asarray(t, np.float64), 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
+from stages.geometry.ramps import smoothstep
+from stages.geometry.rotations import quat_slerp
 
 
 def found_again_spans(sequence: np.ndarray, gaps: list, fps: list[float], seconds: float) -> list[tuple[int, int]]:
@@ -43,8 +40,6 @@ def ease_into_found_face(values: np.ndarray, spans: list[tuple[int, int]], *, ro
         before = out[first - 1] if first > 0 else out[first]
         t = smoothstep(np.arange(1, stop - first + 1) / (stop - first + 1))
         if rotations:
-            from stages.geometry.rotations import quat_slerp
-
             out[first:stop] = quat_slerp(before[None], out[stop][None], t)
         else:
             out[first:stop] = before + t.reshape((-1,) + (1,) * (out.ndim - 1)) * (out[stop] - before)

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.geometry.ramps import smoothstep
 from stages.head.measures import angular_acceleration
 
 
@@ -75,12 +76,6 @@ class DatabaseMotion:
 JOIN_BUDGET_OF_MEDIAN = 0.5  # default acceleration a join's velocity step may add, as a fraction of the
 #                               database's median angular acceleration (bench/eval_head.py: with it the largest
 #                               join acceleration stays below the held-out real motion's 99th percentile)
-
-
-def smoothstep(u: np.ndarray) -> np.ndarray:
-    """C1 ramp from 0 (u <= 0) to 1 (u >= 1), slope 1.5 at its centre."""
-    u = np.clip(u, 0.0, 1.0)
-    return u * u * (3 - 2 * u)
 
 
 def smootherstep(u: np.ndarray) -> np.ndarray:

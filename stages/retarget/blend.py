@@ -37,6 +37,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
 from stages.geometry.held_gaps import ease_into_found_face, found_again_spans
+from stages.geometry.ramps import smoothstep
 
 ALPHA_FORMS = (
     "alpha is 'from_analysis', constant weights such as {happy: 0.5, neutral: 0.5}, or "
@@ -124,7 +125,7 @@ def interpolate_keyframes(
     if interpolation == "step":
         u = (times >= t1).astype(np.float64)
     elif interpolation == "smooth":
-        u = u * u * (3.0 - 2.0 * u)
+        u = smoothstep(u)
     return key_values[seg] * (1.0 - u)[:, None] + key_values[seg + 1] * u[:, None]
 
 
