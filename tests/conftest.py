@@ -11,6 +11,7 @@ Outside tools (interface for every area's tests):
   is present. It also sets ``MSFLOW_NODE_MODULES`` for the session, so code that looks the validator up by
   itself (``stages.formats.gltf.validate_glb``) finds it. Request it in any test that validates a GLB.
 - ``chromium`` (session fixture): the path of the Chromium executable (``CHROMIUM``) for Playwright.
+- ``blender`` (session fixture): the path of Debian's Blender, with the numpy its glTF importer needs.
 """
 
 import logging
@@ -154,6 +155,7 @@ NPM_PACKAGES = ("gltf-validator@2.0.0-dev.3.10", "three@0.170.0")
 NPM_INSTALL = f"npm install --no-save --no-package-lock {' '.join(NPM_PACKAGES)}"
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_INSTALL = "apt-get update && apt-get install -y chromium"
+BLENDER_INSTALL = "apt-get update && apt-get install -y blender python3-numpy"
 
 
 def missing_tool(reason):
@@ -206,6 +208,28 @@ def chromium():
     if not os.access(CHROMIUM, os.X_OK):
         missing_tool(f"Chromium is not installed: {CHROMIUM_INSTALL} ({CHROMIUM})")
     return CHROMIUM
+
+
+def blender_env() -> dict:
+    """The environment to start Blender in: PATH without this interpreter's folder, since Blender's embedded
+    Python takes its standard library from the first ``python3`` on PATH, and a virtualenv's or pyenv's would
+    hide the system's packages (numpy among them) from it."""
+    ours = {os.path.dirname(sys.executable), os.path.dirname(os.path.realpath(sys.executable))}
+    path = [p for p in os.environ.get("PATH", "").split(os.pathsep) if p and p not in ours]
+    return {**os.environ, "PATH": os.pathsep.join(path)}
+
+
+@pytest.fixture(scope="session")
+def blender():
+    """Blender's executable, checked to start headless with numpy (Debian's glTF importer needs python3-numpy)."""
+    path = shutil.which("blender")
+    if path is None:
+        missing_tool(f"Blender is not installed: {BLENDER_INSTALL}")
+    check = [path, "-b", "--factory-startup", "--python-exit-code", "1", "--python-expr", "import numpy"]
+    proc = subprocess.run(check, capture_output=True, text=True, timeout=120, env=blender_env())
+    if proc.returncode != 0:
+        missing_tool(f"Blender cannot import numpy ({proc.stdout[-300:]}): {BLENDER_INSTALL}")
+    return path
 
 
 # ------------------------------------------------------------------------------------------------ object store
