@@ -484,10 +484,12 @@ def _file_form(ref: dict[str, Any], base: Path, root: Path, file: str, stage: st
                 stage=stage,
                 field=where,
             )
-        files, form = [(rel_to(Path(m), root), m) for m in matches], "glob"
+        top = glob_top(base, spec)
+        files, form = [(_label_below(Path(m), top, root), m) for m in matches], "glob"
         listed = glob_folders(base, spec)
     else:
-        files, form = [(spec, _existing_file(base, spec, file, stage, where))], "path"
+        found = _existing_file(base, spec, file, stage, where)
+        files, form = [(Path(found).name, found)], "path"
         listed = ()
     if "pattern" not in ref:
         if "label" in ref:
@@ -498,13 +500,25 @@ def _file_form(ref: dict[str, Any], base: Path, root: Path, file: str, stage: st
     return replace(_labelled_by_pattern(files, ref, form, file, stage, where), listed=listed)
 
 
+def glob_top(base: Path, pattern: str) -> Path:
+    """The folder before a glob's first wildcard (``base`` when its first part has one)."""
+    parts = Path(pattern).parts
+    fixed = next((i for i, part in enumerate(parts) if GLOB_CHARS & set(part)), len(parts) - 1)
+    return (base / Path(*parts[:fixed])) if fixed else base
+
+
+def _label_below(path: Path, top: Path, root: Path) -> str:
+    """A globbed file's label: its path below the glob's folder (its name for ``folder/*.mp4``), so the label,
+    which the cache key holds, names the file and not where the folder is."""
+    below = Path(os.path.relpath(path, top))
+    return rel_to(path, root) if below.parts[:1] == ("..",) else below.as_posix()
+
+
 def glob_folders(base: Path, pattern: str, limit: int = 1000) -> tuple[str, ...] | None:
     """The folders whose listings decide what a glob matches: the folder before its first wildcard and, when
     a folder part is a wildcard too, every folder below it. None when there are more than ``limit``."""
-    parts = Path(pattern).parts
-    fixed = next((i for i, part in enumerate(parts) if GLOB_CHARS & set(part)), len(parts) - 1)
-    top = (base / Path(*parts[:fixed])) if fixed else base
-    if fixed == len(parts) - 1:
+    top = glob_top(base, pattern)
+    if not GLOB_CHARS & set("".join(Path(pattern).parts[:-1])):
         return (str(top.resolve()),)
     folders = []
     for dirpath, _, _ in os.walk(top):

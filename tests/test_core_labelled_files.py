@@ -67,6 +67,39 @@ def test_default_label_is_the_file_stem(numproject):
     assert meta["fields"]["1002_IEO_SAD_HI"] == {"speaker": "1002"}
 
 
+@pytest.mark.parametrize(
+    "where, body, labels",
+    [
+        ("clips", "{path: clips/1001_DFA_ANG_XX.flv}", ["1001_DFA_ANG_XX.flv"]),
+        ("clips", '{glob: "clips/*.flv"}', ["1001_DFA_ANG_XX.flv", "1001_DFA_HAP_XX.flv", "1002_IEO_SAD_HI.flv"]),
+        (
+            "clips/a",
+            '{glob: "clips/*/*.flv"}',
+            ["a/1001_DFA_ANG_XX.flv", "a/1001_DFA_HAP_XX.flv", "a/1002_IEO_SAD_HI.flv"],
+        ),
+    ],
+)
+def test_a_file_written_another_way_or_moved_keeps_its_key(numproject, tmp_path, where, body, labels):
+    """The label of ``{path: file}`` is the file's name and a glob's are the paths below its folder, so the key,
+    which holds the labels, holds no folder: the same files written as an absolute path, or moved elsewhere with
+    their folder, are the cached result (a capture's clip referenced differently must not be tracked again)."""
+    clips = numproject / "clips"
+    _write(numproject, body)
+    if where != "clips":  # the files one folder further down, for the glob over folders
+        (clips / "a").mkdir()
+        for f in clips.glob("*.flv"):
+            f.rename(clips / "a" / f.name)
+    first = msflow.run(numproject / "takes.yaml")
+    assert first.artifact("takes").meta["labels"] == labels
+    elsewhere = tmp_path / "somewhere else" / "clips"
+    elsewhere.parent.mkdir()
+    clips.rename(elsewhere)
+    moved = body.replace("clips/", f"{elsewhere.as_posix()}/")
+    (numproject / "takes.yaml").write_text((numproject / "takes.yaml").read_text().replace(body, moved))
+    again = msflow.run(numproject / "takes.yaml")
+    assert again.executed == [] and again.key("takes") == first.key("takes")
+
+
 def test_fields_written_per_file_and_in_the_key(numproject):
     body = "{a: {path: clips/1001_DFA_ANG_XX.flv, speaker: 1001, expression: angry}, b: clips/1001_DFA_HAP_XX.flv}"
     _write(numproject, body)
