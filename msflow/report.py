@@ -11,7 +11,10 @@ from __future__ import annotations
 import base64
 import html
 import json
+import os
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -552,6 +555,34 @@ def build_report(
 
     started = time.perf_counter()
     session = open_session(path)
+    with matplotlib_inside(session):
+        return _build_report(session, out, run, jobs=jobs, metric=metric, started=started)
+
+
+@contextmanager
+def matplotlib_inside(session: Session) -> Iterator[None]:
+    """matplotlib makes its configuration folder and writes its font list into the user's home on first use:
+    point it (``MPLCONFIGDIR``, inherited by the figure workers) at the project's local cache folder instead,
+    unless the user chose one, so that a report writes nothing outside the project and store."""
+    if "MPLCONFIGDIR" in os.environ:
+        yield
+        return
+    from msflow.stores.local import LocalStore
+
+    store = session.store
+    cache = store.root if isinstance(store, LocalStore) else session.pipeline.path.parent / ".msflow"
+    folder = cache / "cache" / "matplotlib"
+    folder.mkdir(parents=True, exist_ok=True)
+    os.environ["MPLCONFIGDIR"] = str(folder)
+    try:
+        yield
+    finally:
+        os.environ.pop("MPLCONFIGDIR", None)
+
+
+def _build_report(
+    session: Session, out: str | Path, run: str | None, *, jobs: int, metric: str | None, started: float
+) -> dict[str, Any]:
     store = session.store
     if run and any(s == run or s.endswith(run) for s in store.sweep_ids()):
         sweep_id = next(s for s in store.sweep_ids() if s == run or s.endswith(run))

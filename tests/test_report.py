@@ -1,9 +1,11 @@
 """The run report: one self-contained HTML page, checked in headless Chromium (Debian's, via Playwright)."""
 
 import re
+import subprocess
+import sys
 
 import pytest
-from conftest import run_cli
+from conftest import cli_env, run_cli
 
 ARGS = [
     "--headless=new",
@@ -127,6 +129,25 @@ def test_sweep_report_has_table_and_metric_plots(numproject, chromium, tmp_path)
     assert "<th>src.n</th>" in page and "total.total vs src.n" in page
     errors, images, _, _, _ = open_in_chromium(chromium, out, tmp_path / "sweep.png")
     assert errors == [] and len(images) == 1 and images[0][2] > 0
+
+
+def test_a_report_writes_nothing_outside_the_project(numproject, tmp_path):
+    """matplotlib would make its configuration folder and font list in the home folder on first use; the report
+    points it into the store's cache folder instead (a user's own MPLCONFIGDIR is kept)."""
+    home = tmp_path / "home"
+    home.mkdir()
+    unset = ("XDG_CONFIG_HOME", "XDG_CACHE_HOME", "MPLCONFIGDIR")
+    env = {**{k: v for k, v in cli_env().items() if k not in unset}, "HOME": str(home)}
+
+    def msflow(*args):
+        command = [sys.executable, "-m", "msflow.cli", *map(str, args)]
+        return subprocess.run(command, cwd=numproject, env=env, capture_output=True, text=True, timeout=120)
+
+    swept = msflow("sweep", "-S", "src.n=3,4", "-q")
+    made = msflow("report", re.search(r"sweep (\S+):", swept.stderr).group(1), "-o", tmp_path / "sweep.html")
+    assert made.returncode == 0, made.stderr
+    assert list(home.rglob("*")) == []
+    assert list((numproject / ".msflow" / "cache" / "matplotlib").glob("fontlist*.json"))
 
 
 def test_report_before_any_run_is_a_user_error(numproject, tmp_path):
