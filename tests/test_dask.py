@@ -258,7 +258,7 @@ def test_a_shipped_job_carries_no_path_and_runs_from_the_store(numproject, tmp_p
     job, store = shipped(numproject, tmp_path)
     text = job.to_json()
     assert str(numproject) not in text and job.project_root == "" and job.code
-    assert job.inputs["table"].files == (("data/table.csv", "table.csv"),)
+    assert job.inputs["table"].files == (("table.csv", "table.csv"),)  # (label, file name)
     moved = tmp_path / "moved"
     numproject.rename(moved)  # the worker cannot use the project folder: it is gone
     outcome = run_in_fresh_process(job, tmp_path)
