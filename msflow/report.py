@@ -594,8 +594,13 @@ def _build_report(
         figures = collect_figures(session, record, jobs)
         page = run_page(session, record, figures)
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(out, page)
+    if out.is_dir():
+        raise UserError("is a folder; give the HTML file to write", file=str(out), field="--out")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_atomic(out, page)
+    except OSError as exc:
+        raise UserError(f"cannot write: {exc.strerror or exc}", file=str(out), field="--out") from None
     session.save_memo()
     return {
         "path": str(out),

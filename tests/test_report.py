@@ -153,3 +153,12 @@ def test_a_report_writes_nothing_outside_the_project(numproject, tmp_path):
 def test_report_before_any_run_is_a_user_error(numproject, tmp_path):
     result = run_cli(numproject, "report", "-o", tmp_path / "r.html")
     assert result.returncode == 2 and "no run of this pipeline yet" in result.stderr
+
+
+def test_a_report_that_cannot_be_written_is_a_user_error(numproject, tmp_path):
+    assert run_cli(numproject, "run", "-q").returncode == 0
+    (tmp_path / "a file").write_text("not a folder")
+    for out, message in ((tmp_path, "is a folder"), (tmp_path / "a file" / "r.html", "cannot write")):
+        result = run_cli(numproject, "report", "-o", out)
+        assert result.returncode == 2 and message in result.stderr and "--out" in result.stderr, result.stderr
+        assert "Traceback" not in result.stderr
