@@ -155,6 +155,12 @@ def test_audio_file_without_a_video(media):
     assert err.field == "inputs.audio.b" and err.file == str(media["flac"])
 
 
+def test_a_folder_given_as_a_video_says_so(media, tmp_path):
+    """A folder of clips given where one clip is expected (``-S vars.take=clips/``) is named as a folder."""
+    err = expect_error("is a folder, not a video file", {}, {"a": tmp_path})
+    assert err.field == "inputs.videos.a" and err.file == str(tmp_path)
+
+
 def test_offset_outside_the_audio(media):
     err = expect_error(r"audio_offset 4 s is outside the audio \(3.00 s long\)", {"audio_offset": 4.0},
                        {"a": media["silent"]}, {"a": media["wav"]})  # fmt: skip

@@ -36,6 +36,8 @@ class VideoInfo:
 def _open(path: Path, field: str | None):
     import av
 
+    if path.is_dir():
+        raise UserError("is a folder, not a video file (give each clip as its own file)", file=str(path), field=field)
     if not path.is_file():
         raise UserError("video file not found", file=str(path), field=field)
     try:
