@@ -245,6 +245,14 @@ def apply_overrides(raw: dict[str, Any], overrides: tuple[str, ...], file: str) 
             raw.setdefault("vars", {})
             if not isinstance(raw["vars"], dict):
                 raise UserError("'vars' must be a mapping", file=file, field="vars")
+            if rest[0] not in raw["vars"]:  # a typo would otherwise run with the default silently
+                declared = raw["vars"]
+                raise UserError(
+                    f"override '{text}': unknown variable '{rest[0]}'{suggest(rest[0], declared)}; "
+                    f"the pipeline's vars: {sorted(map(str, declared)) or 'none'}",
+                    file=file,
+                    field="-S",
+                )
             _set_path(raw["vars"], rest, value)
             continue
         if head not in stages:

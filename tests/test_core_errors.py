@@ -154,6 +154,11 @@ CASES = {
         ["-S", "src.m=3"],
         ["stage 'src'", "field 'params.m'", "unknown parameter 'm'"],
     ),
+    "override_unknown_var": (  # a typo must not run the pipeline with the default silently
+        "version: 1\nvars: {take: a.mp4, name: a}\nstages:" + GOOD_STAGES,
+        ["-S", "vars.tkae=b.mp4"],
+        ["field '-S'", "unknown variable 'tkae'", "did you mean 'take'", "['name', 'take']"],
+    ),
     "override_wrong_type": (
         "version: 1\nstages:" + GOOD_STAGES,
         ["-S", "src.n=[1,2]"],
