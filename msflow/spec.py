@@ -13,7 +13,7 @@ import re
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import TYPE_CHECKING, Any, Literal
 
 import yaml
@@ -202,13 +202,27 @@ def substitute_vars(value: Any, variables: dict[str, Any], file: str, where: str
     return value
 
 
-def _lookup_var(name: str, variables: dict[str, Any], file: str, where: str) -> Any:
+#: ``${name:filter}``: the variable's value read as a path, reduced to a part of it
+VAR_FILTERS = {"stem": lambda path: PurePath(path).stem, "name": lambda path: PurePath(path).name}
+
+
+def _lookup_var(reference: str, variables: dict[str, Any], file: str, where: str) -> Any:
+    name, _, filter_name = reference.partition(":")
     if name not in variables:
         hint = suggest(name, variables)
         raise UserError(
-            f"unknown variable '${{{name}}}'{hint}; defined: {sorted(variables) or 'none'}", file=file, field=where
+            f"unknown variable '${{{name}}}'{hint}; defined: {sorted(variables) or 'none'}"
+            + (" (a variable can use the ones declared before it)" if where.startswith("vars.") else ""),
+            file=file,
+            field=where,
         )
-    return variables[name]
+    value = variables[name]
+    if not filter_name:
+        return value
+    if filter_name not in VAR_FILTERS or not isinstance(value, str):
+        problem = "a path (a string)" if filter_name in VAR_FILTERS else f"one of {sorted(VAR_FILTERS)}"
+        raise UserError(f"'${{{reference}}}': the filter after ':' needs {problem}", file=file, field=where)
+    return VAR_FILTERS[filter_name](value)
 
 
 def suggest(name: str, options: Iterable[Any]) -> str:
@@ -341,12 +355,15 @@ def _top_level_mapping(text: str, file: str) -> dict[str, Any]:
 
 
 def _substituted(raw: dict[str, Any], file: str) -> dict[str, Any]:
-    """Every top-level entry but ``vars`` with its ``${name}`` references replaced by the values in ``vars``."""
+    """Every top-level entry with its ``${name}`` references replaced by the values in ``vars`` (a variable's own
+    value may use the variables declared before it)."""
     variables = raw.get("vars", {})
     if not isinstance(variables, dict):
         raise UserError("'vars' must be a mapping of name: value", file=file, field="vars")
-    variables = {str(k): v for k, v in variables.items()}
-    return {k: (v if k == "vars" else substitute_vars(v, variables, file, k)) for k, v in raw.items()}
+    resolved: dict[str, Any] = {}
+    for name, value in variables.items():  # in file order: a variable may use those declared before it
+        resolved[str(name)] = substitute_vars(value, resolved, file, f"vars.{name}")
+    return {k: (resolved if k == "vars" else substitute_vars(v, resolved, file, k)) for k, v in raw.items()}
 
 
 def _reject_nul_characters(value: Any, file: str, where: str = "") -> None:

@@ -138,6 +138,16 @@ CASES = {
         [],
         ["field 'stages.src.params.n'", "unknown variable '${m}'"],
     ),
+    "var_uses_a_later_var": (
+        "version: 1\nvars: {a: '${b}', b: 3}\nstages:" + GOOD_STAGES,
+        [],
+        ["field 'vars.a'", "unknown variable '${b}'", "the ones declared before it"],
+    ),
+    "var_unknown_filter": (
+        "version: 1\nvars: {a: x.csv, b: '${a:suffix}'}\nstages:" + GOOD_STAGES,
+        [],
+        ["field 'vars.b'", "'${a:suffix}'", "['name', 'stem']"],
+    ),
     "bad_override_syntax": (
         "version: 1\nstages:" + GOOD_STAGES,
         ["-S", "src.n"],

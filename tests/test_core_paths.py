@@ -167,6 +167,22 @@ def test_sweep_applies_vars_overrides_before_loading_the_pipeline(numproject, tm
     assert np.array_equal(records.load("scaled.y"), 3 * np.array([10.0, 20, 30, 40]))
 
 
+def test_a_variable_made_from_another_follows_its_override(numproject):
+    """``name: ${take:stem}``: the published file is named after the file given on the command line, not after
+    the default one (a capture published under the default clip's name would say it holds that clip)."""
+    (numproject / "named.yaml").write_text(
+        "version: 1\nvars:\n  take: data/table.csv\n  name: '${take:stem}_x'\n  file: '${take:name}'\nstages:\n"
+        "  csv:\n    uses: numstages.basic:LoadCsv\n    inputs: {table: {path: '${take}'}}\n"
+        "publish:\n  csv.x: out/${name}.npy\n"
+    )
+    (numproject / "data" / "other.csv").write_text("1,2\n")
+    assert msflow.run(numproject / "named.yaml").ok and (numproject / "out" / "table_x.npy").is_file()
+    msflow.run(numproject / "named.yaml", ["vars.take=data/other.csv"])
+    assert np.array_equal(np.load(numproject / "out" / "other_x.npy"), [1.0, 2.0])
+    assert msflow.run(numproject / "named.yaml", ["vars.name=chosen"]).ok
+    assert (numproject / "out" / "chosen.npy").is_file()
+
+
 # ------------------------------------------------------------------------------------------------ CPU of a stage
 def test_the_run_record_and_show_give_each_stage_its_cpu_seconds_children_included(numproject):
     (numproject / "busy.yaml").write_text(
