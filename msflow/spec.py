@@ -244,6 +244,9 @@ def parse_override(text: str) -> tuple[list[str], Any]:
         value = yaml.load(raw, Loader=UniqueKeyLoader) if raw.strip() else ""
     except yaml.YAMLError:
         value = raw
+    except UnicodeEncodeError:  # bytes that are not UTF-8, most likely a file name: msflow records text as UTF-8
+        shown = text.encode("utf-8", "backslashreplace").decode()
+        raise UserError(f"bad override '{shown}': not UTF-8 text (rename the file it names)", field="-S") from None
     return parts, value
 
 
@@ -501,7 +504,7 @@ def _file_form(ref: dict[str, Any], base: Path, root: Path, file: str, stage: st
         raise UserError("the path must be a non-empty string", file=file, stage=stage, field=where)
     if "glob" in ref or GLOB_CHARS & set(spec):
         matches = sorted(globlib.glob(str(base / spec), recursive=True))
-        matches = [m for m in matches if Path(m).is_file() or Path(m).is_dir()]
+        matches = [_utf8_path(m, file, stage, where) for m in matches if Path(m).is_file() or Path(m).is_dir()]
         if not matches:
             raise UserError(
                 f"the glob '{spec}' matches no files{_relative_hint(base, spec, bool(globlib.glob(spec, recursive=True)))}",
@@ -646,7 +649,19 @@ def _labelled_mapping(ref: dict[str, Any], base: Path, file: str, stage: str, wh
     return FilesRef(tuple(files), "mapping", tuple(f for f in fields if f[1]))
 
 
+def _utf8_path(path: str, file: str, stage: str, where: str) -> str:
+    """A data file's path, refused when it is not valid UTF-8 (file systems allow any bytes; labels, keys and run
+    records are UTF-8 JSON), with its undecodable bytes shown escaped."""
+    try:
+        path.encode("utf-8")
+    except UnicodeEncodeError:
+        shown = path.encode("utf-8", "backslashreplace").decode()
+        raise UserError(f"not a UTF-8 file name: {shown}; rename it", file=file, stage=stage, field=where) from None
+    return path
+
+
 def _existing_file(base: Path, value: str, file: str, stage: str, where: str) -> str:
+    _utf8_path(value, file, stage, where)
     target = (base / value).resolve()
     if not target.exists():
         hint = _relative_hint(base, value, Path(value).exists())

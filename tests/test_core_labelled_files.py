@@ -159,3 +159,23 @@ def test_run_stage_accepts_fields():
 
     files = files_input({"a": {"path": __file__, "speaker": 7}})
     assert files.field("a", "speaker") == "7" and files["a"].name == "test_core_labelled_files.py"
+
+
+def test_a_file_name_that_is_not_utf8_is_a_user_error(numproject):
+    """Labels, keys and run records are UTF-8 JSON; a file whose name has other bytes is named, escaped, and
+    refused (exit 2), whether a glob finds it or an override names it."""
+    import os
+
+    _write(numproject, '{glob: "clips/*.flv"}')
+    odd = os.path.join(os.fsencode(numproject / "clips"), b"take\xff.flv")
+    with open(odd, "wb") as fh:
+        fh.write(b"bytes")
+    found = run_cli(numproject, "run", "takes.yaml")
+    assert found.returncode == 2 and "not a UTF-8 file name" in found.stderr and "take\\udcff.flv" in found.stderr
+    assert "Traceback" not in found.stderr
+    (numproject / "one.yaml").write_text(
+        "version: 1\nvars: {take: clips/1001_DFA_ANG_XX.flv}\nstages:\n  takes:\n    uses: numstages.basic:Takes\n"
+        "    inputs:\n      takes: {path: '${take}'}\n"
+    )
+    named = run_cli(numproject, "run", "one.yaml", "-S", "vars.take=" + os.fsdecode(odd))
+    assert named.returncode == 2 and "not UTF-8 text" in named.stderr and "Traceback" not in named.stderr
