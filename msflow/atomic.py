@@ -30,6 +30,10 @@ def atomic_file(path: str | Path) -> Iterator[IO[bytes]]:
         with open(tmp, "wb") as fh:
             yield fh
         os.replace(tmp, path)
+    except OSError as exc:
+        if exc.filename is None:  # a failed write or close names no file: name the one being written
+            raise OSError(exc.errno, exc.strerror, str(path)) from exc
+        raise
     finally:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()

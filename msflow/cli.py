@@ -1,5 +1,5 @@
-"""The ``msflow`` command line. Exit codes: 0 ok, 1 a stage failed (or an artifact is corrupt), 2 a user error
-(a message naming file, stage and field; no traceback).
+"""The ``msflow`` command line. Exit codes: 0 ok, 1 a stage failed (or an artifact is corrupt, or the disk is
+full), 2 a user error (a message naming file, stage and field; no traceback).
 
 ``main`` first asks the no-op fast path (``msflow.fastpath``) whether ``msflow run``/``msflow status`` has
 nothing to do, which it answers from a compact state without importing typer, pydantic or any stage code; on any
@@ -8,6 +8,7 @@ doubt it falls back to the full commands in ``msflow.commands``.
 
 from __future__ import annotations
 
+import errno
 import sys
 
 
@@ -52,7 +53,21 @@ def run_commands(args: list[str]) -> int:
     except KeyboardInterrupt:
         echo("interrupted", err=True)
         return 130
+    except OSError as exc:
+        if exc.errno not in _NO_ROOM:
+            raise
+        where = f" ({exc.filename})" if exc.filename else ""
+        echo(f"error: cannot write{where}: {exc.strerror}; {_NO_ROOM[exc.errno]}", err=True)
+        return 1
     return 0
+
+
+#: a disk that cannot take more: what to tell the user (nothing half-written is ever used: see msflow.atomic)
+_NO_ROOM = {
+    errno.ENOSPC: "free some space (msflow gc drops the artifacts no recent run uses) and run again",
+    errno.EDQUOT: "free some of your quota (msflow gc drops the artifacts no recent run uses) and run again",
+    errno.EROFS: "the file system is read-only: put the store or the outputs elsewhere",
+}
 
 
 def _usage_error_types() -> tuple[type[Exception], ...]:

@@ -124,3 +124,41 @@ def test_verify_detects_a_flipped_byte_in_a_stored_chunk(numproject):
     rerun = run_cli(numproject, "run", "-q")  # the removed artifact is recomputed
     assert rerun.returncode == 0
     assert run_cli(numproject, "verify").returncode == 0
+
+
+def test_a_full_disk_is_said_plainly_and_the_next_run_recovers(numproject, monkeypatch, capsys):
+    """ENOSPC while writing (here the run record, after the stages) ends the run with one line naming the file and
+    what to do, exit 1 and no traceback; a run once there is room completes from what was stored."""
+    import errno
+
+    from msflow.cli import run_commands
+    from msflow.stores.local import LocalStore
+
+    def full(store, record):
+        raise OSError(errno.ENOSPC, "No space left on device", str(store.root / "runs" / f"{record['id']}.json"))
+
+    monkeypatch.chdir(numproject)
+    with monkeypatch.context() as patched:
+        patched.setattr(LocalStore, "write_run", full)
+        code = run_commands(["run", "-q"])
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err
+    assert "error: cannot write (" in err and "runs" in err and "No space left on device" in err and "msflow gc" in err
+    assert run_commands(["run", "-q"]) == 0
+    assert msflow.run(numproject / "pipeline.yaml").executed == []
+    assert not any((numproject / ".msflow" / "tmp").iterdir())
+
+
+def test_a_failed_atomic_write_names_its_file_and_leaves_nothing(tmp_path):
+    import errno
+
+    from msflow.atomic import write_with
+
+    def fail(fh):
+        fh.write(b"half")
+        raise OSError(errno.ENOSPC, "No space left on device")  # as a full disk's write: no file name
+
+    with pytest.raises(OSError) as raised:
+        write_with(tmp_path / "out.bin", fail)
+    assert raised.value.errno == errno.ENOSPC and raised.value.filename == str(tmp_path / "out.bin")
+    assert list(tmp_path.iterdir()) == []
