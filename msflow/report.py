@@ -562,8 +562,9 @@ def build_report(
 @contextmanager
 def matplotlib_inside(session: Session) -> Iterator[None]:
     """matplotlib makes its configuration folder and writes its font list into the user's home on first use:
-    point it (``MPLCONFIGDIR``, inherited by the figure workers) at the project's local cache folder instead,
-    unless the user chose one, so that a report writes nothing outside the project and store."""
+    point it (``MPLCONFIGDIR``, inherited by the figure workers) at the store's cache folder instead (an object
+    store's: the project's local one), unless the user chose one, so a report writes nothing outside the project
+    and store."""
     if "MPLCONFIGDIR" in os.environ:
         yield
         return
