@@ -357,12 +357,17 @@ def sweep(
 @app.command()
 def runs(file: Path = FILE_ARG, limit: int = typer.Option(20, "--limit", "-n", help="newest N runs")) -> None:
     """List runs (newest last): id, time, variant or overrides, stage counts."""
+    from msflow.errors import CorruptRecord
     from msflow.spec import load_pipeline
 
     store = load_pipeline(file).open_store()
     ids = store.run_ids()[-limit:]
     for run_id in ids:
-        record = store.read_run(run_id)
+        try:
+            record = store.read_run(run_id)
+        except CorruptRecord as exc:  # one damaged record does not hide the others
+            echo(f"{run_id}  UNREADABLE  {exc}")
+            continue
         counts = ", ".join(f"{v} {k}" for k, v in record.get("counts", {}).items() if v)
         label = record.get("variant") or record.get("overrides") or ""
         sweep = f" sweep {record['sweep']}" if record.get("sweep") else ""

@@ -90,6 +90,14 @@ class CorruptArtifact(Exception):
         )
 
 
+class CorruptRecord(CorruptArtifact):
+    """A run record that is not a JSON object (damaged, or edited by hand). Only the history is hurt: the artifacts
+    are checked on their own, and ``msflow runs`` and ``msflow report`` pass over such a record."""
+
+    def __str__(self) -> str:
+        return f"{self.problem}; the artifacts do not depend on it: delete the file to drop it from the history"
+
+
 #: what reading a damaged artifact raises (zarr's checksum and decoding errors, a missing chunk); anything else
 #: (a network failure, a UserError naming the store) is not corruption
 READ_DAMAGE = (ValueError, RuntimeError, FileNotFoundError, EOFError, KeyError)

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 from msflow.atomic import write_atomic
 from msflow.dag import STATE_COLOURS
-from msflow.errors import UserError
+from msflow.errors import CorruptRecord, UserError
 from msflow.hashing import json_hash
 from msflow.jobs import StageStatus
 
@@ -541,7 +541,10 @@ def find_record(session: Session, run: str | None) -> dict[str, Any]:
         return store.read_run(run)
     rel = session.pipeline.rel_path
     for run_id in reversed(store.run_ids()):
-        record = store.read_run(run_id)
+        try:
+            record = store.read_run(run_id)
+        except CorruptRecord:  # a damaged record: the newest readable run of the pipeline is reported
+            continue
         if record.get("pipeline") == rel and not record.get("sweep"):
             return record
     raise UserError("no run of this pipeline yet: run it first (msflow run)", file=str(session.pipeline.path))

@@ -247,3 +247,20 @@ def test_gc_keeps_the_report_figures_of_kept_runs(numproject, tmp_path, monkeypa
     msflow.run(numproject / "figs.yaml", ["pic.size=3"])
     code, out, _ = cli(numproject, monkeypatch, capsys, "gc", "figs.yaml", "--keep-runs", "1")
     assert "removed 2 artifacts" in out, out  # the old stage and its figure go
+
+
+def test_a_damaged_run_record_is_passed_over_by_runs_and_report_and_named_elsewhere(numproject, tmp_path):
+    """A run record that is not JSON (damaged, or edited by hand) hides nothing else: ``msflow runs`` lists it as
+    unreadable beside the others, ``msflow report`` reports the newest readable run, and a command asked for that
+    run says which file it is (exit 1), never a JSON traceback."""
+    assert run_cli(numproject, "run", "-q").returncode == 0
+    assert run_cli(numproject, "run", "-q", "-S", "scaled.factor=4").returncode == 0
+    first, damaged = sorted((numproject / ".msflow" / "runs").glob("*.json"))[-2:]
+    damaged.write_text("{trunc")
+    listed = run_cli(numproject, "runs")
+    assert listed.returncode == 0 and f"{damaged.stem}  UNREADABLE" in listed.stdout and first.stem in listed.stdout
+    report = run_cli(numproject, "report", "-o", tmp_path / "r.html")
+    assert report.returncode == 0 and first.stem in (tmp_path / "r.html").read_text()
+    compared = run_cli(numproject, "compare", first.stem, damaged.stem)
+    assert compared.returncode == 1 and "Traceback" not in compared.stderr
+    assert f"{damaged.name} is unreadable" in compared.stderr and "delete the file" in compared.stderr

@@ -125,6 +125,18 @@ def json_object(data: bytes | str) -> Json:
     return value
 
 
+def run_record(data: bytes, location: str, read_raw: Callable[[str], Json]) -> Json:
+    """A stored run record (at ``location``, for messages) as readers use it (``expand_record``); CorruptRecord
+    when it is not a JSON object (damaged on disk or edited by hand): said plainly, never half-read."""
+    from msflow.errors import CorruptRecord
+
+    try:
+        record = json_object(data)
+    except ValueError as exc:
+        raise CorruptRecord(None, f"the run record {location} is unreadable ({exc})") from None
+    return expand_record(record, read_raw)
+
+
 def expand_record(record: Json, read_raw: Callable[[str], Json]) -> Json:
     """A run record as readers use it: a small no-op record (``same_as``) merged into the full record it points
     at, every stage cached. A record whose full record is gone stays small (with ``missing_full_record``)."""

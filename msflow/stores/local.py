@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 from msflow.atomic import write_json_atomic
 from msflow.errors import UserError
-from msflow.stores.base import HOST, Json, expand_record, json_object, pid_alive
+from msflow.stores.base import HOST, Json, json_object, pid_alive, run_record
 
 if TYPE_CHECKING:
     from msflow.artifact import ArtifactView
@@ -230,7 +230,7 @@ class LocalStore:
             if len(matches) != 1:
                 raise UserError(f"no single run matches '{run_id}' ({len(matches)} do)", file=str(self.root))
             path = self.root / "runs" / f"{matches[0]}.json"
-        return expand_record(json_object(path.read_bytes()), self._read_raw_run)
+        return run_record(path.read_bytes(), str(path), self._read_raw_run)
 
     def _read_raw_run(self, run_id: str) -> Json:
         return json_object((self.root / "runs" / f"{run_id}.json").read_bytes())

@@ -69,7 +69,7 @@ from msflow.artifact import check_manifest
 from msflow.atomic import write_json_atomic
 from msflow.errors import CorruptArtifact, UserError
 from msflow.stored import StoredArray
-from msflow.stores.base import HOST, Json, expand_record, json_object, pid_alive
+from msflow.stores.base import HOST, Json, json_object, pid_alive, run_record
 from msflow.stores.leases import Lease, lease_is_stale, parse_holder
 from msflow.stores.objects import dumps, iter_chunks, make_objects
 from msflow.stores.packs import PACK_NAME, Pack, make_pack, pack_limit, take_small
@@ -457,7 +457,8 @@ class RemoteStore:
             data = self.objects.get(f"runs/{matches[0]}.json")
             if data is None:
                 raise UserError(f"run '{matches[0]}' vanished from {self.url}", file=self.url)
-        return expand_record(json_object(data), self._read_raw_run)
+            run_id = matches[0]
+        return run_record(data, f"{self.url}/runs/{run_id}.json", self._read_raw_run)
 
     def _read_raw_run(self, run_id: str) -> Json:
         data = self.objects.get(f"runs/{run_id}.json")
