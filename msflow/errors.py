@@ -91,8 +91,8 @@ class CorruptArtifact(Exception):
 
 
 class CorruptRecord(CorruptArtifact):
-    """A run record that is not a JSON object (damaged, or edited by hand). Only the history is hurt: the artifacts
-    are checked on their own, and ``msflow runs`` and ``msflow report`` pass over such a record."""
+    """A run or sweep record that is not a JSON object (damaged, or edited by hand). Only the history is hurt: the
+    artifacts are checked on their own, and ``msflow runs`` and ``msflow report`` pass over such a run record."""
 
     def __str__(self) -> str:
         return f"{self.problem}; the artifacts do not depend on it: delete the file to drop it from the history"

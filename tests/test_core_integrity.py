@@ -264,3 +264,12 @@ def test_a_damaged_run_record_is_passed_over_by_runs_and_report_and_named_elsewh
     compared = run_cli(numproject, "compare", first.stem, damaged.stem)
     assert compared.returncode == 1 and "Traceback" not in compared.stderr
     assert f"{damaged.name} is unreadable" in compared.stderr and "delete the file" in compared.stderr
+
+
+def test_a_damaged_sweep_record_is_named(numproject, tmp_path):
+    swept = run_cli(numproject, "sweep", "-S", "src.n=3,4", "-q")
+    (record,) = (numproject / ".msflow" / "sweeps").glob("*.json")
+    record.write_text("[1, 2")
+    report = run_cli(numproject, "report", record.stem, "-o", tmp_path / "s.html")
+    assert swept.returncode == 0 and report.returncode == 1 and "Traceback" not in report.stderr
+    assert f"{record.name} is unreadable" in report.stderr

@@ -125,16 +125,20 @@ def json_object(data: bytes | str) -> Json:
     return value
 
 
-def run_record(data: bytes, location: str, read_raw: Callable[[str], Json]) -> Json:
-    """A stored run record (at ``location``, for messages) as readers use it (``expand_record``); CorruptRecord
-    when it is not a JSON object (damaged on disk or edited by hand): said plainly, never half-read."""
+def record_object(data: bytes, location: str) -> Json:
+    """A stored run or sweep record (at ``location``, for messages); CorruptRecord when it is not a JSON object
+    (damaged on disk or edited by hand): said plainly, never half-read."""
     from msflow.errors import CorruptRecord
 
     try:
-        record = json_object(data)
+        return json_object(data)
     except ValueError as exc:
-        raise CorruptRecord(None, f"the run record {location} is unreadable ({exc})") from None
-    return expand_record(record, read_raw)
+        raise CorruptRecord(None, f"the record {location} is unreadable ({exc})") from None
+
+
+def run_record(data: bytes, location: str, read_raw: Callable[[str], Json]) -> Json:
+    """A stored run record as readers use it (``record_object``, then ``expand_record``)."""
+    return expand_record(record_object(data, location), read_raw)
 
 
 def expand_record(record: Json, read_raw: Callable[[str], Json]) -> Json:

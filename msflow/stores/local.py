@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 from msflow.atomic import write_json_atomic
 from msflow.errors import UserError
-from msflow.stores.base import HOST, Json, json_object, pid_alive, run_record
+from msflow.stores.base import HOST, Json, json_object, pid_alive, record_object, run_record
 
 if TYPE_CHECKING:
     from msflow.artifact import ArtifactView
@@ -248,7 +248,7 @@ class LocalStore:
         path = self.root / "sweeps" / f"{sweep_id}.json"
         if not path.is_file():
             raise UserError(f"no sweep '{sweep_id}'", file=str(self.root))
-        return json_object(path.read_bytes())
+        return record_object(path.read_bytes(), str(path))
 
     def remove_run(self, run_id: str) -> None:
         with contextlib.suppress(FileNotFoundError):

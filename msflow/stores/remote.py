@@ -69,7 +69,7 @@ from msflow.artifact import check_manifest
 from msflow.atomic import write_json_atomic
 from msflow.errors import CorruptArtifact, UserError
 from msflow.stored import StoredArray
-from msflow.stores.base import HOST, Json, json_object, pid_alive, run_record
+from msflow.stores.base import HOST, Json, json_object, pid_alive, record_object, run_record
 from msflow.stores.leases import Lease, lease_is_stale, parse_holder
 from msflow.stores.objects import dumps, iter_chunks, make_objects
 from msflow.stores.packs import PACK_NAME, Pack, make_pack, pack_limit, take_small
@@ -479,7 +479,7 @@ class RemoteStore:
         data = self.objects.get(f"sweeps/{sweep_id}.json")
         if data is None:
             raise UserError(f"no sweep '{sweep_id}'", file=self.url)
-        return json_object(data)
+        return record_object(data, f"{self.url}/sweeps/{sweep_id}.json")
 
 
 class RemoteWriter:
