@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 from msflow.atomic import write_atomic
 from msflow.dag import STATE_COLOURS
-from msflow.errors import CorruptRecord, UserError
+from msflow.errors import CorruptArtifact, CorruptRecord, UserError
 from msflow.hashing import json_hash
 from msflow.jobs import StageStatus
 
@@ -157,9 +157,26 @@ def _render_job(job_json: str) -> str:
 
 
 def collect_figures(session: Session, record: dict[str, Any], jobs: int) -> list[Figure]:
-    """Figures of every settled stage of a run, rendered in parallel worker processes when ``jobs`` > 1."""
+    """Figures of every settled stage of a run, rendered in parallel worker processes when ``jobs`` > 1. A cached
+    figure found damaged in the store is set aside (``Store.quarantine``) and drawn again, and counts as drawn."""
     stages = _settled_stages(session, record)
     payloads = {s: _render_payload(session, record, s) for s in stages}
+    redrawn: set[str] = set()
+    while True:
+        results = _figure_items(session, record, stages, payloads, jobs)
+        try:
+            return _figures_from_items(session, stages, results, redrawn)
+        except CorruptArtifact as exc:
+            if not exc.key or exc.key in redrawn:
+                raise
+            session.store.quarantine(exc.key, f"report: {exc.problem}")
+            redrawn.add(exc.key)
+
+
+def _figure_items(
+    session: Session, record: dict[str, Any], stages: list[str], payloads: dict[str, str], jobs: int
+) -> dict[str, list[dict[str, Any]]]:
+    """Each stage's figure items: from the store when all are cached, else from a worker that renders them."""
     results: dict[str, list[dict[str, Any]]] = {}
     pending = []
     for stage in stages:  # cheap pass: stages whose figures are all cached need no worker
@@ -169,7 +186,7 @@ def collect_figures(session: Session, record: dict[str, Any], jobs: int) -> list
         else:
             results[stage] = cached
     results.update(_render_pending(payloads, pending, jobs))
-    return _figures_from_items(session, stages, results)
+    return results
 
 
 def _settled_stages(session: Session, record: dict[str, Any]) -> list[str]:
@@ -228,8 +245,11 @@ def _render_pending(payloads: dict[str, str], pending: list[str], jobs: int) -> 
     return results
 
 
-def _figures_from_items(session: Session, stages: list[str], results: dict[str, list[dict[str, Any]]]) -> list[Figure]:
-    """The workers' items as Figures, stage by stage in ``stages`` order, their bytes read from the store."""
+def _figures_from_items(
+    session: Session, stages: list[str], results: dict[str, list[dict[str, Any]]], redrawn: set[str]
+) -> list[Figure]:
+    """The workers' items as Figures, stage by stage in ``stages`` order, their bytes read from the store (those
+    whose key is in ``redrawn`` were drawn again after damage, so not cached)."""
     figures = []
     for stage in stages:
         for item in results.get(stage, []):
@@ -238,7 +258,14 @@ def _figures_from_items(session: Session, stages: list[str], results: dict[str, 
                 continue
             view = session.store.open(item["key"])
             figures.append(
-                Figure(stage, item["name"], view.meta["media"], view.bytes("data"), item["cached"], item["seconds"])
+                Figure(
+                    stage,
+                    item["name"],
+                    view.meta["media"],
+                    view.bytes("data"),
+                    item["cached"] and item["key"] not in redrawn,
+                    item["seconds"],
+                )
             )
     return figures
 

@@ -273,3 +273,21 @@ def test_a_damaged_sweep_record_is_named(numproject, tmp_path):
     report = run_cli(numproject, "report", record.stem, "-o", tmp_path / "s.html")
     assert swept.returncode == 0 and report.returncode == 1 and "Traceback" not in report.stderr
     assert f"{record.name} is unreadable" in report.stderr
+
+
+def test_a_damaged_cached_figure_is_set_aside_and_drawn_again(numproject, tmp_path, monkeypatch, capsys):
+    (numproject / "figs.yaml").write_text("version: 1\nstages:\n  pic:\n    uses: numstages.basic:Pictured\n")
+    msflow.run(numproject / "figs.yaml")
+    report = ("report", "-f", "figs.yaml", "-o", tmp_path / "a.html", "-j", "1")
+    assert cli(numproject, monkeypatch, capsys, *report)[0] == 0
+    run = msflow.run(numproject / "figs.yaml")
+    figure = next(k for k in run.session.store.keys() if k != run.key("pic"))  # the one other artifact
+    chunks = [p for p in (numproject / ".msflow" / "artifacts").rglob(f"{figure}/**/c/*") if p.is_file()]
+    damaged = bytearray(chunks[0].read_bytes())
+    damaged[len(damaged) // 2] ^= 0xFF
+    chunks[0].write_bytes(bytes(damaged))
+    code, _, err = cli(numproject, monkeypatch, capsys, *report)
+    assert code == 0 and "1 rendered" in err, err  # drawn again, not an error and not the damaged bytes
+    assert [p.name for p in (numproject / ".msflow" / "corrupt").iterdir() if p.name.startswith(figure)]
+    assert "data:image/png;base64," in (tmp_path / "a.html").read_text()
+    assert cli(numproject, monkeypatch, capsys, "verify", "figs.yaml")[0] == 0
