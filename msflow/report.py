@@ -592,17 +592,13 @@ def build_report(
 @contextmanager
 def matplotlib_inside(session: Session) -> Iterator[None]:
     """matplotlib makes its configuration folder and writes its font list into the user's home on first use:
-    point it (``MPLCONFIGDIR``, inherited by the figure workers) at the store's cache folder instead (an object
-    store's: the project's local one), unless the user chose one, so a report writes nothing outside the project
-    and store."""
-    if "MPLCONFIGDIR" in os.environ:
+    point it (``MPLCONFIGDIR``, inherited by the figure workers) at the store's local cache folder
+    (``Store.local_cache``) instead, unless the user chose one, so a report writes nothing outside the project and
+    store."""
+    if "MPLCONFIGDIR" in os.environ or session.store.local_cache is None:
         yield
         return
-    from msflow.stores.local import LocalStore
-
-    store = session.store
-    cache = store.root if isinstance(store, LocalStore) else session.pipeline.path.parent / ".msflow"
-    folder = cache / "cache" / "matplotlib"
+    folder = session.store.local_cache / "matplotlib"
     folder.mkdir(parents=True, exist_ok=True)
     os.environ["MPLCONFIGDIR"] = str(folder)
     try:

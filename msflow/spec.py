@@ -245,8 +245,9 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     except yaml.YAMLError:
         value = raw
     except UnicodeEncodeError:  # bytes that are not UTF-8, most likely a file name: msflow records text as UTF-8
-        shown = text.encode("utf-8", "backslashreplace").decode()
-        raise UserError(f"bad override '{shown}': not UTF-8 text (rename the file it names)", field="-S") from None
+        raise UserError(
+            f"bad override '{escaped(text)}': not UTF-8 text (rename the file it names)", field="-S"
+        ) from None
     return parts, value
 
 
@@ -649,14 +650,16 @@ def _labelled_mapping(ref: dict[str, Any], base: Path, file: str, stage: str, wh
     return FilesRef(tuple(files), "mapping", tuple(f for f in fields if f[1]))
 
 
+def escaped(text: str) -> str:
+    """``text`` with the bytes that are not UTF-8 (undecodable file-name bytes) written as escapes, printable."""
+    return text.encode("utf-8", "backslashreplace").decode()
+
+
 def _utf8_path(path: str, file: str, stage: str, where: str) -> str:
     """A data file's path, refused when it is not valid UTF-8 (file systems allow any bytes; labels, keys and run
     records are UTF-8 JSON), with its undecodable bytes shown escaped."""
-    try:
-        path.encode("utf-8")
-    except UnicodeEncodeError:
-        shown = path.encode("utf-8", "backslashreplace").decode()
-        raise UserError(f"not a UTF-8 file name: {shown}; rename it", file=file, stage=stage, field=where) from None
+    if escaped(path) != path:
+        raise UserError(f"not a UTF-8 file name: {escaped(path)}; rename it", file=file, stage=stage, field=where)
     return path
 
 

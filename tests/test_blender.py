@@ -19,7 +19,7 @@ import pytest
 from conftest import blender_env
 
 from stages.formats.bvh import joint_rotation, parse_bvh
-from stages.formats.gltf import read_morph_mesh
+from stages.formats.gltf import read_accessor, read_morph_mesh
 from stages.geometry.rotations import quat_to_matrix
 
 GLB = "out/sad_as_happy_to_disgust.glb"
@@ -29,13 +29,8 @@ Y_UP_TO_Z_UP = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
 
 
 def accessor(gltf, index: int) -> np.ndarray:
-    """A float accessor of a GLB (no sparse storage, tightly packed), as (count, components)."""
-    acc = gltf.accessors[index]
-    view = gltf.bufferViews[acc.bufferView]
-    size = {"SCALAR": 1, "VEC3": 3, "VEC4": 4, "MAT4": 16}[acc.type]
-    dtype = {5126: np.float32, 5121: np.uint8, 5123: np.uint16}[acc.componentType]
-    start = (view.byteOffset or 0) + (acc.byteOffset or 0)
-    return np.frombuffer(gltf.binary_blob(), dtype, acc.count * size, start).reshape(acc.count, size)
+    """Accessor ``index`` of a GLB as (count, components), read by the project's glTF reader."""
+    return read_accessor(gltf, [gltf.binary_blob()], index, Path("default run GLB"))
 
 
 def trs(translation, rotation_xyzw) -> np.ndarray:

@@ -18,6 +18,8 @@ from contextlib import AbstractContextManager
 from typing import TYPE_CHECKING, Any, Protocol
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
     from msflow.artifact import ArtifactView
 
 HOST = socket.gethostname()
@@ -59,6 +61,8 @@ class Store(Protocol):
     #: ``has`` asks a server (a round trip): the runner then leaves the check of a stage whose input was just
     #: computed to the worker's check under the key's lock, which it makes anyway
     remote: bool
+    #: this machine's folder for the store's caches (the memo; tools' caches such as matplotlib's); None: none
+    local_cache: Path | None
 
     # artifacts
     def has(self, key: str) -> bool: ...

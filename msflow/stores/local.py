@@ -43,6 +43,7 @@ class LocalStore:
     def __init__(self, root: str | Path):
         self.root = Path(root)
         self.url = str(self.root)
+        self.local_cache: Path | None = self.root / "cache"
         self.options: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ paths

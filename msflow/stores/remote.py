@@ -10,7 +10,7 @@ Layout under the store's prefix::
     runs/<id>.json                   one record per run (shared by every machine using the store)
     sweeps/<id>.json                 one record per sweep
 
-The memo of file stat signatures and code fingerprints is machine-local: it lives in the pipeline's cache_dir
+The memo of file stat signatures and code fingerprints is machine-local: it lives in the pipeline's local cache
 (``.msflow/cache``), never in the store.
 
 Atomic publish
@@ -109,7 +109,7 @@ class RemoteStore:
         protocol, sep, path = url.partition("://")
         self.url = protocol + sep + path.rstrip("/")
         self.options = dict(options)
-        self.cache_dir = Path(cache_dir) if cache_dir is not None else None
+        self.local_cache = Path(cache_dir) if cache_dir is not None else None
         self.objects = make_objects(self.url, self.options)
         self._recent: dict[str, Json] = {}  # markers read by has(), consumed by the manifest() that follows
         self._caches = caches_for(self.url)  # what this process wrote or read lately (msflow.stores.recent)
@@ -420,18 +420,18 @@ class RemoteStore:
 
     # ------------------------------------------------------------------ memo, runs
     def load_memo(self) -> dict[str, Any]:
-        if self.cache_dir is None:
+        if self.local_cache is None:
             return {}
         try:
-            return json_object((self.cache_dir / "memo.json").read_bytes())
+            return json_object((self.local_cache / "memo.json").read_bytes())
         except (OSError, ValueError):
             return {}
 
     def save_memo(self, memo: dict[str, Any]) -> None:
-        if self.cache_dir is None:
+        if self.local_cache is None:
             return
-        self.cache_dir.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(self.cache_dir / "memo.json", memo)
+        self.local_cache.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(self.local_cache / "memo.json", memo)
 
     def _write_record(self, folder: str, record: dict[str, Any]) -> str:
         path = f"{folder}/{record['id']}.json"
