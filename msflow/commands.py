@@ -273,7 +273,8 @@ def gc(
     keep_runs: int = typer.Option(10, "--keep-runs", help="runs whose artifacts stay"),
     dry_run: bool = typer.Option(False, "--dry-run", help="only list what would go"),
 ) -> None:
-    """Drop artifacts that none of the most recent runs references; clear leftovers of killed runs."""
+    """Drop artifacts that none of the most recent runs references; clear leftovers of killed runs and the damaged
+    artifacts runs set aside."""
     from msflow.gc import collect_garbage
     from msflow.spec import load_pipeline
 
@@ -282,6 +283,11 @@ def gc(
     echo(
         f"{verb} {len(report['artifacts'])} artifacts ({report['bytes'] / 1e6:.1f} MB), kept {report['kept']}, "
         f"cleared {len(report['tmp'])} temporary directories"
+        + (
+            f", {verb} {len(report['damaged'])} damaged artifacts set aside ({report['damaged_bytes'] / 1e6:.1f} MB)"
+            if report["damaged"]
+            else ""
+        )
     )
 
 

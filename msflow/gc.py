@@ -1,4 +1,5 @@
-"""Garbage collection: keep what the most recent runs reference, drop the rest, clear leftovers of killed runs."""
+"""Garbage collection: keep what the most recent runs reference, drop the rest, clear leftovers of killed runs
+and the damaged artifacts runs set aside."""
 
 from __future__ import annotations
 
@@ -31,7 +32,8 @@ def figure_of(store: Store, key: str, keep: set[str]) -> bool:
 
 def collect_garbage(store: Store, *, keep_runs: int = 10, dry_run: bool = False) -> dict[str, Any]:
     """Remove artifacts that none of the newest ``keep_runs`` runs references (report figures of the artifacts
-    they reference stay too), and leftovers of killed writers."""
+    they reference stay too), leftovers of killed writers, and the damaged artifacts set aside
+    (``Store.quarantine``), whose reasons the runs that found them reported."""
     keep = referenced_keys(store, keep_runs)
     doomed = [k for k in store.keys() if k not in keep and not figure_of(store, k, keep)]
     freed = sum(store.size(k) for k in doomed)
@@ -41,4 +43,12 @@ def collect_garbage(store: Store, *, keep_runs: int = 10, dry_run: bool = False)
             with store.lock(key):
                 store.remove(key)
         tmp = store.clean_tmp()
-    return {"artifacts": doomed, "bytes": freed, "kept": len(keep), "tmp": tmp}
+    damaged, damaged_bytes = store.drop_quarantined(dry_run=dry_run)
+    return {
+        "artifacts": doomed,
+        "bytes": freed,
+        "kept": len(keep),
+        "tmp": tmp,
+        "damaged": damaged,
+        "damaged_bytes": damaged_bytes,
+    }

@@ -77,6 +77,27 @@ def test_a_corrupt_artifact_is_caught_by_show_export_and_run_which_repairs_it(
     assert repair["key"] == key and repair["stage"] == "src"
 
 
+def test_gc_clears_the_damaged_artifacts_runs_set_aside(numproject):
+    """A run sets a damaged artifact aside for inspection; gc, which promises to clear what runs leave behind,
+    deletes it with its reason (a dry run only names it), and what the run recomputed stays."""
+    msflow.run(numproject / "pipeline.yaml")
+    key = lock_keys(numproject)["src"]
+    flip_a_byte(artifact_dir(numproject, key) / "x" / "c" / "0")
+    assert run_cli(numproject, "run", "-q", "-S", "scaled.factor=5").returncode == 0  # reads src
+    aside = numproject / ".msflow" / "corrupt"
+    assert len(list(aside.iterdir())) == 2
+    dry = run_cli(numproject, "gc", "--dry-run")
+    assert dry.returncode == 0 and "would remove 1 damaged artifacts set aside" in dry.stdout, dry.stdout
+    assert len(list(aside.iterdir())) == 2
+    done = run_cli(numproject, "gc")
+    assert done.returncode == 0 and "removed 1 damaged artifacts set aside" in done.stdout, done.stdout
+    assert list(aside.iterdir()) == []
+    again = run_cli(numproject, "gc")
+    assert "damaged" not in again.stdout, again.stdout
+    out = msflow.run(numproject / "pipeline.yaml")
+    assert out.executed == [] and np.array_equal(out.load("src.x"), np.arange(6.0))
+
+
 def test_status_reads_manifests_but_no_data(numproject):
     msflow.run(numproject / "pipeline.yaml")
     keys = lock_keys(numproject)

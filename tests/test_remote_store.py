@@ -214,6 +214,13 @@ def test_a_corrupt_chunk_on_s3_is_caught_on_read_and_repaired(numproject, s3):
     assert run.returncode == 0 and "was corrupt" in run.stderr, run.stderr
     assert [o.path for o in store.objects.list("corrupt/")] and store.verify(key) == []
     assert np.array_equal(msflow.run(numproject / "pipeline.yaml").load("src.x"), np.arange(6.0))
+    # gc deletes what was set aside: the record in corrupt/ and the damaged data folder it names, nothing else
+    folders = {o.path.split("/")[3] for o in store.objects.list(f"artifacts/{key[:2]}/{key}/")}
+    assert len(folders) == 2  # the damaged one and the recomputed one
+    gc = run_cli(numproject, "gc")
+    assert gc.returncode == 0 and "removed 1 damaged artifacts set aside" in gc.stdout, gc.stdout
+    assert store.objects.list("corrupt/") == [] and store.verify(key) == []
+    assert len({o.path.split("/")[3] for o in store.objects.list(f"artifacts/{key[:2]}/{key}/")}) == 1
 
 
 def test_the_run_leaves_the_check_of_a_stage_whose_input_it_computed_to_the_worker(numproject, s3, monkeypatch):

@@ -130,12 +130,7 @@ class LocalStore:
         return verify_artifact(self.artifact_path(key))
 
     def size(self, key: str) -> int:
-        total = 0
-        for dirpath, _, files in os.walk(self.artifact_path(key)):
-            for name in files:
-                with contextlib.suppress(OSError):
-                    total += os.path.getsize(os.path.join(dirpath, name))
-        return total
+        return _folder_bytes(self.artifact_path(key))
 
     def quarantine(self, key: str, reason: str) -> str:
         """Move a corrupt artifact aside to corrupt/<key>.<time> (kept for inspection, with the reason beside it);
@@ -147,6 +142,20 @@ class LocalStore:
         os.rename(target, aside)
         aside.with_name(aside.name + ".reason.txt").write_text(reason + "\n", encoding="utf-8")
         return str(aside)
+
+    def drop_quarantined(self, *, dry_run: bool = False) -> tuple[list[str], int]:
+        """Delete the artifacts ``quarantine`` set aside, with their reasons; returns their names and bytes."""
+        aside = self.root / "corrupt"
+        entries = sorted(aside.iterdir()) if aside.is_dir() else []
+        names = [e.name for e in entries if not e.name.endswith(".reason.txt")]
+        freed = sum(_folder_bytes(e) for e in entries)
+        if not dry_run:
+            for entry in entries:
+                if entry.is_dir():
+                    shutil.rmtree(entry, ignore_errors=True)
+                else:
+                    entry.unlink(missing_ok=True)
+        return names, freed
 
     def remove(self, key: str) -> None:
         target = self.artifact_path(key)
@@ -311,6 +320,18 @@ class LocalWriter:
         """Remove whatever was written (nothing once committed: the folder became the artifact)."""
         if self.path is not None and self.path.exists():
             shutil.rmtree(self.path, ignore_errors=True)
+
+
+def _folder_bytes(path: Path) -> int:
+    """The bytes of the files in ``path`` (a folder, walked; or a file)."""
+    if path.is_file():
+        return path.stat().st_size
+    total = 0
+    for dirpath, _, files in os.walk(path):
+        for name in files:
+            with contextlib.suppress(OSError):
+                total += os.path.getsize(os.path.join(dirpath, name))
+    return total
 
 
 def read_holder(path: Path) -> Json:

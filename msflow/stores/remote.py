@@ -329,6 +329,30 @@ class RemoteStore:
         self.objects.delete(self.marker_path(key))
         return f"{self.url}/{path}"
 
+    def drop_quarantined(self, *, dry_run: bool = False) -> tuple[list[str], int]:
+        """Delete the artifacts ``quarantine`` set aside (the record in corrupt/ and the data folder it names);
+        returns their names and bytes."""
+        names, freed = [], 0
+        for info in self.objects.list("corrupt/"):
+            folder = self._quarantined_folder(info.path)
+            data = list(self.objects.list(folder)) if folder else []
+            names.append(info.path.removeprefix("corrupt/").removesuffix(".json"))
+            freed += info.size + sum(o.size for o in data)
+            if not dry_run:
+                if folder:
+                    self.objects.delete_prefix(folder)
+                self.objects.delete(info.path)
+        return names, freed
+
+    def _quarantined_folder(self, path: str) -> str:
+        """The data folder (``.../``) a record in corrupt/ names, or "" when it names none that can be read."""
+        try:
+            record = json.loads(self.objects.get(path) or b"")
+            marker = json.loads(record["marker"])
+            return self.data_path(record["key"], marker["data"]) + "/"
+        except (ValueError, KeyError, TypeError):
+            return ""
+
     def remove(self, key: str) -> None:
         marker = self._marker(key)
         if marker is None:
