@@ -271,6 +271,13 @@ def apply_overrides(raw: dict[str, Any], overrides: tuple[str, ...], file: str) 
                     file=file,
                     field="-S",
                 )
+            if value == "" and len(rest) == 1:  # `-S vars.take="$clip"` with $clip unset: never a file named ""
+                raise UserError(
+                    f"override '{text}': no value for variable '{rest[0]}' (an unset shell variable?); give it "
+                    f"one, or leave the -S out to keep the pipeline's ({raw['vars'][rest[0]]!r})",
+                    file=file,
+                    field="-S",
+                )
             _set_path(raw["vars"], rest, value)
             continue
         if head not in stages:
@@ -454,8 +461,14 @@ def publish_targets(
                 file=file,
                 field=field_name,
             )
-        if dest.is_dir():
+        if dest.is_dir() or str(value).endswith(("/", "\\")):
             raise UserError(f"'{value}' is a folder; name the file to write", file=file, field=field_name)
+        if dest.name.startswith("."):  # `out/${name}.glb` with name empty; a hidden file would look unwritten
+            raise UserError(
+                f"'{value}' names a hidden file ('{dest.name}'): was a variable in it empty?",
+                file=file,
+                field=field_name,
+            )
         clash = next((other for other, done in targets.items() if done == str(dest)), None)
         if clash is not None:
             raise UserError(

@@ -169,6 +169,21 @@ CASES = {
         ["-S", "vars.tkae=b.mp4"],
         ["field '-S'", "unknown variable 'tkae'", "did you mean 'take'", "['name', 'take']"],
     ),
+    "override_empty_var": (  # `-S vars.take="$clip"` with $clip unset
+        "version: 1\nvars: {take: a.mp4, name: a}\nstages:" + GOOD_STAGES,
+        ["-S", "vars.take="],
+        ["field '-S'", "no value for variable 'take'", "unset shell variable", "'a.mp4'"],
+    ),
+    "publish_a_hidden_file": (  # out/${name}.csv with name empty in the file
+        "version: 1\nvars: {name: ''}\nstages:" + GOOD_STAGES + "publish:\n  scaled.y: out/${name}.csv\n",
+        [],
+        ["field 'publish.scaled.y'", "'out/.csv' names a hidden file", "variable in it empty"],
+    ),
+    "publish_a_folder": (
+        "version: 1\nstages:" + GOOD_STAGES + "publish:\n  scaled.y: out/\n",
+        [],
+        ["field 'publish.scaled.y'", "'out/' is a folder"],
+    ),
     "override_wrong_type": (
         "version: 1\nstages:" + GOOD_STAGES,
         ["-S", "src.n=[1,2]"],
