@@ -23,7 +23,9 @@ workers get the same with ``--preload-nanny msflow.dask_setup`` (README, "Run on
 from __future__ import annotations
 
 import os
+import shutil
 import socket
+import tempfile
 import threading
 import time
 import uuid
@@ -198,12 +200,16 @@ class DaskExecutor:
                 "the Dask executor needs dask.distributed: pip install 'msflow[dask]'", field="--executor"
             ) from None
         self.cluster = None
+        self.scratch: str | None = None
         if scheduler is not None:
             self.client = connect(parse_scheduler_address(scheduler), timeout)
             warn_if_no_workers(self.client, scheduler)
         else:
             env = {var: "1" for var in BLAS_VARS}
-            with dask.config.set(WORKER_CONFIG):
+            # the workers' scratch space in a folder of its own, deleted at shutdown: Dask's default,
+            # $TMPDIR/dask-scratch-space, keeps two lock files there after every run
+            self.scratch = tempfile.mkdtemp(prefix="msflow-dask-")
+            with dask.config.set({**WORKER_CONFIG, "temporary-directory": self.scratch}):
                 self.cluster = LocalCluster(
                     n_workers=jobs,
                     threads_per_worker=1,
@@ -287,6 +293,8 @@ class DaskExecutor:
         self.client.close()
         if self.cluster is not None:
             self.cluster.close()
+        if self.scratch is not None:
+            shutil.rmtree(self.scratch, ignore_errors=True)
 
 
 def send_without_delay(client: Any) -> None:

@@ -65,6 +65,16 @@ def test_worker_killed_mid_stage_is_retried_without_partial_artifacts(numproject
     assert not tmp.exists() or not any(tmp.iterdir())
 
 
+def test_a_local_cluster_leaves_nothing_in_the_temporary_folder(numproject, tmp_path):
+    """Dask's workers keep their scratch space in $TMPDIR/dask-scratch-space by default, and its lock files
+    stay after the cluster closes; msflow gives them a folder of their own and deletes it."""
+    scratch = tmp_path / "tmpdir"
+    scratch.mkdir()
+    run = run_cli(numproject, "run", "-q", "--executor", "dask", "-j", "2", env={"TMPDIR": str(scratch)})
+    assert run.returncode == 0, run.stderr
+    assert sorted(p.relative_to(scratch).as_posix() for p in scratch.rglob("*")) == []
+
+
 def test_sweep_on_dask_matches_local(numproject, tmp_path):
     from msflow.sweep import expand_variants, run_sweep
 
