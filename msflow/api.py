@@ -119,8 +119,11 @@ def run_sessions(
     runners = _runners_for(sessions, pool, jobs=jobs, until=until, force=force, reporters=reporters)
     try:
         schedule(runners, pool)
-    finally:
-        pool.shutdown()
+    except BaseException:  # Ctrl-C, or a fault of msflow's own: stop the stages running, do not wait for them
+        pool.shutdown(abort=True)
+        sessions[0].store.clean_tmp()  # what the stopped jobs were writing (their processes are gone)
+        raise
+    pool.shutdown()
     executions = [
         _record_execution(
             session,

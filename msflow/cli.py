@@ -35,6 +35,8 @@ def run_commands(args: list[str]) -> int:
     try:
         code = command.main(args=args, prog_name="msflow", standalone_mode=False)
         if isinstance(code, int):  # click returns typer.Exit's code instead of raising it here
+            if code == INTERRUPTED:  # typer turns Ctrl-C (KeyboardInterrupt) into Exit(130), without a word
+                echo(INTERRUPTED_MESSAGE, err=True)
             return code
     except UserError as exc:
         echo(f"error: {exc}", err=True)
@@ -51,8 +53,8 @@ def run_commands(args: list[str]) -> int:
         echo(f"error: {getattr(exc, 'format_message', exc.__str__)()}", err=True)
         return 2
     except KeyboardInterrupt:
-        echo("interrupted", err=True)
-        return 130
+        echo(INTERRUPTED_MESSAGE, err=True)
+        return INTERRUPTED
     except OSError as exc:
         if exc.errno not in _NO_ROOM:
             raise
@@ -61,6 +63,11 @@ def run_commands(args: list[str]) -> int:
         return 1
     return 0
 
+
+INTERRUPTED = 130  # 128 + SIGINT, as shells report it
+INTERRUPTED_MESSAGE = (
+    "interrupted: what finished is kept (a stage cut short left nothing behind); the next run goes on from there"
+)
 
 #: a disk that cannot take more: what to tell the user (nothing half-written is ever used: see msflow.atomic)
 _NO_ROOM = {

@@ -281,7 +281,9 @@ class DaskExecutor:
         task.add_done_callback(transfer)
         return future
 
-    def shutdown(self) -> None:
+    def shutdown(self, *, abort: bool = False) -> None:
+        """Closing a LocalCluster stops its workers, running stages or not; a cluster's own workers finish the
+        stage they run (Dask cannot stop a task), and its artifact is kept for the next run."""
         import contextlib
 
         from msflow.worker import settle

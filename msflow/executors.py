@@ -24,7 +24,9 @@ class Executor(Protocol):
 
     def submit(self, job_json: str, on_retry: OnRetry | None = None) -> Future[str]: ...
 
-    def shutdown(self) -> None: ...
+    def shutdown(self, *, abort: bool = False) -> None:
+        """Release the workers once their jobs are done; ``abort`` (the run was interrupted): stop the jobs
+        running now instead of waiting for them (a job killed mid-write leaves only a temporary folder)."""
 
 
 class InlineExecutor:
@@ -37,7 +39,7 @@ class InlineExecutor:
         future.set_result(run_job(job_json))
         return future
 
-    def shutdown(self) -> None:
+    def shutdown(self, *, abort: bool = False) -> None:
         from msflow.worker import settle
 
         settle()
@@ -65,8 +67,18 @@ class ProcessExecutor:
 
         return self.pool.submit(run_job, job_json)
 
-    def shutdown(self) -> None:
-        self.pool.shutdown(wait=True, cancel_futures=True)
+    def shutdown(self, *, abort: bool = False) -> None:
+        if not abort:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+            return
+        # the pool's own shutdown waits for the jobs running (a stage of minutes, for a Ctrl-C that reached only
+        # this process): stop its workers; _processes is private, but the pool has no public way to do this
+        workers = list(getattr(self.pool, "_processes", {}).values())
+        self.pool.shutdown(wait=False, cancel_futures=True)
+        for worker in workers:
+            worker.terminate()
+        for worker in workers:
+            worker.join()
 
 
 class LazyExecutor:
@@ -89,9 +101,9 @@ class LazyExecutor:
             self._executor = self._factory()
         return self._executor.submit(job_json, on_retry)
 
-    def shutdown(self) -> None:
+    def shutdown(self, *, abort: bool = False) -> None:
         if self._executor is not None:
-            self._executor.shutdown()
+            self._executor.shutdown(abort=abort)
 
 
 def make_executor(

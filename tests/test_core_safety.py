@@ -1,6 +1,7 @@
 """Crash and concurrency safety: SIGKILL at any moment, concurrent runs, dead lock holders, corruption."""
 
 import json
+import signal
 
 import numpy as np
 import pytest
@@ -43,6 +44,26 @@ def test_sigkill_while_computing_leaves_nothing_partial_and_the_next_run_recover
     assert out.load("after.total") == np.float64(big.sum() + 45)
     tmp = numproject / ".msflow" / "tmp"
     assert not tmp.exists() or list(tmp.iterdir()) == []
+
+
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_ctrl_c_says_what_it_kept_and_the_next_run_goes_on(numproject, tmp_path, jobs):
+    """Ctrl-C in the middle of a stage: exit 130 with a line saying so (typer swallowed it silently), no
+    traceback, nothing partial visible, and the next run computes only what was cut short."""
+    hold = Hold(tmp_path / "hold")
+    proc = start_cli(numproject, "run", "crash.yaml", "-j", jobs, env=hold.env)
+    hold.wait_ready(proc)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "interrupted: what finished is kept" in err, err
+    assert "Traceback" not in err, err
+    assert_visible_artifacts_complete(numproject)
+    tmp = numproject / ".msflow" / "tmp"
+    assert not tmp.exists() or list(tmp.iterdir()) == []
+    published = {p.name for p in visible_artifacts(numproject)}
+    out = msflow.run(numproject / "crash.yaml")
+    assert "slow" in out.executed and not {out.key(name) for name in out.executed} & published
+    assert np.array_equal(out.load("slow.big"), np.random.default_rng(7).standard_normal(3_000_000))
 
 
 def test_two_concurrent_runs_execute_each_stage_exactly_once(numproject, tmp_path):

@@ -112,10 +112,10 @@ def test_a_stage_reaches_the_scheduler_before_the_previous_result_is_released(nu
     seen = {}
     shutdown = dask_executor.DaskExecutor.shutdown
 
-    def record_then_shut_down(self):
+    def record_then_shut_down(self, **kwargs):
         seen["interval"] = self.client.scheduler_comm.interval
         seen["log"] = self.client.run_on_scheduler(scheduler_transitions)
-        shutdown(self)
+        shutdown(self, **kwargs)
 
     monkeypatch.setattr(dask_executor.DaskExecutor, "shutdown", record_then_shut_down)
     msflow.run(numproject / "pipeline.yaml", executor="dask", jobs=1)
