@@ -8,6 +8,7 @@ doubt it falls back to the full commands in ``msflow.commands``.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import sys
 
@@ -32,11 +33,13 @@ def run_commands(args: list[str]) -> int:
 
     usage_errors = _usage_error_types()
     command = typer.main.get_command(app)
+    terminated = _stop_on_sigterm()
     try:
         code = command.main(args=args, prog_name="msflow", standalone_mode=False)
         if isinstance(code, int):  # click returns typer.Exit's code instead of raising it here
             if code == INTERRUPTED:  # typer turns Ctrl-C (KeyboardInterrupt) into Exit(130), without a word
                 echo(INTERRUPTED_MESSAGE, err=True)
+                return TERMINATED if terminated else INTERRUPTED
             return code
     except UserError as exc:
         echo(f"error: {exc}", err=True)
@@ -54,7 +57,7 @@ def run_commands(args: list[str]) -> int:
         return 2
     except KeyboardInterrupt:
         echo(INTERRUPTED_MESSAGE, err=True)
-        return INTERRUPTED
+        return TERMINATED if terminated else INTERRUPTED
     except OSError as exc:
         if exc.errno not in _NO_ROOM:
             raise
@@ -65,6 +68,7 @@ def run_commands(args: list[str]) -> int:
 
 
 INTERRUPTED = 130  # 128 + SIGINT, as shells report it
+TERMINATED = 143  # 128 + SIGTERM
 INTERRUPTED_MESSAGE = (
     "interrupted: what finished is kept (a stage cut short left nothing behind); the next run goes on from there"
 )
@@ -75,6 +79,23 @@ _NO_ROOM = {
     errno.EDQUOT: "free some of your quota (msflow gc drops the artifacts no recent run uses) and run again",
     errno.EROFS: "the file system is read-only: put the store or the outputs elsewhere",
 }
+
+
+def _stop_on_sigterm() -> list[bool]:
+    """Make SIGTERM (kill, docker stop, a batch system's time limit) stop a command as Ctrl-C does, so a run
+    stops its workers and clears what they were writing instead of dying with them still at work; the list
+    returned becomes [True] once it came."""
+    import signal
+
+    came: list[bool] = []
+
+    def interrupt(signum: int, frame: object) -> None:
+        came.append(True)
+        raise KeyboardInterrupt
+
+    with contextlib.suppress(ValueError):  # not the main thread (msflow.cli.main called from a thread)
+        signal.signal(signal.SIGTERM, interrupt)
+    return came
 
 
 def _usage_error_types() -> tuple[type[Exception], ...]:

@@ -46,16 +46,19 @@ def test_sigkill_while_computing_leaves_nothing_partial_and_the_next_run_recover
     assert not tmp.exists() or list(tmp.iterdir()) == []
 
 
-@pytest.mark.parametrize("jobs", ["1", "2"])
-def test_ctrl_c_says_what_it_kept_and_the_next_run_goes_on(numproject, tmp_path, jobs):
-    """Ctrl-C in the middle of a stage: exit 130 with a line saying so (typer swallowed it silently), no
-    traceback, nothing partial visible, and the next run computes only what was cut short."""
+@pytest.mark.parametrize(
+    ("jobs", "signum", "code"), [("1", "SIGINT", 130), ("2", "SIGINT", 130), ("2", "SIGTERM", 143)]
+)
+def test_ctrl_c_says_what_it_kept_and_the_next_run_goes_on(numproject, tmp_path, jobs, signum, code):
+    """Ctrl-C (or a SIGTERM: kill, docker stop) in the middle of a stage, sent to msflow alone: it stops at once
+    (the pool waited for the stage, a SIGTERM left the workers at work) with a line saying so (typer swallowed
+    it silently), no traceback, nothing partial visible, and the next run computes only what was cut short."""
     hold = Hold(tmp_path / "hold")
     proc = start_cli(numproject, "run", "crash.yaml", "-j", jobs, env=hold.env)
     hold.wait_ready(proc)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(getattr(signal, signum))
     _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130 and "interrupted: what finished is kept" in err, err
+    assert proc.returncode == code and "interrupted: what finished is kept" in err, err
     assert "Traceback" not in err, err
     assert_visible_artifacts_complete(numproject)
     tmp = numproject / ".msflow" / "tmp"
