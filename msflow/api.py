@@ -277,7 +277,7 @@ def run(
         save_fast_state(execution)  # what the next no-op `msflow run` (same file and overrides) answers from
     result = RunResult(session, execution.states, execution.record)
     if raise_on_failure:
-        raise_for_failures(execution.states)
+        raise_for_failures(execution.states, str(session.pipeline.path))
     return result
 
 
@@ -361,8 +361,9 @@ def watched_code(session: Session) -> dict[str, str] | None:
     return watch
 
 
-def raise_for_failures(states: dict[str, StageState]) -> None:
-    """Raise the first crash (StageFailed), else the first user error, of a run's stages."""
+def raise_for_failures(states: dict[str, StageState], pipeline_file: str | None = None) -> None:
+    """Raise the first crash (StageFailed), else the first user error, of a run's stages (one a stage raised
+    about its params names no file: it is the pipeline's, ``pipeline_file``)."""
     failed = [s for s in states.values() if s.state is StageStatus.FAILED]
     crashes = [s for s in failed if not s.user_error]
     if crashes:
@@ -370,4 +371,5 @@ def raise_for_failures(states: dict[str, StageState]) -> None:
         raise StageFailed(first.name, first.error or "failed", first.traceback or "")
     if failed:
         ue = failed[0].user_error or {}
-        raise UserError(ue["message"], file=ue.get("file"), stage=ue.get("stage"), field=ue.get("field"))
+        file = ue.get("file") or pipeline_file
+        raise UserError(ue["message"], file=file, stage=ue.get("stage"), field=ue.get("field"))

@@ -97,7 +97,7 @@ def run(
             echo(state.traceback.rstrip(), err=True)
     from msflow.api import raise_for_failures
 
-    raise_for_failures(result.states)
+    raise_for_failures(result.states, str(result.session.pipeline.path))
 
 
 def _echo_warnings(warnings: dict[str, list[str]], states: dict[str, str]) -> None:
