@@ -178,28 +178,46 @@ def parse_yaml(text: str, file: str) -> Any:
 
 # ---------------------------------------------------------------------------------------------------------- vars
 def substitute_vars(value: Any, variables: dict[str, Any], file: str, where: str) -> Any:
-    """Replace ``${name}`` everywhere; a string that is exactly ``${name}`` takes the variable's value and type."""
+    """Replace ``${name}`` everywhere, mapping keys included; a string that is exactly ``${name}`` takes the
+    variable's value and type (a key, its text)."""
     if isinstance(value, str):
         whole = VAR_RE.fullmatch(value)
         if whole:
             return _lookup_var(whole.group(1), variables, file, where)
-
-        def repl(m: re.Match[str]) -> str:
-            got = _lookup_var(m.group(1), variables, file, where)
-            if isinstance(got, (dict, list)):
-                raise UserError(
-                    f"variable '${{{m.group(1)}}}' holds a {type(got).__name__} and cannot be spliced into a string",
-                    file=file,
-                    field=where,
-                )
-            return str(got)
-
-        return VAR_RE.sub(repl, value)
+        return _splice(value, variables, file, where)
     if isinstance(value, dict):
-        return {k: substitute_vars(v, variables, file, f"{where}.{k}") for k, v in value.items()}
+        return _substitute_mapping(value, variables, file, where)
     if isinstance(value, list):
         return [substitute_vars(v, variables, file, f"{where}[{i}]") for i, v in enumerate(value)]
     return value
+
+
+def _splice(text: str, variables: dict[str, Any], file: str, where: str) -> str:
+    """``text`` with each ``${name}`` replaced by the variable's value as text (a mapping or list cannot be)."""
+
+    def repl(m: re.Match[str]) -> str:
+        got = _lookup_var(m.group(1), variables, file, where)
+        if isinstance(got, (dict, list)):
+            raise UserError(
+                f"variable '${{{m.group(1)}}}' holds a {type(got).__name__} and cannot be spliced into a string",
+                file=file,
+                field=where,
+            )
+        return str(got)
+
+    return VAR_RE.sub(repl, text)
+
+
+def _substitute_mapping(value: dict[Any, Any], variables: dict[str, Any], file: str, where: str) -> dict[Any, Any]:
+    """A mapping's values and its keys (``{${mood}: 1.0}``); two keys that become one are an error, not a silent
+    overwrite."""
+    out: dict[Any, Any] = {}
+    for key, item in value.items():
+        new_key = _splice(key, variables, file, f"{where}.{key}") if isinstance(key, str) else key
+        if new_key in out:
+            raise UserError(f"two keys become '{new_key}' once the variables are filled in", file=file, field=where)
+        out[new_key] = substitute_vars(item, variables, file, f"{where}.{new_key}")
+    return out
 
 
 #: ``${name:filter}``: the variable's value read as a path, reduced to a part of it

@@ -184,6 +184,12 @@ CASES = {
         [],
         ["field 'publish.scaled.y'", "'out/' is a folder"],
     ),
+    "var_keys_that_become_one": (
+        "version: 1\nvars: {a: x}\nstages:\n  src:\n    uses: numstages.basic:Source\n"
+        "    params: {n: {'${a}': 1, x: 2}}\n",
+        [],
+        ["field 'stages.src.params.n'", "two keys become 'x' once the variables are filled in"],
+    ),
     "override_wrong_type": (
         "version: 1\nstages:" + GOOD_STAGES,
         ["-S", "src.n=[1,2]"],
@@ -297,7 +303,7 @@ def test_stage_user_error_exits_2_and_keeps_earlier_results(numproject):
         ("schema", 1, ["stage 'broken'", "output 'y'", "axis 0 has size 4, expected 3"]),
         ("nan_meta", 1, ["stage 'broken' meta.bad", "nan", "not allowed in strict JSON"]),
         ("crash", 1, ["stage 'broken' failed: RuntimeError: boom", "Traceback"]),
-        ("user", 2, ["stage 'broken'", "field 'inputs.x'", "the data is unusable"]),
+        ("user", 2, ["error: broken.yaml: stage 'broken': field 'inputs.x': the data is unusable"]),
     ],
 )
 def test_failing_stage_reports_stage_and_output(numproject, mode, code, fragments):

@@ -70,6 +70,24 @@ def test_default_run_swings_the_mood_from_happy_to_disgust(default_run):
     assert mean("browDown", last) > 2 * mean("browDown", first)
 
 
+def test_the_mood_vars_set_the_swing_and_the_published_names_together(default_run):
+    """A mood changed on the command line renames the files that hold it: -S blend.alpha in the README's
+    examples kept publishing an all-happy take as sad_as_happy_to_disgust.*. Checked on the loaded pipeline
+    (no stage runs): the keyframes and the names follow the same two variables."""
+    from msflow.spec import load_pipeline
+
+    proj, _ = default_run
+    pipeline = load_pipeline(proj / "pipeline.yaml", ["vars.mood_from=neutral"])
+    keyframes = pipeline.stages["blend"].params["alpha"]["keyframes"]
+    assert [list(frame) for frame in keyframes.values()] == [["neutral"], ["disgust"]]
+    published = {ref: path.rsplit("/", 1)[-1] for ref, path in pipeline.publish.items()}
+    assert published["export.animation"] == "sad_as_neutral_to_disgust.glb"
+    assert published["export.live_link"] == "sad_as_neutral_to_disgust_live_link.csv"
+    assert published["export.preview"] == "sad_as_neutral_to_disgust_preview.mp4"
+    default = load_pipeline(proj / "pipeline.yaml")
+    assert default.publish["export.animation"].endswith("/out/sad_as_happy_to_disgust.glb")
+
+
 def test_default_run_blinks_with_the_performer(default_run):
     """The default tracking gives the eyelid aperture and gaze (Face Landmarker v2 eye pass), and the blend closes
     the character's eyes where the performer blinks (the sad take, closed at frames 6-7, opening at 8)."""

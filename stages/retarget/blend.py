@@ -30,6 +30,7 @@ The result is clipped to [0, 1] (the range of a morph-target slider); how much w
 
 from __future__ import annotations
 
+import difflib
 from typing import Literal, Union
 
 import numpy as np
@@ -509,7 +510,9 @@ class Blend(Stage):
         """The alpha vector over the edited expressions (the params already checked it is barycentric)."""
         unknown = [name for name in weights if name not in targets]
         if unknown:
-            raise UserError(f"unknown expressions {unknown}; the edited expressions are {targets}", field=field)
+            close = difflib.get_close_matches(unknown[0], targets, n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise UserError(f"unknown expressions {unknown}{hint}; the edited expressions are {targets}", field=field)
         vector = np.array([float(weights.get(name, 0.0)) for name in targets])
         return vector / vector.sum()
 
