@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from collections.abc import Sequence
@@ -106,41 +107,46 @@ def run_sessions(
     from msflow.runner import schedule
     from msflow.worker import pin_blas_threads
 
-    started = time.time()
-    pin_blas_threads()
-    pool = make_executor(
-        executor,
-        jobs,
-        scheduler,
-        connect_timeout,
-        on_start=sessions[0].store.clean_tmp,
-        code_trees=code_trees_of(sessions),
-    )
-    runners = _runners_for(sessions, pool, jobs=jobs, until=until, force=force, reporters=reporters)
-    try:
-        schedule(runners, pool)
-    except BaseException:  # Ctrl-C, or a fault of msflow's own: stop the stages running, do not wait for them
-        pool.shutdown(abort=True)
-        sessions[0].store.clean_tmp()  # what the stopped jobs were writing (their processes are gone)
-        raise
-    pool.shutdown()
-    executions = [
-        _record_execution(
-            session,
-            runner,
-            started=started,
-            executor=pool.name,
-            jobs=jobs,
-            force=force,
-            label=labels[index] if labels else None,
-            argv=argv,
-            extra=extra,
+    with sessions[0].store.in_use():  # msflow gc fails while a run holds this: it would delete what runs make
+        started = time.time()
+        pin_blas_threads()
+        pool = make_executor(
+            executor,
+            jobs,
+            scheduler,
+            connect_timeout,
+            on_start=sessions[0].store.clean_tmp,
+            code_trees=code_trees_of(sessions),
         )
-        for index, (session, runner) in enumerate(zip(sessions, runners))
-    ]
-    for session in {id(s.memo): s for s in sessions}.values():  # sessions may share one memo
-        session.save_memo()
-    return executions
+        runners = _runners_for(sessions, pool, jobs=jobs, until=until, force=force, reporters=reporters)
+        try:
+            schedule(runners, pool)
+        except KeyboardInterrupt:  # Ctrl-C (or SIGTERM, msflow.cli): stop the stages running, don't wait for them
+            pool.shutdown(abort=True)
+            with contextlib.suppress(Exception):  # nothing may hide the interrupt
+                sessions[0].store.clean_tmp()  # what the stopped jobs were writing (their processes are gone)
+            raise
+        except BaseException:
+            pool.shutdown()
+            raise
+        pool.shutdown()
+        executions = [
+            _record_execution(
+                session,
+                runner,
+                started=started,
+                executor=pool.name,
+                jobs=jobs,
+                force=force,
+                label=labels[index] if labels else None,
+                argv=argv,
+                extra=extra,
+            )
+            for index, (session, runner) in enumerate(zip(sessions, runners))
+        ]
+        for session in {id(s.memo): s for s in sessions}.values():  # sessions may share one memo
+            session.save_memo()
+        return executions
 
 
 def _runners_for(

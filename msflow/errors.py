@@ -152,3 +152,7 @@ def strip_tags(loc: Sequence[object]) -> list[str]:
     """The parts of a pydantic error location that name fields, keys and indices (union member tags dropped; the
     first part is the field of the model itself, never a tag)."""
     return [str(p) for i, p in enumerate(loc) if not (i and isinstance(p, str) and PYDANTIC_TAG.match(p))]
+
+
+class StoreInUse(UserError):
+    """``msflow gc`` found runs using the store: it would delete the artifacts they are making."""

@@ -34,6 +34,11 @@ def collect_garbage(store: Store, *, keep_runs: int = 10, dry_run: bool = False)
     """Remove artifacts that none of the newest ``keep_runs`` runs references (report figures of the artifacts
     they reference stay too), leftovers of killed writers, and the damaged artifacts set aside
     (``Store.quarantine``), whose reasons the runs that found them reported."""
+    with store.in_use(alone=True):  # a run in progress has made artifacts no record names yet
+        return _collect(store, keep_runs=keep_runs, dry_run=dry_run)
+
+
+def _collect(store: Store, *, keep_runs: int, dry_run: bool) -> dict[str, Any]:
     keep = referenced_keys(store, keep_runs)
     doomed = [k for k in store.keys() if k not in keep and not figure_of(store, k, keep)]
     freed = sum(store.size(k) for k in doomed)

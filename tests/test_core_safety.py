@@ -69,6 +69,33 @@ def test_ctrl_c_says_what_it_kept_and_the_next_run_goes_on(numproject, tmp_path,
     assert np.array_equal(out.load("slow.big"), np.random.default_rng(7).standard_normal(3_000_000))
 
 
+def test_gc_refuses_while_a_run_is_making_artifacts_no_record_names_yet(numproject, tmp_path):
+    """gc keeps what run records name, and a run writes its record at the end: a gc during the run deleted the
+    stages it had finished, and the run then recorded them, so the next run and status said "cached" for
+    artifacts that were gone. gc now fails while a run holds the store (exit 2, saying why), and works again
+    once the run has ended, or has been killed."""
+    hold = Hold(tmp_path / "hold")
+    proc = start_cli(numproject, "run", "crash.yaml", "-j", "2", env=hold.env)
+    hold.wait_ready(proc)
+    refused = run_cli(numproject, "gc", "crash.yaml")
+    assert refused.returncode == 2 and "a run is using the store" in refused.stderr, refused.stderr
+    assert "Traceback" not in refused.stderr
+    hold.release()
+    assert proc.wait(timeout=120) == 0
+    done = run_cli(numproject, "gc", "crash.yaml")
+    assert done.returncode == 0 and "removed 0 artifacts" in done.stdout, (done.stdout, done.stderr)
+    out = msflow.run(numproject / "crash.yaml")
+    assert out.executed == [] and out.load("scaled.y").size > 0  # every artifact the record names is there
+
+    (hold.folder / "release").unlink()
+    (hold.folder / "ready").unlink()
+    killed = start_cli(numproject, "run", "crash.yaml", "--force", "slow", env=hold.env)
+    hold.wait_ready(killed)
+    killed.kill()
+    killed.wait()
+    assert run_cli(numproject, "gc", "crash.yaml").returncode == 0  # a dead run holds nothing
+
+
 def test_two_concurrent_runs_execute_each_stage_exactly_once(numproject, tmp_path):
     log = tmp_path / "log"
     hold = Hold(tmp_path / "hold")

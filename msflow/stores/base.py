@@ -87,6 +87,9 @@ class Store(Protocol):
 
     # coordination
     def lock(self, key: str, on_wait: Callable[[Json], None] | None = None) -> AbstractContextManager[object]: ...
+    def in_use(self, *, alone: bool = False) -> AbstractContextManager[object]:
+        """Held by every run while it makes and records artifacts (any number at once); ``alone`` (gc): held by
+        nobody else, else ``StoreInUse`` at once."""
 
     # memo and records
     def load_memo(self) -> Json: ...

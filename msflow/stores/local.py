@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from msflow.atomic import write_json_atomic
-from msflow.errors import UserError
+from msflow.errors import StoreInUse, UserError
 from msflow.stores.base import HOST, Json, json_object, pid_alive, record_object, run_record
 
 if TYPE_CHECKING:
@@ -213,6 +213,25 @@ class LocalStore:
             with contextlib.suppress(OSError):
                 fcntl.flock(fd, fcntl.LOCK_UN)
             os.close(fd)
+
+    @contextlib.contextmanager
+    def in_use(self, *, alone: bool = False) -> Iterator[None]:
+        """A shared flock on locks/store.lock held by runs; gc's exclusive one fails at once while any run holds
+        it (the kernel drops a dead run's hold, so a killed run never blocks gc)."""
+        import fcntl
+
+        fd = os.open(self._dir("locks") / "store.lock", os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB if alone else fcntl.LOCK_SH)
+            except BlockingIOError:
+                raise StoreInUse(
+                    f"a run is using the store {self.url} (msflow run or sweep): gc would delete the artifacts it is "
+                    "making before its record names them; run gc once it has ended"
+                ) from None
+            yield
+        finally:
+            os.close(fd)  # releases the lock
 
     # ------------------------------------------------------------------ memo, runs
     def load_memo(self) -> Json:

@@ -404,6 +404,12 @@ class RemoteStore:
             return True
         return _age(entry) < grace
 
+    @contextlib.contextmanager
+    def in_use(self, *, alone: bool = False) -> Iterator[None]:
+        """Nothing is held on an object store: runs on other machines cannot be seen, so run ``msflow gc`` on a
+        shared store when no run is in progress (README, "Remote stores")."""
+        yield
+
     # ------------------------------------------------------------------ locks
     @staticmethod
     def lease_path(key: str) -> str:
