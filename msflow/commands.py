@@ -280,15 +280,21 @@ def gc(
 
     report = collect_garbage(load_pipeline(file).open_store(), keep_runs=keep_runs, dry_run=dry_run)
     verb = "would remove" if dry_run else "removed"
+    damaged = report["damaged"]
     echo(
-        f"{verb} {len(report['artifacts'])} artifacts ({report['bytes'] / 1e6:.1f} MB), kept {report['kept']}, "
-        f"cleared {len(report['tmp'])} temporary directories"
+        f"{verb} {_count(len(report['artifacts']), 'artifact')} ({report['bytes'] / 1e6:.1f} MB), kept "
+        f"{report['kept']}, cleared {_count(len(report['tmp']), 'temporary directory', 'temporary directories')}"
         + (
-            f", {verb} {len(report['damaged'])} damaged artifacts set aside ({report['damaged_bytes'] / 1e6:.1f} MB)"
-            if report["damaged"]
+            f", {verb} {_count(len(damaged), 'damaged artifact')} set aside ({report['damaged_bytes'] / 1e6:.1f} MB)"
+            if damaged
             else ""
         )
     )
+
+
+def _count(n: int, noun: str, plural: str | None = None) -> str:
+    """``1 artifact``, ``2 artifacts``."""
+    return f"{n} {noun if n == 1 else plural or noun + 's'}"
 
 
 @app.command()

@@ -87,10 +87,10 @@ def test_gc_clears_the_damaged_artifacts_runs_set_aside(numproject):
     aside = numproject / ".msflow" / "corrupt"
     assert len(list(aside.iterdir())) == 2
     dry = run_cli(numproject, "gc", "--dry-run")
-    assert dry.returncode == 0 and "would remove 1 damaged artifacts set aside" in dry.stdout, dry.stdout
+    assert dry.returncode == 0 and "would remove 1 damaged artifact set aside" in dry.stdout, dry.stdout
     assert len(list(aside.iterdir())) == 2
     done = run_cli(numproject, "gc")
-    assert done.returncode == 0 and "removed 1 damaged artifacts set aside" in done.stdout, done.stdout
+    assert done.returncode == 0 and "removed 1 damaged artifact set aside" in done.stdout, done.stdout
     assert list(aside.iterdir()) == []
     again = run_cli(numproject, "gc")
     assert "damaged" not in again.stdout, again.stdout

@@ -218,7 +218,7 @@ def test_a_corrupt_chunk_on_s3_is_caught_on_read_and_repaired(numproject, s3):
     folders = {o.path.split("/")[3] for o in store.objects.list(f"artifacts/{key[:2]}/{key}/")}
     assert len(folders) == 2  # the damaged one and the recomputed one
     gc = run_cli(numproject, "gc")
-    assert gc.returncode == 0 and "removed 1 damaged artifacts set aside" in gc.stdout, gc.stdout
+    assert gc.returncode == 0 and "removed 1 damaged artifact set aside" in gc.stdout, gc.stdout
     assert store.objects.list("corrupt/") == [] and store.verify(key) == []
     assert len({o.path.split("/")[3] for o in store.objects.list(f"artifacts/{key[:2]}/{key}/")}) == 1
 
