@@ -207,6 +207,10 @@ def show(
     for name in names:
         echo("  " + describe_array(name, view))
     if output:
+        suffix = view.manifest["outputs"][output].get("file_suffix")
+        if suffix:  # its bytes printed as numbers say nothing
+            echo(f"a {suffix} file: msflow export {stage}.{output} FILE{suffix} writes it")
+            return
         import numpy as np
 
         with np.printoptions(threshold=200, edgeitems=3, precision=5, suppress=True):

@@ -100,6 +100,15 @@ def test_export_unknown_format_is_a_user_error(numproject):
     assert result.returncode == 2 and "unsupported export format" in result.stderr
 
 
+def test_a_run_id_that_matches_no_run_or_several_says_what_to_do(numproject):
+    for n in (3, 4):
+        assert run_cli(numproject, "run", "-q", "-S", f"src.n={n}").returncode == 0
+    none = run_cli(numproject, "compare", "nope", "nada")
+    assert none.returncode == 2 and "no run matches 'nope'; `msflow runs` lists them" in none.stderr, none.stderr
+    year = run_cli(numproject, "compare", "2", "2")
+    assert year.returncode == 2 and "'2' matches 2 runs (" in year.stderr and "give more of the id" in year.stderr
+
+
 def test_gc_keeps_recent_runs_and_drops_the_rest(numproject):
     for n in (3, 4, 5):
         assert run_cli(numproject, "run", "-q", "-S", f"src.n={n}").returncode == 0

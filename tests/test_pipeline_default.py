@@ -53,6 +53,17 @@ def test_default_pipeline_publishes_animation_files(default_run):
     assert np.all((weights >= 0) & (weights <= 1))
 
 
+def test_show_names_a_file_output_and_how_to_write_it(default_run):
+    """Not its bytes printed as an array of numbers."""
+    from conftest import run_cli
+
+    proj, _ = default_run
+    shown = run_cli(proj, "show", "export.animation")
+    assert shown.returncode == 0, shown.stderr
+    assert "animation          file .glb" in shown.stdout and "[103 108" not in shown.stdout, shown.stdout
+    assert "a .glb file: msflow export export.animation FILE.glb writes it" in shown.stdout
+
+
 def test_default_run_swings_the_mood_from_happy_to_disgust(default_run):
     """The paper's headline: the unseen take re-expressed with alpha keyframed across expressions."""
     _, result = default_run

@@ -163,6 +163,20 @@ def expand_record(record: Json, read_raw: Callable[[str], Json]) -> Json:
     return {**full, **record, "stages": stages}
 
 
+def matching_run(run_id: str, run_ids: list[str], location: str) -> str:
+    """The one run whose id starts or ends with ``run_id`` (a prefix or the random suffix); a UserError naming
+    what to do when none or several do."""
+    matches = [r for r in run_ids if r.startswith(run_id) or r.endswith(run_id)]
+    if len(matches) == 1:
+        return matches[0]
+    from msflow.errors import UserError
+
+    if not matches:
+        raise UserError(f"no run matches '{run_id}'; `msflow runs` lists them", file=location)
+    shown = ", ".join(matches[:4]) + (", ..." if len(matches) > 4 else "")
+    raise UserError(f"'{run_id}' matches {len(matches)} runs ({shown}): give more of the id", file=location)
+
+
 def new_run_id() -> str:
     """A run (or sweep) id, sortable by start time to the microsecond (records of one second still order)."""
     import uuid

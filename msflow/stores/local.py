@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 from msflow.atomic import write_json_atomic
 from msflow.errors import StoreInUse, UserError
-from msflow.stores.base import HOST, Json, json_object, pid_alive, record_object, run_record
+from msflow.stores.base import HOST, Json, json_object, matching_run, pid_alive, record_object, run_record
 
 if TYPE_CHECKING:
     from msflow.artifact import ArtifactView
@@ -255,10 +255,7 @@ class LocalStore:
     def read_run(self, run_id: str) -> Json:
         path = self.root / "runs" / f"{run_id}.json"
         if not path.is_file():
-            matches = [r for r in self.run_ids() if r.startswith(run_id) or r.endswith(run_id)]
-            if len(matches) != 1:
-                raise UserError(f"no single run matches '{run_id}' ({len(matches)} do)", file=str(self.root))
-            path = self.root / "runs" / f"{matches[0]}.json"
+            path = self.root / "runs" / f"{matching_run(run_id, self.run_ids(), str(self.root))}.json"
         return run_record(path.read_bytes(), str(path), self._read_raw_run)
 
     def _read_raw_run(self, run_id: str) -> Json:

@@ -69,7 +69,7 @@ from msflow.artifact import check_manifest
 from msflow.atomic import write_json_atomic
 from msflow.errors import CorruptArtifact, UserError
 from msflow.stored import StoredArray
-from msflow.stores.base import HOST, Json, json_object, pid_alive, record_object, run_record
+from msflow.stores.base import HOST, Json, json_object, matching_run, pid_alive, record_object, run_record
 from msflow.stores.leases import Lease, lease_is_stale, parse_holder
 from msflow.stores.objects import dumps, iter_chunks, make_objects
 from msflow.stores.packs import PACK_NAME, Pack, make_pack, pack_limit, take_small
@@ -481,13 +481,10 @@ class RemoteStore:
     def read_run(self, run_id: str) -> dict[str, Any]:
         data = self.objects.get(f"runs/{run_id}.json")
         if data is None:
-            matches = [r for r in self.run_ids() if r.startswith(run_id) or r.endswith(run_id)]
-            if len(matches) != 1:
-                raise UserError(f"no single run matches '{run_id}' ({len(matches)} do)", file=self.url)
-            data = self.objects.get(f"runs/{matches[0]}.json")
+            run_id = matching_run(run_id, self.run_ids(), self.url)
+            data = self.objects.get(f"runs/{run_id}.json")
             if data is None:
-                raise UserError(f"run '{matches[0]}' vanished from {self.url}", file=self.url)
-            run_id = matches[0]
+                raise UserError(f"run '{run_id}' vanished from {self.url}", file=self.url)
         return run_record(data, f"{self.url}/runs/{run_id}.json", self._read_raw_run)
 
     def _read_raw_run(self, run_id: str) -> Json:
