@@ -356,10 +356,21 @@ def load_pipeline(
     return Pipeline(path.resolve(), root, store, nodes, publish, overrides, spec.store_options, signature)
 
 
+def _nearest_above(path: Path) -> str:
+    """A hint naming a file of the same name in a folder above (``msflow run`` typed in ``out/``), or ""."""
+    folder = path.absolute().parent
+    for above in folder.parents:
+        candidate = above / path.name
+        if candidate.is_file():
+            shown = os.path.relpath(candidate)  # ../pipeline.yaml, as the user would type it
+            return f"; the nearest is {shown} (give it as the FILE argument)"
+    return ""
+
+
 def _read_pipeline_file(path: Path, file: str) -> tuple[str, str]:
     """The pipeline file's text and its stat signature when it was read."""
     if not path.exists():
-        raise UserError("pipeline file not found", file=file)
+        raise UserError("pipeline file not found" + _nearest_above(path), file=file)
     if path.is_dir():
         raise UserError("is a directory, expected a pipeline YAML file", file=file)
     try:

@@ -255,6 +255,15 @@ def test_user_error_exit_2_named_location_no_traceback_nothing_written(numprojec
 def test_missing_pipeline_file(numproject):
     result = run_cli(numproject, "run", "nothere.yaml")
     assert result.returncode == 2 and "nothere.yaml: pipeline file not found" in result.stderr
+    assert "nearest" not in result.stderr
+
+
+@pytest.mark.parametrize("command", ["run", "status"])
+def test_a_command_typed_in_a_subfolder_names_the_pipeline_above(numproject, command):
+    (numproject / "out").mkdir()
+    result = run_cli(numproject / "out", command)
+    assert result.returncode == 2 and "pipeline.yaml: pipeline file not found" in result.stderr, result.stderr
+    assert "the nearest is ../pipeline.yaml (give it as the FILE argument)" in result.stderr, result.stderr
 
 
 @pytest.mark.parametrize(
