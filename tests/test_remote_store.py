@@ -189,6 +189,38 @@ def test_sigkilled_runs_leave_nothing_visible_and_the_next_run_recovers(numproje
     assert store.objects.list("pending/") == [] and store.objects.list("locks/") == []
 
 
+def test_gc_on_s3_refuses_while_a_run_on_any_machine_is_present(numproject, tmp_path, s3):
+    """A run keeps a presence on the store (active/, renewed like a lease) while it runs, so gc, which keeps only
+    what run records name, refuses instead of deleting what the run has made; the presence goes when the run
+    ends, and a killed run's is stale at once on its own host (and after its ttl elsewhere)."""
+    bucket = s3.bucket()
+    on_s3(numproject, s3, bucket)
+    store = s3.store(bucket, "num")
+    hold = Hold(tmp_path / "hold")
+    proc = start_cli(numproject, "run", "crash.yaml", "-q", env=hold.env)
+    hold.wait_ready(proc)
+    (present,) = store.objects.list("active/")
+    refused = run_cli(numproject, "gc", "crash.yaml")
+    assert refused.returncode == 2 and "1 run(s) are using the store" in refused.stderr, refused.stderr
+    assert f"pid {proc.pid} on " in refused.stderr and "Traceback" not in refused.stderr
+    hold.release()
+    assert proc.wait(timeout=120) == 0
+    assert store.objects.list("active/") == []
+    done = run_cli(numproject, "gc", "crash.yaml")
+    assert done.returncode == 0 and "removed 0 artifacts" in done.stdout, (done.stdout, done.stderr)
+    assert msflow.run(numproject / "crash.yaml").executed == []
+
+    (hold.folder / "release").unlink()
+    (hold.folder / "ready").unlink()
+    killed = start_cli(numproject, "run", "crash.yaml", "--force", "slow", "-q", env=hold.env)
+    hold.wait_ready(killed)
+    killed.kill()
+    killed.wait()
+    assert len(store.objects.list("active/")) == 1  # left behind, but its holder is dead
+    assert run_cli(numproject, "gc", "crash.yaml").returncode == 0
+    assert store.objects.list("active/") == []
+
+
 def test_output_sinks_stream_to_s3_with_the_hashes_of_whole_arrays(numproject, s3):
     on_s3(numproject, s3, s3.bucket(), files=("stream.yaml",))
     out = msflow.run(numproject / "stream.yaml")

@@ -135,6 +135,12 @@ class Lease:
             time.sleep(delay)
             delay = min(delay * 1.5, 1.0)
 
+    def take_fresh(self) -> None:
+        """Hold a lease at a path nobody contends for (a new token in its name): one plain PUT, then renewals."""
+        self.since = time.time()
+        self.etag = self.objects.put(self.path, self._body())
+        self._start_heartbeat()
+
     def _start_heartbeat(self) -> None:
         self._stop.clear()
         self._thread = threading.Thread(target=self._heartbeat, name=f"msflow-lease-{self.path}", daemon=True)
@@ -161,3 +167,38 @@ class Lease:
         if not self.lost and self.etag is not None:
             self.objects.delete_if(self.path, self.etag)
         self.etag = None
+
+
+class Presence:
+    """A run's presence on a store, ``active/<token>.lease``: a lease nobody else contends for (its path is new),
+    so it is written with a plain PUT and renewed every ttl/3 by a daemon thread; ``msflow gc`` reads the live
+    ones (``live_presences``) to know whether runs are using the store. Released (deleted) when the run ends; a
+    killed run's goes stale by the lease rules (its pid gone on this host, or not renewed within its ttl)."""
+
+    def __init__(self, objects: Objects, ttl: float | None = None):
+        self.lease = Lease(objects, f"{PRESENCE_PREFIX}{uuid.uuid4().hex}.lease", ttl)
+
+    def __enter__(self) -> Presence:
+        self.lease.take_fresh()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.lease.release()
+
+
+PRESENCE_PREFIX = "active/"
+
+
+def live_presences(objects: Objects) -> list[dict[str, Any]]:
+    """The holders of the runs present on the store now; stale presences (killed runs) are deleted on the way."""
+    live = []
+    for info in objects.list(PRESENCE_PREFIX):
+        current = objects.get_versioned(info.path)
+        if current is None:
+            continue
+        holder = parse_holder(current.data)
+        if lease_is_stale(holder, current.age):
+            objects.delete_if(info.path, current.etag)
+        else:
+            live.append(holder)
+    return live

@@ -5,6 +5,7 @@ Layout under the store root::
     artifacts/<k[:2]>/<key>/   one published zarr group per cache key (never modified once published)
     tmp/                       artifacts being written: <key>.<host>.<pid>.<nonce>; invisible to readers
     locks/<key>.lock           per-key flock; the kernel releases it when its holder dies, however it dies
+    locks/store.lock           flock shared by the runs in progress, taken alone by gc (``in_use``)
     corrupt/<key>.<time>       artifacts found damaged on read, moved aside for inspection (with a .reason.txt)
     runs/<id>.json             one record per run
     cache/memo.json            memoised file hashes, code fingerprints and stage interfaces

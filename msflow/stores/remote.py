@@ -7,6 +7,7 @@ Layout under the store's prefix::
                                      group is one object there, artifact.zip (msflow.stores.packs)
     pending/<key>.<wid>.json         journal of folders that may become garbage (being written or retired)
     locks/<key>.lease                per-key leases (msflow.stores.leases)
+    active/<token>.lease             one per run in progress, renewed like a lease: gc refuses while any is live
     runs/<id>.json                   one record per run (shared by every machine using the store)
     sweeps/<id>.json                 one record per sweep
 
@@ -28,7 +29,7 @@ Cleanup
     its writer is gone - a dead process on this host, or for another host no live lease on the key and older
     than ``max_age`` (default an hour) - unless the marker names it (killed between commit and journal
     cleanup). A retired folder is deleted RETIRE_SECONDS (or ``max_age``) after its replacement. Leases of
-    dead holders are deleted too. Every run that computes something and ``msflow gc`` call it.
+    dead holders are deleted too (the presences of killed runs, ``active/``, by ``msflow gc``: see ``in_use``). Every run that computes something and ``msflow gc`` call it.
 Locks (the rule)
     Any number of runs, on any number of machines, may share a store. Each key has a lease (60 s, or
     MSFLOW_LEASE_SECONDS) renewed by a heartbeat while its stage runs; a lease is broken when it expired or when
@@ -67,10 +68,10 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from msflow.artifact import check_manifest
 from msflow.atomic import write_json_atomic
-from msflow.errors import CorruptArtifact, UserError
+from msflow.errors import CorruptArtifact, StoreInUse, UserError
 from msflow.stored import StoredArray
 from msflow.stores.base import HOST, Json, json_object, matching_run, pid_alive, record_object, run_record
-from msflow.stores.leases import Lease, lease_is_stale, parse_holder
+from msflow.stores.leases import Lease, Presence, lease_is_stale, live_presences, parse_holder
 from msflow.stores.objects import dumps, iter_chunks, make_objects
 from msflow.stores.packs import PACK_NAME, Pack, make_pack, pack_limit, take_small
 from msflow.stores.recent import RecentObjects, caches_for
@@ -406,8 +407,19 @@ class RemoteStore:
 
     @contextlib.contextmanager
     def in_use(self, *, alone: bool = False) -> Iterator[None]:
-        """Nothing is held on an object store: runs on other machines cannot be seen, so run ``msflow gc`` on a
-        shared store when no run is in progress (README, "Remote stores")."""
+        """A run is present on the store while it runs (``active/<token>.lease``, renewed by a heartbeat:
+        msflow.stores.leases.Presence), on whichever machine; gc (``alone``) fails while any live one is there."""
+        if not alone:
+            with Presence(self.objects):
+                yield
+            return
+        runs = live_presences(self.objects)
+        if runs:
+            where = ", ".join(f"pid {r.get('pid')} on {r.get('host')}" for r in runs[:3])
+            raise StoreInUse(
+                f"{len(runs)} run(s) are using the store {self.url} ({where}): gc would delete the artifacts they are "
+                "making before their records name them; run gc once they have ended"
+            )
         yield
 
     # ------------------------------------------------------------------ locks
