@@ -29,7 +29,8 @@ Cleanup
     its writer is gone - a dead process on this host, or for another host no live lease on the key and older
     than ``max_age`` (default an hour) - unless the marker names it (killed between commit and journal
     cleanup). A retired folder is deleted RETIRE_SECONDS (or ``max_age``) after its replacement. Leases of
-    dead holders are deleted too (the presences of killed runs, ``active/``, by ``msflow gc``: see ``in_use``). Every run that computes something and ``msflow gc`` call it.
+    dead holders are deleted too. Every run that computes something and ``msflow gc`` call it. The presences of
+    killed runs (``active/``, see ``in_use``) are deleted by ``msflow gc``.
 Locks (the rule)
     Any number of runs, on any number of machines, may share a store. Each key has a lease (60 s, or
     MSFLOW_LEASE_SECONDS) renewed by a heartbeat while its stage runs; a lease is broken when it expired or when
