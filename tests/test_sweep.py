@@ -103,4 +103,4 @@ def test_runs_and_compare(numproject):
     assert "param factor: 3.0 -> 7.0" in diff and "scaled:" in diff
     assert "csv:" not in diff and "stages identical" in diff
     missing = run_cli(numproject, "compare", first, "nope")
-    assert missing.returncode == 2 and "no single run matches 'nope'" in missing.stderr
+    assert missing.returncode == 2 and "no run matches 'nope'; `msflow runs` lists them" in missing.stderr
