@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -99,9 +100,19 @@ def dry_run(session: Session, history: RunHistory | None = None) -> dict[str, Dr
                     "key unchanged since the last run but its artifact is missing from the store "
                     "(garbage-collected, or a different store)"
                 ]
-            dry[name] = DryState(name, DryStatus.RUN, key, full, reasons)
+            dry[name] = DryState(name, DryStatus.RUN, key, full, [*being_computed(store.computing(key)), *reasons])
         states[name] = state
     return dry
+
+
+def being_computed(holder: dict[str, Any] | None) -> list[str]:
+    """The reason line for a stage another run is computing now (``Store.computing``), or none."""
+    if holder is None:
+        return []
+    since = holder.get("since")
+    age = f", for {time.time() - since:.0f} s" if isinstance(since, (int, float)) else ""
+    who = f"pid {holder.get('pid', '?')} on {holder.get('host', '?')}"
+    return [f"being computed now by a run in progress ({who}{age}); a run started now waits for it"]
 
 
 def explain(old: dict[str, Any], new: dict[str, Any], provenance: dict[str, Any] | None = None) -> list[str]:

@@ -200,6 +200,8 @@ def test_gc_on_s3_refuses_while_a_run_on_any_machine_is_present(numproject, tmp_
     proc = start_cli(numproject, "run", "crash.yaml", "-q", env=hold.env)
     hold.wait_ready(proc)
     (present,) = store.objects.list("active/")
+    status = run_cli(numproject, "status", "crash.yaml")  # the held stage's lease names its holder
+    assert f"being computed now by a run in progress (pid {proc.pid} on " in status.stdout, status.stdout
     refused = run_cli(numproject, "gc", "crash.yaml")
     assert refused.returncode == 2 and "1 run(s) are using the store" in refused.stderr, refused.stderr
     assert f"pid {proc.pid} on " in refused.stderr and "Traceback" not in refused.stderr

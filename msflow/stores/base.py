@@ -87,6 +87,9 @@ class Store(Protocol):
 
     # coordination
     def lock(self, key: str, on_wait: Callable[[Json], None] | None = None) -> AbstractContextManager[object]: ...
+    def computing(self, key: str) -> Json | None:
+        """Who holds ``key``'s lock now, computing it (host, pid, since; {} when unreadable), or None."""
+
     def in_use(self, *, alone: bool = False) -> AbstractContextManager[object]:
         """Held by every run while it makes and records artifacts (any number at once); ``alone`` (gc): held by
         nobody else, else ``StoreInUse`` at once."""

@@ -215,6 +215,26 @@ class LocalStore:
                 fcntl.flock(fd, fcntl.LOCK_UN)
             os.close(fd)
 
+    def computing(self, key: str) -> Json | None:
+        """The holder of the key's flock (a run computing it now), probed with a shared lock that is let go at
+        once; None when nobody holds it. Creates nothing."""
+        import fcntl
+
+        path = self.root / "locks" / f"{key}.lock"
+        try:
+            fd = os.open(path, os.O_RDONLY)
+        except OSError:
+            return None  # never locked
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return read_holder(path)
+        else:
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            return None
+        finally:
+            os.close(fd)
+
     @contextlib.contextmanager
     def in_use(self, *, alone: bool = False) -> Iterator[None]:
         """A shared flock on locks/store.lock held by runs; gc's exclusive one fails at once while any run holds

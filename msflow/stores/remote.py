@@ -406,6 +406,14 @@ class RemoteStore:
             return True
         return _age(entry) < grace
 
+    def computing(self, key: str) -> Json | None:
+        """The holder of the key's live lease (a run computing it now), or None (one GET)."""
+        current = self.objects.get_versioned(self.lease_path(key))
+        if current is None:
+            return None
+        holder = parse_holder(current.data)
+        return None if lease_is_stale(holder, current.age) else holder
+
     @contextlib.contextmanager
     def in_use(self, *, alone: bool = False) -> Iterator[None]:
         """A run is present on the store while it runs (``active/<token>.lease``, renewed by a heartbeat:
