@@ -14,6 +14,7 @@ Outside tools (interface for every area's tests):
 - ``blender`` (session fixture): the path of Debian's Blender, with the numpy its glTF importer needs.
 """
 
+import contextlib
 import logging
 import os
 import shutil
@@ -70,9 +71,15 @@ def executions(log_path):
     return [line.split()[0] for line in path.read_text().splitlines()] if path.exists() else []
 
 
+#: processes start_cli started and holds made during the current test, ended when it ends (a test that fails
+#: before releasing its hold would otherwise leave its run, and the run's workers, waiting forever)
+_STARTED: list[subprocess.Popen] = []
+_HOLDS: list["Hold"] = []
+
+
 def start_cli(cwd, *args, env=None):
     """Start ``python -m msflow.cli ARGS`` in the background (stdout and stderr piped, text)."""
-    return subprocess.Popen(
+    proc = subprocess.Popen(
         [sys.executable, "-m", "msflow.cli", *map(str, args)],
         cwd=cwd,
         env=cli_env(env),
@@ -80,6 +87,28 @@ def start_cli(cwd, *args, env=None):
         stderr=subprocess.PIPE,
         text=True,
     )
+    _STARTED.append(proc)
+    return proc
+
+
+@pytest.fixture(autouse=True)
+def _end_started_processes():
+    """After each test: release its holds, then stop what it started and left running (SIGTERM, so a run stops
+    its pool's workers too; SIGKILL if that does not end it)."""
+    yield
+    for hold in _HOLDS:
+        with contextlib.suppress(OSError):
+            hold.release()
+    for proc in _STARTED:
+        if proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.communicate(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.communicate()
+    _STARTED.clear()
+    _HOLDS.clear()
 
 
 class Hold:
@@ -90,6 +119,7 @@ class Hold:
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.env = {"NUMSTAGES_HOLD": str(self.folder)}
+        _HOLDS.append(self)
 
     def wait_ready(self, proc, timeout=120):
         """Block until the held stage is waiting (fails if ``proc`` exits first); returns the stage's line."""
