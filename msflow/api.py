@@ -119,17 +119,17 @@ def run_sessions(
             code_trees=code_trees_of(sessions),
         )
         runners = _runners_for(sessions, pool, jobs=jobs, until=until, force=force, reporters=reporters)
+        interrupted = False
         try:
             schedule(runners, pool)
         except KeyboardInterrupt:  # Ctrl-C (or SIGTERM, msflow.cli): stop the stages running, don't wait for them
-            pool.shutdown(abort=True)
-            with contextlib.suppress(Exception):  # nothing may hide the interrupt
-                sessions[0].store.clean_tmp()  # what the stopped jobs were writing (their processes are gone)
+            interrupted = True
             raise
-        except BaseException:
-            pool.shutdown()
-            raise
-        pool.shutdown()
+        finally:
+            pool.shutdown(abort=interrupted)
+            if interrupted:
+                with contextlib.suppress(Exception):  # nothing may hide the interrupt
+                    sessions[0].store.clean_tmp()  # what the stopped jobs were writing (their processes are gone)
         executions = [
             _record_execution(
                 session,

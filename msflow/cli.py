@@ -8,7 +8,6 @@ doubt it falls back to the full commands in ``msflow.commands``.
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import sys
 
@@ -38,8 +37,7 @@ def run_commands(args: list[str]) -> int:
         code = command.main(args=args, prog_name="msflow", standalone_mode=False)
         if isinstance(code, int):  # click returns typer.Exit's code instead of raising it here
             if code == INTERRUPTED:  # typer turns Ctrl-C (KeyboardInterrupt) into Exit(130), without a word
-                echo(INTERRUPTED_MESSAGE, err=True)
-                return TERMINATED if terminated else INTERRUPTED
+                return _interrupted(bool(terminated))
             return code
     except UserError as exc:
         echo(f"error: {exc}", err=True)
@@ -56,8 +54,7 @@ def run_commands(args: list[str]) -> int:
         echo(f"error: {getattr(exc, 'format_message', exc.__str__)()}", err=True)
         return 2
     except KeyboardInterrupt:
-        echo(INTERRUPTED_MESSAGE, err=True)
-        return TERMINATED if terminated else INTERRUPTED
+        return _interrupted(bool(terminated))
     except OSError as exc:
         if exc.errno not in _NO_ROOM:
             raise
@@ -69,9 +66,18 @@ def run_commands(args: list[str]) -> int:
 
 INTERRUPTED = 130  # 128 + SIGINT, as shells report it
 TERMINATED = 143  # 128 + SIGTERM
-INTERRUPTED_MESSAGE = (
-    "interrupted: what finished is kept (a stage cut short left nothing behind); the next run goes on from there"
-)
+
+
+def _interrupted(by_sigterm: bool) -> int:
+    """Say that the command was stopped and what that kept; the exit code a shell expects for the signal."""
+    from msflow.commands import echo
+
+    echo(
+        "interrupted: what finished is kept (a stage cut short left nothing behind); the next run goes on from there",
+        err=True,
+    )
+    return TERMINATED if by_sigterm else INTERRUPTED
+
 
 #: a disk that cannot take more: what to tell the user (nothing half-written is ever used: see msflow.atomic)
 _NO_ROOM = {
@@ -85,6 +91,7 @@ def _stop_on_sigterm() -> list[bool]:
     """Make SIGTERM (kill, docker stop, a batch system's time limit) stop a command as Ctrl-C does, so a run
     stops its workers and clears what they were writing instead of dying with them still at work; the list
     returned becomes [True] once it came."""
+    import contextlib
     import signal
 
     came: list[bool] = []

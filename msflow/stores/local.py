@@ -194,7 +194,8 @@ class LocalStore:
         """
         import fcntl
 
-        path = self._dir("locks") / f"{key}.lock"
+        path = self._lock_file(key)
+        path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
             waited = False
@@ -215,12 +216,15 @@ class LocalStore:
                 fcntl.flock(fd, fcntl.LOCK_UN)
             os.close(fd)
 
+    def _lock_file(self, key: str) -> Path:
+        return self.root / "locks" / f"{key}.lock"
+
     def computing(self, key: str) -> Json | None:
         """The holder of the key's flock (a run computing it now), probed with a shared lock that is let go at
         once; None when nobody holds it. Creates nothing."""
         import fcntl
 
-        path = self.root / "locks" / f"{key}.lock"
+        path = self._lock_file(key)
         try:
             fd = os.open(path, os.O_RDONLY)
         except OSError:
