@@ -328,6 +328,7 @@ def save_fast_state(execution: Execution) -> None:
         watch[dest] = signature(dest)
     known = session.memo.get("records", {})
     from msflow.records import record_digest
+    from msflow.summary import summary_lines
 
     same_as = known.get(record_digest(execution.record), execution.record["id"])
     save_state(
@@ -344,6 +345,7 @@ def save_fast_state(execution: Execution) -> None:
         same_as,
         str(store.root / "runs"),
         pipeline.rel_path,
+        summary_lines(list(pipeline.summary), execution.record["stages"]),
     )
 
 

@@ -91,6 +91,7 @@ def run(
             "recomputed",
             err=True,
         )
+    _echo_summary(result.session.pipeline.summary, result.record["stages"])
     for name, state in result.states.items():
         if state.state is StageStatus.FAILED and not state.user_error and state.traceback:
             echo(f"\n--- stage '{name}' failed; traceback (also in the run record):", err=True)
@@ -108,6 +109,18 @@ def _echo_warnings(warnings: dict[str, list[str]], states: dict[str, str]) -> No
         for message in messages:
             line = f"warning: {stage}{origin}: {message}"
             echo(f"\033[33m{line}\033[0m" if colour else line, err=True)
+
+
+def _echo_summary(patterns: tuple[str, ...], stages: dict[str, dict[str, object]]) -> None:
+    """The pipeline's ``summary:`` metrics on stdout (the run's result; progress and warnings go to stderr)."""
+    from msflow.summary import summary_lines
+
+    lines, problems = summary_lines(list(patterns), stages)
+    colour = sys.stderr.isatty()
+    for problem in problems:
+        echo(f"\033[33mwarning: {problem}\033[0m" if colour else f"warning: {problem}", err=True)
+    for line in lines:
+        echo(line)
 
 
 # ---------------------------------------------------------------------------------------------------------- status / why
@@ -338,7 +351,9 @@ def sweep(
     connect_timeout: float = typer.Option(10.0, "--connect-timeout", help="seconds to reach the scheduler"),
     fmt: str = typer.Option("table", "--format", help="table, md, csv or json"),
     sort: Optional[str] = typer.Option(None, "--sort", help="column to sort by (-column: descending)"),
-    metrics: Optional[str] = typer.Option(None, "--metrics", help="stage.metric patterns, comma separated"),
+    metrics: Optional[str] = typer.Option(
+        None, "--metrics", help="stage.metric patterns, comma separated [default: the pipeline's summary:]"
+    ),
     quiet: bool = typer.Option(False, "-q", "--quiet"),
 ) -> None:
     """Run a grid of parameter variants; print variant parameters against stage metrics."""
@@ -358,7 +373,9 @@ def sweep(
         connect_timeout=connect_timeout,
         reporter=reporter,
     )
-    header, rows = results_rows(result, metric_columns(result, list(_split([metrics])) if metrics else None), sort)
+    # columns: --metrics, else the pipeline's summary:, else the metrics that vary
+    patterns = list(_split([metrics])) if metrics else result.summary or None
+    header, rows = results_rows(result, metric_columns(result, patterns), sort)
     echo(format_table(header, rows, fmt))
     failed = sum(1 for v in result.variants if not v.ok)
     echo(

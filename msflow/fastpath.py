@@ -204,11 +204,16 @@ def print_run(state: dict[str, Any], run_id: str, quiet: bool, seconds: float) -
             print(f"= {name:<{width}}  cached  ", file=sys.stderr)
         print(f"{len(stages)} cached in {seconds:.2f}s (run {run_id})", file=sys.stderr)
     colour = sys.stderr.isatty()
-    for stage, messages in state.get("warnings", {}).items():
-        for message in messages:
-            line = f"warning: {stage} (cached result): {message}"
-            print(f"\033[33m{line}\033[0m" if colour else line, file=sys.stderr)
+    warnings = [
+        f"{stage} (cached result): {m}" for stage, messages in state.get("warnings", {}).items() for m in messages
+    ]
+    for message in warnings + state.get("summary_warnings", []):
+        line = f"warning: {message}"
+        print(f"\033[33m{line}\033[0m" if colour else line, file=sys.stderr)
     sys.stderr.flush()
+    for line in state.get("summary", []):  # the pipeline's summary: metrics (msflow.summary), as a full run prints
+        print(line)
+    sys.stdout.flush()
 
 
 def write_small_record(state: dict[str, Any], args: list[str], overrides: list[str], started: float) -> str:
@@ -249,6 +254,7 @@ def save_state(
     same_as: str,
     runs: str,
     rel_pipeline: str,
+    summary: tuple[list[str], list[str]] = ([], []),
 ) -> None:
     """Save the state a later no-op ``run``/``status`` with the same pipeline and overrides answers from."""
     from msflow.atomic import write_json_atomic
@@ -265,6 +271,8 @@ def save_state(
         "same_as": same_as,
         "runs": runs,
         "rel_pipeline": rel_pipeline,
+        "summary": summary[0],
+        "summary_warnings": summary[1],
     }
     path = state_file(pipeline, overrides)
     os.makedirs(os.path.dirname(path), exist_ok=True)

@@ -500,8 +500,9 @@ def sweep_page(pipeline_name: str, sweep: dict[str, Any], metric: str | None) ->
         sweep["seconds"],
         sweep["executed"],
         sweep["unique_keys"],
+        sweep.get("summary", []),  # sweeps recorded before summary: existed have none
     )
-    columns = metric_columns(result, None)
+    columns = metric_columns(result, result.summary or None)
     metric = metric or (columns[0] if columns else None)
     header, rows = results_rows(result, columns)
     table = format_table(header, rows, "md")

@@ -61,6 +61,7 @@ class PipelineSpec(BaseModel):
     vars: dict[str, Any] = {}
     stages: dict[str, StageSpec]
     publish: dict[str, str] = {}
+    summary: list[str] = []
 
 
 # ---------------------------------------------------------------------------------------------------------- refs
@@ -117,6 +118,7 @@ class Pipeline:
     overrides: tuple[str, ...] = ()
     store_options: dict[str, Any] = field(default_factory=dict)
     source_signature: str = ""  #: stat signature of the pipeline file when it was read
+    summary: tuple[str, ...] = ()  #: ``stage.metric`` patterns printed when a run ends (msflow.summary)
 
     def open_store(self) -> Store:
         from msflow.stores import open_store
@@ -353,7 +355,10 @@ def load_pipeline(
     _check_references(nodes, spec.publish, file)
     check_cycles(nodes, file)
     publish = publish_targets(spec.publish, root, pipeline_dir, publish_dir, file)
-    return Pipeline(path.resolve(), root, store, nodes, publish, overrides, spec.store_options, signature)
+    _check_summary(spec.summary, nodes, file)
+    return Pipeline(
+        path.resolve(), root, store, nodes, publish, overrides, spec.store_options, signature, tuple(spec.summary)
+    )
 
 
 def _nearest_above(path: Path) -> str:
@@ -468,6 +473,21 @@ def _check_references(nodes: dict[str, StageNode], publish: dict[str, str], file
         m = REF_RE.match(target)
         if not m or not m.group("output") or m.group("stage") not in nodes:
             raise UserError(f"'{target}' is not stage.output of a known stage", file=file, field=f"publish.{target}")
+
+
+def _check_summary(entries: list[str], nodes: dict[str, StageNode], file: str) -> None:
+    """``summary:`` entries are ``stage.metric`` (the metric a shell-style pattern) of known stages."""
+    for index, entry in enumerate(entries):
+        stage, dot, metric = entry.partition(".")
+        where = f"summary[{index}]"
+        if not dot or not metric or not NAME_RE.match(stage):
+            raise UserError(
+                f"'{entry}' is not stage.metric (the metric may be a pattern: eval.mouth_*)", file=file, field=where
+            )
+        if stage not in nodes:
+            raise UserError(
+                f"'{entry}': no stage '{stage}'{suggest(stage, nodes)}; stages: {sorted(nodes)}", file=file, field=where
+            )
 
 
 def publish_targets(

@@ -151,6 +151,7 @@ class SweepResult:
     seconds: float
     executed: int  # stage executions across all variants
     unique_keys: int  # distinct cache keys across all variants
+    summary: list[str] = field(default_factory=list)  # the pipeline's summary: patterns, the default columns
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -159,6 +160,7 @@ class SweepResult:
             "seconds": self.seconds,
             "executed": self.executed,
             "unique_keys": self.unique_keys,
+            "summary": self.summary,
             "variants": [vars(v) for v in self.variants],
         }
 
@@ -224,7 +226,15 @@ def run_sweep(
         )
     keys = {s.key for e in executions for s in e.states.values() if s.key}
     executed = sum(1 for e in executions for s in e.states.values() if s.state is StageStatus.RAN)
-    result = SweepResult(sweep_id, sessions[0].pipeline.rel_path, outcomes, time.time() - started, executed, len(keys))
+    result = SweepResult(
+        sweep_id,
+        sessions[0].pipeline.rel_path,
+        outcomes,
+        time.time() - started,
+        executed,
+        len(keys),
+        list(sessions[0].pipeline.summary),
+    )
     _write_sweep_record(sessions[0].store, result)
     return result
 

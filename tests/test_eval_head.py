@@ -270,6 +270,11 @@ def test_the_evaluation_pipeline_on_crema_d_from_a_fresh_copy(tmp_path):
     assert m["ba_real"] > m["ba_shifted"] and m["z_real_shifted"] > 1.0
     assert {f"ba_{x}" for x in MOTIONS} | {"ba_rel", "ba_rel_lo", "ba_rel_hi", "join_acc_max", "drift_synth"} <= set(m)
     assert run.artifact("trellis").meta["holdout"] == "take"
+    from msflow.summary import summary_lines
+
+    patterns = list(run.session.pipeline.summary)  # what `msflow run` ends with: every entry a metric it gave
+    lines, warnings = summary_lines(patterns, run.record["stages"])
+    assert patterns and warnings == [] and len(lines) == len(patterns)
 
 
 # ------------------------------------------------------------------------------------------ bad input

@@ -660,6 +660,14 @@ def test_eval_pipeline_runs_on_a_folder_of_takes(tmp_path):
     assert m["mouth_motion_error_iod"] < 0.5 * m["mouth_motion_error_iod_shifted"]
     assert m["keyshape_residual_rms_iod"] < 0.03
     assert "paper_eval" not in result.executed
+    from msflow.summary import summary_lines
+
+    # what `msflow run` ends with: every capture entry a metric it gave (paper_eval did not run: left out)
+    patterns = list(result.session.pipeline.summary)
+    lines, warnings = summary_lines(patterns, result.record["stages"])
+    capture = [p for p in patterns if p.startswith("capture_eval.")]
+    assert capture and warnings == [] and len(lines) >= len(capture)
+    assert not any(line.startswith("paper_eval.") for line in lines)
 
 
 def capture_project(root, project):

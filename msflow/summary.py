@@ -1,0 +1,48 @@
+"""A pipeline's ``summary:``, the stage metrics ``msflow run`` prints when it ends (the run's result, on stdout).
+
+An entry is ``stage.metric``, the metric part a shell-style pattern (``capture_eval.mouth_*``). The spec checks the
+stage names when the pipeline is loaded; the metric names are known only once the stage has run, so a name that is
+none of them is a warning then, listing what there is (a pattern may match none: metrics that only some data give). ``msflow sweep`` takes the same patterns as its
+default columns. Standard library only: the no-op fast path prints lines saved by a full run.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+import math
+from typing import Any
+
+WILDCARDS = set("*?[")
+
+
+def summary_lines(patterns: list[str], stages: dict[str, dict[str, Any]]) -> tuple[list[str], list[str]]:
+    """(lines ``stage.metric  value``, warnings) for the metrics of a run record's ``stages`` that ``patterns``
+    match: in the patterns' order, each pattern's matches sorted, every metric once. Stages that did not finish
+    (failed, skipped, not selected) are passed over: the run reports those itself."""
+    found: dict[str, Any] = {}
+    warnings = []
+    for pattern in patterns:
+        stage, _, metric_pattern = pattern.partition(".")
+        record = stages.get(stage)
+        if record is None or record.get("state") not in ("ran", "cached"):
+            continue
+        metrics = record.get("metrics") or {}
+        names = sorted(n for n in metrics if fnmatch.fnmatchcase(n, metric_pattern))
+        if not names and not WILDCARDS & set(metric_pattern):  # a pattern may match none (face.unseen_*: none unseen)
+            known = ", ".join(sorted(metrics)[:12]) + (", ..." if len(metrics) > 12 else "")
+            warnings.append(
+                f"summary: '{pattern}' is no metric of stage '{stage}' ({f'its metrics: {known}' if metrics else 'it has none'})"
+            )
+        for name in names:
+            found.setdefault(f"{stage}.{name}", metrics[name])
+    width = max((len(n) for n in found), default=0)
+    return [f"{name:<{width}}  {format_metric(value)}" for name, value in found.items()], warnings
+
+
+def format_metric(value: Any) -> str:
+    """A metric as a table cell: floats to 4 significant digits, others as JSON (long ones cut)."""
+    if isinstance(value, float):
+        return f"{value:.4g}" if math.isfinite(value) else str(value)
+    text = json.dumps(value, separators=(", ", ": "))
+    return text if len(text) <= 80 else text[:77] + "..."
