@@ -424,7 +424,7 @@ def test_gltf_with_data_uri_strided_positions_and_node_transform(tmp_path):
     assert mesh.target_names == ["target_000"]
     assert np.allclose(mesh.deltas[0, 2], [0.2, 0.4, 0.6])
     assert mesh.triangles.tolist() == [[0, 1, 2], [0, 2, 3]]
-    with pytest.raises(UserError, match="landmarkVertexIds"):
+    with pytest.raises(UserError, match="no face found.*JSON file input 'landmarks'"):  # a quad has no face
         run_stage(GltfCharacter, {}, {"mesh": path})
     (tmp_path / "lm.json").write_text(json.dumps([0, 1, 2, 3] * 17))
     out = run_stage(GltfCharacter, {}, {"mesh": path, "landmarks": tmp_path / "lm.json"})
@@ -536,7 +536,8 @@ def test_embedded_character_is_the_default(ict):
     from stages.retarget.character import DEFAULT_CHARACTER
 
     assert DEFAULT_CHARACTER == ICT_GLB.resolve()
-    assert GltfCharacter.resources == {"character": DEFAULT_CHARACTER}
+    assert GltfCharacter.resources["character"] == DEFAULT_CHARACTER
+    assert all(path.is_file() for path in GltfCharacter.resources.values())  # the tracker's too (auto_landmarks)
     default = run_stage(GltfCharacter, {}, {})
     assert np.array_equal(default.arrays["neutral"], ict.arrays["neutral"])
     assert default.meta["target_names"] == ict.meta["target_names"]

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -34,6 +34,11 @@ LANDMARK_SCHEME = "ibug68"
 EXTRAS_LANDMARKS = "landmarkVertexIds"
 EXTRAS_IDENTITY = "identityTargetNames"
 EXTRAS_PIVOT = "headPivot"
+#: the tracker's models, which place the landmarks of a character that has none (in the cache key)
+TRACKER_RESOURCES = {
+    "detector": DATA / "models" / "mediapipe-face" / "face_detection_short_range.tflite",
+    "face_mesh": DATA / "models" / "mediapipe-face" / "face_landmark.tflite",
+}
 
 CHARACTER_OUTPUTS = {
     "neutral": Output.array(
@@ -287,12 +292,46 @@ def _single_file(files: dict[str, Path] | None, field: str, suffixes: tuple[str,
     return matching[0]
 
 
+def tracked_landmark_ids(mesh: MorphMesh, path: Path, asked: bool) -> tuple[np.ndarray, dict]:
+    """The landmark vertices the tracker finds on the character (stages.retarget.auto_landmarks), its notes as
+    warnings; unasked (nothing given), a warning says so and how to check them."""
+    import warnings
+
+    from stages.retarget.auto_landmarks import NoFaceFound, track_character_landmarks
+
+    try:
+        ids, placed, notes = track_character_landmarks(mesh)
+    except NoFaceFound as exc:
+        raise UserError(
+            f"{exc}, so its 68 landmark vertices cannot be found (the face must look along +z, glTF's front; "
+            "a whole figure: choose the head's mesh with params.mesh_name); or give them as a JSON file input "
+            "'landmarks'",
+            file=str(path),
+            field="inputs.landmarks",
+        ) from None
+    if not asked:
+        notes.insert(
+            0,
+            f"no landmark vertices given (no JSON input 'landmarks', no mesh.extras.{EXTRAS_LANDMARKS}): found by "
+            f"tracking the character's front render (presence {placed['presence']:.2f}, every point within "
+            f"{placed['largest_offset_iod']:.3f} eye distances of its vertex); the stage's 'landmarks' figure "
+            "(msflow report) shows them numbered, and a JSON file input 'landmarks' overrides them",
+        )
+    for note in notes:
+        warnings.warn(note, UserWarning, stacklevel=2)
+    return ids, placed
+
+
 class GltfCharacter(Stage):
-    """A glTF 2.0 character (.glb or .gltf) with morph targets; landmark ids from the mesh extras
-    (``landmarkVertexIds``) or a JSON input."""
+    """A glTF 2.0 character (.glb or .gltf) with morph targets; landmark ids from a JSON input, the mesh extras
+    (``landmarkVertexIds``), or found by the tracker on the character's front render."""
 
     class Params(Stage.Params):
         mesh_name: str | None = None
+        #: the 68 landmark vertices: 'given' (the JSON input, else the glTF's mesh extras, else tracked, with a
+        #: warning), or 'tracked': found by the tracker on the neutral face rendered from the front, the
+        #: tracking's own reading of each point (stages.retarget.auto_landmarks)
+        landmarks: Literal["given", "tracked"] = "given"
         #: identity target name -> coefficient, e.g. {identity000: 1.5}; identity targets are listed in the mesh
         #: extras (identityTargetNames) or by ``identity_targets``, and are left out of the animated targets
         identity: dict[str, float] = {}
@@ -323,7 +362,7 @@ class GltfCharacter(Stage):
         ),
     }
     outputs = CHARACTER_OUTPUTS
-    resources = {"character": DEFAULT_CHARACTER}
+    resources = {"character": DEFAULT_CHARACTER, **TRACKER_RESOURCES}
 
     def run(self, params, inputs):
         path = _single_file(inputs.get("mesh") or {"default": DEFAULT_CHARACTER}, "inputs.mesh", (".glb", ".gltf"))
@@ -341,7 +380,7 @@ class GltfCharacter(Stage):
         mesh, identities = split_identity_targets(mesh, identity_names)
         if not mesh.target_names:
             raise UserError("the character has no expression morph targets (all are identity targets)", file=str(path))
-        ids = self._landmark_ids(inputs, mesh, path)
+        ids, placed = self._landmark_ids(params, inputs, mesh, path)
         identity = dict(params.identity)
         if params.fit_identity:
             identity = performer_identity(mesh, identities, ids, inputs.get("tracks"), params.identity_ridge)
@@ -353,27 +392,25 @@ class GltfCharacter(Stage):
             "mesh": mesh.name,
             "target_names_from": mesh.extras.get("_target_names_from"),
             "identity_targets": sorted(identities),
+            "landmarks": placed,
         }
         return character_result(mesh, ids, source, identity, pivot)
 
     @staticmethod
-    def _landmark_ids(inputs, mesh: MorphMesh, path: Path) -> np.ndarray:
+    def _landmark_ids(params, inputs, mesh: MorphMesh, path: Path) -> tuple[np.ndarray, dict]:
+        """(ids, how they were found)."""
         landmark_file = _single_file(inputs.get("landmarks"), "inputs.landmarks", (".json",))
-        if landmark_file is not None:
-            return read_landmark_json(landmark_file, len(mesh.positions), "inputs.landmarks")
-        if EXTRAS_LANDMARKS in mesh.extras:
-            return check_landmark_ids(
+        if params.landmarks == "given" and landmark_file is not None:
+            return read_landmark_json(landmark_file, len(mesh.positions), "inputs.landmarks"), {"from": "json"}
+        if params.landmarks == "given" and EXTRAS_LANDMARKS in mesh.extras:
+            ids = check_landmark_ids(
                 mesh.extras[EXTRAS_LANDMARKS],
                 len(mesh.positions),
                 file=str(path),
                 field=f"mesh.extras.{EXTRAS_LANDMARKS}",
             )
-        raise UserError(
-            f"the glTF has no '{EXTRAS_LANDMARKS}' in its mesh extras; give the 68 landmark vertex "
-            f"ids as a JSON file input 'landmarks'",
-            file=str(path),
-            field="inputs.landmarks",
-        )
+            return ids, {"from": "mesh extras"}
+        return tracked_landmark_ids(mesh, path, asked=params.landmarks == "tracked")
 
 
 class ObjBlendshapes(Stage):
@@ -389,28 +426,46 @@ class ObjBlendshapes(Stage):
         scale: float = Field(1.0, gt=0)
         #: material groups (OBJ usemtl names) to leave out, e.g. transparent overlay shells
         drop_groups: list[str] = []
+        #: the 68 landmark vertices: 'given' (the JSON input; without one, tracked with a warning) or 'tracked'
+        #: (found by the tracker on the neutral face's front render: stages.retarget.auto_landmarks)
+        landmarks: Literal["given", "tracked"] = "given"
 
     inputs = {
         "shapes": Input.files(doc="neutral and blendshape OBJs (a glob or a mapping), plus an optional .mtl"),
-        "landmarks": Input.files(doc="JSON with the 68 landmark vertex ids (list, or ICT vertex_indices.json)"),
+        "landmarks": Input.files(
+            optional=True,
+            doc="JSON with the 68 landmark vertex ids (list, or ICT vertex_indices.json); without it they are "
+            "found by the tracker (params.landmarks)",
+        ),
     }
     outputs = CHARACTER_OUTPUTS
+    resources = TRACKER_RESOURCES
 
     def run(self, params, inputs):
         files = inputs["shapes"]
         mtl = next((Path(p) for p in files.values() if Path(p).name.lower().endswith(".mtl")), None)
         mesh, identities = load_obj_blendshapes(files, params.neutral, params.identity_prefix, mtl)
-        landmark_file = _single_file(inputs["landmarks"], "inputs.landmarks", (".json",))
-        ids = read_landmark_json(landmark_file, len(mesh.positions), "inputs.landmarks")
+        landmark_file = _single_file(inputs.get("landmarks"), "inputs.landmarks", (".json",))
+        given = params.landmarks == "given" and landmark_file is not None
+        ids = read_landmark_json(landmark_file, len(mesh.positions), "inputs.landmarks") if given else np.zeros(0, int)
         identity_deltas = np.stack(list(identities.values())) if identities else None
         if params.drop_groups:
             mesh, ids, identity_deltas = drop_triangle_groups(mesh, ids, list(params.drop_groups), identity_deltas)
             identities = dict(zip(identities, identity_deltas)) if identities else {}
+        placed = {"from": "json"}
+        if not given:  # on the mesh as it will be (overlay shells dropped: they would cover the eyes)
+            folder = Path(next(iter(files.values()))).parent
+            ids, placed = tracked_landmark_ids(mesh, folder, asked=params.landmarks == "tracked")
         mesh.positions = (mesh.positions * params.scale).astype(np.float32)
         mesh.deltas = (mesh.deltas * params.scale).astype(np.float32)
         identities = {k: v * params.scale for k, v in identities.items()}
         mesh = apply_identity(mesh, identities, dict(params.identity))
-        source = {"neutral": mesh.name, "files": len(files), "identity_targets": sorted(identities)}
+        source = {
+            "neutral": mesh.name,
+            "files": len(files),
+            "identity_targets": sorted(identities),
+            "landmarks": placed,
+        }
         return character_result(mesh, ids, source, dict(params.identity))
 
 
