@@ -143,3 +143,23 @@ def test_an_obj_character_without_landmarks_gets_the_same_ones(tmp_path, ict_mes
     off = np.linalg.norm(v[ids] - v[placed[0]], axis=1) / eye_distance(v[placed[0]])
     assert (ids == placed[0]).sum() >= 64 and off.max() < 0.03  # the MTL's colours shade a little differently
     assert out.meta["source"]["landmarks"]["from"] == "tracked" and out.warnings
+
+
+@pytest.mark.parametrize("scale", [1.0, 100.0])
+def test_other_faces_and_units_keep_the_points_where_the_hand_made_list_puts_them(ict_mesh, scale):
+    """ICT's identity shapes make other faces with the same vertex order, so the hand-made list is still the known
+    answer; centimetres and an offset origin (a character exported from another tool) change nothing."""
+    names = ict_mesh.target_names
+    identity = [i for i, n in enumerate(names) if n.startswith("identity")]
+    coefficients = np.random.default_rng(7).normal(0.0, 1.0, len(identity))
+    face = ict_mesh.positions + np.tensordot(coefficients, ict_mesh.deltas[identity], 1)
+    other = dataclasses.replace(
+        ict_mesh,
+        positions=(face * scale + [0.0, 0.5 * scale, 0.03 * scale]).astype(np.float32),
+        deltas=(ict_mesh.deltas * scale).astype(np.float32),
+    )
+    ids, meta, _ = track_character_landmarks(other)
+    stored = np.asarray(ict_mesh.extras["landmarkVertexIds"])
+    v = face.astype(np.float64)
+    off = np.linalg.norm(v[ids] - v[stored], axis=1) / eye_distance(v[stored])
+    assert off[27:68].mean() < 0.05 and off[60:68].mean() < 0.04 and meta["presence"] > 0.9, off.round(3)
