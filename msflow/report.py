@@ -392,7 +392,8 @@ def _media_html(fig: Figure) -> str:
 
 
 def run_page(session: Session, record: dict[str, Any], figures: list[Figure]) -> str:
-    """The report page of one run: header, failures, warnings, stage graph, stage table, metrics, figures."""
+    """The report page of one run: header, failures, warnings, the pipeline's summary metrics, stage graph, stage
+    table, metrics, figures."""
     pipeline = session.pipeline
     from msflow.spec import topological_order
 
@@ -416,6 +417,7 @@ def run_page(session: Session, record: dict[str, Any], figures: list[Figure]) ->
 {record.get("seconds", 0):.2f}s · {html.escape(counts)} · executor {html.escape(str(record.get("executor")))}</p>
 {"<h2>Failures</h2><ul>" + "".join(errors) + "</ul>" if errors else ""}
 {'<h2>Warnings</h2><ul class="warn">' + "".join(warnings) + "</ul>" if warnings else ""}
+{_summary_table(pipeline.summary, record)}
 <h2>Stage graph</h2><p class="legend">{legend}</p>{dag_svg(pipeline, record)}
 <h2>Stages, params and keys</h2>
 <table><tr><th>stage</th><th>state</th><th>time</th><th>key</th><th>params</th></tr>{"".join(rows)}</table>
@@ -424,6 +426,17 @@ def run_page(session: Session, record: dict[str, Any], figures: list[Figure]) ->
 <h2>Environment</h2><p class="muted">{html.escape(versions)}</p>
 </body></html>
 """
+
+
+def _summary_table(patterns: tuple[str, ...], record: dict[str, Any]) -> str:
+    """The pipeline's ``summary:`` metrics first (what ``msflow run`` ends with), or nothing without one."""
+    from msflow.summary import format_metric, summary_entries
+
+    entries, _ = summary_entries(list(patterns), record["stages"])
+    rows = "".join(
+        f"<tr><td>{html.escape(name)}</td><td>{html.escape(format_metric(value))}</td></tr>" for name, value in entries
+    )
+    return f"<h2>Summary</h2><table><tr><th>metric</th><th>value</th></tr>{rows}</table>" if entries else ""
 
 
 def _stage_rows(record: dict[str, Any], order: list[str]) -> list[str]:

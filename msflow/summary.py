@@ -16,8 +16,8 @@ from typing import Any
 WILDCARDS = set("*?[")
 
 
-def summary_lines(patterns: list[str], stages: dict[str, dict[str, Any]]) -> tuple[list[str], list[str]]:
-    """(lines ``stage.metric  value``, warnings) for the metrics of a run record's ``stages`` that ``patterns``
+def summary_entries(patterns: list[str], stages: dict[str, dict[str, Any]]) -> tuple[list[tuple[str, Any]], list[str]]:
+    """([(``stage.metric``, value)], warnings) for the metrics of a run record's ``stages`` that ``patterns``
     match: in the patterns' order, each pattern's matches sorted, every metric once. Stages that did not finish
     (failed, skipped, not selected) are passed over: the run reports those itself."""
     found: dict[str, Any] = {}
@@ -36,8 +36,14 @@ def summary_lines(patterns: list[str], stages: dict[str, dict[str, Any]]) -> tup
             )
         for name in names:
             found.setdefault(f"{stage}.{name}", metrics[name])
-    width = max((len(n) for n in found), default=0)
-    return [f"{name:<{width}}  {format_metric(value)}" for name, value in found.items()], warnings
+    return list(found.items()), warnings
+
+
+def summary_lines(patterns: list[str], stages: dict[str, dict[str, Any]]) -> tuple[list[str], list[str]]:
+    """``summary_entries`` as aligned lines ``stage.metric  value``, and the warnings."""
+    entries, warnings = summary_entries(patterns, stages)
+    width = max((len(n) for n, _ in entries), default=0)
+    return [f"{name:<{width}}  {format_metric(value)}" for name, value in entries], warnings
 
 
 def format_metric(value: Any) -> str:

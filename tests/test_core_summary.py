@@ -90,3 +90,16 @@ def test_summary_lines_order_once_each_and_only_finished_stages():
     ]
     assert warnings == []  # a failed or absent stage is the run's own report, not the summary's
     assert format_metric(list(range(100))).endswith("...") and len(format_metric(list(range(100)))) == 80
+
+
+def test_a_run_report_opens_with_the_summary(numproject, tmp_path):
+    with_summary(numproject, ["src.n"])
+    assert run_cli(numproject, "run", "-q").returncode == 0
+    page = tmp_path / "report.html"
+    assert run_cli(numproject, "report", "-o", page).returncode == 0
+    html = page.read_text()
+    assert "<h2>Summary</h2>" in html and "<tr><td>src.n</td><td>6</td></tr>" in html
+    assert html.index("<h2>Summary</h2>") < html.index("<h2>Stage graph</h2>")
+    (numproject / "pipeline.yaml").write_text((numproject / "pipeline.yaml").read_text().split("summary:")[0])
+    assert run_cli(numproject, "report", "-o", page).returncode == 0
+    assert "<h2>Summary</h2>" not in page.read_text()  # none without a summary:
