@@ -692,6 +692,10 @@ def test_capture_pipeline_turns_a_clip_into_animation_files(tmp_path):
     root = Path(__file__).resolve().parents[1]
     project = capture_project(root, tmp_path / "project")
     result = msflow.run(project / "pipelines" / "capture.yaml", ["vars.name=happy", "export.video_size=96"])
+    from msflow.summary import summary_entries
+
+    summary, problems = summary_entries(list(result.session.pipeline.summary), result.record["stages"])
+    assert problems == [] and dict(summary)["track.valid_fraction"] == 1.0  # what `msflow run` ends with
     rows = list(csv.reader((project / "out" / "happy_live_link.csv").open()))
     frames = len(result.load("track.landmarks"))
     assert len(rows) - 1 == frames and (project / "out" / "happy.glb").read_bytes()[:4] == b"glTF"
