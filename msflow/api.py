@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -107,7 +108,8 @@ def run_sessions(
     from msflow.runner import schedule
     from msflow.worker import pin_blas_threads
 
-    with sessions[0].store.in_use():  # msflow gc fails while a run holds this: it would delete what runs make
+    # msflow gc fails while a run holds this (it would delete what runs make); a run waits for a gc in progress
+    with sessions[0].store.in_use(on_wait=report_gc_wait):
         started = time.time()
         pin_blas_threads()
         pool = make_executor(
@@ -285,6 +287,12 @@ def run(
     if raise_on_failure:
         raise_for_failures(execution.states, str(session.pipeline.path))
     return result
+
+
+def report_gc_wait(holder: dict[str, Any]) -> None:
+    """Tell the user why a run has not started: ``msflow gc`` is deleting from the store."""
+    who = f" (pid {holder.get('pid', '?')} on {holder.get('host', '?')})" if holder else ""
+    print(f"msflow: msflow gc{who} is cleaning the store; waiting for it to finish", file=sys.stderr, flush=True)
 
 
 def finish_run(execution: Execution) -> None:

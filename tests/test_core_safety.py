@@ -69,6 +69,22 @@ def test_ctrl_c_says_what_it_kept_and_the_next_run_goes_on(numproject, tmp_path,
     assert np.array_equal(out.load("slow.big"), np.random.default_rng(7).standard_normal(3_000_000))
 
 
+def test_a_run_waits_for_a_gc_in_progress_saying_so(numproject):
+    """gc holds the store alone while it deletes; a run started meanwhile says why it waits and goes on after."""
+    import fcntl
+
+    store_lock = numproject / ".msflow" / "locks" / "store.lock"
+    store_lock.parent.mkdir(parents=True)
+    with store_lock.open("w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)  # what msflow gc holds while it deletes
+        proc = start_cli(numproject, "run", "-q")
+        wait_for_line(proc, "msflow gc is cleaning the store; waiting for it to finish")
+        assert proc.poll() is None and not (numproject / ".msflow" / "runs").exists()
+        fcntl.flock(held, fcntl.LOCK_UN)
+    assert proc.wait(timeout=120) == 0, proc.stderr.read()
+    assert len(list((numproject / ".msflow" / "runs").glob("*.json"))) == 1
+
+
 def test_gc_refuses_while_a_run_is_making_artifacts_no_record_names_yet(numproject, tmp_path):
     """gc keeps what run records name, and a run writes its record at the end: a gc during the run deleted the
     stages it had finished, and the run then recorded them, so the next run and status said "cached" for

@@ -227,6 +227,25 @@ def test_gc_on_s3_refuses_while_a_run_on_any_machine_is_present(numproject, tmp_
     assert store.objects.list("active/") == []
 
 
+def test_a_run_on_s3_waits_for_a_gc_in_progress(numproject, s3):
+    """gc is present on the store too (gc/) while it deletes, written before it lists the runs; a run that
+    finds it after writing its own presence waits, saying so, and goes on once gc has ended. (Before, a run
+    starting while gc deleted went ahead and could lose what it had just found cached.)"""
+    from msflow.stores.leases import GC_PREFIX, Presence
+
+    bucket = s3.bucket()
+    on_s3(numproject, s3, bucket)
+    store = s3.store(bucket, "num")
+    with Presence(store.objects, prefix=GC_PREFIX):  # a gc deleting, here or on another machine
+        proc = start_cli(numproject, "run", "-q")
+        wait_for_line(proc, "msflow gc (pid ")
+        assert list(store.keys()) == [] and proc.poll() is None  # it waits before it computes anything
+        refused = run_cli(numproject, "gc")  # the waiting run is present: a second gc refuses
+        assert refused.returncode == 2 and "1 run(s) are using the store" in refused.stderr, refused.stderr
+    assert proc.wait(timeout=120) == 0, proc.stderr.read()
+    assert len(list(store.keys())) == 5 and store.objects.list(GC_PREFIX) == []
+
+
 def test_output_sinks_stream_to_s3_with_the_hashes_of_whole_arrays(numproject, s3):
     on_s3(numproject, s3, s3.bucket(), files=("stream.yaml",))
     out = msflow.run(numproject / "stream.yaml")

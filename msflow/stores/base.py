@@ -90,9 +90,12 @@ class Store(Protocol):
     def computing(self, key: str) -> Json | None:
         """Who holds ``key``'s lock now, computing it (host, pid, since; {} when unreadable), or None."""
 
-    def in_use(self, *, alone: bool = False) -> AbstractContextManager[object]:
+    def in_use(
+        self, *, alone: bool = False, on_wait: Callable[[Json], None] | None = None
+    ) -> AbstractContextManager[object]:
         """Held by every run while it makes and records artifacts (any number at once); ``alone`` (gc): held by
-        nobody else, else ``StoreInUse`` at once."""
+        nobody else, else ``StoreInUse`` at once. A run that finds gc holding it waits for gc to end, calling
+        ``on_wait`` (with what is known of gc: host, pid) first."""
 
     # memo and records
     def load_memo(self) -> Json: ...

@@ -170,13 +170,14 @@ class Lease:
 
 
 class Presence:
-    """A run's presence on a store, ``active/<token>.lease``: a lease nobody else contends for (its path is new),
-    so it is written with a plain PUT and renewed every ttl/3 by a daemon thread; ``msflow gc`` reads the live
-    ones (``live_presences``) to know whether runs are using the store. Released (deleted) when the run ends; a
-    killed run's goes stale by the lease rules (its pid gone on this host, or not renewed within its ttl)."""
+    """A process's presence on a store, ``<prefix><token>.lease``: a lease nobody else contends for (its path is
+    new), so it is written with a plain PUT and renewed every ttl/3 by a daemon thread. Runs are present under
+    ``active/``, which ``msflow gc`` reads (``live_presences``) to know whether runs are using the store; gc is
+    present under ``gc/``, which a starting run reads to wait for it. Released (deleted) at the end; a killed
+    process's goes stale by the lease rules (its pid gone on this host, or not renewed within its ttl)."""
 
-    def __init__(self, objects: Objects, ttl: float | None = None):
-        self.lease = Lease(objects, f"{PRESENCE_PREFIX}{uuid.uuid4().hex}.lease", ttl)
+    def __init__(self, objects: Objects, ttl: float | None = None, prefix: str = "active/"):
+        self.lease = Lease(objects, f"{prefix}{uuid.uuid4().hex}.lease", ttl)
 
     def __enter__(self) -> Presence:
         self.lease.take_fresh()
@@ -187,12 +188,14 @@ class Presence:
 
 
 PRESENCE_PREFIX = "active/"
+GC_PREFIX = "gc/"
 
 
-def live_presences(objects: Objects) -> list[dict[str, Any]]:
-    """The holders of the runs present on the store now; stale presences (killed runs) are deleted on the way."""
+def live_presences(objects: Objects, prefix: str = PRESENCE_PREFIX) -> list[dict[str, Any]]:
+    """The holders of the presences under ``prefix`` now (runs by default); stale ones (killed processes) are
+    deleted on the way."""
     live = []
-    for info in objects.list(PRESENCE_PREFIX):
+    for info in objects.list(prefix):
         current = objects.get_versioned(info.path)
         if current is None:
             continue

@@ -240,20 +240,25 @@ class LocalStore:
             os.close(fd)
 
     @contextlib.contextmanager
-    def in_use(self, *, alone: bool = False) -> Iterator[None]:
+    def in_use(self, *, alone: bool = False, on_wait: Callable[[Json], None] | None = None) -> Iterator[None]:
         """A shared flock on locks/store.lock held by runs; gc's exclusive one fails at once while any run holds
-        it (the kernel drops a dead run's hold, so a killed run never blocks gc)."""
+        it (the kernel drops a dead run's hold, so a killed run never blocks gc). A run starting while gc holds
+        it waits (``on_wait`` told first)."""
         import fcntl
 
         fd = os.open(self._dir("locks") / "store.lock", os.O_RDWR | os.O_CREAT, 0o644)
         try:
             try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB if alone else fcntl.LOCK_SH)
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB if alone else fcntl.LOCK_SH | fcntl.LOCK_NB)
             except BlockingIOError:
-                raise StoreInUse(
-                    f"a run is using the store {self.url} (msflow run or sweep): gc would delete the artifacts it is "
-                    "making before its record names them; run gc once it has ended"
-                ) from None
+                if alone:
+                    raise StoreInUse(
+                        f"a run is using the store {self.url} (msflow run or sweep): gc would delete the artifacts "
+                        "it is making before its record names them; run gc once it has ended"
+                    ) from None
+                if on_wait is not None:
+                    on_wait({})  # gc holds it (a flock names nobody)
+                fcntl.flock(fd, fcntl.LOCK_SH)
             yield
         finally:
             os.close(fd)  # releases the lock

@@ -72,7 +72,7 @@ from msflow.atomic import write_json_atomic
 from msflow.errors import CorruptArtifact, StoreInUse, UserError
 from msflow.stored import StoredArray
 from msflow.stores.base import HOST, Json, json_object, matching_run, pid_alive, record_object, run_record
-from msflow.stores.leases import Lease, Presence, lease_is_stale, live_presences, parse_holder
+from msflow.stores.leases import GC_PREFIX, Lease, Presence, lease_is_stale, live_presences, parse_holder
 from msflow.stores.objects import dumps, iter_chunks, make_objects
 from msflow.stores.packs import PACK_NAME, Pack, make_pack, pack_limit, take_small
 from msflow.stores.recent import RecentObjects, caches_for
@@ -415,21 +415,35 @@ class RemoteStore:
         return None if lease_is_stale(holder, current.age) else holder
 
     @contextlib.contextmanager
-    def in_use(self, *, alone: bool = False) -> Iterator[None]:
+    def in_use(self, *, alone: bool = False, on_wait: Callable[[Json], None] | None = None) -> Iterator[None]:
         """A run is present on the store while it runs (``active/<token>.lease``, renewed by a heartbeat:
-        msflow.stores.leases.Presence), on whichever machine; gc (``alone``) fails while any live one is there."""
+        msflow.stores.leases.Presence), on whichever machine; gc (``alone``) fails while any live one is there.
+        gc is present too (``gc/``), written before it lists the runs, and a run that finds it after writing
+        its own waits for it to end (``on_wait`` told once): of a run and a gc starting together, one always
+        sees the other."""
         if not alone:
             with Presence(self.objects):
+                self._await_gc(on_wait)
                 yield
             return
-        runs = live_presences(self.objects)
-        if runs:
-            where = ", ".join(f"pid {r.get('pid')} on {r.get('host')}" for r in runs[:3])
-            raise StoreInUse(
-                f"{len(runs)} run(s) are using the store {self.url} ({where}): gc would delete the artifacts they are "
-                "making before their records name them; run gc once they have ended"
-            )
-        yield
+        with Presence(self.objects, prefix=GC_PREFIX):
+            runs = live_presences(self.objects)
+            if runs:
+                where = ", ".join(f"pid {r.get('pid')} on {r.get('host')}" for r in runs[:3])
+                raise StoreInUse(
+                    f"{len(runs)} run(s) are using the store {self.url} ({where}): gc would delete the artifacts "
+                    "they are making before their records name them; run gc once they have ended"
+                )
+            yield
+
+    def _await_gc(self, on_wait: Callable[[Json], None] | None, poll: float = 0.2) -> None:
+        """Return once no gc is present on the store (a killed gc's presence goes stale)."""
+        told = False
+        while gcs := live_presences(self.objects, GC_PREFIX):
+            if on_wait is not None and not told:
+                on_wait(gcs[0])
+                told = True
+            time.sleep(poll)  # an object store notifies nobody: poll, as a key's lock does
 
     # ------------------------------------------------------------------ locks
     @staticmethod
