@@ -67,7 +67,8 @@ def test_the_symmetric_head_gets_symmetric_points(ict_mesh, placed):
 def test_a_character_without_landmarks_gets_them_with_a_warning(tmp_path, ict_mesh, placed):
     path = tmp_path / "no_landmarks.glb"
     path.write_bytes(write_morph_glb(without_landmarks(ict_mesh)))
-    out = run_stage(GltfCharacter, {}, {"mesh": path})
+    with pytest.warns(UserWarning, match="no landmark vertices given"):
+        out = run_stage(GltfCharacter, {}, {"mesh": path})
     assert out.arrays["landmark_ids"].tolist() == placed[0].tolist()
     assert out.meta["source"]["landmarks"]["from"] == "tracked"
     assert any("no landmark vertices given" in w and "landmarks" in w for w in out.warnings), out.warnings
@@ -137,7 +138,8 @@ def test_an_obj_character_without_landmarks_gets_the_same_ones(tmp_path, ict_mes
         "".join(f"newmtl {g.name}\nKd {g.color[0]} {g.color[1]} {g.color[2]}\n" for g in ict_mesh.groups)
     )
     shapes = {p.name: p for p in tmp_path.iterdir()}
-    out = run_stage(ObjBlendshapes, {"neutral": "neutral"}, {"shapes": shapes})
+    with pytest.warns(UserWarning, match="no landmark vertices given"):
+        out = run_stage(ObjBlendshapes, {"neutral": "neutral"}, {"shapes": shapes})
     ids = out.arrays["landmark_ids"]
     v = ict_mesh.positions.astype(np.float64)
     off = np.linalg.norm(v[ids] - v[placed[0]], axis=1) / eye_distance(v[placed[0]])
