@@ -106,8 +106,10 @@ def run_sessions(
     is done once. ``labels`` are the sessions' variant parameters; ``extra`` goes into every record."""
     from msflow.executors import make_executor
     from msflow.runner import schedule
+    from msflow.stores.base import RUN_PID_VARIABLE
     from msflow.worker import pin_blas_threads
 
+    os.environ[RUN_PID_VARIABLE] = str(os.getpid())  # inherited by the workers: locks they take name this run
     # msflow gc fails while a run holds this (it would delete what runs make); a run waits for a gc in progress
     with sessions[0].store.in_use(on_wait=report_gc_wait):
         started = time.time()

@@ -111,8 +111,9 @@ def being_computed(holder: dict[str, Any] | None) -> list[str]:
         return []
     since = holder.get("since")
     age = f", for {time.time() - since:.0f} s" if isinstance(since, (int, float)) else ""
-    who = f"pid {holder.get('pid', '?')} on {holder.get('host', '?')}"
-    return [f"being computed now by a run in progress ({who}{age}); a run started now waits for it"]
+    from msflow.stores.base import describe_holder
+
+    return [f"being computed now by a run in progress ({describe_holder(holder)}{age}); a run started now waits for it"]
 
 
 def explain(old: dict[str, Any], new: dict[str, Any], provenance: dict[str, Any] | None = None) -> list[str]:

@@ -151,7 +151,9 @@ def report_waiting(stage: str, holder: dict[str, Any]) -> None:
     """Tell the user why a stage seems stuck: another run (named by the lock) is computing the same key."""
     import sys
 
-    who = f"pid {holder.get('pid', '?')} on {holder.get('host', '?')}" if holder else "another process"
+    from msflow.stores.base import describe_holder
+
+    who = describe_holder(holder) if holder else "another process"
     print(
         f"msflow: stage '{stage}' is being computed by another run ({who}); waiting for it", file=sys.stderr, flush=True
     )

@@ -94,7 +94,8 @@ def test_gc_refuses_while_a_run_is_making_artifacts_no_record_names_yet(numproje
     proc = start_cli(numproject, "run", "crash.yaml", "-j", "2", env=hold.env)
     hold.wait_ready(proc)
     status = run_cli(numproject, "status", "crash.yaml")  # says that the held stage is being computed (by a worker)
-    assert "slow    will run\n          - being computed now by a run in progress (pid " in status.stdout, status.stdout
+    computing = f"slow    will run\n          - being computed now by a run in progress (pid {proc.pid} on "
+    assert computing in status.stdout and ", in its worker " in status.stdout, status.stdout  # the run's pid first
     assert status.stdout.count("being computed now") == 1
     refused = run_cli(numproject, "gc", "crash.yaml")
     assert refused.returncode == 2 and "a run is using the store" in refused.stderr, refused.stderr

@@ -118,6 +118,27 @@ def env_megabytes(variable: str, default: float) -> int:
     return max(0, int(megabytes * 1e6))
 
 
+#: set by a run for the processes it starts (pool workers, a local Dask cluster): the pid a user knows it by
+RUN_PID_VARIABLE = "MSFLOW_RUN_PID"
+
+
+def holder_fields() -> Json:
+    """Who holds a lock or lease: host and pid (the process that took it: its liveness decides staleness) and, in
+    a run's worker process, ``run_pid``, the ``msflow run`` process the user sees."""
+    fields: Json = {"host": HOST, "pid": os.getpid()}
+    run = os.environ.get(RUN_PID_VARIABLE, "")
+    if run.isdigit() and int(run) != os.getpid():
+        fields["run_pid"] = int(run)
+    return fields
+
+
+def describe_holder(holder: Json) -> str:
+    """``pid 12 on host`` (the run's pid, and its worker's when another process holds it)."""
+    run, pid = holder.get("run_pid"), holder.get("pid", "?")
+    worker = f", in its worker {pid}" if run is not None else ""
+    return f"pid {run if run is not None else pid} on {holder.get('host', '?')}{worker}"
+
+
 def pid_alive(pid: int) -> bool:
     """Whether process ``pid`` exists on this host (a process of another user counts as alive)."""
     try:

@@ -37,7 +37,7 @@ import time
 import uuid
 from typing import Any, Callable
 
-from msflow.stores.base import HOST, pid_alive
+from msflow.stores.base import HOST, holder_fields, pid_alive
 from msflow.stores.objects import Objects
 
 DEFAULT_TTL = 60.0
@@ -91,8 +91,7 @@ class Lease:
         return json.dumps(
             {
                 "owner": self.token,
-                "host": HOST,
-                "pid": os.getpid(),
+                **holder_fields(),
                 "since": self.since,
                 "renewed": time.time(),
                 "ttl": self.ttl,

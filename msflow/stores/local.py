@@ -30,7 +30,16 @@ from typing import TYPE_CHECKING, Any
 
 from msflow.atomic import write_json_atomic
 from msflow.errors import StoreInUse, UserError
-from msflow.stores.base import HOST, Json, json_object, matching_run, pid_alive, record_object, run_record
+from msflow.stores.base import (
+    HOST,
+    Json,
+    holder_fields,
+    json_object,
+    matching_run,
+    pid_alive,
+    record_object,
+    run_record,
+)
 
 if TYPE_CHECKING:
     from msflow.artifact import ArtifactView
@@ -209,7 +218,7 @@ class LocalStore:
                     waited = True
                     time.sleep(poll)
             os.ftruncate(fd, 0)
-            os.write(fd, json.dumps({"host": HOST, "pid": os.getpid(), "since": time.time()}).encode())
+            os.write(fd, json.dumps({**holder_fields(), "since": time.time()}).encode())
             yield
         finally:
             with contextlib.suppress(OSError):
