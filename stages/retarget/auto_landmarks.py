@@ -9,15 +9,16 @@ character's own face: both faces' points then mean the same thing (docs/retarget
 character").
 
 Steps (``place_landmarks``):
-1. the neutral mesh rendered from the front (glTF: the face looks along +z), orthographic, framed on the mesh,
-   then again framed on the face found (the landmark model sees the face as large as in a close-up);
-2. FaceMesh (the tracking stage's models and settings) on the image: 468 points, the 68 by the tracking's mapping;
-3. each point's vertex: the *visible skin* vertex nearest in 3D to the rendered surface under the point. Skin is the material group under the nose
-   tip (landmark 30), so eyeballs, teeth and the mouth's inside are never chosen; visible means not behind the
-   rendered surface (the depth buffer);
+1. the neutral mesh rendered from the front (glTF: the face looks along +z), orthographic, lit from above the
+   camera, framed on the mesh, then again framed on the face found (as large as in a close-up);
+2. FaceMesh (the tracking stage's default models) on the render and on its mirror image, averaged: one reading
+   leans to one side; the 68 points by the tracking's mapping;
+3. each point's vertex: the *visible skin* vertex nearest in 3D to the rendered surface under the point. Skin is
+   the material group under the nose tip (landmark 30), so eyeballs, teeth and the mouth's inside are never
+   chosen; visible means not behind the rendered surface (the depth buffer);
 4. the closed lips' line: the inner upper lip (61-63) and inner lower lip (65-67) meet on a neutral face, so each
-   takes, among the skin vertices within a few pixels, the one that the jaw-opening morph moves least (upper)
-   or most (lower) downwards.
+   takes, of the skin vertices around it, the nearest on its own lip, told by the jaw-opening morph (it lowers
+   the lower lip's vertices at least half as far as the most lowered one, the upper lip's less).
 """
 
 from __future__ import annotations
@@ -53,7 +54,6 @@ class Placement:
     pixels: np.ndarray  #: (68, 2) tracked image points of the second render
     score: float  #: the landmark model's presence score on the render
     pixel_error: np.ndarray  #: (68,) image distance from each tracked point to its vertex, in inter-ocular distances
-    image: np.ndarray  #: the second render (H, W, 3) RGB, for figures
 
 
 class NoFaceFound(Exception):
@@ -124,6 +124,7 @@ class Surface:
     surface_depth: np.ndarray  #: (H, W) depth of the rendered surface (-inf: background)
 
     def pixel_of(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(rows, columns) of the pixels holding image points (clipped to the image)."""
         h, w = self.triangle.shape
         col = np.clip(np.floor(points[:, 0]).astype(int), 0, w - 1)
         row = np.clip(np.floor(points[:, 1]).astype(int), 0, h - 1)
@@ -235,7 +236,7 @@ def place_landmarks(
         for k, candidates in zip(lips, around):
             ids[k] = lip_line_vertex(candidates, pixels[k], surface.xy, drop, upper=k in INNER_UPPER)
     error = np.linalg.norm(surface.xy[ids] - pixels, axis=1) / iod_px
-    return Placement(ids, pixels, score, error, image)
+    return Placement(ids, pixels, score, error)
 
 
 #: names (lower case, letters and digits only) of the morph that opens the jaw, in order of preference
