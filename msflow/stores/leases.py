@@ -168,6 +168,10 @@ class Lease:
         self.etag = None
 
 
+PRESENCE_PREFIX = "active/"
+GC_PREFIX = "gc/"
+
+
 class Presence:
     """A process's presence on a store, ``<prefix><token>.lease``: a lease nobody else contends for (its path is
     new), so it is written with a plain PUT and renewed every ttl/3 by a daemon thread. Runs are present under
@@ -175,7 +179,7 @@ class Presence:
     present under ``gc/``, which a starting run reads to wait for it. Released (deleted) at the end; a killed
     process's goes stale by the lease rules (its pid gone on this host, or not renewed within its ttl)."""
 
-    def __init__(self, objects: Objects, ttl: float | None = None, prefix: str = "active/"):
+    def __init__(self, objects: Objects, ttl: float | None = None, prefix: str = PRESENCE_PREFIX):
         self.lease = Lease(objects, f"{prefix}{uuid.uuid4().hex}.lease", ttl)
 
     def __enter__(self) -> Presence:
@@ -184,10 +188,6 @@ class Presence:
 
     def __exit__(self, *exc: object) -> None:
         self.lease.release()
-
-
-PRESENCE_PREFIX = "active/"
-GC_PREFIX = "gc/"
 
 
 def live_presences(objects: Objects, prefix: str = PRESENCE_PREFIX) -> list[dict[str, Any]]:
