@@ -139,9 +139,19 @@ def arkit_key(name: str) -> str:
     return key[:1].upper() + key[1:]
 
 
+def name_key(name: str) -> str:
+    """A morph name as the mapping compares it: sides spelt ARKit's way, lower case, no separators
+    (``mouthSmile_L``, ``Mouth_Smile_L``, ``mouthSmile.L`` and ``mouthSmileLeft`` are all ``mouthsmileleft``)."""
+    return "".join(ch for ch in arkit_key(name).lower() if ch not in "_-. ")
+
+
+_TABLE_BY_KEY = {name_key(name): dest for name, dest in ARKIT_TABLE.items()}
+_NO_COUNTERPART_KEYS = frozenset(name_key(name) for name in NO_ARKIT_COUNTERPART)
+
+
 def namesake_destination(name: str) -> dict[str, float]:
     """The ARKit column(s) a morph is named after (rule 3 of the module docstring); {} when none."""
-    key = arkit_key(name).lower()
+    key = name_key(name)
     if key in _COLUMN_BY_KEY:
         return {_COLUMN_BY_KEY[key]: 1.0}
     for side in ("left", "right"):
@@ -267,12 +277,12 @@ def arkit_mapping(
     destinations: dict[str, dict[str, float]] = {}
     rule: dict[str, str] = {}
     for name in target_names:
-        for label, dest in (("alias", aliases.get(name)), ("table", ARKIT_TABLE.get(name))):
+        for label, dest in (("alias", aliases.get(name)), ("table", _TABLE_BY_KEY.get(name_key(name)))):
             if dest is not None:
                 destinations[name], rule[name] = dict(dest), label
                 break
         else:
-            dest = {} if name in NO_ARKIT_COUNTERPART else namesake_destination(name)
+            dest = {} if name_key(name) in _NO_COUNTERPART_KEYS else namesake_destination(name)
             destinations[name], rule[name] = dest, "namesake" if dest else "none"
     mapping = ArkitMapping(list(target_names), destinations, rule)
     if deltas is not None:
@@ -289,7 +299,7 @@ def fit_missing_destinations(mapping: ArkitMapping, deltas: np.ndarray) -> None:
             columns.append(column)
             basis.append(deltas[m] / factor)
     for m, name in enumerate(mapping.target_names):
-        if mapping.rule[name] != "none" or name in NO_ARKIT_COUNTERPART:
+        if mapping.rule[name] != "none" or name_key(name) in _NO_COUNTERPART_KEYS:
             continue
         dest, explained = fit_destination(deltas[m], np.asarray(basis), columns)
         if dest and explained >= MIN_FIT_EXPLAINED:

@@ -9,12 +9,12 @@ character; ``stages.retarget.region_fit`` fits in 3D, region by region. Plain nu
 
 from __future__ import annotations
 
-import fnmatch
 from dataclasses import dataclass
 
 import numpy as np
 
 from stages.geometry.nnls import solve_box_qp
+from stages.retarget.regions import morph_key, names_matching
 
 #: landmarks that fix the similarity between actor and character: eyes (36-47) and nose (27-35) barely move
 #: with expression, unlike the jaw line, brows and lips
@@ -86,6 +86,8 @@ _SIDES = (
     ("Right", "R"),
     ("_left", "L"),
     ("_right", "R"),
+    (".L", "L"),
+    (".R", "R"),
 )
 
 
@@ -100,18 +102,20 @@ def split_side(name: str) -> tuple[str, str]:
 def antagonist_pairs(names: list[str], stems: list[tuple[str, str]]) -> list[tuple[int, int]]:
     """Index pairs of targets that oppose each other (stem pairs such as ("browDown", "browInnerUp")), matched
     on the same side of the face; a target without a side pairs with both sides."""
-    parsed = [split_side(n) for n in names]
+    parsed = [(morph_key(stem), side) for stem, side in map(split_side, names)]
+    wanted = {(morph_key(a), morph_key(b)) for a, b in stems}
     pairs = []
     for i, (stem_a, side_a) in enumerate(parsed):
         for j, (stem_b, side_b) in enumerate(parsed):
-            if (stem_a, stem_b) in stems and (side_a == side_b or not side_a or not side_b):
+            if (stem_a, stem_b) in wanted and (side_a == side_b or not side_a or not side_b):
                 pairs.append((i, j))
     return pairs
 
 
 def matching_targets(names: list[str], patterns: list[str]) -> np.ndarray:
-    """Boolean mask of the names matching any fnmatch pattern (case-sensitive)."""
-    return np.array([any(fnmatch.fnmatchcase(n, p) for p in patterns) for n in names], dtype=bool)
+    """Boolean mask of the names matching any fnmatch pattern, ignoring case and separators
+    (``regions.names_matching``: ``eyeLook*`` is ``Eye_Look_Up_L`` too)."""
+    return names_matching(names, patterns)
 
 
 @dataclass

@@ -5,7 +5,6 @@ explain, correctives bounded by their base morph (``robust_fit`` of ``stages.ret
 
 from __future__ import annotations
 
-import fnmatch
 from dataclasses import dataclass
 from typing import Literal
 
@@ -15,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from stages.retarget.face_measures import inter_ocular_distance
 from stages.retarget.morph_fit import Similarity, fit_similarity, robust_fit
 from stages.retarget.movements import CHEEK_VERTICES, EXTRA_VERTICES
-from stages.retarget.regions import RIGID
+from stages.retarget.regions import RIGID, find_morph, names_matching
 
 #: Points of the 3D fit beyond iBUG's 68: the FaceMesh cheek vertices (``movements.EXTRA_VERTICES``) as points 68,
 #: 69, ... (the keyshapes' ``keyshape_cheeks3d``); no iBUG point lies on the cheek's skin
@@ -75,8 +74,9 @@ DEFAULT_FIT_REGIONS = [
 
 
 def matching_any_case(names: list[str], patterns: list[str]) -> np.ndarray:
-    """Boolean mask of the names matching any fnmatch pattern, ignoring case."""
-    return np.array([any(fnmatch.fnmatchcase(n.lower(), p.lower()) for p in patterns) for n in names], dtype=bool)
+    """Boolean mask of the names matching any fnmatch pattern, ignoring case and separators
+    (``regions.names_matching``)."""
+    return names_matching(names, patterns)
 
 
 @dataclass
@@ -131,12 +131,8 @@ class Rig3D:
 
 def corrective_pairs(names: list[str], correctives) -> list[tuple[int, int]]:
     """(corrective, base) morph index pairs the character has, e.g. (mouthClose, jawOpen)."""
-    lower = [n.lower() for n in names]
-    return [
-        (lower.index(c.lower()), lower.index(b.lower()))
-        for c, b in correctives
-        if c.lower() in lower and b.lower() in lower
-    ]
+    found = [(find_morph(names, c), find_morph(names, b)) for c, b in correctives]
+    return [(c, b) for c, b in found if c is not None and b is not None]
 
 
 def points_not_in_keyshapes(regions: list[FitRegion], available: int) -> dict[str, list[int]]:

@@ -1,7 +1,8 @@
 """Face regions shared by the region-by-region retarget fit and the retargeting evaluation.
 
 A region pairs the iBUG-68 landmarks that show it with the morph targets that move it. Morphs are assigned by
-name (fnmatch patterns on ARKit / ICT FaceKit names, case-insensitive); a character with other names gives its own
+name (fnmatch patterns on ARKit / ICT FaceKit names, compared by ``morph_key``: case and separators ignored, so
+``Mouth_Smile_L`` and ``mouth-smile.L`` are ICT's ``mouthSmile_L``); a character with other names gives its own
 patterns in the stage params. The order matters for the fit: the jaw is fitted before the lips, so the lips fit
 only what the jaw did not explain (a dropped jaw and rounded lips both part the lips; only the jaw moves the chin).
 """
@@ -43,10 +44,26 @@ MORPH_REGION_PATTERNS: tuple[tuple[str, str | None], ...] = (
 )
 
 
+#: characters that do not change what a morph name means: Jaw_Open, jaw-open, jaw.open and jawOpen are one morph
+NAME_SEPARATORS = frozenset("_-. ")
+
+
+def morph_key(name: str) -> str:
+    """A morph name (or fnmatch pattern) as it is compared: lower case, separators left out (``Mouth_Smile_L`` ->
+    ``mouthsmilel``, as ``mouthSmile_L``)."""
+    return "".join(ch for ch in name.lower() if ch not in NAME_SEPARATORS)
+
+
+def names_matching(names: list[str], patterns: list[str]) -> np.ndarray:
+    """Boolean mask of the names matching any fnmatch pattern, both compared by ``morph_key``."""
+    keys = [morph_key(p) for p in patterns]
+    return np.array([any(fnmatch.fnmatchcase(morph_key(n), k) for k in keys) for n in names], dtype=bool)
+
+
 def morph_region(name: str) -> str | None:
     """The region a morph target moves, from its name (``jawOpen`` -> jaw, ``eyeLookIn_L`` -> gaze); None when the
     name matches no region or the region is not observable from landmarks (pupils, tongue)."""
-    key = name.lower()
+    key = morph_key(name)
     for pattern, region in MORPH_REGION_PATTERNS:
         if fnmatch.fnmatchcase(key, pattern):
             return region
@@ -54,11 +71,11 @@ def morph_region(name: str) -> str | None:
 
 
 def find_morph(names: list[str], stem: str) -> int | None:
-    """Index of the morph whose name is ``stem`` whatever its case and spelling of sides (``jawOpen``,
-    ``JawOpen``, ``jaw_open``), or None."""
-    want = stem.replace("_", "").lower()
+    """Index of the morph whose name is ``stem`` whatever its case and separators (``jawOpen``, ``JawOpen``,
+    ``jaw_open``, ``Jaw-Open``), or None."""
+    want = morph_key(stem)
     for i, name in enumerate(names):
-        if name.replace("_", "").lower() == want:
+        if morph_key(name) == want:
             return i
     return None
 
