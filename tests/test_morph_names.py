@@ -1,4 +1,4 @@
-"""A character's morphs spelt another way than ICT FaceKit's (``Mouth_Smile_L`` as Character Creator and many
+"""A character's morphs spelt another way than ICT FaceKit's (``Mouth_Smile_L`` as some
 exporters write them, Blender's ``mouthSmile.L``, ARKit's ``mouthSmileLeft``) are the same morphs everywhere a
 name decides something: the ARKit mapping, the fit's regions, antagonists, correctives, exclusions and contact
 morphs, and the side lookups of blinks, gaze and lip press."""
