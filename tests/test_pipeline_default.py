@@ -32,6 +32,17 @@ def test_default_pipeline_runs_every_stage(default_run):
         assert f"  {stage}:" in spec and result.states[stage].state == "ran"
 
 
+def test_the_default_run_ends_with_how_it_read_the_take(default_run):
+    """pipeline.yaml's summary: what `msflow run` prints last, every entry a metric the run gave."""
+    from msflow.summary import summary_entries
+
+    proj, result = default_run
+    entries, problems = summary_entries(list(result.session.pipeline.summary), result.record["stages"])
+    summary = dict(entries)
+    assert problems == [] and {"edit.fraction_neutral", "blend.mean_alpha_happy", "export.duration_s"} <= set(summary)
+    assert abs(sum(v for k, v in summary.items() if k.startswith("edit.fraction_")) - 1.0) < 1e-9
+
+
 def test_default_pipeline_rerun_is_a_no_op(default_run):
     proj, first = default_run
     again = msflow.run(proj / "pipeline.yaml")
