@@ -63,6 +63,11 @@ class PipelineSpec(BaseModel):
     publish: dict[str, str] = {}
     summary: list[str] = []
 
+    @field_validator("summary", mode="before")
+    @classmethod
+    def _one_entry(cls, value: Any) -> Any:
+        return [value] if isinstance(value, str) else value  # `summary: eval.mouth_error` is a list of one
+
 
 # ---------------------------------------------------------------------------------------------------------- refs
 @dataclass(frozen=True)
@@ -479,7 +484,7 @@ def _check_summary(entries: list[str], nodes: dict[str, StageNode], file: str) -
     """``summary:`` entries are ``stage.metric`` (the metric a shell-style pattern) of known stages."""
     for index, entry in enumerate(entries):
         stage, dot, metric = entry.partition(".")
-        where = f"summary[{index}]"
+        where = f"summary.{index}"  # as pydantic names list items
         if not dot or not metric or not NAME_RE.match(stage):
             raise UserError(
                 f"'{entry}' is not stage.metric (the metric may be a pattern: eval.mouth_*)", file=file, field=where

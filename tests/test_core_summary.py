@@ -53,14 +53,20 @@ def test_a_name_that_is_no_metric_is_a_warning_that_lists_them(numproject):
 def test_summary_entries_name_known_stages_or_nothing_runs(numproject):
     log = numproject / "log"
     for entries, message in [
-        (["totl.total"], "summary[0]': 'totl.total': no stage 'totl' (did you mean 'total'?)"),
-        (["src.n", "total"], "summary[1]': 'total' is not stage.metric"),
+        (["totl.total"], "summary.0': 'totl.total': no stage 'totl' (did you mean 'total'?)"),
+        (["src.n", "total"], "summary.1': 'total' is not stage.metric"),
     ]:
         with_summary(numproject, entries)
         result = run_cli(numproject, "run", "-q", env={"NUMSTAGES_LOG": str(log)})
         assert result.returncode == 2 and "pipeline.yaml" in result.stderr and message in result.stderr, result.stderr
         assert "Traceback" not in result.stderr and not log.exists()
         (numproject / "pipeline.yaml").write_text((numproject / "pipeline.yaml").read_text().split("summary:")[0])
+
+
+def test_one_entry_may_be_written_without_a_list(numproject):
+    (numproject / "pipeline.yaml").write_text((numproject / "pipeline.yaml").read_text() + "summary: src.n\n")
+    result = run_cli(numproject, "run", "-q")
+    assert result.returncode == 0 and parsed(result.stdout) == [("src.n", "6")], result.stderr
 
 
 def test_a_sweep_tabulates_the_summary_unless_told_otherwise(numproject):
