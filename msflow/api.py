@@ -59,6 +59,14 @@ class RunResult:
         return [n for n, s in self.states.items() if s.state is StageStatus.RAN]
 
     @property
+    def summary(self) -> dict[str, Any]:
+        """The pipeline's ``summary:`` metrics of this run, ``{"stage.metric": value}`` (what ``msflow run``
+        prints last; msflow.summary)."""
+        from msflow.summary import summary_entries
+
+        return dict(summary_entries(list(self.session.pipeline.summary), self.record["stages"])[0])
+
+    @property
     def metrics(self) -> dict[str, dict[str, Any]]:
         return {n: (s.manifest or {}).get("metrics", {}) for n, s in self.states.items()}
 

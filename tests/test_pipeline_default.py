@@ -37,8 +37,8 @@ def test_the_default_run_ends_with_how_it_read_the_take(default_run):
     from msflow.summary import summary_entries
 
     proj, result = default_run
-    entries, problems = summary_entries(list(result.session.pipeline.summary), result.record["stages"])
-    summary = dict(entries)
+    _, problems = summary_entries(list(result.session.pipeline.summary), result.record["stages"])
+    summary = result.summary
     assert problems == [] and {"edit.fraction_neutral", "blend.mean_alpha_happy", "export.duration_s"} <= set(summary)
     assert abs(sum(v for k, v in summary.items() if k.startswith("edit.fraction_")) - 1.0) < 1e-9
 
