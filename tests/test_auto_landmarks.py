@@ -165,3 +165,13 @@ def test_other_faces_and_units_keep_the_points_where_the_hand_made_list_puts_the
     v = face.astype(np.float64)
     off = np.linalg.norm(v[ids] - v[stored], axis=1) / eye_distance(v[stored])
     assert off[27:68].mean() < 0.05 and off[60:68].mean() < 0.04 and meta["presence"] > 0.9, off.round(3)
+
+
+def test_the_character_stages_key_covers_the_models_the_placement_reads():
+    from stages.retarget.character import TRACKER_RESOURCES, ObjBlendshapes
+    from stages.tracking.stages import DETECTOR_MODEL, LANDMARK_MODEL, FaceMeshParams, model_paths
+
+    detector, landmarks, _ = model_paths(None, FaceMeshParams().model, False)  # what track_character_landmarks uses
+    assert {detector, landmarks} == {DETECTOR_MODEL, LANDMARK_MODEL} == set(TRACKER_RESOURCES.values())
+    assert set(TRACKER_RESOURCES.values()) <= set(GltfCharacter.resources.values())
+    assert set(TRACKER_RESOURCES.values()) <= set(ObjBlendshapes.resources.values())
