@@ -301,7 +301,9 @@ def run(
 
 def report_gc_wait(holder: dict[str, Any]) -> None:
     """Tell the user why a run has not started: ``msflow gc`` is deleting from the store."""
-    who = f" (pid {holder.get('pid', '?')} on {holder.get('host', '?')})" if holder else ""
+    from msflow.stores.base import describe_holder
+
+    who = f" ({describe_holder(holder)})" if holder else ""
     print(f"msflow: msflow gc{who} is cleaning the store; waiting for it to finish", file=sys.stderr, flush=True)
 
 

@@ -86,10 +86,8 @@ def run(
     _echo_warnings(result.warnings, {n: s.state for n, s in result.states.items()})
     for repair in result.record.get("repairs", []):
         where = f"; moved aside to {display_path(repair['moved_to'])}" if repair.get("moved_to") else ""
-        echo(
-            f"warning: {repair['stage']}: its artifact {repair['key'][:12]} was corrupt ({repair['problem']}){where}; "
-            "recomputed",
-            err=True,
+        _warn(
+            f"{repair['stage']}: its artifact {repair['key'][:12]} was corrupt ({repair['problem']}){where}; recomputed"
         )
     _echo_summary(result.session.pipeline.summary, result.record["stages"])
     for name, state in result.states.items():
@@ -101,14 +99,18 @@ def run(
     raise_for_failures(result.states, str(result.session.pipeline.path))
 
 
+def _warn(message: str) -> None:
+    """``warning: message`` on stderr, yellow on a terminal."""
+    line = f"warning: {message}"
+    echo(f"\033[33m{line}\033[0m" if sys.stderr.isatty() else line, err=True)
+
+
 def _echo_warnings(warnings: dict[str, list[str]], states: dict[str, str]) -> None:
-    """Stage warnings, yellow on a terminal; those of reused results say so (they were raised when computed)."""
-    colour = sys.stderr.isatty()
+    """Stage warnings; those of reused results say so (they were raised when computed)."""
     for stage, messages in warnings.items():
         origin = " (cached result)" if states.get(stage) == StageStatus.CACHED else ""
         for message in messages:
-            line = f"warning: {stage}{origin}: {message}"
-            echo(f"\033[33m{line}\033[0m" if colour else line, err=True)
+            _warn(f"{stage}{origin}: {message}")
 
 
 def _echo_summary(patterns: tuple[str, ...], stages: dict[str, dict[str, object]]) -> None:
@@ -116,9 +118,8 @@ def _echo_summary(patterns: tuple[str, ...], stages: dict[str, dict[str, object]
     from msflow.summary import summary_lines
 
     lines, problems = summary_lines(list(patterns), stages)
-    colour = sys.stderr.isatty()
     for problem in problems:
-        echo(f"\033[33mwarning: {problem}\033[0m" if colour else f"warning: {problem}", err=True)
+        _warn(problem)
     for line in lines:
         echo(line)
 

@@ -71,7 +71,16 @@ from msflow.artifact import check_manifest
 from msflow.atomic import write_json_atomic
 from msflow.errors import CorruptArtifact, StoreInUse, UserError
 from msflow.stored import StoredArray
-from msflow.stores.base import HOST, Json, json_object, matching_run, pid_alive, record_object, run_record
+from msflow.stores.base import (
+    HOST,
+    Json,
+    describe_holder,
+    json_object,
+    matching_run,
+    pid_alive,
+    record_object,
+    run_record,
+)
 from msflow.stores.leases import GC_PREFIX, Lease, Presence, lease_is_stale, live_presences, parse_holder
 from msflow.stores.objects import dumps, iter_chunks, make_objects
 from msflow.stores.packs import PACK_NAME, Pack, make_pack, pack_limit, take_small
@@ -429,7 +438,7 @@ class RemoteStore:
         with Presence(self.objects, prefix=GC_PREFIX):
             runs = live_presences(self.objects)
             if runs:
-                where = ", ".join(f"pid {r.get('pid')} on {r.get('host')}" for r in runs[:3])
+                where = ", ".join(describe_holder(r) for r in runs[:3])
                 raise StoreInUse(
                     f"{len(runs)} run(s) are using the store {self.url} ({where}): gc would delete the artifacts "
                     "they are making before their records name them; run gc once they have ended"

@@ -139,10 +139,20 @@ def arkit_key(name: str) -> str:
     return key[:1].upper() + key[1:]
 
 
+#: characters that do not change what a morph name means: Jaw_Open, jaw-open, jaw.open and jawOpen are one morph
+NAME_SEPARATORS = frozenset("_-. ")
+
+
+def morph_key(name: str) -> str:
+    """A morph name (or fnmatch pattern) as it is compared: lower case, separators left out (``Mouth_Smile_L`` ->
+    ``mouthsmilel``, as ``mouthSmile_L``). The retargeting picks morphs by it (``stages.retarget.regions``)."""
+    return "".join(ch for ch in name.lower() if ch not in NAME_SEPARATORS)
+
+
 def name_key(name: str) -> str:
-    """A morph name as the mapping compares it: sides spelt ARKit's way, lower case, no separators
-    (``mouthSmile_L``, ``Mouth_Smile_L``, ``mouthSmile.L`` and ``mouthSmileLeft`` are all ``mouthsmileleft``)."""
-    return "".join(ch for ch in arkit_key(name).lower() if ch not in "_-. ")
+    """A morph name as the mapping compares it: ``morph_key`` with the sides spelt ARKit's way (``mouthSmile_L``,
+    ``Mouth_Smile_L``, ``mouthSmile.L`` and ``mouthSmileLeft`` are all ``mouthsmileleft``)."""
+    return morph_key(arkit_key(name))
 
 
 _TABLE_BY_KEY = {name_key(name): dest for name, dest in ARKIT_TABLE.items()}

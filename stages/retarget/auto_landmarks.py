@@ -51,7 +51,6 @@ class Placement:
     """Landmark vertices found on a character, with what they rest on."""
 
     ids: np.ndarray  #: (68,) vertex ids
-    pixels: np.ndarray  #: (68, 2) tracked image points of the second render
     score: float  #: the landmark model's presence score on the render
     pixel_error: np.ndarray  #: (68,) image distance from each tracked point to its vertex, in inter-ocular distances
 
@@ -236,20 +235,19 @@ def place_landmarks(
         for k, candidates in zip(lips, around):
             ids[k] = lip_line_vertex(candidates, pixels[k], surface.xy, drop, upper=k in INNER_UPPER)
     error = np.linalg.norm(surface.xy[ids] - pixels, axis=1) / iod_px
-    return Placement(ids, pixels, score, error)
+    return Placement(ids, score, error)
 
 
-#: names (lower case, letters and digits only) of the morph that opens the jaw, in order of preference
-JAW_OPEN_NAMES = ("jawopen", "jawdrop", "mouthopen")
+#: the morph that opens the jaw, by its usual names in order of preference (compared by ``regions.morph_key``)
+JAW_OPEN_NAMES = ("jawOpen", "jawDrop", "mouthOpen")
 
 
 def jaw_open_target(names: list[str]) -> int | None:
     """Index of the jaw-opening morph among ``names`` (ARKit ``jawOpen``, ``Jaw_Drop``, ``mouthOpen``), or None."""
-    keys = ["".join(ch for ch in name.lower() if ch.isalnum()) for name in names]
-    for wanted in JAW_OPEN_NAMES:
-        if wanted in keys:
-            return keys.index(wanted)
-    return None
+    from stages.retarget.regions import find_morph
+
+    found = (find_morph(names, wanted) for wanted in JAW_OPEN_NAMES)
+    return next((index for index in found if index is not None), None)
 
 
 def track_character_landmarks(mesh) -> tuple[np.ndarray, dict, list[str]]:

@@ -25,6 +25,7 @@ from msflow import Input, Output, Result, Stage, UserError
 from stages.data import DATA
 from stages.formats.gltf import MorphMesh, read_morph_mesh
 from stages.retarget.obj_blendshapes import load_obj_blendshapes
+from stages.tracking.stages import DETECTOR_MODEL, LANDMARK_MODEL
 
 #: the embedded default character (built by ``python -m stages.retarget.ict_facekit build``)
 DEFAULT_CHARACTER = DATA / "characters" / "ict-facekit.glb"
@@ -35,10 +36,7 @@ EXTRAS_LANDMARKS = "landmarkVertexIds"
 EXTRAS_IDENTITY = "identityTargetNames"
 EXTRAS_PIVOT = "headPivot"
 #: the tracker's models, which place the landmarks of a character that has none (in the cache key)
-TRACKER_RESOURCES = {
-    "detector": DATA / "models" / "mediapipe-face" / "face_detection_short_range.tflite",
-    "face_mesh": DATA / "models" / "mediapipe-face" / "face_landmark.tflite",
-}
+TRACKER_RESOURCES = {"detector": DETECTOR_MODEL, "face_mesh": LANDMARK_MODEL}
 
 CHARACTER_OUTPUTS = {
     "neutral": Output.array(

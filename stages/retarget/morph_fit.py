@@ -13,8 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.formats.live_link import morph_key
 from stages.geometry.nnls import solve_box_qp
-from stages.retarget.regions import morph_key, names_matching
+from stages.retarget.regions import names_matching
 
 #: landmarks that fix the similarity between actor and character: eyes (36-47) and nose (27-35) barely move
 #: with expression, unlike the jaw line, brows and lips

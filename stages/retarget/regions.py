@@ -13,6 +13,8 @@ import fnmatch
 
 import numpy as np
 
+from stages.formats.live_link import morph_key
+
 #: iBUG-68 landmark groups
 JAW_LINE = tuple(range(0, 17))
 CHIN = tuple(range(4, 13))
@@ -42,16 +44,6 @@ MORPH_REGION_PATTERNS: tuple[tuple[str, str | None], ...] = (
     ("cheek*", "cheeks"),
     ("nose*", "cheeks"),
 )
-
-
-#: characters that do not change what a morph name means: Jaw_Open, jaw-open, jaw.open and jawOpen are one morph
-NAME_SEPARATORS = frozenset("_-. ")
-
-
-def morph_key(name: str) -> str:
-    """A morph name (or fnmatch pattern) as it is compared: lower case, separators left out (``Mouth_Smile_L`` ->
-    ``mouthsmilel``, as ``mouthSmile_L``)."""
-    return "".join(ch for ch in name.lower() if ch not in NAME_SEPARATORS)
 
 
 def names_matching(names: list[str], patterns: list[str]) -> np.ndarray:
