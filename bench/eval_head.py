@@ -59,7 +59,7 @@ def write_synthetic_takes(folder: Path, phrases: int, seed: int) -> Path:
     of a held-out take must correlate with its real motion, random paths must not."""
     from head_synthetic import pitch_driven, synth_database
 
-    from stages.head.pitch import wav_bytes
+    from stages.head.praat_files import wav_bytes
 
     folder.mkdir(parents=True, exist_ok=True)
     for p in pitch_driven(synth_database(phrases, seed=seed)):

@@ -12,7 +12,8 @@ from msflow.testing import artifact, run_stage
 from stages.formats.bvh import head_bvh
 from stages.geometry.rotations import euler_to_quat, quat_mean
 from stages.head.database import BvhHeadDb, CsvHeadDb, TrackedHeadDb
-from stages.head.pitch import Pitch, wav_bytes
+from stages.head.pitch import Pitch
+from stages.head.praat_files import wav_bytes
 
 
 @pytest.fixture(scope="module")

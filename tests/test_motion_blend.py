@@ -825,7 +825,7 @@ def test_stroke_timing_puts_head_strokes_on_the_test_onsets():
 
 def test_an_audio_file_alone_drives_the_synthesis(phrases, database, tmp_path):
     """A test take with no video (an audio file only): pitch from the file, motion at the database's rate."""
-    from stages.head.pitch import wav_bytes
+    from stages.head.praat_files import wav_bytes
 
     wav = tmp_path / "line.wav"
     wav.write_bytes(wav_bytes(phrases[0].audio, phrases[0].audio_rate))

@@ -18,8 +18,8 @@ from stages.head.pitch import (
     segment_pitch,
     semitones,
     voiced_runs,
-    wav_bytes,
 )
+from stages.head.praat_files import wav_bytes
 
 ROOT = Path(__file__).resolve().parents[1]
 CREMA = ROOT / "data" / "crema-d"

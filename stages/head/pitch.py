@@ -1,8 +1,9 @@
-"""Pitch extraction, cleaning and segmentation of speech (paper Sec. 5.1), with Praat exports for checking.
+"""Pitch extraction, cleaning and segmentation of speech (paper Sec. 5.1), with Praat exports for checking
+(``stages.head.praat_files``).
 
 One code path serves the test take and the motion database: the input is either an artifact carrying audio per
 sequence (a tracking artifact or a headdb artifact: ``audio``, ``audio_bounds``, meta ``labels``, ``audio_rate``,
-``audio_offset``) or labelled audio files. Every time this stage outputs is on the sequence clock: 0 is the first
+``audio_offset``) or labelled audio files (``stages.head.utterances``). Every time this stage outputs is on the sequence clock: 0 is the first
 motion (video) frame, so segments slice the head motion directly.
 
 Segments run from one voiced onset to the next (the last one to the end of the utterance); a segment whose onset
@@ -11,7 +12,6 @@ follows a pause of at least ``breath_pause`` starts a sub-sentence (paper Sec. 5
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass
 from typing import Literal
 
@@ -19,6 +19,8 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from msflow import Input, Output, Result, Stage, UserError
+from stages.head.praat_files import praat_exports
+from stages.head.utterances import Utterance, utterances_from_artifact, utterances_from_files
 
 PHRASE_FEATURES = (
     "speaking_rate",
@@ -182,211 +184,7 @@ def phrase_features(times: np.ndarray, f0: np.ndarray, segments: np.ndarray, ref
     )
 
 
-# ------------------------------------------------------------------------------------------- Praat exports
-
-
-def _num(value) -> str:
-    return repr(float(value))
-
-
-def praat_string(text: str) -> str:
-    """A string literal of Praat's text formats: in double quotes, each double quote inside doubled."""
-    return '"' + str(text).replace('"', '""') + '"'
-
-
-def _interval_tier(name: str, xmax: float, intervals: list[tuple[float, float, str]]) -> list[str]:
-    """Lines of a long-format IntervalTier; gaps between the (sorted, disjoint) intervals become empty ones."""
-    filled: list[tuple[float, float, str]] = []
-    cursor = 0.0
-    for a, b, label in sorted(intervals):
-        a, b = max(a, cursor), min(b, xmax)
-        if b - a <= 1e-9:
-            continue
-        if a - cursor > 1e-9:
-            filled.append((cursor, a, ""))
-        filled.append((a, b, label))
-        cursor = b
-    if xmax - cursor > 1e-9 or not filled:
-        filled.append((cursor, xmax, ""))
-    lines = [
-        '        class = "IntervalTier"',
-        f"        name = {praat_string(name)}",
-        "        xmin = 0",
-        f"        xmax = {_num(xmax)}",
-        f"        intervals: size = {len(filled)}",
-    ]
-    for k, (a, b, label) in enumerate(filled, 1):
-        lines += [
-            f"        intervals [{k}]:",
-            f"            xmin = {_num(a)}",
-            f"            xmax = {_num(b)}",
-            f"            text = {praat_string(label)}",
-        ]
-    return lines
-
-
-def textgrid_text(xmax: float, tiers: list[tuple[str, list[tuple[float, float, str]]]]) -> str:
-    """A Praat TextGrid (long text format) with one IntervalTier per (name, intervals)."""
-    lines = [
-        'File type = "ooTextFile"',
-        'Object class = "TextGrid"',
-        "",
-        "xmin = 0",
-        f"xmax = {_num(xmax)}",
-        "tiers? <exists>",
-        f"size = {len(tiers)}",
-        "item []:",
-    ]
-    for k, (name, intervals) in enumerate(tiers, 1):
-        lines.append(f"    item [{k}]:")
-        lines += _interval_tier(name, xmax, intervals)
-    return "\n".join(lines) + "\n"
-
-
-def pitchtier_text(xmax: float, times: np.ndarray, values: np.ndarray) -> str:
-    """A Praat PitchTier (long text format) with one point per (time, Hz)."""
-    lines = [
-        'File type = "ooTextFile"',
-        'Object class = "PitchTier"',
-        "",
-        "xmin = 0",
-        f"xmax = {_num(xmax)}",
-        f"points: size = {len(times)}",
-    ]
-    for k, (t, v) in enumerate(zip(times, values), 1):
-        lines += [f"points [{k}]:", f"    number = {_num(t)}", f"    value = {_num(v)}"]
-    return "\n".join(lines) + "\n"
-
-
-def wav_bytes(samples: np.ndarray, rate: int) -> bytes:
-    """16-bit PCM mono WAV of float samples in [-1, 1]."""
-    import wave
-
-    pcm = (np.clip(np.asarray(samples, dtype=np.float32), -1, 1) * 32767).astype("<i2")
-    buffer = io.BytesIO()
-    with wave.open(buffer, "wb") as out:
-        out.setnchannels(1)
-        out.setsampwidth(2)
-        out.setframerate(int(rate))
-        out.writeframes(pcm.tobytes())
-    return buffer.getvalue()
-
-
 # ------------------------------------------------------------------------------------------------- the stage
-
-
-@dataclass
-class Utterance:
-    """One sequence's audio and where it sits on the sequence clock."""
-
-    label: str
-    source: str
-    samples: np.ndarray
-    rate: int
-    offset: float  # time of the first audio sample on the sequence clock (first video frame = 0)
-    duration: float  # length of the sequence clock to cover (motion length if known, else audio end)
-    fps: float | None
-    frames: int | None
-    speaker: str | None  # the take's speaker label; None when unlabelled
-    audio_key: tuple  # utterances sharing audio (mirrored database copies) share this key
-    field: str
-
-
-def _per_sequence(value, n: int, default):
-    if value is None:
-        return [default] * n
-    if isinstance(value, (list, tuple)):
-        if len(value) != n:
-            raise UserError(f"metadata list has {len(value)} entries for {n} sequences")
-        return list(value)
-    return [value] * n
-
-
-def utterances_from_artifact(view, field: str = "inputs.source") -> list[Utterance]:
-    """Audio per sequence of a tracking or headdb artifact (same conventions: audio, audio_bounds, meta)."""
-    meta = view.meta
-    if "audio" not in view or "audio_bounds" not in view:
-        raise UserError(
-            "the input artifact carries no audio (track the videos with audio, or give audio files)", field=field
-        )
-    audio = view["audio"]
-    bounds = np.asarray(view["audio_bounds"], dtype=np.int64).reshape(-1, 2)
-    labels = list(meta.get("labels") or [f"sequence{k}" for k in range(len(bounds))])
-    if len(labels) != len(bounds):
-        raise UserError(f"{len(labels)} labels but {len(bounds)} audio ranges", field=field)
-    n = len(labels)
-    rate = int(meta.get("audio_rate") or 16000)
-    sources = _per_sequence(meta.get("sources"), n, None)
-    offsets = _per_sequence(meta.get("audio_offset"), n, 0.0)
-    fps = _per_sequence(meta.get("fps"), n, None)
-    speakers = artifact_speakers(meta, labels)
-    frames = [None] * n
-    if "sequence" in view:
-        counts = np.bincount(np.asarray(view["sequence"], dtype=np.int64), minlength=n)
-        frames = [int(c) for c in counts[:n]]
-    out = []
-    for k, label in enumerate(labels):
-        a, b = bounds[k]
-        samples = np.asarray(audio[a:b], dtype=np.float32)
-        offset = float(offsets[k] or 0.0)
-        audio_end = offset + len(samples) / rate
-        rate_k = float(fps[k]) if fps[k] else None
-        n_frames = frames[k] if frames[k] else None
-        duration = n_frames / rate_k if (rate_k and n_frames) else audio_end
-        out.append(
-            Utterance(
-                str(label),
-                str(sources[k] or label),
-                samples,
-                rate,
-                offset,
-                duration,
-                rate_k,
-                n_frames,
-                speakers[k],
-                (int(a), int(b), offset),
-                f"{field}[{label}]",
-            )
-        )
-    return out
-
-
-def artifact_speakers(meta: dict, labels: list[str]) -> list[str | None]:
-    """Speaker label per sequence: a headdb artifact's ``speakers`` list, else a tracking artifact's ``fields``
-    (label -> {field: value}, the labelled-files contract), else None."""
-    listed = meta.get("speakers")
-    if isinstance(listed, list) and len(listed) == len(labels):
-        return [None if x is None else str(x) for x in listed]
-    fields = meta.get("fields") or {}
-    return [(fields.get(label) or {}).get("speaker") for label in labels]
-
-
-def utterances_from_files(files, rate: int, field: str = "inputs.audio") -> list[Utterance]:
-    """Audio files (WAV, FLAC, MP3 or any container PyAV decodes) as utterances; speakers from the files'
-    ``speaker`` fields."""
-    from stages.formats.audio import decode_audio
-
-    fields = getattr(files, "fields", {})
-
-    out = []
-    for label, path in files.items():
-        decoded = decode_audio(path, rate, field=f"{field}.{label}")
-        out.append(
-            Utterance(
-                label,
-                path.name,
-                decoded.samples,
-                rate,
-                0.0,
-                decoded.duration,
-                None,
-                None,
-                (fields.get(label) or {}).get("speaker"),
-                (str(path),),
-                f"{field}.{label}",
-            )
-        )
-    return out
 
 
 PITCH_OUTPUTS = {
@@ -718,85 +516,3 @@ def _pitch_meta(utterances: list[Utterance], params, seg_counts: list[int]) -> d
         "breath_pause": params.breath_pause,
         "silent": [u.label for u, n in zip(utterances, seg_counts) if n == 0],
     }
-
-
-def praat_exports(utterances: list[Utterance], analyses: list[dict]) -> dict[str, bytes]:
-    """TextGrid, PitchTier and WAV over the distinct utterances' audio laid back to back."""
-    rate = utterances[0].rate
-    chunks, tiers, tier_times, tier_values, base = _lay_out_utterances(utterances, analyses, rate)
-    xmax = max(base, 1e-3)
-    times = np.concatenate(tier_times) if tier_times else np.zeros(0)
-    values = np.concatenate(tier_values) if tier_values else np.zeros(0)
-    inside = (times >= 0) & (times <= xmax)
-    textgrid = textgrid_text(
-        xmax,
-        [
-            ("utterance", tiers["utterance"]),
-            ("segment", _clip_intervals(tiers["segment"], xmax)),
-            ("voiced", _clip_intervals(tiers["voiced"], xmax)),
-            ("subsentence", _clip_intervals(tiers["subsentence"], xmax)),
-        ],
-    )
-    return {
-        "textgrid": textgrid.encode("utf-8"),
-        "pitchtier": pitchtier_text(xmax, times[inside], values[inside]).encode("utf-8"),
-        "sound": wav_bytes(np.concatenate(chunks), rate),
-    }
-
-
-def _lay_out_utterances(utterances: list[Utterance], analyses: list[dict], rate: int) -> tuple:
-    """The distinct utterances' audio back to back at ``rate`` (utterances sharing audio are placed once): the
-    audio chunks, the TextGrid tiers' intervals and the cleaned pitch points (times, Hz), all on the wav's clock,
-    and the total length in seconds."""
-    chunks, tier_times, tier_values = [], [], []
-    tiers: dict[str, list[tuple[float, float, str]]] = {"utterance": [], "segment": [], "voiced": [], "subsentence": []}
-    placed: dict[tuple, float] = {}
-    base = 0.0
-    for utt, analysis in zip(utterances, analyses):
-        if utt.audio_key in placed:
-            continue
-        samples = _samples_at_rate(utt, rate)
-        placed[utt.audio_key] = base
-        length = len(samples) / rate
-        shift = base - utt.offset  # sequence clock -> wav time
-        names = "|".join(u.label for u in utterances if u.audio_key == utt.audio_key)
-        tiers["utterance"].append((base, base + length, names))
-        segment, voiced, subsentence = _segment_intervals(analysis["segmentation"], shift)
-        tiers["segment"] += segment
-        tiers["voiced"] += voiced
-        tiers["subsentence"] += subsentence
-        ok = np.isfinite(analysis["clean"])
-        tier_times.append(analysis["times"][ok] + shift)
-        tier_values.append(analysis["clean"][ok])
-        chunks.append(samples)
-        base += length
-    return chunks, tiers, tier_times, tier_values, base
-
-
-def _samples_at_rate(utt: Utterance, rate: int) -> np.ndarray:
-    """The utterance's audio at ``rate``, linearly interpolated when it was decoded at another rate."""
-    samples = utt.samples
-    if utt.rate != rate:
-        new_n = int(round(len(samples) * rate / utt.rate))
-        samples = np.interp(np.arange(new_n) * utt.rate / rate, np.arange(len(samples)), samples)
-    return samples
-
-
-def _segment_intervals(seg: Segmentation, shift: float) -> tuple[list, list, list]:
-    """One utterance's segment (numbered), voiced ("V") and sub-sentence ("s1", ...) intervals, moved by
-    ``shift`` from the sequence clock to the wav's."""
-    seg_tier, voiced_tier, sub_tier = [], [], []
-    for k, (a, v, b) in enumerate(seg.segments):
-        seg_tier.append((a + shift, b + shift, str(k + 1)))
-        voiced_tier.append((a + shift, v + shift, "V"))
-    starts = seg.segments[seg.subsentence_start, 0] if len(seg.segments) else np.zeros(0)
-    bounds = np.concatenate([starts, [seg.segments[-1, 2]]]) if len(starts) else np.zeros(0)
-    for k in range(len(starts)):
-        sub_tier.append((bounds[k] + shift, bounds[k + 1] + shift, f"s{k + 1}"))
-    return seg_tier, voiced_tier, sub_tier
-
-
-def _clip_intervals(intervals: list[tuple[float, float, str]], xmax: float) -> list[tuple[float, float, str]]:
-    """The intervals cut to [0, xmax], those left empty dropped: on the sequence clock a segment can reach before
-    the first audio sample or past the last."""
-    return [(max(a, 0.0), min(b, xmax), label) for a, b, label in intervals if min(b, xmax) > max(a, 0.0)]
