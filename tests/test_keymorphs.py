@@ -848,3 +848,52 @@ def test_lips_apart_are_not_pressed(character):
     # the 2D fit holds the same keyshape's press
     w2d = fit(space="2d").arrays["keymorph_weights"]
     assert not w2d[1, press].any()
+
+
+def renamed(character, names):
+    """The character with other morph names (its arrays as they are)."""
+    return artifact({n: character[n] for n in character.names}, meta=dict(character.meta, target_names=names))
+
+
+def test_morphs_named_as_no_region_expects_are_placed_by_what_they_move(fitted_3d, character):
+    """A character whose sculptor named its morphs ``shape_00``... (no jaw*, mouth*, ...): each joins the region
+    whose landmarks it moves most, so the face still moves, the jaw drop still apart from the rounded lips (before,
+    no morph was fitted: a face that never moved, exit 0)."""
+    keyshapes, truth, named = fitted_3d
+    names = list(character.meta["target_names"])
+    generic = [f"shape_{m:02d}" for m in range(len(names))]
+    out = run_stage(
+        KeymorphFit, {"contact_sheet": False}, {"keyshapes": keyshapes, "character": renamed(character, generic)}
+    )
+    placed = out.meta["fit"]["regions_by_motion"]
+    assert placed[generic[names.index("jawOpen")]] == placed[generic[names.index("mouthFunnel")]] == "mouth"
+    assert (
+        placed[generic[names.index("eyeBlink_L")]] == "eyes" and placed[generic[names.index("browDown_R")]] == "brows"
+    )
+    assert any("placed by the landmarks they move" in w for w in out.warnings)
+    w, w_named = out.arrays["keymorph_weights"], named.arrays["keymorph_weights"]
+    for name in ("jawOpen", "mouthFunnel", "eyeBlink_L", "browDown_L"):
+        m = names.index(name)
+        np.testing.assert_allclose(w[:, m], w_named[:, m], atol=0.05, err_msg=name)
+    assert out.meta["morph_regions"][generic[names.index("jawOpen")]] == "mouth"
+
+
+def test_one_morph_named_as_expected_leaves_the_naming_to_the_user(fitted_3d, character):
+    keyshapes, _, _ = fitted_3d
+    names = list(character.meta["target_names"])
+    mixed = [n if n == "jawOpen" else f"shape_{m:02d}" for m, n in enumerate(names)]
+    out = run_stage(
+        KeymorphFit, {"contact_sheet": False}, {"keyshapes": keyshapes, "character": renamed(character, mixed)}
+    )
+    assert "regions_by_motion" not in out.meta["fit"]
+    assert out.meta["fit"]["usable_targets"] == ["jawOpen"]
+
+
+def test_a_character_whose_morphs_move_no_landmark_is_a_user_error(fitted_3d, character):
+    keyshapes, _, _ = fitted_3d
+    arrays = {n: character[n] for n in character.names}
+    arrays["deltas"] = np.zeros_like(arrays["deltas"])
+    still = artifact(arrays, meta=dict(character.meta, target_names=[f"s{m}" for m in range(len(arrays["deltas"]))]))
+    with pytest.raises(UserError, match="none of the character's .* morphs moves") as caught:
+        run_stage(KeymorphFit, {"contact_sheet": False}, {"keyshapes": keyshapes, "character": still})
+    assert caught.value.field == "inputs.character"

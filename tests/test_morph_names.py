@@ -38,7 +38,22 @@ def arkit_sides(name):
     return name.replace("_L", "Left").replace("_R", "Right")
 
 
-@pytest.mark.parametrize("spell", [title_snake, blender, arkit_sides])
+def lower_blender(name):
+    """``mouthSmile_L`` -> ``mouthsmile.l``: the side a lower-case letter after a separator."""
+    return blender(name).lower()
+
+
+def spaced(name):
+    """``mouthSmile_L`` -> ``Mouth Smile L``."""
+    return title_snake(name).replace("_", " ")
+
+
+def kebab(name):
+    """``mouthSmile_L`` -> ``mouth-smile-l``."""
+    return title_snake(name).replace("_", "-").lower()
+
+
+@pytest.mark.parametrize("spell", [title_snake, blender, arkit_sides, lower_blender, spaced, kebab])
 def test_other_spellings_are_the_same_morphs(ict_names, spell):
     other = [spell(n) for n in ict_names]
     assert other != ict_names

@@ -194,6 +194,30 @@ def test_character_renderer_shows_the_face_and_its_expressions(ict):
     assert np.abs(turned.astype(int) - neutral.astype(int)).mean() > 5
 
 
+def test_eyes_are_found_by_their_parts_names_too(ict):
+    """ICT FaceKit's own OBJs name the eyeball groups ``M_ScleraLeft`` and ``M_IrisLeft`` (no "eye"): the same eyes
+    as the embedded GLB's ``M_EyeScleraLeft``...; the skin around the eye stays out."""
+    from stages.export.rig import eye_side, find_eyes
+
+    groups = [g["name"] for g in ict.meta["groups"]]
+    as_in_the_objs = [
+        name.replace("M_Eye", "M_") if "Eye" in name and "Occlusion" not in name else name for name in groups
+    ]
+    assert "M_ScleraLeft" in as_in_the_objs
+    ours = find_eyes(ict["neutral"], ict["triangles"], ict["triangle_groups"], groups)
+    theirs = find_eyes(ict["neutral"], ict["triangles"], ict["triangle_groups"], as_in_the_objs)
+    assert [e.side for e in theirs] == [0, 1]
+    for a, b in zip(ours, theirs):
+        assert np.array_equal(a.vertices, b.vertices) and np.allclose(a.center, b.center)
+    assert [eye_side(n) for n in ("M_IrisRight", "Cornea.L", "M_EyeOcclusion", "M_EyeLashes", "iris_lid_L")] == [
+        1,
+        0,
+        None,
+        None,
+        None,
+    ]
+
+
 def test_eyes_turn_about_their_centres(ict):
     """An eye rotation from gaze turns the eyeball: yaw towards the character's left (+x) moves the iris to the
     image's right (the camera faces the character), pitch up moves it up; the rest of the face stays."""

@@ -1,9 +1,10 @@
 """The character's rig for the exported files: a root, a head joint at the head pivot, and an eye joint at the
 centre of each eyeball when the character has eyes; and the eye rotations from gaze angles.
 
-Eyes are found by material group name (``find_eyes``): a group whose name holds "eye" and a side ("left"/"L" or
-"right"/"R") and none of the words of the skin around the eye (lid, lash, brow, socket, occlusion, tear, shadow);
-ICT FaceKit's ``M_EyeScleraLeft``, ``M_EyeIrisLeft``, ``M_EyePupilLeft`` are the left eye. Sides are the
+Eyes are found by material group name (``find_eyes``): a group whose name holds "eye" or a part of the eyeball
+(sclera, iris, pupil, cornea) and a side ("left"/"L" or "right"/"R") and none of the words of the skin around the
+eye (lid, lash, brow, socket, occlusion, tear, shadow); ICT FaceKit's ``M_EyeScleraLeft``, ``M_EyeIrisLeft``,
+``M_EyePupilLeft`` (the embedded GLB) and its OBJs' ``M_ScleraLeft``, ``M_IrisLeft`` are the left eye. Sides are the
 character's own (ARKit ``_L`` = the character's left = +x in glTF axes). The eye's centre is the least-squares
 sphere through its sclera (or eyeball) vertices, else through all of its vertices: on ICT the sclera lies within
 0.7 mm of a sphere of radius 14.4 mm.
@@ -25,6 +26,7 @@ from stages.formats.gltf import HEAD_JOINT, Skeleton
 
 ROOT_JOINT = "Root"
 EYE_JOINTS = ("LeftEye", "RightEye")
+_EYE_PART = re.compile(r"eye|sclera|iris|pupil|cornea", re.IGNORECASE)
 _NOT_EYEBALL = re.compile(r"lid|lash|brow|socket|occlu|tear|shadow|wet|blend", re.IGNORECASE)
 _LEFT = re.compile(r"left|(^|[^a-z])l$|(^|[_.\-\s])l([_.\-\s]|$)", re.IGNORECASE)
 _RIGHT = re.compile(r"right|(^|[^a-z])r$|(^|[_.\-\s])r([_.\-\s]|$)", re.IGNORECASE)
@@ -42,7 +44,7 @@ class Eye:
 
 def eye_side(group_name: str) -> int | None:
     """0 (left), 1 (right) or None for a material group name (see the module docstring)."""
-    if "eye" not in group_name.lower() or _NOT_EYEBALL.search(group_name):
+    if not _EYE_PART.search(group_name) or _NOT_EYEBALL.search(group_name):
         return None
     left, right = bool(_LEFT.search(group_name)), bool(_RIGHT.search(group_name))
     return 0 if left and not right else 1 if right and not left else None

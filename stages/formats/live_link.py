@@ -125,22 +125,35 @@ MIN_FIT_EXPLAINED = 0.5
 #: fitted factors below this are dropped before the refit (small cross-talk terms that mostly cancel)
 MIN_FIT_FACTOR = 0.2
 
-_SIDES = (("_L", "Left"), ("_R", "Right"), (".L", "Left"), (".R", "Right"), ("_l", "Left"), ("_r", "Right"))
+#: characters that do not change what a morph name means: Jaw_Open, jaw-open, jaw.open and jawOpen are one morph
+NAME_SEPARATORS = frozenset("_-. ")
+
+
+_SIDE_WORDS = (("left", "L"), ("right", "R"), ("l", "L"), ("r", "R"))
 _COLUMN_BY_KEY = {name.lower(): name for name in ARKIT_NAMES}
+
+
+def split_side(name: str) -> tuple[str, str]:
+    """(stem, side) of a morph name, side "L", "R" or "": a side word or letter after a separator, in any case
+    (``mouthSmile_L``, ``mouthsmile.l``, ``Mouth Smile Left``), or the words left / right without one
+    (``eyeBlinkLeft``, ``eyeblinkleft``; also ``mouthLeft``, whose mirror is ``mouthRight``)."""
+    stem = name.strip()
+    lower = stem.lower()
+    for word, side in _SIDE_WORDS:
+        cut = len(stem) - len(word)
+        if cut > 1 and lower.endswith(word) and stem[cut - 1] in NAME_SEPARATORS:
+            return stem[: cut - 1], side
+    for word, side in (("left", "L"), ("right", "R")):  # a whole word needs no separator
+        if lower.endswith(word) and len(stem) > len(word):
+            return stem[: -len(word)], side
+    return stem, ""
 
 
 def arkit_key(name: str) -> str:
     """A morph name in Live Link Face spelling: ICT/ARKit ``eyeBlink_L`` or ``eyeBlinkLeft`` -> ``EyeBlinkLeft``."""
-    key = name.strip()
-    for suffix, side in _SIDES:
-        if key.endswith(suffix):
-            key = key[: -len(suffix)] + side
-            break
+    stem, side = split_side(name)
+    key = stem + {"L": "Left", "R": "Right", "": ""}[side]
     return key[:1].upper() + key[1:]
-
-
-#: characters that do not change what a morph name means: Jaw_Open, jaw-open, jaw.open and jawOpen are one morph
-NAME_SEPARATORS = frozenset("_-. ")
 
 
 def morph_key(name: str) -> str:

@@ -25,7 +25,7 @@ from __future__ import annotations
 import textwrap
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
@@ -48,6 +48,7 @@ from stages.retarget.region_fit import (
     fit_regions_3d,
     matching_any_case,
     points_not_in_keyshapes,
+    regions_by_motion,
 )
 
 KEYMORPHS_OUTPUTS = {
@@ -357,7 +358,15 @@ class KeymorphFit(_KeymorphStage):
         keyshapes, character = inputs["keyshapes"], inputs["character"]
         names = list(character.meta["target_names"])
         prepared = self._prepare(params, inputs)
+        params, placed = self._place_unnamed_morphs(params, prepared, names)
         weights, info = self._fit(params, prepared, names)
+        if not info.get("usable_targets") and not weights.any():
+            raise UserError(
+                f"none of the character's {len(names)} morphs moves the face's landmarks in a fit region: the face "
+                "would never move (check the character's landmark vertices, or name its morphs in "
+                "keymorphs.regions[].morphs)",
+                field="inputs.character",
+            )
         weights = rounded_weights(weights, params.decimals)
         errors = prepared.errors(weights)
         header = (
@@ -391,7 +400,29 @@ class KeymorphFit(_KeymorphStage):
             or morph_decomposition_regions(names, list(params.regions), list(params.exclude)),
         }
         metrics = {"fit_kkt_max": info["kkt_max"], "contact_held_keyshapes": float(info["lips_apart"])}
-        return self._common(params, inputs, prepared, weights, yaml_text, metrics, meta)
+        if placed:
+            meta["fit"]["regions_by_motion"] = placed
+        result = self._common(params, inputs, prepared, weights, yaml_text, metrics, meta)
+        if placed:
+            counts = ", ".join(f"{r} {list(placed.values()).count(r)}" for r in dict.fromkeys(placed.values()))
+            result.warnings.append(
+                f"no morph of the character is named as the fit regions expect (jaw*, mouth*, eyeBlink*, brow*, "
+                f"...): {len(placed)} of its {len(names)} morphs placed by the landmarks they move ({counts}; "
+                "meta fit.regions_by_motion); name them in keymorphs.regions[].morphs to choose, and map them to "
+                "ARKit columns with export.arkit_aliases"
+            )
+        return result
+
+    @staticmethod
+    def _place_unnamed_morphs(params, prepared: Prepared, names: list[str]) -> tuple[Any, dict[str, str]]:
+        """``params`` with the regions grown by ``region_fit.regions_by_motion`` (3D fit only), and the placed."""
+        if prepared.space != "3d":
+            return params, {}
+        excluded = matching_any_case(names, list(params.exclude))
+        regions, placed = regions_by_motion(
+            list(params.regions), names, prepared.rig3d.deltas, excluded, prepared.rig3d.iod
+        )
+        return (params.model_copy(update={"regions": regions}) if placed else params), placed
 
     @staticmethod
     def _fit(params, prepared: Prepared, names: list[str]) -> tuple[np.ndarray, dict]:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stages.formats.live_link import morph_key
+from stages.formats.live_link import morph_key, split_side
 from stages.geometry.nnls import solve_box_qp
 from stages.retarget.regions import names_matching
 
@@ -76,28 +76,6 @@ def symmetric_pairs(names: list[str]) -> list[tuple[int, int]]:
     for i, name in enumerate(names):
         index.setdefault(split_side(name), i)
     return [(i, index[(stem, "R")]) for (stem, side), i in index.items() if side == "L" and (stem, "R") in index]
-
-
-_SIDES = (
-    ("_L", "L"),
-    ("_R", "R"),
-    ("_l", "L"),
-    ("_r", "R"),
-    ("Left", "L"),
-    ("Right", "R"),
-    ("_left", "L"),
-    ("_right", "R"),
-    (".L", "L"),
-    (".R", "R"),
-)
-
-
-def split_side(name: str) -> tuple[str, str]:
-    """(stem, side) of a morph target name: "mouthSmile_L" -> ("mouthSmile", "L"), "jawOpen" -> ("jawOpen", "")."""
-    for suffix, side in _SIDES:
-        if name.endswith(suffix) and len(name) > len(suffix):
-            return name[: -len(suffix)], side
-    return name, ""
 
 
 def antagonist_pairs(names: list[str], stems: list[tuple[str, str]]) -> list[tuple[int, int]]:

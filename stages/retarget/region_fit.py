@@ -79,6 +79,53 @@ def matching_any_case(names: list[str], patterns: list[str]) -> np.ndarray:
     return names_matching(names, patterns)
 
 
+#: a morph that moves no region's landmarks by this share of the eye distance (at full weight) moves none
+MIN_REGION_MOTION_IOD = 0.005
+
+
+def _literal_pattern(name: str) -> str:
+    """An fnmatch pattern that matches ``name`` only (its wildcard characters in brackets)."""
+    return "".join(f"[{ch}]" if ch in "*?[" else ch for ch in name)
+
+
+def regions_by_motion(
+    regions: list[FitRegion], names: list[str], deltas: np.ndarray, excluded: np.ndarray, iod: float
+) -> tuple[list[FitRegion], dict[str, str]]:
+    """The regions with the morphs of a character whose names match none of their patterns (``shape_07``, a
+    sculptor's own names): each morph joins the region whose landmarks it moves most (RMS over the region's
+    points, ``deltas`` (M, P, 3) at full weight), if at least ``MIN_REGION_MOTION_IOD`` of ``iod``. A character
+    with one morph named as the patterns expect keeps the regions as given: its names are the user's to map.
+
+    Returns the regions and {morph: region name} of the morphs placed (empty when none was)."""
+    named = np.zeros(len(names), dtype=bool)
+    for region in regions:
+        named |= matching_any_case(names, region.morphs)
+    if (named & ~excluded).any():
+        return list(regions), {}
+    points = deltas.shape[1]
+    motion = np.stack(
+        [
+            np.sqrt((deltas[:, [i for i in region.landmarks if i < points]] ** 2).sum(-1).mean(-1))
+            if any(i < points for i in region.landmarks)
+            else np.zeros(len(names))
+            for region in regions
+        ],
+        axis=1,
+    )  # (M, regions)
+    placed = {
+        names[m]: regions[int(np.argmax(motion[m]))].name
+        for m in range(len(names))
+        if not excluded[m] and motion[m].max() >= MIN_REGION_MOTION_IOD * iod
+    }
+    grown = [
+        region.model_copy(
+            update={"morphs": [*region.morphs, *(_literal_pattern(n) for n, r in placed.items() if r == region.name)]}
+        )
+        for region in regions
+    ]
+    return grown, placed
+
+
 @dataclass
 class Rig3D:
     """The character's 68 landmark vertices in 3D (its own units and axes) and their morph deltas."""
