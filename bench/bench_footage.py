@@ -128,7 +128,7 @@ def main() -> None:
             fps = run.meta["fps"][labels.index(label)]
             clock = frame_clock(run.arrays["time"][r], fps)
             off = np.abs(run.arrays["time"][r] - run.arrays["time"][r][0] - np.arange(len(r)) / fps).max() * 1000
-            rate = "-" if clock is None else f"{nominal_rate(clock):g}"
+            rate = "-" if clock is None else f"{nominal_rate(clock, label):g}"
             also = f"average {fps:.2f} fps, rows up to {off:.0f} ms off their times; exported at {rate} fps by time"
         else:
             shown = valid[r]

@@ -570,6 +570,7 @@ def _file_form(ref: dict[str, Any], base: Path, root: Path, file: str, stage: st
     spec = ref.get("path", ref.get("glob"))
     if not isinstance(spec, str) or not spec:
         raise UserError("the path must be a non-empty string", file=file, stage=stage, field=where)
+    spec = os.path.expanduser(spec)  # as ``_existing_file`` does
     if "glob" in ref or GLOB_CHARS & set(spec):
         matches = sorted(globlib.glob(str(base / spec), recursive=True))
         matches = [_utf8_path(m, file, stage, where) for m in matches if Path(m).is_file() or Path(m).is_dir()]
@@ -731,6 +732,7 @@ def _utf8_path(path: str, file: str, stage: str, where: str) -> str:
 
 
 def _existing_file(base: Path, value: str, file: str, stage: str, where: str) -> str:
+    value = os.path.expanduser(value)  # ~/clip.mp4: no shell expands it after "-S vars.take=" or in YAML
     _utf8_path(value, file, stage, where)
     target = (base / value).resolve()
     if not target.exists():
@@ -747,11 +749,18 @@ def _relative_hint(base: Path, value: str, found_from_cwd: bool) -> str:
     slip on the command line (``-S vars.take=clip.mp4`` beside a pipeline in a subfolder)."""
     if Path(value).is_absolute():
         return ""
-    folder = os.path.relpath(base)  # "." when the pipeline sits in the working directory
+    folder = _near_path(base.absolute(), Path.cwd())  # "." when the pipeline sits in the working directory
     hint = f" (paths are relative to the pipeline file's folder, {folder}"
     if found_from_cwd and folder != ".":
-        hint += f"; from there it is '{os.path.relpath(Path(value).resolve(), base.resolve())}'"
+        hint += f"; from there it is '{_near_path(Path(value).resolve(), base.resolve())}'"
     return hint + ")"
+
+
+def _near_path(path: Path, start: Path) -> str:
+    """``path`` relative to ``start`` when inside it or one folder up (``../data/clip.mp4``), else absolute: a
+    climb of several '..' is hard to read and easy to get wrong."""
+    relative = os.path.relpath(path, start)
+    return str(path) if Path(relative).parts.count("..") > 1 else relative
 
 
 def check_cycles(nodes: dict[str, StageNode], file: str) -> None:

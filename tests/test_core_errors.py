@@ -291,6 +291,31 @@ def test_a_path_written_from_the_working_directory_gets_the_path_to_write(numpro
     assert not list(numproject.rglob(".msflow"))  # nothing written
 
 
+def test_a_path_far_from_the_pipeline_is_suggested_absolute(numproject):
+    """From a pipeline two folders down, the file the user named is '../../data/table.csv': the hint gives its
+    absolute path instead of a climb of '..' (one '..' up is still shown relative, as above)."""
+    (numproject / "sub" / "deep").mkdir(parents=True)
+    (numproject / "sub" / "deep" / "p.yaml").write_text(
+        "version: 1\nstages:\n  csv:\n    uses: numstages.basic:LoadCsv\n    inputs: {table: {path: data/table.csv}}\n"
+    )
+    result = run_cli(numproject, "run", "sub/deep/p.yaml")
+    assert result.returncode == 2 and "../.." not in result.stderr, result.stderr
+    assert f"from there it is '{(numproject / 'data' / 'table.csv').resolve()}'" in result.stderr, result.stderr
+
+
+def test_a_leading_tilde_in_a_data_path_is_the_home_folder(numproject):
+    """``-S vars.x=~/file``: no shell expands '~' after '=', so msflow does (a folder named '~' is no one's intent);
+    a missing file's error shows the path it looked at."""
+    (numproject / "p.yaml").write_text(
+        "version: 1\nvars: {table: data/table.csv}\nstages:\n  csv:\n    uses: numstages.basic:LoadCsv\n"
+        "    inputs: {table: {path: '${table}'}}\n"
+    )
+    home = {"HOME": str(numproject / "data")}
+    assert run_cli(numproject, "run", "p.yaml", "-S", "vars.table=~/table.csv", env=home).returncode == 0
+    result = run_cli(numproject, "run", "p.yaml", "-S", "vars.table=~/gone.csv", env=home)
+    assert result.returncode == 2 and f"data file not found: {numproject / 'data' / 'gone.csv'}" in result.stderr
+
+
 def test_stage_user_error_exits_2_and_keeps_earlier_results(numproject):
     assert run_cli(numproject, "run", "-q").returncode == 0
     before = sorted(p.name for p in (numproject / ".msflow" / "artifacts").glob("*/*"))

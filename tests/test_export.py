@@ -13,7 +13,7 @@ from conftest import run_cli
 from msflow import UserError
 from msflow.testing import artifact, prepare_inputs, run_stage
 from stages.export.animation import Export
-from stages.export.timeline import align_head_motion
+from stages.export.timeline import align_head_motion, nominal_rate
 from stages.formats.audio import decode_audio
 from stages.formats.gltf import read_morph_mesh, validate_glb
 from stages.formats.live_link import (
@@ -689,6 +689,28 @@ def test_export_without_head_or_audio(character, node_modules):
     assert report["numErrors"] == 0 and report["numWarnings"] == 0, report["messages"]
     rows = list(csv.reader(io.StringIO(out.arrays["live_link"].tobytes().decode())))
     assert all(float(x) == 0.0 for r in rows[1:] for x in r[54:])
+
+
+def test_a_take_whose_frame_times_do_not_increase_is_refused_naming_the_input(character):
+    """A tracking whose frames all sit at 0 s (a video re-encoded without timestamps, tracked before such files were
+    re-timed) gives no frame rate: a UserError naming the input, not a ZeroDivisionError in the timeline."""
+    frames = 8
+    blend = artifact({"weights": np.zeros((frames, len(DRIVEN)))}, {"target_names": DRIVEN, "fps": 25.0})
+    tracking = artifact(
+        {
+            "rotation": np.tile([1.0, 0.0, 0.0, 0.0], (frames, 1)),
+            "translation": np.zeros((frames, 3)),
+            "time": np.zeros(frames),
+            "sequence": np.zeros(frames, np.int32),
+        },
+        {"labels": ["take"], "fps": [25.0], "translation_units": "cm"},
+    )
+    inputs = {"character": character.view(), "blend": blend, "head": tracking}
+    with pytest.raises(UserError, match="frame times do not increase") as caught:
+        run_stage(Export, {"preview": False}, inputs)
+    assert caught.value.field == "inputs.head"
+    with pytest.raises(UserError, match="frame times do not increase"):
+        nominal_rate(np.zeros(frames), "inputs.audio")
 
 
 def test_export_errors(character):

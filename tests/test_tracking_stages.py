@@ -302,6 +302,11 @@ def test_truncated_and_unreadable_videos_name_the_file(tmp_path):
     with pytest.raises(UserError, match="cannot open video") as err:
         run_stage(FaceMesh, {}, {"videos": {"j": junk}})
     assert err.value.file == str(junk)
+    text = tmp_path / "notes.mp4"  # a text file given a video's name: FFmpeg's reason, not its errno number
+    text.write_text("not a video\n" * 100)
+    with pytest.raises(UserError, match=r"could not be read as a video \(Invalid data found") as err:
+        run_stage(FaceMesh, {}, {"videos": {"t": text}})
+    assert "Errno" not in str(err.value) and err.value.file == str(text)
     with pytest.raises(UserError, match="not found"):
         run_stage(FaceMesh, {}, {"videos": {"x": tmp_path / "missing.mp4"}})
 

@@ -6,11 +6,14 @@ import json
 import subprocess
 import sys
 import time
+from fractions import Fraction
+from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from conftest import cli_env, run_cli
-from tracking_media import CLIPS, first_frames, write_video
+from tracking_media import CLIPS, first_frames, write_untimed_video, write_video
 
 from msflow import UserError
 from msflow.testing import run_stage
@@ -19,6 +22,7 @@ from stages.tracking.gaps import FILLED, HELD, TRACKED, apply_plan, fill_gaps, g
 from stages.tracking.planes import RegionConverter, frame_planes
 from stages.tracking.pose import PoseSolver, camera_matrix, solve_head_pose
 from stages.tracking.stream import FrameRecord, GapFiller
+from stages.tracking.video import FrameClock
 
 # ------------------------------------------------------------------------------------- gaps
 
@@ -145,6 +149,38 @@ def test_variable_frame_rate_keeps_the_timestamps(tmp_path):
     out = run_stage(FaceMesh, {"audio": "none"}, {"videos": {"v": vfr}})
     np.testing.assert_allclose(out.arrays["time"], times, atol=1e-3)
     assert out.arrays["valid"].all()
+
+
+def test_frames_without_usable_timestamps_are_timed_by_the_rate_with_a_warning(tmp_path):
+    """Every frame at timestamp 0: the frames are timed at the declared 25 fps (not FFmpeg's average, 8 frames over
+    one frame's duration: 200 fps), the take's rate is 25 fps and a warning names the file. Before: all times 0,
+    which the export divided by."""
+    untimed = write_untimed_video(tmp_path / "untimed.mp4", first_frames(CLIPS["NEU"], 8), fps=25)
+    with pytest.warns(UserWarning, match="untimed.mp4: 7 of 8 frames .* timed at the stream's 25 fps"):
+        out = run_stage(FaceMesh, {"audio": "none"}, {"videos": {"u": untimed}})
+    np.testing.assert_allclose(out.arrays["time"], np.arange(8) / 25.0, atol=1e-9)
+    assert out.meta["fps"] == [25.0] and any("untimed.mp4" in w for w in out.warnings)
+
+
+def test_unusable_timestamps_and_no_frame_rate_are_a_user_error():
+    """Nothing to time a frame by: a UserError naming the file and field, not times that stand still."""
+    clock = FrameClock(Path("still.mp4"), "inputs.videos.s", fps=0.0)
+    frame = SimpleNamespace(pts=0, time_base=Fraction(1, 12800))
+    assert clock.time(frame) == 0.0
+    with pytest.raises(UserError, match="no frame rate") as err:
+        clock.time(frame)
+    assert err.value.file == "still.mp4" and err.value.field == "inputs.videos.s"
+
+
+def test_increasing_timestamps_are_kept_without_a_warning():
+    """Uneven but increasing timestamps (dropped frames) are the frames' times; only a repeated or missing one
+    is re-timed, one frame after the previous frame."""
+    clock = FrameClock(Path("vfr.mp4"), None, fps=30.0)
+    stamps = [3000, 3033, 3100, 3100, None, 3200]  # ms: a dropped frame, a repeated and a missing timestamp
+    times = [clock.time(SimpleNamespace(pts=s, time_base=Fraction(1, 1000))) for s in stamps]
+    np.testing.assert_allclose(times, [0.0, 0.033, 0.1, 0.1 + 1 / 30, 0.1 + 2 / 30, 0.2])
+    with pytest.warns(UserWarning, match="vfr.mp4: 2 of 6 frames"):
+        clock.warn(6)
 
 
 @pytest.fixture(scope="module")

@@ -60,6 +60,25 @@ def write_video(path, frames, fps=30, audio=None, rate=16000, times=None, displa
     return path
 
 
+def write_untimed_video(path, frames, fps=25):
+    """BGR frames as H.264 whose every frame has timestamp 0 (a file re-encoded without timestamps; FFmpeg's
+    average rate is then frames over one frame's duration, the declared rate still ``fps``)."""
+    import av
+
+    with av.open(str(path), "w") as out:
+        video = out.add_stream("libx264", rate=fps)
+        video.height, video.width = frames[0].shape[:2]
+        video.pix_fmt = "yuv420p"
+        for frame in frames:
+            picture = av.VideoFrame.from_ndarray(frame, format="bgr24")
+            picture.pts = 0
+            for packet in video.encode(picture):
+                out.mux(packet)
+        for packet in video.encode():
+            out.mux(packet)
+    return path
+
+
 def write_audio(path, samples, rate=48000):
     """A mono audio file in the codec its suffix names (.wav, .flac, .mp3)."""
     import av

@@ -25,6 +25,7 @@ from pydantic import Field, field_validator
 from msflow import Input, Output, Result, Stage, UserError
 from stages.export.timeline import (
     align_head_motion,
+    check_clock,
     clock_frames,
     clock_positions,
     frame_clock,
@@ -127,17 +128,18 @@ def head_motion(head, params, label: str | None, frames: int, fps: float, out_fp
     """Head rotation and translation (metres, as exported) on the output timeline (``frames_out`` at ``out_fps``),
     and what was done. A tracked head of a variable-frame-rate take is sampled by its frame times."""
     head_fps = head.meta.get("fps")
-    if not head_fps:
-        raise UserError("the head motion has no meta fps", field="inputs.head")
     (rotation, translation, times), head_label = select_take(
         head, ("rotation", "translation", "time"), params.sequence, label, "the head motion"
     )
-    if isinstance(head_fps, (list, tuple)):  # a tracking artifact as the head motion: one rate per take
+    if isinstance(head_fps, (list, tuple)) and head_fps:  # a tracking artifact as the head motion: one rate per take
         labels = list(head.meta.get("labels") or [])
         head_fps = head_fps[labels.index(head_label)] if head_label in labels else head_fps[0]
+    if not isinstance(head_fps, (int, float)) or head_fps <= 0:  # its rows' times and lengths divide by it
+        raise UserError(f"the head motion has no usable meta fps (got {head_fps!r})", field="inputs.head")
     rotation, translation = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
     rotation, translation, eased = ease_held_head(head, head_label, rotation, translation, head_fps, params)
     clock = frame_clock(times, float(head_fps))  # a tracked head's frame times
+    check_clock(clock, "inputs.head")
     if clock is None:
         rotation, translation, info = align_head_motion(
             rotation,
@@ -185,8 +187,10 @@ def read_performance(params, inputs, names: list[str]) -> Performance:
     clipped = float(np.mean((blend_weights < -1e-6) | (blend_weights > 1 + 1e-6)))  # of the blend's entries
     # a variable-frame-rate take (its tracking's frame times) is put on the output timeline by those times, at
     # the rate it was shot at unless params.fps says otherwise (its average rate is no camera's)
-    clock = next((c for c in (take_clock(inputs[n], label, len(weights), fps) for n in CLOCKS) if c is not None), None)
-    out_fps = float(params.fps or (fps if clock is None else nominal_rate(clock)))
+    clocks = ((n, take_clock(inputs[n], label, len(weights), fps)) for n in CLOCKS)
+    source, clock = next(((n, c) for n, c in clocks if c is not None), ("", None))
+    check_clock(clock, f"inputs.{source}")
+    out_fps = float(params.fps or (fps if clock is None else nominal_rate(clock, f"inputs.{source}")))
     frames_out = clock_frames(clock, len(weights), fps, out_fps)
     position = clock_positions(clock, len(weights), fps, frames_out, out_fps)
     perf = Performance(

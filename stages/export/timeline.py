@@ -62,10 +62,25 @@ def frame_clock(times: np.ndarray | None, fps: float) -> np.ndarray | None:
 STANDARD_RATES = (23.976, 24.0, 25.0, 29.97, 30.0, 48.0, 50.0, 59.94, 60.0)
 
 
-def nominal_rate(clock: np.ndarray) -> float:
+def check_clock(clock: np.ndarray | None, field: str) -> None:
+    """Refuse frame times that do not increase from frame to frame: they give no rate to export at and no order
+    to sample the rows by (a video re-encoded without timestamps, tracked before such files were re-timed)."""
+    if clock is not None and not bool(np.all(np.diff(clock) > 0)):
+        repeated = int(np.count_nonzero(np.diff(clock) <= 0))
+        raise UserError(
+            f"the take's frame times do not increase ({repeated} of {len(clock)} frames at or before the previous "
+            f"frame's time; the video's timestamps are unusable): track the take again, which times such frames "
+            f"by the video's frame rate",
+            field=field,
+        )
+
+
+def nominal_rate(clock: np.ndarray, field: str) -> float:
     """The frame rate a variable-frame-rate take was shot at: the mean of its frame intervals up to 1.5 times the
     median (a dropped frame's longer interval left out; millisecond timestamps alternate 33 and 34 ms at 30 fps),
-    snapped to a standard rate within 0.5%."""
+    snapped to a standard rate within 0.5%. UserError naming ``field`` (the input the clock came from) when the
+    times do not increase (``check_clock``)."""
+    check_clock(clock, field)
     steps = np.diff(clock)
     rate = 1.0 / float(steps[steps <= 1.5 * np.median(steps)].mean())
     nearest = min(STANDARD_RATES, key=lambda r: abs(r - rate))
@@ -343,5 +358,6 @@ def performer_rows(
     else:
         rows = np.arange(len(view.lazy("crops")))
     clock = frame_clock(np.asarray(view["time"])[rows], fps) if "time" in view else None
+    check_clock(clock, "inputs.performer")
     position = clock_positions(clock, len(rows), fps, frames_out, out_fps)
     return rows[np.floor(position + 1e-9).astype(int)], label

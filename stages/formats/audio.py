@@ -53,6 +53,13 @@ class AudioInfo:
     codec: str
 
 
+def media_error_reason(exc: BaseException) -> str:
+    """FFmpeg's (or the OS's) reason a media file failed, for a message: "Invalid data found when processing
+    input", without the errno number and file name ``str(exc)`` wraps it in (the message names the file)."""
+    reason = getattr(exc, "strerror", None)
+    return str(reason) if reason else str(exc)
+
+
 def _open(path: Path, field: str | None):
     import av
 
@@ -61,7 +68,7 @@ def _open(path: Path, field: str | None):
     try:
         container = av.open(str(path))
     except (av.error.FFmpegError, OSError, ValueError) as exc:
-        raise UserError(f"cannot open media file ({exc})", file=str(path), field=field) from None
+        raise UserError(f"cannot open media file ({media_error_reason(exc)})", file=str(path), field=field) from None
     if not container.streams.audio:
         container.close()
         raise UserError(
@@ -118,7 +125,9 @@ def _decode_resampled(container, stream, rate: int, stop: float | None, path: Pa
         for out in resampler.resample(None):
             chunks.append(out.to_ndarray().reshape(-1))
     except av.error.FFmpegError as exc:
-        raise UserError(f"audio stream is unreadable or truncated ({exc})", file=str(path), field=field) from None
+        raise UserError(
+            f"audio stream is unreadable or truncated ({media_error_reason(exc)})", file=str(path), field=field
+        ) from None
     return chunks, first
 
 
