@@ -5,14 +5,10 @@ files Praat opens)."""
 from __future__ import annotations
 
 import io
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from stages.head.utterances import Utterance
-
-if TYPE_CHECKING:
-    from stages.head.pitch import Segmentation
 
 
 def _num(value) -> str:
@@ -164,9 +160,10 @@ def _samples_at_rate(utt: Utterance, rate: int) -> np.ndarray:
     return samples
 
 
-def _segment_intervals(seg: Segmentation, shift: float) -> tuple[list, list, list]:
+def _segment_intervals(seg, shift: float) -> tuple[list, list, list]:
     """One utterance's segment (numbered), voiced ("V") and sub-sentence ("s1", ...) intervals, moved by
-    ``shift`` from the sequence clock to the wav's."""
+    ``shift`` from the sequence clock to the wav's; ``seg`` is a ``stages.head.pitch.Segmentation`` (not imported:
+    the pitch stage imports this module)."""
     seg_tier, voiced_tier, sub_tier = [], [], []
     for k, (a, v, b) in enumerate(seg.segments):
         seg_tier.append((a + shift, b + shift, str(k + 1)))
