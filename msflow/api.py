@@ -22,6 +22,7 @@ if TYPE_CHECKING:
 
     from msflow.artifact import ArtifactView
     from msflow.executors import LazyExecutor
+    from msflow.publishers import Publication
     from msflow.shipping import CodeTree
 
 
@@ -32,6 +33,10 @@ class RunResult:
     session: Session
     states: dict[str, StageState]
     record: dict[str, Any]
+    #: the files the pipeline's ``publish:`` entries hold after the run (absolute paths; written by it or already
+    #: up to date), and the warnings publishing gave (a file another pipeline or entry had published, replaced)
+    published: list[str] = field(default_factory=list)
+    publish_warnings: list[str] = field(default_factory=list)
 
     def __repr__(self) -> str:
         counts = ", ".join(f"{v} {k}" for k, v in self.record.get("counts", {}).items() if v)
@@ -284,16 +289,16 @@ def run(
     )
     (execution,) = run_sessions([session], **options)
     try:
-        finish_run(execution)
+        publication = finish_run(execution)
     except CorruptArtifact as exc:  # an artifact to publish failed its integrity check: recompute, publish again
         where = session.store.quarantine(exc.key or "", f"publishing: {exc.problem}")
         repair = {"stage": exc.stage or "", "key": exc.key or "", "problem": exc.problem, "moved_to": where}
         (execution,) = run_sessions([session], **options)
         execution.record.setdefault("repairs", []).insert(0, repair)
-        finish_run(execution)
+        publication = finish_run(execution)
     if not until and not force and publish_dir is None and not execution.record.get("repairs"):
-        save_fast_state(execution)  # what the next no-op `msflow run` (same file and overrides) answers from
-    result = RunResult(session, execution.states, execution.record)
+        save_fast_state(execution, publication.files)  # what the next no-op `msflow run` answers from
+    result = RunResult(session, execution.states, execution.record, publication.files, publication.warnings)
     if raise_on_failure:
         raise_for_failures(execution.states, str(session.pipeline.path))
     return result
@@ -307,20 +312,23 @@ def report_gc_wait(holder: dict[str, Any]) -> None:
     print(f"msflow: msflow gc{who} is cleaning the store; waiting for it to finish", file=sys.stderr, flush=True)
 
 
-def finish_run(execution: Execution) -> None:
+def finish_run(execution: Execution) -> Publication:
     """What a plain run does after its stages settle: update pipeline.lock and publish."""
+    from msflow.publishers import Publication
     from msflow.records import update_lock
 
     session = execution.session
     update_lock(session.pipeline, session.plans, execution.states)
-    if session.pipeline.publish:
-        from msflow.exporting import publish_outputs
+    if not session.pipeline.publish:
+        return Publication()
+    from msflow.exporting import publish_outputs
 
-        publish_outputs(session, execution.states)
-        session.save_memo()
+    publication = publish_outputs(session, execution.states)
+    session.save_memo()
+    return publication
 
 
-def save_fast_state(execution: Execution) -> None:
+def save_fast_state(execution: Execution, published: list[str]) -> None:
     """After a run where every stage is done on a local store, save what a no-op answer depends on (see
     msflow.fastpath): signatures of the pipeline, lock, code, data, artifacts and published files."""
     from msflow.fastpath import save_state, signature
@@ -366,6 +374,7 @@ def save_fast_state(execution: Execution) -> None:
         str(store.root / "runs"),
         pipeline.rel_path,
         summary_lines(list(pipeline.summary), execution.record["stages"]),
+        published,
     )
 
 

@@ -89,7 +89,9 @@ def run(
         _warn(
             f"{repair['stage']}: its artifact {repair['key'][:12]} was corrupt ({repair['problem']}){where}; recomputed"
         )
-    _echo_summary(result.session.pipeline.summary, result.record["stages"])
+    for warning in result.publish_warnings:
+        _warn(warning)
+    _echo_summary(result.session.pipeline.summary, result.record["stages"], result.published)
     for name, state in result.states.items():
         if state.state is StageStatus.FAILED and not state.user_error and state.traceback:
             echo(f"\n--- stage '{name}' failed; traceback (also in the run record):", err=True)
@@ -113,14 +115,16 @@ def _echo_warnings(warnings: dict[str, list[str]], states: dict[str, str]) -> No
             _warn(f"{stage}{origin}: {message}")
 
 
-def _echo_summary(patterns: tuple[str, ...], stages: dict[str, dict[str, object]]) -> None:
-    """The pipeline's ``summary:`` metrics on stdout (the run's result; progress and warnings go to stderr)."""
-    from msflow.summary import summary_lines
+def _echo_summary(patterns: tuple[str, ...], stages: dict[str, dict[str, object]], published: list[str]) -> None:
+    """The files published and the pipeline's ``summary:`` metrics on stdout (the run's result; progress and
+    warnings go to stderr)."""
+    from msflow.summary import published_line, summary_lines
 
     lines, problems = summary_lines(list(patterns), stages)
     for problem in problems:
         _warn(problem)
-    for line in lines:
+    files = published_line(published)
+    for line in ([files] if files else []) + lines:
         echo(line)
 
 

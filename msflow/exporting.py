@@ -15,6 +15,7 @@ from msflow.sinks import iter_blocks
 
 if TYPE_CHECKING:
     from msflow.artifact import ArtifactView
+    from msflow.publishers import Publication
     from msflow.runner import StageState
     from msflow.session import Session
 
@@ -99,34 +100,67 @@ def _nan_to_none(value: Any) -> Any:
     return value
 
 
-def publish_outputs(session: Session, states: dict[str, StageState]) -> list[str]:
-    """Materialise the pipeline's ``publish:`` entries; skip files already holding the same output content."""
+def publish_outputs(session: Session, states: dict[str, StageState]) -> Publication:
+    """Materialise the pipeline's ``publish:`` entries; skip files already holding the same output content;
+    remember who published each file (msflow.publishers) and warn when that replaces another's."""
     from msflow.hashing import stat_signature
+    from msflow.publishers import Publication, PublisherLedger
 
     published = session.memo.setdefault("published", {})
-    written: list[str] = []
-    for ref, dest in session.pipeline.publish.items():
-        stage, _, output = ref.partition(".")
-        state = states.get(stage)
-        if state is None or not state.state.done:
-            continue
-        digest = (state.manifest or {}).get("outputs", {}).get(output, {}).get("hash")
-        if digest is None:
-            raise UserError(
-                f"stage '{stage}' has no output '{output}'", file=str(session.pipeline.path), field=f"publish.{ref}"
-            )
-        previous = published.get(dest)
-        if previous and previous[0] == digest and os.path.exists(dest) and previous[1] == stat_signature(Path(dest)):
-            continue
-        assert state.key is not None
-        try:
-            export_output(session.store.open(state.key), output, Path(dest), field=f"publish.{ref}")
-        except CorruptArtifact as exc:
-            raise exc.located(stage=stage) from None
-        except UserError as exc:
-            raise UserError(
-                f"{display_path(dest)}: {exc.message}", file=str(session.pipeline.path), field=f"publish.{ref}"
-            ) from None
-        published[dest] = [digest, stat_signature(Path(dest))]
-        written.append(dest)
-    return written
+    ledger = PublisherLedger(session)
+    done = Publication()
+    try:
+        for ref, dest in session.pipeline.publish.items():
+            stage = ref.partition(".")[0]
+            state = states.get(stage)
+            if state is None or not state.state.done:
+                continue
+            digest = _output_digest(session, state, ref)
+            done.files.append(dest)
+            if _holds(published.get(dest), digest, dest):  # what this run would write: nothing replaced
+                ledger.claim(dest, ref, replaced=False)
+                continue
+            replaced = os.path.exists(dest)
+            _publish_one(session, state, ref, Path(dest))
+            published[dest] = [digest, stat_signature(Path(dest))]
+            warning = ledger.claim(dest, ref, replaced)
+            if warning:
+                done.warnings.append(warning)
+    finally:  # the files written before a failure were published all the same
+        ledger.save()
+    return done
+
+
+def _holds(previous: list[str] | None, digest: str, dest: str) -> bool:
+    """Whether ``dest`` still holds the output of content hash ``digest``, as published before (``previous``:
+    the hash and the file's stat signature then, from the memo)."""
+    from msflow.hashing import stat_signature
+
+    if not previous or previous[0] != digest or not os.path.exists(dest):
+        return False
+    return bool(previous[1] == stat_signature(Path(dest)))
+
+
+def _output_digest(session: Session, state: StageState, ref: str) -> str:
+    """The content hash of the output ``ref`` (``stage.output``) names, from its stage's manifest."""
+    stage, _, output = ref.partition(".")
+    digest = (state.manifest or {}).get("outputs", {}).get(output, {}).get("hash")
+    if digest is None:
+        raise UserError(
+            f"stage '{stage}' has no output '{output}'", file=str(session.pipeline.path), field=f"publish.{ref}"
+        )
+    return str(digest)
+
+
+def _publish_one(session: Session, state: StageState, ref: str, dest: Path) -> None:
+    """Export one ``publish:`` entry to ``dest``; errors name the entry."""
+    stage, _, output = ref.partition(".")
+    assert state.key is not None
+    try:
+        export_output(session.store.open(state.key), output, dest, field=f"publish.{ref}")
+    except CorruptArtifact as exc:
+        raise exc.located(stage=stage) from None
+    except UserError as exc:
+        raise UserError(
+            f"{display_path(dest)}: {exc.message}", file=str(session.pipeline.path), field=f"publish.{ref}"
+        ) from None

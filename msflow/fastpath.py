@@ -6,7 +6,7 @@ and folder of the stages' import closures, every data file and folder read (and 
 published file, and each stage artifact's manifest; plus the environment (Python, msflow's own files, the
 folders on ``sys.path``). The next ``msflow run``/``status`` with the same pipeline file and ``-S`` overrides stats
 those paths and, when every signature is equal, prints what the full path would print (each stage cached, the
-warnings of cached stages) and writes a small run record pointing at the full one.
+warnings of cached stages, the files published) and writes a small run record pointing at the full one.
 
 It imports only the standard library (no typer, pydantic, yaml, numpy or stage code). Any doubt - an option it
 does not know, a missing or unreadable state, one changed signature - hands over to the full path, which
@@ -211,7 +211,10 @@ def print_run(state: dict[str, Any], run_id: str, quiet: bool, seconds: float) -
         line = f"warning: {message}"
         print(f"\033[33m{line}\033[0m" if colour else line, file=sys.stderr)
     sys.stderr.flush()
-    for line in state.get("summary", []):  # the pipeline's summary: metrics (msflow.summary), as a full run prints
+    from msflow.summary import published_line
+
+    files = published_line(state.get("published", []))
+    for line in ([files] if files else []) + state.get("summary", []):  # as a full run prints them (msflow.summary)
         print(line)
     sys.stdout.flush()
 
@@ -255,6 +258,7 @@ def save_state(
     runs: str,
     rel_pipeline: str,
     summary: tuple[list[str], list[str]] = ([], []),
+    published: list[str] | None = None,
 ) -> None:
     """Save the state a later no-op ``run``/``status`` with the same pipeline and overrides answers from."""
     from msflow.atomic import write_json_atomic
@@ -273,6 +277,7 @@ def save_state(
         "rel_pipeline": rel_pipeline,
         "summary": summary[0],
         "summary_warnings": summary[1],
+        "published": published or [],
     }
     path = state_file(pipeline, overrides)
     os.makedirs(os.path.dirname(path), exist_ok=True)

@@ -14,10 +14,10 @@ from msflow.hashing import json_hash
 from msflow.jobs import StageStatus
 from msflow.plan import StagePlan
 from msflow.runner import StageState
-from msflow.spec import Pipeline
+from msflow.spec import LOCK_MARK, Pipeline, lock_file
 
 LOCK_HEADER = (
-    "# pipeline.lock: written by msflow after each run of {name}; the state of every stage's last\n"
+    LOCK_MARK + " after each run of {name}; the state of every stage's last\n"
     "# successful execution (cache key, params, input and output content hashes). Commit it; do not edit.\n"
 )
 
@@ -142,11 +142,7 @@ def lock_entries(pipeline: Pipeline, plans: dict[str, StagePlan], states: dict[s
 
 
 def lock_path(pipeline: Pipeline) -> Path:
-    return (
-        pipeline.path.with_suffix(".lock")
-        if pipeline.path.suffix in (".yaml", ".yml")
-        else pipeline.path.with_name(pipeline.path.name + ".lock")
-    )
+    return lock_file(pipeline.path)
 
 
 def read_lock(pipeline: Pipeline) -> dict[str, Any]:

@@ -360,6 +360,7 @@ def load_pipeline(
     _check_references(nodes, spec.publish, file)
     check_cycles(nodes, file)
     publish = publish_targets(spec.publish, root, pipeline_dir, publish_dir, file)
+    _check_publish_reads_nothing(publish, spec.publish, read_paths(path.resolve(), store, nodes), file)
     _check_summary(spec.summary, nodes, file)
     return Pipeline(
         path.resolve(), root, store, nodes, publish, overrides, spec.store_options, signature, tuple(spec.summary)
@@ -530,6 +531,79 @@ def publish_targets(
             )
         targets[ref] = str(dest)
     return targets
+
+
+@dataclass(frozen=True)
+class ReadPath:
+    """A file or folder a run reads or keeps its state in, which no ``publish:`` entry may write onto (or into)."""
+
+    path: Path
+    what: str  #: how an error names it: "the pipeline file itself", "an input of stage 'track' (inputs.videos)"
+
+
+#: how a pipeline's lock begins (msflow.records writes it): what tells a lock from any other .lock file
+LOCK_MARK = "# pipeline.lock: written by msflow"
+
+
+def lock_file(pipeline_file: Path) -> Path:
+    """The lock beside a pipeline file: pipeline.lock for pipeline.yaml (pipeline.yaml.lock for other suffixes)."""
+    if pipeline_file.suffix in (".yaml", ".yml"):
+        return pipeline_file.with_suffix(".lock")
+    return pipeline_file.with_name(pipeline_file.name + ".lock")
+
+
+def read_paths(pipeline_file: Path, store: str, nodes: dict[str, StageNode]) -> list[ReadPath]:
+    """What a run of the pipeline reads: the pipeline file, its lock, the store (and the .msflow folder beside
+    the file, where the no-op fast path keeps its state), and every data file or folder of the stages' inputs."""
+    found = [
+        ReadPath(pipeline_file, "the pipeline file itself"),
+        ReadPath(lock_file(pipeline_file), "the pipeline's lock file"),
+    ]
+    if "://" not in store:
+        found.append(ReadPath(Path(store).resolve(), "msflow's store"))
+    found.append(ReadPath(pipeline_file.parent / ".msflow", "msflow's state folder"))
+    for name, node in nodes.items():
+        for input_name, ref in node.inputs.items():
+            if isinstance(ref, FilesRef):
+                what = f"an input of stage '{name}' (inputs.{input_name})"
+                found += [ReadPath(Path(p).resolve(), what) for _, p in ref.files]
+    return found
+
+
+def _check_publish_reads_nothing(
+    targets: dict[str, str], entries: dict[str, str], reads: list[ReadPath], file: str
+) -> None:
+    """No publish target is (or lies inside) a file or folder the run reads, nor is another pipeline's file or
+    lock: publishing runs after the stages, so it would replace the user's clip, a pipeline file or the store's
+    state without a word (``-S vars.take=../out/clip_preview.mp4`` with the preview published to that very file)."""
+    for ref, dest in targets.items():
+        target = Path(dest)
+        clash = next((r for r in reads if target == r.path or r.path in target.parents), None)
+        other = _msflow_file(target)
+        if clash is None and other is not None:
+            clash = ReadPath(target, other)
+        if clash is not None:
+            verb = "overwrite" if target == clash.path else "write into"
+            raise UserError(
+                f"'{entries[ref]}' would {verb} {display_path(clash.path)}, {clash.what}; publish to another file",
+                file=file,
+                field=f"publish.{ref}",
+            )
+
+
+def _msflow_file(path: Path) -> str | None:
+    """What ``path`` is when it is an existing pipeline file (a YAML mapping with ``stages:``) or lock of another
+    pipeline (``p_self.yaml`` publishing onto ``pipeline.yaml`` would turn it into a BVH), else None."""
+    if path.suffix not in (".yaml", ".yml", ".lock") or not path.is_file():
+        return None
+    try:
+        text = path.read_text(encoding="utf-8")
+        if path.suffix == ".lock":
+            return "another pipeline's lock file" if text.startswith(LOCK_MARK) else None
+        raw = yaml.load(text, Loader=UniqueKeyLoader)
+    except (OSError, ValueError, TypeError, RecursionError, yaml.YAMLError):  # not text, not YAML: no pipeline
+        return None
+    return "another pipeline file" if isinstance(raw, dict) and "stages" in raw else None
 
 
 def parse_ref(ref: Any, base: Path, root: Path, file: str, stage: str, where: str) -> StageRef | FilesRef:

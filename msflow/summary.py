@@ -3,7 +3,8 @@
 An entry is ``stage.metric``, the metric part a shell-style pattern (``capture_eval.mouth_*``). The spec checks the
 stage names when the pipeline is loaded; the metric names are known only once the stage has run, so a name that is
 none of them is a warning then, listing what there is (a pattern may match none: metrics that only some data give). ``msflow sweep`` takes the same patterns as its
-default columns. Standard library only: the no-op fast path prints lines saved by a full run.
+default columns. Before the metrics comes the line naming the files the run's ``publish:`` entries hold
+(``published_line``). Standard library only: the no-op fast path prints lines saved by a full run.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ import fnmatch
 import json
 import math
 from typing import Any
+
+from msflow.errors import display_path
 
 WILDCARDS = set("*?[")
 
@@ -52,3 +55,9 @@ def format_metric(value: Any) -> str:
         return f"{value:.4g}" if math.isfinite(value) else str(value)
     text = json.dumps(value, separators=(", ", ": "))
     return text if len(text) <= 80 else text[:77] + "..."
+
+
+def published_line(files: list[str]) -> str | None:
+    """``published: out/a.glb, out/a.csv``: where the run's ``publish:`` entries put their files (relative to the
+    working folder when inside it), or None when there are none."""
+    return "published: " + ", ".join(display_path(f) for f in files) if files else None

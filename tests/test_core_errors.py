@@ -21,6 +21,12 @@ GOOD_STAGES = """
     inputs: {x: src.x}
 """
 
+CSV_STAGE = """
+  csv:
+    uses: numstages.basic:LoadCsv
+    inputs: {table: {path: data/table.csv}}
+"""
+
 CASES = {
     "invalid_yaml": ("version: 1\nstages: [\n", [], ["invalid YAML", "line"]),
     "unknown_top_level_key": (
@@ -228,6 +234,56 @@ CASES = {
         "version: 1\nstages:" + GOOD_STAGES + "publish:\n  scaled.y: data\n",
         [],
         ["field 'publish.scaled.y'", "'data' is a folder"],
+    ),
+    # publishing runs after the stages: onto a file the run reads, it would replace it without a word
+    "publish_onto_an_input": (
+        "version: 1\nstages:" + GOOD_STAGES + CSV_STAGE + "publish:\n  csv.x: data/table.csv\n",
+        [],
+        ["field 'publish.csv.x'", "would overwrite data/table.csv, an input of stage 'csv' (inputs.table)"],
+    ),
+    "publish_onto_a_globbed_input": (
+        "version: 1\nstages:"
+        + GOOD_STAGES
+        + CSV_STAGE.replace("{path: data/table.csv}", "{glob: 'data/*/*.txt'}")
+        + "publish:\n  csv.x: data/parts/b.txt\n",
+        [],
+        ["field 'publish.csv.x'", "would overwrite data/parts/b.txt, an input of stage 'csv' (inputs.table)"],
+    ),
+    "publish_into_a_folder_input": (
+        "version: 1\nstages:"
+        + GOOD_STAGES
+        + CSV_STAGE.replace("data/table.csv", "data/parts")
+        + "publish:\n  csv.x: data/parts/new.csv\n",
+        [],
+        ["field 'publish.csv.x'", "would write into data/parts, an input of stage 'csv' (inputs.table)"],
+    ),
+    "publish_onto_an_input_named_by_variables": (
+        "version: 1\nvars: {take: data/table.csv, name: result}\nstages:"
+        + GOOD_STAGES
+        + CSV_STAGE.replace("data/table.csv", "'${take}'")
+        + "publish:\n  csv.x: data/${name}.csv\n",
+        ["-S", "vars.name=table"],
+        ["field 'publish.csv.x'", "'data/table.csv' would overwrite data/table.csv, an input of stage 'csv'"],
+    ),
+    "publish_onto_the_pipeline_file": (
+        "version: 1\nstages:" + GOOD_STAGES + "publish:\n  scaled.y: ./bad.yaml\n",
+        [],
+        ["field 'publish.scaled.y'", "would overwrite bad.yaml, the pipeline file itself"],
+    ),
+    "publish_onto_another_pipeline_file": (  # p_self.yaml publishing its BVH onto pipeline.yaml
+        "version: 1\nstages:" + GOOD_STAGES + "publish:\n  scaled.y: pipeline.yaml\n",
+        [],
+        ["field 'publish.scaled.y'", "would overwrite pipeline.yaml, another pipeline file"],
+    ),
+    "publish_onto_the_lock": (
+        "version: 1\nstages:" + GOOD_STAGES + "publish:\n  scaled.y: bad.lock\n",
+        [],
+        ["field 'publish.scaled.y'", "would overwrite bad.lock, the pipeline's lock file"],
+    ),
+    "publish_into_the_store": (
+        "version: 1\nstages:" + GOOD_STAGES + "publish:\n  scaled.y: .msflow/runs/x.json\n",
+        [],
+        ["field 'publish.scaled.y'", "would write into .msflow, msflow's store"],
     ),
     "publish_one_file_twice": (
         "version: 1\nstages:" + GOOD_STAGES + "publish:\n  scaled.y: out/a.npy\n  src.x: out/./a.npy\n",

@@ -1,0 +1,113 @@
+"""``publish:`` after a run: never onto what the run reads, a warning when one pipeline replaces a file another
+published, and the list of the files published (full path and no-op fast path alike)."""
+
+import json
+
+from conftest import run_cli
+
+
+def add_publish(path, entries, text=None):
+    """Write ``path`` as the numeric pipeline (or ``text``) with these ``publish:`` entries."""
+    base = text if text is not None else path.read_text()
+    path.write_text(base + "publish:\n" + "".join(f"  {ref}: {dest}\n" for ref, dest in entries.items()))
+
+
+def newest_record(proj):
+    return json.loads(sorted((proj / ".msflow" / "runs").glob("*.json"))[-1].read_text())
+
+
+def test_a_clip_given_on_the_command_line_is_never_overwritten_by_a_publish_entry(numproject):
+    """``-S vars.take=../out/clip_preview.mp4 -S vars.name=clip`` with the preview published to
+    out/${name}_preview.mp4: the run stops at load, before any stage, and the user's file stays as it was."""
+    (numproject / "pyproject.toml").write_text("")  # the project's root, above the pipeline's folder
+    sub = numproject / "pipelines"
+    sub.mkdir()
+    (numproject / "out").mkdir()
+    clip = numproject / "out" / "clip_preview.csv"
+    clip.write_text((numproject / "data" / "table.csv").read_text())
+    before = clip.read_bytes()
+    add_publish(
+        sub / "capture.yaml",
+        {"csv.x": "../out/${name}_preview.csv"},
+        "version: 1\nstore: ../.msflow\nvars: {take: ../data/table.csv, name: table}\nstages:\n"
+        "  csv:\n    uses: numstages.basic:LoadCsv\n    inputs: {table: {path: '${take}'}}\n",
+    )
+    result = run_cli(numproject, "run", "pipelines/capture.yaml", "-S", "vars.take=../out/clip_preview.csv",
+                     "-S", "vars.name=clip")  # fmt: skip
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    expected = (
+        "pipelines/capture.yaml: field 'publish.csv.x': '../out/clip_preview.csv' would overwrite "
+        "out/clip_preview.csv, an input of stage 'csv' (inputs.table)"
+    )
+    assert expected in result.stderr, result.stderr
+    assert clip.read_bytes() == before
+    assert not (numproject / ".msflow" / "runs").exists()  # no stage ran
+
+
+def test_another_pipelines_lock_is_never_overwritten_by_a_publish_entry(numproject):
+    assert run_cli(numproject, "run", "-q").returncode == 0
+    lock = (numproject / "pipeline.lock").read_bytes()
+    add_publish(numproject / "other.yaml", {"scaled.y": "pipeline.lock"}, (numproject / "pipeline.yaml").read_text())
+    result = run_cli(numproject, "run", "-q", "other.yaml")
+    expected = "other.yaml: field 'publish.scaled.y': 'pipeline.lock' would overwrite pipeline.lock, another pipeline's"
+    assert result.returncode == 2 and expected in result.stderr, result.stderr
+    assert (numproject / "pipeline.lock").read_bytes() == lock
+    (numproject / "notes.lock").write_text("not msflow's\n")  # any other .lock file is the user's to publish onto
+    add_publish(numproject / "other.yaml", {"scaled.y": "notes.lock"}, (numproject / "pipeline.yaml").read_text())
+    assert "unsupported export format '.lock'" in run_cli(numproject, "run", "-q", "other.yaml").stderr
+
+
+def test_replacing_a_file_another_pipeline_published_is_a_warning_a_new_result_of_the_same_is_not(numproject):
+    pipeline = numproject / "pipeline.yaml"
+    text = pipeline.read_text()
+    add_publish(pipeline, {"scaled.y": "out/y.csv"})
+    add_publish(numproject / "other.yaml", {"scaled.y": "out/y.csv"}, text.replace("factor: 3", "factor: 5"))
+    first = run_cli(numproject, "run", "-q")
+    assert first.returncode == 0 and "warning" not in first.stderr, first.stderr
+
+    replaced = run_cli(numproject, "run", "-q", "other.yaml")
+    assert replaced.returncode == 0, replaced.stderr
+    warning = "warning: out/y.csv was published by pipeline.yaml (scaled.y); replaced by other.yaml (scaled.y)"
+    assert warning in replaced.stderr, replaced.stderr
+    back = run_cli(numproject, "run", "-q")  # the next plain run puts its own back: said too
+    warning = "warning: out/y.csv was published by other.yaml (scaled.y); replaced by pipeline.yaml (scaled.y)"
+    assert back.returncode == 0 and warning in back.stderr, back.stderr
+    assert (numproject / "out" / "y.csv").read_text().splitlines()[2] == "3"
+
+    changed = run_cli(numproject, "run", "-q", "-S", "scaled.factor=7")  # a new result of the same entry
+    assert changed.returncode == 0 and "warning" not in changed.stderr, changed.stderr
+    assert (numproject / "out" / "y.csv").read_text().splitlines()[2] == "7"
+
+    ledger = json.loads((numproject / ".msflow" / "cache" / "published.json").read_text())
+    assert ledger == {"out/y.csv": {"pipeline": "pipeline.yaml", "entry": "scaled.y"}}
+
+
+def test_replacing_a_file_with_another_entry_of_the_same_pipeline_is_a_warning(numproject):
+    pipeline = numproject / "pipeline.yaml"
+    text = pipeline.read_text().replace("  n: 6\n", "  n: 6\n  what: y\n")
+    add_publish(pipeline, {"scaled.y": "out/${what}.npy", "src.x": "out/x.npy"}, text)
+    assert run_cli(numproject, "run", "-q").returncode == 0
+    result = run_cli(numproject, "run", "-q", "-S", "vars.what=x", "-S", "src.n=3")
+    # scaled.y now goes to out/x.npy, which src.x published; src.x goes there too: refused at load
+    assert result.returncode == 2 and "also published by" in result.stderr, result.stderr
+    add_publish(pipeline, {"scaled.y": "out/${what}.npy"}, text)
+    result = run_cli(numproject, "run", "-q", "-S", "vars.what=x")
+    warning = "warning: out/x.npy was published by pipeline.yaml (src.x); replaced by pipeline.yaml (scaled.y)"
+    assert result.returncode == 0 and warning in result.stderr, result.stderr
+
+
+def test_a_run_lists_the_files_it_published_and_a_no_op_run_lists_them_too(numproject):
+    add_publish(numproject / "pipeline.yaml", {"scaled.y": "out/y.csv", "src.x": "out/x.npy"})
+    first = run_cli(numproject, "run", "-q")
+    assert first.returncode == 0, first.stderr
+    assert first.stdout.splitlines() == ["published: out/y.csv, out/x.npy"]
+
+    noop = run_cli(numproject, "run", "-q")
+    assert noop.returncode == 0 and noop.stdout == first.stdout, noop.stdout
+    assert newest_record(numproject)["executor"] == "none"  # answered by the fast path, from the saved state
+    elsewhere = run_cli(numproject / "out", "run", "../pipeline.yaml")  # paths relative to the working folder
+    assert elsewhere.stdout.splitlines() == ["published: y.csv, x.npy"], elsewhere.stdout
+
+    (numproject / "out" / "y.csv").unlink()
+    again = run_cli(numproject, "run", "-q", env={"MSFLOW_FASTPATH": "0"})  # the full path: republished, listed
+    assert again.stdout == first.stdout and (numproject / "out" / "y.csv").exists()
