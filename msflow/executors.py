@@ -53,13 +53,17 @@ class ProcessExecutor:
 
     def __init__(self, jobs: int):
         import multiprocessing
+        import os
         from concurrent.futures import ProcessPoolExecutor
 
         from msflow.worker import pin_blas_threads
 
         pin_blas_threads()  # inherited by the workers, so set before any of them imports numpy
         self.pool = ProcessPoolExecutor(
-            max_workers=jobs, mp_context=multiprocessing.get_context("spawn"), initializer=pin_blas_threads
+            max_workers=jobs,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=start_worker,
+            initargs=(os.getpid(),),
         )
 
     def submit(self, job_json: str, on_retry: OnRetry | None = None) -> Future[str]:
@@ -71,14 +75,26 @@ class ProcessExecutor:
         if not abort:
             self.pool.shutdown(wait=True, cancel_futures=True)
             return
-        # the pool's own shutdown waits for the jobs running (a stage of minutes, for a Ctrl-C that reached only
-        # this process): stop its workers; _processes is private, but the pool has no public way to do this
+        # the pool's own shutdown waits for the jobs running (a stage of minutes; and Ctrl-C does not reach the
+        # workers, which lead their own groups): stop its workers with what their stages started (a render pool,
+        # FFmpeg), which a worker killed alone left running; _processes is private, but the pool has no public way
+        from msflow.processes import stop_groups
+
         workers = list(getattr(self.pool, "_processes", {}).values())
         self.pool.shutdown(wait=False, cancel_futures=True)
-        for worker in workers:
-            worker.terminate()
-        for worker in workers:
-            worker.join()
+        stop_groups(workers)
+
+
+def start_worker(run_pid: int) -> None:
+    """Initialise a ``ProcessExecutor`` worker: one BLAS thread; the leader of its own process group, which the
+    processes its stages start join, so that stopping the run stops them too (``msflow.processes``); gone, with
+    that group, if the run's process (``run_pid``) dies without stopping it (SIGKILL)."""
+    from msflow.processes import exit_with_parent, lead_own_group
+    from msflow.worker import pin_blas_threads
+
+    pin_blas_threads()
+    lead_own_group()
+    exit_with_parent(run_pid)
 
 
 class LazyExecutor:

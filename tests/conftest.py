@@ -138,6 +138,22 @@ class Hold:
         (self.folder / "release").write_text("go")
 
 
+def process_running(pid):
+    """True while process ``pid`` runs; a zombie counts as ended (an orphan's parent, the container's init, may
+    never reap it)."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+    except OSError:  # no /proc
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        return True
+
+
 def wait_for_line(proc, text, timeout=120):
     """Read ``proc``'s stderr until a line containing ``text`` (fails if it ends first); returns the lines read."""
     import selectors

@@ -3,6 +3,8 @@ stream alignment (frame rates, lengths, audio offset) and the user errors around
 
 import csv
 import io
+import os
+import signal
 from pathlib import Path
 
 import av
@@ -994,6 +996,47 @@ def test_preview_frames_drawn_by_worker_processes_equal_the_serial_ones(characte
     pooled = list(rendered_frames(renderer, poses, jobs=2, block=5, processes=True))
     assert len(pooled) == 24 and all(np.array_equal(a, b) for a, b in zip(serial, pooled))
     assert not all(np.array_equal(serial[0], f) for f in serial[1:])  # the frames differ: order is checked
+
+
+#: a process with a preview render pool that prints its worker's pid and waits (until killed)
+RENDER_POOL_OWNER = """
+import os, sys
+from stages.export.preview import _render_pool
+with _render_pool(None, 1, processes=True) as (pool, _):
+    print(pool.submit(os.getpid).result(), flush=True)
+    sys.stdin.read()
+"""
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc")
+def test_preview_render_workers_exit_when_their_parent_is_killed():
+    """A render worker whose parent died without shutting the pool down (SIGKILL: the stage's worker, or msflow
+    itself with -j 1) exits, instead of waiting for blocks forever holding the run's pipes."""
+    import subprocess
+    import sys
+    import time
+
+    from conftest import cli_env, process_running
+
+    owner = subprocess.Popen(
+        [sys.executable, "-c", RENDER_POOL_OWNER], env=cli_env(), stdin=subprocess.PIPE, stdout=subprocess.PIPE
+    )
+    worker = None
+    try:
+        worker = int(owner.stdout.readline())
+        owner.kill()
+        owner.wait()
+        deadline = time.monotonic() + 10  # a guard against hanging, not a speed assertion
+        while process_running(worker) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert not process_running(worker)
+    finally:
+        owner.kill()
+        owner.wait()
+        if worker is not None and process_running(worker):
+            os.kill(worker, signal.SIGKILL)
+        owner.stdin.close()
+        owner.stdout.close()
 
 
 def test_a_bad_frame_rate_is_refused_before_anything_runs(default_run):

@@ -10,6 +10,7 @@ whatever ``jobs`` is and whichever pool drew it.
 from __future__ import annotations
 
 import functools
+import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -156,7 +157,8 @@ def _render_pool(renderer, jobs: int, processes: bool):
     # spawn, not fork: the parent may run other threads (the runner's, the encoder's), which fork would copy
     # mid-operation
     context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(jobs, mp_context=context, initializer=_keep_renderer, initargs=(renderer,)) as pool:
+    initargs = (renderer, os.getpid())
+    with ProcessPoolExecutor(jobs, mp_context=context, initializer=_start_render_worker, initargs=initargs) as pool:
         yield pool, render_block_in_worker
 
 
@@ -164,9 +166,18 @@ def _render_pool(renderer, jobs: int, processes: bool):
 _worker_renderer = None
 
 
-def _keep_renderer(renderer) -> None:
+def _start_render_worker(renderer, parent_pid: int) -> None:
+    """Keep the renderer; leave Ctrl-C to the parent, which shuts the pool down; and exit should the parent die
+    without shutting it down (killed: the stage's worker with -j N, msflow with -j 1), as an orphan would wait for
+    blocks forever, holding the run's stdout."""
+    import signal
+
+    from msflow.processes import exit_with_parent
+
     global _worker_renderer
     _worker_renderer = renderer
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    exit_with_parent(parent_pid)
 
 
 def render_block_in_worker(poses: Poses) -> np.ndarray:
