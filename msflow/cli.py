@@ -1,5 +1,6 @@
 """The ``msflow`` command line. Exit codes: 0 ok, 1 a stage failed (or an artifact is corrupt, or the disk is
-full), 2 a user error (a message naming file, stage and field; no traceback).
+full), 2 a user error (a message naming file, stage and field; no traceback), 141 its output was cut off (a pipe
+closed early, as by ``msflow runs | head``), 130/143 interrupted (Ctrl-C / SIGTERM).
 
 ``main`` first asks the no-op fast path (``msflow.fastpath``) whether ``msflow run``/``msflow status`` has
 nothing to do, which it answers from a compact state without importing typer, pydantic or any stage code; on any
@@ -17,10 +18,27 @@ def main(argv: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     from msflow.fastpath import try_noop
 
-    code = try_noop(args)
-    if code is not None:
-        return code
-    return run_commands(args)
+    try:
+        code = try_noop(args)
+        return run_commands(args) if code is None else code
+    except BrokenPipeError:
+        return _output_closed()
+
+
+#: 128 + SIGPIPE: what a shell reports for `yes`, `cat` or `git log` whose reader went away (`set -o pipefail`,
+#: PIPESTATUS); Python ignores SIGPIPE, so msflow says it with its exit code instead of dying of the signal
+OUTPUT_CLOSED = 141
+
+
+def _output_closed() -> int:
+    """The reader of stdout went away (``msflow show aam | head``): stop quietly. What is still buffered goes to
+    /dev/null, or Python's exit would try to flush it into the closed pipe and print "Exception ignored"."""
+    import os
+
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+    return OUTPUT_CLOSED
 
 
 def run_commands(args: list[str]) -> int:
@@ -47,6 +65,10 @@ def run_commands(args: list[str]) -> int:
         return 1
     except typer.Exit as exc:
         return int(exc.exit_code)
+    except SystemExit as exc:
+        if isinstance(exc.__context__, BrokenPipeError):  # click turns a closed stdout into a bare exit 1
+            return _output_closed()
+        raise
     except typer.Abort:
         echo("aborted", err=True)
         return 130

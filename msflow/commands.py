@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, List, Optional
+from typing import TYPE_CHECKING, Any, List, Optional
 
 import typer
 
@@ -14,6 +14,7 @@ from msflow.jobs import DryStatus, StageStatus
 
 if TYPE_CHECKING:
     from msflow.artifact import ArtifactView
+    from msflow.stores.base import Store
 
 app = typer.Typer(
     add_completion=False,
@@ -24,6 +25,23 @@ app = typer.Typer(
 
 FILE_ARG = typer.Argument(Path("pipeline.yaml"), help="pipeline file", show_default=True)
 FILE_OPT = typer.Option(Path("pipeline.yaml"), "-f", "--file", help="pipeline file")
+
+
+def _print_version(asked: bool) -> None:
+    if asked:
+        from msflow.version import package_version
+
+        echo(f"msflow {package_version()}")
+        raise typer.Exit(0)
+
+
+@app.callback()
+def main_options(
+    version: bool = typer.Option(
+        False, "--version", callback=_print_version, is_eager=True, help="print msflow's version and exit"
+    ),
+) -> None:
+    """msflow: cached dataflow pipelines (Mood Swings expressive speech animation)."""
 
 
 def echo(text: str = "", err: bool = False) -> None:
@@ -163,13 +181,11 @@ def why(
     """Which part of STAGE's cache key changed since its last run (code file, param, input)."""
     from msflow.inspect import RunHistory, dry_run
     from msflow.session import open_session
-    from msflow.spec import suggest
+    from msflow.spec import unknown_stage
 
     session = open_session(file, tuple(overrides or ()))
     if stage not in session.pipeline.stages:
-        raise UserError(
-            f"unknown stage '{stage}'{suggest(stage, session.pipeline.stages)}", file=str(file), field="STAGE"
-        )
+        raise UserError(unknown_stage(stage, session.pipeline.stages), file=str(file), field="STAGE")
     history = RunHistory(session)
     d = dry_run(session, history)[stage]
     previous = history.last(stage)
@@ -393,28 +409,52 @@ def sweep(
 
 
 @app.command()
-def runs(file: Path = FILE_ARG, limit: int = typer.Option(20, "--limit", "-n", help="newest N runs")) -> None:
-    """List runs (newest last): id, time, variant or overrides, stage counts."""
-    from msflow.errors import CorruptRecord
+def runs(
+    file: Optional[Path] = typer.Argument(
+        None, help="only the runs of this pipeline file [default: every run in pipeline.yaml's store]"
+    ),
+    limit: int = typer.Option(20, "--limit", "-n", help="newest N runs"),
+) -> None:
+    """List runs (newest last): id, outcome, time, pipeline file, stage counts, sweep, variant or overrides."""
     from msflow.spec import load_pipeline
 
-    store = load_pipeline(file).open_store()
-    ids = store.run_ids()[-limit:]
-    for run_id in ids:
-        try:
-            record = store.read_run(run_id)
-        except CorruptRecord as exc:  # one damaged record does not hide the others
-            echo(f"{run_id}  UNREADABLE  {exc}")
+    pipeline = load_pipeline(file or Path("pipeline.yaml"))
+    only = pipeline.rel_path if file is not None else None
+    listed = _newest_runs(pipeline.open_store(), only, limit)
+    width = max((len(str(record.get("pipeline", "?"))) for _, record in listed), default=0)
+    for run_id, record in listed:
+        if "unreadable" in record:  # one damaged record does not hide the others
+            echo(f"{run_id}  UNREADABLE  {record['unreadable']}")
             continue
         counts = ", ".join(f"{v} {k}" for k, v in record.get("counts", {}).items() if v)
         label = record.get("variant") or record.get("overrides") or ""
         sweep = f" sweep {record['sweep']}" if record.get("sweep") else ""
+        source = "" if only else f"{record.get('pipeline', '?'):<{width}}  "  # "?": a record that names none
         echo(
             f"{run_id}  {'ok    ' if record.get('ok') else 'FAILED'}  {record.get('seconds', 0):7.2f}s  "
-            f"{counts}{sweep}  {json.dumps(label) if label else ''}"
+            f"{source}{counts}{sweep}  {json.dumps(label) if label else ''}"
         )
-    if not ids:
-        echo("no runs yet")
+    if not listed:
+        echo(f"no runs of {only} yet" if only else "no runs yet")
+
+
+def _newest_runs(store: Store, pipeline: str | None, limit: int) -> list[tuple[str, dict[str, Any]]]:
+    """The newest ``limit`` run records (oldest first), only those of ``pipeline`` (its path relative to the project)
+    when given; an unreadable record stands as {"unreadable": why}, whichever pipeline it was of."""
+    from msflow.errors import CorruptRecord
+
+    found: list[tuple[str, dict[str, Any]]] = []
+    for run_id in reversed(store.run_ids()):
+        if len(found) >= limit:
+            break
+        try:
+            record = store.read_run(run_id)
+        except CorruptRecord as exc:
+            found.append((run_id, {"unreadable": str(exc)}))
+            continue
+        if pipeline is None or record.get("pipeline") == pipeline:
+            found.append((run_id, record))
+    return found[::-1]
 
 
 @app.command()

@@ -175,14 +175,16 @@ def try_noop(args: list[str]) -> int | None:
         state = load_state(pipeline, overrides)
         if state is None:
             return None
-        if command == "status":
-            print_status(state)
-            return 0
-        run_id = write_small_record(state, args, overrides, started)
+        run_id = None if command == "status" else write_small_record(state, args, overrides, started)
     except Exception as exc:  # nothing printed yet: the full path decides
         doubt(f"{type(exc).__name__}: {exc}")
         return None
-    print_run(state, run_id, quiet, time.time() - started)
+    # printing comes after the doubts: a closed stdout (`msflow status | head`) must not make the full path
+    # compute the answer again
+    if run_id is None:
+        print_status(state)
+    else:
+        print_run(state, run_id, quiet, time.time() - started)
     return 0
 
 

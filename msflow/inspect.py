@@ -186,10 +186,10 @@ def _diff_values(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> 
 def resolve_artifact_key(session: Session, stage: str) -> tuple[str, str]:
     """Key of the artifact ``show``/``export`` should use: the current one if present, else the last run's."""
     if stage not in session.pipeline.stages:
-        from msflow.spec import suggest
+        from msflow.spec import unknown_stage
 
         raise UserError(
-            f"unknown stage '{stage}'{suggest(stage, session.pipeline.stages)}",
+            unknown_stage(stage, session.pipeline.stages),
             file=str(session.pipeline.path),
             field="STAGE",
         )

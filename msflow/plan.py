@@ -163,6 +163,9 @@ def canonical_params(cls: type[Stage], raw: dict[str, Any], *, file: str, stage:
             msg = f"unknown parameter '{loc}'{suggest(loc, allowed)}; parameters: {', '.join(allowed) or 'none'}"
         elif err.get("type") == "missing":
             msg = "required parameter is missing"
+        elif err.get("type") == "value_error" and "error" in err.get("ctx", {}):
+            # the stage's own validator worded it (and quotes what it refuses, often better than the raw input)
+            msg = str(err["ctx"]["error"])
         else:
             msg = f"{err.get('msg', 'invalid')} (got {err.get('input')!r})"
         raise UserError(msg, file=file, stage=stage, field=f"params.{loc}" if loc else "params") from None

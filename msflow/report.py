@@ -363,6 +363,7 @@ h1{margin-bottom:.2em} h2{border-bottom:1px solid #ccc;padding-bottom:.2em;margi
 table{border-collapse:collapse;font-size:13px;margin:.5em 0} td,th{border:1px solid #ddd;padding:3px 7px;
 vertical-align:top;text-align:left} th{background:#f4f4f4} code,pre{font-size:12px}
 pre{background:#f7f7f7;padding:6px;max-height:16em;overflow:auto;margin:0}
+td.params pre{white-space:pre-wrap;overflow-wrap:anywhere}
 .state{padding:1px 6px;border-radius:4px} figure{margin:.6em 0 1.2em} figcaption{font-size:13px;color:#555}
 img,video{max-width:100%;border:1px solid #ddd} .muted{color:#777;font-size:13px} .legend span{margin-right:1em}
 """
@@ -451,7 +452,7 @@ def _stage_rows(record: dict[str, Any], order: list[str]) -> list[str]:
             f"<tr><td><b>{html.escape(name)}</b><br><span class='muted'>{html.escape(entry['uses'])}"
             f"</span></td><td>{_state_badge(entry['state'])}</td><td>{entry.get('seconds', 0):.2f}s</td>"
             f"<td><code>{html.escape(str(entry.get('key') or '')[:16])}</code></td>"
-            f"<td><pre>{html.escape(params)}</pre></td></tr>"
+            f"<td class='params'><pre>{html.escape(params)}</pre></td></tr>"
         )
     return rows
 

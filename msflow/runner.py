@@ -18,7 +18,7 @@ from msflow.executors import Executor
 from msflow.hashing import FileHashMemo, json_hash
 from msflow.jobs import Job, JobInput, Outcome, StageStatus
 from msflow.plan import StagePlan
-from msflow.spec import FilesRef, Pipeline, rel_to, suggest, topological_order
+from msflow.spec import FilesRef, Pipeline, rel_to, topological_order, unknown_stage
 from msflow.stores.base import Store
 from msflow.version import KEY_SCHEME  # defined in a leaf module: workers check it too
 
@@ -60,7 +60,7 @@ def select_stages(pipeline: Pipeline, until: str | None) -> list[str]:
         return order
     if until not in pipeline.stages:
         raise UserError(
-            f"--until: unknown stage '{until}'{suggest(until, pipeline.stages)}",
+            unknown_stage(until, pipeline.stages),
             file=str(pipeline.path),
             field="--until",
         )
@@ -198,7 +198,7 @@ class Runner:
         self.selected = select_stages(pipeline, until)
         unknown = [f for f in force if f not in pipeline.stages]
         if unknown:
-            raise UserError(f"--force: unknown stage(s) {unknown}", file=str(pipeline.path), field="--force")
+            raise UserError(f"unknown stage(s) {unknown}", file=str(pipeline.path), field="--force")
         self.force = set(force)
         self.reporter = reporter
         self.jobs = jobs  # the run's worker count, handed to each stage (Stage.jobs); not part of any key

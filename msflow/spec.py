@@ -256,6 +256,12 @@ def suggest(name: str, options: Iterable[Any]) -> str:
     return f" (did you mean '{close[0]}'?)" if close else ""
 
 
+def unknown_stage(name: str, stages: Iterable[str]) -> str:
+    """ "unknown stage 'NAME' (did you mean ...?); stages: [...]": the nearest name when one is close, and always
+    the names there are (a name like no other gets no suggestion, but still a list to pick from)."""
+    return f"unknown stage '{name}'{suggest(name, stages)}; stages: {sorted(stages)}"
+
+
 # ---------------------------------------------------------------------------------------------------------- overrides
 def parse_override(text: str) -> tuple[list[str], Any]:
     """``stage.param=value`` (nested: ``stage.a.b=value``; ``vars.name=value``) -> (path, YAML-parsed value)."""
@@ -289,10 +295,13 @@ def apply_overrides(raw: dict[str, Any], overrides: tuple[str, ...], file: str) 
             if not isinstance(raw["vars"], dict):
                 raise UserError("'vars' must be a mapping", file=file, field="vars")
             if rest[0] not in raw["vars"]:  # a typo would otherwise run with the default silently
-                declared = raw["vars"]
+                from msflow.hints import pipelines_with_variable
+
+                declared, path = raw["vars"], Path(file)
                 raise UserError(
                     f"override '{text}': unknown variable '{rest[0]}'{suggest(rest[0], declared)}; "
-                    f"the pipeline's vars: {sorted(map(str, declared)) or 'none'}",
+                    f"the pipeline's vars: {sorted(map(str, declared)) or 'none'}"
+                    + pipelines_with_variable(rest[0], find_root(path.resolve().parent), path),
                     file=file,
                     field="-S",
                 )
@@ -307,7 +316,7 @@ def apply_overrides(raw: dict[str, Any], overrides: tuple[str, ...], file: str) 
             continue
         if head not in stages:
             raise UserError(
-                f"override '{text}': unknown stage '{head}'{suggest(head, stages)}; stages: {sorted(stages)}",
+                f"override '{text}': {unknown_stage(head, stages)}",
                 file=file,
                 field="-S",
             )
@@ -381,7 +390,10 @@ def _nearest_above(path: Path) -> str:
 def _read_pipeline_file(path: Path, file: str) -> tuple[str, str]:
     """The pipeline file's text and its stat signature when it was read."""
     if not path.exists():
-        raise UserError("pipeline file not found" + _nearest_above(path), file=file)
+        from msflow.hints import same_name_in_project
+
+        elsewhere = same_name_in_project(path.name, find_root(path.absolute().parent), path)
+        raise UserError("pipeline file not found" + (_nearest_above(path) or elsewhere), file=file)
     if path.is_dir():
         raise UserError("is a directory, expected a pipeline YAML file", file=file)
     try:

@@ -501,8 +501,8 @@ def test_cli_main_in_process_returns_2_for_user_errors(numproject, capsys, monke
         (["run", "--jobs", "x"], "Invalid value for '-j'"),
         (["show", "--nope", "src"], "No such option: --nope"),
         (["run", "-j", "0"], "-j must be at least 1"),
-        (["run", "--until", "nope"], "unknown stage 'nope'"),
-        (["run", "--force", "nope"], "unknown stage(s) ['nope']"),
+        (["run", "--until", "nope"], "field '--until': unknown stage 'nope'"),
+        (["run", "--force", "nope"], "field '--force': unknown stage(s) ['nope']"),
     ],
 )
 def test_cli_usage_errors_exit_2_without_traceback(numproject, args, fragment):

@@ -886,6 +886,30 @@ def test_a_character_without_the_needed_morphs_is_warned_about():
         Export.Params(arkit_aliases={"smile_left": {"Smile": 1.0}})
 
 
+def test_a_long_list_of_missing_columns_is_cut_short_and_kept_whole_in_meta():
+    """A character with hardly any ARKit morph misses most of the 52 columns: the warning names a few and says
+    where all of them are; meta keeps the full list."""
+    rng = np.random.default_rng(3)
+    names = ["jawOpen", "wiggle"]
+    toy = artifact(
+        {
+            "neutral": rng.normal(size=(30, 3)).astype(np.float32),
+            "triangles": np.arange(30).reshape(10, 3),
+            "deltas": rng.normal(size=(2, 30, 3)).astype(np.float32),
+            "landmark_ids": np.arange(68) % 30,
+        },
+        {"target_names": names},
+    )
+    blend = artifact({"weights": np.zeros((4, 2), np.float32)}, {"target_names": names, "fps": FPS})
+    result = run_with_warnings({"preview": False}, {"character": toy, "blend": blend})
+    (missing,) = result.warnings
+    empty = result.meta["live_link"]["empty_columns"]
+    warned = [c for c in empty if c != "TongueOut"]  # untracked: never warned about
+    assert len(warned) > 40 and "JawOpen" not in empty
+    assert f"{warned[:8]} and {len(warned) - 8} more (msflow show STAGE: meta live_link.empty_columns" in missing
+    assert warned[8] not in missing and len(missing) < 400
+
+
 def test_the_ict_export_warns_about_nothing(exported):
     """ICT FaceKit: every ARKit column but TongueOut has a source, and no moving morph is dropped."""
     assert exported.meta["live_link"]["empty_columns"] == ["TongueOut"]

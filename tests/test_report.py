@@ -118,6 +118,37 @@ def test_report_of_a_failed_run_colours_the_failure(numproject, tmp_path):
     assert "<h2>Failures</h2>" in page and "RuntimeError: boom" in page and "#fb6a4a" in page
 
 
+@pytest.fixture
+def long_params_report(numproject, tmp_path):
+    """The report of a run whose stage has a params value far wider than the page (one unbroken word)."""
+    (numproject / "long.yaml").write_text(
+        "version: 1\nstages:\n  broken:\n    uses: numstages.basic:Broken\n"
+        f"    params: {{mode: {'crash' + 'x' * 600}}}\n"
+    )
+    assert run_cli(numproject, "run", "long.yaml", "-q").returncode == 1
+    out = tmp_path / "long.html"
+    assert run_cli(numproject, "report", "-f", "long.yaml", "-o", out).returncode == 0
+    return out
+
+
+def test_the_params_column_wraps_long_values(long_params_report):
+    page = long_params_report.read_text()
+    assert "td.params pre{white-space:pre-wrap;overflow-wrap:anywhere}" in page
+    assert "<td class='params'><pre>mode: &quot;crashxxx" in page
+
+
+def test_long_params_keep_the_page_within_the_window(long_params_report, chromium):
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=chromium, args=ARGS)
+        page = browser.new_page(viewport={"width": 1280, "height": 900})
+        page.goto(long_params_report.as_uri())
+        width = page.evaluate("document.documentElement.scrollWidth")
+        browser.close()
+    assert width <= 1280
+
+
 def test_sweep_report_has_table_and_metric_plots(numproject, chromium, tmp_path):
     result = run_cli(numproject, "sweep", "-S", "src.n=3,4,5", "-q")
     assert result.returncode == 0

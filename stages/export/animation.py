@@ -315,15 +315,28 @@ def live_link_report(mapping: ArkitMapping, weights: np.ndarray, angle_units: st
     warnings = []
     if missing:
         warnings.append(
-            f"Live Link CSV: the character has no morph for the ARKit columns {missing} (written as 0); "
-            f"name its equivalents in params.arkit_aliases"
+            f"Live Link CSV: the character has no morph for the ARKit columns {first_few(missing, 'empty_columns')}"
+            f" (written as 0); name its equivalents in params.arkit_aliases"
         )
     if dropped:
         warnings.append(
-            f"Live Link CSV: the morphs {dropped} move but have no ARKit column: dropped from the CSV "
-            f"(kept in the GLB); give them one in params.arkit_aliases"
+            f"Live Link CSV: the morphs {first_few(dropped, 'dropped_morphs')} move but have no ARKit column: "
+            f"dropped from the CSV (kept in the GLB); give them one in params.arkit_aliases"
         )
     return meta, warnings
+
+
+#: names a warning lists before pointing at the meta entry that holds them all (a character without ARKit morphs
+#: misses 51 columns: one line of them is unreadable)
+WARNED_NAMES = 8
+
+
+def first_few(names: list[str], meta_entry: str) -> str:
+    """``names`` for a warning: all of them when few, else the first WARNED_NAMES and where the rest are."""
+    if len(names) <= WARNED_NAMES:
+        return str(names)
+    more = len(names) - WARNED_NAMES
+    return f"{names[:WARNED_NAMES]} and {more} more (msflow show STAGE: meta live_link.{meta_entry} lists them all)"
 
 
 def posed_face(character, perf: Performance) -> np.ndarray:
