@@ -136,6 +136,7 @@ def run_sessions(
             code_trees=code_trees_of(sessions),
         )
         runners = _runners_for(sessions, pool, jobs=jobs, until=until, force=force, reporters=reporters)
+        settings: dict[str, Any] = dict(started=started, jobs=jobs, force=force, labels=labels, argv=argv)
         interrupted = False
         try:
             schedule(runners, pool)
@@ -147,20 +148,11 @@ def run_sessions(
             if interrupted:
                 with contextlib.suppress(Exception):  # nothing may hide the interrupt
                     sessions[0].store.clean_tmp()  # what the stopped jobs were writing (their processes are gone)
-        executions = [
-            _record_execution(
-                session,
-                runner,
-                started=started,
-                executor=pool.name,
-                jobs=jobs,
-                force=force,
-                label=labels[index] if labels else None,
-                argv=argv,
-                extra=extra,
-            )
-            for index, (session, runner) in enumerate(zip(sessions, runners))
-        ]
+                with contextlib.suppress(Exception):  # what finished, for msflow runs, why and gc's keep list
+                    _record_executions(
+                        sessions, runners, pool.name, extra=dict(extra or {}, interrupted=True), **settings
+                    )
+        executions = _record_executions(sessions, runners, pool.name, extra=extra, **settings)
         for session in {id(s.memo): s for s in sessions}.values():  # sessions may share one memo
             session.save_memo()
         return executions
@@ -189,6 +181,22 @@ def _runners_for(
             jobs=jobs,
         )
         for index, session in enumerate(sessions)
+    ]
+
+
+def _record_executions(
+    sessions: list[Session],
+    runners: list[Runner],
+    executor: str,
+    *,
+    labels: list[dict[str, Any]] | None,
+    **settings: Any,
+) -> list[Execution]:
+    """Write the run record of each session (``_record_execution``): what it computed, also when the run was
+    interrupted (``extra`` then says so: ``msflow runs`` shows it stopped, gc keeps what it finished)."""
+    return [
+        _record_execution(session, runner, executor=executor, label=labels[index] if labels else None, **settings)
+        for index, (session, runner) in enumerate(zip(sessions, runners))
     ]
 
 

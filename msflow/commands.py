@@ -431,11 +431,16 @@ def runs(
         sweep = f" sweep {record['sweep']}" if record.get("sweep") else ""
         source = "" if only else f"{record.get('pipeline', '?'):<{width}}  "  # "?": a record that names none
         echo(
-            f"{run_id}  {'ok    ' if record.get('ok') else 'FAILED'}  {record.get('seconds', 0):7.2f}s  "
+            f"{run_id}  {_outcome(record):<7}  {record.get('seconds', 0):7.2f}s  "
             f"{source}{counts}{sweep}  {json.dumps(label) if label else ''}"
         )
     if not listed:
         echo(f"no runs of {only} yet" if only else "no runs yet")
+
+
+def _outcome(record: dict[str, Any]) -> str:
+    """A run's outcome as ``msflow runs`` shows it: ok, FAILED, or STOPPED (interrupted: Ctrl-C, SIGTERM)."""
+    return "ok" if record.get("ok") else "STOPPED" if record.get("interrupted") else "FAILED"
 
 
 def _newest_runs(store: Store, pipeline: str | None, limit: int) -> list[tuple[str, dict[str, Any]]]:

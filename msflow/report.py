@@ -587,7 +587,7 @@ def find_record(session: Session, run: str | None) -> dict[str, Any]:
             record = store.read_run(run_id)
         except CorruptRecord:  # a damaged record: the newest readable run of the pipeline is reported
             continue
-        if record.get("pipeline") == rel and not record.get("sweep"):
+        if record.get("pipeline") == rel and not record.get("sweep") and not record.get("interrupted"):
             return record
     raise UserError("no run of this pipeline yet: run it first (msflow run)", file=str(session.pipeline.path))
 

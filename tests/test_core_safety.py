@@ -63,6 +63,16 @@ def test_ctrl_c_says_what_it_kept_and_the_next_run_goes_on(numproject, tmp_path,
     assert_visible_artifacts_complete(numproject)
     tmp = numproject / ".msflow" / "tmp"
     assert not tmp.exists() or list(tmp.iterdir()) == []
+    # the run is on record, stopped, with what it had settled (msflow runs listed nothing before)
+    listed = run_cli(numproject, "runs", "crash.yaml").stdout.splitlines()
+    assert len(listed) == 1 and "  STOPPED  " in listed[0], listed
+    record = json.loads(next((numproject / ".msflow" / "runs").glob("*.json")).read_text())
+    assert record["interrupted"] is True and record["ok"] is False
+    assert record["stages"]["slow"]["state"] == "running"
+    report = run_cli(
+        numproject, "report", "-f", "crash.yaml", "-o", str(tmp_path / "r.html")
+    )  # reports whole runs only
+    assert report.returncode == 2 and "no run of this pipeline yet" in report.stderr, report.stderr
     published = {p.name for p in visible_artifacts(numproject)}
     out = msflow.run(numproject / "crash.yaml")
     assert "slow" in out.executed and not {out.key(name) for name in out.executed} & published
