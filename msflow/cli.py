@@ -73,7 +73,9 @@ def run_commands(args: list[str]) -> int:
         echo("aborted", err=True)
         return 130
     except usage_errors as exc:
-        echo(f"error: {getattr(exc, 'format_message', exc.__str__)()}", err=True)
+        message = getattr(exc, "format_message", exc.__str__)()
+        if message:  # none when click has shown the help instead (``msflow`` alone)
+            echo(f"error: {message}", err=True)
         return 2
     except KeyboardInterrupt:
         return _interrupted(bool(terminated))

@@ -153,3 +153,9 @@ def test_a_missing_pipeline_file_names_the_projects_file_of_that_name(numproject
     (numproject / "out").mkdir()
     below = run_cli(numproject / "out", "status", "face.yaml")
     assert "did you mean ../eval/face.yaml?" in below.stderr, below.stderr
+
+
+def test_msflow_alone_shows_the_help_and_no_empty_error(numproject):
+    result = run_cli(numproject)
+    assert "Usage: msflow" in result.stdout and "run " in result.stdout
+    assert result.returncode == 2 and "error" not in result.stderr, result.stderr
