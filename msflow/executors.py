@@ -56,9 +56,11 @@ class ProcessExecutor:
         import os
         from concurrent.futures import ProcessPoolExecutor
 
+        from msflow.processes import quiet_resource_tracker
         from msflow.worker import pin_blas_threads
 
         pin_blas_threads()  # inherited by the workers, so set before any of them imports numpy
+        quiet_resource_tracker()  # before the first spawn, which would start it with its warnings
         self.pool = ProcessPoolExecutor(
             max_workers=jobs,
             mp_context=multiprocessing.get_context("spawn"),
