@@ -63,7 +63,7 @@ def exit_with_parent(parent_pid: int) -> None:
             time.sleep(PARENT_POLL_SECONDS)
         if _GROUPS and os.getpgrp() == os.getpid():
             os.killpg(os.getpid(), signal.SIGKILL)  # this process with them: its parent's run is gone
-        os._exit(1)
+        os.kill(os.getpid(), signal.SIGKILL if hasattr(signal, "SIGKILL") else signal.SIGTERM)  # no cleanup: at once
 
     threading.Thread(target=watch, name="msflow-exit-with-parent", daemon=True).start()
 
