@@ -22,7 +22,7 @@ from stages.head.segments import (
     contour_geometry,
     segment_distances,
 )
-from stages.head.trellis import Trellis, reference_for_test
+from stages.head.trellis import Trellis, reference_for_test, unknown_speakers_warning
 
 
 @pytest.fixture(scope="module")
@@ -205,6 +205,26 @@ def test_test_speaker_reference():
     )
     unlabelled = artifact({"speaker_median": np.array([200.0])}, {"labels": ["t"]})
     assert reference_for_test(unlabelled, alone, "database")[0].median[0] == 100.0
+    with pytest.raises(UserError, match="an unlabelled test take is not in the database"):  # not "None"
+        reference_for_test(unlabelled, db, "database")
+
+
+def test_auto_takes_the_databases_reference_where_it_knows_the_speaker_else_the_takes_own():
+    """A database of one's own takes, a performer it never saw (the default, ``auto``): the run goes on with the
+    take's own median, saying so (before: exit 2 asking for test_speaker: own)."""
+    reference = SpeakerReference(np.array([100.0, 150.0]), np.array([2.0, 3.0]))
+    db = Database(None, None, None, None, None, ["a", "b"], [], [], ["ann", "bob"], reference)
+    view = artifact(
+        {"speaker_median": np.array([200.0, 120.0]), "speaker_spread": np.array([4.0, 5.0])},
+        {"labels": ["t", "u"], "speakers": ["bob", "carl"]},
+    )
+    auto, shift = reference_for_test(view, db, "auto")
+    assert auto.median.tolist() == [150.0, 120.0] and auto.spread.tolist() == [3.0, 5.0]
+    assert shift[0] == pytest.approx(12 * np.log2(200 / 150)) and shift[1] == 0.0
+    assert Trellis.Params().test_speaker == "auto"
+    (warning,) = unknown_speakers_warning(view, db, "auto")
+    assert "['u']" in warning and "own median" in warning
+    assert unknown_speakers_warning(view, db, "own") == []
 
 
 def test_an_utterance_in_the_database_finds_itself(phrases, plain_database, take_pitch):

@@ -165,10 +165,11 @@ class TrellisParams(Stage.Params):
         description="pitch unit of P_d and G_d: semitones relative to the speaker's median, those divided by the "
         "speaker's spread (z-scores per speaker), or Hz",
     )
-    test_speaker: Literal["own", "database"] = Field(
-        "database",
-        description="reference of the test's pitch: its own speaker's median (from the test takes), or that "
-        "speaker's median in the database (the test's speaker label, or the database's only speaker)",
+    test_speaker: Literal["auto", "own", "database"] = Field(
+        "auto",
+        description="reference of the test's pitch: that speaker's median in the database (the test's speaker "
+        "label, or the database's only speaker), or its own speaker's median (from the test takes); auto: the "
+        "database's where it knows the speaker, else its own, with a warning; database: an error where it does not",
     )
     contour_length: int | None = Field(None, ge=2, description="None: the database's mean voiced length in frames")
     boundary_window: float = Field(0.1, gt=0, description="seconds either side for P, V, A at segment boundaries")
@@ -249,14 +250,29 @@ def reference_for_test(test_view, db: Database, test_speaker: str) -> tuple[Spea
     speakers = list(test_view.meta.get("speakers") or [None] * len(own.median))
     found = [db.speaker_reference(s) for s in speakers]
     missing = [s for s, f in zip(speakers, found) if f is None]
-    if missing:
+    if missing and test_speaker == "database":
+        named = "an unlabelled test take" if missing[0] is None else f"test speaker '{missing[0]}'"
         raise UserError(
-            f"test speaker {missing[0]!r} is not in the database, so its pitch has no database reference; set "
-            "test_speaker: own (or label the test take with a database speaker)",
+            f"{named} is not in the database, so its pitch has no database reference; set test_speaker: own or "
+            "auto (or label the test take with a database speaker)",
             field="params.test_speaker",
         )
+    found = [f if f is not None else (m, v) for f, m, v in zip(found, own.median, own.spread)]  # auto: its own
     reference = SpeakerReference(np.array([f[0] for f in found]), np.array([f[1] for f in found]))
     return reference, semitones(own.median, reference.median)
+
+
+def unknown_speakers_warning(test_view, db: Database, test_speaker: str) -> list[str]:
+    """The warning of ``test_speaker: auto`` when a test take's speaker is not in the database."""
+    labels = list(test_view.meta.get("labels") or [])
+    speakers = list(test_view.meta.get("speakers") or [None] * len(labels))
+    strangers = [label for label, s in zip(labels, speakers) if db.speaker_reference(s) is None]
+    if test_speaker != "auto" or not strangers:
+        return []
+    return [
+        f"the database does not know the speaker of {strangers} (unlabelled, or a speaker it holds no takes of): "
+        "their pitch is measured against their own median (test_speaker: own for them)"
+    ]
 
 
 def allowed_sequences(db: Database, params, test_source: str, test_speaker: str | None, label: str) -> np.ndarray:
@@ -333,7 +349,9 @@ def search(db: Database, test_view, params, length: int, db_meta: dict) -> Resul
         "phrases_searched": [int(r.phrase_selected.sum()) for r in results],
         "excluded": excluded,
     }
-    return pack_search(test, db, results, params, meta)
+    result = pack_search(test, db, results, params, meta)
+    result.warnings.extend(unknown_speakers_warning(test_view, db, params.test_speaker))
+    return result
 
 
 def _check_named_takes(db: Database, params, test_labels: list[str]) -> None:
