@@ -517,7 +517,7 @@ def sweep_page(pipeline_name: str, sweep: dict[str, Any], metric: str | None) ->
         sweep.get("summary", []),  # sweeps recorded before summary: existed have none
     )
     columns = metric_columns(result, result.summary or None)
-    metric = metric or (columns[0] if columns else None)
+    metric = _plotted_metric(result, columns, metric)
     header, rows = results_rows(result, columns)
     table = format_table(header, rows, "md")
     body = ["<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>"]
@@ -541,6 +541,21 @@ executions for {result.unique_keys} distinct keys · {result.seconds:.2f}s</p>
 <details><summary>Markdown</summary><pre>{html.escape(table)}</pre></details>
 </body></html>
 """
+
+
+def _plotted_metric(result: SweepResult, columns: list[str], asked: str | None) -> str | None:
+    """The metric plotted against the swept parameters: the one asked for (UserError naming --metric when the
+    sweep has no such metric), else the first column whose value differs between variants, else the first."""
+    from msflow.sweep import variant_metric
+
+    if asked is not None:
+        known = sorted({f"{stage}.{m}" for v in result.variants for stage, ms in v.metrics.items() for m in ms})
+        if asked not in known:
+            raise UserError(f"the sweep has no metric '{asked}'; its metrics: {', '.join(known)}", field="--metric")
+        return asked
+    varying = [c for c in columns if len({json.dumps(variant_metric(v, c)) for v in result.variants if v.ok}) > 1]
+    chosen = varying or columns
+    return chosen[0] if chosen else None
 
 
 def metric_plots(result: SweepResult, metric: str) -> dict[str, bytes]:

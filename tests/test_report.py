@@ -162,6 +162,14 @@ def test_sweep_report_has_table_and_metric_plots(numproject, chromium, tmp_path)
     assert errors == [] and len(images) == 1 and images[0][2] > 0
 
 
+def test_a_sweep_report_of_a_metric_the_sweep_has_not_is_a_user_error(numproject, tmp_path):
+    result = run_cli(numproject, "sweep", "-S", "src.n=3,4", "-q")
+    sweep_id = re.search(r"sweep (\S+):", result.stderr).group(1)
+    made = run_cli(numproject, "report", sweep_id, "-o", tmp_path / "s.html", "--metric", "total.nope")
+    assert made.returncode == 2 and "no metric 'total.nope'" in made.stderr and "total.total" in made.stderr
+    assert not (tmp_path / "s.html").exists()
+
+
 def test_a_report_writes_nothing_outside_the_project(numproject, tmp_path):
     """matplotlib would make its configuration folder and font list in the home folder on first use; the report
     points it into the store's cache folder instead (a user's own MPLCONFIGDIR is kept)."""
