@@ -58,6 +58,8 @@ class StageFailed(Exception):
     exit_code = 1
 
     def __init__(self, stage: str, message: str, traceback: str = ""):
+        for named in (f"stage '{stage}', ", f"stage '{stage}': "):  # a result check names the stage itself
+            message = message.removeprefix(named)
         super().__init__(f"stage '{stage}' failed: {message}")
         self.stage = stage
         self.message = message

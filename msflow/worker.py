@@ -79,7 +79,7 @@ def single_threaded_blas() -> contextlib.AbstractContextManager[object]:
 
 def run_job(job_json: str) -> str:
     """Run one job (``Job`` as JSON) and return its ``Outcome`` as JSON. Never raises."""
-    from msflow.errors import CorruptArtifact, UserError
+    from msflow.errors import CorruptArtifact, StageFailed, UserError
 
     tune_malloc()  # a Dask nanny's malloc-trim default slows numpy-heavy stages 2x
     job = Job.from_json(job_json)
@@ -92,6 +92,8 @@ def run_job(job_json: str) -> str:
     except UserError as exc:
         exc.located(stage=job.stage)
         outcome = Outcome(StageStatus.FAILED, user_error=exc.to_json(), error=str(exc))
+    except StageFailed as exc:  # the stage's own error and traceback (none for a result that breaks its schema)
+        outcome = Outcome.crashed(exc.message, exc.traceback or None)
     except Exception as exc:
         outcome = Outcome.crashed(f"{type(exc).__name__}: {exc}", traceback.format_exc())
     outcome.seconds = time.perf_counter() - started

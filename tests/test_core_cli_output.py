@@ -159,3 +159,28 @@ def test_msflow_alone_shows_the_help_and_no_empty_error(numproject):
     result = run_cli(numproject)
     assert "Usage: msflow" in result.stdout and "run " in result.stdout
     assert result.returncode == 2 and "error" not in result.stderr, result.stderr
+
+
+BAD_SHAPE = """
+import numpy as np
+from msflow import Output, Result, Stage
+
+
+class Flat(Stage):
+    outputs = {"y": Output.array("f", shape=("n",))}
+
+    def run(self, params, inputs):
+        return Result({"y": np.zeros((1, 4))})
+"""
+
+
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_a_result_that_breaks_its_schema_is_said_once_without_msflows_traceback(numproject, jobs):
+    """Before: "stage 'flat' failed: StageFailed: stage 'flat' failed: stage 'flat', output 'y': ..." and two
+    chained tracebacks from msflow's worker, none of them the stage's code."""
+    (numproject / "numstages" / "flat.py").write_text(BAD_SHAPE)
+    (numproject / "flat.yaml").write_text("version: 1\nstages:\n  flat:\n    uses: numstages.flat:Flat\n")
+    result = run_cli(numproject, "run", "flat.yaml", "-j", jobs)
+    assert result.returncode == 1, result.stderr
+    assert result.stderr.count("stage 'flat'") == 1 and "output 'y'" in result.stderr, result.stderr
+    assert "StageFailed" not in result.stderr and "Traceback" not in result.stderr, result.stderr
