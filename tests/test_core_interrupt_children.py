@@ -98,7 +98,6 @@ def child_pids(folder):
     return [int(path.suffix[1:]) for path in folder.glob("child.*")]
 
 
-@pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals and process groups")
 @pytest.mark.parametrize(
     ("stage", "jobs", "signum", "to_group"),
     [

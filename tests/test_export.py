@@ -1032,7 +1032,6 @@ with _render_pool(None, 1, processes=True) as (pool, _):
 """
 
 
-@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc")
 def test_preview_render_workers_exit_when_their_parent_is_killed():
     """A render worker whose parent died without shutting the pool down (SIGKILL: the stage's worker, or msflow
     itself with -j 1) exits, instead of waiting for blocks forever holding the run's pipes."""
