@@ -112,8 +112,9 @@ class InvalidResult(TypeError, ValueError):
     failed stage without a traceback (the message names the stage and output)."""
 
 
-def display_path(path: str | os.PathLike[str]) -> str:
-    """A path as messages show it: relative to the current folder when inside it, else absolute.
+def display_path(path: str | os.PathLike[str], start: str | os.PathLike[str] | None = None, ups: int = 0) -> str:
+    """A path as messages show it: relative to the current folder (or ``start``) when inside it, or at most
+    ``ups`` folders above it (``../eval/face.yaml``), else absolute: a climb of several '..' is hard to read.
 
     >>> display_path(os.path.join(os.getcwd(), "pipeline.yaml"))
     'pipeline.yaml'
@@ -123,10 +124,10 @@ def display_path(path: str | os.PathLike[str]) -> str:
         return text
     absolute = os.path.abspath(text)
     try:
-        relative = os.path.relpath(absolute)
+        relative = os.path.relpath(absolute, start)
     except ValueError:  # another drive
         return absolute
-    return absolute if relative.startswith("..") else relative
+    return absolute if relative.split(os.sep).count("..") > ups else relative
 
 
 #: the member tags pydantic puts into error locations of union-typed fields: "int", "literal['a','b']",

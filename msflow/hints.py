@@ -7,9 +7,10 @@ looked at, so a hint costs a few directory listings, and only when there already
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
+
+from msflow.errors import display_path
 
 #: YAML files larger than this are data, not pipelines: not parsed for a hint
 MAX_PIPELINE_BYTES = 1_000_000
@@ -24,11 +25,6 @@ def _pipeline_folders(root: Path) -> list[Path]:
     return [root, *below]
 
 
-def _as_typed(path: Path) -> str:
-    """``path`` as the user would type it from where they are (``pipelines/capture.yaml``, ``../eval/x.yaml``)."""
-    return os.path.relpath(path)
-
-
 def same_name_in_project(name: str, root: Path, missing: Path) -> str:
     """A hint naming the project's files called ``name`` (the file ``missing`` was not found), or ""."""
     found = [
@@ -38,7 +34,7 @@ def same_name_in_project(name: str, root: Path, missing: Path) -> str:
     ]
     if not found:
         return ""
-    return f"; did you mean {' or '.join(_as_typed(p) for p in found)}? (give it as the FILE argument)"
+    return f"; did you mean {' or '.join(display_path(p, ups=1) for p in found)}? (give it as the FILE argument)"
 
 
 def _declared_vars(path: Path) -> dict[Any, Any]:
@@ -67,5 +63,5 @@ def pipelines_with_variable(variable: str, root: Path, pipeline: Path) -> str:
     ]
     if not found:
         return ""
-    files = ", ".join(_as_typed(p) for p in found)
+    files = ", ".join(display_path(p, ups=1) for p in found)
     return f"; {files} {'has' if len(found) == 1 else 'have'} '{variable}' (the pipeline file you meant?)"

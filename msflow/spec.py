@@ -588,9 +588,10 @@ def _check_publish_reads_nothing(
     """No publish target is (or lies inside) a file or folder the run reads, nor is another pipeline's file or
     lock: publishing runs after the stages, so it would replace the user's clip, a pipeline file or the store's
     state without a word (``-S vars.take=../out/clip_preview.mp4`` with the preview published to that very file)."""
+    by_path = {r.path: r for r in reversed(reads)}  # the first one named wins, as a scan in order would find
     for ref, dest in targets.items():
         target = Path(dest)
-        clash = next((r for r in reads if target == r.path or r.path in target.parents), None)
+        clash = next((by_path[p] for p in (target, *target.parents) if p in by_path), None)
         other = _msflow_file(target)
         if clash is None and other is not None:
             clash = ReadPath(target, other)
@@ -835,18 +836,11 @@ def _relative_hint(base: Path, value: str, found_from_cwd: bool) -> str:
     slip on the command line (``-S vars.take=clip.mp4`` beside a pipeline in a subfolder)."""
     if Path(value).is_absolute():
         return ""
-    folder = _near_path(base.absolute(), Path.cwd())  # "." when the pipeline sits in the working directory
+    folder = display_path(base, ups=1)  # "." when the pipeline sits in the working directory
     hint = f" (paths are relative to the pipeline file's folder, {folder}"
     if found_from_cwd and folder != ".":
-        hint += f"; from there it is '{_near_path(Path(value).resolve(), base.resolve())}'"
+        hint += f"; from there it is '{display_path(Path(value).resolve(), base.resolve(), ups=1)}'"
     return hint + ")"
-
-
-def _near_path(path: Path, start: Path) -> str:
-    """``path`` relative to ``start`` when inside it or one folder up (``../data/clip.mp4``), else absolute: a
-    climb of several '..' is hard to read and easy to get wrong."""
-    relative = os.path.relpath(path, start)
-    return str(path) if Path(relative).parts.count("..") > 1 else relative
 
 
 def check_cycles(nodes: dict[str, StageNode], file: str) -> None:

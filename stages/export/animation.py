@@ -25,7 +25,6 @@ from pydantic import Field, field_validator
 from msflow import Input, Output, Result, Stage, UserError
 from stages.export.timeline import (
     align_head_motion,
-    check_clock,
     clock_frames,
     clock_positions,
     frame_clock,
@@ -138,8 +137,7 @@ def head_motion(head, params, label: str | None, frames: int, fps: float, out_fp
         raise UserError(f"the head motion has no usable meta fps (got {head_fps!r})", field="inputs.head")
     rotation, translation = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
     rotation, translation, eased = ease_held_head(head, head_label, rotation, translation, head_fps, params)
-    clock = frame_clock(times, float(head_fps))  # a tracked head's frame times
-    check_clock(clock, "inputs.head")
+    clock = frame_clock(times, float(head_fps), "inputs.head")  # a tracked head's frame times
     if clock is None:
         rotation, translation, info = align_head_motion(
             rotation,
@@ -187,9 +185,8 @@ def read_performance(params, inputs, names: list[str]) -> Performance:
     clipped = float(np.mean((blend_weights < -1e-6) | (blend_weights > 1 + 1e-6)))  # of the blend's entries
     # a variable-frame-rate take (its tracking's frame times) is put on the output timeline by those times, at
     # the rate it was shot at unless params.fps says otherwise (its average rate is no camera's)
-    clocks = ((n, take_clock(inputs[n], label, len(weights), fps)) for n in CLOCKS)
+    clocks = ((n, take_clock(inputs[n], label, len(weights), fps, f"inputs.{n}")) for n in CLOCKS)
     source, clock = next(((n, c) for n, c in clocks if c is not None), ("", None))
-    check_clock(clock, f"inputs.{source}")
     out_fps = float(params.fps or (fps if clock is None else nominal_rate(clock, f"inputs.{source}")))
     frames_out = clock_frames(clock, len(weights), fps, out_fps)
     position = clock_positions(clock, len(weights), fps, frames_out, out_fps)

@@ -47,14 +47,16 @@ def sample_positions(frames_out: int, out_fps: float, source_fps: float, source_
 VFR_TOLERANCE = 0.25
 
 
-def frame_clock(times: np.ndarray | None, fps: float) -> np.ndarray | None:
+def frame_clock(times: np.ndarray | None, fps: float, field: str | None = None) -> np.ndarray | None:
     """A take's frame times (seconds from its first frame) when they are not a constant rate's, else None (rows
-    are then at i / fps, as ``sample_positions`` has them)."""
+    are then at i / fps, as ``sample_positions`` has them). UserError naming ``field`` (the input the times came
+    from) when they do not increase (``check_clock``)."""
     if times is None or len(times) < 2:
         return None
     clock = np.asarray(times, np.float64) - float(times[0])
     if np.abs(clock - np.arange(len(clock)) / fps).max() <= VFR_TOLERANCE / fps:
         return None
+    check_clock(clock, field)
     return clock
 
 
@@ -62,7 +64,7 @@ def frame_clock(times: np.ndarray | None, fps: float) -> np.ndarray | None:
 STANDARD_RATES = (23.976, 24.0, 25.0, 29.97, 30.0, 48.0, 50.0, 59.94, 60.0)
 
 
-def check_clock(clock: np.ndarray | None, field: str) -> None:
+def check_clock(clock: np.ndarray | None, field: str | None) -> None:
     """Refuse frame times that do not increase from frame to frame: they give no rate to export at and no order
     to sample the rows by (a video re-encoded without timestamps, tracked before such files were re-timed)."""
     if clock is not None and not bool(np.all(np.diff(clock) > 0)):
@@ -102,9 +104,9 @@ def clock_positions(clock: np.ndarray | None, rows: int, fps: float, frames_out:
     return np.interp(np.arange(frames_out) / out_fps, clock, np.arange(rows, dtype=np.float64))
 
 
-def take_clock(view, label: str | None, rows: int, fps: float) -> np.ndarray | None:
-    """The ``frame_clock`` of take ``label`` of a tracking artifact (its ``time`` output), when it has that take
-    with ``rows`` frames; None otherwise (no clock: rows at a constant rate)."""
+def take_clock(view, label: str | None, rows: int, fps: float, field: str | None = None) -> np.ndarray | None:
+    """The ``frame_clock`` of take ``label`` of a tracking artifact (its ``time`` output, the input ``field``),
+    when it has that take with ``rows`` frames; None otherwise (no clock: rows at a constant rate)."""
     if view is None or "time" not in view:
         return None
     labels = list(view.meta.get("labels") or [])
@@ -115,7 +117,7 @@ def take_clock(view, label: str | None, rows: int, fps: float) -> np.ndarray | N
         times = np.asarray(view["time"])[np.asarray(view["sequence"]) == labels.index(label)]
     else:
         times = np.asarray(view["time"])
-    return frame_clock(times, fps) if len(times) == rows else None
+    return frame_clock(times, fps, field) if len(times) == rows else None
 
 
 def sample_linear(values: np.ndarray, position: np.ndarray) -> np.ndarray:
@@ -357,7 +359,6 @@ def performer_rows(
         rows = np.flatnonzero(np.asarray(view["sequence"]) == index)
     else:
         rows = np.arange(len(view.lazy("crops")))
-    clock = frame_clock(np.asarray(view["time"])[rows], fps) if "time" in view else None
-    check_clock(clock, "inputs.performer")
+    clock = frame_clock(np.asarray(view["time"])[rows], fps, "inputs.performer") if "time" in view else None
     position = clock_positions(clock, len(rows), fps, frames_out, out_fps)
     return rows[np.floor(position + 1e-9).astype(int)], label

@@ -403,14 +403,7 @@ class KeymorphFit(_KeymorphStage):
         if placed:
             meta["fit"]["regions_by_motion"] = placed
         result = self._common(params, inputs, prepared, weights, yaml_text, metrics, meta)
-        if placed:
-            counts = ", ".join(f"{r} {list(placed.values()).count(r)}" for r in dict.fromkeys(placed.values()))
-            result.warnings.append(
-                f"no morph of the character is named as the fit regions expect (jaw*, mouth*, eyeBlink*, brow*, "
-                f"...): {len(placed)} of its {len(names)} morphs placed by the landmarks they move ({counts}; "
-                "meta fit.regions_by_motion); name them in keymorphs.regions[].morphs to choose, and map them to "
-                "ARKit columns with export.arkit_aliases"
-            )
+        result.warnings += _placement_warnings(placed, len(names))
         return result
 
     @staticmethod
@@ -481,6 +474,19 @@ def fit_3d(params: KeymorphFitParams, rig3d: Rig3D, deformation: np.ndarray, nam
         l1_scaling=params.l1_scaling,
         **regularisers(params),
     )
+
+
+def _placement_warnings(placed: dict[str, str], morphs: int) -> list[str]:
+    """The warning of a character whose morphs ``regions_by_motion`` placed ({morph: region}); [] when none."""
+    if not placed:
+        return []
+    counts = ", ".join(f"{r} {list(placed.values()).count(r)}" for r in dict.fromkeys(placed.values()))
+    return [
+        f"no morph of the character is named as the fit regions expect (jaw*, mouth*, eyeBlink*, brow*, ...): "
+        f"{len(placed)} of its {morphs} morphs placed by the landmarks they move ({counts}; meta "
+        "fit.regions_by_motion); name them in keymorphs.regions[].morphs to choose, and map them to ARKit columns "
+        "with export.arkit_aliases"
+    ]
 
 
 class KeymorphFile(_KeymorphStage):

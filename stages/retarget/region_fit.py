@@ -97,9 +97,7 @@ def regions_by_motion(
     with one morph named as the patterns expect keeps the regions as given: its names are the user's to map.
 
     Returns the regions and {morph: region name} of the morphs placed (empty when none was)."""
-    named = np.zeros(len(names), dtype=bool)
-    for region in regions:
-        named |= matching_any_case(names, region.morphs)
+    named = names_matching(names, [pattern for region in regions for pattern in region.morphs])
     if (named & ~excluded).any():
         return list(regions), {}
     points = deltas.shape[1]
