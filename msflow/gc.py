@@ -21,6 +21,19 @@ def referenced_keys(store: Store, keep_runs: int) -> set[str]:
     return keys
 
 
+def parts_of(store: Store, keys: set[str]) -> set[str]:
+    """The parts (msflow.parts) the artifacts of ``keys`` were built from: kept as long as those are."""
+    from msflow.parts import parts_named
+
+    found: set[str] = set()
+    for key in keys:
+        try:
+            found.update(parts_named(store.manifest(key)))
+        except Exception:  # missing or corrupt: it names nothing to keep
+            continue
+    return found
+
+
 def figure_of(store: Store, key: str, keep: set[str]) -> bool:
     """Whether ``key`` is a cached report figure of a kept stage artifact (figures name their stage's key)."""
     try:
@@ -40,6 +53,7 @@ def collect_garbage(store: Store, *, keep_runs: int = 10, dry_run: bool = False)
 
 def _collect(store: Store, *, keep_runs: int, dry_run: bool) -> dict[str, Any]:
     keep = referenced_keys(store, keep_runs)
+    keep |= parts_of(store, keep)
     doomed = [k for k in store.keys() if k not in keep and not figure_of(store, k, keep)]
     freed = sum(store.size(k) for k in doomed)
     tmp: list[str] = []

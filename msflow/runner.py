@@ -170,6 +170,13 @@ def stage_key(
     return parts, json_hash(parts), job_inputs, provenance
 
 
+def parts_detail(manifest: dict[str, Any] | None) -> str:
+    """'2 of 3 parts reused' for a stage that found some of its parts (msflow.parts) computed by earlier runs."""
+    parts = (manifest or {}).get("parts") or {}
+    reused, total = len(parts.get("reused", [])), len(parts.get("keys", {}))
+    return f"{reused} of {total} parts reused" if reused else ""
+
+
 class Runner:
     """Runs the selected stages of a resolved pipeline on an executor, reporting state changes.
 
@@ -285,6 +292,8 @@ class Runner:
             state.detail = f"attempt {outcome.attempts}: {outcome.attempts - 1} worker(s) lost mid-stage"
         if outcome.status.done:
             state.manifest = outcome.manifest
+            if outcome.status is StageStatus.RAN and not state.detail:
+                state.detail = parts_detail(outcome.manifest)
             if outcome.concurrent:
                 state.detail = "computed by a concurrent run"
             elif outcome.status is StageStatus.CACHED and not state.detail and state.checked:

@@ -268,12 +268,13 @@ class Stage:
     #: are hashed by content into the cache key like inputs, so replacing a model file reruns the stage.
     resources: ClassVar[Mapping[str, Any]] = {}
 
-    def __init__(self, name: str = "", *, jobs: int = 1, chunk_target: Any = None):
+    def __init__(self, name: str = "", *, jobs: int = 1, chunk_target: Any = None, parts: Any = None):
         self.name = name or type(self).__name__
         #: the run's worker count (``msflow run -j N``), for parallelism inside ``run`` (threads over blocks of
         #: frames, a process pool). It is not part of the cache key: results must not depend on it.
         self.jobs = max(1, int(jobs))
         self._chunk_target = chunk_target  # where output sinks write chunks (the artifact being written)
+        self._parts = parts  # where parts are kept (msflow.parts.StoreParts in a store run)
         self._sinks: dict[str, Any] = {}
 
     def run(self, params: Any, inputs: dict[str, Any]) -> Result:  # pragma: no cover - abstract
@@ -299,6 +300,36 @@ class Stage:
         check_output(f"stage '{self.name}', output '{name}'", spec, sink.dtype, (0, *sink.row_shape), frames=False)
         self._sinks[name] = sink
         return sink
+
+    def part(
+        self,
+        label: str,
+        make: Callable[[Any], Result],
+        *,
+        labelled: tuple[str, ...],
+        whole: tuple[str, ...] = (),
+    ) -> Any:
+        """A piece of the result that depends on one label only, stored and reused on its own (``msflow.parts``).
+
+        ``make(sink)`` computes it and returns a ``Result`` (arrays or sinks from ``sink(name, dtype=...,
+        row_shape=...)``, strict-JSON meta; no schema). Its key hashes the stage's class, code, params and
+        resources, the entry under ``label`` of each ``labelled`` files input and each ``whole`` input: ``make``
+        must read nothing else (not other labels, not the label's name). Returns a ``msflow.parts.Part``: arrays
+        (lazy when stored), meta, and ``reused`` (found computed by an earlier run).
+        """
+        from msflow.parts import InMemoryParts, check_part_inputs
+
+        check_part_inputs(type(self).inputs, tuple(labelled), tuple(whole))
+        where = f"stage '{self.name}', part '{label}'"
+
+        def checked(sink: Any) -> tuple[Mapping[str, Any], dict[str, Any]]:
+            result = make(sink)
+            if not isinstance(result, Result):
+                raise TypeError(f"{where}: its function returned {type(result).__name__}, expected msflow.Result")
+            return result.arrays, to_strict_json(result.meta, f"{where} meta")
+
+        source = self._parts if self._parts is not None else InMemoryParts()
+        return source.get(label, checked, tuple(labelled), tuple(whole))
 
     @property
     def sinks(self) -> dict[str, Any]:

@@ -183,6 +183,7 @@ def compute(
     *,
     jobs: int = 1,
     chunk_target: Any = None,
+    parts: Any = None,
     pin_blas: bool = True,
 ) -> Computed:
     """Run a stage and validate what it returns: the one execution path of the runner's workers and of
@@ -192,7 +193,7 @@ def compute(
     from msflow.errors import InvalidResult
     from msflow.stage import to_strict_json, validate_result
 
-    stage = cls(name, jobs=jobs, chunk_target=chunk_target)
+    stage = cls(name, jobs=jobs, chunk_target=chunk_target, parts=parts)
     started = time.perf_counter()
     with (
         single_threaded_blas() if pin_blas else contextlib.nullcontext(),
@@ -218,14 +219,16 @@ def execute(job: Job, store: Store, writer: ArtifactWriter, root: str) -> Outcom
     """Import the stage class (from ``root``), open its inputs, compute, and commit the artifact through
     ``writer``."""
     from msflow.errors import CorruptArtifact, InvalidResult, StageFailed, UserError
+    from msflow.parts import StoreParts
     from msflow.plan import import_stage_class
 
     cls = import_stage_class(job.uses, stage=job.stage, root=root)
     params = cls.Params(**job.params)
     inputs = open_inputs(job.inputs, store, job)
+    parts = StoreParts(store, job.key_parts, job.stage, job.force) if job.key_parts is not None else None
     cpu = cpu_time()
     try:
-        done = compute(cls, job.stage, params, inputs, jobs=job.jobs, chunk_target=writer)
+        done = compute(cls, job.stage, params, inputs, jobs=job.jobs, chunk_target=writer, parts=parts)
     except (UserError, CorruptArtifact):
         raise
     except InvalidResult as exc:
@@ -244,6 +247,8 @@ def execute(job: Job, store: Store, writer: ArtifactWriter, root: str) -> Outcom
     }
     if done.warnings:
         extra["warnings"] = done.warnings
+    if parts is not None and parts.used:  # the parts it was built from: gc keeps them with it
+        extra["parts"] = {"keys": parts.used, "reused": parts.reused}
     cpu = cpu_time() - cpu
     # how long it took is kept beside the content (msflow show), outside every hash and key
     extra.update(compute_seconds=round(done.seconds, 6), cpu_seconds=round(cpu, 6))

@@ -4,7 +4,7 @@ schema (TRACKING_OUTPUTS), swappable with ``uses:``."""
 from __future__ import annotations
 
 from contextlib import contextmanager
-from functools import lru_cache
+from functools import lru_cache, partial
 from pathlib import Path
 from typing import Literal
 
@@ -29,6 +29,7 @@ from stages.tracking.eyes import REST_OFFSETS
 from stages.tracking.figures import FIGURES
 from stages.tracking.gaps import apply_plan, fill_gaps, gap_plan
 from stages.tracking.landmarks68 import mesh_to_ibug68
+from stages.tracking.parts import take_from_part, take_part
 from stages.tracking.schema import TRACKING_OUTPUTS
 from stages.tracking.takes import AudioSource, audio_sources, labels_fields, preflight_audio
 from stages.tracking.video import VideoInfo, iter_planes, probe_video
@@ -218,13 +219,22 @@ class FaceMesh(Stage):
         audio = audio_sources(videos, inputs.get("audio"), params)
         preflight_audio(audio, video_durations(videos), params)
         face3d, face3d_name = resolve_face3d(inputs.get("face3d"))
-        tracker = new_tracker(params, inputs.get("models"))
         outputs, jobs = FrameOutputs(self.sink, TRACKING_OUTPUTS), stage_jobs(self)
+        trackers: list = []  # the models load once, and only when some take is not stored yet
+
+        def track(label: str, path: Path, sink) -> Result:
+            if not trackers:
+                trackers.append(new_tracker(params, inputs.get("models")))
+            part_outputs = FrameOutputs(sink, TRACKING_OUTPUTS)
+            take = track_facemesh_take(trackers[0], label, path, params, face3d, part_outputs, None, jobs)
+            return take_part(take, part_outputs)
+
+        takes = []
         with cv_threads(jobs):
-            takes = [
-                track_facemesh_take(tracker, label, Path(path), params, face3d, outputs, audio[label], jobs)
-                for label, path in videos.items()
-            ]
+            for label, path in videos.items():
+                make = partial(track, label, Path(path))
+                part = self.part(label, make, labelled=("videos",), whole=("face3d", "models"))
+                takes.append(take_from_part(part, outputs, label, Path(path), f"inputs.videos.{label}", audio[label]))
         fields = labels_fields(videos, inputs.get("audio"))
         extra = {"landmark_model": params.model, "eye_model": params.eyes}
         return assemble(takes, outputs, params, face3d_name, "FaceMesh", extra_meta=extra, fields=fields)
