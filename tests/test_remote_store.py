@@ -928,3 +928,31 @@ def test_an_output_sinks_chunks_wait_for_the_pack_while_small_and_stream_beyond_
         assert (names == {PACK_NAME}) == packed and bool(store._marker(key).get("pack")) == packed, names
         view = store._view(key, store._marker(key), cached=False)
         assert np.array_equal(view["frames"], rows) and store.verify(key) == []
+
+
+def test_parts_on_s3_are_reused_verified_and_kept_by_gc(numproject, tmp_path, s3, monkeypatch):
+    log = tmp_path / "exec.log"
+    monkeypatch.setenv("NUMSTAGES_LOG", str(log))
+    bucket = s3.bucket()
+    on_s3(numproject, s3, bucket, files=("parts.yaml",))
+    (numproject / "takes").mkdir()
+    for name, values in {"a": "1\n2\n", "b": "3\n"}.items():
+        (numproject / "takes" / f"{name}.txt").write_text(values)
+    first = msflow.run(numproject / "parts.yaml")
+    store = s3.store(bucket, "num")
+    part_a = first.states["per_take"].manifest["parts"]["keys"]["a.txt"]
+    damage_chunk(store, part_a)
+    (numproject / "takes" / "c.txt").write_text("4\n")
+    log.unlink()
+    second = msflow.run(numproject / "parts.yaml")
+    parts = second.states["per_take"].manifest["parts"]
+    assert parts["reused"] == ["b.txt"]  # a's part was damaged: set aside and computed again
+    assert sorted(line.split()[1] for line in log.read_text().splitlines() if line.startswith("part ")) == [
+        "a.txt",
+        "c.txt",
+    ]
+    np.testing.assert_array_equal(second.load("per_take.values"), [1, 2, 3, 4])
+    from msflow.gc import collect_garbage
+
+    collect_garbage(store, keep_runs=1)
+    assert all(store.has(key) for key in parts["keys"].values())
