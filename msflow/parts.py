@@ -19,6 +19,7 @@ import time
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from functools import partial
 from typing import TYPE_CHECKING, Any, Protocol
 
 from msflow.hashing import json_hash
@@ -111,13 +112,16 @@ class StoreParts:
     key_parts: Mapping[str, Any]
     stage: str
     force: bool = False  #: ``msflow run --force STAGE``: compute every part again and replace the stored one
+    #: called with the part's label and the lock's holder when another run is computing the part
+    on_wait: Callable[[str, dict[str, Any]], None] | None = None
     used: dict[str, str] = field(default_factory=dict)  #: label -> part key, for the stage artifact's manifest
     reused: list[str] = field(default_factory=list)  #: labels whose part was found
 
     def get(self, label: str, make: MakePart, labelled: tuple[str, ...], whole: tuple[str, ...]) -> Part:
         parts = part_key_parts(self.key_parts, label, labelled, whole)
         key = json_hash(parts)
-        with self.store.lock(key):
+        waiting = None if self.on_wait is None else partial(self.on_wait, label)
+        with self.store.lock(key, on_wait=waiting):
             found = None if self.force else self._found(key, label)
             part = found or self._compute(key, parts, label, make)
         self.used[label] = key

@@ -15,6 +15,7 @@ import traceback
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -161,6 +162,11 @@ def report_waiting(stage: str, holder: dict[str, Any]) -> None:
     )
 
 
+def report_waiting_for_part(stage: str, label: str, holder: dict[str, Any]) -> None:
+    """Tell the user why a stage seems stuck on one of its parts (msflow.parts): another run is computing it."""
+    report_waiting(f"{stage}' part '{label}", holder)
+
+
 @dataclass
 class Computed:
     """A stage's validated result: outputs (numpy arrays or finished sinks), strict-JSON meta and metrics,
@@ -225,7 +231,10 @@ def execute(job: Job, store: Store, writer: ArtifactWriter, root: str) -> Outcom
     cls = import_stage_class(job.uses, stage=job.stage, root=root)
     params = cls.Params(**job.params)
     inputs = open_inputs(job.inputs, store, job)
-    parts = StoreParts(store, job.key_parts, job.stage, job.force) if job.key_parts is not None else None
+    parts = None
+    if job.key_parts is not None:
+        waiting = partial(report_waiting_for_part, job.stage)
+        parts = StoreParts(store, job.key_parts, job.stage, job.force, on_wait=waiting)
     cpu = cpu_time()
     try:
         done = compute(cls, job.stage, params, inputs, jobs=job.jobs, chunk_target=writer, parts=parts)

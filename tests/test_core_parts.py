@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import executions, run_cli
+from conftest import Hold, executions, run_cli, start_cli, wait_for_line
 
 import msflow
 from msflow.gc import collect_garbage
@@ -165,3 +165,21 @@ def test_force_computes_every_part_again(numproject, log):
     forced = msflow.run(numproject / "parts.yaml", force=("per_take",))
     assert parts_computed(log) == ["a.txt", "b.txt"]
     assert parts_manifest(forced)["reused"] == []
+
+
+def test_two_runs_needing_one_part_compute_it_once(numproject, tmp_path):
+    """Two pipelines with different stage keys share the part of one video: the second waits for the first's."""
+    log = tmp_path / "cli.log"
+    write_takes(numproject, a=[1, 2], b=[3])
+    spec = (numproject / "parts.yaml").read_text()
+    (numproject / "one.yaml").write_text(spec.replace('{glob: "takes/*.txt"}', "{first: takes/a.txt}"))
+    hold = Hold(tmp_path / "hold")
+    holder = start_cli(numproject, "run", "parts.yaml", "-q", env={**hold.env, "NUMSTAGES_LOG": str(log)})
+    assert hold.wait_ready(holder).startswith("part a.txt")
+    waiter = start_cli(numproject, "run", "one.yaml", "-q", env={"NUMSTAGES_LOG": str(log)})
+    wait_for_line(waiter, "part 'first' is being computed by another run")
+    hold.release()
+    assert holder.wait() == 0 and waiter.wait() == 0
+    assert parts_computed(log) == ["a.txt", "b.txt"]
+    one = msflow.run(numproject / "one.yaml")
+    assert one.executed == [] and parts_manifest(one)["reused"] == ["first"]

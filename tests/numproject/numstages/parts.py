@@ -1,17 +1,19 @@
 """A stage built from parts (Stage.part): each take's values are computed and stored on their own, so a run with
-one more take computes only that take's part. Each part computed logs ``part <file name>`` to NUMSTAGES_LOG."""
+one more take computes only that take's part. Each part computed logs ``part <file name>`` to NUMSTAGES_LOG, and
+holds there with NUMSTAGES_HOLD (numstages.basic.hold_if_asked)."""
 
 from functools import partial
 
 import numpy as np
 
 from msflow import Input, Output, Result, Stage, iter_blocks
-from numstages.basic import log_execution
+from numstages.basic import hold_if_asked, log_execution
 
 
 def take_values(path, scale, offset, sink):
     """One take's part: the numbers in its file, scaled and offset."""
     log_execution(f"part {path.name}")
+    hold_if_asked(f"part {path.name}")
     values = sink("values", dtype=np.float64)
     values.append(np.loadtxt(path, ndmin=1) * scale + offset)
     return Result({"values": values}, meta={"rows": len(values)})
