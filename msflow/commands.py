@@ -468,37 +468,14 @@ def compare(
     run_b: str = typer.Argument(...),
     file: Path = FILE_OPT,
 ) -> None:
-    """Differences between two runs: params, cache keys, metrics."""
+    """Differences between two runs: params and cache keys exactly, metrics within a relative tolerance of 1e-9
+    (absolute 1e-12), numbers to 6 significant digits with the change."""
+    from msflow.comparing import compare_runs
     from msflow.spec import load_pipeline
 
     store = load_pipeline(file).open_store()
-    a, b = store.read_run(run_a), store.read_run(run_b)
-    echo(f"A = {a['id']}\nB = {b['id']}")
-    for stage in sorted(set(a["stages"]) | set(b["stages"])):
-        sa, sb = a["stages"].get(stage), b["stages"].get(stage)
-        if sa is None or sb is None:
-            echo(f"{stage}: only in {'B' if sa is None else 'A'}")
-            continue
-        lines = []
-        pa = (a["config"].get(stage) or {}).get("params", {})
-        pb = (b["config"].get(stage) or {}).get("params", {})
-        for name in sorted(set(pa) | set(pb)):
-            if pa.get(name) != pb.get(name):
-                lines.append(f"  param {name}: {pa.get(name)!r} -> {pb.get(name)!r}")
-        if sa.get("key") != sb.get("key"):
-            lines.append(f"  key {str(sa.get('key'))[:12]} -> {str(sb.get('key'))[:12]}")
-        ma, mb = sa.get("metrics") or {}, sb.get("metrics") or {}
-        for name in sorted(set(ma) | set(mb)):
-            va, vb = ma.get(name), mb.get(name)
-            if va != vb:
-                delta = f" ({vb - va:+.4g})" if isinstance(va, (int, float)) and isinstance(vb, (int, float)) else ""
-                lines.append(f"  metric {name}: {va} -> {vb}{delta}")
-        if lines:
-            echo(f"{stage}:")
-            for line in lines:
-                echo(line)
-    same = [s for s in a["stages"] if s in b["stages"] and a["stages"][s].get("key") == b["stages"][s].get("key")]
-    echo(f"{len(same)} stages identical (same key)")
+    for line in compare_runs(store.read_run(run_a), store.read_run(run_b)):
+        echo(line)
 
 
 # ---------------------------------------------------------------------------------------------------------- report

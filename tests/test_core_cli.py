@@ -1,4 +1,4 @@
-"""The inspection commands: status, why, dag, show, export, gc; publish; the Python API."""
+"""The inspection commands: status, why, dag, show, export, compare, gc; publish; the Python API."""
 
 import json
 
@@ -107,6 +107,26 @@ def test_a_run_id_that_matches_no_run_or_several_says_what_to_do(numproject):
     assert none.returncode == 2 and "no run matches 'nope'; `msflow runs` lists them" in none.stderr, none.stderr
     year = run_cli(numproject, "compare", "2", "2")
     assert year.returncode == 2 and "'2' matches 2 runs (" in year.stderr and "give more of the id" in year.stderr
+
+
+def test_compare_takes_metrics_equal_to_the_last_bits_as_equal_and_prints_numbers_compactly(numproject):
+    """Run A sums the table 0.1 + 0.2, run B reads 0.3, run C 0.1234567891234 (src.n=1: the total is the table's
+    sum). A and B differ in keys but their totals only in the last bit (0.30000000000000004 against 0.3): that is
+    no metric change. A and C differ for real: said with 6 significant digits and the change."""
+    table = numproject / "data" / "table.csv"
+    ids = []
+    for content in ("0.1,0.2\n", "0.3\n", "0.1234567891234\n"):
+        table.write_text(content)
+        assert run_cli(numproject, "run", "-q", "-S", "src.n=1").returncode == 0
+        ids.append(sorted((numproject / ".msflow" / "runs").glob("*.json"))[-1].stem)
+    close = run_cli(numproject, "compare", ids[0], ids[1])
+    assert close.returncode == 0, close.stderr
+    assert "csv:\n  key " in close.stdout and "total:\n  key " in close.stdout, close.stdout  # keys: exact
+    assert "metric" not in close.stdout.split("stages identical")[0], close.stdout
+    assert "1 metric value differs only within the tolerance (rtol 1e-9, atol 1e-12)" in close.stdout
+    apart = run_cli(numproject, "compare", ids[0], ids[2])
+    assert "  metric total: 0.3 -> 0.123457 (-0.1765, -58.8%)" in apart.stdout.splitlines(), apart.stdout
+    assert "0.30000000000000004" not in apart.stdout + close.stdout and "within" not in apart.stdout
 
 
 def test_gc_keeps_recent_runs_and_drops_the_rest(numproject):
