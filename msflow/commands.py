@@ -339,23 +339,58 @@ def _count(n: int, noun: str, plural: str | None = None) -> str:
 def verify(
     file: Path = FILE_ARG, delete: bool = typer.Option(False, "--delete", help="remove corrupt artifacts")
 ) -> None:
-    """Recompute every artifact's content hashes; list corrupt ones (exit 1 if any)."""
+    """Recompute every artifact's content hashes and list the corrupt ones: exit 1 if there are any, unless
+    --delete removed them all (exit 0: a run that needs one computes it again)."""
     from msflow.spec import load_pipeline
 
     store = load_pipeline(file).open_store()
-    bad = 0
-    total = 0
+    total, corrupt = _find_corrupt(store)
+    if not corrupt:
+        echo(f"verified {_count(total, 'artifact')}: 0 corrupt")
+        return
+    found = f"verified {_count(total, 'artifact')}: {len(corrupt)} corrupt"
+    if not delete:
+        it = "it" if len(corrupt) == 1 else "them"
+        echo(f"{found}; `msflow verify --delete` removes {it} ({_recomputed(len(corrupt))})")
+        raise typer.Exit(1)
+    kept = _remove_corrupt(store, corrupt)
+    removed = [key[:12] for key in corrupt if key not in kept]
+    count = "" if not kept else f" {len(removed)}"  # "3 corrupt, removed" or "3 corrupt, 2 removed"
+    echo(f"{found},{count} removed ({', '.join(removed)}); {_recomputed(len(removed))}" if removed else found)
+    if kept:
+        echo(f"error: {_count(len(kept), 'corrupt artifact')} could not be removed", err=True)
+        raise typer.Exit(1)
+
+
+def _recomputed(count: int) -> str:
+    """What becomes of removed artifacts: only a run that needs one computes it (an old run's may never be)."""
+    return f"a run that needs {'it computes it' if count == 1 else 'one computes it'} again"
+
+
+def _find_corrupt(store: Store) -> tuple[int, list[str]]:
+    """How many artifacts the store holds, and the keys of the corrupt ones (each listed with its problems)."""
+    total, corrupt = 0, []
     for key in store.keys():
         total += 1
         problems = store.verify(key)
         if problems:
-            bad += 1
+            corrupt.append(key)
             echo(f"corrupt {key}: " + "; ".join(problems))
-            if delete:
+    return total, corrupt
+
+
+def _remove_corrupt(store: Store, keys: list[str]) -> list[str]:
+    """Remove the artifacts ``keys`` (under their locks, as gc does: a run may be waiting on one); the keys that
+    could not be removed, each said with why."""
+    failed = []
+    for key in keys:
+        try:
+            with store.lock(key):
                 store.remove(key)
-    echo(f"verified {total} artifacts: {bad} corrupt" + (" (removed)" if delete and bad else ""))
-    if bad:
-        raise typer.Exit(1)
+        except OSError as exc:
+            echo(f"error: cannot remove {key}: {exc.strerror or exc}", err=True)
+            failed.append(key)
+    return failed
 
 
 # ---------------------------------------------------------------------------------------------------------- sweeps, runs
