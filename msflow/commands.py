@@ -317,17 +317,26 @@ def gc(
     from msflow.spec import load_pipeline
 
     report = collect_garbage(load_pipeline(file).open_store(), keep_runs=keep_runs, dry_run=dry_run)
-    verb = "would remove" if dry_run else "removed"
-    damaged = report["damaged"]
-    echo(
-        f"{verb} {_count(len(report['artifacts']), 'artifact')} ({report['bytes'] / 1e6:.1f} MB), kept "
-        f"{report['kept']}, cleared {_count(len(report['tmp']), 'temporary directory', 'temporary directories')}"
-        + (
-            f", {verb} {_count(len(damaged), 'damaged artifact')} set aside ({report['damaged_bytes'] / 1e6:.1f} MB)"
-            if damaged
-            else ""
+    remove, keep = ("would remove", "would keep") if dry_run else ("removed", "kept")
+    parts = [
+        f"{remove} {_count(len(report['artifacts']), 'artifact')} ({_size(report['bytes'])}{'' if dry_run else ' freed'})",
+        f"{keep} {_count(report['kept'], 'artifact')}",
+    ]
+    if not dry_run:  # a dry run clears nothing and does not look for them
+        parts.append(f"cleared {_count(len(report['tmp']), 'temporary directory', 'temporary directories')}")
+    if report["damaged"]:
+        parts.append(
+            f"{remove} {_count(len(report['damaged']), 'damaged artifact')} set aside ({_size(report['damaged_bytes'])})"
         )
-    )
+    echo(", ".join(parts))
+
+
+def _size(n: int) -> str:
+    """Bytes as people read them: ``512 B``, ``12.3 kB``, ``4.5 MB``, ``1.2 GB`` (powers of 1000, as disks count)."""
+    for unit, scale in (("GB", 10**9), ("MB", 10**6), ("kB", 10**3)):
+        if n >= scale:
+            return f"{n / scale:.1f} {unit}"
+    return f"{n} B"
 
 
 def _count(n: int, noun: str, plural: str | None = None) -> str:

@@ -1,6 +1,8 @@
 """The inspection commands: status, why, dag, show, export, compare, gc; publish; the Python API."""
 
 import json
+import re
+import shutil
 
 import numpy as np
 import pytest
@@ -144,6 +146,45 @@ def test_gc_keeps_recent_runs_and_drops_the_rest(numproject):
     assert latest.executed == []  # the newest run's artifacts were kept
     older = msflow.run(numproject / "pipeline.yaml", overrides=["src.n=3"])
     assert "src" in older.executed
+
+
+def folder_bytes(folder):
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
+
+
+def said_bytes(text):
+    """The bytes a size as gc prints it stands for (``12.3 kB``), and the rounding it allows."""
+    value, unit = re.search(r"\(([\d.]+) (B|kB|MB|GB)", text).groups()
+    scale = {"B": 1, "kB": 1e3, "MB": 1e6, "GB": 1e9}[unit]
+    return float(value) * scale, 0.05 * scale
+
+
+def test_gc_counts_the_artifacts_the_store_holds_and_the_bytes_it_freed(numproject):
+    """The newest run's total is gone from the store already (as `msflow verify --delete` leaves it): gc counts
+    the artifacts it keeps in the store, not the keys the runs it keeps name, and the bytes of what it removed."""
+    for n in (3, 4, 5):
+        assert run_cli(numproject, "run", "-q", "-S", f"src.n={n}").returncode == 0
+    newest = sorted((numproject / ".msflow" / "runs").glob("*.json"))[-1]
+    key = json.loads(newest.read_text())["stages"]["total"]["key"]
+    artifacts = numproject / ".msflow" / "artifacts"
+    shutil.rmtree(artifacts / key[:2] / key)
+    before = {p.name: folder_bytes(p) for p in artifacts.glob("*/*")}
+
+    dry = run_cli(numproject, "gc", "--keep-runs", "1", "--dry-run")
+    assert {p.name for p in artifacts.glob("*/*")} == set(before)
+    done = run_cli(numproject, "gc", "--keep-runs", "1")
+    assert done.returncode == 0, done.stderr
+    after = {p.name for p in artifacts.glob("*/*")}
+    removed = set(before) - after
+    assert len(after) == 4 and len(removed) == len(before) - 4  # src, scaled, sign, csv of the newest run
+    said = f"removed {len(removed)} artifacts ("
+    assert done.stdout.startswith(said) and f"kept {len(after)} artifacts, cleared 0" in done.stdout, done.stdout
+    shown, rounding = said_bytes(done.stdout)
+    assert abs(shown - sum(before[k] for k in removed)) <= rounding and "freed" in done.stdout, done.stdout
+    size = done.stdout.split("(")[1].split(" freed")[0]  # a dry run tells the same, clearing nothing
+    assert dry.stdout == f"would remove {len(removed)} artifacts ({size}), would keep {len(after)} artifacts\n", (
+        dry.stdout
+    )
 
 
 def test_publish_materialises_outputs_after_each_run(numproject):
