@@ -284,24 +284,31 @@ def describe_array(name: str, view: ArtifactView) -> str:
 
 @app.command()
 def export(
-    target: str = typer.Argument(..., help="STAGE.output"),
-    dest: Path = typer.Argument(...),
+    target: str = typer.Argument(
+        ..., help="STAGE.output, or STAGE: its only output, or all its outputs into a .npz file"
+    ),
+    dest: Path = typer.Argument(..., help="file to write: .npy, .npz, .csv, .json, or a file output's own suffix"),
     file: Path = FILE_OPT,
     overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
 ) -> None:
-    """Write one output to a file: .npy, .npz, .csv, .json, or a file output's own bytes (GLB, MP4, ...)."""
-    from msflow.exporting import export_output
+    """Write an output to a file: .npy, .npz, .csv, .json, or a file output's own bytes (GLB, MP4, ...). STAGE
+    alone writes the stage's only output, or every output of a stage of several into one .npz."""
+    from msflow.exporting import export_output, export_outputs
     from msflow.inspect import resolve_artifact_key
     from msflow.session import open_session
 
     stage, _, output = target.partition(".")
-    if not output:
-        raise UserError(f"'{target}' names no output: write STAGE.output", field="STAGE.output")
     session = open_session(file, tuple(overrides or ()))
     key, origin = resolve_artifact_key(session, stage)
-    export_output(session.store.open(key), output, dest)
+    view = session.store.open(key)
+    if output:
+        export_output(view, output, dest)
+        written = [output]
+    else:
+        written = export_outputs(view, stage, dest)
     session.save_memo()
-    echo(f"wrote {dest} ({stage}.{output}, {origin})", err=True)
+    what = f"{stage}.{written[0]}" if len(written) == 1 else f"the {len(written)} outputs of {stage}"
+    echo(f"wrote {dest} ({what}, {origin})", err=True)
 
 
 # ---------------------------------------------------------------------------------------------------------- gc / verify

@@ -102,6 +102,42 @@ def test_export_unknown_format_is_a_user_error(numproject):
     assert result.returncode == 2 and "unsupported export format" in result.stderr
 
 
+def test_export_of_a_stage_writes_its_only_output_or_all_of_several_into_a_npz(numproject, tmp_path):
+    """`export STAGE FILE`: src has one output, written in any format; slow has two, written together into a
+    .npz; any other file for slow is an error that lists its outputs and shows STAGE.OUTPUT."""
+    assert run_cli(numproject, "run", "-q").returncode == 0
+    one = run_cli(numproject, "export", "src", tmp_path / "x.csv")
+    assert one.returncode == 0 and "(src.x, current)" in one.stderr, one.stderr
+    assert one.stdout == "" and (tmp_path / "x.csv").read_text().splitlines() == ["x", "0", "1", "2", "3", "4", "5"]
+    (numproject / "two.yaml").write_text("version: 1\nstages:\n  slow:\n    uses: numstages.basic:Slow\n"
+                                         "    params: {size: 5}\n")  # fmt: skip
+    made = msflow.run(numproject / "two.yaml")
+    both = run_cli(numproject, "export", "slow", tmp_path / "s.npz", "-f", "two.yaml")
+    assert both.returncode == 0 and "(the 2 outputs of slow, current)" in both.stderr, both.stderr
+    with np.load(tmp_path / "s.npz", allow_pickle=False) as saved:
+        assert sorted(saved) == ["big", "small"]
+        assert all(np.array_equal(saved[name], made.load(f"slow.{name}")) for name in saved)
+    csv = run_cli(numproject, "export", "slow", tmp_path / "s.csv", "-f", "two.yaml")
+    expected = (
+        "error: field 'STAGE.output': stage 'slow' has 2 outputs (big, small): write STAGE.OUTPUT (e.g. slow.big), "
+        "or give a .npz file to hold them all\n"
+    )
+    assert csv.returncode == 2 and csv.stderr == expected and not (tmp_path / "s.csv").exists(), csv.stderr
+
+
+def test_a_stage_with_file_outputs_is_never_exported_whole_into_a_npz(tmp_path):
+    """A file output holds a file of its own format (GLB, MP4): a .npz of the stage would bury it as bytes."""
+    from msflow.artifact import ArtifactView
+    from msflow.errors import UserError
+    from msflow.exporting import export_outputs
+
+    manifest = {"outputs": {"animation": {"file_suffix": ".glb"}, "weights": {}}}
+    view = ArtifactView({"animation": np.zeros(3, np.uint8), "weights": np.ones(2)}, {}, {}, manifest=manifest)
+    with pytest.raises(UserError, match=r"file outputs among them \(animation\): write STAGE.OUTPUT \(e.g. "):
+        export_outputs(view, "export", tmp_path / "all.npz")
+    assert not (tmp_path / "all.npz").exists()
+
+
 def test_a_run_id_that_matches_no_run_or_several_says_what_to_do(numproject):
     for n in (3, 4):
         assert run_cli(numproject, "run", "-q", "-S", f"src.n={n}").returncode == 0
