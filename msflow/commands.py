@@ -109,7 +109,7 @@ def run(
         )
     for warning in result.publish_warnings:
         _warn(warning)
-    _echo_summary(result.session.pipeline.summary, result.record["stages"], result.published)
+    _echo_summary(result.session.pipeline.summary, result.record["stages"], result.published, result.newly_published)
     for name, state in result.states.items():
         if state.state is StageStatus.FAILED and not state.user_error and state.traceback:
             echo(f"\n--- stage '{name}' failed; traceback (also in the run record):", err=True)
@@ -133,16 +133,17 @@ def _echo_warnings(warnings: dict[str, list[str]], states: dict[str, str]) -> No
             _warn(f"{stage}{origin}: {message}")
 
 
-def _echo_summary(patterns: tuple[str, ...], stages: dict[str, dict[str, object]], published: list[str]) -> None:
-    """The files published and the pipeline's ``summary:`` metrics on stdout (the run's result; progress and
-    warnings go to stderr)."""
-    from msflow.summary import published_line, summary_lines
+def _echo_summary(
+    patterns: tuple[str, ...], stages: dict[str, dict[str, object]], published: list[str], written: list[str]
+) -> None:
+    """The files published (``written`` by this run, or up to date) and the pipeline's ``summary:`` metrics on
+    stdout (the run's result; progress and warnings go to stderr)."""
+    from msflow.summary import published_lines, summary_lines
 
     lines, problems = summary_lines(list(patterns), stages)
     for problem in problems:
         _warn(problem)
-    files = published_line(published)
-    for line in ([files] if files else []) + lines:
+    for line in published_lines(published, written) + lines:
         echo(line)
 
 

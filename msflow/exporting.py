@@ -158,6 +158,7 @@ def publish_outputs(session: Session, states: dict[str, StageState]) -> Publicat
                 continue
             replaced = os.path.exists(dest)
             _publish_one(session, state, ref, Path(dest))
+            done.written.append(dest)
             published[dest] = [digest, stat_signature(Path(dest))]
             warning = ledger.claim(dest, ref, replaced)
             if warning:
