@@ -37,6 +37,8 @@ class RunResult:
     #: up to date), and the warnings publishing gave (a file another pipeline or entry had published, replaced)
     published: list[str] = field(default_factory=list)
     publish_warnings: list[str] = field(default_factory=list)
+    #: those of ``published`` this run wrote; the others already held the same output and were not touched
+    newly_published: list[str] = field(default_factory=list)
 
     def __repr__(self) -> str:
         counts = ", ".join(f"{v} {k}" for k, v in self.record.get("counts", {}).items() if v)
@@ -306,7 +308,9 @@ def run(
         publication = finish_run(execution)
     if not until and not force and publish_dir is None and not execution.record.get("repairs"):
         save_fast_state(execution, publication.files)  # what the next no-op `msflow run` answers from
-    result = RunResult(session, execution.states, execution.record, publication.files, publication.warnings)
+    result = RunResult(
+        session, execution.states, execution.record, publication.files, publication.warnings, publication.written
+    )
     if raise_on_failure:
         raise_for_failures(execution.states, str(session.pipeline.path))
     return result

@@ -351,8 +351,9 @@ def check_contents(manifest: dict[str, Any], lazy: Callable[[str], Any]) -> list
         for name, entry in manifest["outputs"].items():
             try:
                 got = stored_hash(manifest, lazy(name))
-            except Exception as exc:
-                problems.append(f"output '{name}': unreadable ({type(exc).__name__}: {exc})")
+            except Exception as exc:  # a CorruptArtifact's problem, without the advice its message adds
+                detail = exc.problem if isinstance(exc, CorruptArtifact) else f"{type(exc).__name__}: {exc}"
+                problems.append(f"output '{name}': unreadable ({detail.removeprefix(f'output {name!r}: ')})")
                 continue
             if got != entry["hash"]:
                 problems.append(f"output '{name}': content hash {got} != recorded {entry['hash']}")

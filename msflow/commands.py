@@ -109,7 +109,7 @@ def run(
         )
     for warning in result.publish_warnings:
         _warn(warning)
-    _echo_summary(result.session.pipeline.summary, result.record["stages"], result.published)
+    _echo_summary(result.session.pipeline.summary, result.record["stages"], result.published, result.newly_published)
     for name, state in result.states.items():
         if state.state is StageStatus.FAILED and not state.user_error and state.traceback:
             echo(f"\n--- stage '{name}' failed; traceback (also in the run record):", err=True)
@@ -133,16 +133,17 @@ def _echo_warnings(warnings: dict[str, list[str]], states: dict[str, str]) -> No
             _warn(f"{stage}{origin}: {message}")
 
 
-def _echo_summary(patterns: tuple[str, ...], stages: dict[str, dict[str, object]], published: list[str]) -> None:
-    """The files published and the pipeline's ``summary:`` metrics on stdout (the run's result; progress and
-    warnings go to stderr)."""
-    from msflow.summary import published_line, summary_lines
+def _echo_summary(
+    patterns: tuple[str, ...], stages: dict[str, dict[str, object]], published: list[str], written: list[str]
+) -> None:
+    """The files published (``written`` by this run, or up to date) and the pipeline's ``summary:`` metrics on
+    stdout (the run's result; progress and warnings go to stderr)."""
+    from msflow.summary import published_lines, summary_lines
 
     lines, problems = summary_lines(list(patterns), stages)
     for problem in problems:
         _warn(problem)
-    files = published_line(published)
-    for line in ([files] if files else []) + lines:
+    for line in published_lines(published, written) + lines:
         echo(line)
 
 
@@ -284,24 +285,31 @@ def describe_array(name: str, view: ArtifactView) -> str:
 
 @app.command()
 def export(
-    target: str = typer.Argument(..., help="STAGE.output"),
-    dest: Path = typer.Argument(...),
+    target: str = typer.Argument(
+        ..., help="STAGE.output, or STAGE: its only output, or all its outputs into a .npz file"
+    ),
+    dest: Path = typer.Argument(..., help="file to write: .npy, .npz, .csv, .json, or a file output's own suffix"),
     file: Path = FILE_OPT,
     overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
 ) -> None:
-    """Write one output to a file: .npy, .npz, .csv, .json, or a file output's own bytes (GLB, MP4, ...)."""
-    from msflow.exporting import export_output
+    """Write an output to a file: .npy, .npz, .csv, .json, or a file output's own bytes (GLB, MP4, ...). STAGE
+    alone writes the stage's only output, or every output of a stage of several into one .npz."""
+    from msflow.exporting import export_output, export_outputs
     from msflow.inspect import resolve_artifact_key
     from msflow.session import open_session
 
     stage, _, output = target.partition(".")
-    if not output:
-        raise UserError(f"'{target}' names no output: write STAGE.output", field="STAGE.output")
     session = open_session(file, tuple(overrides or ()))
     key, origin = resolve_artifact_key(session, stage)
-    export_output(session.store.open(key), output, dest)
+    view = session.store.open(key)
+    if output:
+        export_output(view, output, dest)
+        written = [output]
+    else:
+        written = export_outputs(view, stage, dest)
     session.save_memo()
-    echo(f"wrote {dest} ({stage}.{output}, {origin})", err=True)
+    what = f"{stage}.{written[0]}" if len(written) == 1 else f"the {len(written)} outputs of {stage}"
+    echo(f"wrote {dest} ({what}, {origin})", err=True)
 
 
 # ---------------------------------------------------------------------------------------------------------- gc / verify
@@ -317,17 +325,26 @@ def gc(
     from msflow.spec import load_pipeline
 
     report = collect_garbage(load_pipeline(file).open_store(), keep_runs=keep_runs, dry_run=dry_run)
-    verb = "would remove" if dry_run else "removed"
-    damaged = report["damaged"]
-    echo(
-        f"{verb} {_count(len(report['artifacts']), 'artifact')} ({report['bytes'] / 1e6:.1f} MB), kept "
-        f"{report['kept']}, cleared {_count(len(report['tmp']), 'temporary directory', 'temporary directories')}"
-        + (
-            f", {verb} {_count(len(damaged), 'damaged artifact')} set aside ({report['damaged_bytes'] / 1e6:.1f} MB)"
-            if damaged
-            else ""
+    remove, keep = ("would remove", "would keep") if dry_run else ("removed", "kept")
+    parts = [
+        f"{remove} {_count(len(report['artifacts']), 'artifact')} ({_size(report['bytes'])}{'' if dry_run else ' freed'})",
+        f"{keep} {_count(report['kept'], 'artifact')}",
+    ]
+    if not dry_run:  # a dry run clears nothing and does not look for them
+        parts.append(f"cleared {_count(len(report['tmp']), 'temporary directory', 'temporary directories')}")
+    if report["damaged"]:
+        parts.append(
+            f"{remove} {_count(len(report['damaged']), 'damaged artifact')} set aside ({_size(report['damaged_bytes'])})"
         )
-    )
+    echo(", ".join(parts))
+
+
+def _size(n: int) -> str:
+    """Bytes as people read them: ``512 B``, ``12.3 kB``, ``4.5 MB``, ``1.2 GB`` (powers of 1000, as disks count)."""
+    for unit, scale in (("GB", 10**9), ("MB", 10**6), ("kB", 10**3)):
+        if n >= scale:
+            return f"{n / scale:.1f} {unit}"
+    return f"{n} B"
 
 
 def _count(n: int, noun: str, plural: str | None = None) -> str:
@@ -339,23 +356,58 @@ def _count(n: int, noun: str, plural: str | None = None) -> str:
 def verify(
     file: Path = FILE_ARG, delete: bool = typer.Option(False, "--delete", help="remove corrupt artifacts")
 ) -> None:
-    """Recompute every artifact's content hashes; list corrupt ones (exit 1 if any)."""
+    """Recompute every artifact's content hashes and list the corrupt ones: exit 1 if there are any, unless
+    --delete removed them all (exit 0: a run that needs one computes it again)."""
     from msflow.spec import load_pipeline
 
     store = load_pipeline(file).open_store()
-    bad = 0
-    total = 0
+    total, corrupt = _find_corrupt(store)
+    if not corrupt:
+        echo(f"verified {_count(total, 'artifact')}: 0 corrupt")
+        return
+    found = f"verified {_count(total, 'artifact')}: {len(corrupt)} corrupt"
+    if not delete:
+        it = "it" if len(corrupt) == 1 else "them"
+        echo(f"{found}; `msflow verify --delete` removes {it} ({_recomputed(len(corrupt))})")
+        raise typer.Exit(1)
+    kept = _remove_corrupt(store, corrupt)
+    removed = [key[:12] for key in corrupt if key not in kept]
+    count = "" if not kept else f" {len(removed)}"  # "3 corrupt, removed" or "3 corrupt, 2 removed"
+    echo(f"{found},{count} removed ({', '.join(removed)}); {_recomputed(len(removed))}" if removed else found)
+    if kept:
+        echo(f"error: {_count(len(kept), 'corrupt artifact')} could not be removed", err=True)
+        raise typer.Exit(1)
+
+
+def _recomputed(count: int) -> str:
+    """What becomes of removed artifacts: only a run that needs one computes it (an old run's may never be)."""
+    return f"a run that needs {'it computes it' if count == 1 else 'one computes it'} again"
+
+
+def _find_corrupt(store: Store) -> tuple[int, list[str]]:
+    """How many artifacts the store holds, and the keys of the corrupt ones (each listed with its problems)."""
+    total, corrupt = 0, []
     for key in store.keys():
         total += 1
         problems = store.verify(key)
         if problems:
-            bad += 1
+            corrupt.append(key)
             echo(f"corrupt {key}: " + "; ".join(problems))
-            if delete:
+    return total, corrupt
+
+
+def _remove_corrupt(store: Store, keys: list[str]) -> list[str]:
+    """Remove the artifacts ``keys`` (under their locks, as gc does: a run may be waiting on one); the keys that
+    could not be removed, each said with why."""
+    failed = []
+    for key in keys:
+        try:
+            with store.lock(key):
                 store.remove(key)
-    echo(f"verified {total} artifacts: {bad} corrupt" + (" (removed)" if delete and bad else ""))
-    if bad:
-        raise typer.Exit(1)
+        except OSError as exc:
+            echo(f"error: cannot remove {key}: {exc.strerror or exc}", err=True)
+            failed.append(key)
+    return failed
 
 
 # ---------------------------------------------------------------------------------------------------------- sweeps, runs
@@ -468,37 +520,14 @@ def compare(
     run_b: str = typer.Argument(...),
     file: Path = FILE_OPT,
 ) -> None:
-    """Differences between two runs: params, cache keys, metrics."""
+    """Differences between two runs: params and cache keys exactly, metrics within a relative tolerance of 1e-9
+    (absolute 1e-12), numbers to 6 significant digits with the change."""
+    from msflow.comparing import compare_runs
     from msflow.spec import load_pipeline
 
     store = load_pipeline(file).open_store()
-    a, b = store.read_run(run_a), store.read_run(run_b)
-    echo(f"A = {a['id']}\nB = {b['id']}")
-    for stage in sorted(set(a["stages"]) | set(b["stages"])):
-        sa, sb = a["stages"].get(stage), b["stages"].get(stage)
-        if sa is None or sb is None:
-            echo(f"{stage}: only in {'B' if sa is None else 'A'}")
-            continue
-        lines = []
-        pa = (a["config"].get(stage) or {}).get("params", {})
-        pb = (b["config"].get(stage) or {}).get("params", {})
-        for name in sorted(set(pa) | set(pb)):
-            if pa.get(name) != pb.get(name):
-                lines.append(f"  param {name}: {pa.get(name)!r} -> {pb.get(name)!r}")
-        if sa.get("key") != sb.get("key"):
-            lines.append(f"  key {str(sa.get('key'))[:12]} -> {str(sb.get('key'))[:12]}")
-        ma, mb = sa.get("metrics") or {}, sb.get("metrics") or {}
-        for name in sorted(set(ma) | set(mb)):
-            va, vb = ma.get(name), mb.get(name)
-            if va != vb:
-                delta = f" ({vb - va:+.4g})" if isinstance(va, (int, float)) and isinstance(vb, (int, float)) else ""
-                lines.append(f"  metric {name}: {va} -> {vb}{delta}")
-        if lines:
-            echo(f"{stage}:")
-            for line in lines:
-                echo(line)
-    same = [s for s in a["stages"] if s in b["stages"] and a["stages"][s].get("key") == b["stages"][s].get("key")]
-    echo(f"{len(same)} stages identical (same key)")
+    for line in compare_runs(store.read_run(run_a), store.read_run(run_b)):
+        echo(line)
 
 
 # ---------------------------------------------------------------------------------------------------------- report

@@ -1,5 +1,5 @@
-"""Writing one artifact output to a file (``msflow export``, ``publish:``): .npy, .npz, .csv, .json, or the raw
-bytes of a file output (GLB, MP4, CSV ... produced by a stage)."""
+"""Writing an artifact's outputs to files (``msflow export``, ``publish:``): one output as .npy, .npz, .csv, .json,
+or the raw bytes of a file output (GLB, MP4, CSV ... produced by a stage); all of a stage's arrays as one .npz."""
 
 from __future__ import annotations
 
@@ -28,9 +28,45 @@ def export_output(view: ArtifactView, output: str, dest: Path, *, field: str = "
     if output not in view:
         raise UserError(f"no output '{output}'; outputs: {', '.join(view.names)}", field="STAGE.output")
     dest = Path(dest)
+    refuse_folder(dest, field)
+    write_export(dest, output_writer(view, output, dest, field), field)
+
+
+def export_outputs(view: ArtifactView, stage: str, dest: Path) -> list[str]:
+    """``msflow export STAGE FILE``: write the stage's only output to ``dest`` in the format its suffix names, or
+    all of its outputs into one .npz (one array each, named as the outputs); returns the outputs written. Any
+    other file for a stage of several outputs is an error that lists them and shows ``STAGE.OUTPUT``."""
+    import numpy as np
+
+    dest = Path(dest)
+    if len(view.names) == 1:
+        export_output(view, view.names[0], dest)
+        return list(view.names)
+    files = [n for n in view.names if view.manifest.get("outputs", {}).get(n, {}).get("file_suffix")]
+    if dest.suffix.lower() != ".npz" or files:
+        raise UserError(several_outputs(view, stage, files), field="STAGE.output")
+    refuse_folder(dest, "FILE")
+    write_export(dest, lambda fh: np.savez_compressed(fh, **{n: view[n] for n in view.names}), "FILE")
+    return list(view.names)
+
+
+def several_outputs(view: ArtifactView, stage: str, files: list[str]) -> str:
+    """The error for ``msflow export STAGE FILE`` naming no output of a stage that has several (``files``: those
+    that are file outputs, GLB or MP4 bytes of their own format, which a .npz cannot hold)."""
+    has = f"stage '{stage}' has {len(view.names)} outputs ({', '.join(view.names)})"
+    name_one = f"write STAGE.OUTPUT (e.g. {stage}.{view.names[0]})"
+    if files:
+        return f"{has}, file outputs among them ({', '.join(files)}): {name_one}"
+    return f"{has}: {name_one}, or give a .npz file to hold them all"
+
+
+def refuse_folder(dest: Path, field: str) -> None:
     if dest.is_dir():
         raise UserError("is a folder; give the file to write", file=display_path(dest), field=field)
-    writer = output_writer(view, output, dest, field)
+
+
+def write_export(dest: Path, writer: Callable[[IO[bytes]], object], field: str) -> None:
+    """Fill ``dest`` with ``writer`` atomically, its folder made; a file system's refusal is the user's to fix."""
     try:
         dest.parent.mkdir(parents=True, exist_ok=True)
         write_with(dest, writer)
@@ -122,6 +158,7 @@ def publish_outputs(session: Session, states: dict[str, StageState]) -> Publicat
                 continue
             replaced = os.path.exists(dest)
             _publish_one(session, state, ref, Path(dest))
+            done.written.append(dest)
             published[dest] = [digest, stat_signature(Path(dest))]
             warning = ledger.claim(dest, ref, replaced)
             if warning:

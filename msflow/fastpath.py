@@ -6,7 +6,7 @@ and folder of the stages' import closures, every data file and folder read (and 
 published file, and each stage artifact's manifest; plus the environment (Python, msflow's own files, the
 folders on ``sys.path``). The next ``msflow run``/``status`` with the same pipeline file and ``-S`` overrides stats
 those paths and, when every signature is equal, prints what the full path would print (each stage cached, the
-warnings of cached stages, the files published) and writes a small run record pointing at the full one.
+warnings of cached stages, the published files as up to date) and writes a small run record pointing at the full one.
 
 It imports only the standard library (no typer, pydantic, yaml, numpy or stage code). Any doubt - an option it
 does not know, a missing or unreadable state, one changed signature - hands over to the full path, which
@@ -213,10 +213,10 @@ def print_run(state: dict[str, Any], run_id: str, quiet: bool, seconds: float) -
         line = f"warning: {message}"
         print(f"\033[33m{line}\033[0m" if colour else line, file=sys.stderr)
     sys.stderr.flush()
-    from msflow.summary import published_line
+    from msflow.summary import published_lines
 
-    files = published_line(state.get("published", []))
-    for line in ([files] if files else []) + state.get("summary", []):  # as a full run prints them (msflow.summary)
+    # every published file's signature held, so none was written: all are up to date, as a full no-op says
+    for line in published_lines(state.get("published", []), []) + state.get("summary", []):
         print(line)
     sys.stdout.flush()
 

@@ -52,9 +52,14 @@ def collect_garbage(store: Store, *, keep_runs: int = 10, dry_run: bool = False)
 
 
 def _collect(store: Store, *, keep_runs: int, dry_run: bool) -> dict[str, Any]:
+    """What gc did (or, with ``dry_run``, would do): ``artifacts`` the keys removed and ``bytes`` their size,
+    ``kept`` how many artifacts stay in the store (counted there: a key a record names may be gone already, and
+    the figures and parts of kept artifacts stay too), ``tmp`` the leftovers of killed writers cleared (none in a
+    dry run, which clears nothing), ``damaged`` and ``damaged_bytes`` the artifacts set aside that were deleted."""
     keep = referenced_keys(store, keep_runs)
     keep |= parts_of(store, keep)
-    doomed = [k for k in store.keys() if k not in keep and not figure_of(store, k, keep)]
+    stored = list(store.keys())
+    doomed = [k for k in stored if k not in keep and not figure_of(store, k, keep)]
     freed = sum(store.size(k) for k in doomed)
     tmp: list[str] = []
     if not dry_run:
@@ -66,7 +71,7 @@ def _collect(store: Store, *, keep_runs: int, dry_run: bool) -> dict[str, Any]:
     return {
         "artifacts": doomed,
         "bytes": freed,
-        "kept": len(keep),
+        "kept": len(stored) - len(doomed),
         "tmp": tmp,
         "damaged": damaged,
         "damaged_bytes": damaged_bytes,

@@ -37,6 +37,8 @@ class Publication:
 
     #: the files they hold now: written by this run or already holding its output
     files: list[str] = dataclasses.field(default_factory=list)
+    #: those of ``files`` this run wrote (the others held the same output already and were left alone)
+    written: list[str] = dataclasses.field(default_factory=list)
     #: a file that another pipeline file or entry had published, replaced (``PublisherLedger.claim``)
     warnings: list[str] = dataclasses.field(default_factory=list)
 

@@ -4,7 +4,7 @@ An entry is ``stage.metric``, the metric part a shell-style pattern (``capture_e
 stage names when the pipeline is loaded; the metric names are known only once the stage has run, so a name that is
 none of them is a warning then, listing what there is (a pattern may match none: metrics that only some data
 give). ``msflow sweep`` takes the same patterns as its default columns. Before the metrics comes the line naming
-the files the run's ``publish:`` entries hold (``published_line``). Standard library only: the no-op fast path
+the files the run's ``publish:`` entries wrote and those already up to date (``published_lines``). Standard library only: the no-op fast path
 prints lines saved by a full run.
 """
 
@@ -58,7 +58,13 @@ def format_metric(value: Any) -> str:
     return text if len(text) <= 80 else text[:77] + "..."
 
 
-def published_line(files: list[str]) -> str | None:
-    """``published: out/a.glb, out/a.csv``: where the run's ``publish:`` entries put their files (relative to the
-    working folder when inside it), or None when there are none."""
-    return "published: " + ", ".join(display_path(f) for f in files) if files else None
+def published_lines(files: list[str], written: list[str]) -> list[str]:
+    """Where the run's ``publish:`` entries put their ``files`` (relative to the working folder when inside it):
+    ``published: out/a.glb`` for those the run ``written``, ``published files up to date: out/a.csv`` for those
+    that held the same output already and were left alone (all of them after a run that changed nothing)."""
+    fresh = [f for f in files if f in written]
+    kept = [f for f in files if f not in written]
+    lines = ["published: " + ", ".join(display_path(f) for f in fresh)] if fresh else []
+    if kept:
+        lines.append("published files up to date: " + ", ".join(display_path(f) for f in kept))
+    return lines

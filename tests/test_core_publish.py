@@ -96,18 +96,26 @@ def test_replacing_a_file_with_another_entry_of_the_same_pipeline_is_a_warning(n
     assert result.returncode == 0 and warning in result.stderr, result.stderr
 
 
-def test_a_run_lists_the_files_it_published_and_a_no_op_run_lists_them_too(numproject):
+def test_a_run_lists_the_files_it_wrote_as_published_and_the_others_as_up_to_date(numproject):
+    """``published:`` names only the files the run wrote; a file that held the same output already is listed as
+    up to date, all of them after a no-op (fast path and full path alike)."""
     add_publish(numproject / "pipeline.yaml", {"scaled.y": "out/y.csv", "src.x": "out/x.npy"})
     first = run_cli(numproject, "run", "-q")
     assert first.returncode == 0, first.stderr
     assert first.stdout.splitlines() == ["published: out/y.csv, out/x.npy"]
+    stamps = {p.name: p.stat().st_mtime_ns for p in (numproject / "out").iterdir()}
 
     noop = run_cli(numproject, "run", "-q")
-    assert noop.returncode == 0 and noop.stdout == first.stdout, noop.stdout
+    assert noop.returncode == 0 and noop.stdout.splitlines() == ["published files up to date: out/y.csv, out/x.npy"]
     assert newest_record(numproject)["executor"] == "none"  # answered by the fast path, from the saved state
+    full = run_cli(numproject, "run", "-q", env={"MSFLOW_FASTPATH": "0"})  # the full path says the same
+    assert full.stdout == noop.stdout, full.stdout
     elsewhere = run_cli(numproject / "out", "run", "../pipeline.yaml")  # paths relative to the working folder
-    assert elsewhere.stdout.splitlines() == ["published: y.csv, x.npy"], elsewhere.stdout
+    assert elsewhere.stdout.splitlines() == ["published files up to date: y.csv, x.npy"], elsewhere.stdout
+    assert {p.name: p.stat().st_mtime_ns for p in (numproject / "out").iterdir()} == stamps  # none was written
 
     (numproject / "out" / "y.csv").unlink()
     again = run_cli(numproject, "run", "-q", env={"MSFLOW_FASTPATH": "0"})  # the full path: republished, listed
-    assert again.stdout == first.stdout and (numproject / "out" / "y.csv").exists()
+    assert again.stdout.splitlines() == ["published: out/y.csv", "published files up to date: out/x.npy"]
+    assert (numproject / "out" / "y.csv").exists()
+    assert (numproject / "out" / "x.npy").stat().st_mtime_ns == stamps["x.npy"]

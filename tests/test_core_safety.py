@@ -188,7 +188,9 @@ def test_lock_held_by_a_killed_run_is_broken(numproject, tmp_path):
     assert "being computed by another run" not in result.stderr  # the dead holder's lock was free at once
 
 
-def test_verify_detects_a_flipped_byte_in_a_stored_chunk(numproject):
+def test_verify_detects_a_flipped_byte_and_verify_delete_removes_it_and_exits_0(numproject):
+    """Without --delete, a corrupt artifact is exit 1 and the hint to remove it; --delete removes it, says which
+    and that a run recomputes it, and exits 0: the corruption was found and dealt with."""
     assert run_cli(numproject, "run", "-q").returncode == 0
     assert run_cli(numproject, "verify").returncode == 0
     chunks = sorted(p for p in (numproject / ".msflow" / "artifacts").rglob("c/*") if p.is_file())
@@ -199,11 +201,16 @@ def test_verify_detects_a_flipped_byte_in_a_stored_chunk(numproject):
     key = victim.relative_to(numproject / ".msflow" / "artifacts").parts[1]
     result = run_cli(numproject, "verify")
     assert result.returncode == 1
-    assert f"corrupt {key}" in result.stdout and "1 corrupt" in result.stdout
+    assert f"corrupt {key}" in result.stdout and "1 corrupt; `msflow verify --delete` removes it" in result.stdout
     fixed = run_cli(numproject, "verify", "--delete")
-    assert fixed.returncode == 1 and "removed" in fixed.stdout
+    assert fixed.returncode == 0, fixed.stdout + fixed.stderr
+    removed = f"1 corrupt, removed ({key[:12]}); a run that needs it computes it again"
+    assert removed in fixed.stdout and "--delete" not in fixed.stdout + fixed.stderr, fixed.stdout
+    assert key not in {p.name for p in (numproject / ".msflow" / "artifacts").glob("*/*")}
+    assert "0 corrupt" in run_cli(numproject, "verify").stdout
     rerun = run_cli(numproject, "run", "-q")  # the removed artifact is recomputed
     assert rerun.returncode == 0
+    assert key in {p.name for p in (numproject / ".msflow" / "artifacts").glob("*/*")}
     assert run_cli(numproject, "verify").returncode == 0
 
 
