@@ -393,6 +393,7 @@ def sweep(
         scheduler=scheduler,
         connect_timeout=connect_timeout,
         reporter=reporter,
+        sort=sort,  # checked before any variant runs, its metric when the stage first finishes
     )
     # columns: --metrics, else the pipeline's summary:, else the metrics that vary
     patterns = list(_split([metrics])) if metrics else result.summary or None

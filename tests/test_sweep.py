@@ -66,6 +66,39 @@ def test_sweep_cli_table_formats_and_sort(numproject):
     assert [r["src.n"] for r in rows] == [3, 4] and "0 stage executions" in again.stderr
 
 
+def test_sweep_sort_naming_no_stage_fails_before_any_variant_runs(numproject):
+    result = run_cli(numproject, "sweep", "--grid", "sweep.yaml", "--sort", "-totl.total")
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().splitlines() == [
+        "error: field '--sort': cannot sort by 'totl.total': not a swept parameter (src.n, scaled.factor), and "
+        "unknown stage 'totl' (did you mean 'total'?); stages: ['csv', 'scaled', 'sign', 'src', 'total']"
+    ]
+    assert not (numproject / ".msflow" / "artifacts").exists()
+
+
+def test_sweep_sort_by_a_misspelt_metric_stops_when_the_stage_first_finishes(numproject, tmp_path, monkeypatch):
+    log = tmp_path / "log"
+    monkeypatch.setenv("NUMSTAGES_LOG", str(log))
+    result = run_cli(numproject, "sweep", "--grid", "sweep.yaml", "--sort", "total.totl", "-q")
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().splitlines() == [
+        "error: field '--sort': cannot sort by 'total.totl': stage 'total' gives no metric 'totl' "
+        "(did you mean 'total'?); its metrics: total"
+    ]
+    # each of the 5 variants has its own total: only the first one ran before the sweep stopped
+    assert executions(log).count("total") == 1
+    listing = run_cli(numproject, "runs").stdout
+    assert "STOPPED" in listing
+
+
+def test_sweep_sort_by_a_metric_shows_it_as_a_column(numproject):
+    result = run_cli(numproject, "sweep", "-S", "src.n=3,4", "--metrics", "csv.*", "--sort", "-total.total", "-q")
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.strip().splitlines()
+    assert lines[0].split() == ["#", "src.n", "status", "total.total"]  # csv gives no metrics
+    assert [line.split()[0] for line in lines[1:]] == ["2", "1"]
+
+
 @pytest.mark.parametrize(
     "args, fragment",
     [
