@@ -379,7 +379,14 @@ def sweep(
 ) -> None:
     """Run a grid of parameter variants; print variant parameters against stage metrics."""
     from msflow.progress import SweepReporter
-    from msflow.sweep import expand_variants, format_table, metric_columns, results_rows, run_sweep
+    from msflow.sweep import (
+        expand_variants,
+        failure_lines,
+        format_table,
+        metric_columns,
+        results_rows,
+        run_sweep,
+    )
 
     variants = expand_variants(list(values or ()), grid)
     # the pipeline is loaded once per variant, with its overrides: a default `vars:` entry (a folder of takes
@@ -399,6 +406,11 @@ def sweep(
     patterns = list(_split([metrics])) if metrics else result.summary or None
     header, rows = results_rows(result, metric_columns(result, patterns), sort)
     echo(format_table(header, rows, fmt))
+    failures = failure_lines(result) if fmt == "table" else []  # the other formats keep errors whole
+    if failures:
+        echo()
+        for line in failures:
+            echo(line)
     failed = sum(1 for v in result.variants if not v.ok)
     echo(
         f"sweep {result.sweep_id}: {len(result.variants)} variants, {result.executed} stage executions for "

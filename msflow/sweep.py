@@ -402,10 +402,39 @@ def format_table(header: list[str], rows: list[list[Any]], fmt: str) -> str:
         return "\n".join(lines)
     if fmt != "table":
         raise UserError(f"unknown format '{fmt}'; choose table, md, csv or json", field="--format")
+    if "status" in header:  # a failed variant's error would stretch its column: failure_lines has it whole
+        at = header.index("status")
+        for row in cells:
+            row[at] = shorten(row[at], STATUS_WIDTH)
     widths = [max(len(str(h)), *(len(r[i]) for r in cells)) for i, h in enumerate(header)]
     lines = ["  ".join(str(h).ljust(w) for h, w in zip(header, widths))]
     lines += ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in cells]
     return "\n".join(lines)
+
+
+#: the widest status cell of a ``table``: "failed: " and the start of the error (failure_lines prints it whole)
+STATUS_WIDTH = 48
+
+
+def shorten(text: str, width: int) -> str:
+    """``text`` on one line, cut to ``width`` characters with an ellipsis when longer.
+
+    >>> shorten("failed: RuntimeError: boom", 40), shorten("failed: a long\nerror", 12)
+    ('failed: RuntimeError: boom', 'failed: a l…')
+    """
+    line = " ".join(text.split())
+    return line if len(line) <= width else line[: width - 1] + "…"
+
+
+def failure_lines(result: SweepResult) -> list[str]:
+    """One line per failed variant, ``variant N (stage.param=value, ...): error``: the errors the ``table``
+    format cuts short, printed below it."""
+    lines = []
+    for variant in result.variants:
+        if not variant.ok:
+            described = ", ".join(f"{k}={v}" for k, v in variant.params.items())
+            lines.append(f"variant {variant.index + 1} ({described}): {' '.join(str(variant.error).split())}")
+    return lines
 
 
 def format_value(value: object, digits: int = 4) -> str:

@@ -5,7 +5,7 @@ import json
 import pytest
 from conftest import executions, run_cli
 
-from msflow.sweep import expand_variants, run_sweep
+from msflow.sweep import STATUS_WIDTH, expand_variants, run_sweep
 
 STAGES = ["src", "scaled", "sign", "csv", "total"]
 
@@ -49,6 +49,23 @@ def test_failing_variant_does_not_stop_the_others(numproject):
     assert status == {"fine": True, "crash": False, "user": False}
     crash = next(v for v in result.variants if v.params["broken.mode"] == "crash")
     assert "boom" in crash.error
+
+
+def test_sweep_table_cuts_long_errors_short_and_lists_them_whole_below(numproject):
+    result = run_cli(numproject, "sweep", "broken_sweep.yaml", "-S", "broken.mode=fine,schema,crash", "-q")
+    assert result.returncode == 1, result.stderr
+    table, below = result.stdout.split("\n\n")
+    full = "output 'y': axis 0 has size 4, expected 3 (shape (4,))"
+    rows = table.splitlines()
+    status = rows[0].index("status")
+    assert rows[2][status:].startswith("failed: output 'y': axis 0") and "…" in rows[2] and full not in table
+    assert rows[0].index("broken.score") - status == STATUS_WIDTH + 2  # the status column, and two spaces
+    assert below.splitlines() == [
+        f"variant 2 (broken.mode=schema): {full}",
+        "variant 3 (broken.mode=crash): RuntimeError: boom",
+    ]
+    csv = run_cli(numproject, "sweep", "broken_sweep.yaml", "-S", "broken.mode=fine,schema", "--format", "csv", "-q")
+    assert f"failed: {full}" in csv.stdout and "variant 2" not in csv.stdout  # whole in the cell, nothing below
 
 
 def test_sweep_cli_table_formats_and_sort(numproject):
