@@ -23,8 +23,19 @@ app = typer.Typer(
     help="msflow: cached dataflow pipelines (Mood Swings expressive speech animation).",
 )
 
-FILE_ARG = typer.Argument(Path("pipeline.yaml"), help="pipeline file", show_default=True)
-FILE_OPT = typer.Option(Path("pipeline.yaml"), "-f", "--file", help="pipeline file")
+# Every command that reads a pipeline takes its file the same way: as its last argument (FILE, as in `msflow run
+# pipeline.yaml`), or as -f/--file FILE, which some commands had before the argument and scripts still use.
+FILE_ARG = typer.Argument(None, help="pipeline file (or -f FILE)", show_default="pipeline.yaml")
+FILE_OPT = typer.Option(None, "-f", "--file", help="pipeline file, the same as the FILE argument", show_default=False)
+DEFAULT_FILE = Path("pipeline.yaml")
+
+
+def pipeline_file(argument: Path | None, option: Path | None) -> Path | None:
+    """The pipeline file given as the FILE argument or with -f/--file (None: neither); both is an error unless
+    they name the same file."""
+    if argument is not None and option is not None and argument.resolve() != option.resolve():
+        raise UserError(f"two pipeline files, {argument} and -f {option}: give one", field="FILE")
+    return argument or option
 
 
 def _print_version(asked: bool) -> None:
@@ -55,7 +66,8 @@ def _split(values: list[str] | None) -> tuple[str, ...]:
 # ---------------------------------------------------------------------------------------------------------- run
 @app.command()
 def run(
-    file: Path = FILE_ARG,
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
     until: Optional[str] = typer.Option(None, "--until", help="run only this stage and what it needs"),
     force: Optional[List[str]] = typer.Option(None, "--force", help="rerun these stages even if cached"),
     overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
@@ -73,6 +85,7 @@ def run(
     from msflow.progress import make_reporter
     from msflow.session import open_session
 
+    file = pipeline_file(file, file_option) or DEFAULT_FILE
     session = open_session(file, tuple(overrides or ()), publish_dir=publish_dir)
     reporter = make_reporter(list(session.plans), quiet)
     if reporter:
@@ -149,14 +162,15 @@ def _echo_summary(patterns: tuple[str, ...], stages: dict[str, dict[str, object]
 # ---------------------------------------------------------------------------------------------------------- status / why
 @app.command()
 def status(
-    file: Path = FILE_ARG,
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
     overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
 ) -> None:
     """What a run would do now, and why."""
     from msflow.inspect import dry_run
     from msflow.session import open_session
 
-    session = open_session(file, tuple(overrides or ()))
+    session = open_session(pipeline_file(file, file_option) or DEFAULT_FILE, tuple(overrides or ()))
     dry = dry_run(session)
     session.save_memo()
     width = max(len(n) for n in dry)
@@ -175,7 +189,8 @@ def status(
 @app.command()
 def why(
     stage: str = typer.Argument(..., help="stage name"),
-    file: Path = FILE_OPT,
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
     overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
 ) -> None:
     """Which part of STAGE's cache key changed since its last run (code file, param, input)."""
@@ -183,6 +198,7 @@ def why(
     from msflow.session import open_session
     from msflow.spec import unknown_stage
 
+    file = pipeline_file(file, file_option) or DEFAULT_FILE
     session = open_session(file, tuple(overrides or ()))
     if stage not in session.pipeline.stages:
         raise UserError(unknown_stage(stage, session.pipeline.stages), file=str(file), field="STAGE")
@@ -202,13 +218,16 @@ def why(
 # ---------------------------------------------------------------------------------------------------------- dag
 @app.command()
 def dag(
-    file: Path = FILE_ARG, mermaid: bool = typer.Option(False, "--mermaid"), dot: bool = typer.Option(False, "--dot")
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
+    mermaid: bool = typer.Option(False, "--mermaid"),
+    dot: bool = typer.Option(False, "--dot"),
 ) -> None:
     """Print the stage graph (text, Mermaid or Graphviz dot)."""
     from msflow.dag import render_dot, render_mermaid, render_text
     from msflow.spec import load_pipeline
 
-    pipeline = load_pipeline(file)
+    pipeline = load_pipeline(pipeline_file(file, file_option) or DEFAULT_FILE)
     echo(render_mermaid(pipeline) if mermaid else render_dot(pipeline) if dot else render_text(pipeline))
 
 
@@ -216,7 +235,8 @@ def dag(
 @app.command()
 def show(
     target: str = typer.Argument(..., help="STAGE or STAGE.output"),
-    file: Path = FILE_OPT,
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
     overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
 ) -> None:
     """Shapes, dtypes, statistics, metadata and metrics of a stage's artifact."""
@@ -226,7 +246,7 @@ def show(
     from msflow.session import open_session
 
     stage, _, output = target.partition(".")
-    session = open_session(file, tuple(overrides or ()))
+    session = open_session(pipeline_file(file, file_option) or DEFAULT_FILE, tuple(overrides or ()))
     key, origin = resolve_artifact_key(session, stage)
     view = session.store.open(key)
     session.save_memo()
@@ -285,8 +305,9 @@ def describe_array(name: str, view: ArtifactView) -> str:
 @app.command()
 def export(
     target: str = typer.Argument(..., help="STAGE.output"),
-    dest: Path = typer.Argument(...),
-    file: Path = FILE_OPT,
+    dest: Path = typer.Argument(..., help="file to write"),
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
     overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
 ) -> None:
     """Write one output to a file: .npy, .npz, .csv, .json, or a file output's own bytes (GLB, MP4, ...)."""
@@ -297,7 +318,7 @@ def export(
     stage, _, output = target.partition(".")
     if not output:
         raise UserError(f"'{target}' names no output: write STAGE.output", field="STAGE.output")
-    session = open_session(file, tuple(overrides or ()))
+    session = open_session(pipeline_file(file, file_option) or DEFAULT_FILE, tuple(overrides or ()))
     key, origin = resolve_artifact_key(session, stage)
     export_output(session.store.open(key), output, dest)
     session.save_memo()
@@ -307,7 +328,8 @@ def export(
 # ---------------------------------------------------------------------------------------------------------- gc / verify
 @app.command()
 def gc(
-    file: Path = FILE_ARG,
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
     keep_runs: int = typer.Option(10, "--keep-runs", help="runs whose artifacts stay"),
     dry_run: bool = typer.Option(False, "--dry-run", help="only list what would go"),
 ) -> None:
@@ -316,7 +338,8 @@ def gc(
     from msflow.gc import collect_garbage
     from msflow.spec import load_pipeline
 
-    report = collect_garbage(load_pipeline(file).open_store(), keep_runs=keep_runs, dry_run=dry_run)
+    store = load_pipeline(pipeline_file(file, file_option) or DEFAULT_FILE).open_store()
+    report = collect_garbage(store, keep_runs=keep_runs, dry_run=dry_run)
     verb = "would remove" if dry_run else "removed"
     damaged = report["damaged"]
     echo(
@@ -337,12 +360,14 @@ def _count(n: int, noun: str, plural: str | None = None) -> str:
 
 @app.command()
 def verify(
-    file: Path = FILE_ARG, delete: bool = typer.Option(False, "--delete", help="remove corrupt artifacts")
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
+    delete: bool = typer.Option(False, "--delete", help="remove corrupt artifacts"),
 ) -> None:
     """Recompute every artifact's content hashes; list corrupt ones (exit 1 if any)."""
     from msflow.spec import load_pipeline
 
-    store = load_pipeline(file).open_store()
+    store = load_pipeline(pipeline_file(file, file_option) or DEFAULT_FILE).open_store()
     bad = 0
     total = 0
     for key in store.keys():
@@ -361,7 +386,8 @@ def verify(
 # ---------------------------------------------------------------------------------------------------------- sweeps, runs
 @app.command()
 def sweep(
-    file: Path = FILE_ARG,
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
     values: Optional[List[str]] = typer.Option(
         None, "-S", "--set", help="stage.param=v1,v2,... (comma lists form a grid)"
     ),
@@ -393,7 +419,7 @@ def sweep(
     # that only exists elsewhere) is never read on its own
     reporter = None if quiet else SweepReporter(len(variants))
     result = run_sweep(
-        file,
+        pipeline_file(file, file_option) or DEFAULT_FILE,
         variants,
         jobs=jobs,
         executor=executor,
@@ -424,14 +450,18 @@ def sweep(
 @app.command()
 def runs(
     file: Optional[Path] = typer.Argument(
-        None, help="only the runs of this pipeline file [default: every run in pipeline.yaml's store]"
+        None,
+        help="only the runs of this pipeline file (or -f FILE)",
+        show_default="every run in pipeline.yaml's store",
     ),
+    file_option: Optional[Path] = FILE_OPT,
     limit: int = typer.Option(20, "--limit", "-n", help="newest N runs"),
 ) -> None:
     """List runs (newest last): id, outcome, time, pipeline file, stage counts, sweep, variant or overrides."""
     from msflow.spec import load_pipeline
 
-    pipeline = load_pipeline(file or Path("pipeline.yaml"))
+    file = pipeline_file(file, file_option)
+    pipeline = load_pipeline(file or DEFAULT_FILE)
     only = pipeline.rel_path if file is not None else None
     listed = _newest_runs(pipeline.open_store(), only, limit)
     width = max((len(str(record.get("pipeline", "?"))) for _, record in listed), default=0)
@@ -478,13 +508,14 @@ def _newest_runs(store: Store, pipeline: str | None, limit: int) -> list[tuple[s
 @app.command()
 def compare(
     run_a: str = typer.Argument(..., help="run id (or unique prefix/suffix)"),
-    run_b: str = typer.Argument(...),
-    file: Path = FILE_OPT,
+    run_b: str = typer.Argument(..., help="run id (or unique prefix/suffix)"),
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
 ) -> None:
     """Differences between two runs: params, cache keys, metrics."""
     from msflow.spec import load_pipeline
 
-    store = load_pipeline(file).open_store()
+    store = load_pipeline(pipeline_file(file, file_option) or DEFAULT_FILE).open_store()
     a, b = store.read_run(run_a), store.read_run(run_b)
     echo(f"A = {a['id']}\nB = {b['id']}")
     for stage in sorted(set(a["stages"]) | set(b["stages"])):
@@ -517,16 +548,21 @@ def compare(
 # ---------------------------------------------------------------------------------------------------------- report
 @app.command()
 def report(
-    run: Optional[str] = typer.Argument(None, help="run or sweep id (default: the newest run)"),
+    run: Optional[str] = typer.Argument(
+        None, help="run or sweep id (default: the newest run); a .yaml/.yml file alone is FILE"
+    ),
+    file: Optional[Path] = FILE_ARG,
     out: Path = typer.Option(Path("report.html"), "-o", "--out", help="HTML file to write"),
-    file: Path = FILE_OPT,
+    file_option: Optional[Path] = FILE_OPT,
     jobs: int = typer.Option(2, "-j", "--jobs", help="processes rendering figures"),
     metric: Optional[str] = typer.Option(None, "--metric", help="sweeps: stage.metric to plot"),
 ) -> None:
     """Write one self-contained HTML page of a run (graph, params, keys, metrics, figures) or of a sweep."""
     from msflow.report import build_report
 
-    summary = build_report(file, out, run, jobs=jobs, metric=metric)
+    if file is None and run is not None and run.lower().endswith((".yaml", ".yml")):
+        file, run = Path(run), None  # `msflow report pipelines/capture.yaml`: no run id ends so
+    summary = build_report(pipeline_file(file, file_option) or DEFAULT_FILE, out, run, jobs=jobs, metric=metric)
     echo(
         f"wrote {summary['path']} ({summary['bytes'] / 1e6:.1f} MB, {summary['figures']} figures, "
         f"{summary['rendered']} rendered) in {summary['seconds']:.2f}s",
