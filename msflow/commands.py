@@ -15,6 +15,7 @@ from msflow.jobs import DryStatus, StageStatus
 if TYPE_CHECKING:
     from msflow.artifact import ArtifactView
     from msflow.stores.base import Store
+    from msflow.sweep import SweepResult
 
 app = typer.Typer(
     add_completion=False,
@@ -405,14 +406,7 @@ def sweep(
 ) -> None:
     """Run a grid of parameter variants; print variant parameters against stage metrics."""
     from msflow.progress import SweepReporter
-    from msflow.sweep import (
-        expand_variants,
-        failure_lines,
-        format_table,
-        metric_columns,
-        results_rows,
-        run_sweep,
-    )
+    from msflow.sweep import expand_variants, run_sweep
 
     variants = expand_variants(list(values or ()), grid)
     # the pipeline is loaded once per variant, with its overrides: a default `vars:` entry (a folder of takes
@@ -428,6 +422,15 @@ def sweep(
         reporter=reporter,
         sort=sort,  # checked before any variant runs, its metric when the stage first finishes
     )
+    if _echo_sweep(result, metrics, sort, fmt):
+        raise typer.Exit(1)
+
+
+def _echo_sweep(result: SweepResult, metrics: str | None, sort: str | None, fmt: str) -> int:
+    """The results table on stdout (in the ``table`` format, each failed variant's whole error below it) and the
+    sweep's summary on stderr; returns the number of failed variants."""
+    from msflow.sweep import failure_lines, format_table, metric_columns, results_rows
+
     # columns: --metrics, else the pipeline's summary:, else the metrics that vary
     patterns = list(_split([metrics])) if metrics else result.summary or None
     header, rows = results_rows(result, metric_columns(result, patterns), sort)
@@ -443,8 +446,7 @@ def sweep(
         f"{result.unique_keys} distinct keys, {failed} failed, {result.seconds:.2f}s",
         err=True,
     )
-    if failed:
-        raise typer.Exit(1)
+    return failed
 
 
 @app.command()

@@ -34,8 +34,10 @@ from msflow.jobs import StageStatus
 from msflow.runner import StopRun
 
 if TYPE_CHECKING:
+    from msflow.api import Execution
     from msflow.progress import SweepReporter
     from msflow.runner import Reporter, StageState
+    from msflow.session import Session
     from msflow.stores.base import Store
 
 GRID_KEYS = {"grid", "zip", "variants"}
@@ -183,21 +185,10 @@ def run_sweep(
     run them together on one executor (``msflow.api.run_sessions``, the path of ``msflow run`` too). A ``sort``
     metric the stage does not give stops the sweep the first time that stage finishes (``SortMetricCheck``)."""
     from msflow.api import run_sessions
-    from msflow.session import Session, open_session
     from msflow.stores.base import new_run_id
 
     started = time.time()
-    sessions: list[Session] = []
-    memo = None
-    for index, variant in enumerate(variants):
-        try:
-            session = open_session(path, [*base_overrides, *variant_overrides(variant)], memo=memo)
-        except UserError as exc:
-            raise UserError(
-                f"variant {index + 1} {variant}: {exc.message}", file=exc.file, stage=exc.stage, field=exc.field
-            ) from None
-        memo = session.memo
-        sessions.append(session)
+    sessions = open_variant_sessions(path, variants, base_overrides)
     sort_check = check_sort(sort, variants, sessions[0].pipeline.stages)
     reporters = [
         reporter.for_variant(i, v, len(s.pipeline.stages)) if reporter is not None else None
@@ -216,21 +207,7 @@ def run_sweep(
         labels=variants,
         extra={"sweep": sweep_id},
     )
-    outcomes = []
-    for index, execution in enumerate(executions):
-        record = execution.record
-        failed = [s for s in execution.states.values() if s.state is StageStatus.FAILED]
-        outcomes.append(
-            VariantOutcome(
-                index,
-                variants[index],
-                record["id"],
-                not failed,
-                failed[0].error if failed else None,
-                {n: s["metrics"] for n, s in record["stages"].items() if s["metrics"]},
-                record["counts"],
-            )
-        )
+    outcomes = [variant_outcome(index, variants[index], e) for index, e in enumerate(executions)]
     keys = {s.key for e in executions for s in e.states.values() if s.key}
     executed = sum(1 for e in executions for s in e.states.values() if s.state is StageStatus.RAN)
     result = SweepResult(
@@ -319,6 +296,42 @@ def check_sort(sort: str | None, variants: Sequence[dict[str, Any]], stages: Col
         problem = f"not {swept}, and {unknown_stage(stage, stages)}"
         raise UserError(f"cannot sort by '{column}': {problem}", field="--sort")
     return SortMetricCheck(column, stage, metric)
+
+
+def open_variant_sessions(
+    path: str | Path, variants: list[dict[str, Any]], base_overrides: Sequence[str]
+) -> list[Session]:
+    """One session per variant (its overrides after ``base_overrides``), sharing one memo; an invalid variant is a
+    user error naming it, before anything runs."""
+    from msflow.session import open_session
+
+    sessions: list[Session] = []
+    memo = None
+    for index, variant in enumerate(variants):
+        try:
+            session = open_session(path, [*base_overrides, *variant_overrides(variant)], memo=memo)
+        except UserError as exc:
+            raise UserError(
+                f"variant {index + 1} {variant}: {exc.message}", file=exc.file, stage=exc.stage, field=exc.field
+            ) from None
+        memo = session.memo
+        sessions.append(session)
+    return sessions
+
+
+def variant_outcome(index: int, params: dict[str, Any], execution: Execution) -> VariantOutcome:
+    """What became of one variant: its run, whether it failed (and the first failed stage's error), its metrics."""
+    record = execution.record
+    failed = [s for s in execution.states.values() if s.state is StageStatus.FAILED]
+    return VariantOutcome(
+        index,
+        params,
+        record["id"],
+        not failed,
+        failed[0].error if failed else None,
+        {n: s["metrics"] for n, s in record["stages"].items() if s["metrics"]},
+        record["counts"],
+    )
 
 
 def _write_sweep_record(store: Store, result: SweepResult) -> None:
