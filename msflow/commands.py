@@ -406,8 +406,9 @@ def sweep(
 ) -> None:
     """Run a grid of parameter variants; print variant parameters against stage metrics."""
     from msflow.progress import SweepReporter
-    from msflow.sweep import expand_variants, run_sweep
+    from msflow.sweep import check_format, expand_variants, run_sweep
 
+    check_format(fmt)  # before anything runs, not when the table is written
     variants = expand_variants(list(values or ()), grid)
     # the pipeline is loaded once per variant, with its overrides: a default `vars:` entry (a folder of takes
     # that only exists elsewhere) is never read on its own

@@ -396,7 +396,17 @@ def _sort_key(variant: VariantOutcome, column: str, is_param: bool, descending: 
     return (value is None, -value if descending and isinstance(value, (int, float)) else value)
 
 
+FORMATS = ("table", "md", "csv", "json")
+
+
+def check_format(fmt: str) -> None:
+    """A results table format ``format_table`` writes, or a user error (``msflow sweep`` checks it first)."""
+    if fmt not in FORMATS:
+        raise UserError(f"unknown format '{fmt}'; choose {', '.join(FORMATS[:-1])} or {FORMATS[-1]}", field="--format")
+
+
 def format_table(header: list[str], rows: list[list[Any]], fmt: str) -> str:
+    check_format(fmt)
     if fmt == "json":
         return json.dumps([dict(zip(header, r)) for r in rows], indent=1)
     if fmt == "csv":
@@ -413,8 +423,6 @@ def format_table(header: list[str], rows: list[list[Any]], fmt: str) -> str:
         lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
         lines += ["| " + " | ".join(r) + " |" for r in cells]
         return "\n".join(lines)
-    if fmt != "table":
-        raise UserError(f"unknown format '{fmt}'; choose table, md, csv or json", field="--format")
     if "status" in header:  # a failed variant's error would stretch its column: failure_lines has it whole
         at = header.index("status")
         for row in cells:

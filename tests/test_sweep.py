@@ -124,6 +124,10 @@ def test_sweep_sort_by_a_metric_shows_it_as_a_column(numproject):
         (["-S", "src.n="], "the grid is empty"),
         ([], "the grid is empty"),
         (["-S", "src.n=3,x"], "params.n"),
+        (
+            ["-S", "src.n=3,4", "--format", "xml"],
+            "field '--format': unknown format 'xml'; choose table, md, csv or json",
+        ),
     ],
 )
 def test_sweep_user_errors(numproject, args, fragment):
