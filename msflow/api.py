@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 from msflow.errors import CorruptArtifact, StageFailed, UserError
 from msflow.jobs import StageStatus
-from msflow.runner import Reporter, Runner, StageState
+from msflow.runner import Reporter, Runner, StageState, StopRun
 from msflow.session import Session, open_session
 from msflow.stores.base import new_run_id
 
@@ -145,6 +145,9 @@ def run_sessions(
         except KeyboardInterrupt:  # Ctrl-C (or SIGTERM, msflow.cli): stop the stages running, don't wait for them
             interrupted = True
             raise
+        except StopRun as stop:  # a reporter found a user error: stopped as by Ctrl-C, then reported as the error
+            interrupted = True
+            raise stop.error from None
         finally:
             pool.shutdown(abort=interrupted)
             if interrupted:

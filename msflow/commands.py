@@ -15,6 +15,7 @@ from msflow.jobs import DryStatus, StageStatus
 if TYPE_CHECKING:
     from msflow.artifact import ArtifactView
     from msflow.stores.base import Store
+    from msflow.sweep import SweepResult
 
 app = typer.Typer(
     add_completion=False,
@@ -23,8 +24,19 @@ app = typer.Typer(
     help="msflow: cached dataflow pipelines (Mood Swings expressive speech animation).",
 )
 
-FILE_ARG = typer.Argument(Path("pipeline.yaml"), help="pipeline file", show_default=True)
-FILE_OPT = typer.Option(Path("pipeline.yaml"), "-f", "--file", help="pipeline file")
+# Every command that reads a pipeline takes its file the same way: as its last argument (FILE, as in `msflow run
+# pipeline.yaml`), or as -f/--file FILE, which some commands had before the argument and scripts still use.
+FILE_ARG = typer.Argument(None, help="pipeline file (or -f FILE)", show_default="pipeline.yaml")
+FILE_OPT = typer.Option(None, "-f", "--file", help="pipeline file, the same as the FILE argument", show_default=False)
+DEFAULT_FILE = Path("pipeline.yaml")
+
+
+def pipeline_file(argument: Path | None, option: Path | None) -> Path | None:
+    """The pipeline file given as the FILE argument or with -f/--file (None: neither); both is an error unless
+    they name the same file."""
+    if argument is not None and option is not None and argument.resolve() != option.resolve():
+        raise UserError(f"two pipeline files, {argument} and -f {option}: give one", field="FILE")
+    return argument or option
 
 
 def _print_version(asked: bool) -> None:
@@ -55,7 +67,8 @@ def _split(values: list[str] | None) -> tuple[str, ...]:
 # ---------------------------------------------------------------------------------------------------------- run
 @app.command()
 def run(
-    file: Path = FILE_ARG,
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
     until: Optional[str] = typer.Option(None, "--until", help="run only this stage and what it needs"),
     force: Optional[List[str]] = typer.Option(None, "--force", help="rerun these stages even if cached"),
     overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
@@ -73,6 +86,7 @@ def run(
     from msflow.progress import make_reporter
     from msflow.session import open_session
 
+    file = pipeline_file(file, file_option) or DEFAULT_FILE
     session = open_session(file, tuple(overrides or ()), publish_dir=publish_dir)
     reporter = make_reporter(list(session.plans), quiet)
     if reporter:
@@ -150,14 +164,15 @@ def _echo_summary(
 # ---------------------------------------------------------------------------------------------------------- status / why
 @app.command()
 def status(
-    file: Path = FILE_ARG,
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
     overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
 ) -> None:
     """What a run would do now, and why."""
     from msflow.inspect import dry_run
     from msflow.session import open_session
 
-    session = open_session(file, tuple(overrides or ()))
+    session = open_session(pipeline_file(file, file_option) or DEFAULT_FILE, tuple(overrides or ()))
     dry = dry_run(session)
     session.save_memo()
     width = max(len(n) for n in dry)
@@ -176,7 +191,8 @@ def status(
 @app.command()
 def why(
     stage: str = typer.Argument(..., help="stage name"),
-    file: Path = FILE_OPT,
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
     overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
 ) -> None:
     """Which part of STAGE's cache key changed since its last run (code file, param, input)."""
@@ -184,6 +200,7 @@ def why(
     from msflow.session import open_session
     from msflow.spec import unknown_stage
 
+    file = pipeline_file(file, file_option) or DEFAULT_FILE
     session = open_session(file, tuple(overrides or ()))
     if stage not in session.pipeline.stages:
         raise UserError(unknown_stage(stage, session.pipeline.stages), file=str(file), field="STAGE")
@@ -203,13 +220,16 @@ def why(
 # ---------------------------------------------------------------------------------------------------------- dag
 @app.command()
 def dag(
-    file: Path = FILE_ARG, mermaid: bool = typer.Option(False, "--mermaid"), dot: bool = typer.Option(False, "--dot")
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
+    mermaid: bool = typer.Option(False, "--mermaid"),
+    dot: bool = typer.Option(False, "--dot"),
 ) -> None:
     """Print the stage graph (text, Mermaid or Graphviz dot)."""
     from msflow.dag import render_dot, render_mermaid, render_text
     from msflow.spec import load_pipeline
 
-    pipeline = load_pipeline(file)
+    pipeline = load_pipeline(pipeline_file(file, file_option) or DEFAULT_FILE)
     echo(render_mermaid(pipeline) if mermaid else render_dot(pipeline) if dot else render_text(pipeline))
 
 
@@ -217,7 +237,8 @@ def dag(
 @app.command()
 def show(
     target: str = typer.Argument(..., help="STAGE or STAGE.output"),
-    file: Path = FILE_OPT,
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
     overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
 ) -> None:
     """Shapes, dtypes, statistics, metadata and metrics of a stage's artifact."""
@@ -227,7 +248,7 @@ def show(
     from msflow.session import open_session
 
     stage, _, output = target.partition(".")
-    session = open_session(file, tuple(overrides or ()))
+    session = open_session(pipeline_file(file, file_option) or DEFAULT_FILE, tuple(overrides or ()))
     key, origin = resolve_artifact_key(session, stage)
     view = session.store.open(key)
     session.save_memo()
@@ -289,7 +310,8 @@ def export(
         ..., help="STAGE.output, or STAGE: its only output, or all its outputs into a .npz file"
     ),
     dest: Path = typer.Argument(..., help="file to write: .npy, .npz, .csv, .json, or a file output's own suffix"),
-    file: Path = FILE_OPT,
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
     overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
 ) -> None:
     """Write an output to a file: .npy, .npz, .csv, .json, or a file output's own bytes (GLB, MP4, ...). STAGE
@@ -299,7 +321,7 @@ def export(
     from msflow.session import open_session
 
     stage, _, output = target.partition(".")
-    session = open_session(file, tuple(overrides or ()))
+    session = open_session(pipeline_file(file, file_option) or DEFAULT_FILE, tuple(overrides or ()))
     key, origin = resolve_artifact_key(session, stage)
     view = session.store.open(key)
     if output:
@@ -315,7 +337,8 @@ def export(
 # ---------------------------------------------------------------------------------------------------------- gc / verify
 @app.command()
 def gc(
-    file: Path = FILE_ARG,
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
     keep_runs: int = typer.Option(10, "--keep-runs", help="runs whose artifacts stay"),
     dry_run: bool = typer.Option(False, "--dry-run", help="only list what would go"),
 ) -> None:
@@ -324,7 +347,11 @@ def gc(
     from msflow.gc import collect_garbage
     from msflow.spec import load_pipeline
 
-    report = collect_garbage(load_pipeline(file).open_store(), keep_runs=keep_runs, dry_run=dry_run)
+    report = collect_garbage(
+        load_pipeline(pipeline_file(file, file_option) or DEFAULT_FILE).open_store(),
+        keep_runs=keep_runs,
+        dry_run=dry_run,
+    )
     remove, keep = ("would remove", "would keep") if dry_run else ("removed", "kept")
     parts = [
         f"{remove} {_count(len(report['artifacts']), 'artifact')} ({_size(report['bytes'])}{'' if dry_run else ' freed'})",
@@ -354,13 +381,15 @@ def _count(n: int, noun: str, plural: str | None = None) -> str:
 
 @app.command()
 def verify(
-    file: Path = FILE_ARG, delete: bool = typer.Option(False, "--delete", help="remove corrupt artifacts")
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
+    delete: bool = typer.Option(False, "--delete", help="remove corrupt artifacts"),
 ) -> None:
     """Recompute every artifact's content hashes and list the corrupt ones: exit 1 if there are any, unless
     --delete removed them all (exit 0: a run that needs one computes it again)."""
     from msflow.spec import load_pipeline
 
-    store = load_pipeline(file).open_store()
+    store = load_pipeline(pipeline_file(file, file_option) or DEFAULT_FILE).open_store()
     total, corrupt = _find_corrupt(store)
     if not corrupt:
         echo(f"verified {_count(total, 'artifact')}: 0 corrupt")
@@ -413,7 +442,8 @@ def _remove_corrupt(store: Store, keys: list[str]) -> list[str]:
 # ---------------------------------------------------------------------------------------------------------- sweeps, runs
 @app.command()
 def sweep(
-    file: Path = FILE_ARG,
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
     values: Optional[List[str]] = typer.Option(
         None, "-S", "--set", help="stage.param=v1,v2,... (comma lists form a grid)"
     ),
@@ -431,46 +461,65 @@ def sweep(
 ) -> None:
     """Run a grid of parameter variants; print variant parameters against stage metrics."""
     from msflow.progress import SweepReporter
-    from msflow.sweep import expand_variants, format_table, metric_columns, results_rows, run_sweep
+    from msflow.sweep import check_format, expand_variants, run_sweep
 
+    check_format(fmt)  # before anything runs, not when the table is written
     variants = expand_variants(list(values or ()), grid)
     # the pipeline is loaded once per variant, with its overrides: a default `vars:` entry (a folder of takes
     # that only exists elsewhere) is never read on its own
     reporter = None if quiet else SweepReporter(len(variants))
     result = run_sweep(
-        file,
+        pipeline_file(file, file_option) or DEFAULT_FILE,
         variants,
         jobs=jobs,
         executor=executor,
         scheduler=scheduler,
         connect_timeout=connect_timeout,
         reporter=reporter,
+        sort=sort,  # checked before any variant runs, its metric when the stage first finishes
     )
+    if _echo_sweep(result, metrics, sort, fmt):
+        raise typer.Exit(1)
+
+
+def _echo_sweep(result: SweepResult, metrics: str | None, sort: str | None, fmt: str) -> int:
+    """The results table on stdout (in the ``table`` format, each failed variant's whole error below it) and the
+    sweep's summary on stderr; returns the number of failed variants."""
+    from msflow.sweep import failure_lines, format_table, metric_columns, results_rows
+
     # columns: --metrics, else the pipeline's summary:, else the metrics that vary
     patterns = list(_split([metrics])) if metrics else result.summary or None
     header, rows = results_rows(result, metric_columns(result, patterns), sort)
     echo(format_table(header, rows, fmt))
+    failures = failure_lines(result) if fmt == "table" else []  # the other formats keep errors whole
+    if failures:
+        echo()
+        for line in failures:
+            echo(line)
     failed = sum(1 for v in result.variants if not v.ok)
     echo(
         f"sweep {result.sweep_id}: {len(result.variants)} variants, {result.executed} stage executions for "
         f"{result.unique_keys} distinct keys, {failed} failed, {result.seconds:.2f}s",
         err=True,
     )
-    if failed:
-        raise typer.Exit(1)
+    return failed
 
 
 @app.command()
 def runs(
     file: Optional[Path] = typer.Argument(
-        None, help="only the runs of this pipeline file [default: every run in pipeline.yaml's store]"
+        None,
+        help="only the runs of this pipeline file (or -f FILE)",
+        show_default="every run in pipeline.yaml's store",
     ),
+    file_option: Optional[Path] = FILE_OPT,
     limit: int = typer.Option(20, "--limit", "-n", help="newest N runs"),
 ) -> None:
     """List runs (newest last): id, outcome, time, pipeline file, stage counts, sweep, variant or overrides."""
     from msflow.spec import load_pipeline
 
-    pipeline = load_pipeline(file or Path("pipeline.yaml"))
+    file = pipeline_file(file, file_option)
+    pipeline = load_pipeline(file or DEFAULT_FILE)
     only = pipeline.rel_path if file is not None else None
     listed = _newest_runs(pipeline.open_store(), only, limit)
     width = max((len(str(record.get("pipeline", "?"))) for _, record in listed), default=0)
@@ -517,15 +566,16 @@ def _newest_runs(store: Store, pipeline: str | None, limit: int) -> list[tuple[s
 @app.command()
 def compare(
     run_a: str = typer.Argument(..., help="run id (or unique prefix/suffix)"),
-    run_b: str = typer.Argument(...),
-    file: Path = FILE_OPT,
+    run_b: str = typer.Argument(..., help="run id (or unique prefix/suffix)"),
+    file: Optional[Path] = FILE_ARG,
+    file_option: Optional[Path] = FILE_OPT,
 ) -> None:
     """Differences between two runs: params and cache keys exactly, metrics within a relative tolerance of 1e-9
     (absolute 1e-12), numbers to 6 significant digits with the change."""
     from msflow.comparing import compare_runs
     from msflow.spec import load_pipeline
 
-    store = load_pipeline(file).open_store()
+    store = load_pipeline(pipeline_file(file, file_option) or DEFAULT_FILE).open_store()
     for line in compare_runs(store.read_run(run_a), store.read_run(run_b)):
         echo(line)
 
@@ -533,16 +583,21 @@ def compare(
 # ---------------------------------------------------------------------------------------------------------- report
 @app.command()
 def report(
-    run: Optional[str] = typer.Argument(None, help="run or sweep id (default: the newest run)"),
+    run: Optional[str] = typer.Argument(
+        None, help="run or sweep id (default: the newest run); a .yaml/.yml file alone is FILE"
+    ),
+    file: Optional[Path] = FILE_ARG,
     out: Path = typer.Option(Path("report.html"), "-o", "--out", help="HTML file to write"),
-    file: Path = FILE_OPT,
+    file_option: Optional[Path] = FILE_OPT,
     jobs: int = typer.Option(2, "-j", "--jobs", help="processes rendering figures"),
     metric: Optional[str] = typer.Option(None, "--metric", help="sweeps: stage.metric to plot"),
 ) -> None:
     """Write one self-contained HTML page of a run (graph, params, keys, metrics, figures) or of a sweep."""
     from msflow.report import build_report
 
-    summary = build_report(file, out, run, jobs=jobs, metric=metric)
+    if file is None and run is not None and run.lower().endswith((".yaml", ".yml")):
+        file, run = Path(run), None  # `msflow report pipelines/capture.yaml`: no run id ends so
+    summary = build_report(pipeline_file(file, file_option) or DEFAULT_FILE, out, run, jobs=jobs, metric=metric)
     echo(
         f"wrote {summary['path']} ({summary['bytes'] / 1e6:.1f} MB, {summary['figures']} figures, "
         f"{summary['rendered']} rendered) in {summary['seconds']:.2f}s",

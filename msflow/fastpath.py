@@ -29,6 +29,7 @@ FORMAT = 1
 RUN_FLAGS = {"-q", "--quiet"}
 VALUED = {"-S": "set", "--set": "set", "-j": "jobs", "--jobs": "jobs", "--executor": "executor"}
 VALUED.update({"--connect-timeout": "timeout"})
+FILE_OPTIONS = {"-f", "--file"}
 
 
 def signature(path: str) -> str:
@@ -94,17 +95,18 @@ def parse_args(args: list[str]) -> tuple[str, str, list[str], bool] | None:
         if command == "run" and arg in RUN_FLAGS:
             quiet = True
         elif name in VALUED and (command == "run" or VALUED[name] == "set"):
-            if not eq:
-                i += 1
-                if i >= len(rest):
-                    return None
-                inline = rest[i]
-            if not valid_option(VALUED[name], inline):
+            i, value = option_value(rest, i, inline if eq else None)
+            if value is None or not valid_option(VALUED[name], value):
                 return None
             if VALUED[name] == "set":
-                overrides.append(inline)
+                overrides.append(value)
         elif arg.startswith("-S") and len(arg) > 2:
             overrides.append(arg[2:])
+        elif name in FILE_OPTIONS:  # -f FILE: the FILE argument's other form (msflow.commands)
+            i, value = option_value(rest, i, inline if eq else None)
+            if value is None or file is not None:
+                return None
+            file = value
         elif arg.startswith("-") or file is not None:
             return None
         else:
@@ -112,6 +114,14 @@ def parse_args(args: list[str]) -> tuple[str, str, list[str], bool] | None:
         i += 1
     path = os.path.abspath(file or "pipeline.yaml")
     return (command, path, overrides, quiet) if os.path.isfile(path) else None
+
+
+def option_value(rest: list[str], i: int, inline: str | None) -> tuple[int, str | None]:
+    """(index of the option's last word, its value) for the option at ``rest[i]``: ``inline`` (``--name=value``)
+    or the next word (None when there is none)."""
+    if inline is not None:
+        return i, inline
+    return i + 1, rest[i + 1] if i + 1 < len(rest) else None
 
 
 def valid_option(kind: str, value: str) -> bool:

@@ -213,12 +213,16 @@ def _plan_stage(
         interface = _class_interface(cls, pipeline.root)
         interfaces[iface_key] = interface
     _check_resources(pipeline, name, node, interface)
-    params_key = json_hash([iface_key, node.params])
-    params = params_memo.get(params_key)
+    try:
+        params_key: str | None = json_hash([iface_key, node.params])
+    except ValueError:  # NaN or Inf (`-S stage.x=.nan`): no memo key; canonical_params names the field
+        params_key = None
+    params = params_memo.get(params_key) if params_key else None
     if params is None:
         cls = cls or import_stage_class(node.uses, file=file, stage=name, root=pipeline.root)
         params = canonical_params(cls, node.params, file=file, stage=name)
-        params_memo[params_key] = params
+        if params_key:
+            params_memo[params_key] = params
     return StagePlan(name, node.uses, code, code_digest, interface, params)
 
 

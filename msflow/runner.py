@@ -24,9 +24,21 @@ from msflow.version import KEY_SCHEME  # defined in a leaf module: workers check
 
 
 class Reporter(Protocol):
-    """Receives every state change of a stage (the progress display)."""
+    """Receives every state change of a stage (the progress display). ``update`` may raise ``StopRun`` to stop
+    the run."""
 
     def update(self, state: StageState) -> None: ...
+
+
+class StopRun(Exception):
+    """Raised by a reporter to stop the run at once over a user error it found in a stage's result (msflow sweep:
+    its ``--sort`` names a metric the stage does not give). ``msflow.api.run_sessions`` stops the stages running,
+    records what finished as stopped, and raises ``error``. Not a ``UserError`` itself: the scheduler turns those
+    into a failed stage, and this is no failure of the stage."""
+
+    def __init__(self, error: UserError):
+        super().__init__(str(error))
+        self.error = error
 
 
 @dataclass

@@ -46,6 +46,7 @@ class OutputSink:
         self._buffer: Any = None
         self._filled = 0
         self._chunks = 0
+        self._finite = FiniteWatch(self.dtype)
 
     @property
     def streaming(self) -> bool:
@@ -83,6 +84,7 @@ class OutputSink:
             raise TypeError(f"output sink '{self.name}': cannot store {block.dtype} blocks as {self.dtype}")
         block = block.astype(self.dtype, copy=False)
         self._hasher.update(block)
+        self._finite.update(block)
         self._rows += block.shape[0]
         if self.target is None:
             self._blocks.append(block.copy())  # the caller may reuse its buffer for the next block
@@ -132,6 +134,10 @@ class OutputSink:
             }
         return dict(self._finished)
 
+    def nonfinite_warning(self) -> str | None:
+        """The run warning when the rows appended hold values and none is finite (``FiniteWatch``)."""
+        return self._finite.warning(self.name, self._rows * prod(self.row_shape))
+
     def to_array(self) -> Any:
         """The whole array (in-memory sinks only)."""
         import numpy as np
@@ -141,6 +147,71 @@ class OutputSink:
         if not self._blocks:
             return np.zeros(self.shape, dtype=self.dtype)
         return np.concatenate(self._blocks) if len(self._blocks) > 1 else self._blocks[0]
+
+
+#: elements looked at in one step while no finite value has been seen (bounds the temporary masks)
+SCAN_STEP = 1 << 20
+
+
+class FiniteWatch:
+    """Whether a float (or complex) output has any finite value, watched block by block as it is produced. An
+    output with none (all NaN, or NaN and Inf) is almost always a bug or data the stage could not use, so msflow
+    warns instead of storing it silently. Once a finite value is seen nothing more is looked at, and the first
+    element of a block usually settles it: an ordinary output costs one element per block, never a re-read."""
+
+    def __init__(self, dtype: Any):
+        import numpy as np
+
+        self.watched = np.dtype(dtype).kind in "fc"
+        self.finite_seen = False
+        self.nan_only = True  #: every value seen so far (while none was finite) is NaN
+
+    def update(self, block: Any) -> None:
+        import numpy as np
+
+        if not self.watched or self.finite_seen or block.size == 0:
+            return
+        if np.isfinite(block.flat[0]):
+            self.finite_seen = True
+            return
+        flat = block.reshape(-1)
+        for start in range(0, flat.size, SCAN_STEP):
+            part = flat[start : start + SCAN_STEP]
+            if np.isfinite(part).any():
+                self.finite_seen = True
+                return
+            self.nan_only = self.nan_only and bool(np.isnan(part).all())
+
+    def warning(self, name: str, size: int) -> str | None:
+        """The run warning for output ``name`` of ``size`` values when none is finite (an empty one has none).
+
+        >>> import numpy as np
+        >>> watch = FiniteWatch(np.float32)
+        >>> watch.update(np.full(3, np.nan, np.float32)); watch.warning("y", 3)
+        "output 'y' is all NaN (3 values)"
+        >>> watch.update(np.array([np.inf, 1.0])); watch.warning("y", 5) is None
+        True
+        """
+        if not self.watched or self.finite_seen or not size:
+            return None
+        what = "NaN" if self.nan_only else "NaN or Inf"
+        return f"output '{name}' is all {what} ({size:,} values)"
+
+
+def nonfinite_warnings(arrays: dict[str, Any]) -> list[str]:
+    """The run warnings of a stage's validated outputs (numpy arrays or finished sinks) that hold values, none
+    of them finite; a sink watched its blocks as they were appended."""
+    found = []
+    for name, value in arrays.items():
+        if isinstance(value, OutputSink):
+            message = value.nonfinite_warning()
+        else:
+            watch = FiniteWatch(value.dtype)
+            watch.update(value)
+            message = watch.warning(name, value.size)
+        if message:
+            found.append(message)
+    return found
 
 
 def iter_blocks(array: Any, rows: int | None = None) -> Iterator[Any]:

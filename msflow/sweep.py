@@ -24,16 +24,20 @@ import itertools
 import json
 import time
 import uuid
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from msflow.errors import UserError
 from msflow.jobs import StageStatus
+from msflow.runner import StopRun
 
 if TYPE_CHECKING:
+    from msflow.api import Execution
     from msflow.progress import SweepReporter
+    from msflow.runner import Reporter, StageState
+    from msflow.session import Session
     from msflow.stores.base import Store
 
 GRID_KEYS = {"grid", "zip", "variants"}
@@ -175,29 +179,23 @@ def run_sweep(
     scheduler: str | None = None,
     connect_timeout: float = 10.0,
     reporter: SweepReporter | None = None,
+    sort: str | None = None,
 ) -> SweepResult:
-    """Validate every variant (nothing runs if one is invalid), then run them together on one executor
-    (``msflow.api.run_sessions``, the path of ``msflow run`` too)."""
+    """Validate every variant and ``sort`` (the column of ``results_rows``; nothing runs if one is invalid), then
+    run them together on one executor (``msflow.api.run_sessions``, the path of ``msflow run`` too). A ``sort``
+    metric the stage does not give stops the sweep the first time that stage finishes (``SortMetricCheck``)."""
     from msflow.api import run_sessions
-    from msflow.session import Session, open_session
     from msflow.stores.base import new_run_id
 
     started = time.time()
-    sessions: list[Session] = []
-    memo = None
-    for index, variant in enumerate(variants):
-        try:
-            session = open_session(path, [*base_overrides, *variant_overrides(variant)], memo=memo)
-        except UserError as exc:
-            raise UserError(
-                f"variant {index + 1} {variant}: {exc.message}", file=exc.file, stage=exc.stage, field=exc.field
-            ) from None
-        memo = session.memo
-        sessions.append(session)
+    sessions = open_variant_sessions(path, variants, base_overrides)
+    sort_check = check_sort(sort, variants, sessions[0].pipeline.stages)
     reporters = [
         reporter.for_variant(i, v, len(s.pipeline.stages)) if reporter is not None else None
         for i, (v, s) in enumerate(zip(variants, sessions))
     ]
+    if sort_check is not None:
+        reporters = [sort_check.watching(r) for r in reporters]
     sweep_id = new_run_id()
     executions = run_sessions(
         sessions,
@@ -209,21 +207,7 @@ def run_sweep(
         labels=variants,
         extra={"sweep": sweep_id},
     )
-    outcomes = []
-    for index, execution in enumerate(executions):
-        record = execution.record
-        failed = [s for s in execution.states.values() if s.state is StageStatus.FAILED]
-        outcomes.append(
-            VariantOutcome(
-                index,
-                variants[index],
-                record["id"],
-                not failed,
-                failed[0].error if failed else None,
-                {n: s["metrics"] for n, s in record["stages"].items() if s["metrics"]},
-                record["counts"],
-            )
-        )
+    outcomes = [variant_outcome(index, variants[index], e) for index, e in enumerate(executions)]
     keys = {s.key for e in executions for s in e.states.values() if s.key}
     executed = sum(1 for e in executions for s in e.states.values() if s.state is StageStatus.RAN)
     result = SweepResult(
@@ -237,6 +221,117 @@ def run_sweep(
     )
     _write_sweep_record(sessions[0].store, result)
     return result
+
+
+# ---------------------------------------------------------------------------------------------------------- sorting
+def sort_column(sort: str) -> tuple[str, bool]:
+    """``--sort`` -> (column, descending): ``-column`` sorts descending.
+
+    >>> sort_column("-total.total"), sort_column("src.n")
+    (('total.total', True), ('src.n', False))
+    """
+    descending = sort.startswith("-")
+    return sort.lstrip("-"), descending
+
+
+def swept_params(variants: Sequence[dict[str, Any]]) -> list[str]:
+    """The parameters the variants set, in first-seen order: the table's parameter columns."""
+    return list(dict.fromkeys(t for v in variants for t in v))
+
+
+@dataclass
+class SortMetricCheck:
+    """``--sort stage.metric``, checked the first time the stage finishes in any variant. Stages do not declare
+    their metrics, so that is the earliest the name can be checked; a misspelt one then stops the sweep (msflow
+    sweep: exit 2) instead of being found after every variant ran."""
+
+    column: str
+    stage: str
+    metric: str
+    checked: bool = False
+
+    def see(self, state: StageState) -> None:
+        """Check the metric on the stage's first finished result; raises ``StopRun`` when it is not there."""
+        if self.checked or state.name != self.stage or not state.state.done:
+            return
+        self.checked = True
+        from msflow.spec import suggest
+
+        metrics = sorted((state.manifest or {}).get("metrics", {}))
+        if self.metric not in metrics:
+            given = f"its metrics: {', '.join(metrics)}" if metrics else "it gives none"
+            message = f"stage '{self.stage}' gives no metric '{self.metric}'{suggest(self.metric, metrics)}; {given}"
+            raise StopRun(UserError(f"cannot sort by '{self.column}': {message}", field="--sort"))
+
+    def watching(self, reporter: Reporter | None) -> Reporter:
+        """``reporter`` (or none), with this check looking at every state change it is given."""
+        check = self
+
+        class Watching:
+            def update(self, state: StageState) -> None:
+                if reporter is not None:
+                    reporter.update(state)
+                check.see(state)
+
+        return Watching()
+
+
+def check_sort(sort: str | None, variants: Sequence[dict[str, Any]], stages: Collection[str]) -> SortMetricCheck | None:
+    """Check ``--sort`` before any variant runs, as far as it can be: a swept parameter, or ``stage.metric`` of a
+    stage of the pipeline. Returns the check of the metric's name that has to wait for the stage's result (None
+    when there is nothing left to check)."""
+    if not sort:
+        return None
+    column, _ = sort_column(sort)
+    params = swept_params(variants)
+    if column in params:
+        return None
+    stage, dot, metric = column.partition(".")
+    swept = f"a swept parameter ({', '.join(params)})"
+    if not (stage and dot and metric):
+        raise UserError(f"cannot sort by '{column}': give {swept} or stage.metric", field="--sort")
+    if stage not in stages:
+        from msflow.spec import unknown_stage
+
+        problem = f"not {swept}, and {unknown_stage(stage, stages)}"
+        raise UserError(f"cannot sort by '{column}': {problem}", field="--sort")
+    return SortMetricCheck(column, stage, metric)
+
+
+def open_variant_sessions(
+    path: str | Path, variants: list[dict[str, Any]], base_overrides: Sequence[str]
+) -> list[Session]:
+    """One session per variant (its overrides after ``base_overrides``), sharing one memo; an invalid variant is a
+    user error naming it, before anything runs."""
+    from msflow.session import open_session
+
+    sessions: list[Session] = []
+    memo = None
+    for index, variant in enumerate(variants):
+        try:
+            session = open_session(path, [*base_overrides, *variant_overrides(variant)], memo=memo)
+        except UserError as exc:
+            raise UserError(
+                f"variant {index + 1} {variant}: {exc.message}", file=exc.file, stage=exc.stage, field=exc.field
+            ) from None
+        memo = session.memo
+        sessions.append(session)
+    return sessions
+
+
+def variant_outcome(index: int, params: dict[str, Any], execution: Execution) -> VariantOutcome:
+    """What became of one variant: its run, whether it failed (and the first failed stage's error), its metrics."""
+    record = execution.record
+    failed = [s for s in execution.states.values() if s.state is StageStatus.FAILED]
+    return VariantOutcome(
+        index,
+        params,
+        record["id"],
+        not failed,
+        failed[0].error if failed else None,
+        {n: s["metrics"] for n, s in record["stages"].items() if s["metrics"]},
+        record["counts"],
+    )
 
 
 def _write_sweep_record(store: Store, result: SweepResult) -> None:
@@ -264,35 +359,54 @@ def variant_metric(variant: VariantOutcome, column: str) -> Any:
 
 
 def results_rows(result: SweepResult, metrics: list[str], sort: str | None = None) -> tuple[list[str], list[list[Any]]]:
-    params = list(dict.fromkeys(t for v in result.variants for t in v.params))
-    header = ["#", *params, "status", *metrics]
+    """(header, rows) of the results table: variant number, parameters, status and the ``metrics`` columns, in
+    the order of ``sort`` (``sort_column``); a metric sorted by is shown even when ``metrics`` leaves it out."""
+    params = swept_params([v.params for v in result.variants])
+    columns = list(metrics)
     variants = list(result.variants)
     if sort:
-        descending = sort.startswith("-")
-        column = sort.lstrip("-")
-        if column not in metrics and column not in params:
+        column, descending = sort_column(sort)
+        if (
+            column not in params
+            and column not in columns
+            and any(variant_metric(v, column) is not None for v in variants)
+        ):
+            columns.append(column)
+        if column in params or column in columns:
+            variants.sort(key=lambda v: _sort_key(v, column, column in params, descending))
+        elif any(v.ok for v in variants):  # when none is, the stage never finished: nothing to sort by
             raise UserError(
-                f"cannot sort by '{column}': not a column; columns: {', '.join(params + metrics)}", field="--sort"
+                f"cannot sort by '{column}': not a column; columns: {', '.join(params + columns)}", field="--sort"
             )
-
-        def sort_key(v: VariantOutcome) -> tuple[bool, Any]:
-            value = v.params.get(column) if column in params else variant_metric(v, column)
-            return (value is None, -value if descending and isinstance(value, (int, float)) else value)
-
-        variants.sort(key=sort_key)
     rows = [
         [
             v.index + 1,
             *[v.params.get(p) for p in params],
             "ok" if v.ok else f"failed: {v.error}",
-            *[variant_metric(v, m) for m in metrics],
+            *[variant_metric(v, m) for m in columns],
         ]
         for v in variants
     ]
-    return header, rows
+    return ["#", *params, "status", *columns], rows
+
+
+def _sort_key(variant: VariantOutcome, column: str, is_param: bool, descending: bool) -> tuple[bool, Any]:
+    """Missing values last, whichever the direction."""
+    value = variant.params.get(column) if is_param else variant_metric(variant, column)
+    return (value is None, -value if descending and isinstance(value, (int, float)) else value)
+
+
+FORMATS = ("table", "md", "csv", "json")
+
+
+def check_format(fmt: str) -> None:
+    """A results table format ``format_table`` writes, or a user error (``msflow sweep`` checks it first)."""
+    if fmt not in FORMATS:
+        raise UserError(f"unknown format '{fmt}'; choose {', '.join(FORMATS[:-1])} or {FORMATS[-1]}", field="--format")
 
 
 def format_table(header: list[str], rows: list[list[Any]], fmt: str) -> str:
+    check_format(fmt)
     if fmt == "json":
         return json.dumps([dict(zip(header, r)) for r in rows], indent=1)
     if fmt == "csv":
@@ -309,12 +423,39 @@ def format_table(header: list[str], rows: list[list[Any]], fmt: str) -> str:
         lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
         lines += ["| " + " | ".join(r) + " |" for r in cells]
         return "\n".join(lines)
-    if fmt != "table":
-        raise UserError(f"unknown format '{fmt}'; choose table, md, csv or json", field="--format")
+    if "status" in header:  # a failed variant's error would stretch its column: failure_lines has it whole
+        at = header.index("status")
+        for row in cells:
+            row[at] = shorten(row[at], STATUS_WIDTH)
     widths = [max(len(str(h)), *(len(r[i]) for r in cells)) for i, h in enumerate(header)]
     lines = ["  ".join(str(h).ljust(w) for h, w in zip(header, widths))]
     lines += ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in cells]
     return "\n".join(lines)
+
+
+#: the widest status cell of a ``table``: "failed: " and the start of the error (failure_lines prints it whole)
+STATUS_WIDTH = 48
+
+
+def shorten(text: str, width: int) -> str:
+    """``text`` on one line, cut to ``width`` characters with an ellipsis when longer.
+
+    >>> shorten("failed: RuntimeError: boom", 40), shorten("failed: a long\nerror", 12)
+    ('failed: RuntimeError: boom', 'failed: a l…')
+    """
+    line = " ".join(text.split())
+    return line if len(line) <= width else line[: width - 1] + "…"
+
+
+def failure_lines(result: SweepResult) -> list[str]:
+    """One line per failed variant, ``variant N (stage.param=value, ...): error``: the errors the ``table``
+    format cuts short, printed below it."""
+    lines = []
+    for variant in result.variants:
+        if not variant.ok:
+            described = ", ".join(f"{k}={v}" for k, v in variant.params.items())
+            lines.append(f"variant {variant.index + 1} ({described}): {' '.join(str(variant.error).split())}")
+    return lines
 
 
 def format_value(value: object, digits: int = 4) -> str:

@@ -197,6 +197,7 @@ def compute(
     ``TypeError``/``ValueError`` naming the stage and output. ``pin_blas``: one BLAS thread during ``run`` (the
     runner's workers run stages side by side); ``run_stage`` leaves the caller's BLAS threading alone."""
     from msflow.errors import InvalidResult
+    from msflow.sinks import nonfinite_warnings
     from msflow.stage import to_strict_json, validate_result
 
     stage = cls(name, jobs=jobs, chunk_target=chunk_target, parts=parts)
@@ -218,6 +219,7 @@ def compute(
     bad = [k for k, v in metrics.items() if not isinstance(v, (int, float)) or isinstance(v, bool)]
     if bad:
         raise InvalidResult(f"stage '{name}': metrics must be scalar numbers; not: {bad}")
+    stage_warnings += nonfinite_warnings(arrays)  # usable, most likely wrong: said, never a failure
     return Computed(arrays, meta, metrics, stage_warnings, seconds, list(caught))
 
 

@@ -201,6 +201,11 @@ CASES = {
         ["-S", "src.n=[1,2]"],
         ["stage 'src'", "field 'params.n'"],
     ),
+    "nan_param_override": (  # NaN cannot enter a key (strict JSON): it was a traceback from the params memo
+        "version: 1\nstages:" + GOOD_STAGES,
+        ["-S", "src.offset=.nan"],
+        ["stage 'src'", "field 'params'", "params.offset: nan is not allowed"],
+    ),
     "unsupported_version": ("version: 7\nstages:" + GOOD_STAGES, [], ["field 'version'", "format version 7"]),
     "top_level_not_mapping": ("- a\n- b\n", [], ["top level must be a mapping"]),
     "empty_file": ("", [], ["empty"]),

@@ -49,3 +49,53 @@ def test_report_lists_warnings(numproject, tmp_path):
     assert made.returncode == 0, made.stderr
     page = out.read_text()
     assert "<h2>Warnings</h2>" in page and "input looks constant" in page
+
+
+GAPS_WARNINGS = [
+    "output 'nan' is all NaN (4 values)",
+    "output 'nan_inf' is all NaN or Inf (3 values)",
+    "output 'streamed_nan' is all NaN (24 values)",
+]
+
+
+def test_an_output_without_a_finite_value_is_a_warning_and_is_stored(numproject):
+    result = run_cli(numproject, "run", "gaps.yaml", "-q")
+    assert result.returncode == 0, result.stderr
+    # one_finite, empty, streamed_late (its one finite value in its last block) and the integers: no warning
+    assert result.stderr.splitlines() == [f"warning: gaps: {w}" for w in GAPS_WARNINGS]
+    assert _record(numproject)["stages"]["gaps"]["warnings"] == GAPS_WARNINGS
+    shown = run_cli(numproject, "show", "gaps.streamed_nan", "gaps.yaml")
+    assert shown.returncode == 0 and "non-finite 24" in shown.stdout
+
+
+def test_run_stage_warns_of_outputs_without_a_finite_value_too(numproject, monkeypatch):
+    import sys
+
+    from msflow.testing import run_stage
+
+    monkeypatch.syspath_prepend(str(numproject))
+    monkeypatch.delitem(sys.modules, "numstages.basic", raising=False)
+    from numstages.basic import Gaps
+
+    out = run_stage(Gaps, {"blocks": 2, "rows": 5})  # sinks kept in memory, not streamed to a store
+    assert out.warnings == [
+        "output 'nan' is all NaN (5 values)",
+        "output 'nan_inf' is all NaN or Inf (3 values)",
+        "output 'streamed_nan' is all NaN (20 values)",
+    ]
+
+
+def test_a_sink_stops_looking_at_its_values_once_one_is_finite(monkeypatch):
+    import numpy as np
+
+    from msflow.sinks import OutputSink
+
+    looked_at = []
+    isfinite = np.isfinite
+    monkeypatch.setattr(np, "isfinite", lambda x: looked_at.append(np.size(x)) or isfinite(x))
+    sink = OutputSink("y", np.float64)
+    sink.append(np.full(1000, np.nan))  # no finite value yet: its first element, then the whole block
+    sink.append(np.arange(1000.0))  # its first element is finite
+    sink.append(np.full(1000, np.nan))  # not looked at: the output has a finite value
+    assert looked_at == [1, 1000, 1]
+    assert sink.nonfinite_warning() is None

@@ -5,7 +5,7 @@ import json
 import pytest
 from conftest import executions, run_cli
 
-from msflow.sweep import expand_variants, run_sweep
+from msflow.sweep import STATUS_WIDTH, expand_variants, run_sweep
 
 STAGES = ["src", "scaled", "sign", "csv", "total"]
 
@@ -51,6 +51,23 @@ def test_failing_variant_does_not_stop_the_others(numproject):
     assert "boom" in crash.error
 
 
+def test_sweep_table_cuts_long_errors_short_and_lists_them_whole_below(numproject):
+    result = run_cli(numproject, "sweep", "broken_sweep.yaml", "-S", "broken.mode=fine,schema,crash", "-q")
+    assert result.returncode == 1, result.stderr
+    table, below = result.stdout.split("\n\n")
+    full = "output 'y': axis 0 has size 4, expected 3 (shape (4,))"
+    rows = table.splitlines()
+    status = rows[0].index("status")
+    assert rows[2][status:].startswith("failed: output 'y': axis 0") and "…" in rows[2] and full not in table
+    assert rows[0].index("broken.score") - status == STATUS_WIDTH + 2  # the status column, and two spaces
+    assert below.splitlines() == [
+        f"variant 2 (broken.mode=schema): {full}",
+        "variant 3 (broken.mode=crash): RuntimeError: boom",
+    ]
+    csv = run_cli(numproject, "sweep", "broken_sweep.yaml", "-S", "broken.mode=fine,schema", "--format", "csv", "-q")
+    assert f"failed: {full}" in csv.stdout and "variant 2" not in csv.stdout  # whole in the cell, nothing below
+
+
 def test_sweep_cli_table_formats_and_sort(numproject):
     result = run_cli(numproject, "sweep", "--grid", "sweep.yaml", "--format", "csv", "--sort", "-total.total", "-q")
     assert result.returncode == 0, result.stderr
@@ -66,6 +83,39 @@ def test_sweep_cli_table_formats_and_sort(numproject):
     assert [r["src.n"] for r in rows] == [3, 4] and "0 stage executions" in again.stderr
 
 
+def test_sweep_sort_naming_no_stage_fails_before_any_variant_runs(numproject):
+    result = run_cli(numproject, "sweep", "--grid", "sweep.yaml", "--sort", "-totl.total")
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().splitlines() == [
+        "error: field '--sort': cannot sort by 'totl.total': not a swept parameter (src.n, scaled.factor), and "
+        "unknown stage 'totl' (did you mean 'total'?); stages: ['csv', 'scaled', 'sign', 'src', 'total']"
+    ]
+    assert not (numproject / ".msflow" / "artifacts").exists()
+
+
+def test_sweep_sort_by_a_misspelt_metric_stops_when_the_stage_first_finishes(numproject, tmp_path, monkeypatch):
+    log = tmp_path / "log"
+    monkeypatch.setenv("NUMSTAGES_LOG", str(log))
+    result = run_cli(numproject, "sweep", "--grid", "sweep.yaml", "--sort", "total.totl", "-q")
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().splitlines() == [
+        "error: field '--sort': cannot sort by 'total.totl': stage 'total' gives no metric 'totl' "
+        "(did you mean 'total'?); its metrics: total"
+    ]
+    # each of the 5 variants has its own total: only the first one ran before the sweep stopped
+    assert executions(log).count("total") == 1
+    listing = run_cli(numproject, "runs").stdout
+    assert "STOPPED" in listing
+
+
+def test_sweep_sort_by_a_metric_shows_it_as_a_column(numproject):
+    result = run_cli(numproject, "sweep", "-S", "src.n=3,4", "--metrics", "csv.*", "--sort", "-total.total", "-q")
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.strip().splitlines()
+    assert lines[0].split() == ["#", "src.n", "status", "total.total"]  # csv gives no metrics
+    assert [line.split()[0] for line in lines[1:]] == ["2", "1"]
+
+
 @pytest.mark.parametrize(
     "args, fragment",
     [
@@ -74,6 +124,10 @@ def test_sweep_cli_table_formats_and_sort(numproject):
         (["-S", "src.n="], "the grid is empty"),
         ([], "the grid is empty"),
         (["-S", "src.n=3,x"], "params.n"),
+        (
+            ["-S", "src.n=3,4", "--format", "xml"],
+            "field '--format': unknown format 'xml'; choose table, md, csv or json",
+        ),
     ],
 )
 def test_sweep_user_errors(numproject, args, fragment):

@@ -318,3 +318,41 @@ class Tagged(Stage):
 
     def run(self, params, inputs):
         return Result({"x": np.zeros(1)})
+
+
+class Gaps(Stage):
+    """Float outputs without a finite value (all NaN; NaN and Inf), returned whole and through sinks, beside
+    outputs with some (one finite value, only in the last block) and an empty one: for the non-finite warning."""
+
+    class Params(Stage.Params):
+        blocks: int = 3
+        rows: int = 4
+
+    outputs = {
+        "nan": Output.array("f", ndim=1),
+        "nan_inf": Output.array("f", ndim=1),
+        "one_finite": Output.array("f", ndim=1),
+        "empty": Output.array("f", ndim=1),
+        "streamed_nan": Output.array("f", shape=("frames", 2)),
+        "streamed_late": Output.array("f", shape=("frames",)),
+        "count": Output.array("i", ndim=1),
+    }
+
+    def run(self, params, inputs):
+        streamed_nan = self.sink("streamed_nan", dtype=np.float32, row_shape=(2,))
+        streamed_late = self.sink("streamed_late", dtype=np.float64)
+        for index in range(params.blocks):
+            streamed_nan.append(np.full((params.rows, 2), np.nan, np.float32))
+            late = np.full(params.rows, np.nan)
+            late[-1] = 1.0 if index == params.blocks - 1 else np.nan
+            streamed_late.append(late)
+        arrays = {
+            "nan": np.full(params.rows, np.nan),
+            "nan_inf": np.array([np.nan, np.inf, -np.inf]),
+            "one_finite": np.array([np.nan, np.inf, 2.0]),
+            "empty": np.zeros(0),
+            "streamed_nan": streamed_nan,
+            "streamed_late": streamed_late,
+            "count": np.arange(params.rows),
+        }
+        return Result(arrays)
