@@ -255,6 +255,9 @@ def show(
     echo(f"{stage}  {session.plans[stage].uses}\nkey {key}  ({origin})")
     if "cpu_seconds" in view.manifest:
         echo(f"computed in {view.manifest['compute_seconds']:.3g} s ({view.manifest['cpu_seconds']:.3g} s CPU)")
+    parts = view.manifest.get("parts")
+    if parts:  # msflow.parts: what it was built from, and how much of it an earlier run had computed
+        echo(f"built from {_count(len(parts['keys']), 'part')}, {len(parts['reused'])} found stored when it ran")
     names = [output] if output else list(view.names)
     if output and output not in view:
         raise UserError(

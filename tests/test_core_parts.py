@@ -55,6 +55,8 @@ def test_adding_a_take_computes_only_its_part_across_processes(numproject, tmp_p
     assert executions(log) == ["per_take", "part"]  # the stage ran, and computed one part
     assert parts_computed(log) == ["c.txt"]
     assert "2 of 3 parts reused" in second.stdout + second.stderr
+    shown = run_cli(numproject, "show", "per_take", "parts.yaml")
+    assert "built from 3 parts, 2 found stored when it ran" in shown.stdout
 
 
 def test_a_result_built_from_stored_parts_equals_one_computed_whole(numproject, tmp_path, log):
