@@ -135,7 +135,7 @@ def test_gc_keeps_the_parts_of_kept_artifacts_and_drops_the_rest(numproject, log
 
 def test_outside_a_store_parts_are_computed_in_memory(tmp_path, log, monkeypatch):
     monkeypatch.syspath_prepend(str(Path(__file__).parent / "numproject"))
-    from numstages.parts import PerTake
+    from numstages.basic import PerTake
 
     write_takes(tmp_path, a=[1, 2], b=[3])
     out = run_stage(PerTake, {"scale": 2}, {"takes": {p.stem: p for p in sorted((tmp_path / "takes").iterdir())}})
