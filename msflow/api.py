@@ -383,6 +383,7 @@ def save_fast_state(execution: Execution, published: list[str]) -> None:
         pipeline.rel_path,
         summary_lines(list(pipeline.summary), execution.record["stages"]),
         published,
+        list(pipeline.warnings),
     )
 
 

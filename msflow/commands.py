@@ -74,6 +74,8 @@ def run(
     from msflow.session import open_session
 
     session = open_session(file, tuple(overrides or ()), publish_dir=publish_dir)
+    for warning in session.pipeline.warnings:  # before the run: the user may want to stop it and rename
+        _warn(warning)
     reporter = make_reporter(list(session.plans), quiet)
     if reporter:
         reporter.start()
