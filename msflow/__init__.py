@@ -45,7 +45,8 @@ def run(path: Any, overrides: Sequence[str] = (), **options: Any) -> RunResult:
     overrides : sequence of str
         ``stage.param=value`` overrides (YAML values), as ``msflow run -S``.
     jobs : int
-        Stages run at once (worker processes; ``-j``), also given to each stage as ``Stage.jobs``.
+        Stages run at once (``-j``: one in this process, for stages that allow it, the others in worker
+        processes started when needed), also given to each stage as ``Stage.jobs``.
     until : str, optional
         Run only this stage and what it needs.
     force : sequence of str

@@ -136,6 +136,7 @@ def run_sessions(
             connect_timeout,
             on_start=sessions[0].store.clean_tmp,
             code_trees=code_trees_of(sessions),
+            batch=len(sessions) > 1,
         )
         runners = _runners_for(sessions, pool, jobs=jobs, until=until, force=force, reporters=reporters)
         settings: dict[str, Any] = dict(started=started, jobs=jobs, force=force, labels=labels, argv=argv)
@@ -390,6 +391,7 @@ def save_fast_state(execution: Execution, published: list[str]) -> None:
         pipeline.rel_path,
         summary_lines(list(pipeline.summary), execution.record["stages"]),
         published,
+        list(pipeline.warnings),
     )
 
 

@@ -88,6 +88,8 @@ def run(
 
     file = pipeline_file(file, file_option) or DEFAULT_FILE
     session = open_session(file, tuple(overrides or ()), publish_dir=publish_dir)
+    for warning in session.pipeline.warnings:  # before the run: the user may want to stop it and rename
+        _warn(warning)
     reporter = make_reporter(list(session.plans), quiet)
     if reporter:
         reporter.start()

@@ -1,7 +1,9 @@
 """Executors run jobs (JSON strings, see msflow.worker) and hand back futures of JSON outcomes.
 
-``inline`` runs in the calling process (``-j 1``); ``local`` is a process pool (``-j N``) whose workers pin BLAS to
-one thread; ``dask`` lives in msflow.dask_executor. All produce the same artifacts and keys.
+``inline`` runs in the calling process (``-j 1``); ``local`` (``-j N``) runs N stages at a time, one of them in the
+run's own process when its stage allows it (``Stage.in_process``) and the others in worker processes started only
+when needed, whose BLAS is pinned to one thread; ``dask`` lives in msflow.dask_executor. All produce the same
+artifacts and keys.
 
 ``submit`` takes an optional ``on_retry(lost_worker, attempt)``: executors that retry a job after losing its
 worker (Dask) call it when the new attempt starts, from their own thread.
@@ -11,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from concurrent.futures import Future
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 OnRetry = Callable[[str, int], None]
@@ -87,6 +90,160 @@ class ProcessExecutor:
         stop_groups(workers)
 
 
+#: where ``LocalExecutor`` may run a job: a worker (the default), the run's own process first and else a worker
+#: (``Stage.in_process``), only the run's own process (``Stage.cheap``, but in a sweep)
+WORKER, ANY, CHEAP = "worker", "any", "cheap"
+
+
+@dataclass
+class _Waiting:
+    job_json: str
+    placement: str
+    future: Future[str]
+
+
+class LocalExecutor:
+    """``-j N`` on this machine: at most N stages at a time, one of them in the run's own process.
+
+    The run's own process comes first: a stage that allows it (``Stage.in_process``) runs there, in a thread,
+    whenever it has no stage, and finds the libraries the run has imported already. Another stage goes to a
+    worker process only while the run's process is on a stage that is not cheap (``Stage.cheap``: it will soon be
+    free), or when it may not run there; a cheap stage never does, but in a sweep (``batch``), whose variants of
+    it share a worker's imports. A worker (a ``ProcessExecutor`` of one) is spawned when none is idle, and kept for
+    the rest of the run. So a chain of stages starts no worker and imports each library once, and two long stages
+    ready at once still run side by side.
+
+    Why: a spawned worker imports what its stages need again (numpy, scipy, OpenCV, PyAV: a cheap stage's 0.02 s
+    cost 0.5 s of imports in a worker of the default pipeline), which a short pipeline's parallel part does not
+    repay on a busy machine; and a pool of N spawned another worker whenever a job came in the instant between a
+    worker's result and its being counted idle again, so this executor counts its workers itself."""
+
+    name = "local"
+
+    def __init__(self, jobs: int, batch: bool = False):
+        import threading
+        from collections import deque
+
+        self.jobs = jobs
+        self.batch = batch
+        self._lock = threading.RLock()  # a worker's result may come back (and dispatch) inside _dispatch
+        self._waiting: deque[_Waiting] = deque()
+        self._running = 0
+        self._here: threading.Thread | None = None  # the thread running a stage in this process ...
+        self._here_cheap = False  # ... and whether that stage is cheap (it will soon be done)
+        self._idle: list[ProcessExecutor] = []
+        self._workers: list[ProcessExecutor] = []
+        self._stopping = False
+
+    def submit(self, job_json: str, on_retry: OnRetry | None = None) -> Future[str]:
+        import json
+
+        job = json.loads(job_json)
+        placement = CHEAP if job.get("cheap") and not self.batch else ANY if job.get("in_process") else WORKER
+        waiting = _Waiting(job_json, placement, Future())
+        with self._lock:
+            self._waiting.append(waiting)
+            self._dispatch()
+        return waiting.future
+
+    def _dispatch(self) -> None:
+        """Start waiting jobs, each the first come among those a free place may take, while fewer than ``jobs``
+        run (under the lock). While this process is on a cheap stage, a worker takes only what may not wait for
+        it."""
+        while self._running < self.jobs and not self._stopping:
+            if self._here is None and (job := self._take({ANY, CHEAP})) is not None:
+                self._start_here(job)
+            elif (job := self._take({WORKER} if self._here_cheap else {WORKER, ANY})) is not None:
+                self._start_in_worker(job)
+            else:
+                return
+            self._running += 1
+
+    def _take(self, placements: set[str]) -> _Waiting | None:
+        for index, waiting in enumerate(self._waiting):
+            if waiting.placement in placements:
+                del self._waiting[index]
+                return waiting
+        return None
+
+    def _start_here(self, job: _Waiting) -> None:
+        import threading
+
+        self._here_cheap = job.placement == CHEAP
+        self._here = threading.Thread(target=self._run_here, args=(job,), name="msflow-stage", daemon=True)
+        self._here.start()
+
+    def _run_here(self, job: _Waiting) -> None:
+        from msflow.worker import run_job
+
+        result: str | BaseException
+        try:
+            result = run_job(job.job_json)
+        except BaseException as exc:  # KeyboardInterrupt raised into this thread by shutdown(abort=True)
+            result = exc
+        with self._lock:  # free before telling: the runner's next job may then come here, not to a new worker
+            self._here, self._here_cheap = None, False
+            self._running -= 1
+            self._dispatch()
+        _resolve(job.future, result)
+
+    def _start_in_worker(self, job: _Waiting) -> None:
+        worker = self._idle.pop() if self._idle else self._new_worker()
+        try:
+            inner = worker.submit(job.job_json)
+        except Exception:  # it died while idle (the OOM killer): a new one takes the job
+            self._workers.remove(worker)
+            worker = self._new_worker()
+            inner = worker.submit(job.job_json)
+        inner.add_done_callback(lambda done: self._worker_done(worker, done, job.future))
+
+    def _new_worker(self) -> ProcessExecutor:
+        worker = ProcessExecutor(1)
+        self._workers.append(worker)
+        return worker
+
+    def _worker_done(self, worker: ProcessExecutor, done: Future[str], future: Future[str]) -> None:
+        result: str | BaseException
+        if done.cancelled():
+            result = KeyboardInterrupt()
+        else:
+            error = done.exception()
+            result = done.result() if error is None else error
+        with self._lock:  # free before telling, as in _run_here
+            self._running -= 1
+            if isinstance(result, str):
+                self._idle.append(worker)
+            elif worker in self._workers:  # broken (it died mid-stage; its pool has cleared up): no more jobs
+                self._workers.remove(worker)
+            self._dispatch()
+        _resolve(future, result)
+
+    def shutdown(self, *, abort: bool = False) -> None:
+        from msflow.processes import STOP_GRACE_SECONDS, interrupt_thread
+        from msflow.worker import settle
+
+        with self._lock:
+            self._stopping = True
+            waiting, here, workers = list(self._waiting), self._here, list(self._workers)
+            self._waiting.clear()
+        for job in waiting:
+            job.future.cancel()
+        if abort and here is not None:
+            interrupt_thread(here)  # as Ctrl-C does to a stage of -j 1: it unwinds, its writer clears its folder
+        for worker in workers:
+            worker.shutdown(abort=abort)
+        if here is not None:
+            here.join(STOP_GRACE_SECONDS if abort else None)
+        settle()  # this process ran jobs too
+
+
+def _resolve(future: Future[str], result: str | BaseException) -> None:
+    if isinstance(result, BaseException):
+        future.set_exception(result)
+    else:
+        future.set_result(result)
+
+
 def start_worker(run_pid: int) -> None:
     """Initialise a ``ProcessExecutor`` worker: one BLAS thread; the leader of its own process group, which the
     processes its stages start join, so that stopping the run stops them too (``msflow.processes``); gone, with
@@ -131,9 +288,11 @@ def make_executor(
     timeout: float = 10.0,
     on_start: Callable[[], object] | None = None,
     code_trees: Callable[[str], Any] | None = None,
+    batch: bool = False,
 ) -> LazyExecutor:
     """Validate the executor options now; start the executor when the first job arrives. ``code_trees`` maps a
-    project root to its ``msflow.shipping.CodeTree``, for executors that ship code to their workers."""
+    project root to its ``msflow.shipping.CodeTree``, for executors that ship code to their workers; ``batch``:
+    the jobs are several variants' (a sweep: ``LocalExecutor``)."""
     from msflow.errors import UserError
 
     if jobs < 1:
@@ -155,7 +314,7 @@ def make_executor(
     elif kind in ("local", "inline"):
 
         def factory() -> Executor:
-            return InlineExecutor() if jobs == 1 or kind == "inline" else ProcessExecutor(jobs)
+            return InlineExecutor() if jobs == 1 or kind == "inline" else LocalExecutor(jobs, batch)
     else:
         raise UserError(f"unknown executor '{kind}'; choose local or dask", field="--executor")
     return LazyExecutor(factory, on_start)

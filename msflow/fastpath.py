@@ -25,7 +25,7 @@ from typing import Any
 
 from msflow.syspath import in_project
 
-FORMAT = 1
+FORMAT = 2  # 2: the pipeline's warnings (msflow.variables), printed first
 RUN_FLAGS = {"-q", "--quiet"}
 VALUED = {"-S": "set", "--set": "set", "-j": "jobs", "--jobs": "jobs", "--executor": "executor"}
 VALUED.update({"--connect-timeout": "timeout"})
@@ -210,12 +210,15 @@ def print_status(state: dict[str, Any]) -> None:
 def print_run(state: dict[str, Any], run_id: str, quiet: bool, seconds: float) -> None:
     """What the full path prints for a run where every stage is cached (plain progress lines on stderr)."""
     stages = state["stages"]
+    colour = sys.stderr.isatty()
+    for message in state.get("pipeline_warnings", []):  # before the stages, as the full path prints them
+        line = f"warning: {message}"
+        print(f"\033[33m{line}\033[0m" if colour else line, file=sys.stderr)
     if not quiet:
         width = max((len(n) for n in stages), default=8)
         for name in stages:
             print(f"= {name:<{width}}  cached  ", file=sys.stderr)
         print(f"{len(stages)} cached in {seconds:.2f}s (run {run_id})", file=sys.stderr)
-    colour = sys.stderr.isatty()
     warnings = [
         f"{stage} (cached result): {m}" for stage, messages in state.get("warnings", {}).items() for m in messages
     ]
@@ -271,6 +274,7 @@ def save_state(
     rel_pipeline: str,
     summary: tuple[list[str], list[str]] = ([], []),
     published: list[str] | None = None,
+    pipeline_warnings: list[str] | None = None,
 ) -> None:
     """Save the state a later no-op ``run``/``status`` with the same pipeline and overrides answers from."""
     from msflow.atomic import write_json_atomic
@@ -290,6 +294,7 @@ def save_state(
         "summary": summary[0],
         "summary_warnings": summary[1],
         "published": published or [],
+        "pipeline_warnings": pipeline_warnings or [],
     }
     path = state_file(pipeline, overrides)
     os.makedirs(os.path.dirname(path), exist_ok=True)

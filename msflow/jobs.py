@@ -85,6 +85,10 @@ class Job:
     #: shipped jobs (msflow.shipping): the content hash of the project code (stage modules and resources) among
     #: the store's blobs; the worker imports it from its own cache instead of ``project_root``
     code: str | None = None
+    #: the stage may run in the run's own process (``Stage.in_process``): ``-j N`` runs it there when that is free
+    in_process: bool = False
+    #: the stage is quick (``Stage.cheap``): ``-j N`` starts no worker process for it
+    cheap: bool = False
 
     def to_json(self) -> str:
         value = shallow_dict(self)

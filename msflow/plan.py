@@ -208,7 +208,7 @@ def _plan_stage(
     iface_key = json_hash([node.uses, code_digest])
     interface = interfaces.get(iface_key)
     cls: type[Stage] | None = None
-    if interface is None:
+    if interface is None or "in_process" not in interface:  # memoised before interfaces said it: once more
         cls = import_stage_class(node.uses, file=file, stage=name, root=pipeline.root)
         interface = _class_interface(cls, pipeline.root)
         interfaces[iface_key] = interface

@@ -68,6 +68,15 @@ def exit_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="msflow-exit-with-parent", daemon=True).start()
 
 
+def interrupt_thread(thread: threading.Thread) -> None:
+    """Raise KeyboardInterrupt in ``thread`` at its next Python instruction, as Ctrl-C does in the main thread: a
+    stage running there unwinds (its ``finally`` blocks stop what it started) instead of going on unseen."""
+    import ctypes
+
+    if thread.ident is not None and thread.is_alive():
+        ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(thread.ident), ctypes.py_object(KeyboardInterrupt))
+
+
 def stop_groups(processes: Sequence[BaseProcess], grace: float = STOP_GRACE_SECONDS) -> None:
     """Stop ``processes`` and the process groups they lead (``lead_own_group``): SIGTERM, then SIGKILL for what is
     left once they have exited or ``grace`` seconds have passed; reaps them. A process that leads no group (yet:

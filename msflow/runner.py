@@ -281,6 +281,8 @@ class Runner:
             checked=state.checked,
             jobs=self.jobs,
             key_parts=state.parts,
+            in_process=bool(plan.interface.get("in_process")),
+            cheap=bool(plan.interface.get("cheap")),
         )
 
     def needs_check(self, name: str) -> bool:

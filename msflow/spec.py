@@ -6,6 +6,7 @@ module imports numpy, zarr or stage code: a no-op run goes through it on every i
 
 from __future__ import annotations
 
+import copy
 import difflib
 import glob as globlib
 import os
@@ -21,6 +22,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 
 from msflow.errors import UserError, display_path, strip_tags
 from msflow.hashing import stat_signature
+from msflow.variables import VAR_RE, untrue_names
 
 if TYPE_CHECKING:
     from msflow.stores.base import Store
@@ -31,7 +33,6 @@ REF_RE = re.compile(r"^(?P<stage>[A-Za-z_][A-Za-z0-9_\-]*)(?:\.(?P<output>[A-Za-
 USES_RE = re.compile(
     r"^(?P<module>[A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*):(?P<cls>[A-Za-z_][A-Za-z0-9_]*)$"
 )
-VAR_RE = re.compile(r"\$\{([^}]*)\}")
 GLOB_CHARS = set("*?[")
 
 
@@ -124,6 +125,8 @@ class Pipeline:
     store_options: dict[str, Any] = field(default_factory=dict)
     source_signature: str = ""  #: stat signature of the pipeline file when it was read
     summary: tuple[str, ...] = ()  #: ``stage.metric`` patterns printed when a run ends (msflow.summary)
+    #: what the user should know before running it: published names an override made untrue (msflow.variables)
+    warnings: tuple[str, ...] = ()
 
     def open_store(self) -> Store:
         from msflow.stores import open_store
@@ -358,6 +361,7 @@ def load_pipeline(
     text, signature = _read_pipeline_file(path, file)
     raw = _top_level_mapping(text, file)
     overrides = tuple(overrides)
+    written = copy.deepcopy(raw) if overrides else raw
     apply_overrides(raw, overrides, file)
     substituted = _substituted(raw, file)
     _reject_nul_characters(substituted, file)
@@ -371,8 +375,18 @@ def load_pipeline(
     publish = publish_targets(spec.publish, root, pipeline_dir, publish_dir, file)
     _check_publish_reads_nothing(publish, spec.publish, read_paths(path.resolve(), store, nodes), file)
     _check_summary(spec.summary, nodes, file)
+    warnings = untrue_names(written, raw, [parse_override(o) for o in overrides], publish) if overrides else []
     return Pipeline(
-        path.resolve(), root, store, nodes, publish, overrides, spec.store_options, signature, tuple(spec.summary)
+        path.resolve(),
+        root,
+        store,
+        nodes,
+        publish,
+        overrides,
+        spec.store_options,
+        signature,
+        tuple(spec.summary),
+        tuple(warnings),
     )
 
 

@@ -232,6 +232,10 @@ class Stage:
         Report figures: ``f(view, inputs)`` returning a matplotlib Figure, PNG or MP4 bytes.
     resources : mapping of str to path
         Data files the code reads by default (models): hashed into the cache key.
+    in_process : bool
+        ``-j N`` may run the stage in the run's own process (no worker started for it); false by default.
+    cheap : bool
+        Quick: ``-j N`` starts no worker for it (it runs in the run's own process); false by default.
     name : str
         The stage's name in the pipeline (instance attribute).
     jobs : int
@@ -267,6 +271,16 @@ class Stage:
     #: data files or folders the stage's code reads by default (models, reference meshes): name -> path. They
     #: are hashed by content into the cache key like inputs, so replacing a model file reruns the stage.
     resources: ClassVar[Mapping[str, Any]] = {}
+    #: may run in a thread of the run's own process under ``-j N`` (msflow.executors.LocalExecutor), where it finds
+    #: the libraries already imported and costs no worker process. Say so only of a stage whose ``run`` changes no
+    #: process-wide state (working folder, signal handlers, environment) and starts no process that would outlive
+    #: the run if it were killed (SIGKILL): a run cannot stop what a thread of its own started, as it stops a
+    #: worker's process group.
+    in_process: ClassVar[bool] = False
+    #: quick (about a second or less on a take of minutes): ``-j N`` runs it in the run's own process only, after
+    #: the stage that process is on, since a worker would import numpy, scipy, ... again for it (in a sweep, whose
+    #: variants of it share a worker's imports, it may run in one). Implies ``in_process``.
+    cheap: ClassVar[bool] = False
 
     def __init__(self, name: str = "", *, jobs: int = 1, chunk_target: Any = None, parts: Any = None):
         self.name = name or type(self).__name__
@@ -344,6 +358,8 @@ class Stage:
             "outputs": {k: v.describe() for k, v in cls.outputs.items()},
             "resources": {k: str(Path(v).resolve()) for k, v in cls.resources.items()},
             "figures": list(cls.figures),
+            "in_process": bool(cls.in_process or cls.cheap),
+            "cheap": bool(cls.cheap),
         }
 
 

@@ -119,3 +119,28 @@ def test_a_run_lists_the_files_it_wrote_as_published_and_the_others_as_up_to_dat
     assert again.stdout.splitlines() == ["published: out/y.csv", "published files up to date: out/x.npy"]
     assert (numproject / "out" / "y.csv").exists()
     assert (numproject / "out" / "x.npy").stat().st_mtime_ns == stamps["x.npy"]
+
+
+def test_an_override_that_drops_a_variable_the_published_names_use_is_a_warning_before_the_run(numproject):
+    """``out/y_${name}.csv`` with ``name: times_${factor}`` and ``scaled.factor: ${factor}``: ``-S scaled.factor=5``
+    writes five times x into a file named for three, so the run says so before any stage runs (and a no-op repeat
+    too), naming the override, the variables, the files and the variable that renames them."""
+    pipeline = numproject / "pipeline.yaml"
+    text = pipeline.read_text().replace("  n: 6\n", "  n: 6\n  factor: 3\n  name: times_${factor}\n")
+    add_publish(pipeline, {"scaled.y": "out/y_${name}.csv"}, text.replace("factor: 3}", "factor: '${factor}'}"))
+    warning = (
+        "warning: -S scaled.factor no longer uses ${factor}, which the published files are named after (through "
+        "${name}): out/y_times_3.csv will hold the override's result under names that no longer say what it is; "
+        "name them for it with -S vars.name=..."
+    )
+    for attempt in ("first", "no-op"):
+        result = run_cli(numproject, "run", "-S", "scaled.factor=5")
+        assert result.returncode == 0 and warning in result.stderr, (attempt, result.stderr)
+        lines = result.stderr.splitlines()
+        assert lines.index(warning) < min(i for i, line in enumerate(lines) if " scaled " in line), lines
+    assert newest_record(numproject)["executor"] == "none"  # the no-op came from the fast path's saved state
+    assert (numproject / "out" / "y_times_3.csv").read_text().splitlines()[2] == "5"
+
+    for kept in (["-S", "scaled.factor=${factor}"], ["-S", "scaled.factor=5", "-S", "vars.name=times_5"]):
+        result = run_cli(numproject, "run", "-q", *kept)  # the variable kept, or the files renamed: nothing to say
+        assert result.returncode == 0 and "warning" not in result.stderr, (kept, result.stderr)

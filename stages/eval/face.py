@@ -524,6 +524,8 @@ class FaceEval(Stage):
     """Style classification (temporal k-fold with a guard band, leave-one-take-out) beside a nearest-frame baseline,
     edit fidelity, analysis residual and convergence, and how unseen expressions are analysed."""
 
+    in_process = True
+
     Params = FaceEvalParams
     inputs = {
         "tracks": Input.artifact(

@@ -690,6 +690,8 @@ class HeadMotionEval(Stage):
     against the real motion, shifted and random real motion, a random path, phase-randomised noise and a still
     head."""
 
+    in_process = True
+
     Params = HeadEvalParams
     inputs = {
         "synthesis": Input.artifact("angles", "sequence", "joins", "join_utterance", doc="motion_blend artifact"),

@@ -268,6 +268,8 @@ EVAL_OUTPUTS = {
 class RetargetEval(Stage):
     """Metrics of a retargeted animation (blend weights on a character) against the tracked performer."""
 
+    in_process = True
+
     class Params(Stage.Params):
         #: a lip closure: inner-lip gap below this (IOD) ...
         closure_gap: float = Field(0.03, gt=0)

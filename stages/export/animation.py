@@ -404,6 +404,8 @@ def pack_preview(
 class Export(Stage):
     """GLB with morph-weight, head and eye animation, Live Link Face CSV, preview MP4 with audio, head BVH."""
 
+    in_process = True  # its preview's render processes (long takes) watch the process that started them
+
     class Params(Stage.Params):
         #: take label: picks the take in a multi-take blend, head motion and audio input (their meta labels);
         #: default: the blend's take, or the only take

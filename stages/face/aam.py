@@ -567,6 +567,8 @@ def heldout_errors(model: AamModel, proj: AamProjection, sequence: np.ndarray, k
 class AamPca(Stage):
     """Active-appearance-style model of the training takes (Eq 1-3): shape and texture PCA, combined y."""
 
+    cheap = True
+
     Params = AamParams
     inputs = {
         "tracks": Input.artifact(

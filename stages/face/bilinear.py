@@ -413,6 +413,8 @@ class BilinearFit(Stage):
     its label; takes of one expression saying the same sentence are aligned set by set (``TakeSets``).
     """
 
+    cheap = True
+
     Params = BilinearParams
     inputs = {
         "aam": Input.artifact("y", "sequence", "aligned_shapes", doc="appearance model of the training takes"),

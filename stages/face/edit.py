@@ -479,6 +479,8 @@ class ExpressionEdit(Stage):
     """Analyse the test take with the trained bilinear model (Eq 5-6) and resynthesise it with other expressions
     (Eq 7), as shapes, configuration vectors and face images (MP4 and an interpolation strip)."""
 
+    in_process = True
+
     Params = EditParams
     inputs = {
         "model": Input.artifact("W", "style", "content", doc="bilinear artifact"),

@@ -333,6 +333,8 @@ class TrackedHeadDb(Stage):
     """Database from tracking outputs: video head pose (rotation, translation) and each video's audio; the takes
     of ``tracks`` and, optionally, of a second tracking artifact ``more_tracks`` (say, another corpus)."""
 
+    cheap = True
+
     class Params(HeadDbParams):
         labels: list[str] | None = Field(None, description="use only these sequences of the tracking artifacts")
 
@@ -483,6 +485,8 @@ class FileHeadDbParams(HeadDbParams):
 class BvhHeadDb(Stage):
     """Database from BVH files (one named joint's local rotation and position) paired with audio files."""
 
+    cheap = True
+
     class Params(FileHeadDbParams):
         joint: str = "Head"
 
@@ -569,6 +573,8 @@ def read_motion_csv(path, *, angle_unit: str, rotation_order: str, field: str):
 
 class CsvHeadDb(Stage):
     """Database from CSV head motion (time on the audio's clock, angles, positions) paired with audio files."""
+
+    cheap = True
 
     class Params(FileHeadDbParams):
         angle_unit: Literal["degrees", "radians"]

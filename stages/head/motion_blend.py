@@ -204,6 +204,8 @@ class MotionBlend(Stage):
     """Stitch, drift-correct and smooth the joins of the chosen database motion (Sec. 5.4); head rotation,
     translation and a BVH of the head joint at the output rate."""
 
+    cheap = True
+
     Params = MotionBlendParams
     inputs = {
         "trellis": Input.artifact("segments", "chosen", "db_segments", "db_segment_sequence"),

@@ -312,6 +312,8 @@ class PitchParams(Stage.Params):
 class Pitch(Stage):
     """Praat pitch, Sec. 5.1 cleaning, onset-to-onset segments, sub-sentence breaks, phrase features."""
 
+    cheap = True
+
     Params = PitchParams
     inputs = {
         "source": Input.artifact(optional=True, doc="tracking or headdb artifact with audio per sequence"),

@@ -208,6 +208,8 @@ class TrellisParams(Stage.Params):
 class Trellis(Stage):
     """Two-stage pitch matching and Viterbi path search (Sec. 5.2-5.3) from test pitch to database segments."""
 
+    cheap = True
+
     Params = TrellisParams
     inputs = {
         "database": Input.artifact("angles", "sequence", doc="headdb artifact (motion)"),

@@ -326,6 +326,8 @@ class BlendParams(Stage.Params):
 class Blend(Stage):
     """Blend the per-expression retargeted animations with barycentric expression weights (paper Eq 9)."""
 
+    cheap = True
+
     Params = BlendParams
     inputs = {
         "keyshapes": Input.artifact("weights", "keyshape_expression", doc="keyshapes artifact (Eq 8 weights)"),

@@ -324,6 +324,8 @@ class GltfCharacter(Stage):
     """A glTF 2.0 character (.glb or .gltf) with morph targets; landmark ids from a JSON input, the mesh extras
     (``landmarkVertexIds``), or found by the tracker on the character's front render."""
 
+    cheap = True
+
     class Params(Stage.Params):
         mesh_name: str | None = None
         #: the 68 landmark vertices: 'given' (the JSON input, else the glTF's mesh extras, else tracked, with a
@@ -414,6 +416,8 @@ class GltfCharacter(Stage):
 class ObjBlendshapes(Stage):
     """A neutral OBJ plus one OBJ per blendshape (.obj or .obj.gz, same vertex order); optional identity OBJs
     (names starting with ``identity_prefix``) for the identity mix."""
+
+    cheap = True
 
     class Params(Stage.Params):
         #: name (file name without .obj/.obj.gz) of the neutral mesh; default: the one file with 'neutral' in it

@@ -160,6 +160,7 @@ class Prepared:
 
 
 class _KeymorphStage(Stage):
+    cheap = True
     outputs = KEYMORPHS_OUTPUTS
     figures = {"contact_sheet": figure_contact_sheet, "landmark_fit": figure_landmark_fit}
 

@@ -316,6 +316,8 @@ class Keyshapes(Stage):
     in 3D), so no 2D-to-3D regression is learned.
     """
 
+    cheap = True
+
     Params = KeyshapeParams
     inputs = {
         "aam": Input.artifact("aligned_shapes", "sequence", doc="aam artifact of the training takes"),
@@ -463,6 +465,8 @@ class CaptureKeyshapes(Stage):
     from its performer's rest (``speaker`` field of the takes; the ``rest_expression`` take of a performer when
     the takes carry ``expression`` fields).
     """
+
+    cheap = True
 
     class Params(KeyshapeParams):
         #: fit in 3D from the FaceMesh (auto: when the tracking has one) or on the 2D landmarks

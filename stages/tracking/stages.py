@@ -203,6 +203,8 @@ class FaceMesh(Stage):
     """Face tracking with MediaPipe's BlazeFace detector and 468-point face mesh (OpenCV DNN), 68 iBUG points
     through a fixed mapping, head pose, face crops and audio per labelled video."""
 
+    in_process = True
+
     Params = FaceMeshParams
     inputs = {
         "videos": Input.files(doc=VIDEOS_DOC),
@@ -383,6 +385,8 @@ class OpticalFlow(Stage):
     """Pyramidal Lucas-Kanade tracking of the 68 points from an initial shape (an init file, or FaceMesh on the
     first frame with a face), forward-backward checked and constrained by a point distribution model."""
 
+    in_process = True
+
     Params = OpticalFlowParams
     inputs = {
         "videos": Input.files(doc=VIDEOS_DOC),
@@ -508,6 +512,8 @@ def track_times(track, n_frames: int, params: TrackFileParams, path: Path, field
 class TrackFile(Stage):
     """Existing landmark tracks (OpenFace 2.0 CSV, plain CSV, .npz, iBUG .pts sequences) in the tracking schema;
     no video analysis. Videos, when given (same labels), supply crops, timing and audio."""
+
+    in_process = True
 
     Params = TrackFileParams
     inputs = {
