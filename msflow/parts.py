@@ -10,7 +10,9 @@ of computing them again.
 The label's name itself is not in the key (what a part holds must not depend on it), so renaming a label or
 listing the same video under two labels reuses its part. The stage artifact names the parts it was built from
 (manifest ``parts``), which keeps them through ``msflow gc`` as long as the artifact is kept. A part found
-damaged is set aside and computed again, with a warning.
+damaged is set aside and computed again, with a warning. The ``UserWarning``s a part's computation raised are kept
+with it and said again whenever it is used, so the stage's warnings (and content hash) do not depend on which parts
+an earlier run computed.
 """
 
 from __future__ import annotations
@@ -41,12 +43,14 @@ MakePart = Callable[[SinkFactory], tuple[Mapping[str, Any], dict[str, Any]]]
 @dataclass
 class Part:
     """A part as the stage gets it back: arrays by name (lazy stored arrays when it is in a store, numpy
-    otherwise), its JSON metadata, its key (None outside a store) and whether it was found already computed."""
+    otherwise), its JSON metadata, its key (None outside a store), whether it was found already computed, and the
+    warnings its computation raised (kept with a stored part: said again when it is reused)."""
 
     arrays: Mapping[str, Any]
     meta: dict[str, Any]
     key: str | None = None
     reused: bool = False
+    warnings: list[str] = field(default_factory=list)
 
 
 class PartSource(Protocol):
@@ -127,6 +131,8 @@ class StoreParts:
         self.used[label] = key
         if part.reused:
             self.reused.append(label)
+        for message in part.warnings:  # into the stage's warnings, found or computed alike
+            warnings.warn(message, UserWarning, stacklevel=3)
         return part
 
     def _found(self, key: str, label: str) -> Part | None:
@@ -157,14 +163,31 @@ class StoreParts:
             def sink(name: str, *, dtype: Any, row_shape: tuple[int, ...] = ()) -> OutputSink:
                 return OutputSink(name, dtype, tuple(row_shape), writer)
 
-            arrays, meta = make(sink)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                arrays, meta = make(sink)
             extra = {"meta": meta, "key": key, "stage": self.stage, "part": label, "key_parts": parts}
+            said = part_warnings(caught)
+            if said:  # kept with the part, said again by every stage that uses it (StoreParts.get)
+                extra["warnings"] = said
             writer.commit(arrays, {**extra, "created": time.time()}, replace=self.force)
         return self._open(key, reused=False)
 
     def _open(self, key: str, *, reused: bool) -> Part:
         view = self.store.open(key)
-        return Part({name: view.lazy(name) for name in view.names}, dict(view.meta), key, reused)
+        return Part({name: view.lazy(name) for name in view.names}, dict(view.meta), key, reused, view.warnings)
+
+
+def part_warnings(caught: list[warnings.WarningMessage]) -> list[str]:
+    """The ``UserWarning`` messages a part's computation raised, each once, to keep with it; other warnings go on
+    to the stage's context now, as they would have without parts."""
+    said = []
+    for w in caught:
+        if issubclass(w.category, UserWarning):
+            said.append(str(w.message))
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return list(dict.fromkeys(said))
 
 
 def parts_named(manifest: Mapping[str, Any]) -> list[str]:

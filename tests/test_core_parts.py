@@ -185,3 +185,21 @@ def test_two_runs_needing_one_part_compute_it_once(numproject, tmp_path):
     assert parts_computed(log) == ["a.txt", "b.txt"]
     one = msflow.run(numproject / "one.yaml")
     assert one.executed == [] and parts_manifest(one)["reused"] == ["first"]
+
+
+def test_a_parts_warnings_are_said_again_when_it_is_reused(numproject, log):
+    """A take that warns while its part is computed (an empty file: numpy's loadtxt warns) warns again when a later
+    run finds its part stored: the stage's warnings, and so its content hash, do not depend on which parts an
+    earlier run had computed."""
+    write_takes(numproject, a=[1, 2])
+    (numproject / "takes" / "empty.txt").write_text("")
+    first = run(numproject)
+    said = first.states["per_take"].manifest["warnings"]
+    assert any("empty.txt" in w for w in said), said
+    write_takes(numproject, c=[3])
+    grown = run(numproject)
+    assert parts_manifest(grown)["reused"] == ["a.txt", "empty.txt"]
+    forced = msflow.run(numproject / "parts.yaml", force=("per_take",))  # every part computed, in this folder
+    assert parts_manifest(forced)["reused"] == []
+    assert grown.states["per_take"].manifest["warnings"] == said
+    assert grown.states["per_take"].manifest["content_hash"] == forced.states["per_take"].manifest["content_hash"]
