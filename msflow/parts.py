@@ -62,9 +62,10 @@ class PartSource(Protocol):
 def part_key_parts(
     key_parts: Mapping[str, Any], label: str, labelled: tuple[str, ...], whole: tuple[str, ...]
 ) -> dict[str, Any]:
-    """What a part's key hashes: the stage key's class, code, params and resources; of each ``labelled`` files
-    input only the entry under ``label`` (its content hash and fields, or None when it has none); each ``whole``
-    input as the stage key has it. Inputs named in neither are not in the key: the part must not read them."""
+    """What a part's key hashes: the stage key's scheme, class, code, params and resources; of each ``labelled``
+    files input only the entry under ``label`` (its content hash and fields, or None when it has none); each
+    ``whole`` input as the stage key has it. Inputs named in neither are not in the key: the part must not read
+    them."""
     inputs = key_parts.get("inputs") or {}
     chosen: dict[str, Any] = {}
     for name in labelled:
@@ -77,7 +78,7 @@ def part_key_parts(
         chosen[name] = {"file": files[label], "fields": fields or {}}
     for name in whole:
         chosen[name] = inputs.get(name)
-    same = {k: v for k, v in key_parts.items() if k in ("class", "code", "params", "resources")}
+    same = {k: v for k, v in key_parts.items() if k in ("scheme", "class", "code", "params", "resources")}
     return {"part_scheme": PART_SCHEME, **same, "inputs": chosen}
 
 

@@ -203,3 +203,18 @@ def test_a_parts_warnings_are_said_again_when_it_is_reused(numproject, log):
     assert parts_manifest(forced)["reused"] == []
     assert grown.states["per_take"].manifest["warnings"] == said
     assert grown.states["per_take"].manifest["content_hash"] == forced.states["per_take"].manifest["content_hash"]
+
+
+def test_a_new_key_scheme_computes_the_parts_again(numproject, log, monkeypatch):
+    """A key scheme bump (msflow.version.KEY_SCHEME: a change that alters stored results) makes every stage key
+    new; the parts' keys must change with it, or the new stage artifact is built from parts of the old scheme."""
+    import msflow.runner
+
+    write_takes(numproject, a=[1, 2], b=[3])
+    first = run(numproject)
+    log.unlink()
+    monkeypatch.setattr(msflow.runner, "KEY_SCHEME", msflow.runner.KEY_SCHEME + 1)
+    again = run(numproject)
+    assert again.executed == ["per_take"]
+    assert parts_manifest(again)["reused"] == [] and parts_computed(log) == ["a.txt", "b.txt"]
+    assert set(parts_manifest(again)["keys"].values()).isdisjoint(parts_manifest(first)["keys"].values())
