@@ -290,6 +290,7 @@ class Stage:
         self._chunk_target = chunk_target  # where output sinks write chunks (the artifact being written)
         self._parts = parts  # where parts are kept (msflow.parts.StoreParts in a store run)
         self._sinks: dict[str, Any] = {}
+        self._part_labels: set[str] = set()  # the labels whose part this instance asked for (Stage.part)
 
     def run(self, params: Any, inputs: dict[str, Any]) -> Result:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -328,13 +329,17 @@ class Stage:
         ``make(sink)`` computes it and returns a ``Result`` (arrays or sinks from ``sink(name, dtype=...,
         row_shape=...)``, strict-JSON meta; no schema). Its key hashes the stage's class, code, params and
         resources, the entry under ``label`` of each ``labelled`` files input and each ``whole`` input: ``make``
-        must read nothing else (not other labels, not the label's name). Returns a ``msflow.parts.Part``: arrays
-        (lazy when stored), meta, and ``reused`` (found computed by an earlier run).
+        must read nothing else (not other labels, not the label's name). A label has one part per run of the stage.
+        Returns a ``msflow.parts.Part``: arrays (lazy when stored), meta, and ``reused`` (found computed by an
+        earlier run).
         """
         from msflow.parts import InMemoryParts, check_part_inputs
 
         check_part_inputs(type(self).inputs, tuple(labelled), tuple(whole))
         where = f"stage '{self.name}', part '{label}'"
+        if label in self._part_labels:  # its key would be the first's: it would get the first's content back
+            raise ValueError(f"{where} is asked for twice: a label has one part (compute all of its pieces in one)")
+        self._part_labels.add(label)
 
         def checked(sink: Any) -> tuple[Mapping[str, Any], dict[str, Any]]:
             result = make(sink)

@@ -218,3 +218,24 @@ def test_a_new_key_scheme_computes_the_parts_again(numproject, log, monkeypatch)
     assert again.executed == ["per_take"]
     assert parts_manifest(again)["reused"] == [] and parts_computed(log) == ["a.txt", "b.txt"]
     assert set(parts_manifest(again)["keys"].values()).isdisjoint(parts_manifest(first)["keys"].values())
+
+
+def test_a_label_has_one_part(tmp_path):
+    """A second part of one label would share the first's key (the key names the label's inputs, not the function
+    computing it) and be handed the first's content: it is an error, in a store run and outside one alike."""
+    from msflow import Input, Output, Result, Stage
+
+    class Twice(Stage):
+        inputs = {"takes": Input.files()}
+        outputs = {"y": Output.array("f")}
+
+        def run(self, params, inputs):
+            label = next(iter(inputs["takes"]))
+            ones = self.part(label, lambda sink: Result({"y": np.ones(2)}), labelled=("takes",))
+            twos = self.part(label, lambda sink: Result({"y": np.full(2, 2.0)}), labelled=("takes",))
+            return Result({"y": np.concatenate([ones.arrays["y"], twos.arrays["y"]])})
+
+    take = tmp_path / "a.txt"
+    take.write_text("1\n")
+    with pytest.raises(ValueError, match="part 'a' is asked for twice"):
+        run_stage(Twice, {}, {"takes": {"a": take}})
