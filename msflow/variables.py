@@ -58,17 +58,19 @@ def untrue_names(
     overrides: list[tuple[list[str], Any]],
     publish: dict[str, str],
 ) -> list[str]:
-    """A warning per ``-S stage.param=value`` override that took variables out of a param while ``publish:`` paths
+    """A warning per param that ``-S stage.param=value`` overrides took variables out of while ``publish:`` paths
     still use them. ``before``/``after``: the pipeline as written / with the overrides applied, variables not yet
-    filled in; ``overrides``: (path, value) as parsed; ``publish``: entry -> the file it writes."""
+    filled in; ``overrides``: (path, value) as parsed; ``publish``: entry -> the file it writes. What the overrides
+    leave in the param counts (a later ``-S`` may put the variable back), and a variable the command line sets
+    (``-S vars.NAME=...``) is named by the user: the files say what the user said."""
     vars_before, vars_after = before.get("vars") or {}, after.get("vars") or {}
+    named_here = {parts[1] for parts, _ in overrides if parts[0] == "vars"}
     entries = after.get("publish") or {}
     messages = []
-    for parts, value in overrides:
-        if parts[0] == "vars":
-            continue
-        had = var_closure(var_refs(param_at(before, parts[0], parts[1:])), vars_before)
-        dropped = had - var_closure(var_refs(value), vars_after)
+    for parts in dict.fromkeys(tuple(parts) for parts, _ in overrides if parts[0] != "vars"):
+        had = var_closure(var_refs(param_at(before, parts[0], list(parts[1:]))), vars_before)
+        left = var_closure(var_refs(param_at(after, parts[0], list(parts[1:]))), vars_after)
+        dropped = had - left - named_here
         naming = {ref: dropped & var_closure(var_refs(path), vars_after) for ref, path in entries.items()}
         named = {ref: path for ref, path in entries.items() if naming[ref]}
         if named:

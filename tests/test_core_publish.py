@@ -144,3 +144,27 @@ def test_an_override_that_drops_a_variable_the_published_names_use_is_a_warning_
     for kept in (["-S", "scaled.factor=${factor}"], ["-S", "scaled.factor=5", "-S", "vars.name=times_5"]):
         result = run_cli(numproject, "run", "-q", *kept)  # the variable kept, or the files renamed: nothing to say
         assert result.returncode == 0 and "warning" not in result.stderr, (kept, result.stderr)
+
+
+def named_after_a_variable(numproject):
+    """The numeric pipeline with ``scaled.factor: ${factor}`` and ``scaled.y`` published to out/y_${name}.csv,
+    ``name`` being ``times_${factor}``; returns its path."""
+    pipeline = numproject / "pipeline.yaml"
+    text = pipeline.read_text().replace("  n: 6\n", "  n: 6\n  factor: 3\n  name: times_${factor}\n")
+    add_publish(pipeline, {"scaled.y": "out/y_${name}.csv"}, text.replace("factor: 3}", "factor: '${factor}'}"))
+    return pipeline
+
+
+def test_the_warning_goes_by_what_the_overrides_leave_and_the_variables_they_set(numproject):
+    """The value the overrides leave in the param decides, not each -S alone: a later -S that puts the variable back
+    says nothing, one that replaces it again says it once. A variable the command line sets (-S vars.factor=5)
+    renames the files itself: nothing to say about it (docs/framework.md, "a -S vars.... that renames the files,
+    says nothing")."""
+    from msflow.spec import load_pipeline
+
+    pipeline = named_after_a_variable(numproject)
+    assert len(load_pipeline(pipeline, ["scaled.factor=5"]).warnings) == 1
+    assert load_pipeline(pipeline, ["scaled.factor=5", "scaled.factor=${factor}"]).warnings == ()
+    assert len(load_pipeline(pipeline, ["scaled.factor=5", "scaled.factor=6"]).warnings) == 1
+    assert load_pipeline(pipeline, ["scaled.factor=5", "vars.factor=5"]).warnings == ()
+    assert load_pipeline(pipeline, ["vars.factor=5", "scaled.factor=5"]).warnings == ()
