@@ -152,11 +152,16 @@ class LocalExecutor:
         it."""
         while self._running < self.jobs and not self._stopping:
             if self._here is None and (job := self._take({ANY, CHEAP})) is not None:
-                self._start_here(job)
+                start = self._start_here
             elif (job := self._take({WORKER} if self._here_cheap else {WORKER, ANY})) is not None:
-                self._start_in_worker(job)
+                start = self._start_in_worker
             else:
                 return
+            try:
+                start(job)
+            except Exception as exc:  # no thread or process to be had (a process limit, no memory): the job fails
+                job.future.set_exception(exc)  # (the runner: "worker lost"), not the thread that was handing it on
+                continue
             self._running += 1
 
     def _take(self, placements: set[str]) -> _Waiting | None:
@@ -169,9 +174,9 @@ class LocalExecutor:
     def _start_here(self, job: _Waiting) -> None:
         import threading
 
-        self._here_cheap = job.placement == CHEAP
-        self._here = threading.Thread(target=self._run_here, args=(job,), name="msflow-stage", daemon=True)
-        self._here.start()
+        thread = threading.Thread(target=self._run_here, args=(job,), name="msflow-stage", daemon=True)
+        thread.start()  # it frees the place under the lock held here: it cannot do so before it is taken
+        self._here, self._here_cheap = thread, job.placement == CHEAP
 
     def _run_here(self, job: _Waiting) -> None:
         from msflow.worker import run_job
@@ -191,10 +196,14 @@ class LocalExecutor:
         worker = self._idle.pop() if self._idle else self._new_worker()
         try:
             inner = worker.submit(job.job_json)
-        except Exception:  # it died while idle (the OOM killer): a new one takes the job
+        except Exception:  # it died while idle (the OOM killer), or could not be started: a new one takes the job
             self._workers.remove(worker)
             worker = self._new_worker()
-            inner = worker.submit(job.job_json)
+            try:
+                inner = worker.submit(job.job_json)
+            except Exception:  # none can be started: the job fails (_dispatch)
+                self._workers.remove(worker)
+                raise
         inner.add_done_callback(lambda done: self._worker_done(worker, done, job.future))
 
     def _new_worker(self) -> ProcessExecutor:

@@ -198,3 +198,53 @@ def test_an_interrupt_reaches_a_stage_in_the_runs_own_process(placed, tmp_path, 
     hold.release()
     again = run_cli(project, "run", "held.yaml", "-j", "2", "-q", env={"PLACED_LOG": str(logs)})
     assert again.returncode == 0, again.stderr
+
+
+def test_a_job_no_worker_can_be_started_for_fails_and_the_others_get_their_outcomes(monkeypatch):
+    """A worker that cannot be started (a process limit, no memory: spawning raises) fails the job that was to run in
+    it, which the runner reports as a lost worker; the stage whose thread was handing that job on (it ends, and the
+    next waiting job starts from its thread) still gets its outcome. The thread died there, leaving its own stage's
+    future unresolved: the run waited for it forever."""
+    import errno
+    import json
+    import threading
+    from concurrent.futures import Future
+
+    from msflow import worker
+
+    go = threading.Event()
+
+    def run_job(job_json):
+        go.wait()
+        return "ran " + json.loads(job_json)["stage"]
+
+    class OneProcess:
+        """The first worker takes a job (that never finishes here); no other can be started."""
+
+        made: list = []
+
+        def __init__(self, jobs):
+            self.made.append(self)
+
+        def submit(self, job_json):
+            if self is not self.made[0]:
+                raise OSError(errno.EAGAIN, "Resource temporarily unavailable")
+            return Future()
+
+        def shutdown(self, *, abort=False):
+            pass
+
+    monkeypatch.setattr(worker, "run_job", run_job)
+    monkeypatch.setattr(executors, "ProcessExecutor", OneProcess)
+    local = executors.LocalExecutor(2)
+    here = local.submit(json.dumps({"stage": "here", "in_process": True}))
+    (thread,) = [t for t in threading.enumerate() if t.name == "msflow-stage"]
+    local.submit(json.dumps({"stage": "in_a_worker"}))  # the one worker there is
+    waiting = local.submit(json.dumps({"stage": "waiting"}))  # two running: it waits for a place
+    go.set()
+    thread.join()  # "here" is done; its thread started "waiting" in a new worker, which failed
+    assert here.done() and here.result() == "ran here"
+    assert isinstance(waiting.exception(timeout=0), OSError)
+    failed = local.submit(json.dumps({"stage": "later"}))  # from the run's thread: no exception out of submit
+    assert isinstance(failed.exception(timeout=0), OSError)
+    local.shutdown()
