@@ -56,19 +56,27 @@ class Part:
 class PartSource(Protocol):
     """Where a stage's parts are found and kept (``StoreParts`` in a store run; ``InMemoryParts`` otherwise)."""
 
-    def get(self, label: str, make: MakePart, labelled: tuple[str, ...], whole: tuple[str, ...]) -> Part: ...
+    def get(self, label: str, make: MakePart, reads: PartReads) -> Part: ...
 
 
-def part_key_parts(
-    key_parts: Mapping[str, Any], label: str, labelled: tuple[str, ...], whole: tuple[str, ...]
-) -> dict[str, Any]:
-    """What a part's key hashes: the stage key's scheme, class, code, params and resources; of each ``labelled``
-    files input only the entry under ``label`` (its content hash and fields, or None when it has none); each
-    ``whole`` input as the stage key has it. Inputs named in neither are not in the key: the part must not read
-    them."""
+@dataclass(frozen=True)
+class PartReads:
+    """What a part's computation reads besides the stage's class, code and resources: the entry under its label of
+    each ``labelled`` files input, each ``whole`` input, and every param but the ``unread_params``."""
+
+    labelled: tuple[str, ...]
+    whole: tuple[str, ...] = ()
+    unread_params: tuple[str, ...] = ()
+
+
+def part_key_parts(key_parts: Mapping[str, Any], label: str, reads: PartReads) -> dict[str, Any]:
+    """What a part's key hashes: the stage key's scheme, class, code and resources, its params but those the part
+    does not read; of each labelled files input only the entry under ``label`` (its content hash and fields, or
+    None when it has none); each whole input as the stage key has it. Inputs named in neither are not in the key:
+    the part must not read them."""
     inputs = key_parts.get("inputs") or {}
     chosen: dict[str, Any] = {}
-    for name in labelled:
+    for name in reads.labelled:
         entry = inputs.get(name)
         files = entry.get("files", {}) if isinstance(entry, Mapping) else {}
         if label not in files:
@@ -76,29 +84,35 @@ def part_key_parts(
             continue
         fields = (entry.get("fields") or {}).get(label) if isinstance(entry, Mapping) else None
         chosen[name] = {"file": files[label], "fields": fields or {}}
-    for name in whole:
+    for name in reads.whole:
         chosen[name] = inputs.get(name)
-    same = {k: v for k, v in key_parts.items() if k in ("scheme", "class", "code", "params", "resources")}
-    return {"part_scheme": PART_SCHEME, **same, "inputs": chosen}
+    same = {k: v for k, v in key_parts.items() if k in ("scheme", "class", "code", "resources")}
+    params = {k: v for k, v in (key_parts.get("params") or {}).items() if k not in reads.unread_params}
+    return {"part_scheme": PART_SCHEME, **same, "params": params, "inputs": chosen}
 
 
-def check_part_inputs(declared: Mapping[str, Any], labelled: tuple[str, ...], whole: tuple[str, ...]) -> None:
-    """A part names only declared inputs, each once, and its labelled inputs are files (they have labels)."""
-    unknown = [n for n in (*labelled, *whole) if n not in declared]
+def check_part_reads(declared: Mapping[str, Any], params: Any, reads: PartReads) -> None:
+    """A part names only declared inputs, each once, its labelled inputs are files (they have labels), and the
+    params it does not read are params of the stage."""
+    unknown = [n for n in (*reads.labelled, *reads.whole) if n not in declared]
     if unknown:
         raise ValueError(f"Stage.part: unknown inputs {unknown}; declared: {sorted(declared)}")
-    twice = sorted(set(labelled) & set(whole))
+    twice = sorted(set(reads.labelled) & set(reads.whole))
     if twice:
         raise ValueError(f"Stage.part: inputs {twice} are both labelled and whole")
-    not_files = [n for n in labelled if getattr(declared[n], "kind", None) != "files"]
+    not_files = [n for n in reads.labelled if getattr(declared[n], "kind", None) != "files"]
     if not_files:
         raise ValueError(f"Stage.part: labelled inputs must be files inputs, not {not_files}")
+    fields = getattr(params, "model_fields", {})
+    not_params = [n for n in reads.unread_params if n not in fields]
+    if not_params:
+        raise ValueError(f"Stage.part: unread_params {not_params} are no params of the stage; params: {sorted(fields)}")
 
 
 class InMemoryParts:
     """Outside a store (``msflow.testing.run_stage``, a stage called directly): parts are computed, never kept."""
 
-    def get(self, label: str, make: MakePart, labelled: tuple[str, ...], whole: tuple[str, ...]) -> Part:
+    def get(self, label: str, make: MakePart, reads: PartReads) -> Part:
         from msflow.artifact import settle_output
         from msflow.sinks import OutputSink
 
@@ -122,8 +136,8 @@ class StoreParts:
     used: dict[str, str] = field(default_factory=dict)  #: label -> part key, for the stage artifact's manifest
     reused: list[str] = field(default_factory=list)  #: labels whose part was found
 
-    def get(self, label: str, make: MakePart, labelled: tuple[str, ...], whole: tuple[str, ...]) -> Part:
-        parts = part_key_parts(self.key_parts, label, labelled, whole)
+    def get(self, label: str, make: MakePart, reads: PartReads) -> Part:
+        parts = part_key_parts(self.key_parts, label, reads)
         key = json_hash(parts)
         waiting = None if self.on_wait is None else partial(self.on_wait, label)
         with self.store.lock(key, on_wait=waiting):

@@ -323,19 +323,21 @@ class Stage:
         *,
         labelled: tuple[str, ...],
         whole: tuple[str, ...] = (),
+        unread_params: tuple[str, ...] = (),
     ) -> Any:
         """A piece of the result that depends on one label only, stored and reused on its own (``msflow.parts``).
 
         ``make(sink)`` computes it and returns a ``Result`` (arrays or sinks from ``sink(name, dtype=...,
-        row_shape=...)``, strict-JSON meta; no schema). Its key hashes the stage's class, code, params and
-        resources, the entry under ``label`` of each ``labelled`` files input and each ``whole`` input: ``make``
-        must read nothing else (not other labels, not the label's name). A label has one part per run of the stage.
-        Returns a ``msflow.parts.Part``: arrays (lazy when stored), meta, and ``reused`` (found computed by an
-        earlier run).
+        row_shape=...)``, strict-JSON meta; no schema). Its key hashes the stage's class, code, params (but the
+        ``unread_params``) and resources, the entry under ``label`` of each ``labelled`` files input and each
+        ``whole`` input: ``make`` must read nothing else (not other labels, not the label's name). A label has
+        one part per run of the stage. Returns a ``msflow.parts.Part``: arrays (lazy when stored), meta, ``reused``
+        (found computed by an earlier run) and the warnings its computation raised.
         """
-        from msflow.parts import InMemoryParts, check_part_inputs
+        from msflow.parts import InMemoryParts, PartReads, check_part_reads
 
-        check_part_inputs(type(self).inputs, tuple(labelled), tuple(whole))
+        reads = PartReads(tuple(labelled), tuple(whole), tuple(unread_params))
+        check_part_reads(type(self).inputs, type(self).Params, reads)
         where = f"stage '{self.name}', part '{label}'"
         if label in self._part_labels:  # its key would be the first's: it would get the first's content back
             raise ValueError(f"{where} is asked for twice: a label has one part (compute all of its pieces in one)")
@@ -348,7 +350,7 @@ class Stage:
             return result.arrays, to_strict_json(result.meta, f"{where} meta")
 
         source = self._parts if self._parts is not None else InMemoryParts()
-        return source.get(label, checked, tuple(labelled), tuple(whole))
+        return source.get(label, checked, reads)
 
     @property
     def sinks(self) -> dict[str, Any]:

@@ -87,6 +87,9 @@ def test_what_a_part_reads_decides_whether_it_is_reused(numproject, log):
     log.unlink()
     run(numproject, "per_take.scale=2")
     assert parts_computed(log) == ["a.txt", "renamed.txt"]  # params reach every part
+    log.unlink()
+    commented = run(numproject, "per_take.scale=2", "per_take.comment=new")
+    assert "per_take" in commented.executed and parts_computed(log) == []  # but those no part reads
 
 
 def test_a_whole_input_reaches_every_part(numproject, log):
@@ -158,6 +161,8 @@ def test_a_part_names_only_declared_inputs():
         stage.part("a", lambda sink: None, labelled=("clips",))
     with pytest.raises(ValueError, match="must be files inputs"):
         stage.part("a", lambda sink: None, labelled=("x",))
+    with pytest.raises(ValueError, match="unread_params .'n'. are no params"):
+        stage.part("a", lambda sink: None, labelled=("takes",), unread_params=("n",))
 
 
 def test_force_computes_every_part_again(numproject, log):

@@ -48,3 +48,5 @@ def test_a_clip_added_to_the_folder_is_the_only_one_tracked(tmp_path):
     assert grown.manifest["content_hash"] == tracked["content_hash"]
     assert grown.manifest["meta"]["sources"] == ["HAP.mp4", "NEU.mp4", "SAD.mp4"]
     assert grown.manifest["meta"]["frames"] == [12, 12, 12]
+    heard = msflow.run(proj / "pipeline.yaml", overrides=("track.audio=optional",)).states["track"]
+    assert heard.state == "ran" and heard.detail == "3 of 3 parts reused"  # the audio params reach no part

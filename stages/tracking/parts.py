@@ -18,6 +18,9 @@ from stages.tracking.takes import AudioSource
 
 #: per-frame outputs a TakeTrack keeps in memory (small: no crops, no mesh)
 TAKE_ARRAYS = ("time", "valid", "landmarks", "rotation", "pose_rms")
+#: params a take's tracking never reads (its audio is read after the part, for the stage's audio outputs): giving a
+#: new take its own audio offset must not track the others again
+AUDIO_PARAMS = ("audio", "audio_rate", "audio_offset", "audio_tolerance")
 
 
 def take_part(take: TakeTrack, outputs: FrameOutputs) -> Result:

@@ -378,6 +378,7 @@ class PerTake(Stage):
 
     class Params(Stage.Params):
         scale: float = 1.0
+        comment: str = ""  # read by no part (Stage.part's unread_params)
 
     inputs = {"takes": Input.files(), "offset": Input.files(optional=True)}
     outputs = {"values": Output.array("f", shape=("rows",)), "take": Output.array("i", shape=("rows",))}
@@ -389,7 +390,7 @@ class PerTake(Stage):
         takes = []
         for index, (label, path) in enumerate(inputs["takes"].items()):
             make = partial(take_values, path, params.scale, offset)
-            part = self.part(label, make, labelled=("takes",), whole=("offset",))
+            part = self.part(label, make, labelled=("takes",), whole=("offset",), unread_params=("comment",))
             for block in iter_blocks(part.arrays["values"]):
                 values.append(block)
             takes.append(np.full(part.meta["rows"], index, dtype=np.int64))
