@@ -11,20 +11,24 @@ the project copies and this checkout, as ``nobody`` when run as root. Two stores
   about 1.4 ms of CPU more per request on the same 2 cores);
 - ``folder``: a store folder outside the project (what a shared file system gives a real cluster).
 
-1. The default pipeline from an empty store, interleaved ``--repeats`` times: local ``-j 2`` (process pool, store in
-   the project), cluster with the S3 store, cluster with the folder store. Wall time; CPU (user+sys) of the
+1. The default pipeline from an empty store, interleaved ``--repeats`` times: local ``-j 2`` (``LocalExecutor``: the
+   stages in the run's own process, here this script's, but the second tracking stage, in one worker process; store
+   in the project), cluster with the S3 store, cluster with the folder store. Wall time; CPU (user+sys) of the
    client, the workers, the scheduler, the moto server; the stages' own CPU (sum of ``cpu_seconds``); and whether
    every output hash equals the local run's (the edit's preview MP4 differs between two local runs too: x264
    threads without frame timestamps, stages/face/edit.py).
    ``cli``: the same three as a user runs them, ``msflow run`` in a fresh process each time (what every run pays
-   to start: interpreter, imports, the store client, the Dask connection, a local process pool).
+   to start: interpreter, imports, the store client, the Dask connection, a local worker process).
 2. Per-stage overhead: chains of 40 and 80 trivial stages (each reads the previous one's array) from an empty
    store, so every stage waits for the one before. What one more stage costs, (wall(80) - wall(40)) / 40, is the
    full round trip of one stage (client scheduling, shipping, scheduler, worker, store, outcome) besides the stage
    itself (~0.1 ms of numpy), without the run's fixed costs (planning, the first request to a store, connecting
    to the cluster); also the end-to-end wall per stage and the worker-side part
    (``seconds - compute_seconds`` in the run record). ``local -j 1, S3`` runs the chain in this
-   process against the same S3 server: the store's own share of the cluster's S3 figure. ``floor``: Dask's own
+   process against the same S3 server: the store's own share of the cluster's S3 figure. ``local -j 2`` twice: the
+   chain's stages as they are (they say neither ``in_process`` nor ``cheap``: one worker process runs them) and
+   subclassed with ``in_process = True`` (msflow's own process runs them in a thread, as it runs the default
+   pipeline's). ``floor``: Dask's own
    round trip on the same cluster, a chain of tasks that do nothing.
 
 3. The nanny's ``MALLOC_TRIM_THRESHOLD_``: the default pipeline on a 2-worker LocalCluster with the variable set
@@ -262,13 +266,32 @@ def print_stage_table(rows: list[dict]) -> None:
         print(f"  {name:14s} " + " | ".join(cells))
 
 
-def chain_pipeline(folder: Path, n: int) -> Path:
-    """``s0`` (a Source) then ``s1 .. s{n-1}``, each scaling the previous output (distinct factors: distinct keys)."""
+#: the chain's stages marked to run in msflow's own process under -j N (docs/framework.md, "Where -j N runs a stage")
+MARKED_STAGES = """from numstages.basic import Source as _Source
+from numstages.scaling import Scale as _Scale
+
+
+class Source(_Source):
+    in_process = True
+
+
+class Scale(_Scale):
+    in_process = True
+"""
+
+
+def chain_pipeline(folder: Path, n: int, marked: bool = False) -> Path:
+    """``s0`` (a Source) then ``s1 .. s{n-1}``, each scaling the previous output (distinct factors: distinct keys);
+    ``marked``: the same stages with ``in_process = True``."""
     shutil.copytree(ROOT / "tests" / "numproject", folder, ignore=shutil.ignore_patterns(".msflow", "*.lock"))
-    body = "  s0:\n    uses: numstages.basic:Source\n    params: {n: 1000}\n"
+    source_uses, scale_uses = "numstages.basic:Source", "numstages.scaling:Scale"
+    if marked:
+        (folder / "numstages" / "marked.py").write_text(MARKED_STAGES)
+        source_uses, scale_uses = "numstages.marked:Source", "numstages.marked:Scale"
+    body = f"  s0:\n    uses: {source_uses}\n    params: {{n: 1000}}\n"
     for i in range(1, n):
         source = "s0.x" if i == 1 else f"s{i - 1}.y"
-        body += f"  s{i}:\n    uses: numstages.scaling:Scale\n    inputs: {{x: {source}}}\n"
+        body += f"  s{i}:\n    uses: {scale_uses}\n    inputs: {{x: {source}}}\n"
         body += f"    params: {{factor: {1 + i / 1000}}}\n"
     (folder / "chain.yaml").write_text("version: 1\nstages:\n" + body)
     return folder / "chain.yaml"
@@ -284,7 +307,8 @@ def overhead(tmp: Path, cluster, moto, options: dict, n: int = 40) -> None:
     configs = {
         "local -j 1 (in process)": ({}, None),
         "local -j 1, S3": ({}, "s3"),  # the store's own part of the cluster's S3 figure
-        "local -j 2 (process pool)": ({"jobs": 2}, None),
+        "local -j 2 (a worker)": ({"jobs": 2}, None),  # the chain's stages say neither in_process nor cheap
+        "local -j 2 (msflow's process)": ({"jobs": 2}, "marked"),  # the same marked in_process
         "cluster, S3": ({"scheduler": cluster.address}, "s3"),
         "cluster, folder": ({"scheduler": cluster.address}, "folder"),
     }
@@ -293,7 +317,7 @@ def overhead(tmp: Path, cluster, moto, options: dict, n: int = 40) -> None:
         worker_side, cpus = [], []
         for attempt in range(5):
             for length in (n, 2 * n):
-                pipeline = chain_pipeline(tmp / f"chain-{index}-{attempt}-{length}", length)
+                pipeline = chain_pipeline(tmp / f"chain-{index}-{attempt}-{length}", length, store == "marked")
                 if store == "s3":
                     use_store(pipeline, f"s3://{new_bucket(options)}/c", options)
                 elif store == "folder":

@@ -15,7 +15,10 @@ tracking alone, no warm-up). Printed per length, the issue's table: the wall (an
 (track_test), edit and export stages from the run record, the whole run's wall time and CPU time (user + sys of
 msflow and all its workers), the peak resident memory of the run (the sum over msflow and its worker processes,
 sampled every 0.1 s with psutil), the load average; then the 10 min / 1 min ratios against the goals (linear:
-10x +- 15%; peak RSS <= 1.5 GB), and, per run, the peak RSS of the worker running each stage while it ran.
+10x +- 15%; peak RSS <= 1.5 GB), and, per run, the peak RSS of the process that ran each stage while it ran (the
+run record's ``worker`` names its pid: since -j N runs stages in the run's own process first, docs/framework.md
+"Where -j N runs a stage", that is usually msflow's own process, whose RSS holds the run's planning and what its
+earlier stages left to the allocator, so the rise over the RSS at the stage's start is printed beside it).
 ``--per-stage``: each test-dependent stage alone in its own ``msflow run`` (wall, CPU, peak RSS per stage).
 Wall-clock figures depend on the machine's load (printed); CPU seconds and memory much less.
 """
@@ -149,10 +152,13 @@ def read_lines(stream, lines: list) -> None:
         lines.append((time.perf_counter(), line))
 
 
-def stage_peaks(record: dict, lines: list, samples: list) -> dict[str, float]:
-    """Peak RSS of the process that ran each stage while it ran: the stage's worker (pid in the run record),
-    sampled between its "running" and "done" progress lines. A worker keeps memory its earlier stages freed to
-    the allocator, so a figure is an upper bound of what the stage itself needed."""
+def stage_peaks(record: dict, lines: list, samples: list, run_pid: int) -> dict[str, dict]:
+    """Peak RSS of the process that ran each stage while it ran: the pid in the stage's run record (``worker``:
+    ``<host> pid <pid>``), sampled between its "running" and "done" progress lines. That process is msflow's own
+    (``run_pid``) for a stage that ran there (``Stage.in_process`` under -j N, every stage under -j 1), else a
+    worker. A process keeps memory its earlier stages freed to the allocator, and msflow's own holds the run's
+    planning too, so a peak is an upper bound of what the stage itself needed; ``rise`` (the peak less the RSS
+    sampled when the stage started) is closer to it. Per stage: ``{"where", "peak", "start", "rise"}``."""
     import re
 
     bounds: dict[str, list[float]] = {}
@@ -166,9 +172,18 @@ def stage_peaks(record: dict, lines: list, samples: list) -> dict[str, float]:
         if stage["state"] != "ran" or not worker or name not in bounds:
             continue
         pid, (start, stop) = int(worker.group(1)), bounds[name]
-        inside = [rss.get(pid, 0) for t, rss in samples if start - 0.1 <= t <= stop + 0.1]
-        peaks[name] = max(inside, default=0)
+        inside = [rss[pid] for t, rss in samples if start - 0.1 <= t <= stop + 0.1 and pid in rss]
+        if not inside:
+            continue
+        where = "msflow's process" if pid == run_pid else f"worker {pid}"
+        peaks[name] = {"where": where, "peak": max(inside), "start": inside[0], "rise": max(inside) - inside[0]}
     return peaks
+
+
+def format_peaks(peaks: dict[str, dict]) -> str:
+    return ", ".join(
+        f"{stage} {p['peak'] / 1e9:.2f} GB (+{p['rise'] / 1e9:.2f}; {p['where']})" for stage, p in peaks.items()
+    )
 
 
 def timed_run(pipeline: Path, jobs: int, until: str | None = None) -> dict:
@@ -210,7 +225,7 @@ def timed_run(pipeline: Path, jobs: int, until: str | None = None) -> dict:
         "wall": wall,
         "cpu": cpu,
         "peak_rss": peak,
-        "stage_rss": stage_peaks(record, lines, samples),
+        "stage_rss": stage_peaks(record, lines, samples, proc.pid),
         "record": record,
         "output": output,
     }
@@ -318,8 +333,8 @@ def main() -> None:
             flush=True,
         )
         print(
-            "   peak RSS of each stage's worker while it ran: "
-            + ", ".join(f"{stage} {rss / 1e9:.2f} GB" for stage, rss in run["stage_rss"].items()),
+            "   peak RSS of the process that ran each stage, while it ran (+ its rise over the stage's start; where): "
+            + format_peaks(run["stage_rss"]),
             flush=True,
         )
     if tables:

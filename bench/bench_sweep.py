@@ -6,8 +6,9 @@
 1. An 8-variant sweep of the default pipeline over keyshapes.k from an empty store: executed stage count against
    the number of distinct keys, and wall time against running the 8 variants one after another, each from an
    empty store (no sharing).
-2. Speed-up of -j 2 (local processes) and Dask with 2 workers over -j 1 on a sweep of independent CPU-bound
-   variants (goal >= 1.7x on 2 cores).
+2. Speed-up of -j 2 (local worker processes: the burn stage says neither ``in_process`` nor ``cheap``, so msflow's
+   own process runs none of it) and Dask with 2 workers over -j 1 on a sweep of independent CPU-bound variants
+   (goal >= 1.7x on 2 cores).
 3. Overhead per stage through Dask (trivial stages) against in-process execution.
 """
 
