@@ -31,12 +31,17 @@ FILE_OPT = typer.Option(None, "-f", "--file", help="pipeline file, the same as t
 DEFAULT_FILE = Path("pipeline.yaml")
 
 
-def pipeline_file(argument: Path | None, option: Path | None) -> Path | None:
+def given_pipeline_file(argument: Path | None, option: Path | None) -> Path | None:
     """The pipeline file given as the FILE argument or with -f/--file (None: neither); both is an error unless
     they name the same file."""
     if argument is not None and option is not None and argument.resolve() != option.resolve():
         raise UserError(f"two pipeline files, {argument} and -f {option}: give one", field="FILE")
     return argument or option
+
+
+def pipeline_file(argument: Path | None, option: Path | None) -> Path:
+    """The pipeline file a command reads: the one given (``given_pipeline_file``), else pipeline.yaml."""
+    return given_pipeline_file(argument, option) or DEFAULT_FILE
 
 
 def _print_version(asked: bool) -> None:
@@ -86,7 +91,7 @@ def run(
     from msflow.progress import make_reporter
     from msflow.session import open_session
 
-    file = pipeline_file(file, file_option) or DEFAULT_FILE
+    file = pipeline_file(file, file_option)
     session = open_session(file, tuple(overrides or ()), publish_dir=publish_dir)
     for warning in session.pipeline.warnings:  # before the run: the user may want to stop it and rename
         _warn(warning)
@@ -174,7 +179,7 @@ def status(
     from msflow.inspect import dry_run
     from msflow.session import open_session
 
-    session = open_session(pipeline_file(file, file_option) or DEFAULT_FILE, tuple(overrides or ()))
+    session = open_session(pipeline_file(file, file_option), tuple(overrides or ()))
     dry = dry_run(session)
     session.save_memo()
     width = max(len(n) for n in dry)
@@ -202,7 +207,7 @@ def why(
     from msflow.session import open_session
     from msflow.spec import unknown_stage
 
-    file = pipeline_file(file, file_option) or DEFAULT_FILE
+    file = pipeline_file(file, file_option)
     session = open_session(file, tuple(overrides or ()))
     if stage not in session.pipeline.stages:
         raise UserError(unknown_stage(stage, session.pipeline.stages), file=str(file), field="STAGE")
@@ -231,7 +236,7 @@ def dag(
     from msflow.dag import render_dot, render_mermaid, render_text
     from msflow.spec import load_pipeline
 
-    pipeline = load_pipeline(pipeline_file(file, file_option) or DEFAULT_FILE)
+    pipeline = load_pipeline(pipeline_file(file, file_option))
     echo(render_mermaid(pipeline) if mermaid else render_dot(pipeline) if dot else render_text(pipeline))
 
 
@@ -250,7 +255,7 @@ def show(
     from msflow.session import open_session
 
     stage, _, output = target.partition(".")
-    session = open_session(pipeline_file(file, file_option) or DEFAULT_FILE, tuple(overrides or ()))
+    session = open_session(pipeline_file(file, file_option), tuple(overrides or ()))
     key, origin = resolve_artifact_key(session, stage)
     view = session.store.open(key)
     session.save_memo()
@@ -326,7 +331,7 @@ def export(
     from msflow.session import open_session
 
     stage, _, output = target.partition(".")
-    session = open_session(pipeline_file(file, file_option) or DEFAULT_FILE, tuple(overrides or ()))
+    session = open_session(pipeline_file(file, file_option), tuple(overrides or ()))
     key, origin = resolve_artifact_key(session, stage)
     view = session.store.open(key)
     if output:
@@ -353,7 +358,7 @@ def gc(
     from msflow.spec import load_pipeline
 
     report = collect_garbage(
-        load_pipeline(pipeline_file(file, file_option) or DEFAULT_FILE).open_store(),
+        load_pipeline(pipeline_file(file, file_option)).open_store(),
         keep_runs=keep_runs,
         dry_run=dry_run,
     )
@@ -394,7 +399,7 @@ def verify(
     --delete removed them all (exit 0: a run that needs one computes it again)."""
     from msflow.spec import load_pipeline
 
-    store = load_pipeline(pipeline_file(file, file_option) or DEFAULT_FILE).open_store()
+    store = load_pipeline(pipeline_file(file, file_option)).open_store()
     total, corrupt = _find_corrupt(store)
     if not corrupt:
         echo(f"verified {_count(total, 'artifact')}: 0 corrupt")
@@ -474,7 +479,7 @@ def sweep(
     # that only exists elsewhere) is never read on its own
     reporter = None if quiet else SweepReporter(len(variants))
     result = run_sweep(
-        pipeline_file(file, file_option) or DEFAULT_FILE,
+        pipeline_file(file, file_option),
         variants,
         jobs=jobs,
         executor=executor,
@@ -523,7 +528,7 @@ def runs(
     """List runs (newest last): id, outcome, time, pipeline file, stage counts, sweep, variant or overrides."""
     from msflow.spec import load_pipeline
 
-    file = pipeline_file(file, file_option)
+    file = given_pipeline_file(file, file_option)
     pipeline = load_pipeline(file or DEFAULT_FILE)
     only = pipeline.rel_path if file is not None else None
     listed = _newest_runs(pipeline.open_store(), only, limit)
@@ -580,7 +585,7 @@ def compare(
     from msflow.comparing import compare_runs
     from msflow.spec import load_pipeline
 
-    store = load_pipeline(pipeline_file(file, file_option) or DEFAULT_FILE).open_store()
+    store = load_pipeline(pipeline_file(file, file_option)).open_store()
     for line in compare_runs(store.read_run(run_a), store.read_run(run_b)):
         echo(line)
 
@@ -602,7 +607,7 @@ def report(
 
     if file is None and run is not None and run.lower().endswith((".yaml", ".yml")):
         file, run = Path(run), None  # `msflow report pipelines/capture.yaml`: no run id ends so
-    summary = build_report(pipeline_file(file, file_option) or DEFAULT_FILE, out, run, jobs=jobs, metric=metric)
+    summary = build_report(pipeline_file(file, file_option), out, run, jobs=jobs, metric=metric)
     echo(
         f"wrote {summary['path']} ({summary['bytes'] / 1e6:.1f} MB, {summary['figures']} figures, "
         f"{summary['rendered']} rendered) in {summary['seconds']:.2f}s",

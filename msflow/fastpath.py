@@ -207,13 +207,18 @@ def print_status(state: dict[str, Any]) -> None:
     print(f"{len(stages)} cached, 0 to run", flush=True)
 
 
+def print_warnings(messages: list[str]) -> None:
+    """``warning: ...`` lines on stderr, yellow on a terminal, as the full path prints them."""
+    colour = sys.stderr.isatty()
+    for message in messages:
+        line = f"warning: {message}"
+        print(f"\033[33m{line}\033[0m" if colour else line, file=sys.stderr)
+
+
 def print_run(state: dict[str, Any], run_id: str, quiet: bool, seconds: float) -> None:
     """What the full path prints for a run where every stage is cached (plain progress lines on stderr)."""
     stages = state["stages"]
-    colour = sys.stderr.isatty()
-    for message in state.get("pipeline_warnings", []):  # before the stages, as the full path prints them
-        line = f"warning: {message}"
-        print(f"\033[33m{line}\033[0m" if colour else line, file=sys.stderr)
+    print_warnings(state.get("pipeline_warnings", []))  # before the stages, as the full path prints them
     if not quiet:
         width = max((len(n) for n in stages), default=8)
         for name in stages:
@@ -222,9 +227,7 @@ def print_run(state: dict[str, Any], run_id: str, quiet: bool, seconds: float) -
     warnings = [
         f"{stage} (cached result): {m}" for stage, messages in state.get("warnings", {}).items() for m in messages
     ]
-    for message in warnings + state.get("summary_warnings", []):
-        line = f"warning: {message}"
-        print(f"\033[33m{line}\033[0m" if colour else line, file=sys.stderr)
+    print_warnings(warnings + state.get("summary_warnings", []))
     sys.stderr.flush()
     from msflow.summary import published_lines
 

@@ -3,9 +3,9 @@
 An entry is ``stage.metric``, the metric part a shell-style pattern (``capture_eval.mouth_*``). The spec checks the
 stage names when the pipeline is loaded; the metric names are known only once the stage has run, so a name that is
 none of them is a warning then, listing what there is (a pattern may match none: metrics that only some data
-give). ``msflow sweep`` takes the same patterns as its default columns. Before the metrics comes the line naming
-the files the run's ``publish:`` entries wrote and those already up to date (``published_lines``). Standard library only: the no-op fast path
-prints lines saved by a full run.
+give). ``msflow sweep`` takes the same patterns as its default columns. Before the metrics come the lines naming
+the files the run's ``publish:`` entries wrote and those already up to date (``published_lines``). Standard library
+only: the no-op fast path prints lines saved by a full run.
 """
 
 from __future__ import annotations

@@ -21,6 +21,8 @@ TAKE_ARRAYS = ("time", "valid", "landmarks", "rotation", "pose_rms")
 #: params a take's tracking never reads (its audio is read after the part, for the stage's audio outputs): giving a
 #: new take its own audio offset must not track the others again
 AUDIO_PARAMS = ("audio", "audio_rate", "audio_offset", "audio_tolerance")
+#: what a take's part reads (``Stage.part``): its video, the models and the 3D face, the params but the audio's
+TAKE_READS = {"labelled": ("videos",), "whole": ("face3d", "models"), "unread_params": AUDIO_PARAMS}
 
 
 def take_part(take: TakeTrack, outputs: FrameOutputs) -> Result:

@@ -29,7 +29,7 @@ from stages.tracking.eyes import REST_OFFSETS
 from stages.tracking.figures import FIGURES
 from stages.tracking.gaps import apply_plan, fill_gaps, gap_plan
 from stages.tracking.landmarks68 import mesh_to_ibug68
-from stages.tracking.parts import AUDIO_PARAMS, take_from_part, take_part
+from stages.tracking.parts import TAKE_READS, take_from_part, take_part
 from stages.tracking.schema import TRACKING_OUTPUTS
 from stages.tracking.takes import AudioSource, audio_sources, labels_fields, preflight_audio
 from stages.tracking.video import VideoInfo, iter_planes, probe_video
@@ -235,8 +235,7 @@ class FaceMesh(Stage):
         with cv_threads(jobs):
             for label, path in videos.items():
                 make = partial(track, label, Path(path))
-                reads = {"labelled": ("videos",), "whole": ("face3d", "models"), "unread_params": AUDIO_PARAMS}
-                part = self.part(label, make, **reads)
+                part = self.part(label, make, **TAKE_READS)
                 takes.append(take_from_part(part, outputs, label, Path(path), f"inputs.videos.{label}", audio[label]))
         fields = labels_fields(videos, inputs.get("audio"))
         extra = {"landmark_model": params.model, "eye_model": params.eyes}
