@@ -77,7 +77,7 @@ def run(
     until: Optional[str] = typer.Option(None, "--until", help="run only this stage and what it needs"),
     force: Optional[List[str]] = typer.Option(None, "--force", help="rerun these stages even if cached"),
     overrides: Optional[List[str]] = typer.Option(None, "-S", "--set", help="stage.param=value override"),
-    jobs: int = typer.Option(1, "-j", "--jobs", help="stages to run at once (processes)"),
+    jobs: int = typer.Option(1, "-j", "--jobs", help="stages to run at once (msflow's process and worker processes)"),
     executor: str = typer.Option("local", "--executor", help="local or dask"),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address tcp://host:port"),
     connect_timeout: float = typer.Option(10.0, "--connect-timeout", help="seconds to reach the scheduler"),

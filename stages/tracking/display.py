@@ -47,7 +47,7 @@ def display_linear(frame, *, file: str | None = None, field: str | None = None) 
 
     Raises UserError for a matrix that is no quarter turn or mirror (an arbitrary angle or a scaling): tracking
     would need to resample the picture, which no camera asks for."""
-    for data in frame.side_data:
+    for data in _side_data(frame):
         if "DISPLAYMATRIX" not in str(data.type):
             continue
         linear = matrix_linear(struct.unpack("<9i", bytes(data)[:36]))
@@ -62,6 +62,14 @@ def display_linear(frame, *, file: str | None = None, field: str | None = None) 
             )
         return rounded.astype(np.int64)
     return IDENTITY
+
+
+def _side_data(frame):
+    """A frame's side-data entries: PyAV up to 18.0 iterates them, 18.1 made the container a mapping whose
+    iteration gives their types (each entry is then looked up by its type)."""
+    container = frame.side_data
+    for item in container:
+        yield item if hasattr(item, "type") else container[item]
 
 
 def display_affine(linear: np.ndarray, width: int, height: int) -> np.ndarray:
