@@ -15,6 +15,7 @@ Outside tools (interface for every area's tests):
 """
 
 import contextlib
+import fcntl
 import logging
 import os
 import shutil
@@ -232,9 +233,14 @@ def node_modules():
         if shutil.which("node") is None or shutil.which("npm") is None:
             missing_tool("Node.js is not installed: apt-get install -y nodejs npm")
         cache.mkdir(parents=True, exist_ok=True)
-        proc = subprocess.run([*NPM_INSTALL.split(), "--silent"], cwd=cache, capture_output=True, text=True)
-        if proc.returncode != 0 or not npm_installed(modules):
-            missing_tool(f"npm could not install {NPM_PACKAGES} ({proc.stderr[-300:]}); run in {cache}: {NPM_INSTALL}")
+        with open(cache / ".install-lock", "w") as lock:  # test processes (pytest-xdist) install one at a time
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if not npm_installed(modules):
+                proc = subprocess.run([*NPM_INSTALL.split(), "--silent"], cwd=cache, capture_output=True, text=True)
+                if proc.returncode != 0 or not npm_installed(modules):
+                    missing_tool(
+                        f"npm could not install {NPM_PACKAGES} ({proc.stderr[-300:]}); run in {cache}: {NPM_INSTALL}"
+                    )
     previous = os.environ.get("MSFLOW_NODE_MODULES")
     os.environ["MSFLOW_NODE_MODULES"] = str(modules)
     yield modules
