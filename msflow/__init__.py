@@ -52,7 +52,8 @@ def run(path: Any, overrides: Sequence[str] = (), **options: Any) -> RunResult:
     force : sequence of str
         Stages to recompute even when cached.
     executor, scheduler, connect_timeout
-        ``"local"`` (msflow's own process and worker processes) or ``"dask"``; a Dask scheduler address and how long to wait for it.
+        ``"local"`` (msflow's own process and worker processes) or ``"dask"``; a Dask scheduler address and how
+        long to wait for it.
     reporter
         Receives every stage state change (the CLI's progress display).
     raise_on_failure : bool

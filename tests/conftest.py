@@ -223,6 +223,19 @@ def npm_installed(modules):
     return all((modules / spec.rsplit("@", 1)[0] / "package.json").is_file() for spec in NPM_PACKAGES)
 
 
+def install_npm_packages(cache: Path, modules: Path) -> None:
+    """npm install NPM_PACKAGES into ``cache``, one test process at a time (pytest-xdist runs several): the
+    second finds them installed under the lock."""
+    cache.mkdir(parents=True, exist_ok=True)
+    with open(cache / ".install-lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if npm_installed(modules):
+            return
+        proc = subprocess.run([*NPM_INSTALL.split(), "--silent"], cwd=cache, capture_output=True, text=True)
+    if proc.returncode != 0 or not npm_installed(modules):
+        missing_tool(f"npm could not install {NPM_PACKAGES} ({proc.stderr[-300:]}); run in {cache}: {NPM_INSTALL}")
+
+
 @pytest.fixture(scope="session")
 def node_modules():
     """The node_modules folder with NPM_PACKAGES, installed once into the npm cache folder when Node.js is present;
@@ -232,15 +245,7 @@ def node_modules():
     if not npm_installed(modules):
         if shutil.which("node") is None or shutil.which("npm") is None:
             missing_tool("Node.js is not installed: apt-get install -y nodejs npm")
-        cache.mkdir(parents=True, exist_ok=True)
-        with open(cache / ".install-lock", "w") as lock:  # test processes (pytest-xdist) install one at a time
-            fcntl.flock(lock, fcntl.LOCK_EX)
-            if not npm_installed(modules):
-                proc = subprocess.run([*NPM_INSTALL.split(), "--silent"], cwd=cache, capture_output=True, text=True)
-                if proc.returncode != 0 or not npm_installed(modules):
-                    missing_tool(
-                        f"npm could not install {NPM_PACKAGES} ({proc.stderr[-300:]}); run in {cache}: {NPM_INSTALL}"
-                    )
+        install_npm_packages(cache, modules)
     previous = os.environ.get("MSFLOW_NODE_MODULES")
     os.environ["MSFLOW_NODE_MODULES"] = str(modules)
     yield modules
